@@ -27,11 +27,17 @@ STEP_TEST_HORIZON = 11.0
 
 
 def target_filter(
-    tau: ArrayLike, theta: ArrayLike, *, dt: float, tau_cl: ArrayLike | None = None, n=None
+    tau: ArrayLike,
+    theta: ArrayLike,
+    *,
+    dt: float,
+    tau_cl: ArrayLike | None = None,
+    n: int | None = None,
+    max_theta: float | None = None,
 ) -> FOPTDBatch:
     """The paper's target-trajectory filter exp(-theta s)/(tau_cl s + 1), tau_cl = 2 tau."""
     tau_cl = 2.0 * np.asarray(tau, dtype=np.float64) if tau_cl is None else tau_cl
-    return FOPTDBatch(1.0, tau_cl, theta, dt=dt, n=n)
+    return FOPTDBatch(1.0, tau_cl, theta, dt=dt, n=n, max_theta=max_theta)
 
 
 @dataclass
@@ -48,9 +54,7 @@ class LoopTrace:
         return self.sp - self.y
 
 
-def run_closed_loop(
-    plant: FOPTDBatch, pi: PIBatch, target: FOPTDBatch, sp: ArrayLike
-) -> LoopTrace:
+def run_closed_loop(plant: FOPTDBatch, pi: PIBatch, target: FOPTDBatch, sp: ArrayLike) -> LoopTrace:
     """Run plant, PI and target filter together over a setpoint schedule.
 
     ``sp`` has shape (n_steps,) (the same schedule for all loops) or (N, n_steps).
@@ -61,12 +65,13 @@ def run_closed_loop(
     sp = np.broadcast_to(sp, (plant.n, sp.shape[-1]))
     n_steps = sp.shape[1]
     ys, rs, us = (np.empty((plant.n, n_steps)) for _ in range(3))
-    for k in range(n_steps):
-        ys[:, k] = plant.output()
-        rs[:, k] = target.output()
-        us[:, k] = u = pi.step(sp[:, k] - plant.measure())
-        plant.step(u)
-        target.step(sp[:, k])
+    with np.errstate(over="ignore", invalid="ignore"):  # unstable trials overflow to inf
+        for k in range(n_steps):
+            ys[:, k] = plant.output()
+            rs[:, k] = target.output()
+            us[:, k] = u = pi.step(sp[:, k] - plant.measure())
+            plant.step(u)
+            target.step(sp[:, k])
     return LoopTrace(y=ys, target=rs, u=us, sp=np.array(sp))
 
 
@@ -82,7 +87,9 @@ def step_test(
     tau_cl: ArrayLike | None = None,
 ) -> LoopTrace:
     """The paper's step test: steady state at -1, setpoint step to +1 at t = 0."""
-    K, tau, theta, kp, ki = np.broadcast_arrays(*(np.asarray(v, np.float64) for v in (K, tau, theta, kp, ki)))
+    K, tau, theta, kp, ki = np.broadcast_arrays(
+        *(np.asarray(v, np.float64) for v in (K, tau, theta, kp, ki))
+    )
     K, tau, theta, kp, ki = (np.atleast_1d(v) for v in (K, tau, theta, kp, ki))
     n = K.size
     plant = FOPTDBatch(K, tau, theta, dt=dt, n=n)

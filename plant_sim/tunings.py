@@ -21,7 +21,10 @@ def to_parallel(Kc: ArrayLike, tau_I: ArrayLike) -> tuple[np.ndarray, np.ndarray
 
 
 def simc(K: ArrayLike, tau: ArrayLike, theta: ArrayLike, tau_c: ArrayLike):
-    """Original SIMC (Skogestad 2003): Kc = tau/(K(tau_c+theta)), tau_I = min(tau, 4(tau_c+theta))."""
+    """Original SIMC (Skogestad 2003).
+
+    Kc = tau/(K(tau_c+theta)), tau_I = min(tau, 4(tau_c+theta)).
+    """
     K, tau, theta, tau_c = (np.asarray(v, dtype=np.float64) for v in (K, tau, theta, tau_c))
     return tau / (K * (tau_c + theta)), np.minimum(tau, 4.0 * (tau_c + theta))
 

@@ -154,7 +154,7 @@ class TwoTankBatch:
         )
 
     def step(self, flow_sp: ArrayLike) -> np.ndarray:
-        """Hold the flow setpoint (L/min) for one scan; return the noise-free measured level (cm)."""
+        """Hold the flow setpoint (L/min) for one scan; return the noise-free level reading (cm)."""
         flow_sp = np.broadcast_to(np.asarray(flow_sp, dtype=np.float64), (self.n,))
         h = self.h
         for _ in range(self.substeps):

@@ -145,7 +145,9 @@ class Agent:
         as_numpy = not isinstance(obs, torch.Tensor)
         obs_t = torch.as_tensor(np.asarray(obs) if as_numpy else obs, dtype=torch.float32)
         if obs_t.ndim != 2 or obs_t.shape[1] != self.cfg.obs_dim:
-            raise ValueError(f"obs must have shape (n, {self.cfg.obs_dim}), got {tuple(obs_t.shape)}")
+            raise ValueError(
+                f"obs must have shape (n, {self.cfg.obs_dim}), got {tuple(obs_t.shape)}"
+            )
         h = torch.as_tensor(state, dtype=torch.float32)
         if h.shape != (obs_t.shape[0], self.cfg.layers, self.cfg.hidden):
             raise ValueError(f"state must have shape (n, {self.cfg.layers}, {self.cfg.hidden})")
