@@ -1,0 +1,436 @@
+"""Per-loop runtime state, kept in numpy arrays indexed by a loop's slot.
+
+For each accepted sample the table integrates the error (trapezoid on the plant's
+timestamps), decimates to the RL period by sample time (never wall time, so an
+accelerated simulation tunes as fast as it publishes) and says whether the loop is
+due for an RL step. :meth:`LoopTable.step` then steps every due loop in one batched
+agent call and applies the safety guard, vectorised over the batch.
+
+Safety guard, per loop:
+
+* new gains are clipped to the loop's absolute bounds, then to at most a relative
+  change ``r`` per update ([old / (1 + r), old * (1 + r)], symmetric in log space), so
+  a gain outside its bounds (an operator's choice) is walked back gradually;
+* no RL step while the gateway reports manual mode or a saturated output, and none
+  across a gap of more than ``stale_periods`` sample periods (the decimation window
+  restarts at the first sample after the gap, and the integral does not bridge it);
+* ``frozen`` loops are never stepped; ``advisory`` loops are stepped and their
+  proposals published, but their gains change only when the gateway reports them.
+
+Gains the gateway reports in a sample are adopted when they differ from the tuner's
+(an operator changed them), except when they are exactly the gains an auto update just
+replaced: then the update is still in flight and adopting would undo it.
+
+Every method must be called with :attr:`LoopTable.lock` held; the table is shared by
+the bus worker and the admin API. Changes to persist (new gains, audit rows) accumulate
+until :meth:`LoopTable.drain_changes`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.agent import Agent
+from service.protocol import LoopStatus, Mode, RejectReason, Sample
+from service.schemas import Counters, LoopConfig, LoopView
+from service.store import AuditRow, audit_row
+
+MAX_AGENT_ERROR = 100.0
+"""An error beyond this many agent units (training sees about 2) is an absurd sample."""
+GAIN_RTOL = 1e-9
+"""Relative tolerance when comparing reported gains with the tuner's."""
+
+_MODES = list(Mode)
+_CODE = {m: i for i, m in enumerate(_MODES)}
+AUTO, ADVISORY, FROZEN = (_CODE[m] for m in (Mode.auto, Mode.advisory, Mode.frozen))
+
+_F64 = (
+    # gains now, registered, and replaced by an update still in flight
+    "kp", "ki", "reg_kp", "reg_ki", "prev_kp", "prev_ki",
+    # unit mapping (engineering per agent) and timing
+    "kp_unit", "ki_unit", "e_scale", "int_scale", "period", "stale_gap", "forgetting",
+    # episode state
+    "last_t", "last_e", "int_e", "next_due", "last_wall",
+    # safety guard and flood limiter
+    "kp_min", "kp_max", "ki_min", "ki_max", "max_rel", "tokens", "token_wall",
+)  # fmt: skip
+_I64 = ["mode", "seq", "n_samples", "n_rejected", "n_steps", "n_updates"]
+_BOOL = ["pending", "manual", "saturated"]
+
+
+class Rejected(Exception):
+    def __init__(self, reason: RejectReason, detail: str) -> None:
+        super().__init__(detail)
+        self.reason = reason
+        self.detail = detail
+
+
+@dataclass
+class StepResult:
+    """One batched RL step; arrays are aligned with ``loop_ids``."""
+
+    loop_ids: list[str]
+    t: np.ndarray
+    seq: np.ndarray
+    mode: np.ndarray
+    old: np.ndarray
+    """(n, 2) gains before the step."""
+    proposed: np.ndarray
+    """(n, 2) gains the agent proposed."""
+    new: np.ndarray
+    """(n, 2) gains after the safety guard (published)."""
+
+    def modes(self) -> list[Mode]:
+        return [_MODES[c] for c in self.mode]
+
+
+class LoopTable:
+    """Runtime state of all registered loops; one batched agent per table."""
+
+    def __init__(self, agent: Agent, *, max_rate_hz: float, capacity: int = 64) -> None:
+        self.agent = agent
+        self.lock = threading.RLock()
+        self.rate = float(max_rate_hz)
+        self.burst = max(self.rate, 1.0)
+        self.configs: dict[str, LoopConfig] = {}
+        self.slot_of: dict[str, int] = {}
+        self.ids: list[str | None] = []
+        self._free: list[int] = []
+        self._gains_dirty: set[int] = set()
+        self._audit: list[AuditRow] = []
+        self._allocate(capacity)
+
+    # -- storage ----------------------------------------------------------------------
+    def _allocate(self, capacity: int) -> None:
+        old = len(self.ids)
+        layers, hidden = self.agent.cfg.layers, self.agent.cfg.hidden
+        for names, dtype in ((_F64, np.float64), (_I64, np.int64), (_BOOL, bool)):
+            for name in names:
+                arr = np.zeros(capacity, dtype)
+                if old:
+                    arr[:old] = getattr(self, name)
+                setattr(self, name, arr)
+        h = np.zeros((capacity, layers, hidden), np.float32)
+        if old:
+            h[:old] = self.hidden
+        self.hidden = h
+        self.ids.extend([None] * (capacity - old))
+        self._free.extend(range(capacity - 1, old - 1, -1))
+
+    def __len__(self) -> int:
+        return len(self.slot_of)
+
+    def slot(self, loop_id: str) -> int:
+        """Slot of a registered loop; KeyError if unknown."""
+        return self.slot_of[loop_id]
+
+    # -- registration -----------------------------------------------------------------
+    def add(
+        self,
+        config: LoopConfig,
+        *,
+        kp: float | None = None,
+        ki: float | None = None,
+        seq: int = 0,
+        hidden: bytes | None = None,
+        runtime: str | None = None,
+        wall: float,
+    ) -> int:
+        """Register a loop (new: registered gains; restored: stored gains and snapshot)."""
+        if config.id in self.slot_of:
+            raise KeyError(f"loop {config.id!r} already registered")
+        if not self._free:
+            self._allocate(2 * len(self.ids))
+        s = self._free.pop()
+        self.ids[s] = config.id
+        self.slot_of[config.id] = s
+        self.reg_kp[s], self.reg_ki[s] = config.kp, config.ki
+        self.kp[s] = config.kp if kp is None else kp
+        self.ki[s] = config.ki if ki is None else ki
+        self.seq[s] = seq
+        self.n_samples[s] = self.n_rejected[s] = self.n_steps[s] = self.n_updates[s] = 0
+        self.tokens[s], self.token_wall[s] = self.burst, wall
+        self._configure(s, config)
+        self._restart(s)
+        if hidden is not None and runtime is not None:
+            self._restore(s, hidden, runtime)
+        return s
+
+    def _configure(self, s: int, config: LoopConfig) -> None:
+        self.configs[config.id] = config
+        sc = config.resolved_scaling
+        g = config.guard
+        self.kp_unit[s], self.ki_unit[s] = sc.kp_per_agent, sc.ki_per_agent
+        self.e_scale[s] = sc.e_scale
+        self.int_scale[s] = sc.e_scale / sc.time_unit_s
+        self.period[s] = sc.rl_period_s
+        self.stale_gap[s] = g.stale_periods * config.sample_period_s
+        self.forgetting[s] = config.forgetting
+        self.kp_min[s], self.kp_max[s] = g.kp_min, g.kp_max
+        self.ki_min[s], self.ki_max[s] = g.ki_min, g.ki_max
+        self.max_rel[s] = g.max_rel_change
+        self.mode[s] = _CODE[config.mode]
+
+    def _restart(self, s: int) -> None:
+        """A fresh episode: zero hidden state and integral, no time reference."""
+        self.hidden[s] = 0.0
+        self.int_e[s] = self.last_e[s] = 0.0
+        self.last_t[s] = self.next_due[s] = math.nan
+        self.last_wall[s] = -math.inf
+        self.pending[s] = self.manual[s] = self.saturated[s] = False
+
+    def reconfigure(self, config: LoopConfig) -> None:
+        self._configure(self.slot(config.id), config)
+
+    def remove(self, loop_id: str) -> None:
+        s = self.slot_of.pop(loop_id)
+        del self.configs[loop_id]
+        self.ids[s] = None
+        self._gains_dirty.discard(s)
+        self._free.append(s)
+
+    def reset(self, loop_id: str, wall: float) -> StepResult:
+        """Back to the registered gains with a fresh episode; the result is to be published."""
+        s = self.slot(loop_id)
+        old = (self.kp[s], self.ki[s])
+        self.kp[s], self.ki[s] = self.reg_kp[s], self.reg_ki[s]
+        t = self.last_t[s]
+        self._restart(s)
+        self.seq[s] += 1
+        new = (self.kp[s], self.ki[s])
+        self._gains_dirty.add(s)
+        self._audit.append(
+            audit_row(
+                loop_id, wall, None if math.isnan(t) else t, int(self.seq[s]),
+                _MODES[self.mode[s]].value, "reset", old, new,
+            )
+        )  # fmt: skip
+        return StepResult(
+            [loop_id],
+            np.array([0.0 if math.isnan(t) else t]),
+            self.seq[[s]].copy(),
+            self.mode[[s]].copy(),
+            np.array([old]),
+            np.array([new]),
+            np.array([new]),
+        )
+
+    # -- samples ----------------------------------------------------------------------
+    def ingest(self, s: int, sample: Sample, wall: float) -> bool:
+        """Take one validated sample of the loop in slot ``s``; True if an RL step is due.
+
+        Raises :class:`Rejected` (the loop's state unchanged but for its counters).
+        """
+        try:
+            return self._ingest(s, sample, wall)
+        except Rejected:
+            self.n_rejected[s] += 1
+            raise
+
+    def _ingest(self, s: int, sample: Sample, wall: float) -> bool:
+        tokens = min(self.burst, self.tokens[s] + (wall - self.token_wall[s]) * self.rate)
+        self.token_wall[s] = wall
+        if tokens < 1.0:
+            self.tokens[s] = tokens
+            raise Rejected(RejectReason.flood, f"over {self.rate:g} samples/s")
+        self.tokens[s] = tokens - 1.0
+        t, last_t = sample.t, self.last_t[s]
+        if t <= last_t:  # False while last_t is NaN (no sample yet)
+            if t == last_t:
+                raise Rejected(RejectReason.duplicate, f"t={t} again")
+            raise Rejected(RejectReason.out_of_order, f"t={t} < last t={last_t}")
+        e = sample.error
+        if abs(e) * self.e_scale[s] > MAX_AGENT_ERROR:
+            raise Rejected(RejectReason.out_of_range, f"|e|={abs(e):g} is absurd for this loop")
+        if sample.kp is not None or sample.ki is not None:
+            self._adopt(s, sample, wall)
+
+        self.n_samples[s] += 1
+        self.last_wall[s] = wall
+        self.manual[s] = not sample.auto
+        self.saturated[s] = sample.saturated
+        self.last_t[s] = t
+        if math.isnan(last_t) or t - last_t > self.stale_gap[s]:
+            self.next_due[s] = t + self.period[s]  # a new decimation window
+        else:
+            self.int_e[s] += 0.5 * (e + self.last_e[s]) * (t - last_t) * self.int_scale[s]
+        self.last_e[s] = e
+        if t < self.next_due[s]:
+            return False
+        period = self.period[s]
+        self.next_due[s] += period * (math.floor((t - self.next_due[s]) / period) + 1.0)
+        return self.mode[s] != FROZEN and sample.auto and not sample.saturated
+
+    def _adopt(self, s: int, sample: Sample, wall: float) -> None:
+        kp = self.kp[s] if sample.kp is None else sample.kp
+        ki = self.ki[s] if sample.ki is None else sample.ki
+        if _close(kp, self.kp[s]) and _close(ki, self.ki[s]):
+            self.pending[s] = False
+            return
+        if self.pending[s] and _close(kp, self.prev_kp[s]) and _close(ki, self.prev_ki[s]):
+            return
+        self.pending[s] = False
+        old = (self.kp[s], self.ki[s])
+        self.kp[s], self.ki[s] = kp, ki
+        self._gains_dirty.add(s)
+        self._audit.append(
+            audit_row(
+                self.ids[s], wall, sample.t, int(self.seq[s]), _MODES[self.mode[s]].value,
+                "adopted", old, (kp, ki), "gains reported by the gateway",
+            )
+        )  # fmt: skip
+
+    # -- RL step ----------------------------------------------------------------------
+    def step(self, slots: np.ndarray, wall: float) -> StepResult:
+        """One batched agent step of the loops in ``slots`` (each due, each once)."""
+        kp_unit, ki_unit = self.kp_unit[slots], self.ki_unit[slots]
+        old = np.column_stack([self.kp[slots], self.ki[slots]])
+        obs = np.column_stack(
+            [
+                old[:, 0] / kp_unit,
+                old[:, 1] / ki_unit,
+                self.last_e[slots] * self.e_scale[slots],
+                self.int_e[slots],
+            ]
+        )
+        delta, self.hidden[slots] = self.agent.act(obs, self.hidden[slots], self.forgetting[slots])
+        proposed = np.column_stack(
+            [(obs[:, 0] + delta[:, 0]) * kp_unit, (obs[:, 1] + delta[:, 1]) * ki_unit]
+        )
+        grow = 1.0 + self.max_rel[slots, None]
+        lo = np.column_stack([self.kp_min[slots], self.ki_min[slots]])
+        hi = np.column_stack([self.kp_max[slots], self.ki_max[slots]])
+        new = np.clip(np.clip(proposed, lo, hi), old / grow, old * grow)
+
+        auto = slots[self.mode[slots] == AUTO]
+        applied = self.mode[slots] == AUTO
+        self.prev_kp[auto], self.prev_ki[auto] = old[applied, 0], old[applied, 1]
+        self.kp[auto], self.ki[auto] = new[applied, 0], new[applied, 1]
+        self.pending[auto] = True
+        self.seq[slots] += 1
+        self.n_steps[slots] += 1
+        self.n_updates[slots] += 1
+        self._gains_dirty.update(slots.tolist())
+
+        result = StepResult(
+            [self.ids[s] for s in slots],
+            self.last_t[slots],
+            self.seq[slots],
+            self.mode[slots],
+            old,
+            proposed,
+            new,
+        )
+        for i, (loop_id, mode) in enumerate(zip(result.loop_ids, result.modes(), strict=True)):
+            self._audit.append(
+                audit_row(
+                    loop_id, wall, float(result.t[i]), int(result.seq[i]), mode.value, "agent",
+                    tuple(old[i]), tuple(new[i]), _guard_detail(proposed[i], new[i]),
+                )
+            )  # fmt: skip
+        return result
+
+    # -- persistence ------------------------------------------------------------------
+    def drain_changes(self) -> tuple[list[tuple[float, float, int, str]], list[AuditRow]]:
+        """Gains rows (kp, ki, seq, id) and audit rows accumulated since the last call."""
+        gains = [
+            (float(self.kp[s]), float(self.ki[s]), int(self.seq[s]), self.ids[s])
+            for s in sorted(self._gains_dirty)
+        ]
+        audit, self._audit = self._audit, []
+        self._gains_dirty.clear()
+        return gains, audit
+
+    def snapshot(self) -> list[tuple[str, bytes, str]]:
+        """(id, hidden state bytes, runtime JSON) of every loop."""
+        return [
+            (loop_id, self.hidden[s].tobytes(), self._runtime(s))
+            for loop_id, s in self.slot_of.items()
+        ]
+
+    def _runtime(self, s: int) -> str:
+        def num(x: float) -> float | None:
+            return None if math.isnan(x) else float(x)
+
+        return json.dumps(
+            {
+                "last_t": num(self.last_t[s]),
+                "last_e": float(self.last_e[s]),
+                "int_e": float(self.int_e[s]),
+                "next_due": num(self.next_due[s]),
+                "manual": bool(self.manual[s]),
+                "saturated": bool(self.saturated[s]),
+                "counters": [int(getattr(self, n)[s]) for n in _I64[2:]],
+            }
+        )
+
+    def _restore(self, s: int, hidden: bytes, runtime: str) -> None:
+        h = np.frombuffer(hidden, np.float32)
+        if h.size == self.hidden[s].size:
+            self.hidden[s] = h.reshape(self.hidden[s].shape)
+        rt = json.loads(runtime)
+        self.last_t[s] = math.nan if rt["last_t"] is None else rt["last_t"]
+        self.next_due[s] = math.nan if rt["next_due"] is None else rt["next_due"]
+        self.last_e[s], self.int_e[s] = rt["last_e"], rt["int_e"]
+        self.manual[s], self.saturated[s] = rt["manual"], rt["saturated"]
+        for name, value in zip(_I64[2:], rt["counters"], strict=True):
+            getattr(self, name)[s] = value
+
+    # -- views ------------------------------------------------------------------------
+    def status(self, s: int, wall: float) -> LoopStatus:
+        if self.mode[s] == FROZEN:
+            return LoopStatus.frozen
+        if math.isnan(self.last_t[s]):
+            return LoopStatus.waiting
+        if wall - self.last_wall[s] > self.stale_gap[s]:
+            return LoopStatus.stale
+        if self.manual[s]:
+            return LoopStatus.manual
+        if self.saturated[s]:
+            return LoopStatus.saturated
+        return LoopStatus.tuning
+
+    def view(self, loop_id: str, wall: float) -> LoopView:
+        s = self.slot(loop_id)
+        config = self.configs[loop_id]
+        scaling = config.resolved_scaling
+        return LoopView(
+            config=config,
+            scaling=scaling,
+            rl_period_s=scaling.rl_period_s,
+            kp=float(self.kp[s]),
+            ki=float(self.ki[s]),
+            mode=config.mode,
+            status=self.status(s, wall),
+            seq=int(self.seq[s]),
+            last_sample_t=None if math.isnan(self.last_t[s]) else float(self.last_t[s]),
+            int_e=float(self.int_e[s]),
+            hidden_norm=float(np.linalg.norm(self.hidden[s])),
+            counters=Counters(
+                samples=int(self.n_samples[s]),
+                rejected=int(self.n_rejected[s]),
+                steps=int(self.n_steps[s]),
+                updates=int(self.n_updates[s]),
+            ),
+        )
+
+    def mode_counts(self) -> dict[Mode, int]:
+        counts = dict.fromkeys(Mode, 0)
+        for config in self.configs.values():
+            counts[config.mode] += 1
+        return counts
+
+
+def _close(a: float, b: float) -> bool:
+    return abs(a - b) <= GAIN_RTOL * max(abs(a), abs(b))
+
+
+def _guard_detail(proposed: np.ndarray, new: np.ndarray) -> str:
+    if np.allclose(proposed, new, rtol=GAIN_RTOL, atol=0.0):
+        return ""
+    return f"limited by the safety guard (proposed kp={proposed[0]:.6g}, ki={proposed[1]:.6g})"

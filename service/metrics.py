@@ -1,0 +1,94 @@
+"""Prometheus metrics of one tuner, and rate-limited logging of rejected input.
+
+Each tuner owns its registry, so several tuners in one process (tests) never share
+counters.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
+
+from service.protocol import Mode, RejectReason
+
+log = logging.getLogger("pitune.tuner")
+
+
+class Metrics:
+    def __init__(self) -> None:
+        self.registry = CollectorRegistry()
+        r = self.registry
+        self.samples_received = Counter(
+            "pitune_samples_received", "Sample messages received on the bus.", registry=r
+        )
+        self.samples_rejected = Counter(
+            "pitune_samples_rejected", "Samples rejected, by reason.", ["reason"], registry=r
+        )
+        self.updates_published = Counter(
+            "pitune_updates_published", "Gains messages published, by mode.", ["mode"], registry=r
+        )
+        self.inference_seconds = Histogram(
+            "pitune_inference_batch_seconds",
+            "Wall time of one batched agent step.",
+            buckets=(0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.25, 1.0),
+            registry=r,
+        )
+        self.inference_batch_size = Histogram(
+            "pitune_inference_batch_loops",
+            "Loops stepped per batched agent call.",
+            buckets=(1, 2, 5, 10, 50, 100, 500, 1000, 5000, 10000),
+            registry=r,
+        )
+        self.loops = Gauge("pitune_loops", "Registered loops, by mode.", ["mode"], registry=r)
+        self.queue_depth = Gauge("pitune_queue_depth", "Bus messages waiting.", registry=r)
+        # Every label value exists from the start, so dashboards and tests see zeros.
+        for reason in RejectReason:
+            self.samples_rejected.labels(reason.value)
+        for mode in Mode:
+            self.loops.labels(mode.value).set(0)
+        for mode in (Mode.auto, Mode.advisory):  # frozen loops publish nothing
+            self.updates_published.labels(mode.value)
+        self._rejections = RateLimitedLog(log)
+
+    def reject(self, reason: RejectReason, loop_id: str | None, detail: str) -> None:
+        """Count a rejected sample and log it (at most once per interval and reason)."""
+        self.samples_rejected.labels(reason.value).inc()
+        self._rejections.warning(
+            reason.value, f"sample rejected ({reason}) loop={loop_id}: {detail}"
+        )
+
+    def set_loop_counts(self, counts: dict[Mode, int]) -> None:
+        for mode in Mode:
+            self.loops.labels(mode.value).set(counts.get(mode, 0))
+
+    def render(self) -> bytes:
+        return generate_latest(self.registry)
+
+    def value(self, name: str, **labels: str) -> float:
+        """Current value of a sample (tests and the admin API)."""
+        v = self.registry.get_sample_value(name, labels or None)
+        return 0.0 if v is None else v
+
+
+class RateLimitedLog:
+    """Log at most one message per key and interval, reporting how many were suppressed."""
+
+    def __init__(self, logger: logging.Logger, interval_s: float = 5.0) -> None:
+        self.logger = logger
+        self.interval_s = interval_s
+        self._last: dict[str, float] = {}
+        self._suppressed: dict[str, int] = {}
+
+    def warning(self, key: str, message: str) -> bool:
+        now = time.monotonic()
+        if now - self._last.get(key, -float("inf")) < self.interval_s:
+            self._suppressed[key] = self._suppressed.get(key, 0) + 1
+            return False
+        suppressed = self._suppressed.pop(key, 0)
+        if suppressed:
+            message += f" ({suppressed} similar suppressed)"
+        self._last[key] = now
+        self.logger.warning(message)
+        return True

@@ -1,0 +1,140 @@
+"""Mapping a plant loop into the agent's units: the paper's section 5.4 recipe.
+
+The agent was trained on FOPTD plants with gain K in [0.25, 1], time constant tau in
+[0.25, 1] (dimensionless time units) and errors of order 1. A real loop is made to look
+like one of those by three factors, derived from a crude model hint (process gain
+``k_hat`` and time constant ``tau_hat`` in engineering units) and a PV scale:
+
+* error scale ``e_scale`` (agent error per engineering error) = 1 / pv_scale. The paper
+  subtracts the 55 cm operating point and divides by 10 cm; the offset cancels in an
+  error, so only the division remains.
+* output scale ``u_scale`` (agent controller output per engineering output)
+  = e_scale * k_hat / 0.5, so that the hinted plant appears with gain 0.5, the
+  geometric centre of the training range; a hint wrong by 0.5x-2x still lands inside.
+  A plant of true gain K appears as K * e_scale / u_scale.
+* time unit ``time_unit_s`` (seconds per agent time unit) = tau_hat / 0.5, so the
+  hinted time constant appears as 0.5; a true tau appears as tau / time_unit_s.
+
+A PI controller u = kp e + ki int(e dt) then maps between the two unit systems as
+
+    kp_eng = kp_agent * e_scale / u_scale
+    ki_eng = ki_agent * e_scale / (u_scale * time_unit_s)        (ki_eng per second)
+
+and the agent's integral state is int(e_agent dt_agent) = e_scale / time_unit_s times
+the integral of the engineering error over seconds. One RL step (one gain update) is
+:data:`RL_STEP_AGENT_UNITS` agent time units, i.e. ``RL_STEP_AGENT_UNITS * time_unit_s``
+seconds of plant time.
+
+Paper example (two tanks): hint 1.2 cm/(L/min), 30 s; PV scale 10 cm. Then
+e_scale = 0.1, the hint appears as 0.12 before and 0.5 after output scaling
+(u_scale = 0.24, i.e. the agent's output is multiplied by 0.5/0.12 on its way to the
+plant), the true gain 1.7 appears as 0.71, one agent time unit is 60 s, and the true
+55 s time constant appears as 0.92.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+AGENT_GAIN = 0.5
+"""Process gain at which a hinted loop appears to the agent."""
+AGENT_TAU = 0.5
+"""Time constant (agent units) at which a hinted loop appears to the agent."""
+RL_STEP_AGENT_UNITS = 2.75
+"""Agent time units between two RL steps (gain updates), as in training."""
+
+Factor = Annotated[float, Field(ge=1e-9, le=1e9, allow_inf_nan=False)]
+"""Every hint and factor lies within 1e-9..1e9, so derived gains stay finite and nonzero."""
+
+
+class ScalingSpec(BaseModel):
+    """How to map a loop into the agent's units: a model hint, overridable factor by factor."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    k_hat: Factor | None = Field(
+        None,
+        description="Rough process gain, output-to-PV, engineering units (its magnitude).",
+    )
+    tau_hat: Factor | None = Field(None, description="Rough process time constant, seconds.")
+    pv_scale: Factor | None = Field(
+        None,
+        description="Typical error excursion in PV units (the paper's 10 cm); default 1.",
+    )
+    e_scale: Factor | None = Field(
+        None,
+        description="Override: agent error per engineering error (default 1/pv_scale).",
+    )
+    u_scale: Factor | None = Field(
+        None,
+        description="Override: agent controller output per engineering output "
+        "(default e_scale * k_hat / 0.5).",
+    )
+    time_unit_s: Factor | None = Field(
+        None,
+        description="Override: seconds per agent time unit (default tau_hat / 0.5).",
+    )
+
+    @model_validator(mode="after")
+    def _complete(self) -> ScalingSpec:
+        if self.pv_scale is not None and self.e_scale is not None:
+            raise ValueError("give pv_scale or e_scale, not both")
+        if self.u_scale is None and self.k_hat is None:
+            raise ValueError("need k_hat (model hint) or an explicit u_scale")
+        if self.time_unit_s is None and self.tau_hat is None:
+            raise ValueError("need tau_hat (model hint) or an explicit time_unit_s")
+        try:
+            self.resolve()
+        except ValidationError as exc:
+            msg = exc.errors()[0]["msg"]
+            raise ValueError(f"derived scaling factor out of range: {msg}") from None
+        return self
+
+    def resolve(self) -> Scaling:
+        e_scale = self.e_scale or 1.0 / (self.pv_scale or 1.0)
+        u_scale = self.u_scale or e_scale * self.k_hat / AGENT_GAIN
+        time_unit_s = self.time_unit_s or self.tau_hat / AGENT_TAU
+        return Scaling(e_scale=e_scale, u_scale=u_scale, time_unit_s=time_unit_s)
+
+
+class Scaling(BaseModel):
+    """Resolved factors between engineering and agent units (see the module docstring)."""
+
+    model_config = ConfigDict(frozen=True)
+
+    e_scale: Factor
+    u_scale: Factor
+    time_unit_s: Factor
+
+    @property
+    def kp_per_agent(self) -> float:
+        """Engineering kp per agent kp."""
+        return self.e_scale / self.u_scale
+
+    @property
+    def ki_per_agent(self) -> float:
+        """Engineering ki (per second) per agent ki."""
+        return self.e_scale / (self.u_scale * self.time_unit_s)
+
+    @property
+    def rl_period_s(self) -> float:
+        """Plant seconds between two RL steps."""
+        return RL_STEP_AGENT_UNITS * self.time_unit_s
+
+    def apparent_gain(self, k: float) -> float:
+        """Gain at which a plant of engineering gain ``k`` appears to the agent."""
+        return k * self.e_scale / self.u_scale
+
+    def apparent_tau(self, tau_s: float) -> float:
+        """Time constant (agent units) at which a plant time constant in seconds appears."""
+        return tau_s / self.time_unit_s
+
+    def to_agent(self, kp: float, ki: float) -> tuple[float, float]:
+        """Engineering (kp, ki per second) -> agent (kp, ki)."""
+        return kp / self.kp_per_agent, ki / self.ki_per_agent
+
+    def to_engineering(self, kp: float, ki: float) -> tuple[float, float]:
+        """Agent (kp, ki) -> engineering (kp, ki per second)."""
+        return kp * self.kp_per_agent, ki * self.ki_per_agent

@@ -1,0 +1,180 @@
+"""REST schemas of the admin API (loop registration, views, audit log).
+
+A :class:`LoopConfig` is also what the store persists: what a loop was registered
+with, with the safety bounds resolved to explicit engineering values.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from service.protocol import Gain, LoopId, LoopStatus, Mode
+from service.scaling import Scaling, ScalingSpec
+
+AGENT_GAIN_RANGE = (0.01, 50.0)
+"""Default bounds of kp and ki in agent units: the range the agent was trained in."""
+
+Fraction = Annotated[float, Field(gt=0.0, le=10.0, allow_inf_nan=False)]
+
+
+class Guard(BaseModel):
+    """Per-loop safety limits. Unset bounds default to the agent's training range."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    kp_min: Gain | None = None
+    kp_max: Gain | None = None
+    ki_min: Gain | None = Field(None, description="Per second, like ki.")
+    ki_max: Gain | None = Field(None, description="Per second, like ki.")
+    max_rel_change: Fraction = Field(
+        0.5,
+        description="Largest relative change per update: each gain stays within "
+        "[old / (1 + r), old * (1 + r)].",
+    )
+    stale_periods: Annotated[float, Field(ge=1.0, le=1e6)] = Field(
+        5.0, description="Tuning pauses after this many sample periods without a sample."
+    )
+
+
+class LoopConfig(BaseModel):
+    """Registration of a loop (body of ``POST /loops``)."""
+
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={
+            "examples": [
+                {
+                    "id": "LIC-101",
+                    "kp": 0.5,
+                    "ki": 0.01,
+                    "sample_period_s": 1.0,
+                    "scaling": {"k_hat": 1.2, "tau_hat": 30.0, "pv_scale": 10.0},
+                }
+            ]
+        },
+    )
+
+    id: LoopId
+    kp: Gain = Field(description="Registered proportional gain, engineering units.")
+    ki: Gain = Field(description="Registered integral gain, engineering units per second.")
+    sample_period_s: Annotated[float, Field(gt=0.0, le=1e6)] = Field(
+        description="The gateway's sample clock, seconds (staleness is measured in it)."
+    )
+    scaling: ScalingSpec
+    mode: Mode = Mode.auto
+    forgetting: Annotated[float, Field(gt=0.0, le=1.0)] = Field(
+        0.99, description="Forgetting factor of the agent's hidden state (the paper's gamma)."
+    )
+    guard: Guard = Guard()
+
+    @model_validator(mode="after")
+    def _resolve_bounds(self) -> LoopConfig:
+        self.guard = resolve_bounds(self.guard, self.scaling.resolve(), self.kp, self.ki)
+        check_bounds(self.guard, self.kp, self.ki)
+        return self
+
+    @property
+    def resolved_scaling(self) -> Scaling:
+        return self.scaling.resolve()
+
+
+def resolve_bounds(guard: Guard, scaling: Scaling, kp: float, ki: float) -> Guard:
+    """Fill unset bounds from the agent's training range, widened to hold (kp, ki)."""
+    lo, hi = AGENT_GAIN_RANGE
+    defaults = {
+        "kp_min": min(lo * scaling.kp_per_agent, kp),
+        "kp_max": max(hi * scaling.kp_per_agent, kp),
+        "ki_min": min(lo * scaling.ki_per_agent, ki),
+        "ki_max": max(hi * scaling.ki_per_agent, ki),
+    }
+    unset = {k: v for k, v in defaults.items() if getattr(guard, k) is None}
+    return guard.model_copy(update=unset)
+
+
+def check_bounds(guard: Guard, kp: float, ki: float) -> None:
+    if not guard.kp_min < guard.kp_max or not guard.ki_min < guard.ki_max:
+        raise ValueError("bounds must satisfy min < max")
+    if not (guard.kp_min <= kp <= guard.kp_max and guard.ki_min <= ki <= guard.ki_max):
+        raise ValueError("the registered gains must lie within the bounds")
+
+
+class LoopPatch(BaseModel):
+    """Body of ``PATCH /loops/{id}``: fields to change, others untouched."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    mode: Mode | None = None
+    forgetting: Annotated[float, Field(gt=0.0, le=1.0)] | None = None
+    kp_min: Gain | None = None
+    kp_max: Gain | None = None
+    ki_min: Gain | None = None
+    ki_max: Gain | None = None
+    max_rel_change: Fraction | None = None
+    stale_periods: Annotated[float, Field(ge=1.0, le=1e6)] | None = None
+
+    def apply(self, config: LoopConfig) -> LoopConfig:
+        """The patched config; raises ValueError if the bounds become inconsistent."""
+        top = self.model_dump(include={"mode", "forgetting"}, exclude_none=True)
+        guard = config.guard.model_copy(
+            update=self.model_dump(exclude={"mode", "forgetting"}, exclude_none=True)
+        )
+        check_bounds(guard, config.kp, config.ki)
+        return config.model_copy(update={**top, "guard": guard})
+
+
+class Counters(BaseModel):
+    samples: int = Field(description="Samples accepted.")
+    rejected: int = Field(description="Samples rejected (known loop, bad content).")
+    steps: int = Field(description="RL steps taken.")
+    updates: int = Field(description="Gains messages published.")
+
+
+class LoopView(BaseModel):
+    """A loop as ``GET /loops/{id}`` shows it."""
+
+    config: LoopConfig
+    scaling: Scaling = Field(description="The resolved unit mapping.")
+    rl_period_s: float = Field(description="Plant seconds between two gain updates.")
+    kp: float
+    ki: float
+    mode: Mode
+    status: LoopStatus
+    seq: int
+    last_sample_t: float | None
+    int_e: float = Field(description="Integral of the error since reset, agent units.")
+    hidden_norm: float = Field(description="Norm of the agent's hidden state (0 after reset).")
+    counters: Counters
+
+
+AuditReason = Literal["registered", "agent", "reset", "adopted", "patched", "deleted"]
+
+
+class AuditEntry(BaseModel):
+    """One change of a loop's gains or configuration."""
+
+    id: int
+    loop_id: str
+    wall_time: float = Field(description="Unix time the change was recorded.")
+    t: float | None = Field(description="Plant time (s), when the change came from a sample.")
+    seq: int
+    mode: Mode
+    reason: AuditReason
+    kp_old: float | None
+    ki_old: float | None
+    kp_new: float | None
+    ki_new: float | None
+    detail: str = ""
+
+
+class HistoryPage(BaseModel):
+    items: list[AuditEntry] = Field(description="Newest first.")
+    total: int
+    offset: int
+    limit: int
+
+
+class Health(BaseModel):
+    status: Literal["ok", "starting", "failing"]
+    detail: str = ""

@@ -1,0 +1,431 @@
+"""The tuner: store, loop table, agent and bus wired together, with one worker thread.
+
+:class:`Tuner` is the daemon minus its HTTP server: ``start()`` restores the loops from
+the store and opens the bus, ``stop()`` closes the bus, drains what was received,
+snapshots and closes the store. The admin API calls its methods; tests can run it
+in-process.
+
+The worker drains the bus queue in batches. Samples are validated and integrated one
+by one; loops that fall due are collected and stepped in one batched agent call at the
+end of the batch (earlier if a due loop receives another sample, so each step sees
+exactly the data up to its own due sample). Gains and audit rows are committed to the
+store before the gains messages go out.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import queue
+import threading
+import time
+
+import numpy as np
+import orjson
+import zenoh
+from pydantic import ValidationError
+
+from service.agent import Agent, load_agent, untrained_agent
+from service.bus import JSON, Bus, Item, Kind, reply
+from service.loops import FROZEN, LoopTable, Rejected, StepResult
+from service.metrics import Metrics
+from service.protocol import (
+    SCHEMA_VERSION,
+    BatchedSample,
+    ErrorReply,
+    GainsMessage,
+    RejectReason,
+    Sample,
+    StateReply,
+    UpdateReason,
+    encode,
+)
+from service.schemas import HistoryPage, LoopConfig, LoopPatch, LoopView
+from service.settings import Settings
+from service.store import Store, audit_row
+
+log = logging.getLogger("pitune.tuner")
+_STOP = (None, "", None)
+_RANGE_ERRORS = {"less_than_equal", "greater_than_equal", "less_than", "greater_than"}
+
+
+class Conflict(Exception):
+    """The loop already exists."""
+
+
+class UnknownLoop(LookupError):
+    """No loop with this id."""
+
+
+def load_configured_agent(settings: Settings) -> Agent:
+    """The agent the settings ask for; the untrained one only with a loud warning."""
+    if settings.agent_weights == "untrained":
+        log.warning("using an UNTRAINED agent (agent_weights=untrained): updates are noise")
+        return untrained_agent(0)
+    if settings.agent_weights:
+        return load_agent(settings.agent_weights)
+    try:
+        return load_agent()
+    except FileNotFoundError:
+        log.warning(
+            "\n%s\nNO TRAINED AGENT WEIGHTS FOUND (service/models/pitune_agent.pt): falling back "
+            "to an UNTRAINED agent whose gain updates are noise. Pass --agent-weights.\n%s",
+            "!" * 78,
+            "!" * 78,
+        )
+        return untrained_agent(0)
+
+
+def classify(exc: ValidationError) -> RejectReason:
+    """The rejection reason of a sample that failed validation (its first error)."""
+    err = exc.errors()[0]
+    kind, loc = err["type"], err["loc"]
+    if kind == "json_invalid":
+        return RejectReason.malformed_json
+    if loc == ("v",) and kind in _RANGE_ERRORS:
+        return RejectReason.unsupported_version
+    if kind == "finite_number":
+        return RejectReason.non_finite
+    if kind in _RANGE_ERRORS:
+        return RejectReason.out_of_range
+    return RejectReason.schema
+
+
+class Tuner:
+    def __init__(self, settings: Settings, agent: Agent | None = None) -> None:
+        self.settings = settings
+        self.keys = settings.keys
+        self.metrics = Metrics()
+        self.agent = agent if agent is not None else load_configured_agent(settings)
+        self.table = LoopTable(self.agent, max_rate_hz=settings.max_sample_rate_hz)
+        self.inbox: queue.Queue[Item] = queue.Queue(settings.queue_size)
+        self.store: Store | None = None
+        self.bus: Bus | None = None
+        self._worker: threading.Thread | None = None
+
+    # -- lifecycle --------------------------------------------------------------------
+    def start(self) -> Tuner:
+        self.store = Store(self.settings.db_path)
+        wall = time.time()
+        with self.table.lock:
+            for stored in self.store.load():
+                self.table.add(
+                    stored.config,
+                    kp=stored.kp,
+                    ki=stored.ki,
+                    seq=stored.seq,
+                    hidden=stored.hidden,
+                    runtime=stored.runtime,
+                    wall=wall,
+                )
+            self.metrics.set_loop_counts(self.table.mode_counts())
+        log.info("restored %d loops from %s", len(self.table), self.settings.db_path)
+        self.bus = Bus(self.settings, self.inbox, self._overload)
+        try:
+            self.bus.open()
+        except BaseException:
+            self.store.close()
+            raise
+        self._worker = threading.Thread(target=self._run, name="pitune-worker", daemon=True)
+        self._worker.start()
+        log.info(
+            "tuner %s up: prefix %r, listen %s, connect %s",
+            self.settings.instance_id,
+            self.settings.key_prefix,
+            self.settings.zenoh_listen,
+            self.settings.zenoh_connect,
+        )
+        return self
+
+    def stop(self) -> None:
+        """Close the bus, handle what was already received, snapshot, close the store."""
+        if self.bus is not None:
+            self.bus.close()
+        if self._worker is not None:
+            self.inbox.put(_STOP)
+            self._worker.join(timeout=30.0)
+            self._worker = None
+        if self.store is not None:
+            self.snapshot()
+            self.store.close()
+            self.store = None
+        log.info("tuner %s stopped", self.settings.instance_id)
+
+    def __enter__(self) -> Tuner:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    @property
+    def alive(self) -> bool:
+        return self._worker is not None and self._worker.is_alive()
+
+    @property
+    def ready(self) -> bool:
+        return self.alive and self.bus is not None and self.bus.is_open
+
+    def snapshot(self) -> None:
+        with self.table.lock:
+            rows = self.table.snapshot()
+        self.store.snapshot(rows)
+
+    # -- worker -----------------------------------------------------------------------
+    def _run(self) -> None:
+        interval = self.settings.snapshot_interval_s
+        next_snapshot = time.monotonic() + interval
+        while True:
+            try:
+                items = [self.inbox.get(timeout=max(0.0, next_snapshot - time.monotonic()))]
+            except queue.Empty:
+                items = []
+            while items and len(items) < self.settings.max_batch:
+                try:
+                    items.append(self.inbox.get_nowait())
+                except queue.Empty:
+                    break
+            stop = any(item is _STOP for item in items)
+            try:
+                self._handle([item for item in items if item is not _STOP])
+                if stop or time.monotonic() >= next_snapshot:
+                    next_snapshot = time.monotonic() + interval
+                    self.snapshot()
+            except Exception:
+                log.exception("worker iteration failed; continuing")
+            if stop:
+                return
+
+    def _handle(self, items: list[Item]) -> None:
+        self.metrics.queue_depth.set(self.inbox.qsize())
+        if not items:
+            return
+        wall = time.time()
+        due: dict[int, None] = {}  # ordered set of slots
+        with self.table.lock:
+            for kind, key, payload in items:
+                if kind is Kind.sample:
+                    self._on_sample(key, payload, due, wall)
+                elif kind is Kind.batch:
+                    self._on_batch(payload, due, wall)
+                else:
+                    self._flush(due, wall)
+                    self._answer(payload)
+            self._flush(due, wall)
+            self._commit(None)
+
+    def _on_sample(self, key: str, payload: bytes, due: dict[int, None], wall: float) -> None:
+        self.metrics.samples_received.inc()
+        loop_id = self.keys.loop_id(key)
+        if loop_id is None:
+            self.metrics.reject(RejectReason.bad_key, None, f"key {key!r}")
+            return
+        try:
+            sample = Sample.model_validate_json(payload)
+        except ValidationError as exc:
+            self._reject_invalid(loop_id, exc)
+            return
+        self._ingest(loop_id, sample, due, wall)
+
+    def _on_batch(self, payload: bytes, due: dict[int, None], wall: float) -> None:
+        try:
+            message = orjson.loads(payload)
+        except orjson.JSONDecodeError as exc:
+            self.metrics.samples_received.inc()
+            self.metrics.reject(RejectReason.malformed_json, None, f"batch: {exc}")
+            return
+        items = message.get("samples") if isinstance(message, dict) else None
+        if not isinstance(items, list):
+            self.metrics.samples_received.inc()
+            self.metrics.reject(RejectReason.schema, None, "batch without a 'samples' list")
+            return
+        version = message.get("v", SCHEMA_VERSION)
+        self.metrics.samples_received.inc(len(items))
+        if not isinstance(version, int) or not 1 <= version <= SCHEMA_VERSION:
+            for _ in items:
+                self.metrics.reject(RejectReason.unsupported_version, None, f"batch v={version!r}")
+            return
+        for item in items:
+            try:
+                sample = BatchedSample.model_validate(item)
+            except ValidationError as exc:
+                loop_id = item.get("loop_id") if isinstance(item, dict) else None
+                self._reject_invalid(loop_id if isinstance(loop_id, str) else None, exc)
+                continue
+            self._ingest(sample.loop_id, sample, due, wall)
+
+    def _reject_invalid(self, loop_id: str | None, exc: ValidationError) -> None:
+        slot = self.table.slot_of.get(loop_id)
+        if slot is not None:
+            self.table.n_rejected[slot] += 1
+        self.metrics.reject(classify(exc), loop_id, exc.errors()[0]["msg"])
+
+    def _ingest(self, loop_id: str, sample: Sample, due: dict[int, None], wall: float) -> None:
+        slot = self.table.slot_of.get(loop_id)
+        if slot is None:
+            self.metrics.reject(RejectReason.unknown_loop, loop_id, "not registered")
+            return
+        if slot in due:
+            self._flush(due, wall)
+        try:
+            if self.table.ingest(slot, sample, wall):
+                due[slot] = None
+        except Rejected as exc:
+            self.metrics.reject(exc.reason, loop_id, exc.detail)
+
+    def _flush(self, due: dict[int, None], wall: float) -> None:
+        if not due:
+            return
+        slots = np.fromiter(due, dtype=np.int64, count=len(due))
+        due.clear()
+        started = time.perf_counter()
+        result = self.table.step(slots, wall)
+        self.metrics.inference_seconds.observe(time.perf_counter() - started)
+        self.metrics.inference_batch_size.observe(len(slots))
+        self._commit(result)
+
+    def _commit(self, result: StepResult | None, reason: UpdateReason = UpdateReason.agent) -> None:
+        """Persist the table's pending changes, then publish ``result``'s gains."""
+        gains, audit = self.table.drain_changes()
+        if gains or audit:
+            self.store.record_gains(gains, audit)
+        if result is None:
+            return
+        for i, (loop_id, mode) in enumerate(zip(result.loop_ids, result.modes(), strict=True)):
+            message = GainsMessage(
+                loop_id=loop_id,
+                seq=int(result.seq[i]),
+                t=float(result.t[i]),
+                dkp=float(result.new[i, 0] - result.old[i, 0]),
+                dki=float(result.new[i, 1] - result.old[i, 1]),
+                kp=float(result.new[i, 0]),
+                ki=float(result.new[i, 1]),
+                mode=mode,
+                reason=reason,
+                instance_id=self.settings.instance_id,
+            )
+            self.bus.publish(self.keys.gains(loop_id), encode(message))
+            self.metrics.updates_published.labels(mode.value).inc()
+
+    def _answer(self, query: zenoh.Query) -> None:
+        key = str(query.key_expr)
+        loop_id = self.keys.loop_id(key)
+        if loop_id is not None and loop_id in self.table.slot_of:
+            reply(query, encode(self._state(loop_id)))
+            return
+        if "*" in key:  # e.g. a reconnecting gateway asking for all its loops at once
+            asked = zenoh.KeyExpr(key)
+            for loop_id in list(self.table.slot_of):
+                state_key = self.keys.state(loop_id)
+                if asked.intersects(zenoh.KeyExpr(state_key)):
+                    query.reply(state_key, encode(self._state(loop_id)), encoding=JSON)
+            query.drop()
+            return
+        reply(query, encode(ErrorReply(loop_id=loop_id or key, error="unknown loop")), error=True)
+
+    def _state(self, loop_id: str) -> StateReply:
+        s = self.table.slot(loop_id)
+        t = self.table.last_t[s]
+        return StateReply(
+            loop_id=loop_id,
+            kp=float(self.table.kp[s]),
+            ki=float(self.table.ki[s]),
+            mode=self.table.configs[loop_id].mode,
+            status=self.table.status(s, time.time()),
+            seq=int(self.table.seq[s]),
+            last_t=None if math.isnan(t) else float(t),
+            instance_id=self.settings.instance_id,
+        )
+
+    def _overload(self, kind: Kind) -> None:
+        if kind is not Kind.query:
+            self.metrics.samples_received.inc()
+        self.metrics.reject(RejectReason.overload, None, f"input queue full, {kind.name} dropped")
+
+    # -- admin operations (the REST API) ----------------------------------------------
+    def loop_ids(self) -> list[str]:
+        with self.table.lock:
+            return list(self.table.slot_of)
+
+    def _known(self, loop_id: str) -> None:
+        if loop_id not in self.table.slot_of:
+            raise UnknownLoop(loop_id)
+
+    def view(self, loop_id: str) -> LoopView:
+        with self.table.lock:
+            self._known(loop_id)
+            return self.table.view(loop_id, time.time())
+
+    def views(self) -> list[LoopView]:
+        with self.table.lock:
+            wall = time.time()
+            return [self.table.view(loop_id, wall) for loop_id in self.table.slot_of]
+
+    def register(self, config: LoopConfig) -> LoopView:
+        wall = time.time()
+        with self.table.lock:
+            if config.id in self.table.slot_of:
+                raise Conflict(f"loop {config.id!r} already registered")
+            self.store.insert_loop(
+                config,
+                audit_row(
+                    config.id, wall, None, 0, config.mode.value, "registered",
+                    None, (config.kp, config.ki), config.model_dump_json(),
+                ),
+            )  # fmt: skip
+            self.table.add(config, wall=wall)
+            self.metrics.set_loop_counts(self.table.mode_counts())
+            return self.table.view(config.id, wall)
+
+    def patch(self, loop_id: str, patch: LoopPatch) -> LoopView:
+        """ValueError if the patch makes the bounds inconsistent."""
+        wall = time.time()
+        with self.table.lock:
+            self._known(loop_id)
+            s = self.table.slot(loop_id)
+            config = patch.apply(self.table.configs[loop_id])
+            gains = (float(self.table.kp[s]), float(self.table.ki[s]))
+            self.store.update_config(
+                config,
+                audit_row(
+                    loop_id, wall, None, int(self.table.seq[s]), config.mode.value, "patched",
+                    gains, gains, patch.model_dump_json(exclude_none=True),
+                ),
+            )  # fmt: skip
+            self.table.reconfigure(config)
+            self.metrics.set_loop_counts(self.table.mode_counts())
+            return self.table.view(loop_id, wall)
+
+    def reset(self, loop_id: str) -> LoopView:
+        """Registered gains, zero hidden state; published unless the loop is frozen."""
+        wall = time.time()
+        with self.table.lock:
+            self._known(loop_id)
+            result = self.table.reset(loop_id, wall)
+            if result.mode[0] == FROZEN:
+                self._commit(None)
+            else:
+                self._commit(result, UpdateReason.reset)
+            return self.table.view(loop_id, wall)
+
+    def delete(self, loop_id: str) -> None:
+        wall = time.time()
+        with self.table.lock:
+            self._known(loop_id)
+            s = self.table.slot(loop_id)
+            gains = (float(self.table.kp[s]), float(self.table.ki[s]))
+            mode = self.table.configs[loop_id].mode.value
+            self.store.delete_loop(
+                loop_id,
+                audit_row(
+                    loop_id, wall, None, int(self.table.seq[s]), mode, "deleted", gains, None
+                ),
+            )
+            self.table.remove(loop_id)
+            self.metrics.set_loop_counts(self.table.mode_counts())
+
+    def history(self, loop_id: str, offset: int, limit: int) -> HistoryPage:
+        """Also for a deleted loop, as long as it has history."""
+        total, items = self.store.history(loop_id, offset, limit)
+        if not total and loop_id not in self.table.slot_of:
+            raise UnknownLoop(loop_id)
+        return HistoryPage(items=items, total=total, offset=offset, limit=limit)
