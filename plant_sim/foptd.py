@@ -132,7 +132,7 @@ class FOPTDBatch:
         return self.x + self.noise_std * self.rng.standard_normal(self.n)
 
     def step(self, u: ArrayLike, disturbance: ArrayLike | None = None) -> np.ndarray:
-        """Hold input ``u`` (plus an input load disturbance) for one ``dt``; return the new output."""
+        """Hold ``u`` (plus an input load disturbance) for one ``dt``; return the new output."""
         u = np.asarray(u, dtype=np.float64)
         if disturbance is not None:
             u = u + disturbance

@@ -38,7 +38,15 @@ from torch.distributions import Normal
 
 from plant_sim.loop import step_test_mse
 from plant_sim.tunings import oracle
-from service.agent import MAX_LOG_STEP, Actor, AgentConfig, Critic, relative_to_delta, save_actor
+from service.agent import (
+    MAX_LOG_STEP,
+    MODELS_DIR,
+    Actor,
+    AgentConfig,
+    Critic,
+    relative_to_delta,
+    save_actor,
+)
 from service.env import K_RANGE, RATIO_RANGE, TAU_RANGE, EnvConfig, TuningEnv, sample_tasks
 
 
@@ -80,23 +88,29 @@ class TrainConfig:
 ORACLE_RATIOS = np.linspace(0.0, 1.0, 11)
 
 
-def oracle_table(path: Path | None = None) -> np.ndarray:
+ORACLE_TABLE = MODELS_DIR / "oracle_table.json"
+
+
+def compute_oracle_table() -> np.ndarray:
     """Oracle gains normalised by the plant: (len(ORACLE_RATIOS), 2) of [kp K, ki K tau].
 
     The step-test optimum scales as kp* = f(theta/tau)/K and ki* = g(theta/tau)/(K tau)
     to within about 1% over the training box (checked in the tests), so a 1-D table in
-    theta/tau, computed once at tau = 0.5, K = 1, serves every task.
+    theta/tau, computed at tau = 0.5, K = 1, serves every task. About 30 s; the result
+    ships as ``service/models/oracle_table.json``.
     """
-    if path is not None and path.exists():
-        return np.array(json.loads(path.read_text()))
     rows = []
     for r in ORACLE_RATIOS:
         kp, ki, _ = oracle(1.0, 0.5, 0.5 * r)
         rows.append([kp, ki * 0.5])
-    table = np.array(rows)
-    if path is not None:
-        path.write_text(json.dumps(table.tolist()))
-    return table
+    return np.array(rows)
+
+
+def oracle_table() -> np.ndarray:
+    """The shipped oracle table (computed and written if missing)."""
+    if not ORACLE_TABLE.exists():
+        ORACLE_TABLE.write_text(json.dumps(compute_oracle_table().tolist()))
+    return np.array(json.loads(ORACLE_TABLE.read_text()))
 
 
 def oracle_gains(table: np.ndarray, K, tau, theta) -> np.ndarray:
@@ -162,7 +176,7 @@ class Trainer:
         self.opt_pi = torch.optim.Adam(self.actor.parameters(), lr=cfg.pi_lr)
         self.opt_v = torch.optim.Adam(self.critic.parameters(), lr=cfg.v_lr)
         self.env_cfg = EnvConfig(drift_prob=cfg.drift_prob)
-        self.table = oracle_table(out / "oracle_table.json")
+        self.table = oracle_table()
         self.epoch = 0
         self.elapsed = 0.0
         self.best = math.inf
