@@ -41,7 +41,7 @@ from plant_sim.scenario import (
     SimulatedLoop,
     TankLoop,
 )
-from plant_sim.trajectory import TrajectoryWriter, plot, read_log
+from plant_sim.trajectory import Trajectory, TrajectoryWriter, plot, read_log
 from service.protocol import DEFAULT_PREFIX, Keys, Mode, Sample, is_valid_id
 from service.scaling import ScalingSpec
 
@@ -100,17 +100,29 @@ class LoopSpec:
             pv_scale=p.get("pv_scale", pv_scale),
         )
 
-    def untuned_gains(self) -> tuple[float, float]:
-        """The paper's slow initial tuning, mapped to engineering units through the hint."""
-        return self.hint().resolve().to_engineering(*UNTUNED_AGENT_GAINS)
+    def initial_gains(self) -> tuple[float, float]:
+        """``kp``/``ki`` if given, else the paper's slow initial tuning through the hint."""
+        kp0, ki0 = self.hint().resolve().to_engineering(*UNTUNED_AGENT_GAINS)
+        return self.params.get("kp", kp0), self.params.get("ki", ki0)
 
-    def build(self, args: argparse.Namespace, seed: int) -> SimulatedLoop:
+    def registration(self, scan: float) -> dict:
+        """Body of ``POST /loops`` (:class:`service.schemas.LoopConfig`)."""
+        kp, ki = self.initial_gains()
+        return {
+            "id": self.loop_id,
+            "kp": kp,
+            "ki": ki,
+            "sample_period_s": scan,
+            "scaling": self.hint().model_dump(exclude_none=True),
+        }
+
+    def build(self, args: argparse.Namespace, *, seed: int, t0: float) -> SimulatedLoop:
         p = self.params
-        kp0, ki0 = self.untuned_gains()
+        kp, ki = self.initial_gains()
         lo, hi = TANK_SP if self.kind == "two_tank" else (-1.0, 1.0)
         settings = LoopSettings(
-            kp=p.get("kp", kp0),
-            ki=p.get("ki", ki0),
+            kp=kp,
+            ki=ki,
             sp_low=p.get("lo", lo),
             sp_high=p.get("hi", hi),
             sp_period=args.sp_period,
@@ -118,7 +130,7 @@ class LoopSpec:
             noise=args.noise,
             gain_range=args.gain_range,
         )
-        common = {"dt": args.scan, "seed": seed, "t0": args.t0}
+        common = {"dt": args.scan, "seed": seed, "t0": t0}
         if self.kind == "two_tank":
             return TankLoop(self.loop_id, settings, **common)
         return FoptdLoop(self.loop_id, settings, K=p["K"], tau=p["tau"], theta=p["theta"], **common)
@@ -144,42 +156,57 @@ class RegistrationError(RuntimeError):
 
 
 def register(
-    url: str,
-    specs: list[LoopSpec],
-    loops: list[SimulatedLoop],
-    *,
-    token: str | None,
-    timeout: float,
-) -> None:
-    """``POST /loops`` each loop with its initial gains and model hint; 409 means done already.
+    url: str, specs: list[LoopSpec], *, scan: float, token: str | None, timeout: float
+) -> dict[str, dict]:
+    """Register each loop with the tuner (``POST /loops``); return the views of loops the
+    tuner already had (HTTP 409), which a restarted simulator resumes.
 
-    Retries connection failures until ``timeout`` (the tuner may still be starting).
+    Retries connection failures until ``timeout``: the tuner may still be starting.
     """
     headers = {"Authorization": f"Bearer {token}"} if token else {}
     deadline = time.monotonic() + timeout
+    known = {}
     with httpx.Client(base_url=url, headers=headers, timeout=10.0) as client:
-        for spec, loop in zip(specs, loops, strict=True):
-            kp, ki = loop.initial_gains
-            body = {
-                "id": spec.loop_id,
-                "kp": kp,
-                "ki": ki,
-                "sample_period_s": loop.dt,
-                "scaling": spec.hint().model_dump(exclude_none=True),
-            }
+
+        def call(method: str, path: str, **kw) -> httpx.Response:
             while True:
                 try:
-                    response = client.post("/loops", json=body)
-                    break
+                    return client.request(method, path, **kw)
                 except httpx.TransportError as exc:
                     if time.monotonic() > deadline:
                         raise RegistrationError(f"tuner API at {url} unreachable: {exc}") from exc
                     time.sleep(0.2)
-            if response.status_code not in (200, 201, 409):
+
+        for spec in specs:
+            response = call("POST", "/loops", json=spec.registration(scan))
+            if response.status_code == 409:
+                response = call("GET", f"/loops/{spec.loop_id}")
+                if response.is_success:
+                    known[spec.loop_id] = response.json()
+                    continue
+            if not response.is_success:
                 raise RegistrationError(
                     f"registering {spec.loop_id} failed: HTTP {response.status_code} "
                     f"{response.text[:300]}"
                 )
+    return known
+
+
+def build_loops(
+    args: argparse.Namespace, specs: list[LoopSpec], known: dict[str, dict]
+) -> list[SimulatedLoop]:
+    """The simulated loops, seeded apart. Loops the tuner already knows resume: the plant
+    clock starts one scan after the tuner's last sample (it rejects older ones) and the
+    PI starts with the tuner's gains, as a DCS keeps its gains across a gateway restart."""
+    last_t = [v["last_sample_t"] for v in known.values() if v.get("last_sample_t") is not None]
+    t0 = max([args.t0, *(t + args.scan for t in last_t)])
+    loops = []
+    for i, spec in enumerate(specs):
+        loop = spec.build(args, seed=args.seed + i, t0=t0)
+        if spec.loop_id in known:
+            loop.apply_gains(known[spec.loop_id]["kp"], known[spec.loop_id]["ki"])
+        loops.append(loop)
+    return loops
 
 
 class StopFlag:
@@ -308,7 +335,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sim.add_argument(
         "--duration", type=float, default=None, help="stop after this many simulated s"
     )
-    sim.add_argument("--t0", type=float, default=0.0, help="plant clock at start, s (0)")
+    sim.add_argument(
+        "--t0",
+        type=float,
+        default=0.0,
+        help="plant clock at start, s (0); a loop the tuner knows resumes after its last sample",
+    )
     sim.add_argument(
         "--sp-period", type=float, default=SP_PERIOD_S, help="s between setpoint steps (600)"
     )
@@ -357,17 +389,27 @@ def run(args: argparse.Namespace) -> int:
         print(plot(runs, args.out, title=args.title))
         return 0
     specs = loop_specs(args)
-    loops = [spec.build(args, args.seed + i) for i, spec in enumerate(specs)]
+    known = {}
     if args.register:
         try:
-            register(
+            known = register(
                 args.register,
                 specs,
-                loops,
+                scan=args.scan,
                 token=os.environ.get(TOKEN_ENV),
                 timeout=args.register_timeout,
             )
         except RegistrationError as exc:
             print(f"pitune plant: {exc}", file=sys.stderr)
             return 1
-    return simulate(args, loops)
+    return simulate(args, build_loops(args, specs, known))
+
+
+def untuned_baseline(args: argparse.Namespace) -> dict[str, Trajectory]:
+    """The loops of ``args`` for ``--duration`` without a bus: same plant, schedule and
+    noise (same seed), gains fixed at their initial values. The demo's comparison run."""
+    loops = build_loops(args, loop_specs(args), {})
+    scans = round(args.duration / args.scan)
+    return {
+        loop.loop_id: Trajectory.from_scans([loop.scan() for _ in range(scans)]) for loop in loops
+    }

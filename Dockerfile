@@ -1,0 +1,39 @@
+# syntax=docker/dockerfile:1
+# pitune: the tuner daemon, the plant simulator and the demo, CPU only.
+#   docker build -t pitune:local .
+#   docker run --rm -p 8750:8750 pitune:local tuner
+ARG PYTHON_IMAGE=python:3.11-slim-bookworm
+
+FROM ${PYTHON_IMAGE} AS build
+ENV PIP_NO_CACHE_DIR=1 \
+    PIP_DISABLE_PIP_VERSION_CHECK=1 \
+    PATH=/opt/pitune/bin:$PATH
+# CPU wheels first: `pip install .` then finds torch satisfied and never pulls CUDA.
+RUN python -m venv /opt/pitune \
+    && pip install --no-cache-dir torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu
+WORKDIR /src
+COPY pyproject.toml README.md ./
+COPY service ./service
+COPY plant_sim ./plant_sim
+RUN pip install --no-cache-dir .
+
+FROM ${PYTHON_IMAGE}
+RUN useradd --create-home --uid 10001 --shell /usr/sbin/nologin pitune \
+    && mkdir /data \
+    && chown pitune:pitune /data
+COPY --from=build /opt/pitune /opt/pitune
+ENV PATH=/opt/pitune/bin:$PATH \
+    PYTHONUNBUFFERED=1 \
+    MPLBACKEND=Agg \
+    PITUNE_API_HOST=0.0.0.0 \
+    PITUNE_API_PORT=8750 \
+    PITUNE_DB_PATH=/data/pitune.db
+USER 10001:10001
+WORKDIR /data
+VOLUME ["/data"]
+EXPOSE 8750
+# The plant simulator runs from this image too; compose disables the check for it.
+HEALTHCHECK --interval=15s --timeout=5s --start-period=60s --retries=3 \
+    CMD ["python", "-c", "import os, urllib.request; urllib.request.urlopen('http://127.0.0.1:%s/healthz' % os.environ.get('PITUNE_API_PORT', '8750'), timeout=4)"]
+ENTRYPOINT ["pitune"]
+CMD ["tuner"]
