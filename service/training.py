@@ -123,7 +123,7 @@ def oracle_gains(table: np.ndarray, K, tau, theta) -> np.ndarray:
 
 def unroll(actor: Actor, obs: torch.Tensor, gamma: torch.Tensor):
     """Actor over a whole sequence with per-episode forgetting: obs (T, B, 4), gamma (B,)."""
-    h = torch.zeros(actor.cfg.layers, obs.shape[1], actor.cfg.hidden)
+    h = torch.zeros(actor.cfg.layers, obs.shape[1], actor.cfg.hidden, device=obs.device)
     if bool((gamma == 1.0).all()):
         mean, deep, _ = actor(obs, h)
         return mean, deep
@@ -151,12 +151,13 @@ def validate(actor: Actor, env_cfg: EnvConfig, n: int, steps: int = 80) -> dict:
     K, tau, theta = validation_set(n)
     env = TuningEnv(env_cfg, np.random.default_rng(0))
     obs = env.reset(K, tau, theta, horizon=steps, sp0=1.0)
-    h = torch.zeros(actor.cfg.layers, K.size, actor.cfg.hidden)
+    dev = next(actor.parameters()).device
+    h = torch.zeros(actor.cfg.layers, K.size, actor.cfg.hidden, device=dev)
     with torch.no_grad():
         for _ in range(steps):
-            o = torch.as_tensor(obs, dtype=torch.float32)
+            o = torch.as_tensor(obs, dtype=torch.float32, device=dev)
             mean, h = actor.step(o, h)
-            obs, _, _ = env.step(relative_to_delta(o[:, :2], mean).double().numpy())
+            obs, _, _ = env.step(relative_to_delta(o[:, :2], mean).double().cpu().numpy())
     mse = step_test_mse(K, tau, theta, env.pi.kp, env.pi.ki)
     return {"val_worst": float(mse.max()), "val_median": float(np.median(mse))}
 
@@ -170,8 +171,8 @@ class Trainer:
         torch.set_num_threads(cfg.threads)
         torch.manual_seed(cfg.seed)
         self.rng = np.random.default_rng(cfg.seed)
-        self.actor = Actor(AgentConfig())
-        self.critic = Critic(AgentConfig())
+        self.actor = Actor(AgentConfig()).to(self.device)
+        self.critic = Critic(AgentConfig()).to(self.device)
         self.opt_bc = torch.optim.Adam(self.actor.parameters(), lr=cfg.bc_lr)
         self.opt_pi = torch.optim.Adam(self.actor.parameters(), lr=cfg.pi_lr)
         self.opt_v = torch.optim.Adam(self.critic.parameters(), lr=cfg.v_lr)
@@ -204,13 +205,13 @@ class Trainer:
 
     @classmethod
     def resume(cls, out: Path, device: str = "cpu") -> Trainer:
-        blob = torch.load(out / "checkpoint.pt", map_location="cpu", weights_only=True)
+        blob = torch.load(out / "checkpoint.pt", map_location=device, weights_only=True)
         trainer = cls(TrainConfig(**blob["config"]), out, device)
         for key in ("actor", "critic", "opt_bc", "opt_pi", "opt_v"):
             getattr(trainer, key).load_state_dict(blob[key])
         trainer.epoch, trainer.elapsed, trainer.best = blob["epoch"], blob["elapsed"], blob["best"]
         trainer.rng.bit_generator.state = json.loads(blob["rng"])
-        torch.set_rng_state(blob["torch_rng"])
+        torch.set_rng_state(blob["torch_rng"].cpu())
         return trainer
 
     # -- rollouts ---------------------------------------------------------------------
@@ -223,14 +224,15 @@ class Trainer:
         env = TuningEnv(self.env_cfg, self.rng)
         obs = env.reset(*sample_tasks(n, self.rng), horizon=horizon)
         gamma_np = self._episode_forgetting(n)
-        gamma = torch.as_tensor(gamma_np, dtype=torch.float32).view(1, -1, 1)
-        h = torch.zeros(self.actor.cfg.layers, n, self.actor.cfg.hidden)
+        dev = self.device
+        gamma = torch.as_tensor(gamma_np, dtype=torch.float32, device=dev).view(1, -1, 1)
+        h = torch.zeros(self.actor.cfg.layers, n, self.actor.cfg.hidden, device=dev)
         keys = ("obs", "act", "logp", "cost", "mse", "priv", "deep", "label")
         buf = {k: [] for k in keys}
         std = self.actor.log_std.exp()
         with torch.no_grad():
             for _ in range(horizon):
-                o = torch.as_tensor(obs, dtype=torch.float32)
+                o = torch.as_tensor(obs, dtype=torch.float32, device=dev)
                 mean, deep, h = self.actor(o.unsqueeze(0), h * gamma)
                 mean, deep = mean[0], deep[0]
                 if explore is None:
@@ -241,21 +243,21 @@ class Trainer:
                     a = mean + explore * torch.randn_like(mean)
                 target = oracle_gains(self.table, env.K, env.tau, env.theta)
                 label = np.clip(np.log(target / obs[:, :2]), -MAX_LOG_STEP, MAX_LOG_STEP)
-                buf["label"].append(torch.as_tensor(label, dtype=torch.float32))
+                buf["label"].append(torch.as_tensor(label, dtype=torch.float32, device=dev))
                 buf["obs"].append(o)
                 buf["act"].append(a)
-                buf["priv"].append(torch.as_tensor(env.privileged, dtype=torch.float32))
+                buf["priv"].append(torch.as_tensor(env.privileged, dtype=torch.float32, device=dev))
                 buf["deep"].append(deep)
-                obs, cost, mse = env.step(relative_to_delta(o[:, :2], a).double().numpy())
-                buf["cost"].append(torch.as_tensor(cost, dtype=torch.float32))
-                buf["mse"].append(torch.as_tensor(mse, dtype=torch.float32))
-            o = torch.as_tensor(obs, dtype=torch.float32)
+                obs, cost, mse = env.step(relative_to_delta(o[:, :2], a).double().cpu().numpy())
+                buf["cost"].append(torch.as_tensor(cost, dtype=torch.float32, device=dev))
+                buf["mse"].append(torch.as_tensor(mse, dtype=torch.float32, device=dev))
+            o = torch.as_tensor(obs, dtype=torch.float32, device=dev)
             _, deep, _ = self.actor(o.unsqueeze(0), h * gamma)
             buf["last_obs"], buf["last_deep"] = o, deep[0]
-            buf["last_priv"] = torch.as_tensor(env.privileged, dtype=torch.float32)
+            buf["last_priv"] = torch.as_tensor(env.privileged, dtype=torch.float32, device=dev)
         out = {k: torch.stack(v) for k, v in buf.items() if isinstance(v, list) and v}
         out.update({k: buf[k] for k in ("last_obs", "last_deep", "last_priv")})
-        out["gamma"] = torch.as_tensor(gamma_np, dtype=torch.float32)
+        out["gamma"] = torch.as_tensor(gamma_np, dtype=torch.float32, device=dev)
         return out
 
     # -- updates ----------------------------------------------------------------------
@@ -273,7 +275,7 @@ class Trainer:
             "phase": "bc",
             "mean_cost": float(batch["cost"].sum(0).mean()),
             "final_mse": float(batch["mse"][-4:].mean()),
-            "bc_loss": float(loss),
+            "bc_loss": loss.item(),
         }
 
     def ppo_epoch(self, train_policy: bool) -> dict:
@@ -322,16 +324,20 @@ class Trainer:
             "final_mse": float(b["mse"][-4:].mean()),
             "kl": kl,
             "pi_iters": iters,
-            "pi_loss": float(pi_loss),
-            "v_loss": float(v_loss),
+            "pi_loss": pi_loss.item(),
+            "v_loss": v_loss.item(),
         }
 
     # -- main loop --------------------------------------------------------------------
-    def run(self, log_every_checkpoint=True) -> None:
+    def run(self, max_minutes: float | None = None, max_epochs: int | None = None) -> bool:
+        """Train until the configured total; stop early (checkpointed) after ``max_minutes``
+        of wall time or ``max_epochs`` epochs in this call. Returns True when finished."""
         from tqdm import tqdm
 
         cfg = self.cfg
         total = cfg.bc_epochs + cfg.value_warmup + cfg.epochs
+        stop_epoch = total if max_epochs is None else min(total, self.epoch + max_epochs)
+        deadline = None if max_minutes is None else time.monotonic() + 60 * max_minutes
         log_path = self.out / "metrics.csv"
         columns = [
             "epoch", "phase", "wall_s", "mean_cost", "final_mse", "bc_loss", "kl",
@@ -344,7 +350,7 @@ class Trainer:
             writer = csv.DictWriter(fh, fieldnames=columns, extrasaction="ignore")
             if new_log:
                 writer.writeheader()
-            while self.epoch < total:
+            while self.epoch < stop_epoch and (deadline is None or time.monotonic() < deadline):
                 start = time.monotonic()
                 if self.epoch < cfg.bc_epochs:
                     row = self.bc_epoch()
@@ -371,6 +377,7 @@ class Trainer:
         bar.close()
         self.save()
         save_actor(self.actor, self.out / "last.pt", self.card_meta({}))
+        return self.epoch >= total
 
     def card_meta(self, row: dict) -> dict:
         return {
@@ -387,6 +394,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     p.add_argument(
+        "--max-minutes", type=float, default=None, help="checkpoint and stop after this long"
+    )
+    p.add_argument(
         "--export", type=Path, default=None, help="after training, copy OUT/best.pt to this path"
     )
     for f in fields(TrainConfig):
@@ -402,7 +412,9 @@ def run(args: argparse.Namespace) -> int:
             raise SystemExit(f"{args.out} already holds a run: use --resume or another --out")
         cfg = TrainConfig(**{f.name: getattr(args, f.name) for f in fields(TrainConfig)})
         trainer = Trainer(cfg, args.out, args.device)
-    trainer.run()
+    if not trainer.run(max_minutes=args.max_minutes):
+        print(f"stopped at epoch {trainer.epoch}; continue with --resume")
+        return 0
     if args.export is not None:
         args.export.write_bytes((args.out / "best.pt").read_bytes())
         print(f"exported {args.out / 'best.pt'} -> {args.export}")
