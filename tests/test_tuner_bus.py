@@ -1,0 +1,237 @@
+"""The tuner in-process on a real Zenoh bus (loopback, own port per test)."""
+
+import json
+import math
+import queue
+
+import pytest
+import zenoh
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from service.protocol import GainsMessage, Mode, RejectReason, UpdateReason
+from service.schemas import LoopConfig
+from service.tuner import Tuner
+from tests.tuner_support import connected_gateway, loop_body, tuner_settings, wait_until
+
+pytestmark = pytest.mark.timeout(60)
+
+
+@pytest.fixture
+def bus(tmp_path):
+    """A started tuner and a gateway peer connected to it."""
+    tuner = Tuner(tuner_settings(tmp_path)).start()
+    gateway = None
+    try:
+        gateway = connected_gateway(tuner.settings)
+        yield tuner, gateway
+    finally:
+        if gateway is not None:
+            gateway.close()
+        tuner.stop()
+
+
+def received(tuner, n):
+    """Wait until the tuner has handled ``n`` sample messages (accepted or not)."""
+    wait_until(
+        lambda: tuner.metrics.value("pitune_samples_received_total") >= n, what=f"{n} samples"
+    )
+    assert tuner.metrics.value("pitune_samples_received_total") == n
+
+
+def test_one_rl_step_per_period_published_as_gains(bus):
+    tuner, gw = bus
+    tuner.register(LoopConfig(**loop_body("LIC-101")))
+    for i in range(400):
+        gw.send("LIC-101", {"t": 1000.0 + i, "sp": 55.0, "pv": 54.0})
+    first, second = gw.next_gains(), gw.next_gains()
+    assert (first.seq, first.t, second.seq, second.t) == (1, 1165.0, 2, 1330.0)
+    assert first.mode is Mode.auto and first.reason is UpdateReason.agent
+    assert first.kp == pytest.approx(0.5 + first.dkp) and first.ki == pytest.approx(
+        0.01 + first.dki
+    )
+    assert second.kp == pytest.approx(first.kp + second.dkp)
+    ok, state = gw.state("LIC-101")
+    assert ok and state["seq"] == 2 and state["last_t"] == 1399.0 and state["status"] == "tuning"
+    assert (state["kp"], state["ki"]) == (second.kp, second.ki)
+    view = tuner.view("LIC-101")
+    assert view.counters.samples == 400 and view.counters.steps == 2
+    history = tuner.history("LIC-101", 0, 10).items
+    assert [(e.reason, e.seq) for e in history] == [("agent", 2), ("agent", 1), ("registered", 0)]
+    assert (history[0].kp_old, history[0].kp_new) == (first.kp, second.kp)
+    assert tuner.metrics.value("pitune_updates_published_total", mode="auto") == 2
+
+
+def test_loops_due_together_share_one_agent_call(bus):
+    tuner, gw = bus
+    ids = [f"L{i}" for i in range(5)]
+    for loop_id in ids:
+        tuner.register(LoopConfig(**loop_body(loop_id, sample_period_s=165.0)))
+    for t in (0.0, 165.0):
+        batch = {"samples": [{"loop_id": i, "t": t, "e": 0.5} for i in ids]}
+        gw.session.put(gw.keys.batch, json.dumps(batch).encode())
+    got = sorted(gw.next_gains().loop_id for _ in ids)
+    assert got == ids
+    assert tuner.metrics.value("pitune_inference_batch_loops_count") == 1
+    assert tuner.metrics.value("pitune_inference_batch_loops_sum") == 5
+    assert tuner.metrics.value("pitune_inference_batch_seconds_count") == 1
+
+
+def test_advisory_is_marked_and_frozen_is_silent(bus):
+    tuner, gw = bus
+    tuner.register(LoopConfig(**loop_body("ADV", mode="advisory")))
+    tuner.register(LoopConfig(**loop_body("FRZ", mode="frozen")))
+    for i in range(200):
+        for loop_id in ("ADV", "FRZ"):
+            gw.send(loop_id, {"t": float(i), "e": 1.0})
+    msg = gw.next_gains()
+    assert (msg.loop_id, msg.mode) == ("ADV", Mode.advisory)
+    received(tuner, 400)
+    with pytest.raises(queue.Empty):
+        gw.next_gains(timeout=0.2)
+    assert tuner.view("ADV").kp == 0.5  # advisory updates are never assumed applied
+    assert tuner.view("FRZ").status.value == "frozen"
+    assert tuner.view("FRZ").counters.steps == 0
+
+
+def test_reset_publishes_the_registered_gains(bus):
+    tuner, gw = bus
+    tuner.register(LoopConfig(**loop_body("LIC-101")))
+    for i in range(170):
+        gw.send("LIC-101", {"t": float(i), "e": 2.0})
+    step = gw.next_gains()
+    view = tuner.reset("LIC-101")
+    msg = gw.next_gains()
+    assert (msg.reason, msg.seq, msg.kp, msg.ki) == (UpdateReason.reset, 2, 0.5, 0.01)
+    assert (msg.dkp, msg.dki) == pytest.approx((0.5 - step.kp, 0.01 - step.ki))
+    assert view.hidden_norm == 0.0 and view.int_e == 0.0 and view.status.value == "waiting"
+
+
+def test_state_queryable_wildcard_unknown_and_liveliness(bus):
+    tuner, gw = bus
+    for loop_id in ("A", "B"):
+        tuner.register(LoopConfig(**loop_body(loop_id)))
+    ok, err = gw.state("nope")
+    assert not ok and err == {"v": 1, "loop_id": "nope", "error": "unknown loop"}
+    replies = list(gw.session.get(gw.keys.all_states, timeout=5.0))
+    states = sorted(json.loads(r.ok.payload.to_bytes())["loop_id"] for r in replies)
+    assert states == ["A", "B"]
+
+    events = queue.SimpleQueue()
+    watcher = gw.session.liveliness().declare_subscriber(
+        gw.keys.all_tuners, lambda s: events.put((s.kind, str(s.key_expr))), history=True
+    )
+    try:
+        assert events.get(timeout=5) == (zenoh.SampleKind.PUT, "pitune/tuners/test-tuner")
+        tuner.stop()
+        assert events.get(timeout=5) == (zenoh.SampleKind.DELETE, "pitune/tuners/test-tuner")
+    finally:
+        watcher.undeclare()
+
+
+BAD = [
+    (b'{"t": 1, "e":', RejectReason.malformed_json),
+    (b'{"t": 1, "e": "x"}', RejectReason.schema),
+    (b'{"t": 1, "e": NaN}', RejectReason.non_finite),
+    (b'{"t": 1, "e": 1e300}', RejectReason.out_of_range),
+    (b'{"v": 9, "t": 1, "e": 1}', RejectReason.unsupported_version),
+    (b'{"t": 50, "e": 1}', RejectReason.duplicate),
+    (b'{"t": 10, "e": 1}', RejectReason.out_of_order),
+    (b'{"t": 60, "e": 5000}', RejectReason.out_of_range),  # 500 agent units of error
+]
+
+
+def test_bad_input_is_counted_by_reason_and_changes_nothing(bus):
+    tuner, gw = bus
+    for loop_id in ("LIC-101", "OTHER"):
+        tuner.register(LoopConfig(**loop_body(loop_id)))
+        gw.send(loop_id, {"t": 50.0, "e": 1.0})
+    received(tuner, 2)
+    before = tuner.view("LIC-101")
+    for payload, _ in BAD:
+        gw.send("LIC-101", payload)
+    gw.send("UNKNOWN", {"t": 1.0, "e": 1.0})
+    gw.session.put(gw.keys.batch, b'{"samples": [{"loop_id": "OTHER", "t": 51, "e": "no"}]}')
+    received(tuner, 2 + len(BAD) + 2)
+    expected = {reason: 0 for reason in RejectReason}
+    for _, reason in BAD:
+        expected[reason] += 1
+    expected[RejectReason.unknown_loop] += 1
+    expected[RejectReason.schema] += 1
+    counted = {
+        r: tuner.metrics.value("pitune_samples_rejected_total", reason=r.value)
+        for r in RejectReason
+    }
+    assert counted == expected
+    after = tuner.view("LIC-101")
+    assert after.counters.rejected == len(BAD)
+    assert after.model_dump(exclude={"counters"}) == before.model_dump(exclude={"counters"})
+    assert tuner.view("OTHER").counters.rejected == 1
+
+
+def test_a_flood_on_one_loop_leaves_the_others_alone(tmp_path):
+    with Tuner(tuner_settings(tmp_path, max_sample_rate_hz=20.0)) as tuner:
+        gw = connected_gateway(tuner.settings)
+        try:
+            for loop_id in ("FLOOD", "CALM"):
+                tuner.register(LoopConfig(**loop_body(loop_id)))
+            for i in range(300):
+                gw.send("FLOOD", {"t": float(i), "e": 1.0})
+                if i % 30 == 0:
+                    gw.send("CALM", {"t": float(i), "e": 1.0})
+            received(tuner, 310)
+            flood, calm = tuner.view("FLOOD").counters, tuner.view("CALM").counters
+            assert calm.samples == 10 and calm.rejected == 0
+            assert flood.samples < 100 and flood.samples + flood.rejected == 300
+            rejected = tuner.metrics.value("pitune_samples_rejected_total", reason="flood")
+            assert rejected == flood.rejected
+        finally:
+            gw.close()
+
+
+json_scalars = st.one_of(
+    st.none(), st.booleans(), st.integers(), st.text(max_size=5),
+    st.floats(allow_nan=True, allow_infinity=True),
+)  # fmt: skip
+field_values = st.one_of(json_scalars, st.lists(json_scalars, max_size=3))
+sample_like = st.fixed_dictionaries(
+    {},
+    optional={
+        k: field_values for k in ("v", "t", "e", "sp", "pv", "kp", "ki", "auto", "saturated")
+    },
+)
+payloads = st.one_of(
+    st.binary(max_size=64),
+    sample_like.map(lambda d: json.dumps(d).encode()),  # NaN/Infinity literals included
+    st.recursive(json_scalars, lambda c: st.lists(c) | st.dictionaries(st.text(), c), max_leaves=8)
+    .map(lambda v: json.dumps(v).encode()),
+)  # fmt: skip
+
+
+def test_random_payloads_never_hurt_the_daemon(bus):
+    tuner, gw = bus
+    for loop_id in ("FUZZ", "CONTROL"):
+        tuner.register(LoopConfig(**loop_body(loop_id)))
+    sent = 0
+
+    @settings(max_examples=150, deadline=None, suppress_health_check=list(HealthCheck))
+    @given(payload=payloads, loop_id=st.sampled_from(["FUZZ", "FUZZ", "GHOST"]))
+    def throw(payload, loop_id):
+        nonlocal sent
+        gw.send(loop_id, payload)
+        sent += 1
+
+    throw()
+    for i in range(170):  # a clean stream on another loop, through one RL step
+        gw.send("CONTROL", {"t": float(i), "e": 1.0})
+    received(tuner, sent + 170)
+    assert tuner.alive and tuner.ready
+    control = tuner.view("CONTROL")
+    assert control.counters.samples == 170 and control.counters.rejected == 0
+    assert control.counters.steps == 1
+    gains = [gw.next_gains() for _ in range(control.counters.steps)]
+    assert all(isinstance(g, GainsMessage) and g.loop_id == "CONTROL" for g in gains)
+    fuzz = tuner.view("FUZZ")
+    assert all(math.isfinite(x) for x in (fuzz.kp, fuzz.ki, fuzz.int_e, fuzz.hidden_norm))
+    g = fuzz.config.guard
+    assert g.kp_min <= fuzz.kp <= g.kp_max and g.ki_min <= fuzz.ki <= g.ki_max

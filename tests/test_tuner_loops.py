@@ -1,0 +1,232 @@
+"""The loop table: integration, decimation, batching, safety guard, adoption, snapshots."""
+
+import math
+
+import numpy as np
+import pytest
+
+from service.agent import untrained_agent
+from service.loops import LoopTable, Rejected
+from service.protocol import LoopStatus, RejectReason, Sample
+from service.schemas import LoopConfig
+from tests.tuner_support import loop_body
+
+pytestmark = pytest.mark.timeout(30)
+WALL = 1_000.0
+
+
+class RecordingAgent:
+    """The untrained agent, recording every batched call."""
+
+    def __init__(self) -> None:
+        self.inner = untrained_agent(0)
+        self.cfg = self.inner.cfg
+        self.calls: list[tuple[np.ndarray, np.ndarray]] = []
+
+    def act(self, obs, state, forgetting):
+        self.calls.append((np.array(obs), np.array(forgetting)))
+        return self.inner.act(obs, state, forgetting)
+
+
+class ScalingAgent:
+    """Proposes multiplying both gains by ``factor`` (to exercise the safety guard)."""
+
+    def __init__(self, factor: float) -> None:
+        self.cfg = untrained_agent(0).cfg
+        self.factor = factor
+
+    def act(self, obs, state, forgetting):
+        delta = obs[:, :2] * (self.factor - 1.0)
+        return delta, np.asarray(state) + 1.0
+
+
+def table(agent=None, *, rate=1e6, **overrides) -> tuple[LoopTable, int]:
+    """A table with one loop whose sample clock is 165 s (one sample per RL period)."""
+    t = LoopTable(agent or untrained_agent(0), max_rate_hz=rate, capacity=2)
+    slot = t.add(LoopConfig(**loop_body(**{"sample_period_s": 165.0, **overrides})), wall=WALL)
+    return t, slot
+
+
+def sample(t: float, e: float = 1.0, **kw) -> Sample:
+    return Sample(t=t, e=e, **kw)
+
+
+def feed(t: LoopTable, slot: int, times, errors=None) -> list[float]:
+    """Ingest samples; return the sample times at which a step fell due."""
+    errors = np.ones(len(times)) if errors is None else errors
+    return [
+        ti for ti, ei in zip(times, errors, strict=True) if t.ingest(slot, sample(ti, ei), WALL)
+    ]
+
+
+def test_trapezoid_integral_in_agent_units_on_irregular_timestamps():
+    t, s = table(sample_period_s=1.0)
+    times = np.array([0.0, 0.7, 2.0, 2.5, 4.1, 7.0])
+    errors = np.array([1.0, -2.0, 3.0, 0.5, 0.0, 4.0])
+    feed(t, s, times, errors)
+    expected = np.trapezoid(errors, times) * 0.1 / 60.0  # e_scale 1/10, 60 s per agent unit
+    assert t.int_e[s] == pytest.approx(expected, rel=1e-12)
+    assert t.last_e[s] == 4.0
+
+
+def test_decimation_follows_sample_time_not_arrival():
+    t, s = table(sample_period_s=7.0)  # RL period 165 s
+    times = np.arange(1000.0, 1700.0, 7.0)
+    due = feed(t, s, times)
+    # first window opens at the first sample; each step at the first sample past a boundary
+    boundaries = 1000.0 + 165.0 * np.arange(1, 5)
+    assert due == [float(times[times >= b][0]) for b in boundaries]
+    # a slower sample clock (one sample every 400 s) skips boundaries without catching up
+    t2, s2 = table(sample_period_s=400.0)
+    assert feed(t2, s2, [0.0, 400.0, 800.0, 1200.0]) == [400.0, 800.0, 1200.0]
+    assert t2.next_due[s2] == pytest.approx(1320.0)
+
+
+def test_due_loops_are_stepped_in_one_batched_call_with_their_own_forgetting():
+    agent = RecordingAgent()
+    t = LoopTable(agent, max_rate_hz=1e6, capacity=1)  # grows while adding
+    slots = [
+        t.add(
+            LoopConfig(**loop_body(f"L{i}", forgetting=0.9 + 0.01 * i, sample_period_s=165.0)),
+            wall=WALL,
+        )
+        for i in range(3)
+    ]
+    for s, e in zip(slots, (1.0, -2.0, 0.5), strict=True):
+        assert feed(t, s, [0.0, 165.0], [e, e]) == [165.0]
+    result = t.step(np.array(slots), WALL)
+    assert len(agent.calls) == 1
+    obs, forgetting = agent.calls[0]
+    np.testing.assert_allclose(forgetting, [0.9, 0.91, 0.92])
+    kp_a, ki_a = 0.5 / (0.1 / 0.24), 0.01 / (0.1 / 0.24 / 60.0)
+    np.testing.assert_allclose(obs[:, 0], kp_a)
+    np.testing.assert_allclose(obs[:, 1], ki_a)
+    np.testing.assert_allclose(obs[:, 2], [0.1, -0.2, 0.05])
+    np.testing.assert_allclose(obs[:, 3], np.array([1.0, -2.0, 0.5]) * 0.1 * 165.0 / 60.0)
+    assert result.loop_ids == ["L0", "L1", "L2"]
+    assert list(result.seq) == [1, 1, 1]
+    assert all(np.linalg.norm(t.hidden[s]) > 0 for s in slots)
+
+
+def test_guard_limits_relative_change_then_bounds():
+    t, s = table(ScalingAgent(10.0), guard={"max_rel_change": 0.25})
+    feed(t, s, [0.0, 165.0])
+    r = t.step(np.array([s]), WALL)
+    np.testing.assert_allclose(r.proposed[0], [5.0, 0.1])
+    np.testing.assert_allclose(r.new[0], [0.625, 0.0125])  # x1.25 at most
+    assert (t.kp[s], t.ki[s]) == pytest.approx((0.625, 0.0125))
+    assert "limited by the safety guard" in t.drain_changes()[1][-1][-1]
+
+    t, s = table(ScalingAgent(0.01), guard={"kp_min": 0.45, "max_rel_change": 1.0})
+    feed(t, s, [0.0, 165.0])
+    r = t.step(np.array([s]), WALL)
+    np.testing.assert_allclose(r.new[0], [0.45, 0.005])  # kp at its bound, ki halved
+
+
+def test_gain_outside_bounds_is_walked_back_gradually():
+    t, s = table(ScalingAgent(1.0), guard={"kp_max": 1.0, "max_rel_change": 0.5})
+    t.ingest(s, sample(0.0, kp=4.0), WALL)  # an operator set kp far above the bound
+    assert t.kp[s] == 4.0
+    assert t.ingest(s, sample(165.0, kp=4.0), WALL)
+    r = t.step(np.array([s]), WALL)
+    assert r.new[0, 0] == pytest.approx(4.0 / 1.5)
+
+
+def test_advisory_publishes_but_keeps_the_gains():
+    t, s = table(ScalingAgent(1.2), mode="advisory")
+    feed(t, s, [0.0, 165.0])
+    r = t.step(np.array([s]), WALL)
+    np.testing.assert_allclose(r.new[0], [0.6, 0.012])
+    assert (t.kp[s], t.ki[s]) == (0.5, 0.01)
+    assert t.seq[s] == 1 and not t.pending[s]
+
+
+def test_frozen_manual_saturated_and_stale_data_take_no_step():
+    t, s = table(mode="frozen")
+    assert feed(t, s, np.arange(0.0, 1000.0, 10.0)) == []
+    assert t.status(s, WALL) is LoopStatus.frozen
+
+    t, s = table()
+    assert not t.ingest(s, sample(0.0), WALL)
+    assert not t.ingest(s, sample(170.0, auto=False), WALL)  # due, but in manual
+    assert t.status(s, WALL) is LoopStatus.manual
+    assert not t.ingest(s, sample(340.0, saturated=True), WALL)
+    assert t.status(s, WALL) is LoopStatus.saturated
+    assert t.ingest(s, sample(500.0), WALL)  # window keeps its phase: due at 495
+
+    t, s = table(sample_period_s=1.0, guard={"stale_periods": 5.0})  # 5 s is stale
+    feed(t, s, [0.0, 1.0, 2.0])
+    int_before = t.int_e[s]
+    assert not t.ingest(s, sample(170.0), WALL)  # gap: no step on data that spans it
+    assert t.int_e[s] == int_before  # and no integration across it
+    assert t.next_due[s] == 170.0 + 165.0
+    assert t.status(s, WALL + 4.0) is LoopStatus.tuning
+    assert t.status(s, WALL + 6.0) is LoopStatus.stale
+
+
+def test_reported_gains_are_adopted_unless_an_update_is_in_flight():
+    t, s = table(ScalingAgent(1.2))
+    feed(t, s, [0.0, 165.0])
+    t.step(np.array([s]), WALL)
+    t.drain_changes()
+    assert t.kp[s] == pytest.approx(0.6)
+    t.ingest(s, sample(166.0, kp=0.5, ki=0.01), WALL)  # gateway not caught up yet
+    assert t.kp[s] == pytest.approx(0.6)
+    t.ingest(s, sample(167.0, kp=0.6, ki=0.012), WALL)  # applied
+    assert not t.pending[s]
+    t.ingest(s, sample(168.0, kp=0.5, ki=0.01), WALL)  # now an operator's change
+    assert (t.kp[s], t.ki[s]) == (0.5, 0.01)
+    gains, audit = t.drain_changes()
+    assert gains == [(0.5, 0.01, 1, "LIC-101")]
+    assert [row[5] for row in audit] == ["adopted"]
+
+
+@pytest.mark.parametrize(
+    ("t_next", "kw", "reason"),
+    [
+        (10.0, {}, RejectReason.duplicate),
+        (5.0, {}, RejectReason.out_of_order),
+        (11.0, {"e": 1001.0}, RejectReason.out_of_range),  # 100 agent units of error
+    ],
+)
+def test_rejected_samples_leave_the_loop_untouched(t_next, kw, reason):
+    t, s = table()
+    t.ingest(s, sample(10.0), WALL)
+    before = t.snapshot()
+    with pytest.raises(Rejected) as info:
+        t.ingest(s, sample(t_next, **kw), WALL)
+    assert info.value.reason is reason
+    assert t.snapshot()[0][:2] == before[0][:2]
+    assert t.n_rejected[s] == 1 and t.n_samples[s] == 1
+
+
+def test_flood_limit_per_loop_in_wall_time():
+    t, s = table(rate=5.0)
+    accepted = 0
+    for i in range(20):
+        try:
+            t.ingest(s, sample(float(i)), WALL)  # all in the same wall instant
+            accepted += 1
+        except Rejected as exc:
+            assert exc.reason is RejectReason.flood
+    assert accepted == 5
+    t.ingest(s, sample(100.0), WALL + 1.0)  # a second later there is room again
+
+
+def test_reset_and_snapshot_restore():
+    t, s = table()
+    feed(t, s, [0.0, 165.0], [2.0, 2.0])
+    t.step(np.array([s]), WALL)
+    rows = t.snapshot()
+    config = t.configs["LIC-101"]
+    restored = LoopTable(untrained_agent(0), max_rate_hz=1e6)
+    r = restored.add(config, kp=1.0, ki=0.02, seq=1, hidden=rows[0][1], runtime=rows[0][2], wall=0)
+    np.testing.assert_array_equal(restored.hidden[r], t.hidden[s])
+    for name in ("int_e", "last_t", "last_e", "next_due", "n_samples", "n_steps"):
+        assert getattr(restored, name)[r] == getattr(t, name)[s], name
+
+    result = t.reset("LIC-101", WALL)
+    assert (t.kp[s], t.ki[s]) == (0.5, 0.01) and t.seq[s] == 2
+    assert np.all(t.hidden[s] == 0) and t.int_e[s] == 0 and math.isnan(t.last_t[s])
+    assert result.t[0] == 165.0 and t.status(s, WALL) is LoopStatus.waiting
+    assert not t.ingest(s, sample(3.0), WALL)  # the time reference starts over

@@ -1,0 +1,120 @@
+"""Helpers shared by the tuner tests: ports, settings, Zenoh peers, waiting."""
+
+from __future__ import annotations
+
+import json
+import queue
+import socket
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import zenoh
+
+from service.protocol import GainsMessage, Keys
+from service.settings import Settings, load_settings
+
+TANK_SCALING = {"k_hat": 1.2, "tau_hat": 30.0, "pv_scale": 10.0}
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def endpoint(port: int) -> str:
+    return f"tcp/127.0.0.1:{port}"
+
+
+def tuner_settings(tmp_path: Path, **overrides: object) -> Settings:
+    """Settings for an in-process tuner: own port, own database, untrained agent."""
+    values = {
+        "zenoh_listen": [endpoint(free_port())],
+        "db_path": tmp_path / "pitune.db",
+        "agent_weights": "untrained",
+        "instance_id": "test-tuner",
+        "snapshot_interval_s": 3600.0,
+        "max_sample_rate_hz": 1e6,
+    }
+    return load_settings(**{**values, **overrides})
+
+
+def loop_body(loop_id: str = "LIC-101", **overrides: object) -> dict:
+    """A registration body for the paper's two-tank loop, 1 s samples."""
+    return {
+        "id": loop_id,
+        "kp": 0.5,
+        "ki": 0.01,
+        "sample_period_s": 1.0,
+        "scaling": dict(TANK_SCALING),
+        **overrides,
+    }
+
+
+def open_peer(connect: list[str]) -> zenoh.Session:
+    config = zenoh.Config()
+    config.insert_json5("mode", '"peer"')
+    config.insert_json5("scouting/multicast/enabled", "false")
+    config.insert_json5("connect/endpoints", json.dumps(connect))
+    return zenoh.open(config)
+
+
+def wait_until(predicate: Callable[[], object], timeout: float = 5.0, what: str = "") -> object:
+    """Poll ``predicate`` until truthy; fail the test after ``timeout`` seconds."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = predicate()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what or predicate}")
+        time.sleep(0.01)
+
+
+class Gateway:
+    """A test gateway: publishes samples, collects gains messages (no blocking callback)."""
+
+    def __init__(self, session: zenoh.Session, keys: Keys | None = None) -> None:
+        self.session = session
+        self.keys = keys or Keys()
+        self.gains: queue.SimpleQueue[GainsMessage] = queue.SimpleQueue()
+        self._sub = session.declare_subscriber(
+            self.keys.all_gains,
+            lambda s: self.gains.put(GainsMessage.model_validate_json(s.payload.to_bytes())),
+        )
+
+    def send(self, loop_id: str, payload: dict | bytes) -> None:
+        data = payload if isinstance(payload, bytes) else json.dumps(payload).encode()
+        self.session.put(self.keys.sample(loop_id), data)
+
+    def next_gains(self, timeout: float = 5.0) -> GainsMessage:
+        return self.gains.get(timeout=timeout)
+
+    def state(self, loop_id: str) -> tuple[bool, dict]:
+        """(ok, reply) of the state queryable."""
+        replies = list(self.session.get(self.keys.state(loop_id), timeout=5.0))
+        assert len(replies) == 1, replies
+        r = replies[0]
+        return (
+            (True, json.loads(r.ok.payload.to_bytes()))
+            if r.ok
+            else (
+                False,
+                json.loads(r.err.payload.to_bytes()),
+            )
+        )
+
+    def close(self) -> None:
+        self._sub.undeclare()
+        self.session.close()
+
+
+def connected_gateway(settings: Settings) -> Gateway:
+    """A gateway peer connected to the tuner, once the tuner's subscriptions reach it."""
+    gw = Gateway(open_peer(settings.zenoh_listen), settings.keys)
+    wait_until(
+        lambda: list(gw.session.liveliness().get(settings.keys.all_tuners, timeout=1.0)),
+        what="tuner liveliness token",
+    )
+    return gw
