@@ -14,6 +14,7 @@ from contextlib import asynccontextmanager
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, FastAPI, HTTPException, Query, Request, Response, status
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from prometheus_client import CONTENT_TYPE_LATEST
@@ -162,6 +163,12 @@ def create_app(settings: Settings, agent: Agent | None = None) -> FastAPI:
     @app.exception_handler(UnknownLoop)
     async def unknown_loop(request: Request, exc: UnknownLoop) -> JSONResponse:
         return JSONResponse({"detail": f"unknown loop {exc.args[0]!r}"}, status_code=404)
+
+    @app.exception_handler(RequestValidationError)
+    async def invalid_request(request: Request, exc: RequestValidationError) -> JSONResponse:
+        # Without the offending input: it may be NaN or Infinity, which JSON cannot carry.
+        errors = [{k: e[k] for k in ("loc", "msg", "type")} for e in exc.errors()]
+        return JSONResponse({"detail": errors}, status_code=422)
 
     @app.exception_handler(Conflict)
     async def conflict(request: Request, exc: Conflict) -> JSONResponse:

@@ -28,6 +28,7 @@ FLAGS = {
     "instance_id": ("--instance-id", {"metavar": "ID"}),
     "agent_weights": ("--agent-weights", {"metavar": "FILE|untrained"}),
     "snapshot_interval_s": ("--snapshot-interval", {"type": float, "metavar": "SECONDS"}),
+    "max_sample_rate_hz": ("--max-sample-rate", {"type": float, "metavar": "HZ"}),
     "log_level": ("--log-level", {"choices": ["debug", "info", "warning", "error"]}),
 }
 HELP = {

@@ -60,7 +60,9 @@ class Settings(BaseSettings):
     )
     snapshot_interval_s: Annotated[float, Field(gt=0.0)] = 30.0
     max_sample_rate_hz: Annotated[float, Field(gt=0.0)] = Field(
-        50.0, description="Per-loop sample rate above which samples are rejected as a flood."
+        1000.0,
+        description="Per-loop samples per second (wall clock) above which samples are "
+        "rejected as a flood; accelerated simulations may need more.",
     )
     queue_size: Annotated[int, Field(ge=1)] = 200_000
     max_batch: Annotated[int, Field(ge=1)] = Field(

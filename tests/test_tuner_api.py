@@ -1,0 +1,162 @@
+"""The admin API: the real FastAPI app (lifespan, tuner, Zenoh) through TestClient."""
+
+import pytest
+from fastapi.testclient import TestClient
+
+from service.api import create_app
+from tests.tuner_support import loop_body, tuner_settings
+
+pytestmark = pytest.mark.timeout(60)
+TOKEN = "s3cret-token"
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+
+
+@pytest.fixture
+def client(tmp_path):
+    with TestClient(create_app(tuner_settings(tmp_path, api_token=TOKEN))) as c:
+        yield c
+
+
+@pytest.fixture
+def open_client(tmp_path):
+    """No token configured: mutating calls are open."""
+    with TestClient(create_app(tuner_settings(tmp_path))) as c:
+        yield c
+
+
+def test_register_inspect_patch_reset_delete(client):
+    r = client.post("/loops", json=loop_body("LIC-101"), headers=AUTH)
+    assert r.status_code == 201, r.text
+    view = r.json()
+    assert (view["kp"], view["ki"], view["mode"], view["status"]) == (0.5, 0.01, "auto", "waiting")
+    assert view["rl_period_s"] == pytest.approx(165.0)
+    assert view["scaling"] == pytest.approx({"e_scale": 0.1, "u_scale": 0.24, "time_unit_s": 60.0})
+    guard = view["config"]["guard"]
+    assert guard["kp_min"] == pytest.approx(0.01 * 0.1 / 0.24)  # agent range, mapped
+    assert guard["ki_max"] == pytest.approx(50.0 * 0.1 / 0.24 / 60.0)
+    assert view["counters"] == {"samples": 0, "rejected": 0, "steps": 0, "updates": 0}
+
+    assert client.post("/loops", json=loop_body("LIC-101"), headers=AUTH).status_code == 409
+    client.post("/loops", json=loop_body("FIC-7", mode="frozen"), headers=AUTH)
+    assert [v["config"]["id"] for v in client.get("/loops").json()] == ["LIC-101", "FIC-7"]
+
+    r = client.patch("/loops/LIC-101", json={"mode": "advisory", "kp_max": 2.0}, headers=AUTH)
+    assert r.status_code == 200, r.text
+    assert r.json()["mode"] == "advisory" and r.json()["config"]["guard"]["kp_max"] == 2.0
+    r = client.patch("/loops/LIC-101", json={"kp_min": 5.0}, headers=AUTH)
+    assert r.status_code == 422 and "min < max" in r.json()["detail"]
+    assert client.get("/loops/LIC-101").json()["config"]["guard"]["kp_min"] == guard["kp_min"]
+
+    r = client.post("/loops/LIC-101/reset", headers=AUTH)
+    assert r.status_code == 200 and r.json()["seq"] == 1
+
+    metrics = client.get("/metrics").text
+    assert 'pitune_loops{mode="advisory"} 1.0' in metrics
+    assert 'pitune_loops{mode="frozen"} 1.0' in metrics
+    assert 'pitune_updates_published_total{mode="advisory"} 1.0' in metrics  # the reset
+
+    assert client.delete("/loops/LIC-101", headers=AUTH).status_code == 204
+    assert client.get("/loops/LIC-101").status_code == 404
+    assert client.delete("/loops/LIC-101", headers=AUTH).status_code == 404
+    history = client.get("/loops/LIC-101/history").json()  # the log outlives the loop
+    reasons = [e["reason"] for e in history["items"]]
+    assert reasons == ["deleted", "reset", "patched", "registered"]
+    assert history["items"][1]["kp_new"] == 0.5
+
+
+def test_history_is_paginated_newest_first(open_client):
+    client = open_client
+    client.post("/loops", json=loop_body("L1"))
+    for _ in range(5):
+        client.post("/loops/L1/reset")
+    page = client.get("/loops/L1/history", params={"offset": 1, "limit": 2}).json()
+    assert page["total"] == 6 and (page["offset"], page["limit"]) == (1, 2)
+    assert [e["seq"] for e in page["items"]] == [4, 3]
+    assert client.get("/loops/L1/history", params={"limit": 0}).status_code == 422
+    assert client.get("/loops/nope/history").status_code == 404
+
+
+MUTATIONS = [
+    ("post", "/loops", loop_body("NEW")),
+    ("patch", "/loops/LIC-101", {"mode": "frozen"}),
+    ("post", "/loops/LIC-101/reset", None),
+    ("delete", "/loops/LIC-101", None),
+]
+
+
+@pytest.mark.parametrize(
+    "headers", [{}, {"Authorization": "Bearer wrong"}, {"Authorization": TOKEN}]
+)
+def test_mutations_without_the_token_are_refused_and_change_nothing(client, headers):
+    client.post("/loops", json=loop_body("LIC-101"), headers=AUTH)
+    before = (client.get("/loops").json(), client.get("/loops/LIC-101/history").json())
+    for method, path, body in MUTATIONS:
+        kwargs = {"json": body} if body is not None else {}
+        r = client.request(method, path, headers=headers, **kwargs)
+        assert r.status_code == 401, (method, path, r.text)
+        assert r.headers["www-authenticate"] == "Bearer"
+        assert "token" in r.json()["detail"]
+    assert (client.get("/loops").json(), client.get("/loops/LIC-101/history").json()) == before
+    # reads need no token
+    assert client.get("/loops/LIC-101").status_code == 200
+    assert client.get("/metrics").status_code == 200
+
+
+@pytest.mark.parametrize(
+    ("body", "field"),
+    [
+        (loop_body("bad/id"), "id"),
+        (loop_body(kp=-1.0), "kp"),
+        (loop_body(ki=float("inf")), "ki"),
+        ({k: v for k, v in loop_body().items() if k != "scaling"}, "scaling"),
+        (loop_body(scaling={"k_hat": 1.0}), "scaling"),
+        (loop_body(guard={"kp_max": 0.1}), "bounds"),  # registered kp above the bound
+        (loop_body(forgetting=1.5), "forgetting"),
+        (loop_body(extra=1), "extra"),
+    ],
+)
+def test_invalid_registrations_get_422_with_a_message(open_client, body, field):
+    r = open_client.post(
+        "/loops", content=_json(body), headers={"content-type": "application/json"}
+    )
+    assert r.status_code == 422
+    assert field in r.text
+    assert open_client.get("/loops").json() == []
+
+
+def _json(body: dict) -> str:
+    import json
+
+    return json.dumps(body, allow_nan=True)
+
+
+def test_health_readiness_metrics_and_docs(open_client):
+    client = open_client
+    assert client.get("/healthz").json() == {"status": "ok", "detail": ""}
+    assert client.get("/readyz").status_code == 200
+    metrics = client.get("/metrics")
+    assert metrics.headers["content-type"].startswith("text/plain")
+    for name in (
+        "pitune_samples_received_total",
+        'pitune_samples_rejected_total{reason="flood"}',
+        "pitune_updates_published_total",
+        "pitune_inference_batch_seconds_bucket",
+        'pitune_loops{mode="auto"}',
+    ):
+        assert name in metrics.text
+    assert client.get("/docs").status_code == 200
+    paths = client.get("/openapi.json").json()["paths"]
+    assert {
+        "/loops",
+        "/loops/{loop_id}",
+        "/loops/{loop_id}/reset",
+        "/loops/{loop_id}/history",
+    } <= set(paths)
+
+
+def test_after_shutdown_the_tuner_is_not_ready(tmp_path):
+    app = create_app(tuner_settings(tmp_path))
+    with TestClient(app) as client:
+        assert client.get("/readyz").status_code == 200
+        tuner = app.state.tuner
+    assert not tuner.ready and not tuner.alive
