@@ -1,0 +1,80 @@
+"""End to end on the bus: a simulated plant tuned by the shipped agent.
+
+The plant is the paper's two-tank level loop as its FOPTD approximation,
+1.7 exp(-13 s)/(55 s + 1) (cm per L/min), simulated here at 1 s with the bumpless PI of
+``plant_sim``; it publishes a sample every 5 s of plant time, in engineering units with
+the gains in force, and applies the tuner's gains as they arrive. The tuner only knows
+the crude hint 1.2/(30 s + 1) and a 10 cm PV scale (section 5.4). The loop starts from
+the paper's untuned gains (Kc = 0.05, tau_I = 1 agent time unit).
+"""
+
+import numpy as np
+import pytest
+
+from plant_sim import FOPTDBatch, PIBatch, step_test_mse
+from service.agent import DEFAULT_WEIGHTS, load_agent
+from service.schemas import LoopConfig
+from service.tuner import Tuner
+from tests.tuner_support import TANK_SCALING, connected_gateway, tuner_settings
+
+pytestmark = pytest.mark.timeout(120)
+
+K, TAU, THETA = 1.7, 55.0, 13.0
+SAMPLE_S, SP_PERIOD_S, STEPS = 5.0, 660.0, 40
+
+
+def run_plant(gateway, loop_id, scaling, kp0, ki0, n_steps):
+    """Simulate the loop in plant time, in lock-step with the tuner; return gains per step."""
+    plant = FOPTDBatch(K, TAU, THETA, dt=1.0)
+    pi = PIBatch(kp0, ki0, dt=1.0)
+    period = scaling.rl_period_s
+    history = [(kp0, ki0)]
+    t, sp = 0.0, 10.0
+    while len(history) <= n_steps:
+        if t > 0 and t % SP_PERIOD_S == 0:
+            sp = -sp
+        e = sp - plant.output()[0]
+        if t % SAMPLE_S == 0:
+            gateway.send(loop_id, {"t": t, "e": e, "kp": pi.kp[0], "ki": pi.ki[0]})
+            if t > 0 and t % period < SAMPLE_S:  # the first sample past a step boundary
+                msg = gateway.next_gains(timeout=10.0)
+                assert msg.t == t and msg.seq == len(history)
+                pi.set_gains(msg.kp, msg.ki)
+                history.append((msg.kp, msg.ki))
+        plant.step(pi.step(e))
+        t += 1.0
+    return np.array(history)
+
+
+@pytest.mark.skipif(not DEFAULT_WEIGHTS.exists(), reason=f"no trained agent at {DEFAULT_WEIGHTS}")
+def test_shipped_agent_moves_the_gains_toward_good_values(tmp_path):
+    config = LoopConfig(
+        id="LIC-101", kp=1.0, ki=1.0, sample_period_s=SAMPLE_S, scaling=TANK_SCALING
+    )
+    scaling = config.resolved_scaling
+    kp0, ki0 = scaling.to_engineering(0.05, 0.05)
+    config = config.model_copy(update={"kp": kp0, "ki": ki0})
+    config = LoopConfig.model_validate(config.model_dump(exclude={"guard"}))
+
+    with Tuner(tuner_settings(tmp_path), agent=load_agent()) as tuner:
+        gateway = connected_gateway(tuner.settings)
+        try:
+            tuner.register(config)
+            gains = run_plant(gateway, "LIC-101", scaling, kp0, ki0, STEPS)
+        finally:
+            gateway.close()
+        assert tuner.view("LIC-101").counters.rejected == 0
+
+    # the paper's step-test metric, in the agent's units, on the plant as the agent sees it
+    agent_gains = gains / np.array([scaling.kp_per_agent, scaling.ki_per_agent])
+    plant_as_seen = (
+        scaling.apparent_gain(K),
+        scaling.apparent_tau(TAU),
+        THETA / scaling.time_unit_s,
+    )
+    mse = step_test_mse(*plant_as_seen, agent_gains[:, 0], agent_gains[:, 1])
+    final = mse[-5:].mean()
+    print(f"step-test MSE: untuned {mse[0]:.4f}, after {STEPS} steps {final:.4f}")
+    print("agent-unit gains every 5 steps:", agent_gains[::5].round(3).tolist())
+    assert final < 0.5 * mse[0]
+    assert np.all(np.isfinite(mse[-5:]))
