@@ -13,7 +13,7 @@ import sys
 import uvicorn
 from pydantic import ValidationError
 
-from service.settings import load_settings
+from service.settings import Settings, load_settings
 
 # flag -> settings field; flags left out fall back to environment, config file, defaults
 FLAGS = {
@@ -29,6 +29,7 @@ FLAGS = {
     "agent_weights": ("--agent-weights", {"metavar": "FILE|untrained"}),
     "snapshot_interval_s": ("--snapshot-interval", {"type": float, "metavar": "SECONDS"}),
     "max_sample_rate_hz": ("--max-sample-rate", {"type": float, "metavar": "HZ"}),
+    "inference_threads": ("--inference-threads", {"type": int, "metavar": "N"}),
     "log_level": ("--log-level", {"choices": ["debug", "info", "warning", "error"]}),
 }
 HELP = {
@@ -37,7 +38,8 @@ HELP = {
     "zenoh_config": "Zenoh JSON5 config file (TLS, user/password); flags override it",
     "db_path": "SQLite database, default ./pitune.db",
     "key_prefix": "key-expression prefix, default 'pitune'",
-    "agent_weights": "agent weights file (default: the shipped weights)",
+    "agent_weights": "agent weights file, or 'untrained' (tests); default: the shipped weights",
+    "snapshot_interval_s": "seconds between snapshots of the agent states, default 30",
 }
 
 
@@ -48,9 +50,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
             flag,
             dest=field,
             default=argparse.SUPPRESS,
-            help=HELP.get(field, f"settings field {field} (env PITUNE_{field.upper()})"),
+            help=f"{HELP.get(field) or _description(field)} [env PITUNE_{field.upper()}]",
             **options,
         )
+
+
+def _description(field: str) -> str:
+    return Settings.model_fields[field].description or field.replace("_", " ")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -64,7 +70,11 @@ def run(args: argparse.Namespace) -> int:
         level=settings.log_level.upper(),
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
-    from service.api import create_app  # heavy (torch): only once the settings are good
+    import torch  # heavy: only once the settings are good
+
+    from service.api import create_app
+
+    torch.set_num_threads(settings.inference_threads)
 
     server = uvicorn.Server(
         uvicorn.Config(

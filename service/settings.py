@@ -68,6 +68,11 @@ class Settings(BaseSettings):
     max_batch: Annotated[int, Field(ge=1)] = Field(
         20_000, description="Most bus messages handled per worker iteration."
     )
+    inference_threads: Annotated[int, Field(ge=1, le=64)] = Field(
+        1,
+        description="torch CPU threads. Batches are small and latency-bound; one thread "
+        "avoids contention with the Zenoh runtime and the HTTP server.",
+    )
     log_level: Literal["debug", "info", "warning", "error"] = "info"
 
     @field_validator("key_prefix")

@@ -13,6 +13,7 @@ import pytest
 
 from plant_sim import FOPTDBatch, PIBatch, step_test_mse
 from service.agent import DEFAULT_WEIGHTS, load_agent
+from service.scaling import ScalingSpec
 from service.schemas import LoopConfig
 from service.tuner import Tuner
 from tests.tuner_support import TANK_SCALING, connected_gateway, tuner_settings
@@ -48,13 +49,11 @@ def run_plant(gateway, loop_id, scaling, kp0, ki0, n_steps):
 
 @pytest.mark.skipif(not DEFAULT_WEIGHTS.exists(), reason=f"no trained agent at {DEFAULT_WEIGHTS}")
 def test_shipped_agent_moves_the_gains_toward_good_values(tmp_path):
-    config = LoopConfig(
-        id="LIC-101", kp=1.0, ki=1.0, sample_period_s=SAMPLE_S, scaling=TANK_SCALING
-    )
-    scaling = config.resolved_scaling
+    scaling = ScalingSpec(**TANK_SCALING).resolve()
     kp0, ki0 = scaling.to_engineering(0.05, 0.05)
-    config = config.model_copy(update={"kp": kp0, "ki": ki0})
-    config = LoopConfig.model_validate(config.model_dump(exclude={"guard"}))
+    config = LoopConfig(
+        id="LIC-101", kp=kp0, ki=ki0, sample_period_s=SAMPLE_S, scaling=TANK_SCALING
+    )
 
     with Tuner(tuner_settings(tmp_path), agent=load_agent()) as tuner:
         gateway = connected_gateway(tuner.settings)

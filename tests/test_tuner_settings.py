@@ -1,0 +1,64 @@
+"""Settings precedence (flags > env > file > defaults) and the Zenoh config they produce."""
+
+import argparse
+import json
+
+import pytest
+from pydantic import ValidationError
+
+from service import daemon
+from service.bus import zenoh_config
+from service.settings import load_settings
+
+pytestmark = pytest.mark.timeout(30)
+
+
+def test_flags_beat_environment_beat_file_beat_defaults(tmp_path, monkeypatch):
+    config = tmp_path / "pitune.toml"
+    config.write_text('api_port = 9001\nkey_prefix = "site/pitune"\ndb_path = "/var/x.db"\n')
+    monkeypatch.setenv("PITUNE_API_PORT", "9002")
+    monkeypatch.setenv("PITUNE_ZENOH_CONNECT", '["tcp/10.0.0.5:7447"]')
+    parser = argparse.ArgumentParser()
+    daemon.add_arguments(parser)
+    listen = ["--listen", "tcp/127.0.0.1:1", "--listen", "tcp/127.0.0.1:2"]
+    args = parser.parse_args(["--config", str(config), "--db", "/tmp/flag.db", *listen])
+    overrides = {f: getattr(args, f) for f in daemon.FLAGS if hasattr(args, f)}
+    s = load_settings(args.config, **overrides)
+    assert str(s.db_path) == "/tmp/flag.db"  # flag over file
+    assert s.api_port == 9002  # environment over file
+    assert s.key_prefix == "site/pitune"  # file over default
+    assert s.zenoh_connect == ["tcp/10.0.0.5:7447"]
+    assert s.zenoh_listen == ["tcp/127.0.0.1:1", "tcp/127.0.0.1:2"]
+    assert s.api_host == "127.0.0.1" and s.api_token is None  # defaults
+
+    monkeypatch.setenv("PITUNE_CONFIG", str(config))
+    assert load_settings().key_prefix == "site/pitune"
+    with pytest.raises(FileNotFoundError):
+        load_settings(tmp_path / "missing.toml")
+    with pytest.raises(ValidationError):
+        load_settings(key_prefix="a/*")
+    with pytest.raises(ValidationError):
+        load_settings(instance_id="has/slash")
+
+
+def test_default_zenoh_config_is_a_loopback_peer_without_scouting():
+    c = zenoh_config(load_settings())
+    assert json.loads(c.get_json("mode")) == "peer"
+    assert json.loads(c.get_json("listen/endpoints")) == ["tcp/127.0.0.1:7447"]
+    assert json.loads(c.get_json("connect/endpoints")) == []
+    assert json.loads(c.get_json("scouting/multicast/enabled")) is False
+
+
+def test_a_zenoh_config_file_is_overridden_only_by_explicit_settings(tmp_path):
+    path = tmp_path / "zenoh.json5"
+    path.write_text(
+        '{ mode: "client", connect: { endpoints: ["tcp/router:7447"] },\n'
+        '  transport: { auth: { usrpwd: { user: "tuner", password: "pw" } } } }\n'
+    )
+    c = zenoh_config(load_settings(zenoh_config=path))
+    assert json.loads(c.get_json("mode")) == "client"
+    assert json.loads(c.get_json("connect/endpoints")) == ["tcp/router:7447"]
+    assert json.loads(c.get_json("transport/auth/usrpwd/user")) == "tuner"
+    c = zenoh_config(load_settings(zenoh_config=path, zenoh_connect=["tcp/10.1.1.1:7447"]))
+    assert json.loads(c.get_json("connect/endpoints")) == ["tcp/10.1.1.1:7447"]
+    assert json.loads(c.get_json("mode")) == "client"
