@@ -240,7 +240,7 @@ class Tuner:
             return
         version = message.get("v", SCHEMA_VERSION)
         self.metrics.samples_received.inc(len(items))
-        if not isinstance(version, int) or not 1 <= version <= SCHEMA_VERSION:
+        if type(version) is not int or not 1 <= version <= SCHEMA_VERSION:
             for _ in items:
                 self.metrics.reject(RejectReason.unsupported_version, None, f"batch v={version!r}")
             return
