@@ -35,7 +35,7 @@ class TrajectoryWriter:
         self._pending = 0
 
     def write(self, scan: Scan) -> None:
-        self._csv.writerow([f"{getattr(scan, c):.6g}" for c in COLUMNS])
+        self._csv.writerow([repr(float(getattr(scan, c))) for c in COLUMNS])
         self._pending += 1
         if self._pending >= self._flush_every:
             self._file.flush()

@@ -159,23 +159,74 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-class Demo:
-    """The two processes of one demo run and the loop's progress while they run."""
+class Stack:
+    """A tuner and plant simulators as separate processes on loopback ports, sharing a
+    work folder (SQLite database, process logs, trajectory logs). The demo runs one;
+    the end-to-end tests kill and restart its parts."""
 
-    def __init__(self, args: argparse.Namespace, workdir: Path) -> None:
-        self.args = args
+    def __init__(self, workdir: Path, *, speed: float, agent_weights: str | None = None) -> None:
         self.workdir = workdir
+        self.speed = speed
+        self.agent_weights = agent_weights
         self.api = f"http://127.0.0.1:{free_port()}"
         self.zenoh = f"tcp/127.0.0.1:{free_port()}"
         self.token = secrets.token_urlsafe(16)
-        self.duration_s = args.minutes * 60.0
+        self.children: list[Child] = []
+
+    @property
+    def log_dir(self) -> Path:
+        return self.workdir / "log"
 
     def env(self) -> dict[str, str]:
         """Embedded defaults only: a PITUNE_* variable of the caller must not leak in."""
         env = {k: v for k, v in os.environ.items() if not k.startswith("PITUNE_")}
+        return {**env, "PITUNE_API_TOKEN": self.token}
+
+    def start_tuner(self, *extra: str) -> Child:
+        """Start the tuner (same database and ports on every restart); wait until healthy."""
         # Samples arrive `speed` times faster than the plant's 1 s scan.
-        rate = max(50.0, 4.0 * self.args.speed)
-        return {**env, "PITUNE_API_TOKEN": self.token, "PITUNE_MAX_SAMPLE_RATE_HZ": f"{rate:g}"}
+        rate = max(50.0, 4.0 * self.speed)
+        argv = pitune("tuner", "--api-port", self.api.rsplit(":", 1)[1], "--listen", self.zenoh,
+                      "--db", str(self.workdir / "pitune.db"), "--max-sample-rate", f"{rate:g}",
+                      "--log-level", "warning", *extra)  # fmt: skip
+        if self.agent_weights:
+            argv += ["--agent-weights", self.agent_weights]
+        tuner = self._start("tuner", argv)
+        wait_healthy(self.api, tuner)
+        return tuner
+
+    def start_plant(self, *plant_args: str) -> Child:
+        """Start a plant simulator that registers its loops and logs their trajectories."""
+        argv = pitune("plant", "run", *plant_args, "--speed", f"{self.speed:g}",
+                      "--connect", self.zenoh, "--register", self.api,
+                      "--log-dir", str(self.log_dir), "--progress", "0")  # fmt: skip
+        return self._start("plant", argv)
+
+    def _start(self, name: str, argv: list[str]) -> Child:
+        n = sum(c.name == name for c in self.children)
+        child = Child(name, argv, env=self.env(), log=self.workdir / f"{name}{n or ''}.log")
+        self.children.append(child)
+        return child
+
+    def close(self) -> None:
+        """Stop every process still running (plants first, so none outlives its tuner)."""
+        for child in sorted(self.children, key=lambda c: c.name != "plant"):
+            child.stop()
+
+    def __enter__(self) -> Stack:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class Demo:
+    """One demo run: the stack, the loop's progress while it runs, and the report."""
+
+    def __init__(self, args: argparse.Namespace, workdir: Path) -> None:
+        self.args = args
+        self.workdir = workdir
+        self.duration_s = args.minutes * 60.0
 
     def plant_args(self) -> list[str]:
         """The plant's simulation options, shared with the in-process baseline."""
@@ -184,40 +235,26 @@ class Demo:
                 "--seed", str(a.seed)]  # fmt: skip
 
     def run(self) -> dict:
-        port = self.api.rsplit(":", 1)[1]
-        db = str(self.workdir / "pitune.db")
-        tuner_argv = pitune("tuner", "--api-port", port, "--listen", self.zenoh, "--db", db,
-                            "--log-level", "warning")  # fmt: skip
-        if self.args.agent_weights:
-            tuner_argv += ["--agent-weights", self.args.agent_weights]
-        tuner = Child("tuner", tuner_argv, env=self.env(), log=self.workdir / "tuner.log")
-        plant = None
-        try:
-            print(f"starting the tuner (API {self.api}, Zenoh {self.zenoh}) ...", flush=True)
-            wait_healthy(self.api, tuner)
-            plant_argv = pitune("plant", "run", *self.plant_args(),
-                                "--speed", f"{self.args.speed:g}", "--connect", self.zenoh,
-                                "--register", self.api, "--log-dir", str(self.workdir / "log"),
-                                "--progress", "0")  # fmt: skip
-            plant = Child("plant", plant_argv, env=self.env(), log=self.workdir / "plant.log")
+        with Stack(
+            self.workdir, speed=self.args.speed, agent_weights=self.args.agent_weights
+        ) as st:
+            print(f"starting the tuner (API {st.api}, Zenoh {st.zenoh}) ...", flush=True)
+            tuner = st.start_tuner()
+            plant = st.start_plant(*self.plant_args())
             print(f"plant simulator started: {self.args.minutes:g} simulated minutes "
                   f"at {self.args.speed:g}x", flush=True)  # fmt: skip
-            view = self.follow(plant, tuner)
+            view = self.follow(st.api, plant, tuner)
             if tuner.stop() not in CLEAN_EXIT:
                 raise tuner.failed()
             return view
-        finally:
-            if plant is not None:
-                plant.stop()
-            tuner.stop()
 
-    def follow(self, plant: Child, tuner: Child) -> dict:
+    def follow(self, api: str, plant: Child, tuner: Child) -> dict:
         """Show progress until the plant finishes its span; the loop's final view."""
         deadline = time.monotonic() + self.duration_s / self.args.speed + 90.0
         log = self.workdir / "log" / f"{LOOP_ID}.csv"
         progress = Progress(self.duration_s)
         view: dict = {}
-        with httpx.Client(base_url=self.api, timeout=5.0) as client:
+        with httpx.Client(base_url=api, timeout=5.0) as client:
             while plant.running:
                 if not tuner.running:
                     raise tuner.failed()
@@ -247,8 +284,8 @@ class Demo:
             raise DemoError(f"the plant logged {len(tuned)} scans, expected {len(baseline)}")
         shutil.copyfile(log, out / f"{LOOP_ID}.csv")
         mse_tuned, mse_untuned = tuned.tracking_mse(MSE_CHANGES), baseline.tracking_mse(MSE_CHANGES)
-        _, tau, theta = TANK_FIT
-        simc_kp, simc_ki = (float(g) for g in to_parallel(*simc_improved(*TANK_FIT, 2 * tau)))
+        tau_c = 2 * TANK_FIT[1]
+        simc_kp, simc_ki = (float(g) for g in to_parallel(*simc_improved(*TANK_FIT, tau_c)))
         summary = {
             "loop": LOOP_ID,
             "simulated_minutes": self.args.minutes,

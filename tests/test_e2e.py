@@ -1,0 +1,204 @@
+"""End to end: the tuner and the plant simulator as separate OS processes, real Zenoh on
+loopback, real HTTP. Each scenario runs the two-tank loop at a high speed factor; every
+process is reaped whatever happens (:class:`service.demo.Stack`)."""
+
+from __future__ import annotations
+
+import json
+import queue
+import subprocess
+import sys
+import time
+
+import httpx
+import numpy as np
+import pytest
+import zenoh
+
+from plant_sim.process import untuned_baseline
+from plant_sim.trajectory import read_log
+from service.agent import DEFAULT_WEIGHTS
+from service.cli import build_parser
+from service.demo import ROOT, Stack
+from service.protocol import GainsMessage, Keys, UpdateReason
+
+SPEED = 100.0
+"""Simulated seconds per wall second: one RL step (165 s of plant time) every 1.65 s."""
+LOOP = "tank1"
+REGISTERED = (0.05 * 0.5 / 1.2, 0.05 * 0.5 / 1.2 / 60.0)
+"""The registered (untuned) gains: the paper's initial tuning through the hint."""
+
+pytestmark = pytest.mark.timeout(240)
+
+
+def view(stack: Stack) -> dict:
+    response = httpx.get(f"{stack.api}/loops/{LOOP}", timeout=5.0)
+    response.raise_for_status()
+    return response.json()
+
+
+def wait_for(condition, what: str, timeout: float = 60.0, every: float = 0.2):
+    """Poll ``condition`` until it returns something truthy; fail after ``timeout`` s."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if result := condition():
+            return result
+        time.sleep(every)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+
+
+def wait_view(stack: Stack, predicate, what: str, timeout: float = 60.0) -> dict:
+    """The loop's view once ``predicate(view)`` holds (not registered yet counts as not)."""
+
+    def check():
+        response = httpx.get(f"{stack.api}/loops/{LOOP}", timeout=5.0)
+        return response.is_success and predicate(v := response.json()) and v
+
+    return wait_for(check, what, timeout)
+
+
+def gains_listener(stack: Stack):
+    """A Zenoh peer of the tuner collecting the gains messages it publishes."""
+    config = zenoh.Config()
+    config.insert_json5("mode", '"peer"')
+    config.insert_json5("connect/endpoints", json.dumps([stack.zenoh]))
+    config.insert_json5("scouting/multicast/enabled", "false")
+    session = zenoh.open(config)
+    inbox: queue.SimpleQueue = queue.SimpleQueue()
+    sub = session.declare_subscriber(
+        Keys().all_gains,
+        lambda s: inbox.put(GainsMessage.model_validate_json(s.payload.to_bytes())),
+    )
+    return session, sub, inbox
+
+
+def drain(inbox: queue.SimpleQueue) -> list[GainsMessage]:
+    out = []
+    while not inbox.empty():
+        out.append(inbox.get())
+    return out
+
+
+def plant_log(stack: Stack, name: str = LOOP):
+    return read_log(stack.log_dir / f"{name}.csv")
+
+
+@pytest.mark.skipif(
+    not DEFAULT_WEIGHTS.exists(), reason=f"trained agent weights absent ({DEFAULT_WEIGHTS})"
+)
+def test_demo_tunes_the_two_tank_loop_at_least_3x_better_than_untuned(tmp_path):
+    """`pitune demo` (tuner + plant subprocesses, REST registration, Zenoh) vs the same seed
+    untuned; the MSE is recomputed here from the plant's own log."""
+    out = tmp_path / "demo"
+    argv = [sys.executable, "-m", "service.cli", "demo", "--out", str(out), "--speed", "150",
+            "--workdir", str(tmp_path / "work")]  # fmt: skip
+    started = time.monotonic()
+    result = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=200)
+    wall = time.monotonic() - started
+    assert result.returncode == 0, result.stdout[-2000:] + result.stderr[-2000:]
+    assert "level-target RMS" in result.stdout  # the progress line
+    tuned = read_log(out / "tank1.csv")
+    args = build_parser("plant").parse_args(["plant", "run", "--duration", "3600"])
+    untuned = untuned_baseline(args)["tank1"]
+    np.testing.assert_array_equal(tuned.sp, untuned.sp)
+    mse_tuned, mse_untuned = tuned.tracking_mse(2), untuned.tracking_mse(2)
+    assert mse_untuned >= 3 * mse_tuned, (mse_tuned, mse_untuned)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["mse_tuned_cm2"] == pytest.approx(mse_tuned)
+    assert summary["mse_untuned_cm2"] == pytest.approx(mse_untuned)
+    assert summary["gain_updates"] >= 15  # one per 165 s of plant time
+    assert (out / "two_tank.png").read_bytes()[:4] == b"\x89PNG"
+    assert wall < 180
+
+
+def test_tuner_sigkill_and_restart_resumes_the_loop_while_the_plant_runs_on(tmp_path):
+    with Stack(tmp_path, speed=SPEED) as stack:
+        tuner = stack.start_tuner("--snapshot-interval", "0.5")
+        stack.start_plant("--tank", LOOP)
+        before = wait_view(stack, lambda v: v["seq"] >= 4, "4 gain updates")
+        time.sleep(1.0)  # a snapshot of the hidden state after the last update
+        tuner.kill()
+        killed_at = plant_log(stack).t[-1]
+        time.sleep(3.0)  # 300 s of plant time without a tuner
+        during = plant_log(stack)
+        outage = during.t > killed_at + 10  # past any update still in flight at the kill
+        assert during.t[-1] > killed_at + 200, "the plant kept running"
+        assert len(set(during.kp[outage])) == 1 and len(set(during.ki[outage])) == 1
+        held = (during.kp[outage][0], during.ki[outage][0])
+
+        stack.start_tuner()
+        restored = view(stack)
+        assert restored["config"]["kp"] == pytest.approx(REGISTERED[0])  # still registered
+        assert restored["seq"] >= before["seq"]
+        assert (restored["kp"], restored["ki"]) == pytest.approx(held)
+        assert restored["hidden_norm"] > 0, "the agent's state came back from the store"
+        after = wait_view(stack, lambda v: v["seq"] >= restored["seq"] + 2, "updates resume")
+        assert after["counters"]["rejected"] == 0
+        # tuning continued from the held gains (at most +-50% per update), not from scratch
+        assert held[0] / 1.5**2 <= after["kp"] <= held[0] * 1.5**2
+        assert after["kp"] > 3 * REGISTERED[0]
+
+
+def test_killed_plant_makes_the_loop_stale_and_silent_until_samples_return(tmp_path):
+    with Stack(tmp_path, speed=SPEED) as stack:
+        stack.start_tuner()
+        session, sub, inbox = gains_listener(stack)
+        try:
+            plant = stack.start_plant("--tank", LOOP)
+            wait_view(stack, lambda v: v["seq"] >= 3, "3 gain updates")
+            plant.kill()
+            last_t = plant_log(stack).t[-1]
+            stale = wait_view(stack, lambda v: v["status"] == "stale", "stale", 20)
+            drain(inbox)
+            time.sleep(3.0)
+            assert drain(inbox) == [], "nothing is published for a stale loop"
+            assert view(stack)["seq"] == stale["seq"]
+
+            stack.start_plant("--tank", LOOP)  # registers again: 409, so it resumes
+            fresh = wait_for(lambda: drain(inbox), "gains messages again", 30)
+            assert fresh[0].seq > stale["seq"] and fresh[0].t > last_t
+            assert view(stack)["status"] == "tuning"
+            resumed = read_log(stack.log_dir / f"{LOOP}.csv")
+            assert resumed.t[0] > last_t, "the plant clock continues after the tuner's last sample"
+            assert resumed.kp[0] == pytest.approx(stale["kp"])
+        finally:
+            sub.undeclare()
+            session.close()
+
+
+def test_reset_over_rest_returns_to_registered_gains_and_starts_over(tmp_path):
+    with Stack(tmp_path, speed=SPEED) as stack:
+        stack.start_tuner()
+        session, sub, inbox = gains_listener(stack)
+        try:
+            stack.start_plant("--tank", LOOP)
+            tuned = wait_view(stack, lambda v: v["kp"] > 3 * REGISTERED[0], "kp tuned up")
+            url = f"{stack.api}/loops/{LOOP}/reset"
+            assert httpx.post(url, timeout=5.0).status_code == 401  # the token is required
+            response = httpx.post(
+                url, headers={"Authorization": f"Bearer {stack.token}"}, timeout=5.0
+            )
+            assert response.status_code == 200, response.text
+            reset = response.json()
+            assert (reset["kp"], reset["ki"]) == pytest.approx(REGISTERED)
+            assert reset["hidden_norm"] == 0.0 and reset["seq"] > tuned["seq"]
+
+            collected: list[GainsMessage] = []
+
+            def reset_then_agent():
+                collected.extend(drain(inbox))
+                since = [m for m in collected if m.seq >= reset["seq"]]
+                return since if len(since) >= 2 else None
+
+            first, second = wait_for(reset_then_agent, "reset and the next update", 30)[:2]
+            assert first.reason == UpdateReason.reset
+            assert (first.kp, first.ki) == pytest.approx(REGISTERED)
+            assert second.reason == UpdateReason.agent
+            # starting over: the first update moves from the registered gains by <= 50%
+            assert REGISTERED[0] / 1.5 <= second.kp <= REGISTERED[0] * 1.5
+            log = plant_log(stack)
+            applied = log.t[np.isclose(log.kp, REGISTERED[0])]
+            assert applied.size and applied[-1] > tuned["last_sample_t"], "the plant applied it"
+        finally:
+            sub.undeclare()
+            session.close()
