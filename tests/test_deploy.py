@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import os
 import queue
 import re
 import shutil
@@ -199,3 +200,59 @@ def test_acl_lets_the_gateway_publish_samples_and_receive_gains_only(router):
     assert b"gateway gains" not in got_tuner and b"gateway other" not in got_tuner
     assert b"tuner gains" in got_gateway
     assert b"tuner sample" not in got_gateway, "the gateway may not subscribe to samples"
+
+
+def test_compose_tuner_settings_make_an_authenticated_client_of_the_router(compose, monkeypatch):
+    from service.bus import zenoh_config
+    from service.settings import load_settings
+
+    env = dict(compose["services"]["tuner"]["environment"])
+    env["PITUNE_ZENOH_CONFIG"] = str(DEPLOY / "zenoh" / "tuner.json5")  # the mounted file
+    for name, value in env.items():
+        monkeypatch.setenv(name, value)
+    settings = load_settings()
+    assert (settings.api_host, settings.api_port) == ("0.0.0.0", 8750)
+    config = zenoh_config(settings)
+    assert json.loads(config.get_json("mode")) == "client"
+    assert json.loads(config.get_json("connect/endpoints")) == ["tcp/router:7447"]
+    assert json.loads(config.get_json("listen/endpoints")) == []
+    assert json.loads(config.get_json("transport/auth/usrpwd/user")) == "tuner"
+
+
+def test_example_dcs_gateway_publishes_samples_and_applies_auto_gains(tmp_path):
+    """deploy/examples/dcs_gateway.py, the README's gateway, against a live Zenoh peer."""
+    from service.demo import Child
+    from service.protocol import GainsMessage, Keys, Mode, Sample, encode
+
+    port = free_port()
+    config = zenoh.Config()
+    config.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    config.insert_json5("scouting/multicast/enabled", "false")
+    samples: queue.SimpleQueue = queue.SimpleQueue()
+    keys = Keys()
+    with zenoh.open(config) as tuner:
+        sub = tuner.declare_subscriber(keys.sample("LIC-101"), lambda s: samples.put(s.payload))
+        gateway = Child(
+            "gateway",
+            [sys.executable, str(DEPLOY / "examples" / "dcs_gateway.py"),
+             "--connect", f"tcp/127.0.0.1:{port}", "--seconds", "6"],
+            env={**os.environ, "PYTHONPATH": str(ROOT)},
+            log=tmp_path / "gateway.log",
+        )  # fmt: skip
+        try:
+
+            def next_kp() -> float:
+                return Sample.model_validate_json(samples.get(timeout=15).to_bytes()).kp
+
+            assert next_kp() == 0.5
+            for seq, kp, mode in ((1, 0.7, Mode.auto), (2, 0.9, Mode.advisory)):
+                msg = GainsMessage(loop_id="LIC-101", seq=seq, t=0.0, dkp=0.0, dki=0.0, kp=kp,
+                                   ki=0.02, mode=mode, instance_id="test")  # fmt: skip
+                tuner.put(keys.gains("LIC-101"), encode(msg))
+                time.sleep(1.5)
+            kps = [next_kp() for _ in range(samples.qsize())]
+            assert kps[-1] == 0.7 and 0.9 not in kps, kps
+            assert gateway.wait(20) == 0, gateway.tail()  # ends cleanly, no hang at exit
+        finally:
+            sub.undeclare()
+            gateway.kill()
