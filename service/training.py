@@ -27,6 +27,7 @@ import argparse
 import csv
 import json
 import math
+import subprocess
 import time
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
@@ -54,10 +55,11 @@ from service.env import K_RANGE, RATIO_RANGE, TAU_RANGE, EnvConfig, TuningEnv, s
 class TrainConfig:
     seed: int = 1
     # imitation warm start (DAgger toward the step-test oracle)
-    bc_epochs: int = 400
+    bc_epochs: int = 600
     bc_horizon: int = 60
-    bc_updates: int = 4
-    bc_explore: float = 0.3
+    bc_updates: int = 3
+    bc_minibatch: int = 100
+    bc_explore: float = 0.1
     bc_lr: float = 1e-3
     # PPO (paper: 300 episodes an epoch, 40 steps, gamma 0.99, lambda 0.95, ...)
     epochs: int = 200
@@ -72,6 +74,7 @@ class TrainConfig:
     v_iters: int = 40
     target_kl: float = 0.015
     value_warmup: int = 20
+    ppo_log_std: float = -2.5
     value_scale: float = 10.0
     max_grad_norm: float = 0.5
     # task distribution extras
@@ -181,6 +184,7 @@ class Trainer:
         self.epoch = 0
         self.elapsed = 0.0
         self.best = math.inf
+        self.init_from: dict | None = None
 
     # -- persistence ------------------------------------------------------------------
     def state(self) -> dict:
@@ -194,6 +198,7 @@ class Trainer:
             "epoch": self.epoch,
             "elapsed": self.elapsed,
             "best": self.best,
+            "init_from": json.dumps(self.init_from),
             "rng": json.dumps(self.rng.bit_generator.state),
             "torch_rng": torch.get_rng_state(),
         }
@@ -210,9 +215,16 @@ class Trainer:
         for key in ("actor", "critic", "opt_bc", "opt_pi", "opt_v"):
             getattr(trainer, key).load_state_dict(blob[key])
         trainer.epoch, trainer.elapsed, trainer.best = blob["epoch"], blob["elapsed"], blob["best"]
+        trainer.init_from = json.loads(blob.get("init_from", "null"))
         trainer.rng.bit_generator.state = json.loads(blob["rng"])
         torch.set_rng_state(blob["torch_rng"].cpu())
         return trainer
+
+    def init_actor_from(self, path: Path) -> None:
+        """Warm-start the actor from an exported agent (recorded in the model card)."""
+        blob = torch.load(path, map_location=self.device, weights_only=True)
+        self.actor.load_state_dict(blob["actor"])
+        self.init_from = {"path": str(path), "meta": json.loads(blob.get("meta", "{}"))}
 
     # -- rollouts ---------------------------------------------------------------------
     def _episode_forgetting(self, n: int) -> np.ndarray:
@@ -265,12 +277,14 @@ class Trainer:
         cfg = self.cfg
         batch = self.rollout(cfg.episodes, cfg.bc_horizon, explore=cfg.bc_explore)
         for _ in range(cfg.bc_updates):
-            mean, _ = unroll(self.actor, batch["obs"], batch["gamma"])
-            loss = ((mean - batch["label"]) ** 2).mean()
-            self.opt_bc.zero_grad()
-            loss.backward()
-            nn.utils.clip_grad_norm_(self.actor.parameters(), cfg.max_grad_norm)
-            self.opt_bc.step()
+            order = torch.randperm(cfg.episodes, device=self.device)
+            for idx in order.split(cfg.bc_minibatch):
+                mean, _ = unroll(self.actor, batch["obs"][:, idx], batch["gamma"][idx])
+                loss = ((mean - batch["label"][:, idx]) ** 2).mean()
+                self.opt_bc.zero_grad()
+                loss.backward()
+                nn.utils.clip_grad_norm_(self.actor.parameters(), cfg.max_grad_norm)
+                self.opt_bc.step()
         return {
             "phase": "bc",
             "mean_cost": float(batch["cost"].sum(0).mean()),
@@ -355,6 +369,10 @@ class Trainer:
                 if self.epoch < cfg.bc_epochs:
                     row = self.bc_epoch()
                 else:
+                    if self.epoch == cfg.bc_epochs:
+                        # BC never trains log_std; PPO fine-tuning starts from a narrow policy
+                        with torch.no_grad():
+                            self.actor.log_std.fill_(cfg.ppo_log_std)
                     row = self.ppo_epoch(self.epoch >= cfg.bc_epochs + cfg.value_warmup)
                 self.epoch += 1
                 if self.epoch % cfg.eval_every == 0 or self.epoch == total:
@@ -381,7 +399,10 @@ class Trainer:
 
     def card_meta(self, row: dict) -> dict:
         return {
+            "source": str(self.out),
+            "commit": _git_commit(),
             "train_config": asdict(self.cfg),
+            "init_from": self.init_from,
             "epoch": self.epoch,
             "episodes": self.epoch * self.cfg.episodes,
             "wall_s": round(self.elapsed, 1),
@@ -389,9 +410,21 @@ class Trainer:
         }
 
 
+def _git_commit() -> str:
+    try:
+        return subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=5
+        ).stdout.strip()
+    except OSError:
+        return "unknown"
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=Path("runs/agent"), help="run directory")
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
+    p.add_argument(
+        "--init-from", type=Path, default=None, help="start the actor from this agent file"
+    )
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     p.add_argument(
         "--max-minutes", type=float, default=None, help="checkpoint and stop after this long"
@@ -412,6 +445,8 @@ def run(args: argparse.Namespace) -> int:
             raise SystemExit(f"{args.out} already holds a run: use --resume or another --out")
         cfg = TrainConfig(**{f.name: getattr(args, f.name) for f in fields(TrainConfig)})
         trainer = Trainer(cfg, args.out, args.device)
+        if args.init_from is not None:
+            trainer.init_actor_from(args.init_from)
     if not trainer.run(max_minutes=args.max_minutes):
         print(f"stopped at epoch {trainer.epoch}; continue with --resume")
         return 0

@@ -137,7 +137,7 @@ def test_oracle_table_matches_the_optimiser_and_scales_with_the_plant():
 def _tiny(**kw):
     base = dict(
         bc_epochs=2, value_warmup=1, epochs=2, episodes=12, horizon=6, bc_horizon=6,
-        bc_updates=2, pi_iters=3, v_iters=3, eval_every=2, eval_plants=4,
+        bc_updates=2, bc_minibatch=5, pi_iters=3, v_iters=3, eval_every=2, eval_plants=4,
     )  # fmt: skip
     return TrainConfig(**(base | kw))
 
