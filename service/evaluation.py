@@ -461,14 +461,80 @@ FIGURES = (
 )
 
 
+CHANGES_FROM_PAPER = """\
+- **Imitation warm start (DAgger).** Before PPO the actor learns on its own rollouts to
+  move the gains toward the best fixed PI of each simulated task (the step-test optimum,
+  tabulated over theta/tau and scaled by K and tau). Like the critic's privileged inputs
+  this is offline-only knowledge; online the agent sees only [kp, ki, e, int_e]. Why: the
+  paper needed 2,500 PPO epochs (750k episodes); a dense supervised signal reaches its
+  asymptotic performance on two CPU cores within the time budget.
+- **Relative actions, log-gain features.** The policy outputs a log-relative change
+  (dk = k (exp(a) - 1), at most a factor e per step) and reads log kp, log ki and a
+  signed log of int_e. Gains stay positive by construction and one output scale serves
+  kp = 0.3 and ki = 8 alike (the paper names this range as a main difficulty).
+- **Training distribution.** A quarter of the episodes have drifting dynamics (K step or
+  tau ramp) and 30% run with the forgetting factor 0.99 used online; warm-start episodes
+  are 60 RL steps (the paper: 40) so the hidden state stays calibrated over long runs.
+- **PPO details.** Advantage normalisation, value targets scaled by 1/10, gradient-norm
+  clipping 0.5, critic learning rate 1e-3, 20 value-only warm-up epochs before the
+  policy is updated, exploration std reset to exp(-2.5) at the start of PPO.
+- **Cost aggregation.** The squared tracking error in the cost is the mean over the 275
+  controller samples of each RL step, so it has the scale of the step-test MSE.
+- **Controller output limit.** +-100 (far outside any sane tuning of the box) so an
+  unstable trial stays finite.
+"""
+
+
+def write_model_card(path: Path, agent: Agent, metrics: dict) -> None:
+    """``MODEL_CARD.md`` beside the weights: training facts, changes, evaluation numbers."""
+    meta = agent.meta
+    cfg = meta.get("train_config", {})
+    lines = [
+        "# pitune agent: model card",
+        "",
+        "Recurrent meta-RL PI tuner after McClement et al. (J. Process Control 2022): a",
+        "2-layer GRU (100 units) and two Leaky-ReLU layers (64 units) to the action mean;",
+        "trained offline on FOPTD plants K in [0.25, 1], tau in [0.25, 1], theta/tau in",
+        "[0, 1]; one RL step every 2.75 time units. Use it through `service.agent.load_agent`.",
+        "",
+        "## Training",
+        "",
+        f"- Source run: `{meta.get('source', '?')}` at commit `{meta.get('commit', '?')}`,"
+        f" warm-started from: `{(meta.get('init_from') or {}).get('path', 'none')}`",
+        f"- Epochs: {meta.get('epoch', '?')} ({cfg.get('bc_epochs', '?')} imitation, then"
+        f" {cfg.get('value_warmup', '?')} value warm-up and up to {cfg.get('epochs', '?')} PPO);"
+        f" episodes: {meta.get('episodes', '?')}; wall time of this run:"
+        f" {meta.get('wall_s', '?')} s on 2 CPU cores (1 torch thread)",
+        "- Validation at export (64 random plants + 8 corners, 80 RL steps):"
+        f" {meta.get('validation')}",
+        "",
+        "Training configuration:",
+        "",
+        "```json",
+        json.dumps(cfg, indent=2),
+        "```",
+        "",
+        "## Changes from the paper",
+        "",
+        CHANGES_FROM_PAPER,
+        "## Evaluation (`pitune evaluate`)",
+        "",
+        render_report(metrics).split("\n", 2)[2],
+    ]
+    path.write_text("\n".join(lines))
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--weights", type=Path, default=None, help="agent file (default: shipped)")
     p.add_argument("--out", type=Path, default=Path("reports"))
     p.add_argument("--quick", action="store_true", help="reduced version (CI, < 2 minutes)")
+    p.add_argument("--card", type=Path, default=None, help="also write a model card here")
 
 
 def run(args: argparse.Namespace) -> int:
     agent = load_agent(args.weights)
     metrics = evaluate(agent, args.out, quick=args.quick)
     print((args.out / "report.md").read_text())
+    if args.card is not None:
+        write_model_card(args.card, agent, metrics)
     return 0 if all(metrics["bar"].values()) or args.quick else 1
