@@ -256,3 +256,17 @@ def test_example_dcs_gateway_publishes_samples_and_applies_auto_gains(tmp_path):
         finally:
             sub.undeclare()
             gateway.kill()
+
+
+def test_dockerfile_copies_exist_and_pass_the_dockerignore():
+    text = (ROOT / "Dockerfile").read_text()
+    sources = [
+        src
+        for line in re.findall(r"^COPY (?!--from)(.+)$", text, re.M)
+        for src in line.split()[:-1]
+    ]
+    allowed = re.findall(r"^!(\S+?)/?$", (ROOT / ".dockerignore").read_text(), re.M)
+    assert sources
+    for src in sources:
+        assert (ROOT / src).exists(), f"COPY {src}: not in the repository"
+        assert src in allowed, f"COPY {src}: excluded by .dockerignore"

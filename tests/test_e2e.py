@@ -202,3 +202,13 @@ def test_reset_over_rest_returns_to_registered_gains_and_starts_over(tmp_path):
         finally:
             sub.undeclare()
             session.close()
+
+
+def test_demo_fails_with_a_clear_message_when_the_tuner_cannot_start(tmp_path):
+    argv = [sys.executable, "-m", "service.cli", "demo", "--out", str(tmp_path / "demo"),
+            "--agent-weights", str(tmp_path / "missing.pt")]  # fmt: skip
+    result = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 1
+    assert "pitune demo failed: tuner exited" in result.stderr
+    assert "agent weights not found" in result.stderr
+    assert not (tmp_path / "demo").exists()
