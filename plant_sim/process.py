@@ -362,10 +362,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sim.add_argument("--seed", type=int, default=0)
     bus = run_p.add_argument_group("bus")
     bus.add_argument("--prefix", default=DEFAULT_PREFIX, help="key-expression prefix")
-    bus.add_argument("--mode", choices=("peer", "client"), default=None)
-    bus.add_argument("--connect", action="append", default=[], metavar="ENDPOINT")
-    bus.add_argument("--listen", action="append", default=[], metavar="ENDPOINT")
-    bus.add_argument("--zenoh-config", default=None, metavar="FILE", help="Zenoh JSON5 config")
+    bus.add_argument(
+        "--mode", choices=("peer", "client"), default=None, help="Zenoh mode (default: peer)"
+    )
+    bus.add_argument(
+        "--connect",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="Zenoh endpoint of the tuner or router, e.g. tcp/127.0.0.1:7447 (repeatable)",
+    )
+    bus.add_argument(
+        "--listen", action="append", default=[], metavar="ENDPOINT", help="listen here too"
+    )
+    bus.add_argument(
+        "--zenoh-config", default=None, metavar="FILE", help="Zenoh JSON5 config (auth, TLS)"
+    )
     reg = run_p.add_argument_group("registration")
     reg.add_argument("--register", default=None, metavar="URL", help="tuner admin API base URL")
     reg.add_argument(
