@@ -376,7 +376,7 @@ class Trainer:
                     row = self.ppo_epoch(self.epoch >= cfg.bc_epochs + cfg.value_warmup)
                 self.epoch += 1
                 if self.epoch % cfg.eval_every == 0 or self.epoch == total:
-                    row.update(validate(self.actor, self.env_cfg, cfg.eval_plants))
+                    row.update(validate(self.actor, EnvConfig(init_noise=0.0), cfg.eval_plants))
                     if row["val_worst"] < self.best:
                         self.best = row["val_worst"]
                         save_actor(self.actor, self.out / "best.pt", self.card_meta(row))
