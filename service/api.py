@@ -13,14 +13,32 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, FastAPI, HTTPException, Query, Request, Response, status
+from fastapi import (
+    APIRouter,
+    Body,
+    Depends,
+    FastAPI,
+    HTTPException,
+    Query,
+    Request,
+    Response,
+    status,
+)
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from prometheus_client import CONTENT_TYPE_LATEST
 
 from service.agent import Agent
-from service.schemas import Health, HistoryPage, LoopConfig, LoopPatch, LoopView
+from service.schemas import (
+    MAX_BULK,
+    BulkRegistered,
+    Health,
+    HistoryPage,
+    LoopConfig,
+    LoopPatch,
+    LoopView,
+)
 from service.settings import Settings
 from service.tuner import Conflict, Tuner, UnknownLoop
 
@@ -61,6 +79,14 @@ mutating = [Depends(require_token)]
 def register_loop(config: LoopConfig, tuner: TunerDep) -> LoopView:
     """Register a loop; it starts at its registered gains with a fresh agent state."""
     return tuner.register(config)
+
+
+@loops.post("/bulk", status_code=201, dependencies=mutating, responses={409: {}})
+def register_loops(
+    configs: Annotated[list[LoopConfig], Body(max_length=MAX_BULK)], tuner: TunerDep
+) -> BulkRegistered:
+    """Register many loops in one call (a large site), all or none: 409 if any id is taken."""
+    return BulkRegistered(registered=tuner.register_many(configs))
 
 
 @loops.get("")

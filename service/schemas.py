@@ -100,6 +100,16 @@ def check_bounds(guard: Guard, kp: float, ki: float) -> None:
         raise ValueError("the registered gains must lie within the bounds")
 
 
+MAX_BULK = 100_000
+"""Most loops in one ``POST /loops/bulk``."""
+
+
+class BulkRegistered(BaseModel):
+    """Reply of ``POST /loops/bulk``."""
+
+    registered: list[str] = Field(description="Ids of the loops registered, in request order.")
+
+
 class LoopPatch(BaseModel):
     """Body of ``PATCH /loops/{id}``: fields to change, others untouched."""
 

@@ -129,6 +129,15 @@ class Store:
             )
             self._audit(db, [audit])
 
+    def insert_loops(self, configs: list[LoopConfig], audit: list[AuditRow]) -> None:
+        """Register many loops in one transaction (all or none)."""
+        with self.transaction() as db:
+            db.executemany(
+                "INSERT INTO loops (id, config, kp, ki, seq) VALUES (?, ?, ?, ?, 0)",
+                [(c.id, c.model_dump_json(), c.kp, c.ki) for c in configs],
+            )
+            self._audit(db, audit)
+
     def update_config(self, config: LoopConfig, audit: AuditRow) -> None:
         with self.transaction() as db:
             db.execute(

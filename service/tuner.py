@@ -376,6 +376,31 @@ class Tuner:
             self.metrics.set_loop_counts(self.table.mode_counts())
             return self.table.view(config.id, wall)
 
+    def register_many(self, configs: list[LoopConfig]) -> list[str]:
+        """Register several loops at once, all or none (Conflict if any id is taken)."""
+        wall = time.time()
+        ids = [c.id for c in configs]
+        if len(set(ids)) != len(ids):
+            raise Conflict("duplicate loop ids in the request")
+        with self.table.lock:
+            taken = [i for i in ids if i in self.table.slot_of]
+            if taken:
+                raise Conflict(f"loops already registered: {taken[:5]!r}")
+            self.store.insert_loops(
+                configs,
+                [
+                    audit_row(
+                        c.id, wall, None, 0, c.mode.value, "registered",
+                        None, (c.kp, c.ki), c.model_dump_json(),
+                    )
+                    for c in configs
+                ],
+            )  # fmt: skip
+            for config in configs:
+                self.table.add(config, wall=wall)
+            self.metrics.set_loop_counts(self.table.mode_counts())
+        return ids
+
     def patch(self, loop_id: str, patch: LoopPatch) -> LoopView:
         """ValueError if the patch makes the bounds inconsistent."""
         wall = time.time()

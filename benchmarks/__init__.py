@@ -1,0 +1,1 @@
+"""Benchmarks of the tuner daemon (``pitune bench``); results in ``benchmarks/results/``."""
