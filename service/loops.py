@@ -31,11 +31,14 @@ from __future__ import annotations
 import json
 import math
 import threading
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
+import orjson
 
 from service.agent import Agent
+from service.inference import FastPolicy
 from service.protocol import LoopStatus, Mode, RejectReason, Sample
 from service.schemas import Counters, LoopConfig, LoopView
 from service.store import AuditRow, audit_row
@@ -89,15 +92,43 @@ class StepResult:
         return [_MODES[c] for c in self.mode]
 
 
+class Configs:
+    """Loop configs by id, held as compact JSON (a parsed :class:`LoopConfig` costs ~2.4 KB
+    per loop; its JSON ~0.3 KB). Reading one parses it: only the admin API does."""
+
+    def __init__(self) -> None:
+        self._json: dict[str, bytes] = {}
+
+    def __getitem__(self, loop_id: str) -> LoopConfig:
+        return LoopConfig.model_validate_json(self._json[loop_id])
+
+    def __setitem__(self, loop_id: str, config: LoopConfig) -> None:
+        self._json[loop_id] = config.model_dump_json().encode()
+
+    def __delitem__(self, loop_id: str) -> None:
+        del self._json[loop_id]
+
+    def __contains__(self, loop_id: object) -> bool:
+        return loop_id in self._json
+
+    def __len__(self) -> int:
+        return len(self._json)
+
+    def values(self):
+        return (self[loop_id] for loop_id in self._json)
+
+
 class LoopTable:
     """Runtime state of all registered loops; one batched agent per table."""
 
     def __init__(self, agent: Agent, *, max_rate_hz: float, capacity: int = 64) -> None:
         self.agent = agent
+        # the allocation-free equivalent of agent.act (any other object: its own act)
+        self._policy = FastPolicy(agent) if isinstance(agent, Agent) else None
         self.lock = threading.RLock()
         self.rate = float(max_rate_hz)
         self.burst = max(self.rate, 1.0)
-        self.configs: dict[str, LoopConfig] = {}
+        self.configs = Configs()
         self.slot_of: dict[str, int] = {}
         self.ids: list[str | None] = []
         self._free: list[int] = []
@@ -124,6 +155,9 @@ class LoopTable:
 
     def __len__(self) -> int:
         return len(self.slot_of)
+
+    def mode_of(self, s: int) -> Mode:
+        return _MODES[self.mode[s]]
 
     def slot(self, loop_id: str) -> int:
         """Slot of a registered loop; KeyError if unknown."""
@@ -298,7 +332,14 @@ class LoopTable:
                 self.int_e[slots],
             ]
         )
-        delta, self.hidden[slots] = self.agent.act(obs, self.hidden[slots], self.forgetting[slots])
+        if self._policy is not None:
+            state = self.hidden[slots]  # a contiguous copy, updated in place
+            delta = self._policy.step_inplace(obs, state, self.forgetting[slots])
+            self.hidden[slots] = state
+        else:
+            delta, self.hidden[slots] = self.agent.act(
+                obs, self.hidden[slots], self.forgetting[slots]
+            )
         proposed = np.column_stack(
             [(obs[:, 0] + delta[:, 0]) * kp_unit, (obs[:, 1] + delta[:, 1]) * ki_unit]
         )
@@ -317,8 +358,9 @@ class LoopTable:
         self.n_updates[slots] += 1
         self._gains_dirty.update(slots.tolist())
 
+        ids = self.ids
         result = StepResult(
-            [self.ids[s] for s in slots],
+            [ids[s] for s in slots.tolist()],
             self.last_t[slots],
             self.seq[slots],
             self.mode[slots],
@@ -326,13 +368,18 @@ class LoopTable:
             proposed,
             new,
         )
-        for i, (loop_id, mode) in enumerate(zip(result.loop_ids, result.modes(), strict=True)):
-            self._audit.append(
-                audit_row(
-                    loop_id, wall, float(result.t[i]), int(result.seq[i]), mode.value, "agent",
-                    tuple(old[i]), tuple(new[i]), _guard_detail(proposed[i], new[i]),
-                )
-            )  # fmt: skip
+        limited = ~np.isclose(proposed, new, rtol=GAIN_RTOL, atol=0.0).all(axis=1)
+        details = [""] * len(slots)
+        for i in np.flatnonzero(limited).tolist():
+            details[i] = _guard_detail(proposed[i], new[i])
+        mode_names = [_MODES[c].value for c in result.mode.tolist()]
+        self._audit.extend(
+            zip(
+                result.loop_ids, [wall] * len(slots), result.t.tolist(), result.seq.tolist(),
+                mode_names, ["agent"] * len(slots), old[:, 0].tolist(), old[:, 1].tolist(),
+                new[:, 0].tolist(), new[:, 1].tolist(), details, strict=True,
+            )
+        )  # fmt: skip
         return result
 
     # -- persistence ------------------------------------------------------------------
@@ -346,18 +393,20 @@ class LoopTable:
         self._gains_dirty.clear()
         return gains, audit
 
-    def snapshot(self) -> list[tuple[str, bytes, str]]:
-        """(id, hidden state bytes, runtime JSON) of every loop."""
-        return [
-            (loop_id, self.hidden[s].tobytes(), self._runtime(s))
-            for loop_id, s in self.slot_of.items()
-        ]
+    def snapshot(self, loop_ids: Iterable[str] | None = None) -> list[tuple[str, bytes, str]]:
+        """(id, hidden state bytes, runtime JSON) of every loop (or of the given, if still
+        registered)."""
+        if loop_ids is None:
+            items = self.slot_of.items()
+        else:
+            items = [(i, self.slot_of[i]) for i in loop_ids if i in self.slot_of]
+        return [(loop_id, self.hidden[s].tobytes(), self._runtime(s)) for loop_id, s in items]
 
     def _runtime(self, s: int) -> str:
         def num(x: float) -> float | None:
             return None if math.isnan(x) else float(x)
 
-        return json.dumps(
+        return orjson.dumps(
             {
                 "last_t": num(self.last_t[s]),
                 "last_e": float(self.last_e[s]),
@@ -367,7 +416,7 @@ class LoopTable:
                 "saturated": bool(self.saturated[s]),
                 "counters": [int(getattr(self, n)[s]) for n in _I64[2:]],
             }
-        )
+        ).decode()
 
     def _restore(self, s: int, hidden: bytes, runtime: str) -> None:
         h = np.frombuffer(hidden, np.float32)
@@ -420,10 +469,9 @@ class LoopTable:
         )
 
     def mode_counts(self) -> dict[Mode, int]:
-        counts = dict.fromkeys(Mode, 0)
-        for config in self.configs.values():
-            counts[config.mode] += 1
-        return counts
+        used = np.fromiter(self.slot_of.values(), np.int64, len(self.slot_of))
+        counts = np.bincount(self.mode[used], minlength=len(_MODES))
+        return {mode: int(counts[_CODE[mode]]) for mode in Mode}
 
 
 def _close(a: float, b: float) -> bool:

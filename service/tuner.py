@@ -33,7 +33,6 @@ from service.protocol import (
     SCHEMA_VERSION,
     BatchedSample,
     ErrorReply,
-    GainsMessage,
     RejectReason,
     Sample,
     StateReply,
@@ -46,6 +45,8 @@ from service.store import Store, audit_row
 
 log = logging.getLogger("pitune.tuner")
 _STOP = (None, "", None)
+SNAPSHOT_CHUNK = 1000
+"""Loops snapshotted per worker iteration by the periodic snapshot."""
 _RANGE_ERRORS = {"less_than_equal", "greater_than_equal", "less_than", "greater_than"}
 
 
@@ -102,6 +103,7 @@ class Tuner:
         self.store: Store | None = None
         self.bus: Bus | None = None
         self._worker: threading.Thread | None = None
+        self._snapshot_todo: list[str] = []
 
     # -- lifecycle --------------------------------------------------------------------
     def start(self) -> Tuner:
@@ -166,8 +168,21 @@ class Tuner:
         return self.alive and self.bus is not None and self.bus.is_open
 
     def snapshot(self) -> None:
+        """Snapshot every loop now (shutdown, tests)."""
         with self.table.lock:
             rows = self.table.snapshot()
+        self.store.snapshot(rows)
+        self._snapshot_todo = []
+
+    def _snapshot_some(self) -> None:
+        """The periodic snapshot, SNAPSHOT_CHUNK loops per worker iteration, so that
+        snapshotting a large site never stalls the samples for long."""
+        chunk, self._snapshot_todo = (
+            self._snapshot_todo[:SNAPSHOT_CHUNK],
+            self._snapshot_todo[SNAPSHOT_CHUNK:],
+        )
+        with self.table.lock:
+            rows = self.table.snapshot(chunk)
         self.store.snapshot(rows)
 
     # -- worker -----------------------------------------------------------------------
@@ -176,7 +191,8 @@ class Tuner:
         next_snapshot = time.monotonic() + interval
         while True:
             try:
-                items = [self.inbox.get(timeout=max(0.0, next_snapshot - time.monotonic()))]
+                wait = 0.0 if self._snapshot_todo else next_snapshot - time.monotonic()
+                items = [self.inbox.get(timeout=max(0.0, wait))]
             except queue.Empty:
                 items = []
             while items and len(items) < self.settings.max_batch:
@@ -187,9 +203,15 @@ class Tuner:
             stop = any(item is _STOP for item in items)
             try:
                 self._handle([item for item in items if item is not _STOP])
-                if stop or time.monotonic() >= next_snapshot:
-                    next_snapshot = time.monotonic() + interval
+                if stop:
                     self.snapshot()
+                elif self._snapshot_todo:
+                    self._snapshot_some()
+                elif time.monotonic() >= next_snapshot:
+                    next_snapshot = time.monotonic() + interval
+                    with self.table.lock:
+                        self._snapshot_todo = list(self.table.slot_of)
+                    self._snapshot_some()
             except Exception:
                 log.exception("worker iteration failed; continuing")
             if stop:
@@ -290,21 +312,25 @@ class Tuner:
             self.store.record_gains(gains, audit)
         if result is None:
             return
-        for i, (loop_id, mode) in enumerate(zip(result.loop_ids, result.modes(), strict=True)):
-            message = GainsMessage(
-                loop_id=loop_id,
-                seq=int(result.seq[i]),
-                t=float(result.t[i]),
-                dkp=float(result.new[i, 0] - result.old[i, 0]),
-                dki=float(result.new[i, 1] - result.old[i, 1]),
-                kp=float(result.new[i, 0]),
-                ki=float(result.new[i, 1]),
-                mode=mode,
-                reason=reason,
-                instance_id=self.settings.instance_id,
-            )
-            self.bus.publish(self.keys.gains(loop_id), encode(message))
-            self.metrics.updates_published.labels(mode.value).inc()
+        # GainsMessage JSON, built directly (validating each model costs more than the rest)
+        new, delta = result.new, result.new - result.old
+        dumps, publish, gains_key = orjson.dumps, self.bus.publish, self.keys.gains
+        instance, why = self.settings.instance_id, reason.value
+        counts = dict.fromkeys(result.modes(), 0)
+        for loop_id, seq, t, dkp, dki, kp, ki, mode in zip(
+            result.loop_ids, result.seq.tolist(), result.t.tolist(), delta[:, 0].tolist(),
+            delta[:, 1].tolist(), new[:, 0].tolist(), new[:, 1].tolist(), result.modes(),
+            strict=True,
+        ):  # fmt: skip
+            message = {
+                "v": SCHEMA_VERSION, "loop_id": loop_id, "seq": seq, "t": t, "dkp": dkp,
+                "dki": dki, "kp": kp, "ki": ki, "mode": mode.value, "reason": why,
+                "instance_id": instance,
+            }  # fmt: skip
+            publish(gains_key(loop_id), dumps(message))
+            counts[mode] += 1
+        for mode, count in counts.items():
+            self.metrics.updates_published.labels(mode.value).inc(count)
 
     def _answer(self, query: zenoh.Query) -> None:
         key = str(query.key_expr)
@@ -329,7 +355,7 @@ class Tuner:
             loop_id=loop_id,
             kp=float(self.table.kp[s]),
             ki=float(self.table.ki[s]),
-            mode=self.table.configs[loop_id].mode,
+            mode=self.table.mode_of(s),
             status=self.table.status(s, time.time()),
             seq=int(self.table.seq[s]),
             last_t=None if math.isnan(t) else float(t),
@@ -438,7 +464,7 @@ class Tuner:
             self._known(loop_id)
             s = self.table.slot(loop_id)
             gains = (float(self.table.kp[s]), float(self.table.ki[s]))
-            mode = self.table.configs[loop_id].mode.value
+            mode = self.table.mode_of(s).value
             self.store.delete_loop(
                 loop_id,
                 audit_row(

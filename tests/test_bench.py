@@ -1,0 +1,57 @@
+"""A tiny run of the load benchmark (``pitune bench``), so that it cannot rot."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from benchmarks import load
+
+
+def test_tiny_benchmark_run_measures_everything(tmp_path, capsys):
+    parser = argparse.ArgumentParser()
+    load.add_arguments(parser)
+    args = parser.parse_args(
+        [
+            "--loops", "30", "--rate", "10", "--duration", "3", "--warmup", "1",
+            "--tau", "0.3", "0.5",  # RL steps every 1.65..2.75 s of plant time
+            "--memory-probe", "10", "--agent-weights", "untrained",
+            "--out", str(tmp_path),
+        ]
+    )  # fmt: skip
+    assert load.run(args) == 0
+    (path,) = tmp_path.glob("*-30x10hz.json")
+    result = json.loads(path.read_text())
+    samples, updates = result["samples"], result["updates"]
+    assert samples["lost"] == 0 and samples["rejected"] == 0
+    assert samples["published"] == 30 * 10 * 4
+    assert 200 <= samples["published_per_s"] <= 400
+    assert updates["gains_in_window"] > 0 and updates["unmatched"] == 0
+    lat = updates["latency_ms"]
+    assert 0 < lat["p50"] <= lat["p99"] <= lat["max"] < 5000
+    assert result["daemon"]["rss_max_mb"] > 0 and result["daemon"]["cpu_percent"] > 0
+    assert "rss_per_loop_kb" in result["daemon"]
+    assert result["inference"]["loops"] == 30
+    assert result["bar"]["samples_lost"]["met"] is True
+    assert result["daemon_exit"] is not None
+    out = capsys.readouterr().out
+    assert "update latency p50 / p99 / max" in out and "bar:" in out
+
+
+def test_aligned_per_loop_variant(tmp_path):
+    parser = argparse.ArgumentParser()
+    load.add_arguments(parser)
+    args = parser.parse_args(
+        [
+            "--loops", "8", "--rate", "10", "--duration", "2", "--warmup", "0.5",
+            "--tau", "0.3", "0.3", "--aligned", "--per-loop", "--memory-probe", "0",
+            "--agent-weights", "untrained", "--no-inference-bench", "--out", str(tmp_path),
+        ]
+    )  # fmt: skip
+    assert load.run(args) == 0
+    (path,) = tmp_path.glob("*-8x10hz-aligned-perloop.json")
+    result = json.loads(path.read_text())
+    assert result["samples"]["lost"] == 0 and result["samples"]["rejected"] == 0
+    # all 8 loops fall due in the same sample: every step is one batch of 8
+    assert result["updates"]["gains_in_window"] % 8 == 0
+    assert result["inference"] is None
