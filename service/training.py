@@ -317,7 +317,7 @@ class Trainer:
                 ratio = torch.exp(logp - b["logp"])
                 clipped = torch.clamp(ratio, 1 - cfg.clip, 1 + cfg.clip)
                 pi_loss = -torch.min(ratio * adv_n, clipped * adv_n).mean()
-                kl = float((b["logp"] - logp).mean())
+                kl = (b["logp"] - logp).mean().item()
                 if kl > 1.5 * cfg.target_kl:
                     break
                 self.opt_pi.zero_grad()

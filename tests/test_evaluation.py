@@ -1,0 +1,55 @@
+"""`pitune evaluate`: the protocol's pieces and a quick run on the shipped weights."""
+
+import json
+
+import numpy as np
+import pytest
+
+from service.agent import load_agent
+from service.evaluation import FIGURES, convergence_time, evaluate, write_model_card
+
+
+def test_convergence_time_is_last_exit_from_the_10_percent_band():
+    steps = np.ones((10, 3, 2))
+    steps[:, 0, 0] = [0.1, 0.5, 0.95, 1.2, 0.95, 1.0, 1.0, 1.0, 1.0, 1.0]  # leaves band at 3
+    steps[:, 1, 1] = [0.1, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0]  # in from index 1
+    steps[:, 2, :] = 2.0  # never outside
+    np.testing.assert_allclose(convergence_time(steps), [4 * 2.75, 1 * 2.75, 0.0])
+
+
+@pytest.fixture(scope="module")
+def quick_report(tmp_path_factory):
+    out = tmp_path_factory.mktemp("reports")
+    agent = load_agent()
+    return out, agent, evaluate(agent, out, quick=True)
+
+
+def test_quick_evaluation_writes_the_report(quick_report):
+    out, _, metrics = quick_report
+    for name in FIGURES:
+        assert (out / name).stat().st_size > 10_000, name
+    saved = json.loads((out / "metrics.json").read_text())
+    assert saved["asymptotic"]["grid_size"] == 48
+    report = (out / "report.md").read_text()
+    assert "| Asymptotic MSE, worst |" in report and "0.03" in report
+
+
+def test_shipped_agent_tunes_the_grid_and_the_tanks(quick_report):
+    _, _, m = quick_report
+    a = m["asymptotic"]
+    # the paper's worst case over its training box is 0.030; SIMC's median is about 0.0035
+    assert a["worst_mse"] <= 0.030
+    assert a["median_mse"] < a["simc_median_mse"]
+    assert m["convergence"]["worst_time"] <= 140.0
+    tanks = m["two_tank"]
+    assert tanks["meta-RL"] < 0.2 * tanks["untuned"]
+    assert tanks["meta-RL, noise"] < 0.2 * tanks["untuned, noise"]
+
+
+def test_model_card_lists_training_and_results(quick_report, tmp_path):
+    _, agent, metrics = quick_report
+    card = tmp_path / "MODEL_CARD.md"
+    write_model_card(card, agent, metrics)
+    text = card.read_text()
+    assert "Changes from the paper" in text and "Asymptotic MSE, worst" in text
+    assert f"Epochs: {agent.meta['epoch']}" in text
