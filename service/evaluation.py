@@ -233,6 +233,12 @@ def two_tank(agent: Agent | None, *, noise_cm: float, minutes: float, seed: int 
 
 
 # -- report ------------------------------------------------------------------------------
+def _edges(centres: np.ndarray) -> np.ndarray:
+    """Cell edges around sorted grid centres, for pcolormesh."""
+    mid = (centres[1:] + centres[:-1]) / 2
+    return np.concatenate([[2 * centres[0] - mid[0]], mid, [2 * centres[-1] - mid[-1]]])
+
+
 def _figures(out: Path, asym: dict, adapt: dict, pca: dict, tanks: dict, agent: Agent) -> None:
     import matplotlib
 
@@ -254,8 +260,7 @@ def _figures(out: Path, asym: dict, adapt: dict, pca: dict, tanks: dict, agent: 
             img = np.full((ys.size, xs.size), np.nan)
             for x, y, v in zip(xv[sel], yv[sel], values[sel], strict=True):
                 img[np.searchsorted(ys, y), np.searchsorted(xs, x)] = v
-            im = ax.imshow(img, origin="lower", aspect="auto", cmap="viridis",
-                           extent=(xs[0], xs[-1], ys[0], ys[-1]))  # fmt: skip
+            im = ax.pcolormesh(_edges(xs), _edges(ys), img, cmap="viridis")
             ax.set(xlabel=xl, ylabel=yl)
             fig.colorbar(im, ax=ax, label=label)
         fig.tight_layout()
