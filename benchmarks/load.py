@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import gc
 import json
 import math
 import os
@@ -86,6 +87,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--out", type=Path, default=RESULTS, help="results directory")
     a("--no-inference-bench", action="store_true", help="skip the in-process inference timing")
     a("--daemon-log", type=Path, default=None, help="keep the daemon's log here")
+    a("--trace", type=Path, default=None,
+      help="write the update latencies of the window to this CSV")  # fmt: skip
 
 
 # -- the daemon ---------------------------------------------------------------------------
@@ -429,6 +432,7 @@ def drive(args: argparse.Namespace, fleet: Fleet, daemon: Daemon, client) -> dic
             keys.all_gains, lambda s: inbox.append((time.monotonic(), s.payload.to_bytes()))
         )
         _wait_for_tuner(session, keys)
+        gc.freeze()  # no full collections of the imported modules while timing
         try:
             return play(args, fleet, daemon, client, session, keys, inbox, memory)
         finally:
@@ -454,6 +458,7 @@ def play(args, fleet: Fleet, daemon: Daemon, client, session, keys, inbox, memor
     total = args.warmup + args.duration
     latencies: list[float] = []
     stats = collections.Counter()
+    stats.trace = []
     late_max = 0.0
     rss_max, next_rss = 0.0, 0.0
     cpu0 = gen0 = m0 = None
@@ -511,6 +516,10 @@ def play(args, fleet: Fleet, daemon: Daemon, client, session, keys, inbox, memor
     m2 = scrape(client, daemon)
 
     span = wall1 - wall0
+    if args.trace:
+        with open(args.trace, "w") as out:
+            out.write("t_s,loop_id,latency_ms\n")
+            out.writelines(f"{t:.3f},{i},{1e3 * d:.2f}\n" for t, i, d in stats.trace)
     lat = np.asarray(latencies) * 1e3
     received = m2["pitune_samples_received_total"]
     n_rejected = rejected(m2)
@@ -576,6 +585,7 @@ def _drain(inbox, fleet: Fleet, t0: float, window: Window, latencies: list, stat
             stats["unmatched"] += 1
         elif window.start <= sent < window.end:
             latencies.append(received - sent)
+            stats.trace.append((sent - window.start, msg["loop_id"], received - sent))
         if msg["mode"] == "auto":
             fleet.offer(msg["loop_id"], msg["kp"], msg["ki"])
 

@@ -111,6 +111,11 @@ class Bus:
             self._on_overload(item[0])
 
     def publish(self, key: str, payload: bytes) -> None:
+        """Put a message; dropped once the bus is closed (the store has the new gains and a
+        gateway asks for the state when a tuner is back)."""
+        if self.session is None:
+            log.debug("bus closed: %s not published", key)
+            return
         self.session.put(key, payload, encoding=JSON)
 
     def close(self) -> None:

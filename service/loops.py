@@ -300,6 +300,102 @@ class LoopTable:
         self.next_due[s] += period * (math.floor((t - self.next_due[s]) / period) + 1.0)
         return self.mode[s] != FROZEN and sample.auto and not sample.saturated
 
+    def ingest_many(
+        self, slots: np.ndarray, cols: dict[str, np.ndarray], wall: float
+    ) -> tuple[np.ndarray, list[tuple[int, RejectReason, str]]]:
+        """:meth:`ingest` of many samples at once, vectorised, for *distinct* slots.
+
+        ``cols``: float arrays ``t``, ``e`` (the error), ``kp``, ``ki`` (NaN: not
+        reported) and bool arrays ``auto``, ``saturated``, aligned with ``slots``.
+        Returns (due mask, rejections as (index, reason, detail)); the state ends exactly
+        as after ingesting the samples one by one.
+        """
+        t, e = cols["t"], cols["e"]
+        tokens = np.minimum(
+            self.burst, self.tokens[slots] + (wall - self.token_wall[slots]) * self.rate
+        )
+        self.token_wall[slots] = wall
+        flood = tokens < 1.0
+        self.tokens[slots] = np.where(flood, tokens, tokens - 1.0)
+        last_t = self.last_t[slots]
+        dup = ~flood & (t == last_t)
+        late = ~flood & (t < last_t)
+        absurd = ~(flood | dup | late) & (np.abs(e) * self.e_scale[slots] > MAX_AGENT_ERROR)
+        ok = ~(flood | dup | late | absurd)
+        rejections: list[tuple[int, RejectReason, str]] = []
+        if not ok.all():
+            self.n_rejected[slots[~ok]] += 1
+            for i in np.flatnonzero(~ok).tolist():
+                if flood[i]:
+                    rejections.append((i, RejectReason.flood, f"over {self.rate:g} samples/s"))
+                elif dup[i]:
+                    rejections.append((i, RejectReason.duplicate, f"t={t[i]} again"))
+                elif late[i]:
+                    rejections.append(
+                        (i, RejectReason.out_of_order, f"t={t[i]} < last t={last_t[i]}")
+                    )
+                else:
+                    detail = f"|e|={abs(e[i]):g} is absurd for this loop"
+                    rejections.append((i, RejectReason.out_of_range, detail))
+            slots, last_t, t, e = slots[ok], last_t[ok], t[ok], e[ok]
+            cols = {k: v[ok] for k, v in cols.items()}
+        self._adopt_many(slots, cols, wall)
+
+        self.n_samples[slots] += 1
+        self.last_wall[slots] = wall
+        auto, saturated = cols["auto"], cols["saturated"]
+        self.manual[slots] = ~auto
+        self.saturated[slots] = saturated
+        self.last_t[slots] = t
+        fresh = np.isnan(last_t) | (t - last_t > self.stale_gap[slots])
+        period = self.period[slots]
+        next_due = np.where(fresh, t + period, self.next_due[slots])
+        step = np.where(fresh, 0.0, 0.5 * (e + self.last_e[slots]) * (t - last_t))
+        self.int_e[slots] += step * self.int_scale[slots]
+        self.last_e[slots] = e
+        reached = t >= next_due
+        next_due[reached] += period[reached] * (
+            np.floor((t[reached] - next_due[reached]) / period[reached]) + 1.0
+        )
+        self.next_due[slots] = next_due
+        due_ok = reached & (self.mode[slots] != FROZEN) & auto & ~saturated
+        due = np.zeros(ok.size, bool)
+        due[np.flatnonzero(ok)[due_ok]] = True
+        return due, rejections
+
+    def _adopt_many(self, slots: np.ndarray, cols: dict[str, np.ndarray], wall: float) -> None:
+        has_kp, has_ki = ~np.isnan(cols["kp"]), ~np.isnan(cols["ki"])
+        report = has_kp | has_ki
+        if not report.any():
+            return
+        slots, has_kp, has_ki = slots[report], has_kp[report], has_ki[report]
+        cur_kp, cur_ki = self.kp[slots], self.ki[slots]
+        kp = np.where(has_kp, cols["kp"][report], cur_kp)
+        ki = np.where(has_ki, cols["ki"][report], cur_ki)
+        same = _close_v(kp, cur_kp) & _close_v(ki, cur_ki)
+        in_flight = (
+            ~same
+            & self.pending[slots]
+            & _close_v(kp, self.prev_kp[slots])
+            & _close_v(ki, self.prev_ki[slots])
+        )
+        self.pending[slots[~in_flight]] = False
+        changed = np.flatnonzero(~same & ~in_flight)
+        if not changed.size:
+            return
+        t = cols["t"][report]
+        for i in changed.tolist():
+            s = int(slots[i])
+            old = (self.kp[s], self.ki[s])
+            self.kp[s], self.ki[s] = kp[i], ki[i]
+            self._gains_dirty.add(s)
+            self._audit.append(
+                audit_row(
+                    self.ids[s], wall, float(t[i]), int(self.seq[s]), _MODES[self.mode[s]].value,
+                    "adopted", old, (float(kp[i]), float(ki[i])), "gains reported by the gateway",
+                )
+            )  # fmt: skip
+
     def _adopt(self, s: int, sample: Sample, wall: float) -> None:
         kp = self.kp[s] if sample.kp is None else sample.kp
         ki = self.ki[s] if sample.ki is None else sample.ki
@@ -478,7 +574,9 @@ def _close(a: float, b: float) -> bool:
     return abs(a - b) <= GAIN_RTOL * max(abs(a), abs(b))
 
 
+def _close_v(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.abs(a - b) <= GAIN_RTOL * np.maximum(np.abs(a), np.abs(b))
+
+
 def _guard_detail(proposed: np.ndarray, new: np.ndarray) -> str:
-    if np.allclose(proposed, new, rtol=GAIN_RTOL, atol=0.0):
-        return ""
     return f"limited by the safety guard (proposed kp={proposed[0]:.6g}, ki={proposed[1]:.6g})"
