@@ -186,6 +186,14 @@ def scrape(client, daemon: Daemon) -> dict[str, float]:
     return out
 
 
+def system_busy() -> tuple[float, float]:
+    """(busy, total) CPU seconds of the whole machine so far, from /proc/stat."""
+    fields = [int(v) for v in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
+    idle = fields[3] + fields[4]  # idle + iowait
+    tick = os.sysconf("SC_CLK_TCK")
+    return (sum(fields[:8]) - idle) / tick, sum(fields[:8]) / tick
+
+
 def rejected(metrics: dict[str, float]) -> float:
     return sum(v for k, v in metrics.items() if k.startswith("pitune_samples_rejected_total{"))
 
@@ -473,6 +481,7 @@ def play(args, fleet: Fleet, daemon: Daemon, client, session, keys, inbox, memor
         now = time.monotonic()
         if cpu0 is None and now >= window.start:
             cpu0, gen0, m0 = daemon.cpu_seconds(), time.process_time(), scrape(client, daemon)
+            sys0 = system_busy()
             wall0 = time.monotonic()
         if now >= next_rss:
             rss = daemon.rss_mb()
@@ -503,6 +512,7 @@ def play(args, fleet: Fleet, daemon: Daemon, client, session, keys, inbox, memor
         m += 1
     wall1 = time.monotonic()
     cpu1, gen1, m1 = daemon.cpu_seconds(), time.process_time(), scrape(client, daemon)
+    sys1 = system_busy()
     rss_end = daemon.rss_mb()
     # drain: the daemon should have received everything; the last gains arrive shortly
     deadline = time.monotonic() + 10.0
@@ -570,6 +580,12 @@ def play(args, fleet: Fleet, daemon: Daemon, client, session, keys, inbox, memor
             "late_max_ms": 1e3 * late_max,
         },
         "load_average": {"end": list(os.getloadavg())},
+        "machine_cpu": {
+            # all CPUs together, in "% of one core" like the per-process figures
+            "busy_percent": 100.0 * (sys1[0] - sys0[0]) / span,
+            "others_percent": 100.0 * ((sys1[0] - sys0[0]) - (cpu1 - cpu0) - (gen1 - gen0)) / span,
+            "capacity_percent": 100.0 * (sys1[1] - sys0[1]) / span,
+        },
     }
 
 
@@ -683,6 +699,9 @@ def table(r: dict) -> str:
         ("daemon RSS max / end", f"{d['rss_max_mb']:.0f} / {d['rss_end_mb']:.0f} MB"),
         ("RSS per loop", f"{_f(d.get('rss_per_loop_kb'), '{:.2f}')} KB"),
         ("generator CPU / worst lag", f"{g['cpu_percent']:.0f} % / {g['late_max_ms']:.1f} ms"),
+        ("other processes' CPU", f"{r['machine_cpu']['others_percent']:.0f} % (machine "
+                                 f"{r['machine_cpu']['busy_percent']:.0f} % busy of "
+                                 f"{r['machine_cpu']['capacity_percent']:.0f} %)"),
     ]  # fmt: skip
     if inf:
         rows.append(

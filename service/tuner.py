@@ -23,6 +23,7 @@ import time
 
 import numpy as np
 import orjson
+import torch
 import zenoh
 from pydantic import ValidationError
 
@@ -256,6 +257,10 @@ class Tuner:
 
     # -- worker -----------------------------------------------------------------------
     def _run(self) -> None:
+        # Thread counts of OpenMP and MKL (torch's tanh/sigmoid go through MKL VML) are
+        # per thread: set them where inference runs, or MKL forks a team of threads per op
+        # that, on a busy box, waits for CPU time (a step of 5 loops took ~90 ms).
+        torch.set_num_threads(self.settings.inference_threads)
         interval = self.settings.snapshot_interval_s
         next_snapshot = time.monotonic() + interval
         while True:
