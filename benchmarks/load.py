@@ -459,6 +459,8 @@ def _wait_for_tuner(session, keys, timeout: float = 10.0) -> None:
 
 
 def play(args, fleet: Fleet, daemon: Daemon, client, session, keys, inbox, memory) -> dict:
+    import zenoh
+
     period, n_groups = fleet.period, len(fleet.groups)
     t0 = 1000.0  # plant time of the first sample
     start = time.monotonic() + 0.2
@@ -470,7 +472,13 @@ def play(args, fleet: Fleet, daemon: Daemon, client, session, keys, inbox, memor
     late_max = 0.0
     rss_max, next_rss = 0.0, 0.0
     cpu0 = gen0 = m0 = None
-    publish = session.put
+    # Samples must not be lost: block rather than drop when the transport is congested
+    # (Zenoh's default for puts is to drop), as a gateway should.
+    block = zenoh.CongestionControl.BLOCK
+
+    def publish(key: str, payload: bytes) -> None:
+        session.put(key, payload, congestion_control=block)
+
     batch_key = keys.batch
     m = 0
     while True:
