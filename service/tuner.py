@@ -97,6 +97,27 @@ def _freeze_survivors() -> None:
     gc.freeze()
 
 
+SINGLES_GROUP = 2000
+"""Most single-sample messages ingested in one vectorised pass."""
+
+
+def _group_singles(items: list[Item]):
+    """The items, with runs of single-sample messages as (Kind.sample, "", [(key, payload)])."""
+    run: list[tuple[str, bytes]] = []
+    for kind, key, payload in items:
+        if kind is Kind.sample:
+            run.append((key, payload))
+            if len(run) < SINGLES_GROUP:
+                continue
+        if run:
+            yield Kind.sample, "", run
+            run = []
+        if kind is not Kind.sample:
+            yield kind, key, payload
+    if run:
+        yield Kind.sample, "", run
+
+
 _FLOAT = {float}
 _OPT_FLOAT = {float, type(None)}
 _BOOL = {bool}
@@ -299,9 +320,9 @@ class Tuner:
         due: dict[int, None] = {}  # ordered set of slots
         flush_at = math.inf
         with self.table.lock:
-            for kind, key, payload in items:
+            for kind, _key, payload in _group_singles(items):
                 if kind is Kind.sample:
-                    self._on_sample(key, payload, due, wall)
+                    self._on_samples(payload, due, wall)
                 elif kind is Kind.batch:
                     self._on_batch(payload, due, wall)
                 else:
@@ -317,6 +338,28 @@ class Tuner:
                     flush_at = math.inf
             self._flush(due, wall)
             self._commit(None)
+
+    def _on_samples(self, singles: list[tuple[str, bytes]], due: dict[int, None], wall: float):
+        """Single-sample messages received together: one vectorised pass when they are
+        plainly valid (as a batch message would be), else one by one."""
+        if len(singles) > 1:
+            items = []
+            for key, payload in singles:
+                loop_id = self.keys.loop_id(key)
+                try:
+                    item = orjson.loads(payload)
+                except orjson.JSONDecodeError:
+                    break
+                if loop_id is None or type(item) is not dict:
+                    break
+                item["loop_id"] = loop_id  # the key names the loop
+                items.append(item)
+            else:
+                if self._on_batch_fast(items, due, wall):
+                    self.metrics.samples_received.inc(len(items))
+                    return
+        for key, payload in singles:
+            self._on_sample(key, payload, due, wall)
 
     def _on_sample(self, key: str, payload: bytes, due: dict[int, None], wall: float) -> None:
         self.metrics.samples_received.inc()

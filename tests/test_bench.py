@@ -34,6 +34,7 @@ def test_tiny_benchmark_run_measures_everything(tmp_path, capsys):
     assert result["inference"]["loops"] == 30
     assert result["bar"]["samples_lost"]["met"] is True
     assert result["daemon_exit"] is not None
+    assert result["machine_cpu"]["busy_percent"] > 0 and result["machine"]["cpus"] >= 1
     out = capsys.readouterr().out
     assert "update latency p50 / p99 / max" in out and "bar:" in out
 

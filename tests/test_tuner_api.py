@@ -160,3 +160,24 @@ def test_after_shutdown_the_tuner_is_not_ready(tmp_path):
         assert client.get("/readyz").status_code == 200
         tuner = app.state.tuner
     assert not tuner.ready and not tuner.alive
+
+
+def test_bulk_registration_is_all_or_nothing(client, tmp_path):
+    bodies = [loop_body(f"L{i}") for i in range(50)]
+    assert client.post("/loops/bulk", json=bodies).status_code == 401  # needs the token
+    r = client.post("/loops/bulk", json=bodies, headers=AUTH)
+    assert r.status_code == 201, r.text
+    assert r.json() == {"registered": [f"L{i}" for i in range(50)]}
+    views = client.get("/loops").json()
+    assert len(views) == 50 and views[7]["kp"] == 0.5 and views[7]["status"] == "waiting"
+    assert client.get("/loops/L7/history").json()["items"][0]["reason"] == "registered"
+    assert client.get("/metrics").text.count('pitune_loops{mode="auto"} 50.0') == 1
+    # one taken id, or one id twice, or one invalid body: nothing is registered
+    for batch, code in (
+        ([loop_body("NEW1"), loop_body("L3")], 409),
+        ([loop_body("NEW1"), loop_body("NEW1")], 409),
+        ([loop_body("NEW1"), loop_body("bad/id")], 422),
+    ):
+        assert client.post("/loops/bulk", json=batch, headers=AUTH).status_code == code
+        assert client.get("/loops/NEW1").status_code == 404
+    assert len(client.get("/loops").json()) == 50

@@ -4,6 +4,7 @@ one-sample-at-a-time path in every state change, due step, rejection and audit r
 from __future__ import annotations
 
 import numpy as np
+import orjson
 import pytest
 
 from service.agent import untrained_agent
@@ -143,3 +144,35 @@ def test_plain_batch_is_columnar():
     assert cols["auto"].tolist() == [True, False]
     assert cols["saturated"].tolist() == [False, True]
     assert RejectReason.flood  # the reasons used by ingest_many are the protocol's
+
+
+def test_single_sample_messages_received_together_are_ingested_as_one_batch(tmp_path):
+    from service.bus import Kind
+    from service.tuner import Tuner
+    from tests.tuner_support import tuner_settings
+
+    with Tuner(tuner_settings(tmp_path)) as tuner:
+        for i in range(3):
+            tuner.register(LoopConfig(**loop_body(f"L{i}")))
+        keys, slow_calls = tuner.keys, []
+        original = tuner._on_sample
+        tuner._on_sample = lambda *a: (slow_calls.append(a[0]), original(*a))[1]
+
+        def single(loop_id, body):
+            return (Kind.sample, keys.sample(loop_id), orjson.dumps(body))
+
+        tuner._handle([single(f"L{i}", {"t": 1.0, "e": 0.5, "loop_id": "x"}) for i in range(3)])
+        assert slow_calls == []  # one vectorised pass; the key names the loop
+        # an int timestamp and a loop twice: one by one, with exact rejections
+        tuner._handle(
+            [
+                single("L0", {"t": 2, "e": 0.5}),
+                single("L1", {"t": 2.0, "e": 0.5}),
+                single("L1", {"t": 2.0, "e": 0.5}),
+            ]
+        )
+        assert len(slow_calls) == 3
+        table = tuner.table
+        assert [int(table.n_samples[table.slot_of[f"L{i}"]]) for i in range(3)] == [2, 2, 1]
+        assert tuner.metrics.value("pitune_samples_received_total") == 6
+        assert tuner.metrics.value("pitune_samples_rejected_total", reason="duplicate") == 1
