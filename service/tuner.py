@@ -89,11 +89,12 @@ def _freeze_survivors() -> None:
     each scans every long-lived tracked object (modules, caches the HTTP stack builds on
     its first requests, ...): ~100 ms per collection, a stall of the sample stream. The
     tuner freezes what exists at start-up, after a bulk registration and after every
-    periodic snapshot (young cycles are collected first), so full collections only see
-    recent objects. Frozen objects are still freed by reference counting; only cyclic
-    garbage that reached the oldest generation between two freezes would be kept.
+    periodic snapshot, so the full collections the sample stream triggers only see
+    recent objects. Frozen objects are still freed by reference counting, and a full
+    collection runs first (cheap: it scans only what is not frozen yet), so no cyclic
+    garbage is frozen.
     """
-    gc.collect(1)
+    gc.collect()
     gc.freeze()
 
 
@@ -575,7 +576,7 @@ class Tuner:
             for config in configs:
                 self.table.add(config, wall=wall)
             self.metrics.set_loop_counts(self.table.mode_counts())
-        gc.freeze()  # see _freeze_survivors
+        _freeze_survivors()
         return ids
 
     def patch(self, loop_id: str, patch: LoopPatch) -> LoopView:
