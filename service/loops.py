@@ -49,6 +49,8 @@ GAIN_RTOL = 1e-9
 """Relative tolerance when comparing reported gains with the tuner's."""
 
 _MODES = list(Mode)
+MODE_VALUES = [m.value for m in _MODES]
+"""Mode names by the codes in :attr:`LoopTable.mode`."""
 _CODE = {m: i for i, m in enumerate(_MODES)}
 AUTO, ADVISORY, FROZEN = (_CODE[m] for m in (Mode.auto, Mode.advisory, Mode.frozen))
 
@@ -468,7 +470,7 @@ class LoopTable:
         details = [""] * len(slots)
         for i in np.flatnonzero(limited).tolist():
             details[i] = _guard_detail(proposed[i], new[i])
-        mode_names = [_MODES[c].value for c in result.mode.tolist()]
+        mode_names = [MODE_VALUES[c] for c in result.mode.tolist()]
         self._audit.extend(
             zip(
                 result.loop_ids, [wall] * len(slots), result.t.tolist(), result.seq.tolist(),

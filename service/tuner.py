@@ -14,6 +14,7 @@ store before the gains messages go out.
 
 from __future__ import annotations
 
+import collections
 import gc
 import logging
 import math
@@ -29,7 +30,7 @@ from pydantic import ValidationError
 
 from service.agent import Agent, load_agent, untrained_agent
 from service.bus import JSON, Bus, Item, Kind, reply
-from service.loops import FROZEN, LoopTable, Rejected, StepResult
+from service.loops import FROZEN, MODE_VALUES, LoopTable, Rejected, StepResult
 from service.metrics import Metrics
 from service.protocol import (
     MAX_MAGNITUDE,
@@ -467,21 +468,19 @@ class Tuner:
         new, delta = result.new, result.new - result.old
         dumps, publish, gains_key = orjson.dumps, self.bus.publish, self.keys.gains
         instance, why = self.settings.instance_id, reason.value
-        counts = dict.fromkeys(result.modes(), 0)
+        modes = [MODE_VALUES[c] for c in result.mode.tolist()]
         for loop_id, seq, t, dkp, dki, kp, ki, mode in zip(
             result.loop_ids, result.seq.tolist(), result.t.tolist(), delta[:, 0].tolist(),
-            delta[:, 1].tolist(), new[:, 0].tolist(), new[:, 1].tolist(), result.modes(),
-            strict=True,
+            delta[:, 1].tolist(), new[:, 0].tolist(), new[:, 1].tolist(), modes, strict=True,
         ):  # fmt: skip
             message = {
                 "v": SCHEMA_VERSION, "loop_id": loop_id, "seq": seq, "t": t, "dkp": dkp,
-                "dki": dki, "kp": kp, "ki": ki, "mode": mode.value, "reason": why,
+                "dki": dki, "kp": kp, "ki": ki, "mode": mode, "reason": why,
                 "instance_id": instance,
             }  # fmt: skip
             publish(gains_key(loop_id), dumps(message))
-            counts[mode] += 1
-        for mode, count in counts.items():
-            self.metrics.updates_published.labels(mode.value).inc(count)
+        for mode, count in collections.Counter(modes).items():
+            self.metrics.updates_published.labels(mode).inc(count)
 
     def _answer(self, query: zenoh.Query) -> None:
         key = str(query.key_expr)
