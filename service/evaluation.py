@@ -452,7 +452,7 @@ def render_report(m: dict) -> str:
     lines += [f"- {name}: {v:.3f}" for name, v in m["two_tank"].items()]
     lines += ["", "## Bar", ""]
     lines += [f"- {k}: {'met' if v else 'NOT met'}" for k, v in m["bar"].items()]
-    lines += ["", "Figures: " + ", ".join(sorted(f"`{f}`" for f in FIGURES)), ""]
+    lines += ["", "Figures (in `reports/`): " + ", ".join(sorted(f"`{f}`" for f in FIGURES)), ""]
     return "\n".join(lines)
 
 
@@ -473,6 +473,10 @@ CHANGES_FROM_PAPER = """\
   this is offline-only knowledge; online the agent sees only [kp, ki, e, int_e]. Why: the
   paper needed 2,500 PPO epochs (750k episodes); a dense supervised signal reaches its
   asymptotic performance on two CPU cores within the time budget.
+- **The shipped weights are the warm start's.** PPO fine-tuning from them lowered the
+  policy's own episode cost but worsened the settled gains (validation worst case
+  0.001 -> 0.005-0.037, convergence time 66 -> 270) in the epochs we could afford, so the
+  best-validated imitation checkpoint ships; `TRAINING.md` has the numbers.
 - **Relative actions, log-gain features.** The policy outputs a log-relative change
   (dk = k (exp(a) - 1), at most a factor e per step) and reads log kp, log ki and a
   signed log of int_e. Gains stay positive by construction and one output scale serves
@@ -512,6 +516,8 @@ def write_model_card(path: Path, agent: Agent, metrics: dict) -> None:
         f" {meta.get('wall_s', '?')} s on 2 CPU cores (1 torch thread)",
         "- Validation at export (64 random plants + 8 corners, 80 RL steps):"
         f" {meta.get('validation')}",
+        "- Runs warm-started from earlier runs, and the PPO fine-tuning attempts: see"
+        " `TRAINING.md` beside this card.",
         "",
         "Training configuration:",
         "",
