@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import signal
 import sys
 
 import uvicorn
@@ -85,5 +86,8 @@ def run(args: argparse.Namespace) -> int:
             lifespan="on",
         )
     )
+    # uvicorn shuts down gracefully on SIGTERM, then re-raises the signal with the handler
+    # it found installed; make that a clean exit so supervisors see status 0, not -15.
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(0 if server.started else 1))
     server.run()
     return 0 if server.started else 1
