@@ -50,6 +50,7 @@ class EnvConfig:
     init_noise: float = 0.1
     noise_std: float = 0.0
     drift_prob: float = 0.0
+    sp_jitter: float = 0.0
 
 
 def sample_tasks(n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -96,6 +97,13 @@ class TuningEnv:
         self.pi = PIBatch(kp0, ki0, dt=cfg.dt, n=n, u_min=-cfg.u_limit, u_max=cfg.u_limit)
         self.pi.initialise(y0 / K)
         self.sp = rng.choice([-1.0, 1.0], n) if sp0 is None else np.broadcast_to(sp0, (n,)).copy()
+        # Setpoint changes of a real loop do not line up with the RL steps: with jitter,
+        # each episode gets its own period (+-sp_jitter) and phase.
+        j = cfg.sp_jitter
+        self.sp_every = np.rint(self.sp_steps * rng.uniform(1 - j, 1 + j, n)).astype(np.int64)
+        self.sp_offset = (
+            rng.integers(0, self.sp_every) if j > 0 else np.zeros(n, dtype=np.int64)
+        )
         self.k = 0  # controller sample counter
         self.int_e = np.zeros(n)
         self.e = self.sp - self.plant.measure()
@@ -152,8 +160,9 @@ class TuningEnv:
         plant, target, pi = self.plant, self.target, self.pi
         sq = np.zeros(self.n)
         for _ in range(self.inner):
-            if self.k and self.k % self.sp_steps == 0:
-                self.sp = -self.sp
+            if self.k:
+                flip = (self.k + self.sp_offset) % self.sp_every == 0
+                self.sp = np.where(flip, -self.sp, self.sp)
             err = target.x - plant.x
             sq += np.minimum(err * err, cfg.err_cap)
             e = self.sp - plant.measure()

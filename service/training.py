@@ -79,6 +79,7 @@ class TrainConfig:
     max_grad_norm: float = 0.5
     # task distribution extras
     drift_prob: float = 0.25
+    sp_jitter: float = 0.3
     forgetting_prob: float = 0.3
     forgetting: float = 0.99
     # bookkeeping
@@ -179,7 +180,7 @@ class Trainer:
         self.opt_bc = torch.optim.Adam(self.actor.parameters(), lr=cfg.bc_lr)
         self.opt_pi = torch.optim.Adam(self.actor.parameters(), lr=cfg.pi_lr)
         self.opt_v = torch.optim.Adam(self.critic.parameters(), lr=cfg.v_lr)
-        self.env_cfg = EnvConfig(drift_prob=cfg.drift_prob)
+        self.env_cfg = EnvConfig(drift_prob=cfg.drift_prob, sp_jitter=cfg.sp_jitter)
         self.table = oracle_table()
         self.epoch = 0
         self.elapsed = 0.0
@@ -376,7 +377,8 @@ class Trainer:
                     row = self.ppo_epoch(self.epoch >= cfg.bc_epochs + cfg.value_warmup)
                 self.epoch += 1
                 if self.epoch % cfg.eval_every == 0 or self.epoch == total:
-                    row.update(validate(self.actor, EnvConfig(init_noise=0.0), cfg.eval_plants))
+                    val_cfg = EnvConfig(init_noise=0.0, sp_jitter=cfg.sp_jitter)
+                    row.update(validate(self.actor, val_cfg, cfg.eval_plants))
                     if row["val_worst"] < self.best:
                         self.best = row["val_worst"]
                         save_actor(self.actor, self.out / "best.pt", self.card_meta(row))

@@ -168,3 +168,16 @@ def test_resume_continues_exactly(tmp_path):
         torch.testing.assert_close(p, q, rtol=0, atol=0)
     rows = list(csv.DictReader((tmp_path / "b" / "metrics.csv").open()))
     assert [int(r["epoch"]) for r in rows] == [1, 2, 3, 4, 5]
+
+
+def test_env_setpoint_jitter_draws_a_period_and_phase_per_episode():
+    env = TuningEnv(EnvConfig(sp_jitter=0.3), np.random.default_rng(4))
+    n = 50
+    env.reset(np.full(n, 0.5), np.full(n, 0.5), np.full(n, 0.1), horizon=8, sp0=1.0)
+    assert env.sp_every.min() >= 770 and env.sp_every.max() <= 1430
+    assert len(set(env.sp_offset.tolist())) > 10
+    for _ in range(8):
+        env.step(np.zeros((n, 2)))
+    k = np.arange(1, env.k)[:, None]
+    flips = ((k + env.sp_offset) % env.sp_every == 0).sum(0)
+    np.testing.assert_array_equal(env.sp, np.where(flips % 2 == 0, 1.0, -1.0))
