@@ -1,18 +1,27 @@
 """Fast batched inference of the agent's actor: :meth:`Agent.act` for the tuner's hot path.
 
 :class:`FastPolicy` wraps an :class:`~service.agent.Agent`'s weights and computes exactly
-what ``agent.act`` computes (same float32 arithmetic, equal to about 1e-6), but built for
-large batches on one CPU core:
+what ``agent.act`` computes (same float32 arithmetic up to summation order, equal to
+about 1e-6), but built for large batches on one or two CPU cores:
 
 * the batch is processed in blocks of ``block`` loops whose intermediates (gates, hidden
   states, head activations) live in buffers allocated once and reused, so they stay in
   the core's L2 cache and no call allocates (fresh multi-megabyte tensors cost page
   faults and memory bandwidth, which dominated the naive call at 10,000 loops);
-* each GRU layer is written out (two GEMMs into preallocated gates, in-place
-  sigmoid/tanh, ``h' = n + z (h - n)``) with the r/z biases of both GEMMs folded into
-  one, and the weights stored pre-transposed and contiguous;
+* each GRU layer is three GEMMs with the biases folded into the weights (each GEMM's
+  input carries a column of ones, so no bias is broadcast into the output first), the
+  r/z gates of input and hidden state fused into one GEMM on ``[x, 1, h, 1]`` with
+  stacked weights (the n gate keeps its hidden part separate because of
+  ``r (W_hn h + b_hn)``); every gate lands in its own contiguous buffer, where MKL's
+  vectorised sigmoid/tanh run 1.3-2x faster than on strided column slices, and the
+  update ``h' = n + z (h - n)`` is one ``lerp``;
 * the state is read from and written to the caller's ``(n, layers, hidden)`` float32
-  array in place (:meth:`step_inplace`), with no transposes or copies of the whole batch.
+  array in place (:meth:`step_inplace`), with no transposes or copies of the whole batch;
+* with ``workers=2`` a batch of at least ``parallel_min`` loops is split in halves, one
+  stepped by a helper thread with its own buffers (torch ops release the GIL), so a big
+  batch uses two cores while small batches keep the single-thread latency. Each thread
+  runs torch with one intra-op thread (the helper sets it; the caller's own setting, the
+  daemon's ``inference_threads``, should be 1 too).
 
 The GRU equations (PyTorch's ``nn.GRU``, gates ordered r, z, n), with the paper's
 forgetting factor ``gamma`` scaling the previous hidden state of every layer::
@@ -26,6 +35,9 @@ forgetting factor ``gamma`` scaling the previous hidden state of every layer::
 
 from __future__ import annotations
 
+import weakref
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import torch
 from torch.nn import functional as F
@@ -35,13 +47,58 @@ from service.agent import GAIN_FLOOR, MAX_LOG_STEP, Agent
 LEAKY_SLOPE = 0.01
 """``nn.LeakyReLU``'s default negative slope (the actor's head uses the default)."""
 
+PARALLEL_MIN = 2048
+"""Smallest batch that ``workers > 1`` splits across threads (smaller: caller only)."""
+
+
+def _one_intraop_thread() -> None:
+    # thread counts of OpenMP/MKL are per thread: a new thread starts with the defaults
+    torch.set_num_threads(1)
+
+
+class _Buffers:
+    """One thread's preallocated intermediates for blocks of up to ``b`` loops."""
+
+    def __init__(self, b: int, inputs: list[int], hid: int, widths: list[int]) -> None:
+        e = torch.empty
+        # per layer [x, 1, h, 1]: the GEMM inputs, biases folded into the weights
+        self.xh = []
+        for k in inputs:
+            buf = e(b, k + 1 + hid + 1)
+            buf[:, k] = 1.0
+            buf[:, -1] = 1.0
+            self.xh.append(buf)
+        self.rz, self.n, self.nh = e(b, 2 * hid), e(b, hid), e(b, hid)
+        self.acts = []  # [deep h, 1], [a1, 1], [a2, 1]
+        for w in [hid, *widths[:-1]]:
+            buf = e(b, w + 1)
+            buf[:, w] = 1.0
+            self.acts.append(buf)
+        self.gains, self.mean, self.tmp = e(b, 2), e(b, widths[-1]), e(b, widths[-1])
+
 
 class FastPolicy:
-    """Numerically equal, allocation-free replacement of ``agent.act`` for numpy callers."""
+    """Numerically equal, allocation-free replacement of ``agent.act`` for numpy callers.
 
-    def __init__(self, agent: Agent, block: int = 512) -> None:
+    ``workers``: threads stepping one batch of at least ``parallel_min`` loops (2 on a
+    2-core box; the helper threads are created once, idle between calls). Not safe for
+    concurrent calls (the buffers are shared).
+    """
+
+    def __init__(
+        self,
+        agent: Agent,
+        block: int = 512,
+        *,
+        workers: int = 1,
+        parallel_min: int = PARALLEL_MIN,
+    ) -> None:
+        if workers < 1:
+            raise ValueError("workers must be >= 1")
         self.agent = agent
         self.block = int(block)
+        self.workers = int(workers)
+        self.parallel_min = int(parallel_min)
         cfg = agent.cfg
         self.layers, self.hidden = cfg.layers, cfg.hidden
         gru, head = agent.actor.gru, agent.actor.head
@@ -49,31 +106,41 @@ class FastPolicy:
         self._gru = []
         with torch.no_grad():
             for layer in range(cfg.layers):
-                w_ih = getattr(gru, f"weight_ih_l{layer}").detach().float()
-                w_hh = getattr(gru, f"weight_hh_l{layer}").detach().float()
-                b_ih = getattr(gru, f"bias_ih_l{layer}").detach().float().clone()
-                b_hh = getattr(gru, f"bias_hh_l{layer}").detach().float().clone()
-                b_i = b_ih.clone()
-                b_i[: 2 * hid] += b_hh[: 2 * hid]  # r and z: both biases add up
-                self._gru.append(
-                    (w_ih.t().contiguous(), w_hh.t().contiguous(), b_i, b_hh[2 * hid :].clone())
-                )
+                w_ih = getattr(gru, f"weight_ih_l{layer}").detach().float().t()
+                w_hh = getattr(gru, f"weight_hh_l{layer}").detach().float().t()
+                b_ih = getattr(gru, f"bias_ih_l{layer}").detach().float()
+                b_hh = getattr(gru, f"bias_hh_l{layer}").detach().float()
+                k = w_ih.shape[0]
+                # rows of [x, 1, h, 1] -> r and z (both biases add up; the last row is 0)
+                w_rz = torch.zeros(k + 1 + hid + 1, 2 * hid)
+                w_rz[:k] = w_ih[:, : 2 * hid]
+                w_rz[k] = b_ih[: 2 * hid] + b_hh[: 2 * hid]
+                w_rz[k + 1 : k + 1 + hid] = w_hh[:, : 2 * hid]
+                w_in = torch.cat([w_ih[:, 2 * hid :], b_ih[None, 2 * hid :]])  # [x, 1]
+                w_hn = torch.cat([w_hh[:, 2 * hid :], b_hh[None, 2 * hid :]])  # [h, 1]
+                self._gru.append((k, *(w.contiguous() for w in (w_rz, w_in, w_hn))))
             linears = [m for m in head if isinstance(m, torch.nn.Linear)]
-            self._head = [(m.weight.detach().float().t().contiguous(), m.bias.detach().float())
-                          for m in linears]  # fmt: skip
-        self._allocate(self.block)
+            self._head = [
+                torch.cat(
+                    [m.weight.detach().float().t(), m.bias.detach().float()[None]]
+                ).contiguous()
+                for m in linears
+            ]
+        inputs = [k for k, *_ in self._gru]
+        widths = [m.out_features for m in linears]
+        self._bufs = [_Buffers(self.block, inputs, hid, widths) for _ in range(self.workers)]
+        self._pool = None
+        if self.workers > 1:
+            self._pool = ThreadPoolExecutor(
+                self.workers - 1, "fastpolicy", initializer=_one_intraop_thread
+            )
+            weakref.finalize(self, self._pool.shutdown, wait=False)
 
-    def _allocate(self, b: int) -> None:
-        hid, width = self.hidden, self._head[0][0].shape[1]
-        e = torch.empty
-        self._obs = e(b, 4)
-        self._x = e(b, 4)
-        self._gi = e(b, 3 * hid)
-        self._gh = e(b, hid)
-        self._h = e(b, hid)
-        self._a1, self._a2 = e(b, width), e(b, self._head[1][0].shape[1])
-        self._mean = e(b, 2)
-        self._tmp = e(b, 2)
+    def close(self) -> None:
+        """Stop the helper threads (they also stop when the policy is collected)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=False)
+            self._pool = None
 
     @torch.inference_mode()
     def step_inplace(self, obs: np.ndarray, state: np.ndarray, forgetting) -> np.ndarray:
@@ -97,42 +164,66 @@ class FastPolicy:
         ).reshape(n, 1)
         h_all = torch.from_numpy(state)
         delta = torch.empty(n, 2)
-        for start in range(0, n, self.block):
-            stop = min(n, start + self.block)
-            self._block(obs32[start:stop], h_all[start:stop], gamma[start:stop], delta[start:stop])
+        args = (obs32, h_all, gamma, delta)
+        if self._pool is None or n < self.parallel_min:
+            self._run(self._bufs[0], 0, n, *args)
+        else:
+            # contiguous shares of whole blocks; the caller steps the first one
+            blocks = -(-n // self.block)
+            cuts = [
+                min(n, (blocks * i // self.workers) * self.block) for i in range(1 + self.workers)
+            ]
+            futures = [
+                self._pool.submit(self._run_in_helper, self._bufs[i], cuts[i], cuts[i + 1], *args)
+                for i in range(1, self.workers)
+            ]
+            try:
+                self._run(self._bufs[0], cuts[0], cuts[1], *args)
+            finally:
+                for future in futures:
+                    future.result()
         return delta.numpy().astype(np.float64)
 
-    def _block(self, obs: torch.Tensor, h_all: torch.Tensor, gamma: torch.Tensor, out) -> None:
+    @torch.inference_mode()
+    def _run_in_helper(self, *args) -> None:
+        self._run(*args)  # inference mode is per thread
+
+    def _run(self, bufs: _Buffers, start: int, stop: int, obs, h_all, gamma, delta) -> None:
+        for lo in range(start, stop, self.block):
+            hi = min(stop, lo + self.block)
+            self._block(bufs, obs[lo:hi], h_all[lo:hi], gamma[lo:hi], delta[lo:hi])
+
+    def _block(self, bufs: _Buffers, obs, h_all, gamma, out) -> None:
         b, hid = obs.shape[0], self.hidden
-        x = self._x[:b]
         # features: [log kp, log ki, e, symlog int_e]
-        torch.clamp_min(obs[:, :2], GAIN_FLOOR, out=x[:, :2]).log_()
+        x = bufs.xh[0][:b]
+        gains = torch.clamp_min(obs[:, :2], GAIN_FLOOR, out=bufs.gains[:b])
+        torch.log(gains, out=x[:, :2])  # from a contiguous input: one vectorised call
         torch.clamp(obs[:, 2], -10.0, 10.0, out=x[:, 2])
         ie = obs[:, 3]
         torch.mul(torch.sign(ie), torch.log1p(ie.abs()), out=x[:, 3])
-        gi, gh, h = self._gi[:b], self._gh[:b], self._h[:b]
-        for layer, (w_ih, w_hh, b_i, b_hn) in enumerate(self._gru):
+        rz, cand, nh = bufs.rz[:b], bufs.n[:b], bufs.nh[:b]
+        for layer, (k, w_rz, w_in, w_hn) in enumerate(self._gru):
+            xh = bufs.xh[layer][:b]  # [x, 1, h, 1]
             h_prev = h_all[:, layer]  # view into the caller's state (strided rows)
+            h = xh[:, k + 1 : k + 1 + hid]
             torch.mul(h_prev, gamma, out=h)
-            # gi = [x W_ir + h W_hr + b_r | x W_iz + h W_hz + b_z | x W_in + b_in]
-            torch.addmm(b_i, x, w_ih, out=gi)
-            gi[:, : 2 * hid].addmm_(h, w_hh[:, : 2 * hid])
-            torch.addmm(b_hn, h, w_hh[:, 2 * hid :], out=gh)
-            rz = gi[:, : 2 * hid].sigmoid_()
-            cand = gi[:, 2 * hid :].addcmul_(rz[:, :hid], gh).tanh_()
-            # h' = n + z (h - n), written straight into the caller's state
-            h.sub_(cand).mul_(rz[:, hid:]).add_(cand)
-            h_prev.copy_(h)
-            x = h_prev
-        (w1, b1), (w2, b2), (w3, b3) = self._head
-        a1, a2, mean = self._a1[:b], self._a2[:b], self._mean[:b]
-        F.leaky_relu(torch.addmm(b1, x, w1, out=a1), LEAKY_SLOPE, inplace=True)
-        F.leaky_relu(torch.addmm(b2, a1, w2, out=a2), LEAKY_SLOPE, inplace=True)
-        torch.addmm(b3, a2, w3, out=mean)
+            torch.mm(xh, w_rz, out=rz)  # x W_i{r,z} + h W_h{r,z} + b_{r,z}
+            torch.mm(xh[:, : k + 1], w_in, out=cand)  # x W_in + b_in
+            torch.mm(xh[:, k + 1 :], w_hn, out=nh)  # h W_hn + b_hn
+            rz.sigmoid_()
+            cand.addcmul_(rz[:, :hid], nh).tanh_()
+            # h' = n + z (h - n), into the next layer's input and the caller's state
+            nxt = bufs.xh[layer + 1][:b] if layer + 1 < self.layers else bufs.acts[0][:b]
+            h_prev.copy_(torch.lerp(cand, h, rz[:, hid:], out=nxt[:, :hid]))
+        acts = bufs.acts
+        for i, w in enumerate(self._head[:-1]):
+            F.leaky_relu_(torch.mm(acts[i][:b], w, out=acts[i + 1][:b, :-1]), LEAKY_SLOPE)
+        mean = torch.mm(acts[-1][:b], self._head[-1], out=bufs.mean[:b])
         # relative change -> additive delta: max(k, floor) * expm1(clip(mean))
-        tmp = self._tmp[:b]
+        tmp = bufs.tmp[:b]
         torch.clamp(mean, -MAX_LOG_STEP, MAX_LOG_STEP, out=tmp).expm1_()
-        torch.mul(obs[:, :2].clamp_min(GAIN_FLOOR), tmp, out=out)
+        torch.mul(gains, tmp, out=out)
 
     def act(self, obs, state, forgetting=1.0) -> tuple[np.ndarray, np.ndarray]:
         """Same signature and results as ``agent.act`` for numpy inputs (state not modified)."""

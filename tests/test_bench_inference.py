@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
 from service.agent import untrained_agent
 from service.inference import FastPolicy
@@ -58,3 +59,28 @@ def test_fast_policy_rejects_bad_input():
         fast.step_inplace(obs, state.astype(np.float64), gamma)
     with pytest.raises(ValueError, match="obs"):
         fast.step_inplace(obs[:, :3], state.copy(), gamma)
+
+
+def test_two_workers_split_large_batches_with_identical_results():
+    agent = untrained_agent(4)
+    obs, state, gamma = _inputs(1500, seed=2)
+    ref_delta, ref_state = agent.act(obs, state, gamma)
+    one = FastPolicy(agent, block=256)
+    two = FastPolicy(agent, block=256, workers=2, parallel_min=1000)
+    try:
+        assert two._pool.submit(torch.get_num_threads).result() == 1  # helper: 1 intra-op
+        delta, new_state = two.act(obs, state, gamma)
+        np.testing.assert_allclose(delta, ref_delta, rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(new_state, ref_state, rtol=1e-5, atol=1e-5)
+        # the same blocks, whichever thread steps them: the single-thread result (up to the
+        # last bits: MKL's kernels may round differently on differently aligned buffers)
+        for got, want in zip(two.act(obs, state, gamma), one.act(obs, state, gamma), strict=True):
+            np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-7)
+        # below parallel_min the caller steps the batch alone
+        two._pool.submit = None
+        small = two.act(obs[:999], state[:999], gamma[:999])
+        np.testing.assert_allclose(
+            small[0], one.act(obs[:999], state[:999], gamma[:999])[0], 1e-6, 1e-7
+        )
+    finally:
+        two.close()
