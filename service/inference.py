@@ -75,6 +75,25 @@ class _Buffers:
             buf[:, w] = 1.0
             self.acts.append(buf)
         self.gains, self.mean, self.tmp = e(b, 2), e(b, widths[-1]), e(b, widths[-1])
+        self._views: dict[int, tuple] = {}
+
+    def views(self, b: int) -> tuple:
+        """The first ``b`` rows of every buffer (cached: slicing costs ~2 us a view)."""
+        got = self._views.get(b)
+        if got is None:
+            if len(self._views) > 8:  # the full block and a few tails
+                self._views.clear()
+            got = self._views[b] = (
+                [buf[:b] for buf in self.xh],
+                self.rz[:b],
+                self.n[:b],
+                self.nh[:b],
+                [buf[:b] for buf in self.acts],
+                self.gains[:b],
+                self.mean[:b],
+                self.tmp[:b],
+            )
+        return got
 
 
 class FastPolicy:
@@ -195,16 +214,16 @@ class FastPolicy:
 
     def _block(self, bufs: _Buffers, obs, h_all, gamma, out) -> None:
         b, hid = obs.shape[0], self.hidden
+        xhs, rz, cand, nh, acts, gains, mean, tmp = bufs.views(b)
         # features: [log kp, log ki, e, symlog int_e]
-        x = bufs.xh[0][:b]
-        gains = torch.clamp_min(obs[:, :2], GAIN_FLOOR, out=bufs.gains[:b])
+        x = xhs[0]
+        torch.clamp_min(obs[:, :2], GAIN_FLOOR, out=gains)
         torch.log(gains, out=x[:, :2])  # from a contiguous input: one vectorised call
         torch.clamp(obs[:, 2], -10.0, 10.0, out=x[:, 2])
         ie = obs[:, 3]
         torch.mul(torch.sign(ie), torch.log1p(ie.abs()), out=x[:, 3])
-        rz, cand, nh = bufs.rz[:b], bufs.n[:b], bufs.nh[:b]
         for layer, (k, w_rz, w_in, w_hn) in enumerate(self._gru):
-            xh = bufs.xh[layer][:b]  # [x, 1, h, 1]
+            xh = xhs[layer]  # [x, 1, h, 1]
             h_prev = h_all[:, layer]  # view into the caller's state (strided rows)
             h = xh[:, k + 1 : k + 1 + hid]
             torch.mul(h_prev, gamma, out=h)
@@ -214,14 +233,12 @@ class FastPolicy:
             rz.sigmoid_()
             cand.addcmul_(rz[:, :hid], nh).tanh_()
             # h' = n + z (h - n), into the next layer's input and the caller's state
-            nxt = bufs.xh[layer + 1][:b] if layer + 1 < self.layers else bufs.acts[0][:b]
+            nxt = xhs[layer + 1] if layer + 1 < self.layers else acts[0]
             h_prev.copy_(torch.lerp(cand, h, rz[:, hid:], out=nxt[:, :hid]))
-        acts = bufs.acts
         for i, w in enumerate(self._head[:-1]):
-            F.leaky_relu_(torch.mm(acts[i][:b], w, out=acts[i + 1][:b, :-1]), LEAKY_SLOPE)
-        mean = torch.mm(acts[-1][:b], self._head[-1], out=bufs.mean[:b])
+            F.leaky_relu_(torch.mm(acts[i], w, out=acts[i + 1][:, :-1]), LEAKY_SLOPE)
+        torch.mm(acts[-1], self._head[-1], out=mean)
         # relative change -> additive delta: max(k, floor) * expm1(clip(mean))
-        tmp = bufs.tmp[:b]
         torch.clamp(mean, -MAX_LOG_STEP, MAX_LOG_STEP, out=tmp).expm1_()
         torch.mul(gains, tmp, out=out)
 
