@@ -31,6 +31,7 @@ FLAGS = {
     "snapshot_interval_s": ("--snapshot-interval", {"type": float, "metavar": "SECONDS"}),
     "max_sample_rate_hz": ("--max-sample-rate", {"type": float, "metavar": "HZ"}),
     "inference_threads": ("--inference-threads", {"type": int, "metavar": "N"}),
+    "inference_workers": ("--inference-workers", {"type": int, "metavar": "N"}),
     "log_level": ("--log-level", {"choices": ["debug", "info", "warning", "error"]}),
 }
 HELP = {

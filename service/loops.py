@@ -123,10 +123,14 @@ class Configs:
 class LoopTable:
     """Runtime state of all registered loops; one batched agent per table."""
 
-    def __init__(self, agent: Agent, *, max_rate_hz: float, capacity: int = 64) -> None:
+    def __init__(
+        self, agent: Agent, *, max_rate_hz: float, capacity: int = 64, inference_workers: int = 1
+    ) -> None:
         self.agent = agent
         # the allocation-free equivalent of agent.act (any other object: its own act)
-        self._policy = FastPolicy(agent) if isinstance(agent, Agent) else None
+        self._policy = (
+            FastPolicy(agent, workers=inference_workers) if isinstance(agent, Agent) else None
+        )
         self.lock = threading.RLock()
         self.rate = float(max_rate_hz)
         self.burst = max(self.rate, 1.0)

@@ -73,6 +73,11 @@ class Settings(BaseSettings):
         description="torch CPU threads. Batches are small and latency-bound; one thread "
         "avoids contention with the Zenoh runtime and the HTTP server.",
     )
+    inference_workers: Annotated[int, Field(ge=1, le=64)] = Field(
+        1,
+        description="Threads stepping one large batch (>= 2,048 due loops) in halves; "
+        "2 on a 2-core box tuning a large site.",
+    )
     log_level: Literal["debug", "info", "warning", "error"] = "info"
 
     @field_validator("key_prefix")

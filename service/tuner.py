@@ -186,7 +186,11 @@ class Tuner:
         self.keys = settings.keys
         self.metrics = Metrics()
         self.agent = agent if agent is not None else load_configured_agent(settings)
-        self.table = LoopTable(self.agent, max_rate_hz=settings.max_sample_rate_hz)
+        self.table = LoopTable(
+            self.agent,
+            max_rate_hz=settings.max_sample_rate_hz,
+            inference_workers=settings.inference_workers,
+        )
         self.inbox: queue.Queue[Item] = queue.Queue(settings.queue_size)
         self.store: Store | None = None
         self.bus: Bus | None = None
