@@ -78,6 +78,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
       help="range of plant time constants, seconds (RL period = 5.5 tau)")  # fmt: skip
     a("--agent-weights", default=None, help="weights file for the daemon (default: shipped)")
     a("--inference-threads", type=int, default=1, help="torch threads of the daemon")
+    a("--inference-workers", type=int, default=1, help="threads stepping one large batch")
     a("--snapshot-interval", type=float, default=30.0, help="daemon snapshot period, s")
     a("--memory-probe", type=int, default=1000,
       help="register this many loops first to measure RSS per loop (0: skip)")  # fmt: skip
@@ -136,6 +137,7 @@ def start_daemon(args: argparse.Namespace, workdir: Path) -> Daemon:
         "--instance-id", "bench", "--log-level", "warning",
         "--snapshot-interval", str(args.snapshot_interval),
         "--inference-threads", str(args.inference_threads),
+        "--inference-workers", str(args.inference_workers),
     ]  # fmt: skip
     if args.agent_weights:
         cmd += ["--agent-weights", args.agent_weights]
@@ -364,8 +366,8 @@ def inference_bench(args: argparse.Namespace, n: int) -> dict:
         )
         state = rng.normal(0, 0.3, (n, agent.cfg.layers, agent.cfg.hidden)).astype(np.float32)
         gamma = np.full(n, 0.99)
-        fast = FastPolicy(agent)
-        out = {"loops": n, "torch_threads": 1}
+        fast = FastPolicy(agent, workers=args.inference_workers)
+        out = {"loops": n, "torch_threads": 1, "workers": args.inference_workers}
         for name, fn in (
             ("agent_act", lambda: agent.act(obs, state, gamma)),
             ("fast_policy", lambda: fast.step_inplace(obs, state.copy(), gamma)),
