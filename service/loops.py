@@ -45,6 +45,10 @@ from service.store import AuditRow, audit_row
 
 MAX_AGENT_ERROR = 100.0
 """An error beyond this many agent units (training sees about 2) is an absurd sample."""
+CLOCK_RESET_SAMPLES = 10
+"""Consecutive, mutually increasing samples older than the loop's last one that are
+taken as a new plant clock (a restarted gateway, or a last sample from the far future)
+rather than rejected forever as out of order."""
 GAIN_RTOL = 1e-9
 """Relative tolerance when comparing reported gains with the tuner's."""
 
@@ -63,6 +67,8 @@ _F64 = (
     "last_t", "last_e", "int_e", "next_due", "last_wall",
     # safety guard and flood limiter
     "kp_min", "kp_max", "ki_min", "ki_max", "max_rel", "tokens", "token_wall",
+    # run of out-of-order samples that may be a new clock: length and last t
+    "back_n", "back_t",
 )  # fmt: skip
 _I64 = ["mode", "seq", "n_samples", "n_rejected", "n_steps", "n_updates"]
 _BOOL = ["pending", "manual", "saturated"]
@@ -221,6 +227,7 @@ class LoopTable:
         self.hidden[s] = 0.0
         self.int_e[s] = self.last_e[s] = 0.0
         self.last_t[s] = self.next_due[s] = math.nan
+        self.back_n[s] = 0.0
         self.last_wall[s] = -math.inf
         self.pending[s] = self.manual[s] = self.saturated[s] = False
 
@@ -283,10 +290,13 @@ class LoopTable:
         if t <= last_t:  # False while last_t is NaN (no sample yet)
             if t == last_t:
                 raise Rejected(RejectReason.duplicate, f"t={t} again")
-            raise Rejected(RejectReason.out_of_order, f"t={t} < last t={last_t}")
+            if not self._new_clock(s, t):
+                raise Rejected(RejectReason.out_of_order, f"t={t} < last t={last_t}")
+            last_t = math.nan  # re-anchored: a fresh decimation window
         e = sample.error
         if abs(e) * self.e_scale[s] > MAX_AGENT_ERROR:
             raise Rejected(RejectReason.out_of_range, f"|e|={abs(e):g} is absurd for this loop")
+        self.back_n[s] = 0.0
         if sample.kp is not None or sample.ki is not None:
             self._adopt(s, sample, wall)
 
@@ -305,6 +315,13 @@ class LoopTable:
         period = self.period[s]
         self.next_due[s] += period * (math.floor((t - self.next_due[s]) / period) + 1.0)
         return self.mode[s] != FROZEN and sample.auto and not sample.saturated
+
+    def _new_clock(self, s: int, t: float) -> bool:
+        """Count a run of consistent out-of-order samples; True when it is a new clock."""
+        run = self.back_n[s] + 1.0 if self.back_n[s] and t > self.back_t[s] else 1.0
+        self.back_t[s] = t
+        self.back_n[s] = 0.0 if run >= CLOCK_RESET_SAMPLES else run
+        return run >= CLOCK_RESET_SAMPLES
 
     def ingest_many(
         self, slots: np.ndarray, cols: dict[str, np.ndarray], wall: float
@@ -326,6 +343,10 @@ class LoopTable:
         last_t = self.last_t[slots]
         dup = ~flood & (t == last_t)
         late = ~flood & (t < last_t)
+        for i in np.flatnonzero(late).tolist():  # rare: a new plant clock, or rejected
+            if self._new_clock(int(slots[i]), float(t[i])):
+                late[i] = False
+                last_t[i] = math.nan
         absurd = ~(flood | dup | late) & (np.abs(e) * self.e_scale[slots] > MAX_AGENT_ERROR)
         ok = ~(flood | dup | late | absurd)
         rejections: list[tuple[int, RejectReason, str]] = []
@@ -345,6 +366,7 @@ class LoopTable:
                     rejections.append((i, RejectReason.out_of_range, detail))
             slots, last_t, t, e = slots[ok], last_t[ok], t[ok], e[ok]
             cols = {k: v[ok] for k, v in cols.items()}
+        self.back_n[slots] = 0.0
         self._adopt_many(slots, cols, wall)
 
         self.n_samples[slots] += 1

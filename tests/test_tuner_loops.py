@@ -230,3 +230,40 @@ def test_reset_and_snapshot_restore():
     assert np.all(t.hidden[s] == 0) and t.int_e[s] == 0 and math.isnan(t.last_t[s])
     assert result.t[0] == 165.0 and t.status(s, WALL) is LoopStatus.waiting
     assert not t.ingest(s, sample(3.0), WALL)  # the time reference starts over
+
+
+@pytest.mark.parametrize("batched", [False, True])
+def test_a_far_future_sample_cannot_lock_the_loop_out(batched):
+    """A poisoned timestamp (or a gateway restarted on a new clock) is re-anchored after
+    CLOCK_RESET_SAMPLES consistent samples instead of rejecting the loop's data forever."""
+    from service.loops import CLOCK_RESET_SAMPLES
+
+    t, s = table()
+    assert feed(t, s, [0.0, 165.0]) == [165.0]
+    t.ingest(s, sample(1e9), WALL)  # accepted: nothing tells it from a long outage
+    rejected = []
+    for k in range(CLOCK_RESET_SAMPLES):
+        ti = 330.0 + 165.0 * k
+        try:
+            if batched:
+                cols = {
+                    "t": np.array([ti]), "e": np.array([1.0]), "kp": np.array([np.nan]),
+                    "ki": np.array([np.nan]), "auto": np.array([True]),
+                    "saturated": np.array([False]),
+                }  # fmt: skip
+                _, rej = t.ingest_many(np.array([s]), cols, WALL)
+                if rej:
+                    rejected.append(rej[0][1])
+            else:
+                t.ingest(s, sample(ti), WALL)
+        except Rejected as exc:
+            rejected.append(exc.reason)
+    assert rejected == [RejectReason.out_of_order] * (CLOCK_RESET_SAMPLES - 1)
+    last = 330.0 + 165.0 * (CLOCK_RESET_SAMPLES - 1)
+    assert t.last_t[s] == last  # re-anchored on the new clock, a fresh decimation window
+    assert feed(t, s, [last + 165.0]) == [last + 165.0]
+    # an isolated late sample is still rejected and does not start a run of its own
+    with pytest.raises(Rejected):
+        t.ingest(s, sample(10.0), WALL)
+    assert t.back_n[s] == 1
+    assert feed(t, s, [last + 330.0]) == [last + 330.0] and t.back_n[s] == 0
