@@ -102,22 +102,15 @@ def step_test(
 
 
 def step_test_mse(
-    K: ArrayLike,
-    tau: ArrayLike,
-    theta: ArrayLike,
-    kp: ArrayLike,
-    ki: ArrayLike,
-    *,
-    dt: float = 0.01,
-    horizon: float = STEP_TEST_HORIZON,
-    tau_cl: ArrayLike | None = None,
+    K: ArrayLike, tau: ArrayLike, theta: ArrayLike, kp: ArrayLike, ki: ArrayLike, **options
 ) -> np.ndarray:
     """Mean squared deviation of the output from the target over the step test (paper 5.1).
 
+    Arguments and ``options`` (dt, horizon, tau_cl) as for :func:`step_test`.
     Vectorised: all arguments broadcast to N loops; returns shape (N,). Unstable loops
     give large (possibly ``inf``) values, never NaN.
     """
-    trace = step_test(K, tau, theta, kp, ki, dt=dt, horizon=horizon, tau_cl=tau_cl)
+    trace = step_test(K, tau, theta, kp, ki, **options)
     with np.errstate(over="ignore", invalid="ignore"):
         mse = np.mean((trace.y - trace.target) ** 2, axis=1)
     return np.where(np.isfinite(mse), mse, np.inf)

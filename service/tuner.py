@@ -45,7 +45,7 @@ from service.protocol import (
 )
 from service.schemas import HistoryPage, LoopConfig, LoopPatch, LoopView
 from service.settings import Settings
-from service.store import Store, audit_row
+from service.store import AuditRow, Store, audit_row
 
 log = logging.getLogger("pitune.tuner")
 _STOP = (None, "", None)
@@ -545,13 +545,7 @@ class Tuner:
         with self.table.lock:
             if config.id in self.table.slot_of:
                 raise Conflict(f"loop {config.id!r} already registered")
-            self.store.insert_loop(
-                config,
-                audit_row(
-                    config.id, wall, None, 0, config.mode.value, "registered",
-                    None, (config.kp, config.ki), config.model_dump_json(),
-                ),
-            )  # fmt: skip
+            self.store.insert_loop(config, _registered(config, wall))
             self.table.add(config, wall=wall)
             self.metrics.set_loop_counts(self.table.mode_counts())
             return self.table.view(config.id, wall)
@@ -566,16 +560,7 @@ class Tuner:
             taken = [i for i in ids if i in self.table.slot_of]
             if taken:
                 raise Conflict(f"loops already registered: {taken[:5]!r}")
-            self.store.insert_loops(
-                configs,
-                [
-                    audit_row(
-                        c.id, wall, None, 0, c.mode.value, "registered",
-                        None, (c.kp, c.ki), c.model_dump_json(),
-                    )
-                    for c in configs
-                ],
-            )  # fmt: skip
+            self.store.insert_loops(configs, [_registered(c, wall) for c in configs])
             for config in configs:
                 self.table.add(config, wall=wall)
             self.metrics.set_loop_counts(self.table.mode_counts())
@@ -635,3 +620,11 @@ class Tuner:
         if not total and loop_id not in self.table.slot_of:
             raise UnknownLoop(loop_id)
         return HistoryPage(items=items, total=total, offset=offset, limit=limit)
+
+
+def _registered(config: LoopConfig, wall: float) -> AuditRow:
+    """The audit entry of a registration: no old gains, the registered ones as new."""
+    return audit_row(
+        config.id, wall, None, 0, config.mode.value, "registered",
+        None, (config.kp, config.ki), config.model_dump_json(),
+    )  # fmt: skip
