@@ -61,6 +61,7 @@ class TrainConfig:
     bc_minibatch: int = 100
     bc_explore: float = 0.1
     bc_lr: float = 1e-3
+    bc_label_gain: float = 1.0
     # PPO (paper: 300 episodes an epoch, 40 steps, gamma 0.99, lambda 0.95, ...)
     epochs: int = 200
     episodes: int = 300
@@ -234,6 +235,7 @@ class Trainer:
 
     def rollout(self, n: int, horizon: int, explore: float | None) -> dict:
         """Run ``n`` episodes; ``explore`` None samples the policy, else mean + N(0, explore)."""
+        cfg = self.cfg
         env = TuningEnv(self.env_cfg, self.rng)
         obs = env.reset(*sample_tasks(n, self.rng), horizon=horizon)
         gamma_np = self._episode_forgetting(n)
@@ -255,7 +257,9 @@ class Trainer:
                 else:
                     a = mean + explore * torch.randn_like(mean)
                 target = oracle_gains(self.table, env.K, env.tau, env.theta)
-                label = np.clip(np.log(target / obs[:, :2]), -MAX_LOG_STEP, MAX_LOG_STEP)
+                label = np.clip(
+                    cfg.bc_label_gain * np.log(target / obs[:, :2]), -MAX_LOG_STEP, MAX_LOG_STEP
+                )
                 buf["label"].append(torch.as_tensor(label, dtype=torch.float32, device=dev))
                 buf["obs"].append(o)
                 buf["act"].append(a)
