@@ -101,9 +101,7 @@ class TuningEnv:
         # each episode gets its own period (+-sp_jitter) and phase.
         j = cfg.sp_jitter
         self.sp_every = np.rint(self.sp_steps * rng.uniform(1 - j, 1 + j, n)).astype(np.int64)
-        self.sp_offset = (
-            rng.integers(0, self.sp_every) if j > 0 else np.zeros(n, dtype=np.int64)
-        )
+        self.sp_offset = rng.integers(0, self.sp_every) if j > 0 else np.zeros(n, dtype=np.int64)
         self.k = 0  # controller sample counter
         self.int_e = np.zeros(n)
         self.e = self.sp - self.plant.measure()

@@ -75,5 +75,6 @@ def test_shipped_agent_moves_the_gains_toward_good_values(tmp_path):
     final = mse[-5:].mean()
     print(f"step-test MSE: untuned {mse[0]:.4f}, after {STEPS} steps {final:.4f}")
     print("agent-unit gains every 5 steps:", agent_gains[::5].round(3).tolist())
-    assert final < 0.5 * mse[0]
+    # shipped weights: from 1.8 untuned to about 0.015 (the best fixed PI scores 3e-6)
+    assert final < 0.03 * mse[0]
     assert np.all(np.isfinite(mse[-5:]))
