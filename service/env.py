@@ -68,6 +68,8 @@ class TuningEnv:
         self.rng = rng
         self.inner = int(round(cfg.rl_period / cfg.dt))
         self.sp_steps = int(round(cfg.sp_period / cfg.dt))
+        if self.sp_steps * (1 - cfg.sp_jitter) <= self.inner:
+            raise ValueError("setpoint periods must be longer than one RL step")
 
     # -- episode ----------------------------------------------------------------------
     def reset(
@@ -132,10 +134,14 @@ class TuningEnv:
 
     def set_task(self, K=None, tau=None, theta=None) -> None:
         """Change the plant's dynamics mid-episode; the target follows (tau_cl = 2 tau)."""
-        self.K = self.K if K is None else np.broadcast_to(K, (self.n,)).astype(np.float64)
-        self.tau = self.tau if tau is None else np.broadcast_to(tau, (self.n,)).astype(np.float64)
-        self.theta = (
-            self.theta if theta is None else np.broadcast_to(theta, (self.n,)).astype(np.float64)
+
+        def batch(value, current):
+            return current if value is None else np.broadcast_to(value, (self.n,)).astype(float)
+
+        self.K, self.tau, self.theta = (
+            batch(K, self.K),
+            batch(tau, self.tau),
+            batch(theta, self.theta),
         )
         self.plant.set_params(K=self.K, tau=self.tau, theta=self.theta)
         self.target.set_params(tau=2.0 * self.tau, theta=self.theta)
@@ -157,10 +163,14 @@ class TuningEnv:
         self.pi.set_gains(kp, ki)
         plant, target, pi = self.plant, self.target, self.pi
         sq = np.zeros(self.n)
+        # Periods exceed one RL step, so each episode toggles at most once in this window:
+        # find that sample up front instead of testing every sample (never at k = 0).
+        ahead = -(self.k + self.sp_offset) % self.sp_every
+        flip_at = self.k + np.where((ahead == 0) & (self.k == 0), self.sp_every, ahead)
+        flip_ks = set(flip_at[flip_at < self.k + self.inner].tolist())
         for _ in range(self.inner):
-            if self.k:
-                flip = (self.k + self.sp_offset) % self.sp_every == 0
-                self.sp = np.where(flip, -self.sp, self.sp)
+            if self.k in flip_ks:
+                self.sp = np.where(flip_at == self.k, -self.sp, self.sp)
             err = target.x - plant.x
             sq += np.minimum(err * err, cfg.err_cap)
             e = self.sp - plant.measure()
