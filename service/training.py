@@ -24,6 +24,7 @@ Departures from the paper (Appendix A), recorded in the model card:
 from __future__ import annotations
 
 import argparse
+import copy
 import csv
 import json
 import math
@@ -43,12 +44,14 @@ from service.agent import (
     MAX_LOG_STEP,
     MODELS_DIR,
     Actor,
+    Agent,
     AgentConfig,
     Critic,
     relative_to_delta,
     save_actor,
 )
 from service.env import K_RANGE, RATIO_RANGE, TAU_RANGE, EnvConfig, TuningEnv, sample_tasks
+from service.evaluation import tune
 
 
 @dataclass
@@ -151,19 +154,13 @@ def validation_set(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     )
 
 
-def validate(actor: Actor, env_cfg: EnvConfig, n: int, steps: int = 80) -> dict:
-    """Deterministic closed-loop tuning for ``steps`` RL steps, then the step test."""
+def validate(actor: Actor, n: int, steps: int = 80, sp_jitter: float = 0.0) -> dict:
+    """The evaluation's closed-loop tuning (:func:`service.evaluation.tune`) on the
+    validation set for ``steps`` RL steps, then the step test."""
     K, tau, theta = validation_set(n)
-    env = TuningEnv(env_cfg, np.random.default_rng(0))
-    obs = env.reset(K, tau, theta, horizon=steps, sp0=1.0)
-    dev = next(actor.parameters()).device
-    h = torch.zeros(actor.cfg.layers, K.size, actor.cfg.hidden, device=dev)
-    with torch.no_grad():
-        for _ in range(steps):
-            o = torch.as_tensor(obs, dtype=torch.float32, device=dev)
-            mean, h = actor.step(o, h)
-            obs, _, _ = env.step(relative_to_delta(o[:, :2], mean).double().cpu().numpy())
-    mse = step_test_mse(K, tau, theta, env.pi.kp, env.pi.ki)
+    run = tune(Agent(copy.deepcopy(actor).cpu()), K, tau, theta, steps=steps, sp_jitter=sp_jitter)
+    kp, ki = run["gains"][-1].T
+    mse = step_test_mse(K, tau, theta, kp, ki)
     return {"val_worst": float(mse.max()), "val_median": float(np.median(mse))}
 
 
@@ -381,8 +378,7 @@ class Trainer:
                     row = self.ppo_epoch(self.epoch >= cfg.bc_epochs + cfg.value_warmup)
                 self.epoch += 1
                 if self.epoch % cfg.eval_every == 0 or self.epoch == total:
-                    val_cfg = EnvConfig(init_noise=0.0, sp_jitter=cfg.sp_jitter)
-                    row.update(validate(self.actor, val_cfg, cfg.eval_plants))
+                    row.update(validate(self.actor, cfg.eval_plants, sp_jitter=cfg.sp_jitter))
                     if row["val_worst"] < self.best:
                         self.best = row["val_worst"]
                         save_actor(self.actor, self.out / "best.pt", self.card_meta(row))
