@@ -11,7 +11,8 @@ from plant_sim.foptd import FOPTDBatch
 from plant_sim.tunings import oracle
 from service.agent import DEFAULT_WEIGHTS, load_agent, save_actor, untrained_agent
 from service.env import EnvConfig, TuningEnv
-from service.training import ORACLE_RATIOS, TrainConfig, Trainer, oracle_gains, oracle_table
+from service.oracle import ORACLE_RATIOS, oracle_gains, oracle_table
+from service.training import TrainConfig, Trainer
 
 
 def _obs(n, rng):

@@ -32,6 +32,11 @@ def test_quick_evaluation_writes_the_report(quick_report):
     assert saved["asymptotic"]["grid_size"] == 48
     report = (out / "report.md").read_text()
     assert "| Asymptotic MSE, worst |" in report and "0.03" in report
+    # the quiet-loop experiment starts every plant from the oracle's (good) gains
+    quiet = saved["quiet"]
+    assert quiet["worst_mse_before"] < 0.003
+    assert 0 < quiet["gain_ratio_min"] <= quiet["gain_ratio_max"]
+    assert "quiet loop" in report
 
 
 def test_shipped_agent_tunes_the_grid_and_the_tanks(quick_report):
