@@ -9,6 +9,8 @@ Key expressions, under a configurable prefix (default ``pitune``)::
     {prefix}/loops/{loop_id}/sample   gateway -> tuner   Sample
     {prefix}/samples                  gateway -> tuner   SampleBatch (many loops, one message)
     {prefix}/loops/{loop_id}/gains    tuner -> gateway   GainsMessage, one per RL step
+    {prefix}/gateways/{gateway}/gains tuner -> gateway   GainsBatch (loops registered with
+                                                         that gateway, one per step batch)
     {prefix}/loops/{loop_id}/state    queryable          StateReply (or ErrorReply)
     {prefix}/tuners/{instance_id}     liveliness token while a tuner is up
 
@@ -36,6 +38,8 @@ DEFAULT_PREFIX = "pitune"
 ENCODING = "application/json"
 MAX_MAGNITUDE = 1e12
 """Largest absolute value any number on the wire may have; anything bigger is absurd."""
+MAX_BATCH = 100_000
+"""Most samples in a :class:`SampleBatch`, gains messages in a :class:`GainsBatch`."""
 
 LOOP_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$"
 """Loop and instance ids are single key-expression chunks: no '/', no wildcards."""
@@ -45,6 +49,7 @@ _PREFIX_RE = re.compile(r"^[A-Za-z0-9_.\-]+(/[A-Za-z0-9_.\-]+)*$")
 Number = Annotated[float, Field(ge=-MAX_MAGNITUDE, le=MAX_MAGNITUDE)]
 Gain = Annotated[float, Field(gt=0.0, le=MAX_MAGNITUDE)]
 LoopId = Annotated[str, Field(pattern=LOOP_ID_PATTERN, examples=["LIC-101"])]
+GatewayId = Annotated[str, Field(pattern=LOOP_ID_PATTERN, examples=["gw-north"])]
 Version = Annotated[int, Field(ge=1, le=SCHEMA_VERSION, description="Schema version.")]
 
 
@@ -152,7 +157,7 @@ class SampleBatch(BaseModel):
     model_config = _WIRE
 
     v: Version = SCHEMA_VERSION
-    samples: list[BatchedSample] = Field(max_length=100_000)
+    samples: list[BatchedSample] = Field(max_length=MAX_BATCH)
 
 
 class GainsMessage(BaseModel):
@@ -173,6 +178,19 @@ class GainsMessage(BaseModel):
     )
     reason: UpdateReason = UpdateReason.agent
     instance_id: str = Field(description="The tuner instance that published the update.")
+
+
+class GainsBatch(BaseModel):
+    """Gains messages of many loops in one message (tuner -> a gateway fronting them).
+
+    Loops registered with a ``gateway`` get their gains this way instead of one message
+    each: every batched agent step publishes one message per gateway.
+    """
+
+    model_config = _WIRE
+
+    v: Version = SCHEMA_VERSION
+    gains: list[GainsMessage] = Field(max_length=MAX_BATCH)
 
 
 class StateReply(BaseModel):
@@ -205,6 +223,7 @@ WIRE_MODELS: tuple[type[BaseModel], ...] = (
     Sample,
     SampleBatch,
     GainsMessage,
+    GainsBatch,
     StateReply,
     ErrorReply,
 )
@@ -233,6 +252,9 @@ class Keys:
 
     def state(self, loop_id: str) -> str:
         return f"{self.prefix}/loops/{loop_id}/state"
+
+    def gateway_gains(self, gateway: str) -> str:
+        return f"{self.prefix}/gateways/{gateway}/gains"
 
     def tuner(self, instance_id: str) -> str:
         return f"{self.prefix}/tuners/{instance_id}"

@@ -10,7 +10,7 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from service.protocol import Gain, LoopId, LoopStatus, Mode
+from service.protocol import Gain, GatewayId, LoopId, LoopStatus, Mode
 from service.scaling import Scaling, ScalingSpec
 
 AGENT_GAIN_RANGE = (0.01, 50.0)
@@ -68,6 +68,12 @@ class LoopConfig(BaseModel):
         0.99, description="Forgetting factor of the agent's hidden state (the paper's gamma)."
     )
     guard: Guard = Guard()
+    gateway: GatewayId | None = Field(
+        None,
+        description="Gateway fronting the loop: its gains go out batched with the other "
+        "loops of that gateway on {prefix}/gateways/{gateway}/gains (GainsBatch) instead of "
+        "one message on {prefix}/loops/{id}/gains.",
+    )
 
     @model_validator(mode="after")
     def _resolve_bounds(self) -> LoopConfig:
@@ -123,12 +129,17 @@ class LoopPatch(BaseModel):
     ki_max: Gain | None = None
     max_rel_change: Fraction | None = None
     stale_periods: Annotated[float, Field(ge=1.0, le=1e6)] | None = None
+    gateway: GatewayId | None = Field(
+        None, description="Set a gateway (batched gains), or null: one message per loop again."
+    )
 
     def apply(self, config: LoopConfig) -> LoopConfig:
         """The patched config; raises ValueError if the bounds become inconsistent."""
         top = self.model_dump(include={"mode", "forgetting"}, exclude_none=True)
+        if "gateway" in self.model_fields_set:  # an explicit null is a change here
+            top["gateway"] = self.gateway
         guard = config.guard.model_copy(
-            update=self.model_dump(exclude={"mode", "forgetting"}, exclude_none=True)
+            update=self.model_dump(exclude={"mode", "forgetting", "gateway"}, exclude_none=True)
         )
         check_bounds(guard, config.kp, config.ki)
         return config.model_copy(update={**top, "guard": guard})
