@@ -6,16 +6,29 @@ so a daemon killed at any moment has every published change on disk. WAL journal
 with ``synchronous=NORMAL`` survives a killed process (not a power cut, which would need
 ``FULL``). Hidden states are only snapshotted (periodically and at shutdown): losing a
 few RL steps of memory is harmless, while writing 800 bytes per loop per step is not.
+
+The commit before publishing is one row: :meth:`Store.record_gains` writes a step
+batch's gains and audit rows as one JSON blob to the ``journal`` table (~7 ms for
+10,000 loops, where updating 10,000 loops and inserting 10,000 audit rows takes
+70-140 ms). :meth:`Store.apply_journal` moves the journal into the ``loops`` and
+``audit`` tables later, a chunk per transaction, when the tuner has nothing else to do.
+A crash leaves the rest in the journal, and opening the store applies it before loading
+the loops, so a restart sees every published change. Every other write (registration,
+patch, delete) and every history read applies the whole journal first, so the audit ids
+still follow the order of events.
 """
 
 from __future__ import annotations
 
+import collections
 import sqlite3
 import threading
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+
+import orjson
 
 from service.schemas import AuditEntry, LoopConfig
 
@@ -44,7 +57,13 @@ CREATE TABLE IF NOT EXISTS audit (
     detail TEXT NOT NULL DEFAULT ''
 );
 CREATE INDEX IF NOT EXISTS audit_loop ON audit (loop_id, id);
+CREATE TABLE IF NOT EXISTS journal (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    rows BLOB NOT NULL,  -- JSON {"gains": [[kp, ki, seq, id], ...], "audit": [[...], ...]}
+    done INTEGER NOT NULL DEFAULT 0  -- rows applied so far: the gains first, then the audit
+);
 """
+UPDATE_GAINS = "UPDATE loops SET kp = ?, ki = ?, seq = ? WHERE id = ?"
 
 AUDIT_COLUMNS = "loop_id, wall_time, t, seq, mode, reason, kp_old, ki_old, kp_new, ki_new, detail"
 
@@ -62,6 +81,20 @@ class StoredLoop:
 
 AuditRow = tuple
 """Values in :data:`AUDIT_COLUMNS` order; build with :func:`audit_row`."""
+
+
+@dataclass
+class JournalEntry:
+    """One step batch's changes, committed as one row, not yet applied to the tables."""
+
+    id: int
+    gains: list
+    audit: list
+    done: int = 0
+
+    @property
+    def size(self) -> int:
+        return len(self.gains) + len(self.audit)
 
 
 def audit_row(
@@ -88,13 +121,19 @@ class Store:
         if str(path) != ":memory:":
             self.path.parent.mkdir(parents=True, exist_ok=True)
         self._db = sqlite3.connect(str(path), check_same_thread=False, isolation_level=None)
-        self._lock = threading.Lock()
+        self._lock = threading.RLock()  # re-entered to update the journal after a commit
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.execute("PRAGMA synchronous=NORMAL")
         self._db.execute("PRAGMA foreign_keys=ON")
         self._db.executescript(SCHEMA)
+        self._journal: collections.deque[JournalEntry] = collections.deque()
+        pending = self._db.execute("SELECT id, rows, done FROM journal ORDER BY id")
+        for entry_id, rows, done in pending:
+            changes = orjson.loads(rows)
+            self._journal.append(JournalEntry(entry_id, changes["gains"], changes["audit"], done))
 
     def close(self) -> None:
+        self.apply_journal()
         with self._lock:
             self._db.close()
 
@@ -109,8 +148,60 @@ class Store:
                 raise
             self._db.execute("COMMIT")
 
+    @contextmanager
+    def _ordered(self) -> Iterator[sqlite3.Connection]:
+        """A transaction that applies the whole journal first (audit ids in event order)."""
+        with self._lock:
+            with self.transaction() as db:
+                progress = self._apply(db, None)
+                yield db
+            self._advance(progress)
+
+    # -- journal ----------------------------------------------------------------------
+    def apply_journal(self, max_rows: int | None = None) -> int:
+        """Apply up to ``max_rows`` journal rows (None: all) in one transaction; returns
+        how many are still pending."""
+        with self._lock:
+            if self._journal:
+                with self.transaction() as db:
+                    progress = self._apply(db, max_rows)
+                self._advance(progress)
+            return self.journal_rows
+
+    @property
+    def journal_rows(self) -> int:
+        return sum(e.size - e.done for e in self._journal)
+
+    def _apply(self, db: sqlite3.Connection, budget: int | None) -> list[tuple[JournalEntry, int]]:
+        """Apply journal rows in ``db``'s open transaction; the progress, to be recorded in
+        memory by :meth:`_advance` once the transaction committed."""
+        progress = []
+        for entry in self._journal:
+            if budget is not None and budget <= 0:
+                break
+            start, n_gains = entry.done, len(entry.gains)
+            end = entry.size if budget is None else min(entry.size, start + budget)
+            db.executemany(UPDATE_GAINS, entry.gains[min(start, n_gains) : min(end, n_gains)])
+            self._audit(db, entry.audit[max(start - n_gains, 0) : max(end - n_gains, 0)])
+            if end == entry.size:
+                db.execute("DELETE FROM journal WHERE id = ?", (entry.id,))
+            else:
+                db.execute("UPDATE journal SET done = ? WHERE id = ?", (end, entry.id))
+            progress.append((entry, end))
+            if budget is not None:
+                budget -= end - start
+        return progress
+
+    def _advance(self, progress: list[tuple[JournalEntry, int]]) -> None:
+        for entry, end in progress:
+            entry.done = end
+        while self._journal and self._journal[0].done == self._journal[0].size:
+            self._journal.popleft()
+
     # -- loops ------------------------------------------------------------------------
     def load(self) -> list[StoredLoop]:
+        """Every loop, with the journal applied first (changes published before a crash)."""
+        self.apply_journal()
         with self._lock:
             rows = self._db.execute(
                 "SELECT l.config, l.kp, l.ki, l.seq, s.hidden, s.runtime "
@@ -122,7 +213,7 @@ class Store:
         ]
 
     def insert_loop(self, config: LoopConfig, audit: AuditRow) -> None:
-        with self.transaction() as db:
+        with self._ordered() as db:
             db.execute(
                 "INSERT INTO loops (id, config, kp, ki, seq) VALUES (?, ?, ?, ?, 0)",
                 (config.id, config.model_dump_json(), config.kp, config.ki),
@@ -131,7 +222,7 @@ class Store:
 
     def insert_loops(self, configs: list[LoopConfig], audit: list[AuditRow]) -> None:
         """Register many loops in one transaction (all or none)."""
-        with self.transaction() as db:
+        with self._ordered() as db:
             db.executemany(
                 "INSERT INTO loops (id, config, kp, ki, seq) VALUES (?, ?, ?, ?, 0)",
                 [(c.id, c.model_dump_json(), c.kp, c.ki) for c in configs],
@@ -139,22 +230,25 @@ class Store:
             self._audit(db, audit)
 
     def update_config(self, config: LoopConfig, audit: AuditRow) -> None:
-        with self.transaction() as db:
+        with self._ordered() as db:
             db.execute(
                 "UPDATE loops SET config = ? WHERE id = ?", (config.model_dump_json(), config.id)
             )
             self._audit(db, [audit])
 
     def delete_loop(self, loop_id: str, audit: AuditRow) -> None:
-        with self.transaction() as db:
+        with self._ordered() as db:
             db.execute("DELETE FROM loops WHERE id = ?", (loop_id,))
             self._audit(db, [audit])
 
-    def record_gains(self, gains: Iterable[tuple[float, float, int, str]], audit: list) -> None:
-        """New (kp, ki, seq, id) of loops and their audit rows, in one transaction."""
-        with self.transaction() as db:
-            db.executemany("UPDATE loops SET kp = ?, ki = ?, seq = ? WHERE id = ?", gains)
-            self._audit(db, audit)
+    def record_gains(self, gains: list[tuple[float, float, int, str]], audit: list) -> None:
+        """New (kp, ki, seq, id) of loops and their audit rows: committed as one journal
+        row, applied to the tables by :meth:`apply_journal`."""
+        rows = orjson.dumps({"gains": gains, "audit": audit}, option=orjson.OPT_SERIALIZE_NUMPY)
+        with self._lock:
+            with self.transaction() as db:
+                entry_id = db.execute("INSERT INTO journal (rows) VALUES (?)", (rows,)).lastrowid
+            self._journal.append(JournalEntry(entry_id, gains, audit))
 
     def snapshot(self, rows: Iterable[tuple[str, bytes, str]]) -> None:
         """Replace the runtime snapshots of (id, hidden, runtime JSON)."""
@@ -175,6 +269,7 @@ class Store:
 
     def history(self, loop_id: str, offset: int, limit: int) -> tuple[int, list[AuditEntry]]:
         """(total, entries newest first) of one loop's audit log."""
+        self.apply_journal()
         with self._lock:
             (total,) = self._db.execute(
                 "SELECT COUNT(*) FROM audit WHERE loop_id = ?", (loop_id,)
