@@ -95,6 +95,8 @@ class StepResult:
     """(n, 2) gains the agent proposed."""
     new: np.ndarray
     """(n, 2) gains after the safety guard (published)."""
+    gateways: list[str | None]
+    """The gateway each loop's gains go out batched to (None: one message per loop)."""
 
     def modes(self) -> list[Mode]:
         return [_MODES[c] for c in self.mode]
@@ -143,6 +145,7 @@ class LoopTable:
         self.configs = Configs()
         self.slot_of: dict[str, int] = {}
         self.ids: list[str | None] = []
+        self.gateways: list[str | None] = []
         self._free: list[int] = []
         self._gains_dirty: set[int] = set()
         self._audit: list[AuditRow] = []
@@ -163,6 +166,7 @@ class LoopTable:
             h[:old] = self.hidden
         self.hidden = h
         self.ids.extend([None] * (capacity - old))
+        self.gateways.extend([None] * (capacity - old))
         self._free.extend(range(capacity - 1, old - 1, -1))
 
     def __len__(self) -> int:
@@ -221,6 +225,7 @@ class LoopTable:
         self.ki_min[s], self.ki_max[s] = g.ki_min, g.ki_max
         self.max_rel[s] = g.max_rel_change
         self.mode[s] = _CODE[config.mode]
+        self.gateways[s] = config.gateway
 
     def _restart(self, s: int) -> None:
         """A fresh episode: zero hidden state and integral, no time reference."""
@@ -265,6 +270,7 @@ class LoopTable:
             np.array([old]),
             np.array([new]),
             np.array([new]),
+            [self.gateways[s]],
         )
 
     # -- samples ----------------------------------------------------------------------
@@ -482,20 +488,22 @@ class LoopTable:
         self.n_updates[slots] += 1
         self._gains_dirty.update(slots.tolist())
 
-        ids = self.ids
+        ids, gateways, listed = self.ids, self.gateways, slots.tolist()
         result = StepResult(
-            [ids[s] for s in slots.tolist()],
+            [ids[s] for s in listed],
             self.last_t[slots],
             self.seq[slots],
             self.mode[slots],
             old,
             proposed,
             new,
+            [gateways[s] for s in listed],
         )
-        limited = ~np.isclose(proposed, new, rtol=GAIN_RTOL, atol=0.0).all(axis=1)
+        limited = np.flatnonzero(~np.isclose(proposed, new, rtol=GAIN_RTOL, atol=0.0).all(axis=1))
         details = [""] * len(slots)
-        for i in np.flatnonzero(limited).tolist():
-            details[i] = _guard_detail(proposed[i], new[i])
+        # formatting Python floats, not numpy scalars: a cold loop is limited in most steps
+        for i, (kp, ki) in zip(limited.tolist(), proposed[limited].tolist(), strict=True):
+            details[i] = _guard_detail(kp, ki)
         mode_names = [MODE_VALUES[c] for c in result.mode.tolist()]
         self._audit.extend(
             zip(
@@ -509,10 +517,14 @@ class LoopTable:
     # -- persistence ------------------------------------------------------------------
     def drain_changes(self) -> tuple[list[tuple[float, float, int, str]], list[AuditRow]]:
         """Gains rows (kp, ki, seq, id) and audit rows accumulated since the last call."""
-        gains = [
-            (float(self.kp[s]), float(self.ki[s]), int(self.seq[s]), self.ids[s])
-            for s in sorted(self._gains_dirty)
-        ]
+        dirty = np.array(sorted(self._gains_dirty), np.int64)
+        ids = self.ids
+        gains = list(
+            zip(
+                self.kp[dirty].tolist(), self.ki[dirty].tolist(), self.seq[dirty].tolist(),
+                [ids[s] for s in dirty.tolist()], strict=True,
+            )
+        )  # fmt: skip
         audit, self._audit = self._audit, []
         self._gains_dirty.clear()
         return gains, audit
@@ -606,5 +618,5 @@ def _close_v(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.abs(a - b) <= GAIN_RTOL * np.maximum(np.abs(a), np.abs(b))
 
 
-def _guard_detail(proposed: np.ndarray, new: np.ndarray) -> str:
-    return f"limited by the safety guard (proposed kp={proposed[0]:.6g}, ki={proposed[1]:.6g})"
+def _guard_detail(kp: float, ki: float) -> str:
+    return f"limited by the safety guard (proposed kp={kp:.6g}, ki={ki:.6g})"

@@ -9,7 +9,10 @@ The worker drains the bus queue in batches. Samples are validated and integrated
 by one; loops that fall due are collected and stepped in one batched agent call at the
 end of the batch (earlier if a due loop receives another sample, so each step sees
 exactly the data up to its own due sample). Gains and audit rows are committed to the
-store before the gains messages go out.
+store (as one journal row per step batch, see :mod:`service.store`) before the gains
+messages go out: one message per loop, or one per gateway for loops registered with a
+gateway. The worker applies the journal to the store's tables while it has nothing else
+to do.
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ from service.bus import JSON, Bus, Item, Kind, reply
 from service.loops import FROZEN, MODE_VALUES, LoopTable, Rejected, StepResult
 from service.metrics import Metrics
 from service.protocol import (
+    MAX_BATCH,
     MAX_MAGNITUDE,
     SCHEMA_VERSION,
     BatchedSample,
@@ -53,6 +57,10 @@ SNAPSHOT_CHUNK = 1000
 """Loops snapshotted per worker iteration by the periodic snapshot."""
 FLUSH_AFTER_S = 0.002
 """Longest a due loop waits for more due loops to join its batch while a backlog drains."""
+JOURNAL_CHUNK = 1000
+"""Journal rows applied to the store's tables per idle worker iteration (~5 ms)."""
+JOURNAL_BACKLOG = 100_000
+"""Journal rows pending above which they are applied even while messages wait."""
 _RANGE_ERRORS = {"less_than_equal", "greater_than_equal", "less_than", "greater_than"}
 
 
@@ -292,7 +300,8 @@ class Tuner:
         next_snapshot = time.monotonic() + interval
         while True:
             try:
-                wait = 0.0 if self._snapshot_todo else next_snapshot - time.monotonic()
+                busy = self._snapshot_todo or self.store.journal_rows
+                wait = 0.0 if busy else next_snapshot - time.monotonic()
                 items = [self.inbox.get(timeout=max(0.0, wait))]
             except queue.Empty:
                 items = []
@@ -304,6 +313,7 @@ class Tuner:
             stop = any(item is _STOP for item in items)
             try:
                 self._handle([item for item in items if item is not _STOP])
+                self._apply_journal()
                 if stop:
                     self.snapshot()
                 elif self._snapshot_todo:
@@ -317,6 +327,12 @@ class Tuner:
                 log.exception("worker iteration failed; continuing")
             if stop:
                 return
+
+    def _apply_journal(self) -> None:
+        """A chunk of the journal into the store's tables, when no message waits (or the
+        backlog grew large): off the path from a sample to its gains message."""
+        if self.inbox.empty() or self.store.journal_rows > JOURNAL_BACKLOG:
+            self.store.apply_journal(JOURNAL_CHUNK)
 
     def _handle(self, items: list[Item]) -> None:
         self.metrics.queue_depth.set(self.inbox.qsize())
@@ -468,23 +484,39 @@ class Tuner:
             self.store.record_gains(gains, audit)
         if result is None:
             return
-        # GainsMessage JSON, built directly (validating each model costs more than the rest)
-        new, delta = result.new, result.new - result.old
-        dumps, publish, gains_key = orjson.dumps, self.bus.publish, self.keys.gains
-        instance, why = self.settings.instance_id, reason.value
         modes = [MODE_VALUES[c] for c in result.mode.tolist()]
-        for loop_id, seq, t, dkp, dki, kp, ki, mode in zip(
-            result.loop_ids, result.seq.tolist(), result.t.tolist(), delta[:, 0].tolist(),
-            delta[:, 1].tolist(), new[:, 0].tolist(), new[:, 1].tolist(), modes, strict=True,
-        ):  # fmt: skip
-            message = {
+        messages = self._gains_messages(result, modes, reason)
+        by_gateway: dict[str, list[dict]] = collections.defaultdict(list)
+        for message, gateway in zip(messages, result.gateways, strict=True):
+            if gateway is None:
+                self.bus.publish(self.keys.gains(message["loop_id"]), orjson.dumps(message))
+            else:
+                by_gateway[gateway].append(message)
+        for gateway, batch in by_gateway.items():
+            for i in range(0, len(batch), MAX_BATCH):
+                payload = {"v": SCHEMA_VERSION, "gains": batch[i : i + MAX_BATCH]}
+                self.bus.publish(self.keys.gateway_gains(gateway), orjson.dumps(payload))
+        for mode, count in collections.Counter(modes).items():
+            self.metrics.updates_published.labels(mode).inc(count)
+
+    def _gains_messages(
+        self, result: StepResult, modes: list[str], reason: UpdateReason
+    ) -> list[dict]:
+        """GainsMessage JSON objects, built directly (validating each model would cost more
+        than everything else the step does)."""
+        new, delta = result.new, result.new - result.old
+        instance, why = self.settings.instance_id, reason.value
+        return [
+            {
                 "v": SCHEMA_VERSION, "loop_id": loop_id, "seq": seq, "t": t, "dkp": dkp,
                 "dki": dki, "kp": kp, "ki": ki, "mode": mode, "reason": why,
                 "instance_id": instance,
-            }  # fmt: skip
-            publish(gains_key(loop_id), dumps(message))
-        for mode, count in collections.Counter(modes).items():
-            self.metrics.updates_published.labels(mode).inc(count)
+            }
+            for loop_id, seq, t, dkp, dki, kp, ki, mode in zip(
+                result.loop_ids, result.seq.tolist(), result.t.tolist(), delta[:, 0].tolist(),
+                delta[:, 1].tolist(), new[:, 0].tolist(), new[:, 1].tolist(), modes, strict=True,
+            )
+        ]  # fmt: skip
 
     def _answer(self, query: zenoh.Query) -> None:
         key = str(query.key_expr)
@@ -579,7 +611,7 @@ class Tuner:
                 config,
                 audit_row(
                     loop_id, wall, None, int(self.table.seq[s]), config.mode.value, "patched",
-                    gains, gains, patch.model_dump_json(exclude_none=True),
+                    gains, gains, patch.model_dump_json(exclude_unset=True),
                 ),
             )  # fmt: skip
             self.table.reconfigure(config)

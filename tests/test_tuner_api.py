@@ -112,6 +112,7 @@ def test_mutations_without_the_token_are_refused_and_change_nothing(client, head
         (loop_body(scaling={"k_hat": 1.0}), "scaling"),
         (loop_body(guard={"kp_max": 0.1}), "bounds"),  # registered kp above the bound
         (loop_body(forgetting=1.5), "forgetting"),
+        (loop_body(gateway="gw/north"), "gateway"),  # one key-expression chunk
         (loop_body(extra=1), "extra"),
     ],
 )

@@ -9,8 +9,8 @@ import zenoh
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from service.protocol import GainsMessage, Mode, RejectReason, UpdateReason
-from service.schemas import LoopConfig
+from service.protocol import GainsBatch, GainsMessage, Mode, RejectReason, UpdateReason
+from service.schemas import LoopConfig, LoopPatch
 from service.tuner import Tuner
 from tests.tuner_support import connected_gateway, loop_body, tuner_settings, wait_until
 
@@ -235,3 +235,45 @@ def test_random_payloads_never_hurt_the_daemon(bus):
     assert all(math.isfinite(x) for x in (fuzz.kp, fuzz.ki, fuzz.int_e, fuzz.hidden_norm))
     g = fuzz.config.guard
     assert g.kp_min <= fuzz.kp <= g.kp_max and g.ki_min <= fuzz.ki <= g.ki_max
+
+
+def test_loops_of_a_gateway_get_their_gains_in_one_batch(bus):
+    """Loops registered with a gateway: one GainsBatch per step batch on the gateway's key,
+    nothing on their per-loop keys; the other loops keep their own messages."""
+    tuner, gw = bus
+    batches = queue.SimpleQueue()
+    sub = gw.session.declare_subscriber(
+        gw.keys.gateway_gains("gw-1"), lambda s: batches.put(s.payload.to_bytes())
+    )
+    try:
+        fronted = [f"B{i}" for i in range(4)]
+        tuner.register_many(
+            [LoopConfig(**loop_body(i, sample_period_s=165.0, gateway="gw-1")) for i in fronted]
+        )
+        tuner.register(LoopConfig(**loop_body("SOLO", sample_period_s=165.0)))
+        for t in (0.0, 165.0):
+            batch = {"samples": [{"loop_id": i, "t": t, "e": 0.5} for i in [*fronted, "SOLO"]]}
+            gw.session.put(gw.keys.batch, json.dumps(batch).encode())
+        message = GainsBatch.model_validate_json(batches.get(timeout=5))
+        assert sorted(g.loop_id for g in message.gains) == fronted
+        assert {(g.seq, g.t, g.reason, g.instance_id) for g in message.gains} == {
+            (1, 165.0, UpdateReason.agent, "test-tuner")
+        }
+        assert gw.next_gains().loop_id == "SOLO"
+        with pytest.raises(queue.Empty):
+            gw.next_gains(timeout=0.2)
+        assert tuner.metrics.value("pitune_inference_batch_loops_sum") == 5  # one agent call
+
+        # a patch to null sends the loop's gains one by one again, and is audited
+        tuner.patch("B0", LoopPatch.model_validate({"gateway": None}))
+        tuner.reset("B0")
+        tuner.reset("B1")
+        assert gw.next_gains().loop_id == "B0"
+        with pytest.raises(queue.Empty):
+            gw.next_gains(timeout=0.2)
+        reset = GainsBatch.model_validate_json(batches.get(timeout=5))
+        assert [(g.loop_id, g.reason) for g in reset.gains] == [("B1", UpdateReason.reset)]
+        patched = tuner.history("B0", 0, 10).items[1]
+        assert (patched.reason, patched.detail) == ("patched", '{"gateway":null}')
+    finally:
+        sub.undeclare()
