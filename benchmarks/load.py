@@ -6,7 +6,10 @@ load generator: N FOPTD plants under PI control (:class:`plant_sim.FOPTDBatch` a
 :class:`plant_sim.PIBatch`, vectorised), sampled in real time at ``--rate`` per loop,
 publishing their samples over Zenoh (batched ``{prefix}/samples`` messages, as a
 gateway fronting many loops would, or one message per sample with ``--per-loop``) and
-applying the gains the tuner sends back (bumplessly, between samples).
+applying the gains the tuner sends back (bumplessly, between samples). The loops are
+registered with ``gateway: "bench"``, so their gains come batched on
+``{prefix}/gateways/bench/gains``; with ``--per-loop`` or ``--per-loop-gains`` they are
+registered without one and get a message each on ``{prefix}/loops/{id}/gains``.
 
 Sample clocks are spread: the loops are split into phase groups ``--tick`` apart, so
 at 1 Hz and 10 ms ticks every 10 ms one hundredth of the loops is sampled, and their
@@ -52,6 +55,8 @@ import orjson
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = Path(__file__).resolve().parent / "results"
+GATEWAY = "bench"
+"""The gateway the loops are registered with (batched gains), unless per-loop gains."""
 RING = 16
 """Sent-time stamps kept per loop (samples back in time a gains message may refer to)."""
 BAR = {
@@ -71,7 +76,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--duration", type=float, default=60.0, help="measured window, seconds (default 60)")
     a("--warmup", type=float, default=10.0, help="seconds before the window (default 10)")
     a("--aligned", action="store_true", help="worst case: all loops sampled and due together")
-    a("--per-loop", action="store_true", help="one message per sample instead of batches")
+    a("--per-loop", action="store_true",
+      help="one message per sample and per gains update instead of batches")  # fmt: skip
+    a("--per-loop-gains", action="store_true",
+      help="batched samples, but one gains message per loop and update")  # fmt: skip
     a("--batch-size", type=int, default=2000, help="most samples per batch message")
     a("--tick", type=float, default=0.01, help="spacing of the phase groups, seconds")
     a("--tau", type=float, nargs=2, default=(5.0, 30.0), metavar=("MIN", "MAX"),
@@ -229,6 +237,7 @@ class Fleet:
         n, rng = args.loops, np.random.default_rng(args.seed)
         self.n, self.period = n, 1.0 / args.rate
         self.ids = [f"L{i:05d}" for i in range(n)]
+        gateway = {} if args.per_loop or args.per_loop_gains else {"gateway": GATEWAY}
         self.where = {}
         lo, hi = args.tau
         if args.aligned:
@@ -251,6 +260,7 @@ class Fleet:
                     "tau_hat": float(tau[i]),
                     "pv_scale": 1.0,
                 },
+                **gateway,
             }
             for i in range(n)
         ]
@@ -438,8 +448,10 @@ def drive(args: argparse.Namespace, fleet: Fleet, daemon: Daemon, client) -> dic
     session = zenoh.open(config)
     inbox: collections.deque = collections.deque()
     try:
+        per_loop_gains = args.per_loop or args.per_loop_gains
         sub = session.declare_subscriber(
-            keys.all_gains, lambda s: inbox.append((time.monotonic(), s.payload.to_bytes()))
+            keys.all_gains if per_loop_gains else keys.gateway_gains(GATEWAY),
+            lambda s: inbox.append((time.monotonic(), s.payload.to_bytes())),
         )
         _wait_for_tuner(session, keys)
         gc.freeze()  # no full collections of the imported modules while timing
@@ -603,9 +615,13 @@ def _drain(inbox, fleet: Fleet, t0: float, window: Window, latencies: list, stat
     while inbox:
         received, payload = inbox.popleft()
         msg = orjson.loads(payload)
-        stats["gains"] += 1
-        if msg.get("reason", "agent") != "agent":
-            continue
+        for gains in msg.get("gains", [msg]):  # a GainsBatch, or one GainsMessage
+            _take(gains, received, fleet, t0, window, latencies, stats)
+
+
+def _take(msg: dict, received: float, fleet: Fleet, t0: float, window: Window, latencies, stats):
+    stats["gains"] += 1
+    if msg.get("reason", "agent") == "agent":
         sent = fleet.sent_time(msg["loop_id"], msg["t"], t0)
         if math.isnan(sent):
             stats["unmatched"] += 1
@@ -677,7 +693,7 @@ def judge(args: argparse.Namespace, r: dict) -> dict:
 def write(args: argparse.Namespace, result: dict) -> Path:
     args.out.mkdir(parents=True, exist_ok=True)
     tag = f"{args.loops}x{args.rate:g}hz{'-aligned' if args.aligned else ''}"
-    tag += "-perloop" if args.per_loop else ""
+    tag += "-perloop" if args.per_loop else "-perloopgains" if args.per_loop_gains else ""
     path = args.out / f"{time.strftime('%Y%m%d-%H%M%S')}-{tag}.json"
     path.write_text(json.dumps(result, indent=2, default=float) + "\n")
     return path
@@ -691,7 +707,11 @@ def table(r: dict) -> str:
     c, s, u, d, g = r["config"], r["samples"], r["updates"], r["daemon"], r["generator"]
     lat, mach, inf = u["latency_ms"], r["machine"], r.get("inference") or {}
     mode = "aligned (worst case)" if c["aligned"] else "spread"
-    msg = "per-loop messages" if c["per_loop"] else f"batches of <= {c['batch_size']}"
+    if c["per_loop"]:
+        msg = "per-loop messages"
+    else:
+        gains = "per-loop gains" if c.get("per_loop_gains") else "batched gains"
+        msg = f"batches of <= {c['batch_size']}, {gains}"
     rows = [
         ("loops x rate", f"{c['loops']} x {c['rate']:g}/s, {mode}, {msg}"),
         ("window", f"{c['duration']:g} s after {c['warmup']:g} s warm-up"),

@@ -35,8 +35,10 @@ def test_tiny_benchmark_run_measures_everything(tmp_path, capsys):
     assert result["bar"]["samples_lost"]["met"] is True
     assert result["daemon_exit"] is not None
     assert result["machine_cpu"]["busy_percent"] > 0 and result["machine"]["cpus"] >= 1
+    assert updates["gains_received"] >= updates["gains_in_window"]  # from GainsBatch messages
     out = capsys.readouterr().out
     assert "update latency p50 / p99 / max" in out and "bar:" in out
+    assert "batched gains" in out
 
 
 def test_aligned_per_loop_variant(tmp_path):
