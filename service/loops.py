@@ -15,7 +15,14 @@ Safety guard, per loop:
   across a gap of more than ``stale_periods`` sample periods (the decimation window
   restarts at the first sample after the gap, and the integral does not bridge it);
 * ``frozen`` loops are never stepped; ``advisory`` loops are stepped and their
-  proposals published, but their gains change only when the gateway reports them.
+  proposals published, but their gains change only when the gateway reports them;
+* excitation gate: the agent learns from setpoint responses, and stepped on a loop
+  whose setpoint stands still it walks the gains far from where they were (see the
+  evaluation's quiet-loop line). A loop is stepped only in RL periods that end within
+  ``excitation_periods`` RL periods of a setpoint change of at least
+  ``excitation_min_step`` (agent units; for gateways that send only the error, a jump
+  of the error between two samples). Other periods leave the gains and the hidden
+  state untouched and count as ``quiet``.
 
 Gains the gateway reports in a sample are adopted when they differ from the tuner's
 (an operator changed them), except when they are exactly the gains an auto update just
@@ -67,10 +74,13 @@ _F64 = (
     "last_t", "last_e", "int_e", "next_due", "last_wall",
     # safety guard and flood limiter
     "kp_min", "kp_max", "ki_min", "ki_max", "max_rel", "tokens", "token_wall",
+    # excitation gate: smallest setpoint step (engineering units), window after one (s;
+    # inf: gate off), setpoint at the last step, end of the current window
+    "exc_step", "exc_window", "sp_ref", "excited_until",
     # run of out-of-order samples that may be a new clock: length and last t
     "back_n", "back_t",
 )  # fmt: skip
-_I64 = ["mode", "seq", "n_samples", "n_rejected", "n_steps", "n_updates"]
+_I64 = ["mode", "seq", "n_samples", "n_rejected", "n_steps", "n_updates", "n_quiet"]
 _BOOL = ["pending", "manual", "saturated"]
 
 
@@ -203,7 +213,8 @@ class LoopTable:
         self.kp[s] = config.kp if kp is None else kp
         self.ki[s] = config.ki if ki is None else ki
         self.seq[s] = seq
-        self.n_samples[s] = self.n_rejected[s] = self.n_steps[s] = self.n_updates[s] = 0
+        for name in _I64[2:]:
+            getattr(self, name)[s] = 0
         self.tokens[s], self.token_wall[s] = self.burst, wall
         self._configure(s, config)
         self._restart(s)
@@ -224,6 +235,8 @@ class LoopTable:
         self.kp_min[s], self.kp_max[s] = g.kp_min, g.kp_max
         self.ki_min[s], self.ki_max[s] = g.ki_min, g.ki_max
         self.max_rel[s] = g.max_rel_change
+        self.exc_step[s] = g.excitation_min_step / sc.e_scale
+        self.exc_window[s] = g.excitation_periods * sc.rl_period_s or math.inf
         self.mode[s] = _CODE[config.mode]
         self.gateways[s] = config.gateway
 
@@ -231,7 +244,8 @@ class LoopTable:
         """A fresh episode: zero hidden state and integral, no time reference."""
         self.hidden[s] = 0.0
         self.int_e[s] = self.last_e[s] = 0.0
-        self.last_t[s] = self.next_due[s] = math.nan
+        self.last_t[s] = self.next_due[s] = self.sp_ref[s] = math.nan
+        self.excited_until[s] = -math.inf
         self.back_n[s] = 0.0
         self.last_wall[s] = -math.inf
         self.pending[s] = self.manual[s] = self.saturated[s] = False
@@ -305,6 +319,14 @@ class LoopTable:
         self.back_n[s] = 0.0
         if sample.kp is not None or sample.ki is not None:
             self._adopt(s, sample, wall)
+        if sample.sp is None:  # only the error: a setpoint change shows as a jump of it
+            moved = not math.isnan(last_t) and abs(e - self.last_e[s]) >= self.exc_step[s]
+        else:
+            moved = abs(sample.sp - self.sp_ref[s]) >= self.exc_step[s]  # False for NaN
+            if moved or math.isnan(self.sp_ref[s]):
+                self.sp_ref[s] = sample.sp
+        if moved:
+            self.excited_until[s] = t + self.exc_window[s]
 
         self.n_samples[s] += 1
         self.last_wall[s] = wall
@@ -320,7 +342,12 @@ class LoopTable:
             return False
         period = self.period[s]
         self.next_due[s] += period * (math.floor((t - self.next_due[s]) / period) + 1.0)
-        return self.mode[s] != FROZEN and sample.auto and not sample.saturated
+        if self.mode[s] == FROZEN or not sample.auto or sample.saturated:
+            return False
+        if self.exc_window[s] < math.inf and t > self.excited_until[s]:
+            self.n_quiet[s] += 1
+            return False
+        return True
 
     def _new_clock(self, s: int, t: float) -> bool:
         """Count a run of consistent out-of-order samples; True when it is a new clock."""
@@ -334,7 +361,7 @@ class LoopTable:
     ) -> tuple[np.ndarray, list[tuple[int, RejectReason, str]]]:
         """:meth:`ingest` of many samples at once, vectorised, for *distinct* slots.
 
-        ``cols``: float arrays ``t``, ``e`` (the error), ``kp``, ``ki`` (NaN: not
+        ``cols``: float arrays ``t``, ``e`` (the error), ``sp``, ``kp``, ``ki`` (NaN: not
         reported) and bool arrays ``auto``, ``saturated``, aligned with ``slots``.
         Returns (due mask, rejections as (index, reason, detail)); the state ends exactly
         as after ingesting the samples one by one.
@@ -374,6 +401,7 @@ class LoopTable:
             cols = {k: v[ok] for k, v in cols.items()}
         self.back_n[slots] = 0.0
         self._adopt_many(slots, cols, wall)
+        self._excite_many(slots, cols, last_t)
 
         self.n_samples[slots] += 1
         self.last_wall[slots] = wall
@@ -393,9 +421,26 @@ class LoopTable:
         )
         self.next_due[slots] = next_due
         due_ok = reached & (self.mode[slots] != FROZEN) & auto & ~saturated
+        quiet = due_ok & (self.exc_window[slots] < math.inf) & (t > self.excited_until[slots])
+        self.n_quiet[slots[quiet]] += 1
+        due_ok &= ~quiet
         due = np.zeros(ok.size, bool)
         due[np.flatnonzero(ok)[due_ok]] = True
         return due, rejections
+
+    def _excite_many(self, slots: np.ndarray, cols: dict[str, np.ndarray], last_t) -> None:
+        """The excitation gate's part of :meth:`ingest_many` (before ``last_e`` moves on)."""
+        sp, e, step = cols["sp"], cols["e"], self.exc_step[slots]
+        ref = self.sp_ref[slots]
+        has_sp = ~np.isnan(sp)
+        with np.errstate(invalid="ignore"):  # NaN references compare False
+            moved = np.where(
+                has_sp,
+                np.abs(sp - ref) >= step,
+                ~np.isnan(last_t) & (np.abs(e - self.last_e[slots]) >= step),
+            )
+        self.sp_ref[slots] = np.where(has_sp & (moved | np.isnan(ref)), sp, ref)
+        self.excited_until[slots[moved]] = cols["t"][moved] + self.exc_window[slots[moved]]
 
     def _adopt_many(self, slots: np.ndarray, cols: dict[str, np.ndarray], wall: float) -> None:
         has_kp, has_ki = ~np.isnan(cols["kp"]), ~np.isnan(cols["ki"])
@@ -539,8 +584,8 @@ class LoopTable:
         return [(loop_id, self.hidden[s].tobytes(), self._runtime(s)) for loop_id, s in items]
 
     def _runtime(self, s: int) -> str:
-        def num(x: float) -> float | None:
-            return None if math.isnan(x) else float(x)
+        def num(x: float) -> float | None:  # JSON has no NaN or inf
+            return float(x) if math.isfinite(x) else None
 
         return orjson.dumps(
             {
@@ -548,6 +593,8 @@ class LoopTable:
                 "last_e": float(self.last_e[s]),
                 "int_e": float(self.int_e[s]),
                 "next_due": num(self.next_due[s]),
+                "sp_ref": num(self.sp_ref[s]),
+                "excited_until": num(self.excited_until[s]),
                 "manual": bool(self.manual[s]),
                 "saturated": bool(self.saturated[s]),
                 "counters": [int(getattr(self, n)[s]) for n in _I64[2:]],
@@ -563,7 +610,12 @@ class LoopTable:
         self.next_due[s] = math.nan if rt["next_due"] is None else rt["next_due"]
         self.last_e[s], self.int_e[s] = rt["last_e"], rt["int_e"]
         self.manual[s], self.saturated[s] = rt["manual"], rt["saturated"]
-        for name, value in zip(_I64[2:], rt["counters"], strict=True):
+        sp_ref = rt.get("sp_ref")  # absent in snapshots from before the excitation gate
+        self.sp_ref[s] = math.nan if sp_ref is None else sp_ref
+        until = rt.get("excited_until")
+        self.excited_until[s] = -math.inf if until is None else until
+        # snapshots from before a counter was added list fewer: those stay 0
+        for name, value in zip(_I64[2:], rt["counters"], strict=False):
             getattr(self, name)[s] = value
 
     # -- views ------------------------------------------------------------------------
@@ -578,6 +630,8 @@ class LoopTable:
             return LoopStatus.manual
         if self.saturated[s]:
             return LoopStatus.saturated
+        if self.exc_window[s] < math.inf and self.last_t[s] > self.excited_until[s]:
+            return LoopStatus.quiet
         return LoopStatus.tuning
 
     def view(self, loop_id: str, wall: float) -> LoopView:
@@ -601,6 +655,7 @@ class LoopTable:
                 rejected=int(self.n_rejected[s]),
                 steps=int(self.n_steps[s]),
                 updates=int(self.n_updates[s]),
+                quiet=int(self.n_quiet[s]),
             ),
         )
 

@@ -76,6 +76,9 @@ class LoopStatus(StrEnum):
     """The gateway reports the controller output saturated: tuning pauses."""
     stale = "stale"
     """No sample for several sample periods: tuning pauses."""
+    quiet = "quiet"
+    """No setpoint change in the last ``excitation_periods`` RL periods: tuning waits
+    for one (the agent learns from setpoint responses)."""
     frozen = "frozen"
 
 

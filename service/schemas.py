@@ -17,6 +17,8 @@ AGENT_GAIN_RANGE = (0.01, 50.0)
 """Default bounds of kp and ki in agent units: the range the agent was trained in."""
 
 Fraction = Annotated[float, Field(gt=0.0, le=10.0, allow_inf_nan=False)]
+ExcitationPeriods = Annotated[float, Field(ge=0.0, le=1e6, allow_inf_nan=False)]
+ExcitationStep = Annotated[float, Field(gt=0.0, le=100.0, allow_inf_nan=False)]
 
 
 class Guard(BaseModel):
@@ -35,6 +37,17 @@ class Guard(BaseModel):
     )
     stale_periods: Annotated[float, Field(ge=1.0, le=1e6)] = Field(
         5.0, description="Tuning pauses after this many sample periods without a sample."
+    )
+    excitation_periods: ExcitationPeriods = Field(
+        5.0,
+        description="Excitation gate: the agent steps only in the RL periods that end "
+        "within this many RL periods of a setpoint change (it learns from setpoint "
+        "responses and detunes a loop that nobody moves); 0 turns the gate off.",
+    )
+    excitation_min_step: ExcitationStep = Field(
+        0.2,
+        description="Smallest setpoint change that counts, in agent units (multiples of "
+        "pv_scale). Gateways sending only e: a jump of e between two samples.",
     )
 
 
@@ -129,6 +142,8 @@ class LoopPatch(BaseModel):
     ki_max: Gain | None = None
     max_rel_change: Fraction | None = None
     stale_periods: Annotated[float, Field(ge=1.0, le=1e6)] | None = None
+    excitation_periods: ExcitationPeriods | None = None
+    excitation_min_step: ExcitationStep | None = None
     gateway: GatewayId | None = Field(
         None, description="Set a gateway (batched gains), or null: one message per loop again."
     )
@@ -150,6 +165,9 @@ class Counters(BaseModel):
     rejected: int = Field(description="Samples rejected (known loop, bad content).")
     steps: int = Field(description="RL steps taken.")
     updates: int = Field(description="Gains messages published.")
+    quiet: int = Field(
+        0, description="RL periods skipped by the excitation gate (no setpoint change)."
+    )
 
 
 class LoopView(BaseModel):

@@ -164,7 +164,7 @@ def _batch_columns(items: list, slot_of: dict[str, int]):
             if ((cols[k] <= 0.0) | (cols[k] > MAX_MAGNITUDE)).any():
                 return None
     e = cols.pop("e")
-    error = np.where(np.isnan(e), cols.pop("sp") - cols.pop("pv"), e)
+    error = np.where(np.isnan(e), cols["sp"] - cols.pop("pv"), e)  # sp: excitation gate
     if np.isnan(error).any():  # neither e nor both sp and pv
         return None
     cols["e"] = error

@@ -24,7 +24,8 @@ def _tables(rate: float) -> tuple[LoopTable, LoopTable]:
         for i in range(N):
             mode = [Mode.auto, Mode.advisory, Mode.frozen][i % 3]
             scaling = {"k_hat": 1.2, "tau_hat": 1.0 + i % 4, "pv_scale": 10.0}  # RL every 5.5..22 s
-            body = loop_body(f"L{i}", sample_period_s=1.0, mode=mode, scaling=scaling)
+            gate = {"excitation_periods": 3.0 * (i % 2)}  # the excitation gate on odd loops
+            body = loop_body(f"L{i}", sample_period_s=1.0, mode=mode, scaling=scaling, guard=gate)
             t.add(LoopConfig(**body), wall=0.0)
         tables.append(t)
     return tables[0], tables[1]
@@ -49,7 +50,9 @@ def _random_batch(rng, table: LoopTable, k: float) -> list[dict]:
             item["e"] = float(rng.choice([rng.normal(0, 2.0), 5000.0]) if rng.random() < 0.05
                               else rng.normal(0, 2.0))  # fmt: skip
         else:
-            item["sp"], item["pv"] = 1.0, float(rng.normal(1.0, 2.0))
+            # setpoint steps above and below the gate's smallest (2.0 here), and none
+            item["sp"] = float(rng.choice([1.0, 1.0, 1.0, 2.5, 4.0]))
+            item["pv"] = float(rng.normal(1.0, 2.0))
         if rng.random() < 0.4:  # report gains: current, previous (in flight) or new
             choice = rng.integers(3)
             kp = [table.kp[s], table.prev_kp[s] or 0.3, float(rng.uniform(0.1, 1.0))][choice]

@@ -3,6 +3,7 @@
 import math
 
 import numpy as np
+import orjson
 import pytest
 
 from service.agent import untrained_agent
@@ -247,7 +248,8 @@ def test_a_far_future_sample_cannot_lock_the_loop_out(batched):
         try:
             if batched:
                 cols = {
-                    "t": np.array([ti]), "e": np.array([1.0]), "kp": np.array([np.nan]),
+                    "t": np.array([ti]), "e": np.array([1.0]), "sp": np.array([np.nan]),
+                    "kp": np.array([np.nan]),
                     "ki": np.array([np.nan]), "auto": np.array([True]),
                     "saturated": np.array([False]),
                 }  # fmt: skip
@@ -267,3 +269,74 @@ def test_a_far_future_sample_cannot_lock_the_loop_out(batched):
         t.ingest(s, sample(10.0), WALL)
     assert t.back_n[s] == 1
     assert feed(t, s, [last + 330.0]) == [last + 330.0] and t.back_n[s] == 0
+
+
+# -- excitation gate ------------------------------------------------------------------
+def _gated(**guard) -> tuple[LoopTable, int]:
+    """One sample per RL period (165 s); e_scale 0.1, so the smallest step is 2.0 by
+    default, and the gate stays open 3 RL periods after a setpoint change."""
+    return table(guard={"excitation_periods": 3.0, **guard})
+
+
+def _due_at(t: LoopTable, s: int, setpoints, start: float = 0.0) -> list[int]:
+    """Feed one sample per RL period with these setpoints (pv 50); indices that fell due."""
+    return [
+        k
+        for k, sp in enumerate(setpoints)
+        if t.ingest(s, sample(start + 165.0 * k, e=None, sp=sp, pv=50.0), WALL)
+    ]
+
+
+def test_excitation_gate_steps_only_after_a_setpoint_change():
+    t, s = _gated()
+    # steady at 50 for 6 periods: never due, each due period counted as quiet
+    assert _due_at(t, s, [50.0] * 6) == []
+    assert t.n_quiet[s] == 5 and t.n_steps[s] == 0
+    assert t.status(s, WALL) == LoopStatus.quiet
+    assert t.view("LIC-101", WALL).counters.quiet == 5
+    # a 10 cm step (1 agent unit) at k = 6: due in the periods ending within 3 RL periods
+    due = _due_at(t, s, [60.0] * 8, start=165.0 * 6)
+    assert due == [0, 1, 2, 3]  # t = 990 (the step's own sample) ... 990 + 3 * 165
+    assert t.status(s, WALL) == LoopStatus.quiet and t.n_quiet[s] == 5 + 4
+
+
+def test_excitation_gate_ignores_small_steps_but_adds_up_a_ramp():
+    t, s = _gated()
+    assert _due_at(t, s, [50.0, 51.0, 50.0, 51.5, 50.5]) == []  # wiggles under 2.0
+    # a ramp of 0.5 per period: an event each time it has moved 2.0 from the last one
+    ramp = 50.0 + 0.5 * np.arange(1, 9)
+    due = _due_at(t, s, ramp.tolist(), start=165.0 * 5)
+    assert due == [3, 4, 5, 6, 7]  # 52.0 at index 3 (>= 50.0 + 2.0), 54.0 at index 7
+    # a larger smallest step (agent units): the same ramp never counts
+    t, s = _gated(excitation_min_step=0.5)
+    assert _due_at(t, s, [50.0] + ramp[:5].tolist()) == [] and t.n_quiet[s] == 5
+
+
+def test_excitation_gate_on_error_only_samples_and_off_switch():
+    t, s = _gated()
+    steady = [t.ingest(s, sample(165.0 * k, e=0.3), WALL) for k in range(4)]
+    assert steady == [False] * 4
+    # the error jumps by 10 (a setpoint change as an e-only gateway sees it)
+    jumped = [t.ingest(s, sample(165.0 * k, e=10.3 - k), WALL) for k in range(4, 9)]
+    assert jumped == [True, True, True, True, False]
+    # gate off: every period due, status tuning
+    t, s = table(guard={"excitation_periods": 0.0})
+    assert _due_at(t, s, [50.0] * 4) == [1, 2, 3] and t.status(s, WALL) == LoopStatus.tuning
+
+
+def test_excitation_state_survives_a_snapshot():
+    t, s = _gated()
+    _due_at(t, s, [50.0, 50.0, 60.0])
+    ((loop_id, hidden, runtime),) = t.snapshot()
+    t2 = LoopTable(untrained_agent(0), max_rate_hz=1e6, capacity=2)
+    config = t.configs[loop_id]
+    s2 = t2.add(config, hidden=hidden, runtime=runtime, wall=WALL)
+    assert (t2.sp_ref[s2], t2.excited_until[s2], t2.n_quiet[s2]) == (60.0, 330.0 + 495.0, 1)
+    assert t2.ingest(s2, sample(495.0, e=None, sp=60.0, pv=50.0), WALL)  # still open
+    # a snapshot from before the gate (no such keys, fewer counters) restores as closed
+    old = orjson.loads(runtime)
+    del old["sp_ref"], old["excited_until"]
+    old["counters"] = old["counters"][:-1]
+    t3 = LoopTable(untrained_agent(0), max_rate_hz=1e6, capacity=2)
+    s3 = t3.add(config, hidden=hidden, runtime=orjson.dumps(old).decode(), wall=WALL)
+    assert np.isnan(t3.sp_ref[s3]) and t3.excited_until[s3] == -math.inf
