@@ -260,6 +260,8 @@ class Fleet:
                     "tau_hat": float(tau[i]),
                     "pv_scale": 1.0,
                 },
+                # every due loop is stepped, whatever its setpoint does: the worst case
+                "guard": {"excitation_periods": 0.0},
                 **gateway,
             }
             for i in range(n)

@@ -16,7 +16,7 @@ from service.agent import DEFAULT_WEIGHTS, load_agent
 from service.scaling import ScalingSpec
 from service.schemas import LoopConfig
 from service.tuner import Tuner
-from tests.tuner_support import TANK_SCALING, connected_gateway, tuner_settings
+from tests.tuner_support import GATE_OFF, TANK_SCALING, connected_gateway, tuner_settings
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -51,9 +51,12 @@ def run_plant(gateway, loop_id, scaling, kp0, ki0, n_steps):
 def test_shipped_agent_moves_the_gains_toward_good_values(tmp_path):
     scaling = ScalingSpec(**TANK_SCALING).resolve()
     kp0, ki0 = scaling.to_engineering(0.05, 0.05)
+    # lock-step with the tuner: a gains message for every RL period, so the excitation
+    # gate is off (its first setpoint change is before the first sample)
     config = LoopConfig(
-        id="LIC-101", kp=kp0, ki=ki0, sample_period_s=SAMPLE_S, scaling=TANK_SCALING
-    )
+        id="LIC-101", kp=kp0, ki=ki0, sample_period_s=SAMPLE_S, scaling=TANK_SCALING,
+        guard=GATE_OFF,
+    )  # fmt: skip
 
     with Tuner(tuner_settings(tmp_path), agent=load_agent()) as tuner:
         gateway = connected_gateway(tuner.settings)
