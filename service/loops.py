@@ -108,9 +108,6 @@ class StepResult:
     gateways: list[str | None]
     """The gateway each loop's gains go out batched to (None: one message per loop)."""
 
-    def modes(self) -> list[Mode]:
-        return [_MODES[c] for c in self.mode]
-
 
 class Configs:
     """Loop configs by id, held as compact JSON (a parsed :class:`LoopConfig` costs ~2.4 KB
@@ -133,9 +130,6 @@ class Configs:
 
     def __len__(self) -> int:
         return len(self._json)
-
-    def values(self):
-        return (self[loop_id] for loop_id in self._json)
 
 
 class LoopTable:
