@@ -1,7 +1,8 @@
 # syntax=docker/dockerfile:1
 # pitune: the tuner daemon, the plant simulator and the demo, CPU only.
 #   docker build -t pitune:local .
-#   docker run --rm -p 8750:8750 pitune:local tuner
+#   docker run --rm -p 127.0.0.1:8750:8750 -e PITUNE_API_TOKEN="$(openssl rand -hex 32)" \
+#     pitune:local tuner    # the API on this host only; the compose deployment: docs/deploy.md
 ARG PYTHON_IMAGE=python:3.11-slim-bookworm
 
 FROM ${PYTHON_IMAGE} AS build

