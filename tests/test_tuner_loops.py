@@ -182,6 +182,25 @@ def test_reported_gains_are_adopted_unless_an_update_is_in_flight():
     assert [row[5] for row in audit] == ["adopted"]
 
 
+@pytest.mark.parametrize("batched", [False, True])
+def test_gains_reported_through_float32_are_not_an_operators_change(batched):
+    t, s = table(ScalingAgent(1.2 + 1e-7))
+    feed(t, s, [0.0, 165.0])
+    t.step(np.array([s]), WALL)
+    t.drain_changes()
+    kp, ki = (float(np.float32(g)) for g in (t.kp[s], t.ki[s]))  # a float32 DCS
+    assert kp != t.kp[s] and ki != t.ki[s]
+    if batched:
+        cols = {"t": np.array([166.0]), "e": np.array([1.0]), "sp": np.array([np.nan]),
+                "kp": np.array([kp]), "ki": np.array([ki]), "auto": np.array([True]),
+                "saturated": np.array([False])}  # fmt: skip
+        t.ingest_many(np.array([s]), cols, WALL)
+    else:
+        t.ingest(s, sample(166.0, kp=kp, ki=ki), WALL)
+    assert not t.pending[s]  # the update arrived
+    assert t.drain_changes() == ([], [])  # and nothing was adopted
+
+
 @pytest.mark.parametrize(
     ("t_next", "kw", "reason"),
     [
