@@ -43,6 +43,11 @@ class Metrics:
         )
         self.loops = Gauge("pitune_loops", "Registered loops, by mode.", ["mode"], registry=r)
         self.queue_depth = Gauge("pitune_queue_depth", "Bus messages waiting.", registry=r)
+        self.loops_unloadable = Gauge(
+            "pitune_loops_unloadable",
+            "Stored loops not loaded at start-up: their config is invalid (see the log).",
+            registry=r,
+        )
         # Every label value exists from the start, so dashboards and tests see zeros.
         for reason in RejectReason:
             self.samples_rejected.labels(reason.value)

@@ -10,7 +10,7 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from service.protocol import Gain, GatewayId, LoopId, LoopStatus, Mode
+from service.protocol import MAX_MAGNITUDE, Gain, GatewayId, LoopId, LoopStatus, Mode
 from service.scaling import Scaling, ScalingSpec
 
 AGENT_GAIN_RANGE = (0.01, 50.0)
@@ -100,16 +100,21 @@ class LoopConfig(BaseModel):
 
 
 def resolve_bounds(guard: Guard, scaling: Scaling, kp: float, ki: float) -> Guard:
-    """Fill unset bounds from the agent's training range, widened to hold (kp, ki)."""
+    """Fill unset bounds from the agent's training range, widened to hold (kp, ki).
+
+    Extreme scalings map the range beyond the largest gain the wire carries (k_hat and
+    tau_hat of 1e-6 put ki_max at 1.25e13): the upper bounds are clamped to it, and the
+    result validated, so that the stored config always loads again.
+    """
     lo, hi = AGENT_GAIN_RANGE
     defaults = {
         "kp_min": min(lo * scaling.kp_per_agent, kp),
-        "kp_max": max(hi * scaling.kp_per_agent, kp),
+        "kp_max": min(max(hi * scaling.kp_per_agent, kp), MAX_MAGNITUDE),
         "ki_min": min(lo * scaling.ki_per_agent, ki),
-        "ki_max": max(hi * scaling.ki_per_agent, ki),
+        "ki_max": min(max(hi * scaling.ki_per_agent, ki), MAX_MAGNITUDE),
     }
     unset = {k: v for k, v in defaults.items() if getattr(guard, k) is None}
-    return guard.model_copy(update=unset)
+    return Guard.model_validate({**guard.model_dump(), **unset})
 
 
 def check_bounds(guard: Guard, kp: float, ki: float) -> None:

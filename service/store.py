@@ -21,6 +21,7 @@ still follow the order of events.
 from __future__ import annotations
 
 import collections
+import logging
 import sqlite3
 import threading
 from collections.abc import Iterable, Iterator
@@ -29,6 +30,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import orjson
+from pydantic import ValidationError
 
 from service.schemas import AuditEntry, LoopConfig
 
@@ -63,6 +65,7 @@ CREATE TABLE IF NOT EXISTS journal (
     done INTEGER NOT NULL DEFAULT 0  -- rows applied so far: the gains first, then the audit
 );
 """
+log = logging.getLogger("pitune.store")
 UPDATE_GAINS = "UPDATE loops SET kp = ?, ki = ?, seq = ? WHERE id = ?"
 
 AUDIT_COLUMNS = "loop_id, wall_time, t, seq, mode, reason, kp_old, ki_old, kp_new, ki_new, detail"
@@ -127,6 +130,8 @@ class Store:
         self._db.execute("PRAGMA foreign_keys=ON")
         self._db.executescript(SCHEMA)
         self._journal: collections.deque[JournalEntry] = collections.deque()
+        self.unloadable: list[str] = []
+        """Ids of stored loops that :meth:`load` could not parse."""
         pending = self._db.execute("SELECT id, rows, done FROM journal ORDER BY id")
         for entry_id, rows, done in pending:
             changes = orjson.loads(rows)
@@ -200,17 +205,33 @@ class Store:
 
     # -- loops ------------------------------------------------------------------------
     def load(self) -> list[StoredLoop]:
-        """Every loop, with the journal applied first (changes published before a crash)."""
+        """Every loop, with the journal applied first (changes published before a crash).
+
+        A row whose config no longer validates (written by an older version) is skipped
+        with an error in the log and kept in the table: one bad row must not stop the
+        daemon from tuning every other loop. Its id stays taken until it is repaired or
+        deleted in the database; :attr:`unloadable` lists them.
+        """
         self.apply_journal()
         with self._lock:
             rows = self._db.execute(
-                "SELECT l.config, l.kp, l.ki, l.seq, s.hidden, s.runtime "
+                "SELECT l.id, l.config, l.kp, l.ki, l.seq, s.hidden, s.runtime "
                 "FROM loops l LEFT JOIN snapshots s ON s.id = l.id ORDER BY l.rowid"
             ).fetchall()
-        return [
-            StoredLoop(LoopConfig.model_validate_json(c), kp, ki, seq, h, rt)
-            for c, kp, ki, seq, h, rt in rows
-        ]
+        loops, self.unloadable = [], []
+        for loop_id, config, kp, ki, seq, hidden, runtime in rows:
+            try:
+                loops.append(
+                    StoredLoop(LoopConfig.model_validate_json(config), kp, ki, seq, hidden, runtime)
+                )
+            except ValidationError as exc:
+                self.unloadable.append(loop_id)
+                log.error(
+                    "LOOP %r NOT LOADED: its stored config is invalid; the row is kept in %s "
+                    "(repair or delete it there): %s",
+                    loop_id, self.path, exc,
+                )  # fmt: skip
+        return loops
 
     def insert_loop(self, config: LoopConfig, audit: AuditRow) -> None:
         with self._ordered() as db:

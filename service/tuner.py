@@ -18,10 +18,12 @@ to do.
 from __future__ import annotations
 
 import collections
+import contextlib
 import gc
 import logging
 import math
 import queue
+import sqlite3
 import threading
 import time
 
@@ -221,6 +223,7 @@ class Tuner:
                     wall=wall,
                 )
             self.metrics.set_loop_counts(self.table.mode_counts())
+        self.metrics.loops_unloadable.set(len(self.store.unloadable))
         log.info("restored %d loops from %s", len(self.table), self.settings.db_path)
         # Everything allocated so far (modules, torch, the restored table) lives as long as
         # the process: keep it out of the cyclic GC's full collections (~100 ms each).
@@ -577,7 +580,8 @@ class Tuner:
         with self.table.lock:
             if config.id in self.table.slot_of:
                 raise Conflict(f"loop {config.id!r} already registered")
-            self.store.insert_loop(config, _registered(config, wall))
+            with _taken_in_store():
+                self.store.insert_loop(config, _registered(config, wall))
             self.table.add(config, wall=wall)
             self.metrics.set_loop_counts(self.table.mode_counts())
             return self.table.view(config.id, wall)
@@ -592,7 +596,8 @@ class Tuner:
             taken = [i for i in ids if i in self.table.slot_of]
             if taken:
                 raise Conflict(f"loops already registered: {taken[:5]!r}")
-            self.store.insert_loops(configs, [_registered(c, wall) for c in configs])
+            with _taken_in_store():
+                self.store.insert_loops(configs, [_registered(c, wall) for c in configs])
             for config in configs:
                 self.table.add(config, wall=wall)
             self.metrics.set_loop_counts(self.table.mode_counts())
@@ -652,6 +657,15 @@ class Tuner:
         if not total and loop_id not in self.table.slot_of:
             raise UnknownLoop(loop_id)
         return HistoryPage(items=items, total=total, offset=offset, limit=limit)
+
+
+@contextlib.contextmanager
+def _taken_in_store():
+    """An id free in the table but taken in the store is a row that failed to load."""
+    try:
+        yield
+    except sqlite3.IntegrityError:
+        raise Conflict("loop id taken by a stored loop that failed to load (see the log)") from None
 
 
 def _registered(config: LoopConfig, wall: float) -> AuditRow:

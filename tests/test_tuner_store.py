@@ -1,0 +1,56 @@
+"""The store across restarts: what it holds must load again, and a row that does not
+must not keep the daemon from tuning every other loop."""
+
+import json
+import logging
+import sqlite3
+
+import pytest
+from fastapi.testclient import TestClient
+
+from service.api import create_app
+from service.protocol import MAX_MAGNITUDE
+from service.schemas import LoopConfig
+from tests.tuner_support import loop_body, tuner_settings
+
+pytestmark = pytest.mark.timeout(60)
+TINY = {"k_hat": 1e-6, "tau_hat": 1e-6}
+"""A scaling whose default ki_max (50 agent units) is 1.25e13 per second."""
+
+
+def test_derived_bounds_are_clamped_to_the_largest_gain():
+    config = LoopConfig(**loop_body(scaling=TINY))
+    assert config.guard.ki_max == MAX_MAGNITUDE
+    assert LoopConfig.model_validate_json(config.model_dump_json()) == config
+
+
+def test_a_registration_with_an_extreme_scaling_survives_a_restart(tmp_path):
+    settings = tuner_settings(tmp_path)
+    with TestClient(create_app(settings)) as client:
+        assert client.post("/loops", json=loop_body("TINY", scaling=TINY)).status_code == 201
+    with TestClient(create_app(settings)) as client:
+        assert client.get("/loops/TINY").json()["config"]["guard"]["ki_max"] == MAX_MAGNITUDE
+
+
+def test_a_stored_row_that_fails_to_parse_is_skipped_loudly_and_kept(tmp_path, caplog):
+    settings = tuner_settings(tmp_path)
+    with TestClient(create_app(settings)) as client:
+        for loop_id in ("GOOD", "BAD"):
+            assert client.post("/loops", json=loop_body(loop_id)).status_code == 201
+    with sqlite3.connect(settings.db_path) as db:  # as an older version could write it
+        (config,) = db.execute("SELECT config FROM loops WHERE id = 'BAD'").fetchone()
+        bad = json.loads(config)
+        bad["guard"]["ki_max"] = 1.25e13
+        db.execute("UPDATE loops SET config = ? WHERE id = 'BAD'", (json.dumps(bad),))
+    caplog.set_level(logging.ERROR, logger="pitune.store")
+    with TestClient(create_app(settings)) as client:
+        assert client.get("/loops/GOOD").status_code == 200
+        assert client.get("/loops/BAD").status_code == 404
+        assert "pitune_loops_unloadable 1.0" in client.get("/metrics").text
+        r = client.post("/loops", json=loop_body("BAD"))
+        assert r.status_code == 409 and "failed to load" in r.json()["detail"]
+    assert any("'BAD' NOT LOADED" in r.getMessage() for r in caplog.records)
+    with sqlite3.connect(settings.db_path) as db:
+        assert db.execute("SELECT config FROM loops WHERE id = 'BAD'").fetchone() == (
+            json.dumps(bad),
+        )
