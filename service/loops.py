@@ -13,7 +13,10 @@ Safety guard, per loop:
   a gain outside its bounds (an operator's choice) is walked back gradually;
 * no RL step while the gateway reports manual mode or a saturated output, and none
   across a gap of more than ``stale_periods`` sample periods (the decimation window
-  restarts at the first sample after the gap, and the integral does not bridge it);
+  restarts at the first sample after the gap, and the integral does not bridge it).
+  Nor is the error integrated while in manual or saturated (training never saw an
+  integral wound up by an error nobody controls), and the decimation window restarts
+  at the first sample back in auto, so a step sees a full RL period of control;
 * ``frozen`` loops are never stepped; ``advisory`` loops are stepped and their
   proposals published, but their gains change only when the gateway reports them;
 * excitation gate: the agent learns from setpoint responses, and stepped on a loop
@@ -323,14 +326,16 @@ class LoopTable:
         if moved:
             self.excited_until[s] = t + self.exc_window[s]
 
+        paused = not sample.auto or sample.saturated
+        resumed = (self.manual[s] or self.saturated[s]) and not paused
         self.n_samples[s] += 1
         self.last_wall[s] = wall
         self.manual[s] = not sample.auto
         self.saturated[s] = sample.saturated
         self.last_t[s] = t
-        if math.isnan(last_t) or t - last_t > self.stale_gap[s]:
+        if math.isnan(last_t) or t - last_t > self.stale_gap[s] or resumed:
             self.next_due[s] = t + self.period[s]  # a new decimation window
-        else:
+        elif not paused:
             self.int_e[s] += 0.5 * (e + self.last_e[s]) * (t - last_t) * self.int_scale[s]
         self.last_e[s] = e
         if t < self.next_due[s]:
@@ -401,13 +406,15 @@ class LoopTable:
         self.n_samples[slots] += 1
         self.last_wall[slots] = wall
         auto, saturated = cols["auto"], cols["saturated"]
+        paused = ~auto | saturated
+        resumed = (self.manual[slots] | self.saturated[slots]) & ~paused
         self.manual[slots] = ~auto
         self.saturated[slots] = saturated
         self.last_t[slots] = t
-        fresh = np.isnan(last_t) | (t - last_t > self.stale_gap[slots])
+        fresh = np.isnan(last_t) | (t - last_t > self.stale_gap[slots]) | resumed
         period = self.period[slots]
         next_due = np.where(fresh, t + period, self.next_due[slots])
-        step = np.where(fresh, 0.0, 0.5 * (e + self.last_e[slots]) * (t - last_t))
+        step = np.where(fresh | paused, 0.0, 0.5 * (e + self.last_e[slots]) * (t - last_t))
         self.int_e[slots] += step * self.int_scale[slots]
         self.last_e[slots] = e
         reached = t >= next_due

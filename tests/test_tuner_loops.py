@@ -153,7 +153,8 @@ def test_frozen_manual_saturated_and_stale_data_take_no_step():
     assert t.status(s, WALL) is LoopStatus.manual
     assert not t.ingest(s, sample(340.0, saturated=True), WALL)
     assert t.status(s, WALL) is LoopStatus.saturated
-    assert t.ingest(s, sample(500.0), WALL)  # window keeps its phase: due at 495
+    assert not t.ingest(s, sample(500.0), WALL)  # back in auto: a new window, due at 665
+    assert t.ingest(s, sample(665.0), WALL)
 
     t, s = table(sample_period_s=1.0, guard={"stale_periods": 5.0})  # 5 s is stale
     feed(t, s, [0.0, 1.0, 2.0])
@@ -163,6 +164,33 @@ def test_frozen_manual_saturated_and_stale_data_take_no_step():
     assert t.next_due[s] == 170.0 + 165.0
     assert t.status(s, WALL + 4.0) is LoopStatus.tuning
     assert t.status(s, WALL + 6.0) is LoopStatus.stale
+
+
+@pytest.mark.parametrize("batched", [False, True])
+def test_no_integration_in_manual_or_saturated_and_a_new_window_back_in_auto(batched):
+    t, s = table(sample_period_s=1.0)
+    take = _batched_ingest if batched else (lambda t, s, smp: t.ingest(s, smp, WALL))
+    for k in range(101):  # 100 s in auto at e = 5 cm
+        take(t, s, sample(float(k), e=5.0))
+    in_auto = t.int_e[s]
+    assert in_auto == pytest.approx(5.0 * 100.0 * 0.1 / 60.0)
+    for k in range(101, 1201):  # 1000 s in manual, then 100 s saturated
+        take(t, s, sample(float(k), e=5.0, auto=k > 1100, saturated=k > 1100))
+    assert t.int_e[s] == in_auto
+    assert not take(t, s, sample(1201.0, e=5.0))  # back in auto: a new window
+    assert t.int_e[s] == in_auto and t.next_due[s] == 1201.0 + 165.0
+    assert not any(take(t, s, sample(float(k), e=5.0)) for k in range(1202, 1366))
+    assert t.int_e[s] == pytest.approx(in_auto + 5.0 * 164.0 * 0.1 / 60.0)
+    assert take(t, s, sample(1366.0, e=5.0))
+
+
+def _batched_ingest(t: LoopTable, s: int, smp: Sample) -> bool:
+    nan = math.nan
+    cols = {"t": np.array([smp.t]), "e": np.array([smp.error]), "sp": np.array([nan]),
+            "kp": np.array([nan]), "ki": np.array([nan]), "auto": np.array([smp.auto]),
+            "saturated": np.array([smp.saturated])}  # fmt: skip
+    due, _ = t.ingest_many(np.array([s]), cols, WALL)
+    return bool(due[0])
 
 
 def test_reported_gains_are_adopted_unless_an_update_is_in_flight():
