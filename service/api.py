@@ -111,7 +111,8 @@ def patch_loop(loop_id: str, patch: LoopPatch, tuner: TunerDep) -> LoopView:
 
 @loops.post("/{loop_id}/reset", dependencies=mutating, responses={404: {}})
 def reset_loop(loop_id: str, tuner: TunerDep) -> LoopView:
-    """Back to the registered gains (published unless frozen) and a zero hidden state."""
+    """Zero hidden state and integral, and the registered gains published (a frozen loop:
+    the agent state only, its gains are left alone)."""
     return tuner.reset(loop_id)
 
 

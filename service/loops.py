@@ -258,25 +258,39 @@ class LoopTable:
         self._gains_dirty.discard(s)
         self._free.append(s)
 
-    def reset(self, loop_id: str, wall: float) -> StepResult:
-        """Back to the registered gains with a fresh episode; the result is to be published."""
+    def reset(self, loop_id: str, wall: float) -> StepResult | None:
+        """A fresh episode and the registered gains; the result is to be published.
+
+        The gains move as an agent step's would: an ``auto`` loop takes them at once, as
+        an update in flight (the gateway's next samples still report the old gains, which
+        must not be adopted back); an ``advisory`` loop keeps its gains until the gateway
+        reports new ones. A ``frozen`` loop gets no gains messages, so only its episode
+        restarts and its gains stay those in force: None, nothing to publish.
+        """
         s = self.slot(loop_id)
-        old = (self.kp[s], self.ki[s])
-        self.kp[s], self.ki[s] = self.reg_kp[s], self.reg_ki[s]
+        old = (float(self.kp[s]), float(self.ki[s]))
+        new = (float(self.reg_kp[s]), float(self.reg_ki[s]))
         t = self.last_t[s]
+        t = None if math.isnan(t) else float(t)
         self._restart(s)
+        mode = self.mode[s]
+        if mode == FROZEN:
+            self._audit.append(
+                audit_row(loop_id, wall, t, int(self.seq[s]), Mode.frozen.value, "reset", old,
+                          old, "agent state only: a frozen loop's gains are not published")
+            )  # fmt: skip
+            return None
+        if mode == AUTO:
+            (self.prev_kp[s], self.prev_ki[s]), (self.kp[s], self.ki[s]) = old, new
+            self.pending[s] = True
         self.seq[s] += 1
-        new = (self.kp[s], self.ki[s])
         self._gains_dirty.add(s)
         self._audit.append(
-            audit_row(
-                loop_id, wall, None if math.isnan(t) else t, int(self.seq[s]),
-                _MODES[self.mode[s]].value, "reset", old, new,
-            )
-        )  # fmt: skip
+            audit_row(loop_id, wall, t, int(self.seq[s]), MODE_VALUES[mode], "reset", old, new)
+        )
         return StepResult(
             [loop_id],
-            np.array([0.0 if math.isnan(t) else t]),
+            np.array([0.0 if t is None else t]),
             self.seq[[s]].copy(),
             self.mode[[s]].copy(),
             np.array([old]),

@@ -35,7 +35,7 @@ from pydantic import ValidationError
 
 from service.agent import Agent, load_agent, untrained_agent
 from service.bus import JSON, Bus, Item, Kind, reply
-from service.loops import FROZEN, MODE_VALUES, LoopTable, Rejected, StepResult
+from service.loops import MODE_VALUES, LoopTable, Rejected, StepResult
 from service.metrics import Metrics
 from service.protocol import (
     MAX_BATCH,
@@ -624,15 +624,12 @@ class Tuner:
             return self.table.view(loop_id, wall)
 
     def reset(self, loop_id: str) -> LoopView:
-        """Registered gains, zero hidden state; published unless the loop is frozen."""
+        """Zero hidden state and integral; the registered gains, published unless the loop
+        is frozen (see :meth:`LoopTable.reset`)."""
         wall = time.time()
         with self.table.lock:
             self._known(loop_id)
-            result = self.table.reset(loop_id, wall)
-            if result.mode[0] == FROZEN:
-                self._commit(None)
-            else:
-                self._commit(result, UpdateReason.reset)
+            self._commit(self.table.reset(loop_id, wall), UpdateReason.reset)
             return self.table.view(loop_id, wall)
 
     def delete(self, loop_id: str) -> None:

@@ -107,6 +107,42 @@ def test_reset_publishes_the_registered_gains(bus):
     assert view.hidden_norm == 0.0 and view.int_e == 0.0 and view.status.value == "waiting"
 
 
+def test_a_reset_is_not_undone_by_the_gains_the_gateway_still_reports(bus):
+    tuner, gw = bus
+    tuner.register(LoopConfig(**loop_body("AUTO")))
+    tuner.register(LoopConfig(**loop_body("FRZ", mode="frozen")))
+    for i in range(170):
+        gw.send("AUTO", {"t": float(i), "e": 2.0})
+    step = gw.next_gains()
+    gw.send("AUTO", {"t": 170.0, "e": 2.0, "kp": step.kp, "ki": step.ki})  # applied
+    tuner.reset("AUTO")
+    assert gw.next_gains().reason is UpdateReason.reset
+    # the gateway has not applied the reset yet: its samples report the tuned gains
+    gw.send("AUTO", {"t": 171.0, "e": 2.0, "kp": step.kp, "ki": step.ki})
+    gw.send("FRZ", {"t": 1.0, "e": 2.0, "kp": 0.7, "ki": 0.02})  # an operator's gains
+    received(tuner, 173)
+    assert (tuner.view("AUTO").kp, tuner.view("AUTO").ki) == (0.5, 0.01)
+    assert [e.reason for e in tuner.history("AUTO", 0, 10).items][:2] == ["reset", "agent"]
+    gw.send("AUTO", {"t": 172.0, "e": 2.0, "kp": 0.5, "ki": 0.01})  # now applied
+    received(tuner, 174)
+    assert not tuner.table.pending[tuner.table.slot("AUTO")]
+
+    # a frozen loop gets no gains: the reset restarts its agent state, the gains stay
+    view = tuner.reset("FRZ")
+    assert (view.kp, view.ki, view.seq, view.hidden_norm) == (0.7, 0.02, 0, 0.0)
+    gw.send("FRZ", {"t": 2.0, "e": 2.0, "kp": 0.7, "ki": 0.02})
+    received(tuner, 175)
+    with pytest.raises(queue.Empty):
+        gw.next_gains(timeout=0.2)
+    reset, adopted = tuner.history("FRZ", 0, 10).items[:2]
+    assert (reset.reason, reset.kp_old, reset.kp_new, adopted.reason) == (
+        "reset",
+        0.7,
+        0.7,
+        "adopted",
+    )
+
+
 def test_state_queryable_wildcard_unknown_and_liveliness(bus):
     tuner, gw = bus
     for loop_id in ("A", "B"):
