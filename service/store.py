@@ -233,20 +233,35 @@ class Store:
                 )  # fmt: skip
         return loops
 
-    def insert_loop(self, config: LoopConfig, audit: AuditRow) -> None:
-        with self._ordered() as db:
-            db.execute(
-                "INSERT INTO loops (id, config, kp, ki, seq) VALUES (?, ?, ?, ?, 0)",
-                (config.id, config.model_dump_json(), config.kp, config.ki),
-            )
-            self._audit(db, [audit])
+    def last_seqs(self, ids: list[str]) -> dict[str, int]:
+        """The highest ``seq`` of each id that ever had one, from the audit log (kept after
+        a delete): a loop registered again continues from it, since gateways drop a gains
+        message whose seq is not above the last one from the same tuner."""
+        self.apply_journal()
+        found = {}
+        with self._lock:
+            for i in range(0, len(ids), 500):
+                chunk = ids[i : i + 500]
+                found.update(
+                    self._db.execute(
+                        "SELECT loop_id, MAX(seq) FROM audit WHERE loop_id IN "
+                        f"({', '.join('?' * len(chunk))}) GROUP BY loop_id",
+                        chunk,
+                    )
+                )
+        return found
 
-    def insert_loops(self, configs: list[LoopConfig], audit: list[AuditRow]) -> None:
-        """Register many loops in one transaction (all or none)."""
+    def insert_loops(
+        self, configs: list[LoopConfig], audit: list[AuditRow], seqs: list[int]
+    ) -> None:
+        """Register loops, starting at ``seqs``, in one transaction (all or none)."""
         with self._ordered() as db:
             db.executemany(
-                "INSERT INTO loops (id, config, kp, ki, seq) VALUES (?, ?, ?, ?, 0)",
-                [(c.id, c.model_dump_json(), c.kp, c.ki) for c in configs],
+                "INSERT INTO loops (id, config, kp, ki, seq) VALUES (?, ?, ?, ?, ?)",
+                [
+                    (c.id, c.model_dump_json(), c.kp, c.ki, seq)
+                    for c, seq in zip(configs, seqs, strict=True)
+                ],
             )
             self._audit(db, audit)
 

@@ -580,10 +580,7 @@ class Tuner:
         with self.table.lock:
             if config.id in self.table.slot_of:
                 raise Conflict(f"loop {config.id!r} already registered")
-            with _taken_in_store():
-                self.store.insert_loop(config, _registered(config, wall))
-            self.table.add(config, wall=wall)
-            self.metrics.set_loop_counts(self.table.mode_counts())
+            self._insert([config], wall)
             return self.table.view(config.id, wall)
 
     def register_many(self, configs: list[LoopConfig]) -> list[str]:
@@ -596,13 +593,20 @@ class Tuner:
             taken = [i for i in ids if i in self.table.slot_of]
             if taken:
                 raise Conflict(f"loops already registered: {taken[:5]!r}")
-            with _taken_in_store():
-                self.store.insert_loops(configs, [_registered(c, wall) for c in configs])
-            for config in configs:
-                self.table.add(config, wall=wall)
-            self.metrics.set_loop_counts(self.table.mode_counts())
+            self._insert(configs, wall)
         _freeze_survivors()
         return ids
+
+    def _insert(self, configs: list[LoopConfig], wall: float) -> None:
+        """Store and add new loops, each continuing the seq of an earlier loop of its id."""
+        last = self.store.last_seqs([c.id for c in configs])
+        seqs = [last.get(c.id, 0) for c in configs]
+        audit = [_registered(c, wall, seq) for c, seq in zip(configs, seqs, strict=True)]
+        with _taken_in_store():
+            self.store.insert_loops(configs, audit, seqs)
+        for config, seq in zip(configs, seqs, strict=True):
+            self.table.add(config, seq=seq, wall=wall)
+        self.metrics.set_loop_counts(self.table.mode_counts())
 
     def patch(self, loop_id: str, patch: LoopPatch) -> LoopView:
         """ValueError if the patch makes the bounds inconsistent."""
@@ -665,9 +669,9 @@ def _taken_in_store():
         raise Conflict("loop id taken by a stored loop that failed to load (see the log)") from None
 
 
-def _registered(config: LoopConfig, wall: float) -> AuditRow:
+def _registered(config: LoopConfig, wall: float, seq: int) -> AuditRow:
     """The audit entry of a registration: no old gains, the registered ones as new."""
     return audit_row(
-        config.id, wall, None, 0, config.mode.value, "registered",
+        config.id, wall, None, seq, config.mode.value, "registered",
         None, (config.kp, config.ki), config.model_dump_json(),
     )  # fmt: skip

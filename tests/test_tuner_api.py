@@ -182,3 +182,29 @@ def test_bulk_registration_is_all_or_nothing(client, tmp_path):
         assert client.post("/loops/bulk", json=batch, headers=AUTH).status_code == code
         assert client.get("/loops/NEW1").status_code == 404
     assert len(client.get("/loops").json()) == 50
+
+
+@pytest.mark.parametrize("bulk", [False, True])
+def test_seq_keeps_rising_when_a_loop_is_deleted_and_registered_again(tmp_path, bulk):
+    """Gateways drop a seq not above the last one from the same tuner."""
+    settings = tuner_settings(tmp_path)
+
+    with TestClient(create_app(settings)) as client:
+        client.post("/loops", json=loop_body("L1"))
+        for _ in range(2):
+            client.post("/loops/L1/reset")
+        client.delete("/loops/L1")
+    with TestClient(create_app(settings)) as client:  # across a restart, too
+        if bulk:
+            r = client.post("/loops/bulk", json=[loop_body("L1"), loop_body("NEW")])
+        else:
+            r = client.post("/loops", json=loop_body("L1"))
+        assert r.status_code == 201
+        assert client.get("/loops/L1").json()["seq"] == 2
+        assert client.post("/loops/L1/reset").json()["seq"] == 3
+        items = client.get("/loops/L1/history").json()["items"]
+        assert [(e["reason"], e["seq"]) for e in items[:3]] == [
+            ("reset", 3), ("registered", 2), ("deleted", 2)
+        ]  # fmt: skip
+        if bulk:
+            assert client.get("/loops/NEW").json()["seq"] == 0

@@ -52,7 +52,8 @@ def db(tmp_path) -> Path:
     store = Store(path)
     configs = [LoopConfig(**loop_body(i)) for i in IDS]
     store.insert_loops(configs, [audit_row(c.id, 0.0, None, 0, "auto", "registered",
-                                           None, (c.kp, c.ki)) for c in configs])  # fmt: skip
+                                           None, (c.kp, c.ki)) for c in configs],
+                       [0] * len(configs))  # fmt: skip
     store.close()
     return path
 
