@@ -3,9 +3,12 @@ of the per-loop runtime state (agent hidden state, error integral, counters).
 
 Gains and audit entries are committed before the matching gains message is published,
 so a daemon killed at any moment has every published change on disk. WAL journaling
-with ``synchronous=NORMAL`` survives a killed process (not a power cut, which would need
-``FULL``). Hidden states are only snapshotted (periodically and at shutdown): losing a
-few RL steps of memory is harmless, while writing 800 bytes per loop per step is not.
+with ``synchronous=FULL`` for those commits and every other change of loops and audit
+log: each is on the disk (fsync) before it returns, so it survives a power cut too.
+Applying the journal and writing snapshots use ``NORMAL`` (no fsync): losing those to a
+power cut loses nothing published, the journal rows stay until applied. Hidden states
+are only snapshotted (periodically and at shutdown): losing a few RL steps of memory is
+harmless, while writing 800 bytes per loop per step is not.
 
 The commit before publishing is one row: :meth:`Store.record_gains` writes a step
 batch's gains and audit rows as one JSON blob to the ``journal`` table (~7 ms for
@@ -126,7 +129,8 @@ class Store:
         self._db = sqlite3.connect(str(path), check_same_thread=False, isolation_level=None)
         self._lock = threading.RLock()  # re-entered to update the journal after a commit
         self._db.execute("PRAGMA journal_mode=WAL")
-        self._db.execute("PRAGMA synchronous=NORMAL")
+        self._durable = True
+        self._db.execute("PRAGMA synchronous=FULL")
         self._db.execute("PRAGMA foreign_keys=ON")
         self._db.executescript(SCHEMA)
         self._journal: collections.deque[JournalEntry] = collections.deque()
@@ -143,8 +147,13 @@ class Store:
             self._db.close()
 
     @contextmanager
-    def transaction(self) -> Iterator[sqlite3.Connection]:
+    def transaction(self, durable: bool = True) -> Iterator[sqlite3.Connection]:
+        """``durable``: the commit reaches the disk (fsync, ``synchronous=FULL``) before it
+        returns; else it survives a killed process but maybe not a power cut."""
         with self._lock:
+            if durable != self._durable:  # not inside a transaction
+                self._db.execute(f"PRAGMA synchronous={'FULL' if durable else 'NORMAL'}")
+                self._durable = durable
             self._db.execute("BEGIN IMMEDIATE")
             try:
                 yield self._db
@@ -168,7 +177,7 @@ class Store:
         how many are still pending."""
         with self._lock:
             if self._journal:
-                with self.transaction() as db:
+                with self.transaction(durable=False) as db:  # the journal already is
                     progress = self._apply(db, max_rows)
                 self._advance(progress)
             return self.journal_rows
@@ -288,7 +297,7 @@ class Store:
 
     def snapshot(self, rows: Iterable[tuple[str, bytes, str]]) -> None:
         """Replace the runtime snapshots of (id, hidden, runtime JSON)."""
-        with self.transaction() as db:
+        with self.transaction(durable=False) as db:  # a lost snapshot costs a few RL steps
             db.executemany(
                 "INSERT INTO snapshots (id, hidden, runtime) VALUES (?, ?, ?) "
                 "ON CONFLICT(id) DO UPDATE SET hidden = excluded.hidden, "

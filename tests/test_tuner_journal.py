@@ -108,3 +108,21 @@ def test_other_writes_and_history_see_the_journal_in_order(db):
         assert store.journal_rows == 0  # close applied what was left
     finally:
         store.close()
+
+
+def test_commits_before_publishing_reach_the_disk_applying_the_journal_need_not(db):
+    """synchronous=FULL (2: fsync at commit) for what a power cut must not take, NORMAL
+    (1) for what the journal still holds or a snapshot can lose."""
+    store = Store(db)
+    try:
+        level = store._db.execute  # the level the last commit ran with
+        store.record_gains(*_step(1))
+        assert level("PRAGMA synchronous").fetchone() == (2,)
+        store.apply_journal()
+        assert level("PRAGMA synchronous").fetchone() == (1,)
+        store.snapshot([("L0", b"", "{}")])
+        assert level("PRAGMA synchronous").fetchone() == (1,)
+        store.delete_loop("L1", audit_row("L1", 1.0, None, 1, "auto", "deleted", None, None))
+        assert level("PRAGMA synchronous").fetchone() == (2,)
+    finally:
+        store.close()
