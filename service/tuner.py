@@ -275,9 +275,7 @@ class Tuner:
 
     def snapshot(self) -> None:
         """Snapshot every loop now (shutdown, tests)."""
-        with self.table.lock:
-            rows = self.table.snapshot()
-        self.store.snapshot(rows)
+        self._write_snapshot(None)
         self._snapshot_todo = []
 
     def _snapshot_some(self) -> None:
@@ -287,11 +285,16 @@ class Tuner:
             self._snapshot_todo[:SNAPSHOT_CHUNK],
             self._snapshot_todo[SNAPSHOT_CHUNK:],
         )
-        with self.table.lock:
-            rows = self.table.snapshot(chunk)
-        self.store.snapshot(rows)
+        self._write_snapshot(chunk)
         if not self._snapshot_todo:
             _freeze_survivors()
+
+    def _write_snapshot(self, loop_ids: list[str] | None) -> None:
+        # Written under the table lock (a few ms per chunk): a delete between reading the
+        # rows and writing them would fail the whole chunk on the foreign key, and a
+        # delete and a new registration of the id would give the new loop the old state.
+        with self.table.lock:
+            self.store.snapshot(self.table.snapshot(loop_ids))
 
     # -- worker -----------------------------------------------------------------------
     def _run(self) -> None:

@@ -4,13 +4,16 @@ must not keep the daemon from tuning every other loop."""
 import json
 import logging
 import sqlite3
+import threading
 
 import pytest
 from fastapi.testclient import TestClient
 
 from service.api import create_app
+from service.bus import Kind
 from service.protocol import MAX_MAGNITUDE
 from service.schemas import LoopConfig
+from service.tuner import Tuner
 from tests.tuner_support import loop_body, tuner_settings
 
 pytestmark = pytest.mark.timeout(60)
@@ -54,3 +57,38 @@ def test_a_stored_row_that_fails_to_parse_is_skipped_loudly_and_kept(tmp_path, c
         assert db.execute("SELECT config FROM loops WHERE id = 'BAD'").fetchone() == (
             json.dumps(bad),
         )
+
+
+def test_a_snapshot_racing_a_delete_and_a_new_registration_writes_no_stale_state(tmp_path):
+    with Tuner(tuner_settings(tmp_path)) as tuner:
+        for loop_id in ("A", "B", "C"):
+            tuner.register(LoopConfig(**loop_body(loop_id)))
+        tuner._handle([(Kind.sample, tuner.keys.sample(i), b'{"t": 5.0, "e": 1.0}') for i in "ABC"])
+        write = tuner.store.snapshot
+
+        def racing_write(rows):
+            """The API deletes A and registers it again, and deletes B, while the rows of
+            the chunk wait to be written (it may do so only once the table is free)."""
+
+            def api():
+                tuner.delete("A")
+                tuner.register(LoopConfig(**loop_body("A")))
+                tuner.delete("B")
+
+            calls = threading.Thread(target=api)
+            calls.start()
+            calls.join(timeout=0.5)
+            write(rows)
+            racing.append(calls)
+
+        racing: list[threading.Thread] = []
+        tuner.store.snapshot = racing_write
+        tuner._snapshot_todo = ["A", "B", "C"]
+        tuner._snapshot_some()
+        racing[0].join(timeout=5.0)
+        tuner.store.snapshot = write
+        with sqlite3.connect(tuner.settings.db_path) as db:
+            rows = dict(db.execute("SELECT id, runtime FROM snapshots"))
+        assert json.loads(rows["C"])["last_t"] == 5.0  # the chunk was written
+        assert "A" not in rows and "B" not in rows  # the new A has no old state
+        assert tuner.view("A").last_sample_t is None
