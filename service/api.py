@@ -8,6 +8,8 @@ pool rather than on the event loop.
 
 from __future__ import annotations
 
+import ipaddress
+import logging
 import secrets
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -42,6 +44,7 @@ from service.schemas import (
 from service.settings import Settings
 from service.tuner import Conflict, Tuner, UnknownLoop
 
+log = logging.getLogger("pitune.api")
 _bearer = HTTPBearer(auto_error=False, description="PITUNE_API_TOKEN, when set")
 
 
@@ -164,11 +167,30 @@ def _unhealthy(state: str, detail: str) -> JSONResponse:
     return JSONResponse(Health(status=state, detail=detail).model_dump(), status_code=503)
 
 
+def _warn_if_open(settings: Settings) -> None:
+    if settings.api_token is None and not _is_loopback(settings.api_host):
+        log.warning(
+            "the admin API listens on %r WITHOUT A TOKEN: anyone who reaches it can register, "
+            "retune, reset and delete loops. Set PITUNE_API_TOKEN.",
+            settings.api_host,
+        )
+
+
+def _is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:  # a host name: it may resolve to anything
+        return False
+
+
 def create_app(settings: Settings, agent: Agent | None = None) -> FastAPI:
     """The admin API with a tuner owned by its lifespan (``agent``: override, for tests)."""
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        _warn_if_open(settings)
         tuner = Tuner(settings, agent)
         tuner.start()
         app.state.tuner = tuner

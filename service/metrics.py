@@ -58,10 +58,13 @@ class Metrics:
         self._rejections = RateLimitedLog(log)
 
     def reject(self, reason: RejectReason, loop_id: str | None, detail: str) -> None:
-        """Count a rejected sample and log it (at most once per interval and reason)."""
+        """Count a rejected sample and log it (at most once per interval and reason).
+
+        ``loop_id`` may come straight from the wire: logged with repr, so that no id can
+        forge log lines (a newline) or terminal escapes."""
         self.samples_rejected.labels(reason.value).inc()
         self._rejections.warning(
-            reason.value, f"sample rejected ({reason}) loop={loop_id}: {detail}"
+            reason.value, f"sample rejected ({reason}) loop={loop_id!r}: {detail}"
         )
 
     def set_loop_counts(self, counts: dict[Mode, int]) -> None:

@@ -80,6 +80,14 @@ class Settings(BaseSettings):
     )
     log_level: Literal["debug", "info", "warning", "error"] = "info"
 
+    @field_validator("api_token", mode="before")
+    @classmethod
+    def _blank_token_is_unset(cls, value: object) -> object:
+        """``PITUNE_API_TOKEN=`` (empty, a template left unfilled) is no token: the API is
+        open, as when it is unset, and says so at start-up (see :mod:`service.api`)."""
+        raw = value.get_secret_value() if isinstance(value, SecretStr) else value
+        return None if isinstance(raw, str) and not raw.strip() else value
+
     @field_validator("key_prefix")
     @classmethod
     def _valid_prefix(cls, value: str) -> str:

@@ -1,5 +1,7 @@
 """The admin API: the real FastAPI app (lifespan, tuner, Zenoh) through TestClient."""
 
+import logging
+
 import pytest
 from fastapi.testclient import TestClient
 
@@ -208,3 +210,24 @@ def test_seq_keeps_rising_when_a_loop_is_deleted_and_registered_again(tmp_path, 
         ]  # fmt: skip
         if bulk:
             assert client.get("/loops/NEW").json()["seq"] == 0
+
+
+@pytest.mark.parametrize(
+    ("host", "token", "warned"),
+    [
+        ("0.0.0.0", None, True),
+        ("10.1.2.3", "", True),  # an empty token is none
+        ("tuner.plant.local", None, True),
+        ("0.0.0.0", TOKEN, False),
+        ("127.0.0.1", None, False),
+        ("::1", None, False),
+        ("localhost", None, False),
+    ],
+)
+def test_an_open_api_on_a_non_loopback_address_is_announced(tmp_path, caplog, host, token, warned):
+    settings = tuner_settings(tmp_path, api_host=host, api_token=token)
+    caplog.set_level(logging.WARNING, logger="pitune.api")
+    with TestClient(create_app(settings)) as client:
+        r = client.post("/loops", json=loop_body("L1"))
+        assert r.status_code == (401 if token else 201)
+    assert any("WITHOUT A TOKEN" in r.getMessage() for r in caplog.records) == warned

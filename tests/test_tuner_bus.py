@@ -1,6 +1,8 @@
 """The tuner in-process on a real Zenoh bus (loopback, own port per test)."""
 
+import contextlib
 import json
+import logging
 import math
 import queue
 
@@ -9,6 +11,7 @@ import zenoh
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from service.bus import Kind
 from service.protocol import GainsBatch, GainsMessage, Mode, RejectReason, UpdateReason
 from service.schemas import LoopConfig, LoopPatch
 from service.tuner import Tuner
@@ -313,3 +316,49 @@ def test_loops_of_a_gateway_get_their_gains_in_one_batch(bus):
         assert (patched.reason, patched.detail) == ("patched", '{"gateway":null}')
     finally:
         sub.undeclare()
+
+
+def test_gains_are_published_with_block_and_high_priority(bus):
+    """Never dropped under congestion (the tuner assumes auto gains applied), and ahead of
+    the samples' default priority: per-loop messages and batches alike."""
+    tuner, gw = bus
+    qos = queue.SimpleQueue()
+    subs = [
+        gw.session.declare_subscriber(
+            key, lambda s: qos.put((str(s.key_expr), s.congestion_control, s.priority))
+        )
+        for key in (gw.keys.gains("SOLO"), gw.keys.gateway_gains("gw-1"))
+    ]
+    try:
+        tuner.register(LoopConfig(**loop_body("SOLO")))
+        tuner.register(LoopConfig(**loop_body("B0", gateway="gw-1")))
+        got = {}
+
+        def published_both() -> bool:  # resets until the subscriptions have reached the tuner
+            tuner.reset("SOLO")
+            tuner.reset("B0")
+            with contextlib.suppress(queue.Empty):
+                while True:
+                    key, *rest = qos.get(timeout=0.2)
+                    got[key] = tuple(rest)
+            return len(got) == 2
+
+        wait_until(published_both, what="gains on both keys")
+        qos_of_gains = (zenoh.CongestionControl.BLOCK, zenoh.Priority.DATA_HIGH)
+        assert got == {
+            "pitune/gateways/gw-1/gains": qos_of_gains,
+            "pitune/loops/SOLO/gains": qos_of_gains,
+        }
+    finally:
+        for sub in subs:
+            sub.undeclare()
+
+
+def test_loop_ids_from_the_wire_cannot_forge_log_lines(tmp_path, caplog):
+    caplog.set_level(logging.WARNING, logger="pitune.tuner")
+    forged = "X\n2030-01-01 00:00:00 INFO pitune.tuner: all good"
+    with Tuner(tuner_settings(tmp_path)) as tuner:
+        batch = json.dumps({"samples": [{"loop_id": forged, "t": 1.0, "e": 0.0}]}).encode()
+        tuner._handle([(Kind.batch, tuner.keys.batch, batch)])
+    (record,) = [r for r in caplog.records if "sample rejected" in r.getMessage()]
+    assert "\n" not in record.getMessage() and repr(forged) in record.getMessage()

@@ -62,3 +62,11 @@ def test_a_zenoh_config_file_is_overridden_only_by_explicit_settings(tmp_path):
     c = zenoh_config(load_settings(zenoh_config=path, zenoh_connect=["tcp/10.1.1.1:7447"]))
     assert json.loads(c.get_json("connect/endpoints")) == ["tcp/10.1.1.1:7447"]
     assert json.loads(c.get_json("mode")) == "client"
+
+
+@pytest.mark.parametrize("value", ["", "  "])
+def test_an_empty_api_token_is_no_token(monkeypatch, value):
+    monkeypatch.setenv("PITUNE_API_TOKEN", value)
+    assert load_settings().api_token is None
+    monkeypatch.setenv("PITUNE_API_TOKEN", "s3cret")
+    assert load_settings().api_token.get_secret_value() == "s3cret"
