@@ -550,7 +550,17 @@ CHANGES_FROM_PAPER = """\
   kp = 0.3 and ki = 8 alike (the paper names this range as a main difficulty).
 - **Training distribution.** A quarter of the episodes have drifting dynamics (K step or
   tau ramp) and 30% run with the forgetting factor 0.99 used online; warm-start episodes
-  are 60 RL steps (the paper: 40) so the hidden state stays calibrated over long runs.
+  are 60-120 RL steps (the paper: 40) so the hidden state stays calibrated over long
+  runs. The setpoint period is drawn per episode from 11 time units +-30% with a random
+  phase (the paper: exactly every 4 RL steps), because a real loop's setpoint does not
+  move on the agent's clock; agents trained on the fixed clock score 50x worse when it
+  moves at other times.
+- **Imitation label.** In the later stages the label is half the log-distance to the
+  oracle's gains (still clipped to one step's reach): a gentler approach that lost less
+  precision when the setpoint timing varies.
+- **Epoch selection.** The kept epoch minimises the worse of (worst step-test MSE / 0.003)
+  and (largest gain drift after 140 time units / 10%) on a fixed validation set, with
+  and without setpoint jitter, so that it is both precise and settled.
 - **PPO details.** Advantage normalisation, value targets scaled by 1/10, gradient-norm
   clipping 0.5, critic learning rate 1e-3, 20 value-only warm-up epochs before the
   policy is updated, exploration std reset to exp(-2.5) at the start of PPO.
@@ -581,8 +591,8 @@ def write_model_card(path: Path, agent: Agent, metrics: dict) -> None:
         f" {cfg.get('value_warmup', '?')} value warm-up and up to {cfg.get('epochs', '?')} PPO);"
         f" episodes: {meta.get('episodes', '?')}; wall time of this run:"
         f" {meta.get('wall_s', '?')} s on 2 CPU cores (1 torch thread)",
-        "- Validation at export (64 random plants + 8 corners, 80 RL steps):"
-        f" {meta.get('validation')}",
+        f"- Validation at export (64 random plants + 8 corners,"
+        f" {cfg.get('eval_steps', 80)} RL steps): {meta.get('validation')}",
         "- Runs warm-started from earlier runs, and the PPO fine-tuning attempts: see"
         " `TRAINING.md` beside this card.",
         "",
