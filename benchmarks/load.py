@@ -42,7 +42,6 @@ import json
 import math
 import os
 import platform
-import socket
 import subprocess
 import sys
 import tempfile
@@ -101,12 +100,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 # -- the daemon ---------------------------------------------------------------------------
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @dataclass
 class Daemon:
     proc: subprocess.Popen
@@ -136,6 +129,8 @@ class Daemon:
 
 
 def start_daemon(args: argparse.Namespace, workdir: Path) -> Daemon:
+    from service.netutil import free_port
+
     api_port, zenoh_port = free_port(), free_port()
     endpoint = f"tcp/127.0.0.1:{zenoh_port}"
     log = args.daemon_log or workdir / "daemon.log"
@@ -427,6 +422,7 @@ def drive(args: argparse.Namespace, fleet: Fleet, daemon: Daemon, client) -> dic
     """Register the loops, play them in real time, measure."""
     import zenoh
 
+    from service.netutil import session_config
     from service.protocol import Keys
 
     memory = {"rss_idle_mb": daemon.rss_mb()}
@@ -443,11 +439,7 @@ def drive(args: argparse.Namespace, fleet: Fleet, daemon: Daemon, client) -> dic
         os.sched_setaffinity(0, _cpus(args.pin.split(":")[1]))
 
     keys = Keys()
-    config = zenoh.Config()
-    config.insert_json5("mode", '"peer"')
-    config.insert_json5("scouting/multicast/enabled", "false")
-    config.insert_json5("connect/endpoints", json.dumps([daemon.endpoint]))
-    session = zenoh.open(config)
+    session = zenoh.open(session_config(mode="peer", connect=[daemon.endpoint]))
     inbox: collections.deque = collections.deque()
     try:
         per_loop_gains = args.per_loop or args.per_loop_gains

@@ -15,8 +15,8 @@ the gains in force and the recent tracking error. Both processes are then stoppe
 The untuned baseline is the same plant, schedule and seed simulated in-process with
 the registered gains held fixed (:func:`plant_sim.process.untuned_baseline`).
 
-:class:`Child` and :func:`free_port` are the process plumbing the end-to-end tests
-share with the demo.
+:class:`Child` is the process plumbing the end-to-end tests share with the demo
+(:func:`service.netutil.free_port`, re-exported here, finds their ports).
 """
 
 from __future__ import annotations
@@ -28,7 +28,6 @@ import os
 import secrets
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -43,6 +42,7 @@ from plant_sim.scenario import TANK_FIT
 from plant_sim.trajectory import plot, read_log
 from plant_sim.tunings import simc_improved, to_parallel
 from service.cli import build_parser
+from service.netutil import free_port
 
 ROOT = Path(__file__).resolve().parents[1]
 LOOP_ID = "tank1"
@@ -52,13 +52,6 @@ MSE_CHANGES = 2
 
 class DemoError(RuntimeError):
     """A part of the demo failed; the message says which and why."""
-
-
-def free_port() -> int:
-    """A TCP port on 127.0.0.1 that was free a moment ago."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def pitune(*args: str) -> list[str]:

@@ -1,26 +1,23 @@
-"""Helpers shared by the tuner tests: ports, settings, Zenoh peers, waiting."""
+"""Helpers shared by the tuner tests: ports, settings, Zenoh peers, waiting.
+
+``free_port`` is re-exported from :mod:`service.netutil` for the tests that import it here.
+"""
 
 from __future__ import annotations
 
 import json
 import queue
-import socket
 import time
 from collections.abc import Callable
 from pathlib import Path
 
 import zenoh
 
+from service.netutil import free_port, session_config
 from service.protocol import GainsMessage, Keys
 from service.settings import Settings, load_settings
 
 TANK_SCALING = {"k_hat": 1.2, "tau_hat": 30.0, "pv_scale": 10.0}
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def endpoint(port: int) -> str:
@@ -60,11 +57,8 @@ def loop_body(loop_id: str = "LIC-101", **overrides: object) -> dict:
 
 
 def open_peer(connect: list[str]) -> zenoh.Session:
-    config = zenoh.Config()
-    config.insert_json5("mode", '"peer"')
-    config.insert_json5("scouting/multicast/enabled", "false")
-    config.insert_json5("connect/endpoints", json.dumps(connect))
-    return zenoh.open(config)
+    """A loopback peer connected to ``connect``, multicast scouting off."""
+    return zenoh.open(session_config(mode="peer", connect=connect))
 
 
 def wait_until(predicate: Callable[[], object], timeout: float = 5.0, what: str = "") -> object:
