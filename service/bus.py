@@ -12,7 +12,6 @@ on every shutdown path.
 
 from __future__ import annotations
 
-import json
 import logging
 import queue
 from collections.abc import Callable
@@ -20,11 +19,17 @@ from enum import IntEnum
 
 import zenoh
 
+from service.netutil import session_config
 from service.protocol import Keys
 from service.settings import Settings
 
 log = logging.getLogger("pitune.bus")
 JSON = zenoh.Encoding.APPLICATION_JSON
+GAINS_CONGESTION = zenoh.CongestionControl.BLOCK
+"""Gains are never dropped under congestion: the tuner assumes ``auto`` gains applied."""
+GAINS_PRIORITY = zenoh.Priority.DATA_HIGH
+"""Above the samples' default ``DATA``, so gains overtake sample traffic on a shared link
+or router; below the ``INTERACTIVE_*`` lanes, which a 2 MB gains batch would hold up."""
 
 
 class Kind(IntEnum):
@@ -44,24 +49,18 @@ def zenoh_config(settings: Settings) -> zenoh.Config:
     With a file, only settings given explicitly (flag, environment, config) override it,
     so TLS and user/password sections of the file stay in charge.
     """
-    if settings.zenoh_config is None:
-        config, explicit = zenoh.Config(), None
-    else:
-        config = zenoh.Config.from_file(str(settings.zenoh_config))
-        explicit = settings.model_fields_set
-    values = {
-        "zenoh_mode": ("mode", settings.zenoh_mode),
-        "zenoh_listen": ("listen/endpoints", settings.zenoh_listen),
-        "zenoh_connect": ("connect/endpoints", settings.zenoh_connect),
-        "zenoh_multicast_scouting": (
-            "scouting/multicast/enabled",
-            settings.zenoh_multicast_scouting,
-        ),
-    }
-    for field, (path, value) in values.items():
-        if explicit is None or field in explicit:
-            config.insert_json5(path, json.dumps(value))
-    return config
+    explicit = None if settings.zenoh_config is None else settings.model_fields_set
+
+    def given(field: str, value: object) -> object:
+        return value if explicit is None or field in explicit else None
+
+    return session_config(
+        config_file=settings.zenoh_config,
+        mode=given("zenoh_mode", settings.zenoh_mode),
+        listen=given("zenoh_listen", settings.zenoh_listen),
+        connect=given("zenoh_connect", settings.zenoh_connect),
+        multicast_scouting=given("zenoh_multicast_scouting", settings.zenoh_multicast_scouting),
+    )
 
 
 class Bus:
@@ -111,12 +110,24 @@ class Bus:
             self._on_overload(item[0])
 
     def publish(self, key: str, payload: bytes) -> None:
-        """Put a message; dropped once the bus is closed (the store has the new gains and a
-        gateway asks for the state when a tuner is back)."""
+        """Put a gains message (per loop or batched); dropped once the bus is closed (the
+        store has the new gains and a gateway asks for the state when a tuner is back).
+
+        Congestion control is BLOCK: when the link to a gateway is congested the put
+        waits for room (Zenoh closes a link stuck longer than
+        ``transport/link/tx/queue/congestion_control/block/wait_before_close``, 5 s by
+        default) instead of silently dropping gains the tuner then assumes applied.
+        """
         if self.session is None:
             log.debug("bus closed: %s not published", key)
             return
-        self.session.put(key, payload, encoding=JSON)
+        self.session.put(
+            key,
+            payload,
+            encoding=JSON,
+            congestion_control=GAINS_CONGESTION,
+            priority=GAINS_PRIORITY,
+        )
 
     def close(self) -> None:
         """Undeclare subscribers, queryable and token, then close the session (idempotent)."""
