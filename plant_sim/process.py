@@ -8,6 +8,8 @@ loop's own bounds (``--gain-range`` around its initial gains); ``advisory`` ones
 only counted. ``--register URL`` registers the loops with the tuner's admin API first,
 with the paper's crude model hint (1.2 cm/(L/min), 30 s, PV scale 10 cm for the tank).
 ``--log-dir`` writes one CSV trajectory per loop, which ``pitune plant plot`` draws.
+``--gateway-id`` also receives the batched gains of loops registered with that gateway
+(and registers them so). The bus side follows docs/protocol.md (:mod:`plant_sim.gateway`).
 
 Loops are given as ``--tank ID[:key=value,...]`` and ``--foptd ID:K=..,tau=..,theta=..``
 (seconds and engineering units); optional keys: ``kp``, ``ki`` (initial gains, default
@@ -31,7 +33,7 @@ from pathlib import Path
 import httpx
 import zenoh
 
-from plant_sim.gateway import Gateway, session_config
+from plant_sim.gateway import Gateway
 from plant_sim.scenario import (
     TANK_HINT,
     TANK_PV_SCALE,
@@ -42,6 +44,7 @@ from plant_sim.scenario import (
     TankLoop,
 )
 from plant_sim.trajectory import Trajectory, TrajectoryWriter, plot, read_log
+from service.netutil import session_config
 from service.protocol import DEFAULT_PREFIX, Keys, Mode, Sample, is_valid_id
 from service.scaling import ScalingSpec
 
@@ -105,16 +108,20 @@ class LoopSpec:
         kp0, ki0 = self.hint().resolve().to_engineering(*UNTUNED_AGENT_GAINS)
         return self.params.get("kp", kp0), self.params.get("ki", ki0)
 
-    def registration(self, scan: float) -> dict:
-        """Body of ``POST /loops`` (:class:`service.schemas.LoopConfig`)."""
+    def registration(self, scan: float, gateway: str | None = None) -> dict:
+        """Body of ``POST /loops`` (:class:`service.schemas.LoopConfig`); with ``gateway``,
+        the tuner sends the loop's gains in that gateway's batches."""
         kp, ki = self.initial_gains()
-        return {
+        body = {
             "id": self.loop_id,
             "kp": kp,
             "ki": ki,
             "sample_period_s": scan,
             "scaling": self.hint().model_dump(exclude_none=True),
         }
+        if gateway is not None:
+            body["gateway"] = gateway
+        return body
 
     def build(self, args: argparse.Namespace, *, seed: int, t0: float) -> SimulatedLoop:
         p = self.params
@@ -156,7 +163,13 @@ class RegistrationError(RuntimeError):
 
 
 def register(
-    url: str, specs: list[LoopSpec], *, scan: float, token: str | None, timeout: float
+    url: str,
+    specs: list[LoopSpec],
+    *,
+    scan: float,
+    token: str | None,
+    timeout: float,
+    gateway: str | None = None,
 ) -> dict[str, dict]:
     """Register each loop with the tuner (``POST /loops``); return the views of loops the
     tuner already had (HTTP 409), which a restarted simulator resumes.
@@ -178,7 +191,7 @@ def register(
                     time.sleep(0.2)
 
         for spec in specs:
-            response = call("POST", "/loops", json=spec.registration(scan))
+            response = call("POST", "/loops", json=spec.registration(scan, gateway))
             if response.status_code == 409:
                 response = call("GET", f"/loops/{spec.loop_id}")
                 if response.is_success:
@@ -242,11 +255,14 @@ def simulate(args: argparse.Namespace, loops: list[SimulatedLoop]) -> int:
     stop = StopFlag()
     by_id = {loop.loop_id: loop for loop in loops}
     config = session_config(
-        mode=args.mode, connect=args.connect, listen=args.listen, config_file=args.zenoh_config
+        config_file=args.zenoh_config,
+        mode=args.mode,
+        connect=args.connect or None,
+        listen=args.listen or None,
     )
     session = zenoh.open(config)
     try:
-        gateway = Gateway(session, list(by_id), Keys(args.prefix))
+        gateway = Gateway(session, list(by_id), Keys(args.prefix), gateway_id=args.gateway_id)
         print(
             f"plant: {', '.join(by_id)} on the bus, scan {args.scan:g} s, speed {args.speed:g}x"
             if args.speed
@@ -287,7 +303,7 @@ def run_scans(
     for k in paced(args.scan, args.speed, stop):
         if last is not None and k >= last:
             break
-        for msg in gateway.gains():
+        for msg in gateway.gains():  # seq rule applied, state replies included
             if msg.mode == Mode.auto:
                 by_id[msg.loop_id].apply_gains(msg.kp, msg.ki)
                 applied += 1
@@ -308,6 +324,12 @@ def run_scans(
 
 
 # -- command line ----------------------------------------------------------------------
+def _gateway_id(text: str) -> str:
+    if not is_valid_id(text):
+        raise argparse.ArgumentTypeError(f"invalid gateway id {text!r}")
+    return text
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="plant_command", metavar="ACTION", required=True)
     run_p = sub.add_parser("run", help="simulate loops and exchange samples/gains over Zenoh")
@@ -378,6 +400,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     bus.add_argument(
         "--zenoh-config", default=None, metavar="FILE", help="Zenoh JSON5 config (auth, TLS)"
     )
+    bus.add_argument(
+        "--gateway-id",
+        default=None,
+        type=_gateway_id,
+        metavar="ID",
+        help="receive batched gains on {prefix}/gateways/ID/gains (and register the loops "
+        "with this gateway when --register is given)",
+    )
     reg = run_p.add_argument_group("registration")
     reg.add_argument("--register", default=None, metavar="URL", help="tuner admin API base URL")
     reg.add_argument(
@@ -410,6 +440,7 @@ def run(args: argparse.Namespace) -> int:
                 scan=args.scan,
                 token=os.environ.get(TOKEN_ENV),
                 timeout=args.register_timeout,
+                gateway=args.gateway_id,
             )
         except RegistrationError as exc:
             print(f"pitune plant: {exc}", file=sys.stderr)

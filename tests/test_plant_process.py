@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import os
 import queue
 import time
@@ -15,8 +14,9 @@ from plant_sim.process import LoopSpec, untuned_baseline
 from plant_sim.scenario import LoopSettings, Square, TankLoop
 from plant_sim.trajectory import Trajectory, TrajectoryWriter, read_log
 from service.cli import build_parser, main
-from service.demo import Child, free_port, pitune
-from service.protocol import GainsMessage, Keys, Mode, Sample, encode
+from service.demo import Child, pitune
+from service.netutil import free_port, session_config
+from service.protocol import GainsBatch, GainsMessage, Keys, Mode, Sample, encode
 from service.schemas import LoopConfig
 
 UNTUNED_TANK = (0.05 * 0.5 / 1.2, 0.05 * 0.5 / 1.2 / 60.0)
@@ -129,11 +129,7 @@ def test_tracking_mse_uses_the_last_setpoint_changes():
 
 # -- the process on the bus --------------------------------------------------------------
 def session(port: int) -> zenoh.Session:
-    config = zenoh.Config()
-    config.insert_json5("mode", '"peer"')
-    config.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-    config.insert_json5("scouting/multicast/enabled", "false")
-    return zenoh.open(config)
+    return zenoh.open(session_config(mode="peer", connect=[f"tcp/127.0.0.1:{port}"]))
 
 
 def next_sample(samples: queue.SimpleQueue, loop_id: str, until, timeout: float = 10.0):
@@ -141,10 +137,11 @@ def next_sample(samples: queue.SimpleQueue, loop_id: str, until, timeout: float 
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         try:
-            key, payload = samples.get(timeout=0.2)
+            key, payload, congestion = samples.get(timeout=0.2)
         except queue.Empty:
             continue
         sample = Sample.model_validate_json(payload)
+        assert congestion == zenoh.CongestionControl.BLOCK  # samples are never dropped
         if key == Keys().sample(loop_id) and until(sample):
             return sample
     raise AssertionError(f"no matching sample of {loop_id} within {timeout} s")
@@ -156,7 +153,7 @@ def test_plant_publishes_samples_and_applies_only_auto_gains(tmp_path):
         "plant",
         pitune("plant", "run", "--tank", "tank1", "--foptd", "f1:K=2,tau=20,theta=5",
                "--listen", f"tcp/127.0.0.1:{port}", "--speed", "40", "--gain-range", "10",
-               "--log-dir", str(tmp_path / "log"), "--progress", "0"),
+               "--log-dir", str(tmp_path / "log"), "--progress", "0", "--gateway-id", "gw-p"),
         env=dict(os.environ),
         log=tmp_path / "plant.log",
     )  # fmt: skip
@@ -166,16 +163,19 @@ def test_plant_publishes_samples_and_applies_only_auto_gains(tmp_path):
     try:
         bus = session(port)
         sub = bus.declare_subscriber(
-            Keys().all_samples, lambda s: samples.put((str(s.key_expr), s.payload.to_bytes()))
+            Keys().all_samples,
+            lambda s: samples.put((str(s.key_expr), s.payload.to_bytes(), s.congestion_control)),
         )
         first = next_sample(samples, "tank1", lambda s: True, timeout=30.0)
         assert (first.kp, first.ki) == pytest.approx(UNTUNED_TANK)
         assert next_sample(samples, "tank1", lambda s: True).t == first.t + 1.0
 
+        def message(loop_id, seq, kp, ki, mode=Mode.auto):
+            return GainsMessage(loop_id=loop_id, seq=seq, t=first.t, dkp=0.0, dki=0.0, kp=kp,
+                                ki=ki, mode=mode, instance_id="test")  # fmt: skip
+
         def send(loop_id, seq, kp, ki, mode=Mode.auto):
-            msg = GainsMessage(loop_id=loop_id, seq=seq, t=first.t, dkp=0.0, dki=0.0, kp=kp,
-                               ki=ki, mode=mode, instance_id="test")  # fmt: skip
-            bus.put(Keys().gains(loop_id), encode(msg))
+            bus.put(Keys().gains(loop_id), encode(message(loop_id, seq, kp, ki, mode)))
 
         send("tank1", 1, 0.1, 0.002)
         next_sample(samples, "tank1", lambda s: s.kp == pytest.approx(0.1))
@@ -191,6 +191,10 @@ def test_plant_publishes_samples_and_applies_only_auto_gains(tmp_path):
         assert f1.ki == pytest.approx(0.002)
         later = next_sample(samples, "tank1", lambda s: s.t > f1.t + 5)
         assert later.kp == pytest.approx(clipped.kp)
+        batch = GainsBatch(gains=[message("f1", 1, 0.3, 0.003), message("f1", 2, 0.12, 0.0024)])
+        bus.put(Keys().gateway_gains("gw-p"), encode(batch))  # a duplicate, then news
+        f1 = next_sample(samples, "f1", lambda s: s.kp == pytest.approx(0.12))
+        assert f1.ki == pytest.approx(0.0024)
     finally:
         if sub is not None:
             sub.undeclare()
@@ -198,7 +202,7 @@ def test_plant_publishes_samples_and_applies_only_auto_gains(tmp_path):
             bus.close()
         code = child.stop()
     assert code == 0, child.tail()
-    assert "3 gain updates applied, 1 advisory ignored, 0 invalid and 1 stale" in child.tail()
+    assert "4 gain updates applied, 1 advisory ignored, 0 invalid and 2 stale" in child.tail()
     log = read_log(tmp_path / "log" / "tank1.csv")
     assert np.all(np.diff(log.t) == 1.0)
     assert set(np.round(log.kp, 6)) >= {round(UNTUNED_TANK[0], 6), 0.1}

@@ -1,61 +1,100 @@
-"""A minimal DCS gateway for pitune: publish a loop's samples, apply its ``auto`` gains.
+"""A minimal reference DCS gateway for pitune: publish samples, apply ``auto`` gains.
 
-Replace ``read_loop`` and ``write_gains`` with your DCS's calls (OPC UA, Modbus, ...).
-Run it beside a tuner on this host, or through the compose deployment's router:
+It follows docs/protocol.md through :class:`plant_sim.gateway.Gateway`:
+
+* samples are published with ``CongestionControl.BLOCK`` (never silently dropped);
+* a gains message is applied only if its ``seq`` is above the last one taken for that
+  loop from the same tuner ``instance_id`` (duplicates and late arrivals are dropped),
+  and only if its mode is ``auto`` (``advisory`` ones are for a human to judge);
+* whenever a tuner's liveliness token appears (tuner started, or this gateway
+  (re)connected), it asks the tuner for the loops' state and applies the gains it
+  missed meanwhile (same ``seq`` rule); it says when no tuner is up;
+* ``--gateway-id ID`` also applies the batched gains (``GainsBatch``) of the loops
+  registered with ``"gateway": "ID"``.
+
+Replace the :class:`Dcs` stand-in with your DCS's calls (OPC UA, Modbus, ...). Run it
+beside a tuner on this host, or through the compose deployment's router:
 
     python deploy/examples/dcs_gateway.py --connect tcp/127.0.0.1:7447
     python deploy/examples/dcs_gateway.py --config deploy/zenoh/gateway.json5
 """
 
 import argparse
-import json
-import queue
+import logging
 import time
 
 import zenoh
 
-from service.protocol import GainsMessage, Keys, Mode, Sample, encode
+from plant_sim.gateway import Gateway
+from service.netutil import session_config
+from service.protocol import Keys, Mode, Sample, is_valid_id
 
-LOOP_ID = "LIC-101"
-gains = {"kp": 0.5, "ki": 0.01}  # the DCS PID block's gains (stand-in)
-
-
-def read_loop() -> tuple[float, float]:
-    """Setpoint and measurement from the DCS (stand-in: a loop at rest)."""
-    return 55.0, 54.8
+log = logging.getLogger("dcs_gateway")
 
 
-def write_gains(kp: float, ki: float) -> None:
-    """Write new gains to the DCS PID block (bumpless in the DCS)."""
-    gains.update(kp=kp, ki=ki)
+class Dcs:
+    """Stand-in for the DCS: one PID block per loop (here at rest, at fixed gains)."""
+
+    def __init__(self, gains: dict[str, tuple[float, float]]) -> None:
+        self.blocks = {loop_id: {"kp": kp, "ki": ki} for loop_id, (kp, ki) in gains.items()}
+
+    def read_loop(self, loop_id: str) -> tuple[float, float]:
+        """Setpoint and measurement of a loop."""
+        return 55.0, 54.8
+
+    def gains(self, loop_id: str) -> dict[str, float]:
+        """The gains in force in the PID block (reported with every sample)."""
+        return dict(self.blocks[loop_id])
+
+    def write_gains(self, loop_id: str, kp: float, ki: float) -> None:
+        """Write new gains to the PID block (bumpless in the DCS)."""
+        self.blocks[loop_id].update(kp=kp, ki=ki)
+
+
+def scan(gateway: Gateway, dcs: Dcs) -> int:
+    """One DCS scan: apply the ``auto`` updates received since the last scan (the seq rule
+    already applied), then publish a sample per loop. Returns the updates applied."""
+    applied = 0
+    for update in gateway.gains():
+        if update.mode == Mode.auto:
+            dcs.write_gains(update.loop_id, update.kp, update.ki)
+            applied += 1
+    for loop_id in dcs.blocks:
+        sp, pv = dcs.read_loop(loop_id)
+        gateway.publish(loop_id, Sample(t=time.time(), sp=sp, pv=pv, **dcs.gains(loop_id)))
+    return applied
 
 
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--connect", default=None, help="Zenoh endpoint of the tuner or router")
     parser.add_argument("--config", default=None, help="Zenoh JSON5 config (auth, router)")
+    parser.add_argument("--prefix", default="pitune", help="key-expression prefix")
+    parser.add_argument(
+        "--gateway-id", default=None, help="also apply the batched gains of this gateway's loops"
+    )
+    parser.add_argument("--period", type=float, default=1.0, help="scan period, s")
     parser.add_argument("--seconds", type=float, default=float("inf"), help="stop after this")
     args = parser.parse_args()
-    config = zenoh.Config.from_file(args.config) if args.config else zenoh.Config()
-    if args.connect:
-        config.insert_json5("connect/endpoints", json.dumps([args.connect]))
-    keys, inbox = Keys(), queue.SimpleQueue()
-    with zenoh.open(config) as session:
-        # Never block in a Zenoh callback: hand the payload over to the main loop.
-        sub = session.declare_subscriber(keys.gains(LOOP_ID), lambda s: inbox.put(s.payload))
-        pub = session.declare_publisher(keys.sample(LOOP_ID))
-        end = time.monotonic() + args.seconds
+    if args.gateway_id is not None and not is_valid_id(args.gateway_id):
+        parser.error(f"invalid gateway id {args.gateway_id!r}")
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+    dcs = Dcs({"LIC-101": (0.5, 0.01)})
+    config = session_config(
+        config_file=args.config, connect=[args.connect] if args.connect else None
+    )
+    session = zenoh.open(config)
+    try:
+        gateway = Gateway(session, dcs.blocks, Keys(args.prefix), gateway_id=args.gateway_id)
         try:
+            end = time.monotonic() + args.seconds
             while time.monotonic() < end:
-                while not inbox.empty():
-                    msg = GainsMessage.model_validate_json(inbox.get().to_bytes())
-                    if msg.mode == Mode.auto:  # advisory updates are for a human to judge
-                        write_gains(msg.kp, msg.ki)
-                sp, pv = read_loop()
-                pub.put(encode(Sample(t=time.time(), sp=sp, pv=pv, **gains)))
-                time.sleep(1.0)
+                scan(gateway, dcs)
+                time.sleep(args.period)
         finally:
-            sub.undeclare()  # a callback subscriber left declared hangs the interpreter
+            gateway.close()  # a callback subscriber left declared hangs the interpreter
+    finally:
+        session.close()
 
 
 if __name__ == "__main__":
