@@ -34,11 +34,13 @@ from prometheus_client import CONTENT_TYPE_LATEST
 from service.agent import Agent
 from service.schemas import (
     MAX_BULK,
+    MAX_PAGE,
     BulkRegistered,
     Health,
     HistoryPage,
     LoopConfig,
     LoopPatch,
+    LoopsPage,
     LoopView,
 )
 from service.settings import Settings
@@ -60,7 +62,7 @@ def require_token(
     settings: Annotated[Settings, Depends(get_settings)],
     credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
 ) -> None:
-    """Mutating calls need the bearer token when one is configured."""
+    """Loop calls need the bearer token when one is configured."""
     if settings.api_token is None:
         return
     expected = settings.api_token.get_secret_value().encode()
@@ -74,17 +76,20 @@ def require_token(
 
 
 TunerDep = Annotated[Tuner, Depends(get_tuner)]
-loops = APIRouter(prefix="/loops", tags=["loops"])
-mutating = [Depends(require_token)]
+# Every loop call needs the token when one is set, reads too: configs, gains and audit
+# logs are plant data. /healthz, /readyz and /metrics stay open for probes and scrapers.
+loops = APIRouter(prefix="/loops", tags=["loops"], dependencies=[Depends(require_token)])
+Offset = Annotated[int, Query(ge=0)]
+Limit = Annotated[int, Query(ge=1, le=MAX_PAGE)]
 
 
-@loops.post("", status_code=201, dependencies=mutating, responses={409: {}})
+@loops.post("", status_code=201, responses={409: {}})
 def register_loop(config: LoopConfig, tuner: TunerDep) -> LoopView:
     """Register a loop; it starts at its registered gains with a fresh agent state."""
     return tuner.register(config)
 
 
-@loops.post("/bulk", status_code=201, dependencies=mutating, responses={409: {}})
+@loops.post("/bulk", status_code=201, responses={409: {}})
 def register_loops(
     configs: Annotated[list[LoopConfig], Body(max_length=MAX_BULK)], tuner: TunerDep
 ) -> BulkRegistered:
@@ -93,8 +98,9 @@ def register_loops(
 
 
 @loops.get("")
-def list_loops(tuner: TunerDep) -> list[LoopView]:
-    return tuner.views()
+def list_loops(tuner: TunerDep, offset: Offset = 0, limit: Limit = 100) -> LoopsPage:
+    """A page of the registered loops, in registration order."""
+    return tuner.views(offset, limit)
 
 
 @loops.get("/{loop_id}", responses={404: {}})
@@ -103,7 +109,7 @@ def get_loop(loop_id: str, tuner: TunerDep) -> LoopView:
     return tuner.view(loop_id)
 
 
-@loops.patch("/{loop_id}", dependencies=mutating, responses={404: {}, 422: {}})
+@loops.patch("/{loop_id}", responses={404: {}, 422: {}})
 def patch_loop(loop_id: str, patch: LoopPatch, tuner: TunerDep) -> LoopView:
     """Change the mode, forgetting factor or safety limits."""
     try:
@@ -112,14 +118,14 @@ def patch_loop(loop_id: str, patch: LoopPatch, tuner: TunerDep) -> LoopView:
         raise HTTPException(422, str(exc)) from None
 
 
-@loops.post("/{loop_id}/reset", dependencies=mutating, responses={404: {}})
+@loops.post("/{loop_id}/reset", responses={404: {}})
 def reset_loop(loop_id: str, tuner: TunerDep) -> LoopView:
     """Zero hidden state and integral, and the registered gains published (a frozen loop:
     the agent state only, its gains are left alone)."""
     return tuner.reset(loop_id)
 
 
-@loops.delete("/{loop_id}", status_code=204, dependencies=mutating, responses={404: {}})
+@loops.delete("/{loop_id}", status_code=204, responses={404: {}})
 def delete_loop(loop_id: str, tuner: TunerDep) -> None:
     """Unregister a loop; its audit log is kept."""
     tuner.delete(loop_id)
@@ -129,8 +135,8 @@ def delete_loop(loop_id: str, tuner: TunerDep) -> None:
 def loop_history(
     loop_id: str,
     tuner: TunerDep,
-    offset: Annotated[int, Query(ge=0)] = 0,
-    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+    offset: Offset = 0,
+    limit: Limit = 100,
 ) -> HistoryPage:
     """The loop's audit log, newest first."""
     return tuner.history(loop_id, offset, limit)

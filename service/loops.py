@@ -123,6 +123,10 @@ class Configs:
     def __getitem__(self, loop_id: str) -> LoopConfig:
         return LoopConfig.model_validate_json(self._json[loop_id])
 
+    def raw(self, loop_id: str) -> bytes:
+        """The config's JSON, unparsed (to parse it outside the table's lock)."""
+        return self._json[loop_id]
+
     def __setitem__(self, loop_id: str, config: LoopConfig) -> None:
         self._json[loop_id] = config.model_dump_json().encode()
 
@@ -134,6 +138,39 @@ class Configs:
 
     def __len__(self) -> int:
         return len(self._json)
+
+
+@dataclass
+class RawView:
+    """A loop's view with its config still JSON: see :meth:`LoopTable.raw_view`."""
+
+    config: bytes
+    kp: float
+    ki: float
+    status: LoopStatus
+    seq: int
+    last_sample_t: float | None
+    int_e: float
+    hidden_norm: float
+    counters: Counters
+
+    def parse(self) -> LoopView:
+        config = LoopConfig.model_validate_json(self.config)
+        scaling = config.resolved_scaling
+        return LoopView(
+            config=config,
+            scaling=scaling,
+            rl_period_s=scaling.rl_period_s,
+            mode=config.mode,
+            kp=self.kp,
+            ki=self.ki,
+            status=self.status,
+            seq=self.seq,
+            last_sample_t=self.last_sample_t,
+            int_e=self.int_e,
+            hidden_norm=self.hidden_norm,
+            counters=self.counters,
+        )
 
 
 class LoopTable:
@@ -651,22 +688,22 @@ class LoopTable:
         return LoopStatus.tuning
 
     def view(self, loop_id: str, wall: float) -> LoopView:
+        return self.raw_view(loop_id, wall).parse()
+
+    def raw_view(self, loop_id: str, wall: float) -> RawView:
+        """What :meth:`view` shows, copied but not parsed: the admin API parses it outside
+        the lock (parsing 10,000 configs takes most of a second)."""
         s = self.slot(loop_id)
-        config = self.configs[loop_id]
-        scaling = config.resolved_scaling
-        return LoopView(
-            config=config,
-            scaling=scaling,
-            rl_period_s=scaling.rl_period_s,
-            kp=float(self.kp[s]),
-            ki=float(self.ki[s]),
-            mode=config.mode,
-            status=self.status(s, wall),
-            seq=int(self.seq[s]),
-            last_sample_t=None if math.isnan(self.last_t[s]) else float(self.last_t[s]),
-            int_e=float(self.int_e[s]),
-            hidden_norm=float(np.linalg.norm(self.hidden[s])),
-            counters=Counters(
+        return RawView(
+            self.configs.raw(loop_id),
+            float(self.kp[s]),
+            float(self.ki[s]),
+            self.status(s, wall),
+            int(self.seq[s]),
+            None if math.isnan(self.last_t[s]) else float(self.last_t[s]),
+            float(self.int_e[s]),
+            float(np.linalg.norm(self.hidden[s])),
+            Counters(
                 samples=int(self.n_samples[s]),
                 rejected=int(self.n_rejected[s]),
                 steps=int(self.n_steps[s]),

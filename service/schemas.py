@@ -212,6 +212,17 @@ class AuditEntry(BaseModel):
     detail: str = ""
 
 
+MAX_PAGE = 1000
+"""Most loops or audit entries in one page of ``GET /loops`` or a loop's history."""
+
+
+class LoopsPage(BaseModel):
+    items: list[LoopView] = Field(description="In registration order.")
+    total: int = Field(description="Loops registered.")
+    offset: int
+    limit: int
+
+
 class HistoryPage(BaseModel):
     items: list[AuditEntry] = Field(description="Newest first.")
     total: int

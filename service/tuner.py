@@ -20,6 +20,7 @@ from __future__ import annotations
 import collections
 import contextlib
 import gc
+import itertools
 import logging
 import math
 import queue
@@ -49,7 +50,7 @@ from service.protocol import (
     UpdateReason,
     encode,
 )
-from service.schemas import HistoryPage, LoopConfig, LoopPatch, LoopView
+from service.schemas import HistoryPage, LoopConfig, LoopPatch, LoopsPage, LoopView
 from service.settings import Settings
 from service.store import AuditRow, Store, audit_row
 
@@ -573,10 +574,15 @@ class Tuner:
             self._known(loop_id)
             return self.table.view(loop_id, time.time())
 
-    def views(self) -> list[LoopView]:
+    def views(self, offset: int, limit: int) -> LoopsPage:
+        """A page of loops in registration order; parsed outside the table lock."""
         with self.table.lock:
             wall = time.time()
-            return [self.table.view(loop_id, wall) for loop_id in self.table.slot_of]
+            total = len(self.table)
+            page = itertools.islice(self.table.slot_of, offset, offset + limit)
+            raw = [self.table.raw_view(loop_id, wall) for loop_id in page]
+        items = [view.parse() for view in raw]
+        return LoopsPage(items=items, total=total, offset=offset, limit=limit)
 
     def register(self, config: LoopConfig) -> LoopView:
         wall = time.time()
