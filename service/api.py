@@ -44,7 +44,7 @@ from service.schemas import (
     LoopView,
 )
 from service.settings import Settings
-from service.tuner import Conflict, Tuner, UnknownLoop
+from service.tuner import Conflict, StoreUnavailable, Tuner, UnknownLoop
 
 log = logging.getLogger("pitune.api")
 _bearer = HTTPBearer(auto_error=False, description="PITUNE_API_TOKEN, when set")
@@ -147,18 +147,22 @@ ops = APIRouter(tags=["operations"])
 
 @ops.get("/healthz", responses={503: {"model": Health}})
 def healthz(tuner: TunerDep) -> Health:
-    """Liveness: the worker thread runs."""
-    if tuner.alive:
-        return Health(status="ok")
-    return _unhealthy("failing", "worker thread not running")
+    """Liveness: the worker thread runs and the store commits."""
+    if not tuner.alive:
+        return _unhealthy("failing", "worker thread not running")
+    if tuner.store_failure is not None:
+        return _unhealthy("failing", tuner.store_failure)
+    return Health(status="ok")
 
 
 @ops.get("/readyz", responses={503: {"model": Health}})
 def readyz(tuner: TunerDep) -> Health:
-    """Readiness: worker running and Zenoh session open."""
-    if tuner.ready:
-        return Health(status="ok")
-    return _unhealthy("starting", "bus or worker not up")
+    """Readiness: worker running, Zenoh session open, store committing."""
+    if not tuner.ready:
+        return _unhealthy("starting", "bus or worker not up")
+    if tuner.store_failure is not None:
+        return _unhealthy("failing", tuner.store_failure)
+    return Health(status="ok")
 
 
 @ops.get(
@@ -224,6 +228,10 @@ def create_app(settings: Settings, agent: Agent | None = None) -> FastAPI:
         # Without the offending input: it may be NaN or Infinity, which JSON cannot carry.
         errors = [{k: e[k] for k in ("loc", "msg", "type")} for e in exc.errors()]
         return JSONResponse({"detail": errors}, status_code=422)
+
+    @app.exception_handler(StoreUnavailable)
+    async def store_unavailable(request: Request, exc: StoreUnavailable) -> JSONResponse:
+        return JSONResponse({"detail": str(exc)}, status_code=503)
 
     @app.exception_handler(Conflict)
     async def conflict(request: Request, exc: Conflict) -> JSONResponse:

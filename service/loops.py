@@ -627,6 +627,12 @@ class LoopTable:
         self._gains_dirty.clear()
         return gains, audit
 
+    def requeue(self, gains: list[tuple[float, float, int, str]], audit: list[AuditRow]) -> None:
+        """Put back changes :meth:`drain_changes` returned that could not be stored, ahead
+        of any newer ones (a deleted loop's gains row is dropped: its row is gone too)."""
+        self._gains_dirty.update(self.slot_of[g[3]] for g in gains if g[3] in self.slot_of)
+        self._audit[:0] = audit
+
     def snapshot(self, loop_ids: Iterable[str] | None = None) -> list[tuple[str, bytes, str]]:
         """(id, hidden state bytes, runtime JSON) of every loop (or of the given, if still
         registered)."""

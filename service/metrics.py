@@ -43,6 +43,16 @@ class Metrics:
         )
         self.loops = Gauge("pitune_loops", "Registered loops, by mode.", ["mode"], registry=r)
         self.queue_depth = Gauge("pitune_queue_depth", "Bus messages waiting.", registry=r)
+        self.store_commit_failures = Counter(
+            "pitune_store_commit_failures",
+            "Failed commits of gains and audit rows (nothing was published for them).",
+            registry=r,
+        )
+        self.steps_skipped = Counter(
+            "pitune_steps_skipped",
+            "Due RL steps skipped because the store failed to commit.",
+            registry=r,
+        )
         self.loops_unloadable = Gauge(
             "pitune_loops_unloadable",
             "Stored loops not loaded at start-up: their config is invalid (see the log).",

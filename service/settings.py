@@ -78,6 +78,11 @@ class Settings(BaseSettings):
         description="Threads stepping one large batch (>= 2,048 due loops) in halves; "
         "2 on a 2-core box tuning a large site.",
     )
+    store_failure_exit_s: Annotated[float, Field(gt=0.0)] = Field(
+        60.0,
+        description="Seconds of failing store commits after which the daemon exits "
+        "(status 74) for its supervisor to restart it from the store.",
+    )
     log_level: Literal["debug", "info", "warning", "error"] = "info"
 
     @field_validator("api_token", mode="before")

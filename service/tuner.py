@@ -23,6 +23,7 @@ import gc
 import itertools
 import logging
 import math
+import os
 import queue
 import sqlite3
 import threading
@@ -37,7 +38,7 @@ from pydantic import ValidationError
 from service.agent import Agent, load_agent, untrained_agent
 from service.bus import JSON, Bus, Item, Kind, reply
 from service.loops import MODE_VALUES, LoopTable, Rejected, StepResult
-from service.metrics import Metrics
+from service.metrics import Metrics, RateLimitedLog
 from service.protocol import (
     MAX_BATCH,
     MAX_MAGNITUDE,
@@ -64,6 +65,10 @@ JOURNAL_CHUNK = 1000
 """Journal rows applied to the store's tables per idle worker iteration (~5 ms)."""
 JOURNAL_BACKLOG = 100_000
 """Journal rows pending above which they are applied even while messages wait."""
+COMMIT_RETRY_S = 1.0
+"""Seconds between attempts to commit while the store fails."""
+EXIT_STORE_FAILED = 74
+"""Exit status after ``store_failure_exit_s`` of failing commits (EX_IOERR)."""
 _RANGE_ERRORS = {"less_than_equal", "greater_than_equal", "less_than", "greater_than"}
 
 
@@ -73,6 +78,10 @@ class Conflict(Exception):
 
 class UnknownLoop(LookupError):
     """No loop with this id."""
+
+
+class StoreUnavailable(Exception):
+    """The store fails to commit: the change would be neither recorded nor published."""
 
 
 def load_configured_agent(settings: Settings) -> Agent:
@@ -207,6 +216,12 @@ class Tuner:
         self.bus: Bus | None = None
         self._worker: threading.Thread | None = None
         self._snapshot_todo: list[str] = []
+        self._held: list[tuple[StepResult, UpdateReason]] = []
+        """Steps whose commit failed: published once a commit succeeds."""
+        self._store_failing_since: float | None = None
+        self._store_error = ""
+        self._retry_at = 0.0
+        self._failure_log = RateLimitedLog(log)
 
     # -- lifecycle --------------------------------------------------------------------
     def start(self) -> Tuner:
@@ -307,8 +322,11 @@ class Tuner:
         next_snapshot = time.monotonic() + interval
         while True:
             try:
-                busy = self._snapshot_todo or self.store.journal_rows
+                failing = self._store_failing_since is not None
+                busy = not failing and (self._snapshot_todo or self.store.journal_rows)
                 wait = 0.0 if busy else next_snapshot - time.monotonic()
+                if failing:
+                    wait = min(wait, COMMIT_RETRY_S)
                 items = [self.inbox.get(timeout=max(0.0, wait))]
             except queue.Empty:
                 items = []
@@ -320,6 +338,8 @@ class Tuner:
             stop = any(item is _STOP for item in items)
             try:
                 self._handle([item for item in items if item is not _STOP])
+                if self._store_failing_since is not None and not stop:
+                    continue  # no journal or snapshot work on a failing store
                 self._apply_journal()
                 if stop:
                     self.snapshot()
@@ -344,6 +364,9 @@ class Tuner:
     def _handle(self, items: list[Item]) -> None:
         self.metrics.queue_depth.set(self.inbox.qsize())
         if not items:
+            if self._store_failing_since is not None:
+                with self.table.lock:
+                    self._commit(None)  # retry, even without traffic
             return
         wall = time.time()
         due: dict[int, None] = {}  # ordered set of slots
@@ -478,6 +501,11 @@ class Tuner:
             return
         slots = np.fromiter(due, dtype=np.int64, count=len(due))
         due.clear()
+        if self._store_failing_since is not None:
+            # A step could be neither committed nor published, and the next one would
+            # start from gains the gateway never got: skip until the store works again.
+            self.metrics.steps_skipped.inc(len(slots))
+            return
         started = time.perf_counter()
         result = self.table.step(slots, wall)
         self.metrics.inference_seconds.observe(time.perf_counter() - started)
@@ -485,12 +513,55 @@ class Tuner:
         self._commit(result)
 
     def _commit(self, result: StepResult | None, reason: UpdateReason = UpdateReason.agent) -> None:
-        """Persist the table's pending changes, then publish ``result``'s gains."""
+        """Persist the table's pending changes, then publish ``result``'s gains.
+
+        If the store fails (disk full, database locked), the changes go back to the table
+        and ``result`` is held, unpublished: nothing goes out that is not committed. A
+        later call (the worker retries every COMMIT_RETRY_S) commits them all and then
+        publishes what was held, in order.
+        """
+        if result is not None:
+            self._held.append((result, reason))
+        if self._store_failing_since is not None and time.monotonic() < self._retry_at:
+            return
         gains, audit = self.table.drain_changes()
         if gains or audit:
-            self.store.record_gains(gains, audit)
-        if result is None:
-            return
+            try:
+                self.store.record_gains(gains, audit)
+            except Exception as exc:  # sqlite3.Error, OSError, MemoryError: all the same
+                self.table.requeue(gains, audit)
+                self._store_failed(exc)
+                return
+        if self._store_failing_since is not None:
+            log.warning("store commits work again; publishing %d held steps", len(self._held))
+            self._store_failing_since = None
+        held, self._held = self._held, []
+        for result, reason in held:
+            self._publish(result, reason)
+
+    def _store_failed(self, exc: Exception) -> None:
+        now = time.monotonic()
+        self.metrics.store_commit_failures.inc()
+        self._retry_at = now + COMMIT_RETRY_S
+        if self._store_failing_since is None:
+            self._store_failing_since = now
+        failing_for = now - self._store_failing_since
+        self._store_error = f"store commits failing for {failing_for:.0f} s: {exc!r}"
+        self._failure_log.warning("store", f"{self._store_error}; no RL steps until it works")
+        if failing_for >= self.settings.store_failure_exit_s:
+            # Unpublished steps live only in memory: restarting from the store brings the
+            # tuner back to exactly what was published (as a SIGKILL would), which a store
+            # that works again after a restart (or on another volume) needs.
+            log.critical("%s: exiting for a supervisor to restart the tuner", self._store_error)
+            logging.shutdown()
+            os._exit(EXIT_STORE_FAILED)
+
+    @property
+    def store_failure(self) -> str | None:
+        """Why the store fails to commit, while it does (None: it works)."""
+        return None if self._store_failing_since is None else self._store_error
+
+    def _publish(self, result: StepResult, reason: UpdateReason) -> None:
         modes = [MODE_VALUES[c] for c in result.mode.tolist()]
         messages = self._gains_messages(result, modes, reason)
         by_gateway: dict[str, list[dict]] = collections.defaultdict(list)
@@ -638,10 +709,12 @@ class Tuner:
 
     def reset(self, loop_id: str) -> LoopView:
         """Zero hidden state and integral; the registered gains, published unless the loop
-        is frozen (see :meth:`LoopTable.reset`)."""
+        is frozen (see :meth:`LoopTable.reset`). StoreUnavailable while commits fail."""
         wall = time.time()
         with self.table.lock:
             self._known(loop_id)
+            if self.store_failure is not None:
+                raise StoreUnavailable(self.store_failure)
             self._commit(self.table.reset(loop_id, wall), UpdateReason.reset)
             return self.table.view(loop_id, wall)
 

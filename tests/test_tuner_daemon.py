@@ -180,3 +180,34 @@ def test_invalid_settings_exit_with_status_2(tmp_path):
     )  # fmt: skip
     assert proc.returncode == 2
     assert "invalid settings" in proc.stderr and "key prefix" in proc.stderr
+
+
+def test_a_store_that_keeps_failing_makes_the_daemon_exit_for_a_restart(tmp_path):
+    """A database locked by another process: no gains go out, and after
+    store_failure_exit_s the daemon exits (74) and restarts from what was published."""
+    env = {"PITUNE_MAX_SAMPLE_RATE_HZ": "1e6", "PITUNE_STORE_FAILURE_EXIT_S": "1"}
+    d = Daemon(tmp_path, env=env)
+    try:
+        d.start()
+        with d.http() as api:
+            assert api.post("/loops", json=loop_body("LIC-101")).status_code == 201
+        gw = Gateway(open_peer([d.zenoh]))
+        locker = sqlite3.connect(d.db, isolation_level=None)
+        try:
+            wait_until(lambda: list(gw.session.liveliness().get("pitune/tuners/proc", timeout=1.0)))
+            locker.execute("BEGIN IMMEDIATE")  # holds the write lock
+            for i in range(170):
+                gw.send("LIC-101", {"t": float(i), "e": 1.0})
+            assert d.proc.wait(timeout=60) == 74  # two 5 s busy timeouts, 1 s apart
+            assert gw.gains.empty()
+        finally:
+            locker.close()
+            gw.close()
+        assert "exiting for a supervisor to restart the tuner" in d.log.read_text()
+        d.start()
+        with d.http() as api:
+            assert api.get("/loops/LIC-101").json()["seq"] == 0  # nothing was published
+            items = api.get("/loops/LIC-101/history").json()["items"]
+            assert [e["reason"] for e in items] == ["registered"]
+    finally:
+        d.reap()

@@ -3,6 +3,7 @@ must not keep the daemon from tuning every other loop."""
 
 import json
 import logging
+import queue
 import sqlite3
 import threading
 
@@ -14,7 +15,7 @@ from service.bus import Kind
 from service.protocol import MAX_MAGNITUDE
 from service.schemas import LoopConfig
 from service.tuner import Tuner
-from tests.tuner_support import loop_body, tuner_settings
+from tests.tuner_support import connected_gateway, loop_body, tuner_settings, wait_until
 
 pytestmark = pytest.mark.timeout(60)
 TINY = {"k_hat": 1e-6, "tau_hat": 1e-6}
@@ -92,3 +93,43 @@ def test_a_snapshot_racing_a_delete_and_a_new_registration_writes_no_stale_state
         assert json.loads(rows["C"])["last_t"] == 5.0  # the chunk was written
         assert "A" not in rows and "B" not in rows  # the new A has no old state
         assert tuner.view("A").last_sample_t is None
+
+
+def test_a_failing_commit_publishes_nothing_loses_nothing_and_is_retried(tmp_path):
+    settings = tuner_settings(tmp_path)
+    app = create_app(settings)
+    with TestClient(app) as client:
+        tuner = app.state.tuner
+        gw = connected_gateway(settings)
+        try:
+            client.post("/loops", json=loop_body("LIC-101"))
+            record, failures = tuner.store.record_gains, []
+
+            def disk_full(gains, audit):
+                failures.append(len(audit))
+                raise sqlite3.OperationalError("database or disk is full")
+
+            tuner.store.record_gains = disk_full  # the store fails, in-process
+            for i in range(170):  # one RL step due at t = 165
+                gw.send("LIC-101", {"t": float(i), "e": 2.0})
+            wait_until(lambda: failures, what="a failed commit")
+            with pytest.raises(queue.Empty):
+                gw.next_gains(timeout=0.3)  # not committed: not published
+            for path in ("/healthz", "/readyz"):
+                r = client.get(path)
+                assert r.status_code == 503 and "disk is full" in r.json()["detail"], path
+            assert client.post("/loops/LIC-101/reset").status_code == 503
+            for i in range(170, 340):  # another due period: no step on unpublished gains
+                gw.send("LIC-101", {"t": float(i), "e": 2.0})
+            wait_until(lambda: tuner.metrics.value("pitune_steps_skipped_total") == 1)
+            assert tuner.metrics.value("pitune_store_commit_failures_total") >= 1
+
+            tuner.store.record_gains = record  # the disk has room again
+            msg = gw.next_gains(timeout=5.0)  # retried within COMMIT_RETRY_S, then published
+            assert (msg.seq, msg.t) == (1, 165.0)
+            assert client.get("/healthz").status_code == 200
+            items = client.get("/loops/LIC-101/history").json()["items"]
+            assert [(e["reason"], e["seq"]) for e in items] == [("agent", 1), ("registered", 0)]
+            assert client.get("/loops/LIC-101").json()["kp"] == msg.kp
+        finally:
+            gw.close()
