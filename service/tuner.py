@@ -322,11 +322,12 @@ class Tuner:
         next_snapshot = time.monotonic() + interval
         while True:
             try:
-                failing = self._store_failing_since is not None
-                busy = not failing and (self._snapshot_todo or self.store.journal_rows)
-                wait = 0.0 if busy else next_snapshot - time.monotonic()
-                if failing:
-                    wait = min(wait, COMMIT_RETRY_S)
+                if self._store_failing_since is not None:  # until the next retry
+                    wait = self._retry_at - time.monotonic()
+                elif self._snapshot_todo or self.store.journal_rows:
+                    wait = 0.0
+                else:
+                    wait = next_snapshot - time.monotonic()
                 items = [self.inbox.get(timeout=max(0.0, wait))]
             except queue.Empty:
                 items = []
