@@ -62,7 +62,7 @@ def require_token(
     settings: Annotated[Settings, Depends(get_settings)],
     credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
 ) -> None:
-    """Loop calls need the bearer token when one is configured."""
+    """Mutating calls need the bearer token when one is configured."""
     if settings.api_token is None:
         return
     expected = settings.api_token.get_secret_value().encode()
@@ -76,20 +76,21 @@ def require_token(
 
 
 TunerDep = Annotated[Tuner, Depends(get_tuner)]
-# Every loop call needs the token when one is set, reads too: configs, gains and audit
-# logs are plant data. /healthz, /readyz and /metrics stay open for probes and scrapers.
-loops = APIRouter(prefix="/loops", tags=["loops"], dependencies=[Depends(require_token)])
+loops = APIRouter(prefix="/loops", tags=["loops"])
+# Only changes need the token: reads stay open like /healthz and /metrics (the demo and
+# dashboards read loops without one); protect reads by binding to loopback or a proxy.
+mutating = [Depends(require_token)]
 Offset = Annotated[int, Query(ge=0)]
 Limit = Annotated[int, Query(ge=1, le=MAX_PAGE)]
 
 
-@loops.post("", status_code=201, responses={409: {}})
+@loops.post("", status_code=201, dependencies=mutating, responses={409: {}})
 def register_loop(config: LoopConfig, tuner: TunerDep) -> LoopView:
     """Register a loop; it starts at its registered gains with a fresh agent state."""
     return tuner.register(config)
 
 
-@loops.post("/bulk", status_code=201, responses={409: {}})
+@loops.post("/bulk", status_code=201, dependencies=mutating, responses={409: {}})
 def register_loops(
     configs: Annotated[list[LoopConfig], Body(max_length=MAX_BULK)], tuner: TunerDep
 ) -> BulkRegistered:
@@ -109,7 +110,7 @@ def get_loop(loop_id: str, tuner: TunerDep) -> LoopView:
     return tuner.view(loop_id)
 
 
-@loops.patch("/{loop_id}", responses={404: {}, 422: {}})
+@loops.patch("/{loop_id}", dependencies=mutating, responses={404: {}, 422: {}})
 def patch_loop(loop_id: str, patch: LoopPatch, tuner: TunerDep) -> LoopView:
     """Change the mode, forgetting factor or safety limits."""
     try:
@@ -118,14 +119,14 @@ def patch_loop(loop_id: str, patch: LoopPatch, tuner: TunerDep) -> LoopView:
         raise HTTPException(422, str(exc)) from None
 
 
-@loops.post("/{loop_id}/reset", responses={404: {}})
+@loops.post("/{loop_id}/reset", dependencies=mutating, responses={404: {}})
 def reset_loop(loop_id: str, tuner: TunerDep) -> LoopView:
     """Zero hidden state and integral, and the registered gains published (a frozen loop:
     the agent state only, its gains are left alone)."""
     return tuner.reset(loop_id)
 
 
-@loops.delete("/{loop_id}", status_code=204, responses={404: {}})
+@loops.delete("/{loop_id}", status_code=204, dependencies=mutating, responses={404: {}})
 def delete_loop(loop_id: str, tuner: TunerDep) -> None:
     """Unregister a loop; its audit log is kept."""
     tuner.delete(loop_id)

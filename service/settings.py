@@ -39,7 +39,7 @@ class Settings(BaseSettings):
     api_host: str = "127.0.0.1"
     api_port: Annotated[int, Field(ge=0, le=65535)] = 8750
     api_token: SecretStr | None = Field(
-        None, description="When set, every /loops call needs 'Authorization: Bearer <token>'."
+        None, description="When set, mutating REST calls need 'Authorization: Bearer <token>'."
     )
     key_prefix: str = DEFAULT_PREFIX
     instance_id: Annotated[str, Field(pattern=LOOP_ID_PATTERN)] = Field(
