@@ -171,6 +171,7 @@ def readyz(tuner: TunerDep) -> Health:
 )
 def metrics(tuner: TunerDep) -> Response:
     """Prometheus exposition."""
+    tuner.refresh_status_counts()
     return Response(tuner.metrics.render(), media_type=CONTENT_TYPE_LATEST)
 
 

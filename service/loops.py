@@ -718,6 +718,28 @@ class LoopTable:
             ),
         )
 
+    def status_counts(self, wall: float) -> dict[LoopStatus, int]:
+        """How many loops are in each :meth:`status`, vectorised (the same precedence)."""
+        used = np.fromiter(self.slot_of.values(), np.int64, len(self.slot_of))
+        t = self.last_t[used]
+        with np.errstate(invalid="ignore"):  # NaN last_t: waiting, ranked before quiet
+            quiet = (self.exc_window[used] < math.inf) & (t > self.excited_until[used])
+        conditions = [
+            (LoopStatus.frozen, self.mode[used] == FROZEN),
+            (LoopStatus.waiting, np.isnan(t)),
+            (LoopStatus.stale, wall - self.last_wall[used] > self.stale_gap[used]),
+            (LoopStatus.manual, self.manual[used]),
+            (LoopStatus.saturated, self.saturated[used]),
+            (LoopStatus.quiet, quiet),
+        ]
+        left = np.ones(used.size, bool)
+        counts = {}
+        for status, holds in conditions:
+            counts[status] = int(np.count_nonzero(left & holds))
+            left &= ~holds
+        counts[LoopStatus.tuning] = int(np.count_nonzero(left))
+        return counts
+
     def mode_counts(self) -> dict[Mode, int]:
         used = np.fromiter(self.slot_of.values(), np.int64, len(self.slot_of))
         counts = np.bincount(self.mode[used], minlength=len(_MODES))

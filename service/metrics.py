@@ -11,7 +11,7 @@ import time
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
 
-from service.protocol import Mode, RejectReason
+from service.protocol import LoopStatus, Mode, RejectReason
 
 log = logging.getLogger("pitune.tuner")
 
@@ -42,6 +42,12 @@ class Metrics:
             registry=r,
         )
         self.loops = Gauge("pitune_loops", "Registered loops, by mode.", ["mode"], registry=r)
+        self.loops_by_status = Gauge(
+            "pitune_loops_by_status",
+            "Registered loops by status (tuning, quiet, stale, manual, ...), at scrape time.",
+            ["status"],
+            registry=r,
+        )
         self.queue_depth = Gauge("pitune_queue_depth", "Bus messages waiting.", registry=r)
         self.store_commit_failures = Counter(
             "pitune_store_commit_failures",
@@ -76,6 +82,10 @@ class Metrics:
         self._rejections.warning(
             reason.value, f"sample rejected ({reason}) loop={loop_id!r}: {detail}"
         )
+
+    def set_status_counts(self, counts: dict[LoopStatus, int]) -> None:
+        for status in LoopStatus:
+            self.loops_by_status.labels(status.value).set(counts.get(status, 0))
 
     def set_loop_counts(self, counts: dict[Mode, int]) -> None:
         for mode in Mode:

@@ -641,6 +641,12 @@ class Tuner:
         if loop_id not in self.table.slot_of:
             raise UnknownLoop(loop_id)
 
+    def refresh_status_counts(self) -> None:
+        """Loops per status into the metrics (statuses change with time: done per scrape)."""
+        with self.table.lock:
+            counts = self.table.status_counts(time.time())
+        self.metrics.set_status_counts(counts)
+
     def view(self, loop_id: str) -> LoopView:
         with self.table.lock:
             self._known(loop_id)

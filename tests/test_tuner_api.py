@@ -58,6 +58,10 @@ def test_register_inspect_patch_reset_delete(client):
     metrics = client.get("/metrics").text
     assert 'pitune_loops{mode="advisory"} 1.0' in metrics
     assert 'pitune_loops{mode="frozen"} 1.0' in metrics
+    # no samples yet: one loop waiting, the frozen one frozen, every status listed
+    assert 'pitune_loops_by_status{status="waiting"} 1.0' in metrics
+    assert 'pitune_loops_by_status{status="frozen"} 1.0' in metrics
+    assert 'pitune_loops_by_status{status="quiet"} 0.0' in metrics
     assert 'pitune_updates_published_total{mode="advisory"} 1.0' in metrics  # the reset
 
     assert client.delete("/loops/LIC-101", headers=AUTH).status_code == 204

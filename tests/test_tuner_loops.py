@@ -395,3 +395,26 @@ def test_excitation_state_survives_a_snapshot():
     t3 = LoopTable(untrained_agent(0), max_rate_hz=1e6, capacity=2)
     s3 = t3.add(config, hidden=hidden, runtime=orjson.dumps(old).decode(), wall=WALL)
     assert np.isnan(t3.sp_ref[s3]) and t3.excited_until[s3] == -math.inf
+
+
+def test_status_counts_agree_with_each_loops_status():
+    t = LoopTable(untrained_agent(0), max_rate_hz=1e6, capacity=2)
+    gated = {"excitation_periods": 3.0}
+    kinds = ["waiting", "frozen", "manual", "saturated", "quiet", "tuning", "stale", "gated"]
+    for i, kind in enumerate(kinds * 2):
+        mode = "frozen" if kind == "frozen" else "auto"
+        guard = gated if kind in ("quiet", "gated") else {}
+        body = loop_body(f"L{i}", sample_period_s=165.0, mode=mode, guard=guard)
+        s = t.add(LoopConfig(**body), wall=WALL)
+        if kind == "waiting":
+            continue
+        flags = {"auto": kind != "manual", "saturated": kind == "saturated"}
+        wall = WALL if kind == "stale" else WALL + 1e3  # stale: no sample for 1,000 s
+        for k in range(6):  # gated: a setpoint step in the last sample keeps it tuning
+            sp = 60.0 if kind == "gated" and k == 5 else 50.0
+            t.ingest(s, sample(165.0 * k, e=None, sp=sp, pv=50.0, **flags), wall)
+    counts = t.status_counts(WALL + 1e3)
+    singles = [t.status(s, WALL + 1e3) for s in t.slot_of.values()]
+    assert counts == {status: singles.count(status) for status in LoopStatus}
+    assert counts[LoopStatus.quiet] == 2 and counts[LoopStatus.tuning] == 4
+    assert sum(counts.values()) == 16
