@@ -174,6 +174,7 @@ class Trainer:
         self.elapsed = 0.0
         self.best = math.inf
         self.init_from: dict | None = None
+        self.commit = _git_commit()  # the code this process runs, not HEAD at save time
 
     # -- persistence ------------------------------------------------------------------
     def state(self) -> dict:
@@ -393,7 +394,7 @@ class Trainer:
     def card_meta(self, row: dict) -> dict:
         return {
             "source": str(self.out),
-            "commit": _git_commit(),
+            "commit": self.commit,
             "train_config": asdict(self.cfg),
             "init_from": self.init_from,
             "epoch": self.epoch,
