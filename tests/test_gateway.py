@@ -145,7 +145,10 @@ def test_batched_gains_of_a_gateway_follow_the_same_rule(tuner, other):
         assert (updates[3].loop_id, updates[3].seq, updates[3].kp) == ("B1", 2, 0.8)
         assert plant.gateway.inbox.stale == 6
         time.sleep(0.3)
-        assert plant.poll()[4:] == [] and deaf.poll() == []
+        assert plant.poll()[4:] == []
+        # the batches are not for the gateway without the id; it may still learn the
+        # gains from a state reply, if its query on the tuner's token came after the step
+        assert all(u.source is Source.state for u in deaf.poll())
     finally:
         sub.undeclare()
         deaf.close()
