@@ -74,16 +74,24 @@ def tune(
     schedule=None,
     freeze_after: int | None = None,
     sp_jitter: float = 0.0,
+    env_config: EnvConfig | None = None,
+    gains0: np.ndarray | None = None,
+    sp0: float = 1.0,
 ) -> dict:
     """Let the agent tune N FOPTD plants for ``steps`` RL steps.
 
     ``schedule(t, env)`` may change the plants before RL step ``t``; ``freeze_after``
     stops applying the agent's updates from that step on (the frozen-gains baseline).
+    ``env_config`` replaces the default environment (no initial noise, ``sp_jitter``);
+    ``gains0`` (N, 2) the paper's initial gains; the plants start at rest at 0 with the
+    setpoint at ``sp0``.
     Returns gains (steps+1, N, 2), per-step tracking MSE (steps, N), final deep states.
     """
     K, tau, theta = (np.atleast_1d(np.asarray(v, dtype=np.float64)) for v in (K, tau, theta))
-    env = TuningEnv(EnvConfig(init_noise=0.0, sp_jitter=sp_jitter), np.random.default_rng(0))
-    obs = env.reset(K, tau, theta, horizon=steps, sp0=1.0)
+    cfg = env_config or EnvConfig(init_noise=0.0, sp_jitter=sp_jitter)
+    env = TuningEnv(cfg, np.random.default_rng(0))
+    start = {} if gains0 is None else {"kp0": gains0[:, 0], "ki0": gains0[:, 1]}
+    obs = env.reset(K, tau, theta, horizon=steps, sp0=sp0, **start)
     state = agent.initial_state(K.size)
     gains, mses = [obs[:, :2].copy()], []
     for t in range(steps):
@@ -161,17 +169,14 @@ def quiet(agent: Agent, steps: int, quick: bool, noise: float = 0.01) -> dict:
     """
     K, tau, theta = grid(quick)
     g0 = oracle_gains(oracle_table(), K, tau, theta)
-    env = TuningEnv(
-        EnvConfig(init_noise=0.0, sp_period=1e9, noise_std=noise), np.random.default_rng(0)
+    still = EnvConfig(init_noise=0.0, sp_period=1e9, noise_std=noise)
+    run = tune(
+        agent, K, tau, theta, steps=steps, forgetting=0.99, env_config=still, gains0=g0, sp0=0.0
     )
-    obs = env.reset(K, tau, theta, horizon=steps, kp0=g0[:, 0], ki0=g0[:, 1], sp0=0.0)
-    state = agent.initial_state(K.size)
-    for _ in range(steps):
-        delta, state = agent.act(obs, state, forgetting=0.99)
-        obs, _, _ = env.step(delta)
-    ratio = obs[:, :2] / g0
+    final = run["gains"][-1]
+    ratio = final / g0
     before = step_test_mse(K, tau, theta, *g0.T)
-    after = step_test_mse(K, tau, theta, *obs[:, :2].T)
+    after = step_test_mse(K, tau, theta, *final.T)
     return {
         "noise": noise,
         "gain_ratio_min": float(ratio.min()),

@@ -395,10 +395,15 @@ class LoopTable:
         self.next_due[s] += period * (math.floor((t - self.next_due[s]) / period) + 1.0)
         if self.mode[s] == FROZEN or not sample.auto or sample.saturated:
             return False
-        if self.exc_window[s] < math.inf and t > self.excited_until[s]:
+        if self._quiet(s, t):
             self.n_quiet[s] += 1
             return False
         return True
+
+    def _quiet(self, s, t):
+        """Where the excitation gate is on and its window had closed by sample time ``t``
+        (``s``, ``t``: one slot and time, or aligned arrays)."""
+        return (self.exc_window[s] < math.inf) & (t > self.excited_until[s])
 
     def _new_clock(self, s: int, t: float) -> bool:
         """Count a run of consistent out-of-order samples; True when it is a new clock."""
@@ -474,7 +479,7 @@ class LoopTable:
         )
         self.next_due[slots] = next_due
         due_ok = reached & (self.mode[slots] != FROZEN) & auto & ~saturated
-        quiet = due_ok & (self.exc_window[slots] < math.inf) & (t > self.excited_until[slots])
+        quiet = due_ok & self._quiet(slots, t)
         self.n_quiet[slots[quiet]] += 1
         due_ok &= ~quiet
         due = np.zeros(ok.size, bool)
@@ -689,7 +694,7 @@ class LoopTable:
             return LoopStatus.manual
         if self.saturated[s]:
             return LoopStatus.saturated
-        if self.exc_window[s] < math.inf and self.last_t[s] > self.excited_until[s]:
+        if self._quiet(s, self.last_t[s]):
             return LoopStatus.quiet
         return LoopStatus.tuning
 
@@ -722,15 +727,13 @@ class LoopTable:
         """How many loops are in each :meth:`status`, vectorised (the same precedence)."""
         used = np.fromiter(self.slot_of.values(), np.int64, len(self.slot_of))
         t = self.last_t[used]
-        with np.errstate(invalid="ignore"):  # NaN last_t: waiting, ranked before quiet
-            quiet = (self.exc_window[used] < math.inf) & (t > self.excited_until[used])
         conditions = [
             (LoopStatus.frozen, self.mode[used] == FROZEN),
             (LoopStatus.waiting, np.isnan(t)),
             (LoopStatus.stale, wall - self.last_wall[used] > self.stale_gap[used]),
             (LoopStatus.manual, self.manual[used]),
             (LoopStatus.saturated, self.saturated[used]),
-            (LoopStatus.quiet, quiet),
+            (LoopStatus.quiet, self._quiet(used, t)),  # NaN t: False, and waiting first
         ]
         left = np.ones(used.size, bool)
         counts = {}
