@@ -9,6 +9,12 @@ FROM ${PYTHON_IMAGE} AS build
 ENV PIP_NO_CACHE_DIR=1 \
     PIP_DISABLE_PIP_VERSION_CHECK=1 \
     PATH=/opt/pitune/bin:$PATH
+# A C compiler for service/_gru.c (the GRU step's fused kernel); build stage only. Any
+# gcc of the release builds it, and a pinned version would break at each point release.
+# hadolint ignore=DL3008
+RUN apt-get update \
+    && apt-get install -y --no-install-recommends gcc libc6-dev \
+    && rm -rf /var/lib/apt/lists/*
 # CPU wheels first: `pip install .` then finds torch satisfied and never pulls CUDA.
 RUN python -m venv /opt/pitune \
     && pip install --no-cache-dir torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu

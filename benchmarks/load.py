@@ -86,6 +86,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--agent-weights", default=None, help="weights file for the daemon (default: shipped)")
     a("--inference-threads", type=int, default=1, help="torch threads of the daemon")
     a("--inference-workers", type=int, default=1, help="threads stepping one large batch")
+    a(
+        "--inference-precision",
+        choices=["auto", "float32", "bfloat16"],
+        default="auto",
+        help="GEMM arithmetic of the daemon and of the inference timing",
+    )
     a("--snapshot-interval", type=float, default=30.0, help="daemon snapshot period, s")
     a("--memory-probe", type=int, default=1000,
       help="register this many loops first to measure RSS per loop (0: skip)")  # fmt: skip
@@ -141,6 +147,7 @@ def start_daemon(args: argparse.Namespace, workdir: Path) -> Daemon:
         "--snapshot-interval", str(args.snapshot_interval),
         "--inference-threads", str(args.inference_threads),
         "--inference-workers", str(args.inference_workers),
+        "--inference-precision", args.inference_precision,
     ]  # fmt: skip
     if args.agent_weights:
         cmd += ["--agent-weights", args.agent_weights]
@@ -373,8 +380,13 @@ def inference_bench(args: argparse.Namespace, n: int) -> dict:
         )
         state = rng.normal(0, 0.3, (n, agent.cfg.layers, agent.cfg.hidden)).astype(np.float32)
         gamma = np.full(n, 0.99)
-        fast = FastPolicy(agent, workers=args.inference_workers)
-        out = {"loops": n, "torch_threads": 1, "workers": args.inference_workers}
+        fast = FastPolicy(agent, workers=args.inference_workers, precision=args.inference_precision)
+        out = {
+            "loops": n,
+            "torch_threads": 1,
+            "workers": args.inference_workers,
+            "precision": fast.precision,
+        }
         for name, fn in (
             ("agent_act", lambda: agent.act(obs, state, gamma)),
             ("fast_policy", lambda: fast.step_inplace(obs, state.copy(), gamma)),
@@ -732,7 +744,8 @@ def table(r: dict) -> str:
             (
                 f"inference, {inf['loops']} due loops",
                 f"FastPolicy {inf['fast_policy_ms_median']:.1f} ms (min "
-                f"{inf['fast_policy_ms_min']:.1f}); agent.act {inf['agent_act_ms_median']:.1f} ms",
+                f"{inf['fast_policy_ms_min']:.1f}), {inf.get('precision', 'float32')}, "
+                f"{inf['workers']} worker(s); agent.act {inf['agent_act_ms_median']:.1f} ms",
             )
         )
     rows += [

@@ -38,6 +38,8 @@ DEFAULT_WEIGHTS = MODELS_DIR / "pitune_agent.pt"
 GAIN_FLOOR = 1e-3
 MAX_LOG_STEP = 1.0
 """Largest relative change per RL step, in log units (a factor of e = 2.7)."""
+ERROR_CLIP = 10.0
+"""The error feature is clipped to +-ERROR_CLIP (agent units)."""
 
 
 @dataclass(frozen=True)
@@ -57,7 +59,7 @@ def features(obs: torch.Tensor) -> torch.Tensor:
         [
             torch.log(kp.clamp_min(GAIN_FLOOR)),
             torch.log(ki.clamp_min(GAIN_FLOOR)),
-            e.clamp(-10.0, 10.0),
+            e.clamp(-ERROR_CLIP, ERROR_CLIP),
             torch.sign(ie) * torch.log1p(ie.abs()),
         ],
         dim=-1,

@@ -32,6 +32,7 @@ FLAGS = {
     "max_sample_rate_hz": ("--max-sample-rate", {"type": float, "metavar": "HZ"}),
     "inference_threads": ("--inference-threads", {"type": int, "metavar": "N"}),
     "inference_workers": ("--inference-workers", {"type": int, "metavar": "N"}),
+    "inference_precision": ("--inference-precision", {"choices": ["auto", "float32", "bfloat16"]}),
     "log_level": ("--log-level", {"choices": ["debug", "info", "warning", "error"]}),
 }
 HELP = {

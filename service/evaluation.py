@@ -41,6 +41,7 @@ from plant_sim.tunings import simc_paper, to_parallel
 from plant_sim.two_tank import TwoTankBatch
 from service.agent import Agent, load_agent
 from service.env import KI0, KP0, EnvConfig, TuningEnv
+from service.inference import FastPolicy
 from service.oracle import oracle_gains, oracle_table
 from service.scaling import ScalingSpec
 
@@ -60,11 +61,13 @@ PAPER = {
     },
 }
 RL_PERIOD = 2.75
+Policy = Agent | FastPolicy
+"""``agent.act`` (the reference) or the tuner's inference path."""
 
 
 # -- closed-loop tuning of FOPTD plants ---------------------------------------------------
 def tune(
-    agent: Agent,
+    agent: Policy,
     K,
     tau,
     theta,
@@ -128,7 +131,7 @@ def grid(quick: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return K, tau, r * tau
 
 
-def asymptotic(agent: Agent, steps: int, quick: bool) -> dict:
+def asymptotic(agent: Policy, steps: int, quick: bool) -> dict:
     K, tau, theta = grid(quick)
     run = tune(agent, K, tau, theta, steps=steps)
     kp, ki = run["gains"][-1].T
@@ -141,7 +144,7 @@ def asymptotic(agent: Agent, steps: int, quick: bool) -> dict:
     }  # fmt: skip
 
 
-def robustness(agent: Agent, steps: int, quick: bool, jitter: float = 0.3) -> dict:
+def robustness(agent: Policy, steps: int, quick: bool, jitter: float = 0.3) -> dict:
     """Not in the paper: the asymptotic grid with setpoint changes at arbitrary times.
 
     Each plant's setpoint period is drawn from 11 time units +-30% with a random phase,
@@ -159,7 +162,7 @@ def robustness(agent: Agent, steps: int, quick: bool, jitter: float = 0.3) -> di
     }
 
 
-def quiet(agent: Agent, steps: int, quick: bool, noise: float = 0.01) -> dict:
+def quiet(agent: Policy, steps: int, quick: bool, noise: float = 0.01) -> dict:
     """Not in the paper: a loop that nobody moves. Each grid plant starts settled at its
     setpoint with the oracle's gains, the setpoint never changes and the measurement
     carries noise (``noise`` agent units); the agent is stepped ``steps`` times.
@@ -187,7 +190,7 @@ def quiet(agent: Agent, steps: int, quick: bool, noise: float = 0.01) -> dict:
     }
 
 
-def table2(agent: Agent, steps: int) -> dict:
+def table2(agent: Policy, steps: int) -> dict:
     rows = {}
     for name, p in PAPER["table2"].items():
         run = tune(agent, p["K"], p["tau"], p["theta"], steps=steps)
@@ -203,7 +206,7 @@ def table2(agent: Agent, steps: int) -> dict:
     return rows
 
 
-def adaptation(agent: Agent, quick: bool) -> dict:
+def adaptation(agent: Policy, quick: bool) -> dict:
     settle, change, total = 60, 40, 140
     window = 16  # last 44 time units: 4 setpoint changes
     if quick:
@@ -241,7 +244,7 @@ def adaptation(agent: Agent, quick: bool) -> dict:
     return out
 
 
-def hidden_pca(agent: Agent, steps: int, quick: bool) -> dict:
+def hidden_pca(agent: Policy, steps: int, quick: bool) -> dict:
     n = 4 if quick else 6
     ks, taus = np.meshgrid(np.linspace(0.25, 1.0, n), np.linspace(0.25, 1.0, n), indexing="ij")
     K, tau = ks.ravel(), taus.ravel()
@@ -253,7 +256,7 @@ def hidden_pca(agent: Agent, steps: int, quick: bool) -> dict:
 
 
 # -- two tanks -----------------------------------------------------------------------------
-def two_tank(agent: Agent | None, *, noise_cm: float, minutes: float, seed: int = 0) -> dict:
+def two_tank(agent: Policy | None, *, noise_cm: float, minutes: float, seed: int = 0) -> dict:
     """Level loop of the two-tank plant, tuned by the agent (or left untuned if None)."""
     sc = ScalingSpec(k_hat=1.2, tau_hat=30.0, pv_scale=10.0).resolve()
     scan = 1.0
@@ -295,7 +298,7 @@ def _edges(centres: np.ndarray) -> np.ndarray:
     return np.concatenate([[2 * centres[0] - mid[0]], mid, [2 * centres[-1] - mid[-1]]])
 
 
-def _figures(out: Path, asym: dict, adapt: dict, pca: dict, tanks: dict, agent: Agent) -> None:
+def _figures(out: Path, asym: dict, adapt: dict, pca: dict, tanks: dict, agent: Policy) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -385,7 +388,8 @@ def _figures(out: Path, asym: dict, adapt: dict, pca: dict, tanks: dict, agent: 
     plt.close(fig)
 
 
-def evaluate(agent: Agent, out: Path, quick: bool = False) -> dict:
+def evaluate(agent: Policy, out: Path, quick: bool = False) -> dict:
+    """All experiments with ``agent`` (or the tuner's inference path); writes ``out``."""
     out.mkdir(parents=True, exist_ok=True)
     start = time.monotonic()
     steps = 80 if quick else 100
@@ -413,6 +417,7 @@ def evaluate(agent: Agent, out: Path, quick: bool = False) -> dict:
 
     metrics = {
         "agent": agent.meta.get("source", "shipped"),
+        "inference": getattr(agent, "precision", "reference"),
         "quick": quick,
         "rl_steps": steps,
         "asymptotic": {
@@ -460,6 +465,12 @@ def evaluate(agent: Agent, out: Path, quick: bool = False) -> dict:
     return metrics
 
 
+INFERENCE_NOTE = {
+    "float32": " Inference: the tuner's FastPolicy, float32.",
+    "bfloat16": " Inference: the tuner's FastPolicy with bfloat16 GEMMs.",
+}
+
+
 def render_report(m: dict) -> str:
     a, c, ad, p = m["asymptotic"], m["convergence"], m["adaptation"], PAPER
     rows = [
@@ -480,7 +491,8 @@ def render_report(m: dict) -> str:
         "",
         f"Grid: {a['grid_size']} plants, {m['rl_steps']} RL steps of tuning each"
         + (" (quick run)" if m["quick"] else "")
-        + f". Wall time {m['wall_s']} s.",
+        + f". Wall time {m['wall_s']} s."
+        + INFERENCE_NOTE.get(m.get("inference", "reference"), ""),
         "",
         "| quantity | pitune | paper |",
         "|---|---|---|",
@@ -622,11 +634,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=Path("reports"))
     p.add_argument("--quick", action="store_true", help="reduced version (CI, < 2 minutes)")
     p.add_argument("--card", type=Path, default=None, help="also write a model card here")
+    p.add_argument(
+        "--precision",
+        choices=["reference", "auto", "float32", "bfloat16"],
+        default="reference",
+        help="agent.act (reference), or the tuner's FastPolicy in this precision",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
     agent = load_agent(args.weights)
-    metrics = evaluate(agent, args.out, quick=args.quick)
+    policy = agent if args.precision == "reference" else FastPolicy(agent, precision=args.precision)
+    metrics = evaluate(policy, args.out, quick=args.quick)
     print((args.out / "report.md").read_text())
     if args.card is not None:
         write_model_card(args.card, agent, metrics)

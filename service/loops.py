@@ -48,7 +48,7 @@ import numpy as np
 import orjson
 
 from service.agent import Agent
-from service.inference import FastPolicy
+from service.inference import FastPolicy, Precision
 from service.protocol import LoopStatus, Mode, RejectReason, Sample
 from service.schemas import Counters, LoopConfig, LoopView
 from service.store import AuditRow, audit_row
@@ -177,13 +177,22 @@ class LoopTable:
     """Runtime state of all registered loops; one batched agent per table."""
 
     def __init__(
-        self, agent: Agent, *, max_rate_hz: float, capacity: int = 64, inference_workers: int = 1
+        self,
+        agent: Agent,
+        *,
+        max_rate_hz: float,
+        capacity: int = 64,
+        inference_workers: int = 1,
+        inference_precision: Precision = "float32",
     ) -> None:
         self.agent = agent
         # the allocation-free equivalent of agent.act (any other object: its own act)
         self._policy = (
-            FastPolicy(agent, workers=inference_workers) if isinstance(agent, Agent) else None
+            FastPolicy(agent, workers=inference_workers, precision=inference_precision)
+            if isinstance(agent, Agent)
+            else None
         )
+        self.inference_precision = self._policy.precision if self._policy else "agent.act"
         self.lock = threading.RLock()
         self.rate = float(max_rate_hz)
         self.burst = max(self.rate, 1.0)

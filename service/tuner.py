@@ -210,6 +210,7 @@ class Tuner:
             self.agent,
             max_rate_hz=settings.max_sample_rate_hz,
             inference_workers=settings.inference_workers,
+            inference_precision=settings.inference_precision,
         )
         self.inbox: queue.Queue[Item] = queue.Queue(settings.queue_size)
         self.store: Store | None = None
@@ -253,11 +254,12 @@ class Tuner:
         self._worker = threading.Thread(target=self._run, name="pitune-worker", daemon=True)
         self._worker.start()
         log.info(
-            "tuner %s up: prefix %r, listen %s, connect %s",
+            "tuner %s up: prefix %r, listen %s, connect %s, inference %s",
             self.settings.instance_id,
             self.settings.key_prefix,
             self.settings.zenoh_listen,
             self.settings.zenoh_connect,
+            self.table.inference_precision,
         )
         return self
 

@@ -1,4 +1,4 @@
-"""FastPolicy (the daemon's inference path) equals ``Agent.act``."""
+"""FastPolicy (the daemon's inference path) equals ``Agent.act``; bfloat16 tunes alike."""
 
 from __future__ import annotations
 
@@ -6,8 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from service.agent import untrained_agent
-from service.inference import FastPolicy
+from service import inference
+from service.agent import Actor, Agent, AgentConfig, load_agent, untrained_agent
+from service.evaluation import tune
+from service.inference import FastPolicy, cpu_has_native_bf16, resolve_precision
 
 
 def _inputs(n: int, seed: int = 0):
@@ -84,3 +86,65 @@ def test_two_workers_split_large_batches_with_identical_results():
         )
     finally:
         two.close()
+
+
+needs_bf16 = pytest.mark.skipif(
+    not cpu_has_native_bf16(), reason="no native bfloat16 on this CPU (emulated: slow)"
+)
+
+
+@needs_bf16
+def test_bfloat16_gemms_stay_close_to_agent_act():
+    agent = load_agent()  # the shipped weights: the real action and state scales
+    obs, state, gamma = _inputs(2000, seed=5)
+    ref_delta, ref_state = agent.act(obs, state, gamma)
+    fast = FastPolicy(agent, block=300, precision="bfloat16")
+    assert fast.precision == "bfloat16"
+    delta, new_state = fast.act(obs, state, gamma)
+    scale = np.abs(ref_delta).max()
+    err = np.abs(delta - ref_delta).max()
+    # measured: 0.8 % of the largest action, 0.011 in the state (float32: 1e-6)
+    assert 1e-4 * scale < err < 0.03 * scale, "bfloat16 in use, and close"
+    assert np.abs(new_state - ref_state).max() < 0.05
+    two = FastPolicy(agent, block=300, workers=2, parallel_min=1000, precision="bfloat16")
+    try:  # the same blocks in two threads: the same numbers
+        np.testing.assert_allclose(two.act(obs, state, gamma)[0], delta, rtol=1e-6, atol=1e-7)
+    finally:
+        two.close()
+
+
+@needs_bf16
+def test_bfloat16_inference_tunes_like_the_reference():
+    """Closed loop: 60 RL steps on FOPTD plants, the errors do not accumulate."""
+    agent = load_agent()
+    plants = {
+        "K": [0.25, 0.5, 1.0, 0.7],
+        "tau": [0.25, 1.0, 0.5, 0.8],
+        "theta": [0.1, 0.2, 0.0, 0.3],
+    }
+    ref = tune(agent, **plants, steps=60)
+    got = tune(FastPolicy(agent, precision="bfloat16"), **plants, steps=60)
+    np.testing.assert_allclose(got["gains"][-1], ref["gains"][-1], rtol=0.05)
+    np.testing.assert_allclose(got["mse"][-10:].mean(1), ref["mse"][-10:].mean(1), rtol=0.2)
+    assert not np.allclose(got["gains"][-1], ref["gains"][-1], rtol=1e-6, atol=0)
+
+
+def test_auto_precision_follows_the_cpu_flags(tmp_path, monkeypatch):
+    amx, avx2 = tmp_path / "amx", tmp_path / "avx2"
+    amx.write_text("processor\t: 0\nflags\t\t: fpu avx512f amx_bf16 amx_tile\n")
+    avx2.write_text("processor\t: 0\nflags\t\t: fpu avx2 fma\n")
+    assert cpu_has_native_bf16(amx)
+    assert not cpu_has_native_bf16(avx2)
+    assert not cpu_has_native_bf16(tmp_path / "missing")
+    for native, want in ((True, "bfloat16"), (False, "float32")):
+        monkeypatch.setattr(inference, "cpu_has_native_bf16", lambda native=native: native)
+        assert resolve_precision("auto") == want
+        assert resolve_precision("float32") == "float32"
+    with pytest.raises(ValueError, match="precision"):
+        resolve_precision("float16")
+
+
+def test_fast_policy_refuses_a_hidden_layer_wider_than_the_kernel():
+    wide = Agent(Actor(AgentConfig(hidden=inference._gru.MAX_HIDDEN + 1)))
+    with pytest.raises(ValueError, match="hidden width"):
+        FastPolicy(wide)
