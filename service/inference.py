@@ -17,7 +17,9 @@
   state, the gate arithmetic and the head stay float32. The error this adds is about
   1 % of the largest action and 0.02 of the hidden state per step, and it does not
   accumulate: closed-loop tuning results match float32 (``pitune evaluate --precision``
-  measures it on the paper's experiments). ``"auto"`` picks bfloat16 when the CPU has
+  measures it on the paper's experiments). Blocks of fewer than ``BF16_MIN_ROWS`` loops
+  stay in float32 (faster there), and bfloat16 GEMMs run on a multiple of ``BF16_ROWS``
+  rows so that oneDNN builds few kernels. ``"auto"`` picks bfloat16 when the CPU has
   native bfloat16 (AMX-BF16 or AVX512-BF16), float32 otherwise;
 * the state is read from and written to the caller's ``(n, layers, hidden)`` float32
   array in place (:meth:`step_inplace`), with no transposes or copies of the whole batch;
@@ -56,6 +58,15 @@ Precision = Literal["auto", "float32", "bfloat16"]
 
 LEAKY_SLOPE = 0.01
 """``nn.LeakyReLU``'s default negative slope (the actor's head uses the default)."""
+
+BF16_ALIGN = 64
+"""bfloat16 GEMM inputs are zero-padded to a multiple of this many columns (oneDNN/AMX)."""
+
+BF16_ROWS = 128
+"""bfloat16 GEMMs run on a multiple of this many rows (few shapes: oneDNN kernels cached)."""
+
+BF16_MIN_ROWS = 128
+"""Smaller blocks run in float32 (faster there: 0.3 vs 0.5 ms for 1-20 loops)."""
 
 PARALLEL_MIN = 2048
 """Smallest batch that ``workers > 1`` splits across threads (smaller: caller only)."""
@@ -96,41 +107,83 @@ def _one_intraop_thread() -> None:
 class _Buffers:
     """One thread's preallocated intermediates for blocks of up to ``b`` loops."""
 
-    def __init__(
-        self, b: int, inputs: list[int], hid: int, widths: list[int], dtype: torch.dtype
-    ) -> None:
+    def __init__(self, b: int, arith: dict, hid: int, widths: list[int]) -> None:
         e = torch.empty
-        # per layer [x, 1, h, 1]: the GEMM inputs, biases folded into the weights
-        self.xh = []
-        for k in inputs:
-            buf = e(b, k + 1 + hid + 1, dtype=dtype)
-            buf[:, k] = 1.0
-            buf[:, -1] = 1.0
-            self.xh.append(buf)
-        self.gates = e(b, 4 * hid, dtype=dtype)  # [a_r | a_z | a_in | a_hn]
+        # per arithmetic and layer [x, 1, h, 1, 0...]: the GEMM inputs (biases folded
+        # into the weights), and the gates [a_r | a_z | a_in | a_hn]
+        self.xh, self.gates = {}, {}
+        for bf16, layers in arith.items():
+            dtype = torch.bfloat16 if bf16 else torch.float32
+            self.xh[bf16] = []
+            for k, width, _ in layers:
+                buf = torch.zeros(b, width, dtype=dtype)  # stale rows must stay finite
+                buf[:, k] = 1.0
+                buf[:, k + 1 + hid] = 1.0
+                self.xh[bf16].append(buf)
+            self.gates[bf16] = e(b, 4 * hid, dtype=dtype)
         self.acts = []  # [deep h, 1], [a1, 1], [a2, 1]
         for w in [hid, *widths[:-1]]:
             buf = e(b, w + 1)
             buf[:, w] = 1.0
             self.acts.append(buf)
         self.gains, self.mean, self.tmp = e(b, 2), e(b, widths[-1]), e(b, widths[-1])
-        self._views: dict[int, tuple] = {}
+        self._views: dict[tuple[int, bool], tuple] = {}
 
-    def views(self, b: int) -> tuple:
-        """The first ``b`` rows of every buffer (cached: slicing costs ~2 us a view)."""
-        got = self._views.get(b)
+    def views(self, b: int, bf16: bool) -> tuple:
+        """The first rows of every buffer (cached: slicing costs ~2 us a view).
+
+        bfloat16 GEMMs run on whole multiples of ``BF16_ROWS`` rows (the rest of the
+        buffer's rows, stale but finite, are computed and ignored): oneDNN builds a
+        kernel per shape, 3-4 ms each, which a batch of each new size would pay.
+        """
+        got = self._views.get((b, bf16))
         if got is None:
-            if len(self._views) > 8:  # the full block and a few tails
+            if len(self._views) > 16:  # the full block and a few tails
                 self._views.clear()
-            got = self._views[b] = (
-                [buf[:b] for buf in self.xh],
-                self.gates[:b],
+            m = min(-(-b // BF16_ROWS) * BF16_ROWS, len(self.gains)) if bf16 else b
+            got = self._views[b, bf16] = (
+                [buf[:m] for buf in self.xh[bf16]],
+                self.gates[bf16][:m],
                 [buf[:b] for buf in self.acts],
                 self.gains[:b],
                 self.mean[:b],
                 self.tmp[:b],
             )
         return got
+
+
+def _gru_layers(gru: torch.nn.GRU, bf16: bool) -> list[tuple[int, int, list]]:
+    """Per layer: input size k, GEMM input width, [(input columns, weight, gate columns)]."""
+    hid, layers = gru.hidden_size, []
+    for layer in range(gru.num_layers):
+        w_ih = getattr(gru, f"weight_ih_l{layer}").detach().float().t()
+        w_hh = getattr(gru, f"weight_hh_l{layer}").detach().float().t()
+        b_ih = getattr(gru, f"bias_ih_l{layer}").detach().float()
+        b_hh = getattr(gru, f"bias_hh_l{layer}").detach().float()
+        k = w_ih.shape[0]
+        # rows of [x, 1, h, 1] -> [a_r | a_z | a_in | a_hn]; the r and z biases add up,
+        # the n gate keeps its hidden part apart for r (W_hn h + b_hn)
+        width = k + 1 + hid + 1
+        if bf16:  # zero rows up to whole AMX tiles: 106 -> 128 halves the GEMM's time
+            width = -(-width // BF16_ALIGN) * BF16_ALIGN
+        w = torch.zeros(width, 4 * hid)
+        w[:k, : 3 * hid] = w_ih
+        w[k, : 2 * hid] = b_ih[: 2 * hid] + b_hh[: 2 * hid]
+        w[k, 2 * hid : 3 * hid] = b_ih[2 * hid :]
+        w[k + 1 : k + 1 + hid, : 2 * hid] = w_hh[:, : 2 * hid]
+        w[k + 1 : k + 1 + hid, 3 * hid :] = w_hh[:, 2 * hid :]
+        w[k + 1 + hid, 3 * hid :] = b_hh[2 * hid :]
+        if bf16:  # one GEMM: the zero blocks are cheap on AMX
+            gemms = [(slice(None), w.to(torch.bfloat16), slice(None))]
+        else:  # three GEMMs that skip the zero blocks (a third of the work)
+            x1, h1 = slice(0, k + 1), slice(k + 1, None)
+            gemms = [
+                (slice(None), w[:, : 2 * hid], slice(0, 2 * hid)),
+                (x1, w[x1, 2 * hid : 3 * hid], slice(2 * hid, 3 * hid)),
+                (h1, w[h1, 3 * hid :], slice(3 * hid, None)),
+            ]
+        layers.append((k, width, [(i, m.contiguous(), o) for i, m, o in gemms]))
+    return layers
 
 
 class FastPolicy:
@@ -146,7 +199,7 @@ class FastPolicy:
     def __init__(
         self,
         agent: Agent,
-        block: int = 512,
+        block: int = 1024,
         *,
         workers: int = 1,
         parallel_min: int = PARALLEL_MIN,
@@ -159,41 +212,17 @@ class FastPolicy:
         self.workers = int(workers)
         self.parallel_min = int(parallel_min)
         self.precision = resolve_precision(precision)
-        self._bf16 = self.precision == "bfloat16"
-        dtype = torch.bfloat16 if self._bf16 else torch.float32
         cfg = agent.cfg
         if cfg.hidden > _gru.MAX_HIDDEN:
             raise ValueError(f"hidden width {cfg.hidden} > {_gru.MAX_HIDDEN}, the kernel's limit")
         self.layers, self.hidden = cfg.layers, cfg.hidden
         gru, head = agent.actor.gru, agent.actor.head
-        hid = cfg.hidden
-        self._gru = []  # per layer: (input width k, [(input columns, weight, gate columns)])
+        self._bf16 = self.precision == "bfloat16"
         with torch.no_grad():
-            for layer in range(cfg.layers):
-                w_ih = getattr(gru, f"weight_ih_l{layer}").detach().float().t()
-                w_hh = getattr(gru, f"weight_hh_l{layer}").detach().float().t()
-                b_ih = getattr(gru, f"bias_ih_l{layer}").detach().float()
-                b_hh = getattr(gru, f"bias_hh_l{layer}").detach().float()
-                k = w_ih.shape[0]
-                # rows of [x, 1, h, 1] -> [a_r | a_z | a_in | a_hn]; the r and z biases
-                # add up, the n gate keeps its hidden part apart for r (W_hn h + b_hn)
-                w = torch.zeros(k + 1 + hid + 1, 4 * hid)
-                w[:k, : 3 * hid] = w_ih
-                w[k, : 2 * hid] = b_ih[: 2 * hid] + b_hh[: 2 * hid]
-                w[k, 2 * hid : 3 * hid] = b_ih[2 * hid :]
-                w[k + 1 : k + 1 + hid, : 2 * hid] = w_hh[:, : 2 * hid]
-                w[k + 1 : k + 1 + hid, 3 * hid :] = w_hh[:, 2 * hid :]
-                w[k + 1 + hid, 3 * hid :] = b_hh[2 * hid :]
-                if self._bf16:  # one GEMM: the zero blocks are cheap on AMX
-                    gemms = [(slice(None), w, slice(None))]
-                else:  # three GEMMs that skip the zero blocks (a third of the work)
-                    x1, h1 = slice(0, k + 1), slice(k + 1, None)
-                    gemms = [
-                        (slice(None), w[:, : 2 * hid], slice(0, 2 * hid)),
-                        (x1, w[x1, 2 * hid : 3 * hid], slice(2 * hid, 3 * hid)),
-                        (h1, w[h1, 3 * hid :], slice(3 * hid, None)),
-                    ]
-                self._gru.append((k, [(i, m.to(dtype).contiguous(), o) for i, m, o in gemms]))
+            # float32 always: blocks of fewer than BF16_MIN_ROWS loops are faster in it
+            self._arith = {False: _gru_layers(gru, bf16=False)}
+            if self._bf16:
+                self._arith[True] = _gru_layers(gru, bf16=True)
             linears = [m for m in head if isinstance(m, torch.nn.Linear)]
             self._head = [
                 torch.cat(
@@ -201,9 +230,10 @@ class FastPolicy:
                 ).contiguous()
                 for m in linears
             ]
-        inputs = [k for k, _ in self._gru]
         widths = [m.out_features for m in linears]
-        self._bufs = [_Buffers(self.block, inputs, hid, widths, dtype) for _ in range(self.workers)]
+        self._bufs = [
+            _Buffers(self.block, self._arith, self.hidden, widths) for _ in range(self.workers)
+        ]
         self._pool = None
         if self.workers > 1:
             self._pool = ThreadPoolExecutor(
@@ -269,15 +299,16 @@ class FastPolicy:
             self._block(bufs, obs[lo:hi], h_all[lo:hi], gamma[lo:hi], delta[lo:hi])
 
     def _block(self, bufs: _Buffers, obs, h_all, gamma, out) -> None:
-        b, hid, bf16 = obs.shape[0], self.hidden, self._bf16
-        xhs, gates, acts, gains, mean, tmp = bufs.views(b)
+        b, hid = obs.shape[0], self.hidden
+        bf16 = self._bf16 and b >= BF16_MIN_ROWS
+        xhs, gates, acts, gains, mean, tmp = bufs.views(b, bf16)
         g_ptr, hs = gamma.data_ptr(), h_all.stride(0)
         x0 = xhs[0]
         _gru.features(
             b, obs.data_ptr(), gains.data_ptr(), x0.data_ptr(), x0.stride(0), bf16,
             GAIN_FLOOR, ERROR_CLIP,
         )  # fmt: skip
-        for layer, (k, gemms) in enumerate(self._gru):
+        for layer, (k, _, gemms) in enumerate(self._arith[bf16]):
             xh = xhs[layer]  # [x, 1, h, 1]
             h_ptr = h_all[:, layer].data_ptr()  # the caller's state (strided rows)
             _gru.pre(b, hid, h_ptr, hs, g_ptr, xh[:, k + 1].data_ptr(), xh.stride(0), bf16)
