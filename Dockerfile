@@ -22,7 +22,6 @@ WORKDIR /src
 COPY pyproject.toml README.md ./
 COPY service ./service
 COPY plant_sim ./plant_sim
-COPY benchmarks ./benchmarks
 RUN pip install --no-cache-dir .
 
 FROM ${PYTHON_IMAGE}

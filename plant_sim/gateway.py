@@ -3,10 +3,10 @@
 A gateway (the plant simulator here, a real DCS gateway in
 ``deploy/examples/dcs_gateway.py``) follows ``docs/protocol.md``:
 
-* it publishes one :class:`~service.protocol.Sample` per loop and DCS scan on
+* it publishes one :class:`~service.wire.protocol.Sample` per loop and DCS scan on
   ``{prefix}/loops/{id}/sample`` with ``CongestionControl.BLOCK`` (never dropped);
-* it receives :class:`~service.protocol.GainsMessage` on ``{prefix}/loops/*/gains``
-  and, with a ``gateway_id``, :class:`~service.protocol.GainsBatch` on
+* it receives :class:`~service.wire.protocol.GainsMessage` on ``{prefix}/loops/*/gains``
+  and, with a ``gateway_id``, :class:`~service.wire.protocol.GainsBatch` on
   ``{prefix}/gateways/{gateway_id}/gains`` (loops registered with that gateway);
 * it drops a gains message whose ``seq`` is not above the last one it took for the
   same loop from the same tuner ``instance_id`` (a duplicate or a late arrival);
@@ -19,7 +19,7 @@ Zenoh callbacks run on Zenoh's threads and must never block: they only queue the
 payloads, and the gateway's own loop validates and applies them between scans
 (:meth:`Gateway.gains`; the DCS's PID blocks are not thread-safe either).
 
-Messages are the pydantic models of :mod:`service.protocol`, the single source of truth
+Messages are the pydantic models of :mod:`service.wire.protocol`, the single source of truth
 for the wire format.
 """
 
@@ -34,7 +34,7 @@ from enum import Enum
 import zenoh
 from pydantic import ValidationError
 
-from service.protocol import (
+from service.wire.protocol import (
     ENCODING,
     GainsBatch,
     GainsMessage,

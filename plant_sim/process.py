@@ -2,7 +2,7 @@
 
 ``pitune plant run`` simulates one or more loops in simulated time (``--speed`` times
 real time, 0 for as fast as possible) and, every DCS scan of simulated time, publishes
-a :class:`~service.protocol.Sample` per loop in engineering units with the gains in
+a :class:`~service.wire.protocol.Sample` per loop in engineering units with the gains in
 force. Gains messages whose mode is ``auto`` are applied bumplessly, clipped to the
 loop's own bounds (``--gain-range`` around its initial gains); ``advisory`` ones are
 only counted. ``--register URL`` registers the loops with the tuner's admin API first,
@@ -44,9 +44,9 @@ from plant_sim.scenario import (
     TankLoop,
 )
 from plant_sim.trajectory import Trajectory, TrajectoryWriter, plot, read_log
-from service.netutil import session_config
-from service.protocol import DEFAULT_PREFIX, Keys, Mode, Sample, is_valid_id
-from service.scaling import ScalingSpec
+from service.units import ScalingSpec
+from service.wire.protocol import DEFAULT_PREFIX, Keys, Mode, Sample, is_valid_id
+from service.wire.session import session_config
 
 TANK_SP = (50.0, 60.0)
 SP_PERIOD_S = 600.0
@@ -109,7 +109,7 @@ class LoopSpec:
         return self.params.get("kp", kp0), self.params.get("ki", ki0)
 
     def registration(self, scan: float, gateway: str | None = None) -> dict:
-        """Body of ``POST /loops`` (:class:`service.schemas.LoopConfig`); with ``gateway``,
+        """Body of ``POST /loops`` (:class:`service.engine.config.LoopConfig`); with ``gateway``,
         the tuner sends the loop's gains in that gateway's batches."""
         kp, ki = self.initial_gains()
         body = {

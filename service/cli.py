@@ -12,12 +12,12 @@ import importlib
 import sys
 
 COMMANDS: dict[str, tuple[str, str]] = {
-    "train": ("service.training", "train the meta-RL agent offline (recurrent PPO)"),
-    "evaluate": ("service.evaluation", "reproduce the paper's experiments, write reports/"),
-    "tuner": ("service.daemon", "run the tuner daemon (Zenoh bus + admin API)"),
+    "train": ("service.learn.train", "train the meta-RL agent offline (recurrent PPO)"),
+    "evaluate": ("service.learn.evaluate", "reproduce the paper's experiments, write reports/"),
+    "tuner": ("service.daemon.main", "run the tuner daemon (Zenoh bus + admin API)"),
     "plant": ("plant_sim.process", "run simulated plants behind a DCS-like gateway"),
     "demo": ("service.demo", "tuner + two-tank plant end to end, write demo/"),
-    "bench": ("benchmarks.load", "load benchmark of the tuner daemon"),
+    "bench": ("service.bench", "load benchmark of the tuner daemon"),
 }
 
 

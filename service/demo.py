@@ -16,7 +16,7 @@ The untuned baseline is the same plant, schedule and seed simulated in-process w
 the registered gains held fixed (:func:`plant_sim.process.untuned_baseline`).
 
 :class:`Child` is the process plumbing the end-to-end tests share with the demo
-(:func:`service.netutil.free_port`, re-exported here, finds their ports).
+(:func:`service.wire.session.free_port`, re-exported here, finds their ports).
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ from plant_sim.scenario import TANK_FIT
 from plant_sim.trajectory import plot, read_log
 from plant_sim.tunings import simc_improved, to_parallel
 from service.cli import build_parser
-from service.netutil import free_port
+from service.wire.session import free_port
 
 ROOT = Path(__file__).resolve().parents[1]
 LOOP_ID = "tank1"

@@ -10,9 +10,9 @@ from plant_sim import PIBatch, run_closed_loop, target_filter
 from plant_sim.foptd import FOPTDBatch
 from plant_sim.tunings import oracle
 from service.agent import DEFAULT_WEIGHTS, load_agent, save_actor, untrained_agent
-from service.env import EnvConfig, TuningEnv
-from service.oracle import ORACLE_RATIOS, oracle_gains, oracle_table
-from service.training import TrainConfig, Trainer
+from service.learn.env import EnvConfig, TuningEnv
+from service.learn.oracle import ORACLE_RATIOS, oracle_gains, oracle_table
+from service.learn.train import TrainConfig, Trainer
 
 
 def _obs(n, rng):

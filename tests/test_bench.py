@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from benchmarks import load
+from service import bench as load
 
 
 def test_tiny_benchmark_run_measures_everything(tmp_path, capsys):

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from service import inference
+from service.agent import fast as inference
 from service.agent import Actor, Agent, AgentConfig, load_agent, untrained_agent
-from service.evaluation import tune
-from service.inference import FastPolicy, cpu_has_native_bf16, resolve_precision
+from service.agent.fast import FastPolicy, cpu_has_native_bf16, resolve_precision
+from service.learn.evaluate import tune
 
 
 def _inputs(n: int, seed: int = 0):

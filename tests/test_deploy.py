@@ -27,7 +27,7 @@ import zenoh
 
 from service.cli import build_parser
 from service.demo import free_port
-from service.protocol import Keys
+from service.wire.protocol import Keys
 
 ROOT = Path(__file__).resolve().parents[1]
 DEPLOY = ROOT / "deploy"
@@ -135,7 +135,7 @@ def test_compose_commands_are_valid_pitune_commands(compose, service):
 
 
 def test_compose_environment_names_real_settings(compose):
-    from service.settings import Settings
+    from service.daemon.settings import Settings
 
     for name in ("tuner", "plant"):
         for var in compose["services"][name].get("environment", {}):
@@ -279,8 +279,8 @@ BATCHED, SOLO = ["B0", "B1"], "SOLO"
 def tuner(router, tmp_path):
     """The tuner daemon as the router's "tuner" user (tuner.json5, untrained agent), with
     loops B0 and B1 registered with gateway gw-1 (batched gains) and SOLO on its own."""
-    from service.schemas import LoopConfig
-    from service.tuner import Tuner
+    from service.daemon.tuner import Tuner
+    from service.engine.config import LoopConfig
     from tests.tuner_support import loop_body, tuner_settings
 
     settings = tuner_settings(
@@ -320,7 +320,7 @@ def test_acl_lets_a_gateway_do_what_the_protocol_says(router, tuner):
     """docs/protocol.md from a gateway's side through the shipped ACL, the tuner daemon
     being the "tuner" user: samples in, gains out (per loop and GainsBatch), state queries
     answered, the tuner's liveliness token seen coming and going."""
-    from service.protocol import ErrorReply, GainsBatch, GainsMessage, StateReply
+    from service.wire.protocol import ErrorReply, GainsBatch, GainsMessage, StateReply
 
     keys, inbox = Keys(), Inbox()
     gateway = client(router, "gateway.json5")
@@ -514,8 +514,8 @@ def test_tls_compose_override_of_the_docs_mounts_what_the_tls_configs_expect(tmp
 
 
 def test_compose_tuner_settings_make_an_authenticated_client_of_the_router(compose, monkeypatch):
-    from service.bus import zenoh_config
-    from service.settings import load_settings
+    from service.daemon.bus import zenoh_config
+    from service.daemon.settings import load_settings
 
     env = dict(compose["services"]["tuner"]["environment"])
     env["PITUNE_ZENOH_CONFIG"] = str(DEPLOY / "zenoh" / "tuner.json5")  # the mounted file
@@ -533,7 +533,7 @@ def test_compose_tuner_settings_make_an_authenticated_client_of_the_router(compo
 def test_example_dcs_gateway_publishes_samples_and_applies_auto_gains(tmp_path):
     """deploy/examples/dcs_gateway.py, the README's gateway, against a live Zenoh peer."""
     from service.demo import Child
-    from service.protocol import GainsMessage, Keys, Mode, Sample, encode
+    from service.wire.protocol import GainsMessage, Keys, Mode, Sample, encode
 
     port = free_port()
     config = zenoh.Config()

@@ -20,7 +20,7 @@ from plant_sim.trajectory import read_log
 from service.agent import DEFAULT_WEIGHTS
 from service.cli import build_parser
 from service.demo import ROOT, Stack
-from service.protocol import GainsMessage, Keys, UpdateReason
+from service.wire.protocol import GainsMessage, Keys, UpdateReason
 
 SPEED = 100.0
 """Simulated seconds per wall second: one RL step (165 s of plant time) every 1.65 s."""

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from service.agent import load_agent
-from service.evaluation import FIGURES, convergence_time, evaluate, write_model_card
+from service.learn.evaluate import FIGURES, convergence_time, evaluate, write_model_card
 
 
 def test_convergence_time_is_last_exit_from_the_10_percent_band():

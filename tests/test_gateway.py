@@ -16,10 +16,10 @@ import pytest
 import zenoh
 
 from plant_sim.gateway import Gateway, Source, Update
+from service.daemon.tuner import Tuner
 from service.demo import Child
-from service.protocol import GainsBatch, GainsMessage, Keys, Mode, Sample, encode
-from service.schemas import LoopConfig
-from service.tuner import Tuner
+from service.engine.config import LoopConfig
+from service.wire.protocol import GainsBatch, GainsMessage, Keys, Mode, Sample, encode
 from tests.tuner_support import loop_body, open_peer, tuner_settings, wait_until
 
 pytestmark = pytest.mark.timeout(90)

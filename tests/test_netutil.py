@@ -1,9 +1,9 @@
-"""service.netutil: the one Zenoh config builder of every pitune process, and free_port."""
+"""service.wire.session: the one Zenoh config builder of every pitune process, and free_port."""
 
 import json
 import socket
 
-from service.netutil import free_port, session_config
+from service.wire.session import free_port, session_config
 
 
 def get(config, path):

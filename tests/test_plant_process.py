@@ -15,9 +15,9 @@ from plant_sim.scenario import LoopSettings, Square, TankLoop
 from plant_sim.trajectory import Trajectory, TrajectoryWriter, read_log
 from service.cli import build_parser, main
 from service.demo import Child, pitune
-from service.netutil import free_port, session_config
-from service.protocol import GainsBatch, GainsMessage, Keys, Mode, Sample, encode
-from service.schemas import LoopConfig
+from service.engine.config import LoopConfig
+from service.wire.protocol import GainsBatch, GainsMessage, Keys, Mode, Sample, encode
+from service.wire.session import free_port, session_config
 
 UNTUNED_TANK = (0.05 * 0.5 / 1.2, 0.05 * 0.5 / 1.2 / 60.0)
 """Agent kp = ki = 0.05 through the hint 1.2 cm/(L/min), 30 s: one agent time unit is 60 s."""

@@ -5,7 +5,7 @@ import logging
 import pytest
 from fastapi.testclient import TestClient
 
-from service.api import create_app
+from service.daemon.api import create_app
 from tests.tuner_support import loop_body, tuner_settings
 
 pytestmark = pytest.mark.timeout(60)

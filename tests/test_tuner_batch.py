@@ -8,10 +8,10 @@ import orjson
 import pytest
 
 from service.agent import untrained_agent
-from service.loops import _BOOL, _F64, _I64, LoopTable, Rejected
-from service.protocol import Mode, Sample
-from service.schemas import LoopConfig
-from service.tuner import _batch_columns
+from service.daemon.tuner import _batch_columns
+from service.engine.config import LoopConfig
+from service.engine.table import _BOOL, _F64, _I64, LoopTable, Rejected
+from service.wire.protocol import Mode, Sample
 from tests.tuner_support import loop_body
 
 N = 12
@@ -149,8 +149,8 @@ def test_plain_batch_is_columnar():
 
 
 def test_single_sample_messages_received_together_are_ingested_as_one_batch(tmp_path):
-    from service.bus import Kind
-    from service.tuner import Tuner
+    from service.daemon.bus import Kind
+    from service.daemon.tuner import Tuner
     from tests.tuner_support import tuner_settings
 
     with Tuner(tuner_settings(tmp_path)) as tuner:

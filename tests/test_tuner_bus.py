@@ -11,10 +11,10 @@ import zenoh
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from service.bus import Kind
-from service.protocol import GainsBatch, GainsMessage, Mode, RejectReason, UpdateReason
-from service.schemas import LoopConfig, LoopPatch
-from service.tuner import Tuner
+from service.daemon.bus import Kind
+from service.daemon.tuner import Tuner
+from service.engine.config import LoopConfig, LoopPatch
+from service.wire.protocol import GainsBatch, GainsMessage, Mode, RejectReason, UpdateReason
 from tests.tuner_support import connected_gateway, loop_body, tuner_settings, wait_until
 
 pytestmark = pytest.mark.timeout(60)

@@ -150,7 +150,7 @@ def test_sigterm_snapshots_closes_the_session_and_exits_zero(tmp_path):
             api.post("/loops", json=loop_body("FIC-7"))
         gw = Gateway(open_peer([d.zenoh]), keys=None)
         try:
-            from service.protocol import Keys
+            from service.wire.protocol import Keys
 
             gw.keys = Keys("site1/pitune")
             alive = "site1/pitune/tuners/proc"

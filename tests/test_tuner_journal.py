@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from service.schemas import LoopConfig
-from service.store import Store, audit_row
+from service.daemon.store import Store, audit_row
+from service.engine.config import LoopConfig
 from tests.tuner_support import loop_body
 
 pytestmark = pytest.mark.timeout(60)
@@ -35,7 +35,7 @@ def _crash_after(db: Path, code: str) -> None:
         textwrap.dedent(
             f"""
         import os
-        from service.store import Store
+        from service.daemon.store import Store
         from tests.test_tuner_journal import _step
         store = Store({str(db)!r})
         """

@@ -7,9 +7,9 @@ import orjson
 import pytest
 
 from service.agent import untrained_agent
-from service.loops import LoopTable, Rejected
-from service.protocol import LoopStatus, RejectReason, Sample
-from service.schemas import LoopConfig
+from service.engine.config import LoopConfig
+from service.engine.table import LoopTable, Rejected
+from service.wire.protocol import LoopStatus, RejectReason, Sample
 from tests.tuner_support import loop_body
 
 pytestmark = pytest.mark.timeout(30)
@@ -292,7 +292,7 @@ def test_reset_and_snapshot_restore():
 def test_a_far_future_sample_cannot_lock_the_loop_out(batched):
     """A poisoned timestamp (or a gateway restarted on a new clock) is re-anchored after
     CLOCK_RESET_SAMPLES consistent samples instead of rejecting the loop's data forever."""
-    from service.loops import CLOCK_RESET_SAMPLES
+    from service.engine.table import CLOCK_RESET_SAMPLES
 
     t, s = table()
     assert feed(t, s, [0.0, 165.0]) == [165.0]

@@ -5,9 +5,9 @@ from pathlib import Path
 import pytest
 from pydantic import ValidationError
 
-from service.protocol import GainsMessage, Keys, Mode, RejectReason, Sample, SampleBatch
-from service.protocol_doc import generated_block, render_schemas
-from service.tuner import classify
+from service.daemon.tuner import classify
+from service.wire.doc import generated_block, render_schemas
+from service.wire.protocol import GainsMessage, Keys, Mode, RejectReason, Sample, SampleBatch
 
 pytestmark = pytest.mark.timeout(30)
 DOC = Path(__file__).resolve().parents[1] / "docs" / "protocol.md"
@@ -15,7 +15,7 @@ DOC = Path(__file__).resolve().parents[1] / "docs" / "protocol.md"
 
 def test_protocol_doc_schemas_are_in_sync_with_the_models():
     assert generated_block(DOC.read_text()) == render_schemas().strip("\n"), (
-        "docs/protocol.md is stale: run python -m service.protocol_doc docs/protocol.md"
+        "docs/protocol.md is stale: run python -m service.wire.doc docs/protocol.md"
     )
 
 

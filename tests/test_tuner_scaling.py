@@ -5,7 +5,7 @@ import pytest
 from pydantic import ValidationError
 
 from plant_sim import FOPTDBatch
-from service.scaling import RL_STEP_AGENT_UNITS, ScalingSpec
+from service.units import RL_STEP_AGENT_UNITS, ScalingSpec
 
 pytestmark = pytest.mark.timeout(30)
 

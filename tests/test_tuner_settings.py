@@ -6,9 +6,9 @@ import json
 import pytest
 from pydantic import ValidationError
 
-from service import daemon
-from service.bus import zenoh_config
-from service.settings import load_settings
+from service.daemon import main as daemon
+from service.daemon.bus import zenoh_config
+from service.daemon.settings import load_settings
 
 pytestmark = pytest.mark.timeout(30)
 

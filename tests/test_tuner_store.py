@@ -10,11 +10,11 @@ import threading
 import pytest
 from fastapi.testclient import TestClient
 
-from service.api import create_app
-from service.bus import Kind
-from service.protocol import MAX_MAGNITUDE
-from service.schemas import LoopConfig
-from service.tuner import Tuner
+from service.daemon.api import create_app
+from service.daemon.bus import Kind
+from service.daemon.tuner import Tuner
+from service.engine.config import LoopConfig
+from service.wire.protocol import MAX_MAGNITUDE
 from tests.tuner_support import connected_gateway, loop_body, tuner_settings, wait_until
 
 pytestmark = pytest.mark.timeout(60)

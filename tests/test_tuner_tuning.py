@@ -13,9 +13,9 @@ import pytest
 
 from plant_sim import FOPTDBatch, PIBatch, step_test_mse
 from service.agent import DEFAULT_WEIGHTS, load_agent
-from service.scaling import ScalingSpec
-from service.schemas import LoopConfig
-from service.tuner import Tuner
+from service.daemon.tuner import Tuner
+from service.engine.config import LoopConfig
+from service.units import ScalingSpec
 from tests.tuner_support import GATE_OFF, TANK_SCALING, connected_gateway, tuner_settings
 
 pytestmark = pytest.mark.timeout(120)

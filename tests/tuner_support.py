@@ -1,6 +1,6 @@
 """Helpers shared by the tuner tests: ports, settings, Zenoh peers, waiting.
 
-``free_port`` is re-exported from :mod:`service.netutil` for the tests that import it here.
+``free_port`` is re-exported from :mod:`service.wire.session` for the tests that import it here.
 """
 
 from __future__ import annotations
@@ -13,9 +13,9 @@ from pathlib import Path
 
 import zenoh
 
-from service.netutil import free_port, session_config
-from service.protocol import GainsMessage, Keys
-from service.settings import Settings, load_settings
+from service.daemon.settings import Settings, load_settings
+from service.wire.protocol import GainsMessage, Keys
+from service.wire.session import free_port, session_config
 
 TANK_SCALING = {"k_hat": 1.2, "tau_hat": 30.0, "pv_scale": 10.0}
 

@@ -26,8 +26,8 @@ import time
 import zenoh
 
 from plant_sim.gateway import Gateway
-from service.netutil import session_config
-from service.protocol import Keys, Mode, Sample, is_valid_id
+from service.wire.protocol import Keys, Mode, Sample, is_valid_id
+from service.wire.session import session_config
 
 log = logging.getLogger("dcs_gateway")
 

@@ -11,7 +11,7 @@ import time
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
 
-from service.protocol import LoopStatus, Mode, RejectReason
+from service.wire.protocol import LoopStatus, Mode, RejectReason
 
 log = logging.getLogger("pitune.tuner")
 

@@ -33,7 +33,7 @@ import numpy as np
 import torch
 from torch import nn
 
-MODELS_DIR = Path(__file__).with_name("models")
+MODELS_DIR = Path(__file__).resolve().parents[1] / "models"
 DEFAULT_WEIGHTS = MODELS_DIR / "pitune_agent.pt"
 GAIN_FLOOR = 1e-3
 MAX_LOG_STEP = 1.0

@@ -22,7 +22,7 @@ from pydantic_settings import (
     TomlConfigSettingsSource,
 )
 
-from service.protocol import DEFAULT_PREFIX, LOOP_ID_PATTERN, Keys
+from service.wire.protocol import DEFAULT_PREFIX, LOOP_ID_PATTERN, Keys
 
 _config_file: ContextVar[Path | None] = ContextVar("pitune_config_file", default=None)
 
@@ -94,7 +94,7 @@ class Settings(BaseSettings):
     @classmethod
     def _blank_token_is_unset(cls, value: object) -> object:
         """``PITUNE_API_TOKEN=`` (empty, a template left unfilled) is no token: the API is
-        open, as when it is unset, and says so at start-up (see :mod:`service.api`)."""
+        open, as when it is unset, and says so at start-up (see :mod:`service.daemon.api`)."""
         raw = value.get_secret_value() if isinstance(value, SecretStr) else value
         return None if isinstance(raw, str) and not raw.strip() else value
 

@@ -19,9 +19,9 @@ from enum import IntEnum
 
 import zenoh
 
-from service.netutil import session_config
-from service.protocol import Keys
-from service.settings import Settings
+from service.daemon.settings import Settings
+from service.wire.protocol import Keys
+from service.wire.session import session_config
 
 log = logging.getLogger("pitune.bus")
 JSON = zenoh.Encoding.APPLICATION_JSON

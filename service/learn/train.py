@@ -39,7 +39,7 @@ from torch import nn
 from torch.distributions import Normal
 
 from plant_sim.loop import step_test_mse
-from service.agent import (
+from service.agent.model import (
     MAX_LOG_STEP,
     Actor,
     Agent,
@@ -48,9 +48,9 @@ from service.agent import (
     relative_to_delta,
     save_actor,
 )
-from service.env import K_RANGE, RATIO_RANGE, TAU_RANGE, EnvConfig, TuningEnv, sample_tasks
-from service.evaluation import tune
-from service.oracle import oracle_gains, oracle_table
+from service.learn.env import K_RANGE, RATIO_RANGE, TAU_RANGE, EnvConfig, TuningEnv, sample_tasks
+from service.learn.evaluate import tune
+from service.learn.oracle import oracle_gains, oracle_table
 
 
 @dataclass
@@ -127,7 +127,7 @@ VAL_SETTLED_STEP = 51  # 140 time units / 2.75 per RL step
 
 
 def validate(actor: Actor, n: int, steps: int = 100, sp_jitter: float = 0.0) -> dict:
-    """The evaluation's closed-loop tuning (:func:`service.evaluation.tune`) on the
+    """The evaluation's closed-loop tuning (:func:`service.learn.evaluate.tune`) on the
     validation set for ``steps`` RL steps, then the step test, with setpoint changes on
     the agent's clock and (if ``sp_jitter``) at arbitrary times.
 

@@ -3,7 +3,7 @@
 One Zenoh config builder for every pitune process (:func:`session_config`) and one
 free-port finder (:func:`free_port`). It lives in ``service`` because the tuner's bus
 needs it and ``service`` must not import the plant simulator (``plant_sim`` already
-depends on ``service.protocol``).
+depends on ``service.wire.protocol``).
 """
 
 from __future__ import annotations

@@ -39,11 +39,11 @@ from plant_sim.loop import step_test, step_test_mse
 from plant_sim.pi import PIBatch
 from plant_sim.tunings import simc_paper, to_parallel
 from plant_sim.two_tank import TwoTankBatch
-from service.agent import Agent, load_agent
-from service.env import KI0, KP0, EnvConfig, TuningEnv
-from service.inference import FastPolicy
-from service.oracle import oracle_gains, oracle_table
-from service.scaling import ScalingSpec
+from service.agent.fast import FastPolicy
+from service.agent.model import Agent, load_agent
+from service.learn.env import KI0, KP0, EnvConfig, TuningEnv
+from service.learn.oracle import oracle_gains, oracle_table
+from service.units import ScalingSpec
 
 PAPER = {
     "asymptotic_worst_mse": 0.0300,

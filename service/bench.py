@@ -28,7 +28,7 @@ Measured over a steady window (``--duration`` seconds after ``--warmup``):
 * the daemon's CPU use and RSS (``/proc``), the generator's CPU use, and the RSS per
   loop (growth from registering 1,000 to registering all N loops, divided);
 * the batched inference step for N due loops, timed in this process on one thread,
-  for ``agent.act`` and the daemon's :class:`service.inference.FastPolicy`.
+  for ``agent.act`` and the daemon's :class:`service.agent.fast.FastPolicy`.
 
 It prints a table and writes the JSON to ``benchmarks/results/``.
 """
@@ -53,7 +53,7 @@ import numpy as np
 import orjson
 
 ROOT = Path(__file__).resolve().parents[1]
-RESULTS = Path(__file__).resolve().parent / "results"
+RESULTS = ROOT / "benchmarks" / "results"
 GATEWAY = "bench"
 """The gateway the loops are registered with (batched gains), unless per-loop gains."""
 RING = 16
@@ -135,7 +135,7 @@ class Daemon:
 
 
 def start_daemon(args: argparse.Namespace, workdir: Path) -> Daemon:
-    from service.netutil import free_port
+    from service.wire.session import free_port
 
     api_port, zenoh_port = free_port(), free_port()
     endpoint = f"tcp/127.0.0.1:{zenoh_port}"
@@ -365,7 +365,7 @@ def inference_bench(args: argparse.Namespace, n: int) -> dict:
     import torch
 
     from service.agent import load_agent, untrained_agent
-    from service.inference import FastPolicy
+    from service.agent.fast import FastPolicy
 
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
@@ -434,8 +434,8 @@ def drive(args: argparse.Namespace, fleet: Fleet, daemon: Daemon, client) -> dic
     """Register the loops, play them in real time, measure."""
     import zenoh
 
-    from service.netutil import session_config
-    from service.protocol import Keys
+    from service.wire.protocol import Keys
+    from service.wire.session import session_config
 
     memory = {"rss_idle_mb": daemon.rss_mb()}
     probe = args.memory_probe if 0 < args.memory_probe < fleet.n else 0

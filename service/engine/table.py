@@ -47,11 +47,11 @@ from dataclasses import dataclass
 import numpy as np
 import orjson
 
-from service.agent import Agent
-from service.inference import FastPolicy, Precision
-from service.protocol import LoopStatus, Mode, RejectReason, Sample
-from service.schemas import Counters, LoopConfig, LoopView
-from service.store import AuditRow, audit_row
+from service.agent.fast import FastPolicy, Precision
+from service.agent.model import Agent
+from service.daemon.store import AuditRow, audit_row
+from service.engine.config import Counters, LoopConfig, LoopView
+from service.wire.protocol import LoopStatus, Mode, RejectReason, Sample
 
 MAX_AGENT_ERROR = 100.0
 """An error beyond this many agent units (training sees about 2) is an absurd sample."""

@@ -1,9 +1,9 @@
-"""Keep the JSON Schemas in ``docs/protocol.md`` generated from :mod:`service.protocol`.
+"""Keep the JSON Schemas in ``docs/protocol.md`` generated from :mod:`service.wire.protocol`.
 
 The document's prose is written by hand; the block between the two markers is
 generated. Regenerate after changing a wire model::
 
-    python -m service.protocol_doc docs/protocol.md
+    python -m service.wire.doc docs/protocol.md
 
 ``tests/test_tuner_protocol.py`` fails while the block is out of date.
 """
@@ -16,9 +16,9 @@ from pathlib import Path
 
 from pydantic import BaseModel
 
-from service.protocol import WIRE_MODELS
+from service.wire.protocol import WIRE_MODELS
 
-BEGIN = "<!-- BEGIN GENERATED SCHEMAS (python -m service.protocol_doc docs/protocol.md) -->"
+BEGIN = "<!-- BEGIN GENERATED SCHEMAS (python -m service.wire.doc docs/protocol.md) -->"
 END = "<!-- END GENERATED SCHEMAS -->"
 
 

@@ -29,7 +29,7 @@ import numpy as np
 from plant_sim.foptd import FOPTDBatch
 from plant_sim.loop import target_filter
 from plant_sim.pi import PIBatch
-from service.agent import GAIN_FLOOR
+from service.agent.model import GAIN_FLOOR
 
 K_RANGE = (0.25, 1.0)
 TAU_RANGE = (0.25, 1.0)

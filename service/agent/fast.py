@@ -51,8 +51,8 @@ import numpy as np
 import torch
 from torch.nn import functional as F
 
-from service import _gru
-from service.agent import ERROR_CLIP, GAIN_FLOOR, MAX_LOG_STEP, Agent
+from service.agent import _gru
+from service.agent.model import ERROR_CLIP, GAIN_FLOOR, MAX_LOG_STEP, Agent
 
 Precision = Literal["auto", "float32", "bfloat16"]
 

@@ -12,7 +12,7 @@ import json
 import numpy as np
 
 from plant_sim.tunings import oracle
-from service.agent import MODELS_DIR
+from service.agent.model import MODELS_DIR
 
 ORACLE_RATIOS = np.linspace(0.0, 1.0, 11)
 ORACLE_TABLE = MODELS_DIR / "oracle_table.json"

@@ -14,7 +14,7 @@ import sys
 import uvicorn
 from pydantic import ValidationError
 
-from service.settings import Settings, load_settings
+from service.daemon.settings import Settings, load_settings
 
 # flag -> settings field; flags left out fall back to environment, config file, defaults
 FLAGS = {
@@ -75,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
     )
     import torch  # heavy: only once the settings are good
 
-    from service.api import create_app
+    from service.daemon.api import create_app
 
     torch.set_num_threads(settings.inference_threads)
 

@@ -35,7 +35,7 @@ from pathlib import Path
 import orjson
 from pydantic import ValidationError
 
-from service.schemas import AuditEntry, LoopConfig
+from service.engine.config import AuditEntry, LoopConfig
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS loops (
@@ -82,7 +82,7 @@ class StoredLoop:
     seq: int
     hidden: bytes | None
     runtime: str | None
-    """JSON of the runtime snapshot (see :meth:`service.loops.LoopTable.snapshot`)."""
+    """JSON of the runtime snapshot (see :meth:`service.engine.table.LoopTable.snapshot`)."""
 
 
 AuditRow = tuple

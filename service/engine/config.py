@@ -10,8 +10,8 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from service.protocol import MAX_MAGNITUDE, Gain, GatewayId, LoopId, LoopStatus, Mode
-from service.scaling import Scaling, ScalingSpec
+from service.units import Scaling, ScalingSpec
+from service.wire.protocol import MAX_MAGNITUDE, Gain, GatewayId, LoopId, LoopStatus, Mode
 
 AGENT_GAIN_RANGE = (0.01, 50.0)
 """Default bounds of kp and ki in agent units: the range the agent was trained in."""

@@ -1,6 +1,6 @@
 """The admin API (FastAPI): register, inspect, tune and reset loops; health and metrics.
 
-The app's lifespan owns the :class:`~service.tuner.Tuner`: it starts with the app and
+The app's lifespan owns the :class:`~service.daemon.tuner.Tuner`: it starts with the app and
 is stopped (bus closed, state snapshotted) when the server shuts down. Handlers are
 plain ``def`` functions: they take the loop table's lock, so they run in the thread
 pool rather than on the event loop.
@@ -31,8 +31,10 @@ from fastapi.responses import JSONResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from prometheus_client import CONTENT_TYPE_LATEST
 
-from service.agent import Agent
-from service.schemas import (
+from service.agent.model import Agent
+from service.daemon.settings import Settings
+from service.daemon.tuner import Conflict, StoreUnavailable, Tuner, UnknownLoop
+from service.engine.config import (
     MAX_BULK,
     MAX_PAGE,
     BulkRegistered,
@@ -43,8 +45,6 @@ from service.schemas import (
     LoopsPage,
     LoopView,
 )
-from service.settings import Settings
-from service.tuner import Conflict, StoreUnavailable, Tuner, UnknownLoop
 
 log = logging.getLogger("pitune.api")
 _bearer = HTTPBearer(auto_error=False, description="PITUNE_API_TOKEN, when set")

@@ -9,7 +9,7 @@ The worker drains the bus queue in batches. Samples are validated and integrated
 by one; loops that fall due are collected and stepped in one batched agent call at the
 end of the batch (earlier if a due loop receives another sample, so each step sees
 exactly the data up to its own due sample). Gains and audit rows are committed to the
-store (as one journal row per step batch, see :mod:`service.store`) before the gains
+store (as one journal row per step batch, see :mod:`service.daemon.store`) before the gains
 messages go out: one message per loop, or one per gateway for loops registered with a
 gateway. The worker applies the journal to the store's tables while it has nothing else
 to do.
@@ -35,11 +35,14 @@ import torch
 import zenoh
 from pydantic import ValidationError
 
-from service.agent import Agent, load_agent, untrained_agent
-from service.bus import JSON, Bus, Item, Kind, reply
-from service.loops import MODE_VALUES, LoopTable, Rejected, StepResult
-from service.metrics import Metrics, RateLimitedLog
-from service.protocol import (
+from service.agent.model import Agent, load_agent, untrained_agent
+from service.daemon.bus import JSON, Bus, Item, Kind, reply
+from service.daemon.metrics import Metrics, RateLimitedLog
+from service.daemon.settings import Settings
+from service.daemon.store import AuditRow, Store, audit_row
+from service.engine.config import HistoryPage, LoopConfig, LoopPatch, LoopsPage, LoopView
+from service.engine.table import MODE_VALUES, LoopTable, Rejected, StepResult
+from service.wire.protocol import (
     MAX_BATCH,
     MAX_MAGNITUDE,
     SCHEMA_VERSION,
@@ -51,9 +54,6 @@ from service.protocol import (
     UpdateReason,
     encode,
 )
-from service.schemas import HistoryPage, LoopConfig, LoopPatch, LoopsPage, LoopView
-from service.settings import Settings
-from service.store import AuditRow, Store, audit_row
 
 log = logging.getLogger("pitune.tuner")
 _STOP = (None, "", None)

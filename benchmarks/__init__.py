@@ -1,1 +1,0 @@
-"""Benchmarks of the tuner daemon (``pitune bench``); results in ``benchmarks/results/``."""

@@ -1,0 +1,1 @@
+"""The bus-free tuning engine (see :mod:`service.engine.engine`)."""

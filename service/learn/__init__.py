@@ -1,0 +1,1 @@
+"""Offline learning: the training environment, the oracle, training and evaluation."""

@@ -1,0 +1,298 @@
+"""The Zenoh wire protocol between a plant's DCS gateway and the tuner daemon.
+
+These pydantic models are the single source of truth for the bus: the daemon validates
+with them, ``docs/protocol.md`` embeds the JSON Schemas generated from them, and
+gateways or simulators written in Python can import them directly.
+
+Key expressions, under a configurable prefix (default ``pitune``)::
+
+    {prefix}/loops/{loop_id}/sample   gateway -> tuner   Sample
+    {prefix}/samples                  gateway -> tuner   SampleBatch (many loops, one message)
+    {prefix}/loops/{loop_id}/gains    tuner -> gateway   GainsMessage, one per RL step
+    {prefix}/gateways/{gateway}/gains tuner -> gateway   GainsBatch (loops registered with
+                                                         that gateway, one per step batch)
+    {prefix}/loops/{loop_id}/state    queryable          StateReply (or ErrorReply)
+    {prefix}/tuners/{instance_id}     liveliness token while a tuner is up
+
+Payloads are JSON (``application/json``). Every message carries ``v``, the schema
+version. Changes that only add optional fields keep the version; a receiver ignores
+fields it does not know. A breaking change bumps the version, and a tuner rejects
+samples whose ``v`` is newer than the one it speaks.
+
+Units are the DCS's engineering units: ``e``, ``sp`` and ``pv`` in the measurement's
+unit, ``kp`` in output units per measurement unit, ``ki`` in output units per
+(measurement unit x second), ``t`` in seconds of the plant's clock.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from enum import StrEnum
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+SCHEMA_VERSION = 1
+DEFAULT_PREFIX = "pitune"
+ENCODING = "application/json"
+MAX_MAGNITUDE = 1e12
+"""Largest absolute value any number on the wire may have; anything bigger is absurd."""
+MAX_BATCH = 100_000
+"""Most samples in a :class:`SampleBatch`, gains messages in a :class:`GainsBatch`."""
+
+LOOP_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$"
+"""Loop and instance ids are single key-expression chunks: no '/', no wildcards."""
+_ID_RE = re.compile(LOOP_ID_PATTERN)
+_PREFIX_RE = re.compile(r"^[A-Za-z0-9_.\-]+(/[A-Za-z0-9_.\-]+)*$")
+
+Number = Annotated[float, Field(ge=-MAX_MAGNITUDE, le=MAX_MAGNITUDE)]
+Gain = Annotated[float, Field(gt=0.0, le=MAX_MAGNITUDE)]
+LoopId = Annotated[str, Field(pattern=LOOP_ID_PATTERN, examples=["LIC-101"])]
+GatewayId = Annotated[str, Field(pattern=LOOP_ID_PATTERN, examples=["gw-north"])]
+Version = Annotated[int, Field(ge=1, le=SCHEMA_VERSION, description="Schema version.")]
+
+
+class Mode(StrEnum):
+    """How a loop's gain updates are meant to be used."""
+
+    auto = "auto"
+    """Updates are meant to be applied; the tuner assumes they are."""
+    advisory = "advisory"
+    """Updates are published for a human to consider and never assumed applied."""
+    frozen = "frozen"
+    """No updates at all."""
+
+
+class LoopStatus(StrEnum):
+    """What a loop's tuning is doing right now (the safety guard's view)."""
+
+    waiting = "waiting"
+    """Registered (or reset) and no sample received yet."""
+    tuning = "tuning"
+    manual = "manual"
+    """The gateway reports the loop in manual: tuning pauses."""
+    saturated = "saturated"
+    """The gateway reports the controller output saturated: tuning pauses."""
+    stale = "stale"
+    """No sample for several sample periods: tuning pauses."""
+    quiet = "quiet"
+    """No setpoint change in the last ``excitation_periods`` RL periods: tuning waits
+    for one (the agent learns from setpoint responses)."""
+    frozen = "frozen"
+
+
+class UpdateReason(StrEnum):
+    agent = "agent"
+    """A step of the RL agent (after the safety guard)."""
+    reset = "reset"
+    """An operator reset the loop to its registered gains."""
+
+
+class RejectReason(StrEnum):
+    """Why a sample was rejected (the ``reason`` label of the rejection metric)."""
+
+    malformed_json = "malformed_json"
+    schema = "schema"
+    """Valid JSON, but a missing field or a wrong type."""
+    non_finite = "non_finite"
+    """NaN or +-Infinity."""
+    out_of_range = "out_of_range"
+    """An absurd magnitude."""
+    unsupported_version = "unsupported_version"
+    bad_key = "bad_key"
+    unknown_loop = "unknown_loop"
+    duplicate = "duplicate"
+    """Same timestamp as the loop's last accepted sample."""
+    out_of_order = "out_of_order"
+    flood = "flood"
+    """More samples per second on one loop than the configured limit."""
+    overload = "overload"
+    """The daemon's input queue is full."""
+
+
+_WIRE = ConfigDict(strict=True, allow_inf_nan=False, extra="ignore", frozen=True)
+
+
+class Sample(BaseModel):
+    """One closed-loop sample of one loop (gateway -> tuner)."""
+
+    model_config = ConfigDict(
+        **_WIRE,
+        json_schema_extra={"examples": [{"v": 1, "t": 1200.0, "sp": 55.0, "pv": 53.2}]},
+    )
+
+    v: Version = SCHEMA_VERSION
+    t: Number = Field(description="Sample time, seconds on the plant's clock; strictly increasing.")
+    e: Number | None = Field(None, description="Error, setpoint minus measurement.")
+    sp: Number | None = Field(None, description="Setpoint (used with pv when e is absent).")
+    pv: Number | None = Field(None, description="Measurement (used with sp when e is absent).")
+    kp: Gain | None = Field(
+        None, description="Proportional gain in force in the DCS; a change is adopted."
+    )
+    ki: Gain | None = Field(None, description="Integral gain in force in the DCS (per second).")
+    auto: bool = Field(True, description="False while the loop is in manual: tuning pauses.")
+    saturated: bool = Field(
+        False, description="True while the controller output is at a limit: tuning pauses."
+    )
+
+    @model_validator(mode="after")
+    def _has_error(self) -> Sample:
+        if self.e is None and (self.sp is None or self.pv is None):
+            raise ValueError("a sample needs either e or both sp and pv")
+        return self
+
+    @property
+    def error(self) -> float:
+        """Setpoint minus measurement (``e`` wins when both forms are given)."""
+        return self.e if self.e is not None else self.sp - self.pv
+
+
+class BatchedSample(Sample):
+    """A sample inside a :class:`SampleBatch`, naming its loop."""
+
+    loop_id: LoopId
+
+
+class SampleBatch(BaseModel):
+    """Samples of many loops in one message (gateways with thousands of loops)."""
+
+    model_config = _WIRE
+
+    v: Version = SCHEMA_VERSION
+    samples: list[BatchedSample] = Field(max_length=MAX_BATCH)
+
+
+class GainsMessage(BaseModel):
+    """New absolute gains for one loop (tuner -> gateway), published once per RL step."""
+
+    model_config = _WIRE
+
+    v: Version = SCHEMA_VERSION
+    loop_id: LoopId
+    seq: int = Field(ge=1, description="Per-loop sequence number, increasing across restarts.")
+    t: float = Field(description="Plant time (s) of the sample that triggered the update.")
+    dkp: float = Field(description="Change of kp, engineering units.")
+    dki: float = Field(description="Change of ki, engineering units (per second).")
+    kp: float = Field(gt=0.0, description="New proportional gain, engineering units.")
+    ki: float = Field(gt=0.0, description="New integral gain, engineering units per second.")
+    mode: Literal[Mode.auto, Mode.advisory] = Field(
+        description="'advisory' updates are suggestions: the tuner never assumes them applied."
+    )
+    reason: UpdateReason = UpdateReason.agent
+    instance_id: str = Field(description="The tuner instance that published the update.")
+
+
+class GainsBatch(BaseModel):
+    """Gains messages of many loops in one message (tuner -> a gateway fronting them).
+
+    Loops registered with a ``gateway`` get their gains this way instead of one message
+    each: every batched agent step publishes one message per gateway.
+    """
+
+    model_config = _WIRE
+
+    v: Version = SCHEMA_VERSION
+    gains: list[GainsMessage] = Field(max_length=MAX_BATCH)
+
+
+class StateReply(BaseModel):
+    """Reply of the ``state`` queryable: a loop's current gains and status."""
+
+    model_config = _WIRE
+
+    v: Version = SCHEMA_VERSION
+    loop_id: LoopId
+    kp: float
+    ki: float
+    mode: Mode
+    status: LoopStatus
+    seq: int = Field(ge=0, description="Sequence number of the last gains message (0: none).")
+    last_t: float | None = Field(description="Plant time (s) of the last accepted sample.")
+    instance_id: str
+
+
+class ErrorReply(BaseModel):
+    """Error reply of the ``state`` queryable (e.g. unknown loop)."""
+
+    model_config = _WIRE
+
+    v: Version = SCHEMA_VERSION
+    loop_id: str
+    error: str
+
+
+WIRE_MODELS: tuple[type[BaseModel], ...] = (
+    Sample,
+    SampleBatch,
+    GainsMessage,
+    GainsBatch,
+    StateReply,
+    ErrorReply,
+)
+
+
+def is_valid_id(value: str) -> bool:
+    """Whether ``value`` can be a loop or instance id (one key-expression chunk)."""
+    return bool(_ID_RE.fullmatch(value))
+
+
+@dataclass(frozen=True)
+class Keys:
+    """Key expressions of the protocol under one prefix."""
+
+    prefix: str = DEFAULT_PREFIX
+
+    def __post_init__(self) -> None:
+        if not _PREFIX_RE.fullmatch(self.prefix):
+            raise ValueError(f"invalid key prefix {self.prefix!r}: chunks of [A-Za-z0-9_.-]")
+
+    def sample(self, loop_id: str) -> str:
+        return f"{self.prefix}/loops/{loop_id}/sample"
+
+    def gains(self, loop_id: str) -> str:
+        return f"{self.prefix}/loops/{loop_id}/gains"
+
+    def state(self, loop_id: str) -> str:
+        return f"{self.prefix}/loops/{loop_id}/state"
+
+    def gateway_gains(self, gateway: str) -> str:
+        return f"{self.prefix}/gateways/{gateway}/gains"
+
+    def tuner(self, instance_id: str) -> str:
+        return f"{self.prefix}/tuners/{instance_id}"
+
+    @property
+    def batch(self) -> str:
+        return f"{self.prefix}/samples"
+
+    @property
+    def all_samples(self) -> str:
+        return self.sample("*")
+
+    @property
+    def all_gains(self) -> str:
+        return self.gains("*")
+
+    @property
+    def all_states(self) -> str:
+        return self.state("*")
+
+    @property
+    def all_tuners(self) -> str:
+        return self.tuner("*")
+
+    def loop_id(self, key: str) -> str | None:
+        """The loop id in ``{prefix}/loops/{loop_id}/{kind}``, or None if ``key`` is not one."""
+        head = f"{self.prefix}/loops/"
+        if not key.startswith(head):
+            return None
+        parts = key[len(head) :].split("/")
+        if len(parts) != 2 or not is_valid_id(parts[0]):
+            return None
+        return parts[0]
+
+
+def encode(message: BaseModel) -> bytes:
+    """JSON bytes of a wire message."""
+    return message.model_dump_json().encode()
