@@ -44,6 +44,12 @@ AGENT_TAU = 0.5
 """Time constant (agent units) at which a hinted loop appears to the agent."""
 RL_STEP_AGENT_UNITS = 2.75
 """Agent time units between two RL steps (gain updates), as in training."""
+AGENT_KP0 = AGENT_KI0 = 0.05
+"""The paper's deliberately slow initial tuning (Kc = 0.05, tau_I = 1), agent units."""
+AGENT_GAIN_RANGE = (0.01, 50.0)
+"""Default bounds of kp and ki in agent units: the range the agent was trained in."""
+DEFAULT_FORGETTING = 0.99
+"""The paper's forgetting factor gamma of the hidden state, used online."""
 
 Factor = Annotated[float, Field(ge=1e-9, le=1e9, allow_inf_nan=False)]
 """Every hint and factor lies within 1e-9..1e9, so derived gains stay finite and nonzero."""
@@ -117,6 +123,11 @@ class Scaling(BaseModel):
     def ki_per_agent(self) -> float:
         """Engineering ki (per second) per agent ki."""
         return self.e_scale / (self.u_scale * self.time_unit_s)
+
+    @property
+    def int_scale(self) -> float:
+        """Agent error integral per engineering error integral (per second)."""
+        return self.e_scale / self.time_unit_s
 
     @property
     def rl_period_s(self) -> float:
