@@ -9,7 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from service.daemon.store import Store, audit_row
+from service.daemon.store import Store
+from service.engine.audit import audit_row
 from service.engine.config import LoopConfig
 from tests.tuner_support import loop_body
 

@@ -32,19 +32,17 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from prometheus_client import CONTENT_TYPE_LATEST
 
 from service.agent.model import Agent
-from service.daemon.settings import Settings
-from service.daemon.tuner import Conflict, StoreUnavailable, Tuner, UnknownLoop
-from service.engine.config import (
+from service.daemon.schemas import (
     MAX_BULK,
     MAX_PAGE,
     BulkRegistered,
     Health,
     HistoryPage,
-    LoopConfig,
-    LoopPatch,
     LoopsPage,
-    LoopView,
 )
+from service.daemon.settings import Settings
+from service.daemon.tuner import Conflict, StoreUnavailable, Tuner, UnknownLoop
+from service.engine.config import LoopConfig, LoopPatch, LoopView
 
 log = logging.getLogger("pitune.api")
 _bearer = HTTPBearer(auto_error=False, description="PITUNE_API_TOKEN, when set")

@@ -35,7 +35,9 @@ from pathlib import Path
 import orjson
 from pydantic import ValidationError
 
-from service.engine.config import AuditEntry, LoopConfig
+from service.daemon.schemas import AuditEntry
+from service.engine.audit import AUDIT_COLUMNS, AuditRow
+from service.engine.config import LoopConfig
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS loops (
@@ -71,7 +73,6 @@ CREATE TABLE IF NOT EXISTS journal (
 log = logging.getLogger("pitune.store")
 UPDATE_GAINS = "UPDATE loops SET kp = ?, ki = ?, seq = ? WHERE id = ?"
 
-AUDIT_COLUMNS = "loop_id, wall_time, t, seq, mode, reason, kp_old, ki_old, kp_new, ki_new, detail"
 
 
 @dataclass
@@ -83,10 +84,6 @@ class StoredLoop:
     hidden: bytes | None
     runtime: str | None
     """JSON of the runtime snapshot (see :meth:`service.engine.table.LoopTable.snapshot`)."""
-
-
-AuditRow = tuple
-"""Values in :data:`AUDIT_COLUMNS` order; build with :func:`audit_row`."""
 
 
 @dataclass
@@ -101,22 +98,6 @@ class JournalEntry:
     @property
     def size(self) -> int:
         return len(self.gains) + len(self.audit)
-
-
-def audit_row(
-    loop_id: str,
-    wall_time: float,
-    t: float | None,
-    seq: int,
-    mode: str,
-    reason: str,
-    old: tuple[float, float] | None,
-    new: tuple[float, float] | None,
-    detail: str = "",
-) -> AuditRow:
-    kp_old, ki_old = old or (None, None)
-    kp_new, ki_new = new or (None, None)
-    return (loop_id, wall_time, t, seq, mode, reason, kp_old, ki_old, kp_new, ki_new, detail)
 
 
 class Store:

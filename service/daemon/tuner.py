@@ -38,9 +38,11 @@ from pydantic import ValidationError
 from service.agent.model import Agent, load_agent, untrained_agent
 from service.daemon.bus import JSON, Bus, Item, Kind, reply
 from service.daemon.metrics import Metrics, RateLimitedLog
+from service.daemon.schemas import HistoryPage, LoopsPage
 from service.daemon.settings import Settings
-from service.daemon.store import AuditRow, Store, audit_row
-from service.engine.config import HistoryPage, LoopConfig, LoopPatch, LoopsPage, LoopView
+from service.daemon.store import Store
+from service.engine.audit import AuditRow, audit_row
+from service.engine.config import LoopConfig, LoopPatch, LoopView
 from service.engine.table import MODE_VALUES, LoopTable, Rejected, StepResult
 from service.wire.protocol import (
     MAX_BATCH,

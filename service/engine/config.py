@@ -1,4 +1,4 @@
-"""REST schemas of the admin API (loop registration, views, audit log).
+"""A loop's registration (what the engine tunes it with) and the engine's view of it.
 
 A :class:`LoopConfig` is also what the store persists: what a loop was registered
 with, with the safety bounds resolved to explicit engineering values.
@@ -6,15 +6,12 @@ with, with the safety bounds resolved to explicit engineering values.
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from service.units import Scaling, ScalingSpec
+from service.units import AGENT_GAIN_RANGE, DEFAULT_FORGETTING, Scaling, ScalingSpec
 from service.wire.protocol import MAX_MAGNITUDE, Gain, GatewayId, LoopId, LoopStatus, Mode
-
-AGENT_GAIN_RANGE = (0.01, 50.0)
-"""Default bounds of kp and ki in agent units: the range the agent was trained in."""
 
 Fraction = Annotated[float, Field(gt=0.0, le=10.0, allow_inf_nan=False)]
 ExcitationPeriods = Annotated[float, Field(ge=0.0, le=1e6, allow_inf_nan=False)]
@@ -78,7 +75,7 @@ class LoopConfig(BaseModel):
     scaling: ScalingSpec
     mode: Mode = Mode.auto
     forgetting: Annotated[float, Field(gt=0.0, le=1.0)] = Field(
-        0.99, description="Forgetting factor of the agent's hidden state (the paper's gamma)."
+        DEFAULT_FORGETTING, description="Forgetting factor of the agent's hidden state (the paper's gamma)."
     )
     guard: Guard = Guard()
     gateway: GatewayId | None = Field(
@@ -122,16 +119,6 @@ def check_bounds(guard: Guard, kp: float, ki: float) -> None:
         raise ValueError("bounds must satisfy min < max")
     if not (guard.kp_min <= kp <= guard.kp_max and guard.ki_min <= ki <= guard.ki_max):
         raise ValueError("the registered gains must lie within the bounds")
-
-
-MAX_BULK = 100_000
-"""Most loops in one ``POST /loops/bulk``."""
-
-
-class BulkRegistered(BaseModel):
-    """Reply of ``POST /loops/bulk``."""
-
-    registered: list[str] = Field(description="Ids of the loops registered, in request order.")
 
 
 class LoopPatch(BaseModel):
@@ -192,44 +179,3 @@ class LoopView(BaseModel):
     counters: Counters
 
 
-AuditReason = Literal["registered", "agent", "reset", "adopted", "patched", "deleted"]
-
-
-class AuditEntry(BaseModel):
-    """One change of a loop's gains or configuration."""
-
-    id: int
-    loop_id: str
-    wall_time: float = Field(description="Unix time the change was recorded.")
-    t: float | None = Field(description="Plant time (s), when the change came from a sample.")
-    seq: int
-    mode: Mode
-    reason: AuditReason
-    kp_old: float | None
-    ki_old: float | None
-    kp_new: float | None
-    ki_new: float | None
-    detail: str = ""
-
-
-MAX_PAGE = 1000
-"""Most loops or audit entries in one page of ``GET /loops`` or a loop's history."""
-
-
-class LoopsPage(BaseModel):
-    items: list[LoopView] = Field(description="In registration order.")
-    total: int = Field(description="Loops registered.")
-    offset: int
-    limit: int
-
-
-class HistoryPage(BaseModel):
-    items: list[AuditEntry] = Field(description="Newest first.")
-    total: int
-    offset: int
-    limit: int
-
-
-class Health(BaseModel):
-    status: Literal["ok", "starting", "failing"]
-    detail: str = ""

@@ -49,7 +49,7 @@ import orjson
 
 from service.agent.fast import FastPolicy, Precision
 from service.agent.model import Agent
-from service.daemon.store import AuditRow, audit_row
+from service.engine.audit import AuditRow, audit_row
 from service.engine.config import Counters, LoopConfig, LoopView
 from service.wire.protocol import LoopStatus, Mode, RejectReason, Sample
 

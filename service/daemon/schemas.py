@@ -1,0 +1,65 @@
+"""REST schemas of the admin API beyond the engine's own models (pages, audit, health).
+
+Loop registration and views are the engine's models (:mod:`service.engine.config`).
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, Field
+
+from service.engine.config import LoopView
+from service.wire.protocol import Mode
+
+MAX_BULK = 100_000
+"""Most loops in one ``POST /loops/bulk``."""
+
+
+class BulkRegistered(BaseModel):
+    """Reply of ``POST /loops/bulk``."""
+
+    registered: list[str] = Field(description="Ids of the loops registered, in request order.")
+
+
+AuditReason = Literal["registered", "agent", "reset", "adopted", "patched", "deleted"]
+
+
+class AuditEntry(BaseModel):
+    """One change of a loop's gains or configuration."""
+
+    id: int
+    loop_id: str
+    wall_time: float = Field(description="Unix time the change was recorded.")
+    t: float | None = Field(description="Plant time (s), when the change came from a sample.")
+    seq: int
+    mode: Mode
+    reason: AuditReason
+    kp_old: float | None
+    ki_old: float | None
+    kp_new: float | None
+    ki_new: float | None
+    detail: str = ""
+
+
+MAX_PAGE = 1000
+"""Most loops or audit entries in one page of ``GET /loops`` or a loop's history."""
+
+
+class LoopsPage(BaseModel):
+    items: list[LoopView] = Field(description="In registration order.")
+    total: int = Field(description="Loops registered.")
+    offset: int
+    limit: int
+
+
+class HistoryPage(BaseModel):
+    items: list[AuditEntry] = Field(description="Newest first.")
+    total: int
+    offset: int
+    limit: int
+
+
+class Health(BaseModel):
+    status: Literal["ok", "starting", "failing"]
+    detail: str = ""

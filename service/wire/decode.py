@@ -1,0 +1,301 @@
+"""Samples off the wire into columns: the one decoder of the tuner's input.
+
+Every sample message, single (``{prefix}/loops/{id}/sample``) or batched
+(``{prefix}/samples``), ends here as rows of :class:`Columns` (float64 and bool arrays,
+one row per accepted sample, in arrival order) plus one :class:`Rejection` per sample
+that is not a valid :class:`~service.wire.protocol.Sample`. Every received sample ends
+in exactly one of the two.
+
+The acceptance rules are the pydantic models' (:mod:`service.wire.protocol`). A
+vectorised check accepts the plain case (every field of the expected JSON type, finite,
+within :data:`MAX_MAGNITUDE`) without building a model per sample; any item it does not
+accept is validated by the model itself, alone, so one odd item neither sends its
+neighbours to the slow path nor is judged by a second set of rules. A test fuzzes the
+decoder against the models.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+
+import numpy as np
+import orjson
+from pydantic import ValidationError
+
+from service.wire.protocol import (
+    _ID_RE,
+    MAX_BATCH,
+    MAX_MAGNITUDE,
+    SCHEMA_VERSION,
+    BatchedSample,
+    RejectReason,
+)
+
+FLOAT_FIELDS = ("t", "e", "sp", "pv", "kp", "ki")
+_RANGE_ERRORS = {"less_than_equal", "greater_than_equal", "less_than", "greater_than"}
+_FLOAT = {float}
+_OPT_FLOAT = {float, type(None)}
+_BOOL = {bool}
+_INT = {int}
+
+
+@dataclass(frozen=True)
+class Rejection:
+    """A sample that was not accepted, and why."""
+
+    index: int
+    """Position of the sample among those received together."""
+    loop_id: str | None
+    reason: RejectReason
+    detail: str
+
+
+@dataclass
+class Columns:
+    """Accepted samples as columns, one row each (engineering units, plant seconds).
+
+    ``t``, ``e`` (the error: ``e``, or ``sp - pv``), ``sp``, ``kp``, ``ki``: float64, NaN
+    where the sample did not carry the field (``sp`` only matters to the excitation
+    gate); ``auto``, ``saturated``: bool; ``index``: each row's position among the
+    samples received together.
+    """
+
+    loop_ids: list[str]
+    t: np.ndarray
+    e: np.ndarray
+    sp: np.ndarray
+    kp: np.ndarray
+    ki: np.ndarray
+    auto: np.ndarray
+    saturated: np.ndarray
+    index: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.loop_ids)
+
+    def take(self, rows: np.ndarray) -> Columns:
+        """The rows selected by an index or mask array, in that order."""
+        ids = self.loop_ids
+        picked = np.flatnonzero(rows) if rows.dtype == bool else rows
+        return Columns(
+            [ids[i] for i in picked.tolist()],
+            *(getattr(self, f)[picked] for f in _ARRAYS),
+        )
+
+    @classmethod
+    def empty(cls) -> Columns:
+        return _columns([], {}, [])
+
+
+_ARRAYS = ("t", "e", "sp", "kp", "ki", "auto", "saturated", "index")
+
+
+@dataclass
+class Decoded:
+    """What a group of received samples decoded to."""
+
+    rows: Columns
+    rejected: list[Rejection]
+    received: int
+    """Samples received (accepted + rejected)."""
+
+
+def classify(exc: ValidationError) -> RejectReason:
+    """The rejection reason of a sample that failed validation (its first error)."""
+    err = exc.errors()[0]
+    kind, loc = err["type"], err["loc"]
+    if kind == "json_invalid":
+        return RejectReason.malformed_json
+    if loc == ("v",) and kind in _RANGE_ERRORS:
+        return RejectReason.unsupported_version
+    if kind == "finite_number":
+        return RejectReason.non_finite
+    if kind in _RANGE_ERRORS:
+        return RejectReason.out_of_range
+    return RejectReason.schema
+
+
+def decode_objects(items: list, *, strict_json: bool = True) -> Decoded:
+    """Decode parsed JSON values, each meant to be a :class:`BatchedSample`.
+
+    ``strict_json`` False says the values were parsed by a parser that admits NaN and
+    Infinity: every item then goes through the model, which rejects them.
+    """
+    n = len(items)
+    plain = _plain_rows(items) if strict_json else np.zeros(n, bool)
+    if plain.all():
+        return Decoded(_columns(items, _raw(items), range(n)), [], n)
+    good = np.flatnonzero(plain).tolist()
+    kept: list[dict] = [items[i] for i in good]
+    kept_index: list[int] = good
+    rejected: list[Rejection] = []
+    for i in np.flatnonzero(~plain).tolist():
+        item = items[i]
+        try:
+            sample = BatchedSample.model_validate(item)
+        except ValidationError as exc:
+            loop_id = item.get("loop_id") if isinstance(item, dict) else None
+            loop_id = loop_id if isinstance(loop_id, str) else None
+            rejected.append(Rejection(i, loop_id, classify(exc), exc.errors()[0]["msg"]))
+            continue
+        kept.append(sample.model_dump())
+        kept_index.append(i)
+    order = np.argsort(np.asarray(kept_index, np.int64), kind="stable")
+    kept = [kept[j] for j in order.tolist()]
+    kept_index = [kept_index[j] for j in order.tolist()]
+    return Decoded(_columns(kept, _raw(kept), kept_index), rejected, n)
+
+
+def decode_singles(messages: list[tuple[str | None, bytes]]) -> Decoded:
+    """Decode single-sample messages: (loop id from the key, or None if the key is not a
+    loop's sample key; JSON payload)."""
+    items: list = []
+    index: list[int] = []
+    rejected: list[Rejection] = []
+    lax = False
+    for i, (loop_id, payload) in enumerate(messages):
+        if loop_id is None:
+            rejected.append(Rejection(i, None, RejectReason.bad_key, "not a loop's sample key"))
+            continue
+        try:
+            item = orjson.loads(payload)
+        except orjson.JSONDecodeError as exc:
+            item = _lax_loads(payload)
+            if item is None:
+                rejected.append(Rejection(i, loop_id, RejectReason.malformed_json, str(exc)))
+                continue
+            lax = True
+        if type(item) is not dict:
+            rejected.append(Rejection(i, loop_id, RejectReason.schema, "not a JSON object"))
+            continue
+        item["loop_id"] = loop_id  # the key names the loop
+        items.append(item)
+        index.append(i)
+    decoded = decode_objects(items, strict_json=not lax)
+    return _renumber(decoded, index, rejected, len(messages))
+
+
+def decode_batch(payload: bytes) -> Decoded:
+    """Decode a :class:`~service.wire.protocol.SampleBatch` message.
+
+    A payload that is not a batch at all counts as one rejected sample; a batch over
+    :data:`MAX_BATCH` samples or of an unsupported version is rejected whole, each of its
+    samples counted. NaN or Infinity in one sample (what Python's ``json`` writes by
+    default) rejects that sample only.
+    """
+    lax = False
+    try:
+        message = orjson.loads(payload)
+    except orjson.JSONDecodeError as exc:
+        message = _lax_loads(payload)
+        if message is None:
+            return _whole(1, RejectReason.malformed_json, f"batch: {exc}")
+        lax = True
+    items = message.get("samples") if isinstance(message, dict) else None
+    if not isinstance(items, list):
+        return _whole(1, RejectReason.schema, "batch without a 'samples' list")
+    n = len(items)
+    version = message.get("v", SCHEMA_VERSION)
+    if type(version) is not int or not 1 <= version <= SCHEMA_VERSION:
+        return _whole(n, RejectReason.unsupported_version, f"batch v={version!r}")
+    if n > MAX_BATCH:
+        return _whole(n, RejectReason.schema, f"batch of {n} samples (at most {MAX_BATCH})")
+    return decode_objects(items, strict_json=not lax)
+
+
+# -- helpers ----------------------------------------------------------------------------
+def _lax_loads(payload: bytes):
+    """JSON with NaN/Infinity admitted (Python's json), or None if it is not JSON."""
+    try:
+        return json.loads(payload)
+    except (ValueError, UnicodeDecodeError, RecursionError):
+        return None
+
+
+def _whole(n: int, reason: RejectReason, detail: str) -> Decoded:
+    return Decoded(Columns.empty(), [Rejection(i, None, reason, detail) for i in range(n)], n)
+
+
+def _renumber(decoded: Decoded, index: list[int], rejected: list[Rejection], n: int) -> Decoded:
+    """Map positions among the decoded objects back to positions among the messages."""
+    pos = np.asarray(index, np.int64)
+    decoded.rows.index = pos[decoded.rows.index] if len(pos) else decoded.rows.index
+    rejected += [
+        Rejection(index[r.index], r.loop_id, r.reason, r.detail) for r in decoded.rejected
+    ]
+    rejected.sort(key=lambda r: r.index)
+    return Decoded(decoded.rows, rejected, n)
+
+
+def _raw(items: list[dict]) -> dict[str, list]:
+    return {k: [d.get(k) for d in items] for k in FLOAT_FIELDS}
+
+
+def _plain_rows(items: list) -> np.ndarray:
+    """Per item: True where the vectorised rules accept it exactly as the model would.
+
+    Plain: a JSON object with a valid string ``loop_id``, ``t`` a float, ``e``/``sp``/
+    ``pv``/``kp``/``ki`` floats or absent (not null), ``e`` or both ``sp`` and ``pv``,
+    booleans ``auto``/``saturated`` and integer ``v`` of this version when present, every
+    number within :data:`MAX_MAGNITUDE` and gains positive. Anything else (ints, strings,
+    nulls, ...) is for the model to judge.
+    """
+    if items and set(map(type, items)) == {dict} and _plain_whole(items):
+        return np.ones(len(items), bool)
+    return _plain_rows_each(items)
+
+
+def _plain_whole(items: list[dict]) -> bool:
+    """The common case, decided with one pass per field over the whole group."""
+    ids = [d.get("loop_id") for d in items]
+    if set(map(type, ids)) != {str} or not all(map(_ID_RE.fullmatch, ids)):
+        return False
+    raw = _raw(items)
+    defaults = {"auto": True, "saturated": False, "v": SCHEMA_VERSION}
+    flags = {k: [d.get(k, default) for d in items] for k, default in defaults.items()}
+    if (
+        set(map(type, raw["t"])) != _FLOAT
+        or not all(set(map(type, raw[k])) <= _OPT_FLOAT for k in FLOAT_FIELDS[1:])
+        or set(map(type, flags["auto"])) != _BOOL
+        or set(map(type, flags["saturated"])) != _BOOL
+        or set(map(type, flags["v"])) != _INT
+        or set(flags["v"]) != {SCHEMA_VERSION}
+    ):
+        return False
+    cols = {k: np.array(v, dtype=np.float64) for k, v in raw.items()}  # None -> NaN
+    return bool(_numbers_ok(cols).all())
+
+
+def _plain_rows_each(items: list) -> np.ndarray:
+    """:func:`_plain_whole` item by item (only when the group as a whole is not plain)."""
+    return np.fromiter((type(d) is dict and _plain_whole([d]) for d in items), bool, len(items))
+
+
+def _numbers_ok(cols: dict[str, np.ndarray]) -> np.ndarray:
+    with np.errstate(invalid="ignore"):
+        ok = np.ones(cols["t"].shape, bool)
+        for k in ("t", "e", "sp", "pv"):  # NaN (absent) compares False: passes
+            ok &= ~(np.abs(cols[k]) > MAX_MAGNITUDE)
+        for k in ("kp", "ki"):
+            ok &= ~((cols[k] <= 0.0) | (cols[k] > MAX_MAGNITUDE))
+        ok &= ~np.isnan(cols["e"]) | (~np.isnan(cols["sp"]) & ~np.isnan(cols["pv"]))
+    return ok
+
+
+def _columns(items: list[dict], raw: dict[str, list], index) -> Columns:
+    n = len(items)
+    cols = {k: np.array(raw[k], dtype=np.float64).reshape(n) for k in FLOAT_FIELDS}
+    e = cols["e"]
+    error = np.where(np.isnan(e), cols["sp"] - cols["pv"], e)
+    return Columns(
+        [d["loop_id"] for d in items],
+        cols["t"],
+        error,
+        cols["sp"],
+        cols["kp"],
+        cols["ki"],
+        np.fromiter((d.get("auto", True) for d in items), bool, n),
+        np.fromiter((d.get("saturated", False) for d in items), bool, n),
+        np.asarray(list(index), np.int64).reshape(n),
+    )
