@@ -20,9 +20,10 @@ Two loop kinds:
   accept for a level loop (no overshoot, settles in about 6 minutes).
 * :class:`FoptdLoop`, K exp(-theta s)/(tau s + 1) with target tau_cl = 2 tau.
 
-Both default to the paper's deliberately slow initial tuning, Kc = 0.05 and
-tau_I = 1 time unit in agent units, converted to engineering units with the crude model
-hint (K_hat, tau_hat) the loop is registered with (:func:`untuned_gains`).
+Their initial gains are given in engineering units; by default the plant simulator uses
+the paper's deliberately slow initial tuning, Kc = 0.05 and tau_I = 1 time unit in agent
+units, converted with the crude model hint the loop is registered with
+(:meth:`plant_sim.config.LoopSpec.initial_gains`).
 """
 
 from __future__ import annotations
@@ -44,18 +45,6 @@ TANK_HINT = (1.2, 30.0)
 TANK_PV_SCALE = 10.0
 """cm of level per agent error unit: the paper subtracts 55 cm and divides by 10."""
 TANK_FLOW_MAX = 80.0
-
-
-def untuned_gains(k_hat: float, tau_hat: float) -> tuple[float, float]:
-    """The paper's initial Kc = 0.05, tau_I = 1 (agent units) in engineering units.
-
-    The paper's scaling (section 5.4) makes the model hint look like gain 0.5 and time
-    constant 0.5 to the agent, so an agent kp maps to kp * 0.5 / k_hat (the PV scale
-    cancels: it divides the error and multiplies the output alike) and one agent time
-    unit is tau_hat / 0.5 seconds.
-    """
-    kp = 0.05 * 0.5 / k_hat
-    return kp, kp / (tau_hat / 0.5)
 
 
 @dataclass(frozen=True)

@@ -13,10 +13,8 @@ the gains in force and the recent tracking error. Both processes are then stoppe
 * ``tank1.csv``: the tuned run's trajectory log.
 
 The untuned baseline is the same plant, schedule and seed simulated in-process with
-the registered gains held fixed (:func:`plant_sim.process.untuned_baseline`).
-
-:class:`Child` is the process plumbing the end-to-end tests share with the demo
-(:func:`service.wire.session.free_port`, re-exported here, finds their ports).
+the registered gains held fixed (:func:`plant_sim.config.untuned_baseline`). The
+processes run in a :class:`service.procs.Stack`.
 """
 
 from __future__ import annotations
@@ -24,11 +22,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
-import os
-import secrets
 import shutil
-import signal
-import subprocess
 import sys
 import tempfile
 import time
@@ -37,86 +31,21 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from plant_sim.process import untuned_baseline
+from plant_sim.config import LoopSpec, Simulation, untuned_baseline
+from plant_sim.process import plant_argv
 from plant_sim.scenario import TANK_FIT
 from plant_sim.trajectory import plot, read_log
 from plant_sim.tunings import simc_improved, to_parallel
-from service.cli import build_parser
-from service.wire.session import free_port
+from service.procs import Proc, ProcError, Stack
 
-ROOT = Path(__file__).resolve().parents[1]
-LOOP_ID = "tank1"
+LOOP = LoopSpec("two_tank", "tank1")
+LOOP_ID = LOOP.loop_id
 MSE_CHANGES = 2
 """The tracking MSE covers the last two setpoint changes, when tuning has settled."""
 
 
 class DemoError(RuntimeError):
-    """A part of the demo failed; the message says which and why."""
-
-
-def pitune(*args: str) -> list[str]:
-    """argv running a ``pitune`` sub-command with this interpreter, from any install."""
-    return [sys.executable, "-m", "service.cli", *args]
-
-
-class Child:
-    """A ``pitune`` subprocess with its output in a log file; reaped by :meth:`stop`."""
-
-    def __init__(self, name: str, argv: list[str], *, env: dict[str, str], log: Path) -> None:
-        self.name = name
-        self.log = log
-        log.parent.mkdir(parents=True, exist_ok=True)
-        with log.open("ab") as out:
-            self.proc = subprocess.Popen(
-                argv, cwd=ROOT, env=env, stdout=out, stderr=subprocess.STDOUT
-            )
-
-    @property
-    def running(self) -> bool:
-        return self.proc.poll() is None
-
-    def tail(self, lines: int = 15) -> str:
-        text = self.log.read_text(errors="replace") if self.log.exists() else ""
-        return "\n".join(text.splitlines()[-lines:])
-
-    def stop(self, timeout: float = 20.0) -> int:
-        """SIGTERM, then SIGKILL after ``timeout``; the exit code."""
-        if self.running:
-            self.proc.send_signal(signal.SIGTERM)
-        try:
-            return self.proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            return self.kill()
-
-    def kill(self) -> int:
-        """SIGKILL, as a crash would."""
-        if self.running:
-            self.proc.kill()
-        return self.proc.wait()
-
-    def wait(self, timeout: float) -> int:
-        try:
-            return self.proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            raise DemoError(
-                f"{self.name} still running after {timeout:g} s:\n{self.tail()}"
-            ) from None
-
-    def failed(self) -> DemoError:
-        return DemoError(f"{self.name} exited with code {self.proc.returncode}:\n{self.tail()}")
-
-
-def wait_healthy(api: str, child: Child, timeout: float = 90.0) -> None:
-    """Until ``GET /healthz`` answers 200; fail early if ``child`` dies."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if not child.running:
-            raise child.failed()
-        with contextlib.suppress(httpx.HTTPError):
-            if httpx.get(f"{api}/healthz", timeout=2.0).status_code == 200:
-                return
-        time.sleep(0.2)
-    raise DemoError(f"{child.name} not healthy after {timeout:g} s:\n{child.tail()}")
+    """The run went wrong although its processes did not fail; the message says how."""
 
 
 # -- the demo ----------------------------------------------------------------------------
@@ -144,71 +73,10 @@ def run(args: argparse.Namespace) -> int:
             demo = Demo(args, workdir)
             view = demo.run()
             demo.report(view, wall_s=time.monotonic() - started)
-    except DemoError as exc:
+    except (ProcError, DemoError) as exc:
         print(f"\npitune demo failed: {exc}", file=sys.stderr)
         return 1
     return 0
-
-
-class Stack:
-    """A tuner and plant simulators as separate processes on loopback ports, sharing a
-    work folder (SQLite database, process logs, trajectory logs). The demo runs one;
-    the end-to-end tests kill and restart its parts."""
-
-    def __init__(self, workdir: Path, *, speed: float, agent_weights: str | None = None) -> None:
-        self.workdir = workdir
-        self.speed = speed
-        self.agent_weights = agent_weights
-        self.api = f"http://127.0.0.1:{free_port()}"
-        self.zenoh = f"tcp/127.0.0.1:{free_port()}"
-        self.token = secrets.token_urlsafe(16)
-        self.children: list[Child] = []
-
-    @property
-    def log_dir(self) -> Path:
-        return self.workdir / "log"
-
-    def env(self) -> dict[str, str]:
-        """Embedded defaults only: a PITUNE_* variable of the caller must not leak in."""
-        env = {k: v for k, v in os.environ.items() if not k.startswith("PITUNE_")}
-        return {**env, "PITUNE_API_TOKEN": self.token}
-
-    def start_tuner(self, *extra: str) -> Child:
-        """Start the tuner (same database and ports on every restart); wait until healthy."""
-        # Samples arrive `speed` times faster than the plant's 1 s scan.
-        rate = max(50.0, 4.0 * self.speed)
-        argv = pitune("tuner", "--api-port", self.api.rsplit(":", 1)[1], "--listen", self.zenoh,
-                      "--db", str(self.workdir / "pitune.db"), "--max-sample-rate", f"{rate:g}",
-                      "--log-level", "warning", *extra)  # fmt: skip
-        if self.agent_weights:
-            argv += ["--agent-weights", self.agent_weights]
-        tuner = self._start("tuner", argv)
-        wait_healthy(self.api, tuner)
-        return tuner
-
-    def start_plant(self, *plant_args: str) -> Child:
-        """Start a plant simulator that registers its loops and logs their trajectories."""
-        argv = pitune("plant", "run", *plant_args, "--speed", f"{self.speed:g}",
-                      "--connect", self.zenoh, "--register", self.api,
-                      "--log-dir", str(self.log_dir), "--progress", "0")  # fmt: skip
-        return self._start("plant", argv)
-
-    def _start(self, name: str, argv: list[str]) -> Child:
-        n = sum(c.name == name for c in self.children)
-        child = Child(name, argv, env=self.env(), log=self.workdir / f"{name}{n or ''}.log")
-        self.children.append(child)
-        return child
-
-    def close(self) -> None:
-        """Stop every process still running (plants first, so none outlives its tuner)."""
-        for child in sorted(self.children, key=lambda c: c.name != "plant"):
-            child.stop()
-
-    def __enter__(self) -> Stack:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 class Demo:
@@ -218,12 +86,9 @@ class Demo:
         self.args = args
         self.workdir = workdir
         self.duration_s = args.minutes * 60.0
-
-    def plant_args(self) -> list[str]:
-        """The plant's simulation options, shared with the in-process baseline."""
-        a = self.args
-        return ["--tank", LOOP_ID, "--duration", f"{self.duration_s:g}", "--noise", f"{a.noise:g}",
-                "--seed", str(a.seed)]  # fmt: skip
+        # The plant process and the in-process baseline simulate this (the pace is the
+        # stack's --speed: it does not change the simulated trajectory).
+        self.sim = Simulation(duration=self.duration_s, noise=args.noise, seed=args.seed)
 
     def run(self) -> dict:
         with Stack(
@@ -231,7 +96,7 @@ class Demo:
         ) as st:
             print(f"starting the tuner (API {st.api}, Zenoh {st.zenoh}) ...", flush=True)
             tuner = st.start_tuner()
-            plant = st.start_plant(*self.plant_args())
+            plant = st.start_plant(*plant_argv((LOOP,), self.sim))
             print(f"plant simulator started: {self.args.minutes:g} simulated minutes "
                   f"at {self.args.speed:g}x", flush=True)  # fmt: skip
             view = self.follow(st.api, plant, tuner)
@@ -239,7 +104,7 @@ class Demo:
                 raise tuner.failed()
             return view
 
-    def follow(self, api: str, plant: Child, tuner: Child) -> dict:
+    def follow(self, api: str, plant: Proc, tuner: Proc) -> dict:
         """Show progress until the plant finishes its span; the loop's final view."""
         deadline = time.monotonic() + self.duration_s / self.args.speed + 90.0
         log = self.workdir / "log" / f"{LOOP_ID}.csv"
@@ -257,7 +122,7 @@ class Demo:
                         view = response.json()
                         progress.show(view, log)
                 time.sleep(0.5)
-            if plant.proc.returncode != 0:
+            if plant.returncode != 0:
                 raise plant.failed()
             view = client.get(f"/loops/{LOOP_ID}").json()
         progress.show(view, log, final=True)
@@ -269,8 +134,7 @@ class Demo:
         out.mkdir(parents=True, exist_ok=True)
         log = self.workdir / "log" / f"{LOOP_ID}.csv"
         tuned = read_log(log)
-        plant_args = build_parser("plant").parse_args(["plant", "run", *self.plant_args()])
-        baseline = untuned_baseline(plant_args)[LOOP_ID]
+        baseline = untuned_baseline((LOOP,), self.sim)[LOOP_ID]
         if len(tuned) != len(baseline):
             raise DemoError(f"the plant logged {len(tuned)} scans, expected {len(baseline)}")
         shutil.copyfile(log, out / f"{LOOP_ID}.csv")
