@@ -1,18 +1,20 @@
-"""The tuner: store, loop table, agent and bus wired together, with one worker thread.
+"""The tuner daemon's core: the tuning engine wired to the store and the bus, with one
+worker thread.
 
 :class:`Tuner` is the daemon minus its HTTP server: ``start()`` restores the loops from
-the store and opens the bus, ``stop()`` closes the bus, drains what was received,
-snapshots and closes the store. The admin API calls its methods; tests can run it
-in-process.
+the store into the engine and opens the bus, ``stop()`` closes the bus, drains what was
+received, snapshots and closes the store. The admin API calls its methods; tests can
+run it in-process.
 
-The worker drains the bus queue in batches. Samples are validated and integrated one
-by one; loops that fall due are collected and stepped in one batched agent call at the
-end of the batch (earlier if a due loop receives another sample, so each step sees
-exactly the data up to its own due sample). Gains and audit rows are committed to the
-store (as one journal row per step batch, see :mod:`service.daemon.store`) before the gains
-messages go out: one message per loop, or one per gateway for loops registered with a
-gateway. The worker applies the journal to the store's tables while it has nothing else
-to do.
+The worker drains the bus queue in batches: sample messages are decoded
+(:mod:`service.wire.decode`) and handed to the engine (:mod:`service.engine`), which
+says which loops fall due; due loops are stepped in one batched agent call at the end
+of the batch (earlier if a due loop receives another sample). Gains and audit rows are
+committed to the store (as one journal row per step batch, see
+:mod:`service.daemon.store`) before the gains messages go out: one message per loop, or
+one per gateway for loops registered with a gateway. The worker applies the journal to
+the store's tables while it has nothing else to do. Nothing about tuning is decided
+here: this module owns lifecycle, persistence policy and publishing.
 """
 
 from __future__ import annotations
@@ -20,7 +22,6 @@ from __future__ import annotations
 import collections
 import contextlib
 import gc
-import itertools
 import logging
 import math
 import os
@@ -29,11 +30,9 @@ import sqlite3
 import threading
 import time
 
-import numpy as np
 import orjson
 import torch
 import zenoh
-from pydantic import ValidationError
 
 from service.agent.model import Agent, load_agent, untrained_agent
 from service.daemon.bus import JSON, Bus, Item, Kind, reply
@@ -43,17 +42,15 @@ from service.daemon.settings import Settings
 from service.daemon.store import Store
 from service.engine.audit import AuditRow, audit_row
 from service.engine.config import LoopConfig, LoopPatch, LoopView
-from service.engine.table import MODE_VALUES, LoopTable, Rejected, StepResult
+from service.engine.engine import TuningEngine
+from service.engine.updates import StepResult
+from service.wire.decode import Rejection, decode_batch, decode_singles
 from service.wire.protocol import (
     MAX_BATCH,
-    MAX_MAGNITUDE,
     SCHEMA_VERSION,
-    BatchedSample,
     ErrorReply,
     RejectReason,
-    Sample,
     StateReply,
-    UpdateReason,
     encode,
 )
 
@@ -142,84 +139,27 @@ def _group_singles(items: list[Item]):
         yield Kind.sample, "", run
 
 
-_FLOAT = {float}
-_OPT_FLOAT = {float, type(None)}
-_BOOL = {bool}
-_INT = {int}
-
-
-def _batch_columns(items: list, slot_of: dict[str, int]):
-    """(slots, columns) of a plainly valid batch (see ``Tuner._on_batch_fast``), or None."""
-    if not items or set(map(type, items)) != {dict}:
-        return None
-    ids = [d.get("loop_id") for d in items]
-    slots = [slot_of.get(i) for i in ids] if set(map(type, ids)) == {str} else [None]
-    if None in slots or len(set(slots)) != len(slots):
-        return None
-    raw = {k: [d.get(k) for d in items] for k in ("t", "e", "sp", "pv", "kp", "ki")}
-    # absent flags take their defaults; an explicit null is a schema error (slow path)
-    defaults = {"auto": True, "saturated": False, "v": SCHEMA_VERSION}
-    flags = {k: [d.get(k, default) for d in items] for k, default in defaults.items()}
-    if (
-        set(map(type, raw["t"])) != _FLOAT
-        or not all(set(map(type, raw[k])) <= _OPT_FLOAT for k in ("e", "sp", "pv", "kp", "ki"))
-        or set(map(type, flags["auto"])) != _BOOL
-        or set(map(type, flags["saturated"])) != _BOOL
-        or set(map(type, flags["v"])) != _INT
-        or set(flags["v"]) != {SCHEMA_VERSION}
-    ):
-        return None
-    cols = {k: np.array(v, dtype=np.float64) for k, v in raw.items()}  # None -> NaN
-    with np.errstate(invalid="ignore"):
-        for k in ("t", "e", "sp", "pv"):  # NaN (absent) compares False: passes
-            if (np.abs(cols[k]) > MAX_MAGNITUDE).any():
-                return None
-        for k in ("kp", "ki"):
-            if ((cols[k] <= 0.0) | (cols[k] > MAX_MAGNITUDE)).any():
-                return None
-    e = cols.pop("e")
-    error = np.where(np.isnan(e), cols["sp"] - cols.pop("pv"), e)  # sp: excitation gate
-    if np.isnan(error).any():  # neither e nor both sp and pv
-        return None
-    cols["e"] = error
-    cols["auto"] = np.array(flags["auto"], dtype=bool)
-    cols["saturated"] = np.array(flags["saturated"], dtype=bool)
-    return np.array(slots, dtype=np.int64), cols
-
-
-def classify(exc: ValidationError) -> RejectReason:
-    """The rejection reason of a sample that failed validation (its first error)."""
-    err = exc.errors()[0]
-    kind, loc = err["type"], err["loc"]
-    if kind == "json_invalid":
-        return RejectReason.malformed_json
-    if loc == ("v",) and kind in _RANGE_ERRORS:
-        return RejectReason.unsupported_version
-    if kind == "finite_number":
-        return RejectReason.non_finite
-    if kind in _RANGE_ERRORS:
-        return RejectReason.out_of_range
-    return RejectReason.schema
-
-
 class Tuner:
     def __init__(self, settings: Settings, agent: Agent | None = None) -> None:
         self.settings = settings
         self.keys = settings.keys
         self.metrics = Metrics()
         self.agent = agent if agent is not None else load_configured_agent(settings)
-        self.table = LoopTable(
+        self.engine = TuningEngine(
             self.agent,
             max_rate_hz=settings.max_sample_rate_hz,
             inference_workers=settings.inference_workers,
             inference_precision=settings.inference_precision,
+            on_reject=self._on_reject,
         )
+        self.table = self.engine.table
+        self._skipped = 0
         self.inbox: queue.Queue[Item] = queue.Queue(settings.queue_size)
         self.store: Store | None = None
         self.bus: Bus | None = None
         self._worker: threading.Thread | None = None
         self._snapshot_todo: list[str] = []
-        self._held: list[tuple[StepResult, UpdateReason]] = []
+        self._held: list[StepResult] = []
         """Steps whose commit failed: published once a commit succeeds."""
         self._store_failing_since: float | None = None
         self._store_error = ""
@@ -232,7 +172,7 @@ class Tuner:
         wall = time.time()
         with self.table.lock:
             for stored in self.store.load():
-                self.table.add(
+                self.engine.restore(
                     stored.config,
                     kp=stored.kp,
                     ki=stored.ki,
@@ -374,150 +314,52 @@ class Tuner:
                     self._commit(None)  # retry, even without traffic
             return
         wall = time.time()
-        due: dict[int, None] = {}  # ordered set of slots
+        engine = self.engine
         flush_at = math.inf
-        with self.table.lock:
+        with engine.lock:
+            engine.stepping = self._store_failing_since is None
             for kind, _key, payload in _group_singles(items):
-                if kind is Kind.sample:
-                    self._on_samples(payload, due, wall)
-                elif kind is Kind.batch:
-                    self._on_batch(payload, due, wall)
-                else:
-                    self._flush(due, wall)
+                if kind is Kind.query:
+                    self._flush(wall)  # the reply reflects every sample received before it
                     self._answer(payload)
+                    continue
+                if kind is Kind.sample:
+                    decoded = decode_singles([(self.keys.loop_id(k), p) for k, p in payload])
+                else:
+                    decoded = decode_batch(payload)
+                self.metrics.samples_received.inc(decoded.received)
+                for result in engine.ingest_decoded(decoded, wall=wall):
+                    self._stepped(result)
                 # Batch the due loops, but never hold one back for long behind a backlog.
-                if not due:
+                if not engine.due:
                     flush_at = math.inf
                 elif flush_at == math.inf:
                     flush_at = time.perf_counter() + FLUSH_AFTER_S
                 elif time.perf_counter() >= flush_at:
-                    self._flush(due, wall)
+                    self._flush(wall)
                     flush_at = math.inf
-            self._flush(due, wall)
+            self._flush(wall)
             self._commit(None)
 
-    def _on_samples(self, singles: list[tuple[str, bytes]], due: dict[int, None], wall: float):
-        """Single-sample messages received together: one vectorised pass when they are
-        plainly valid (as a batch message would be), else one by one."""
-        if len(singles) > 1:
-            items = []
-            for key, payload in singles:
-                loop_id = self.keys.loop_id(key)
-                try:
-                    item = orjson.loads(payload)
-                except orjson.JSONDecodeError:
-                    break
-                if loop_id is None or type(item) is not dict:
-                    break
-                item["loop_id"] = loop_id  # the key names the loop
-                items.append(item)
-            else:
-                if self._on_batch_fast(items, due, wall):
-                    self.metrics.samples_received.inc(len(items))
-                    return
-        for key, payload in singles:
-            self._on_sample(key, payload, due, wall)
+    def _on_reject(self, rejection: Rejection) -> None:
+        self.metrics.reject(rejection.reason, rejection.loop_id, rejection.detail)
 
-    def _on_sample(self, key: str, payload: bytes, due: dict[int, None], wall: float) -> None:
-        self.metrics.samples_received.inc()
-        loop_id = self.keys.loop_id(key)
-        if loop_id is None:
-            self.metrics.reject(RejectReason.bad_key, None, f"key {key!r}")
-            return
-        try:
-            sample = Sample.model_validate_json(payload)
-        except ValidationError as exc:
-            self._reject_invalid(loop_id, exc)
-            return
-        self._ingest(loop_id, sample, due, wall)
-
-    def _on_batch(self, payload: bytes, due: dict[int, None], wall: float) -> None:
-        try:
-            message = orjson.loads(payload)
-        except orjson.JSONDecodeError as exc:
-            self.metrics.samples_received.inc()
-            self.metrics.reject(RejectReason.malformed_json, None, f"batch: {exc}")
-            return
-        items = message.get("samples") if isinstance(message, dict) else None
-        if not isinstance(items, list):
-            self.metrics.samples_received.inc()
-            self.metrics.reject(RejectReason.schema, None, "batch without a 'samples' list")
-            return
-        version = message.get("v", SCHEMA_VERSION)
-        self.metrics.samples_received.inc(len(items))
-        if type(version) is not int or not 1 <= version <= SCHEMA_VERSION:
-            for _ in items:
-                self.metrics.reject(RejectReason.unsupported_version, None, f"batch v={version!r}")
-            return
-        if self._on_batch_fast(items, due, wall):
-            return
-        for item in items:
-            try:
-                sample = BatchedSample.model_validate(item)
-            except ValidationError as exc:
-                loop_id = item.get("loop_id") if isinstance(item, dict) else None
-                self._reject_invalid(loop_id if isinstance(loop_id, str) else None, exc)
-                continue
-            self._ingest(sample.loop_id, sample, due, wall)
-
-    def _on_batch_fast(self, items: list, due: dict[int, None], wall: float) -> bool:
-        """Ingest a batch vectorised when it is plainly valid (False: take the slow path).
-
-        Plainly valid: every sample a JSON object of floats (``t``, ``e``/``sp``+``pv``,
-        optional ``kp``/``ki`` > 0) and booleans, within the wire limits, of a distinct
-        registered loop not already waiting for a step. Anything else (ints, strings,
-        missing fields, unknown loops, a loop twice) goes through the pydantic models
-        one by one, so rejections are classified exactly as for single samples.
-        """
-        columns = _batch_columns(items, self.table.slot_of)
-        if columns is None:
-            return False
-        slots, cols = columns
-        if any(s in due for s in slots.tolist()):
-            return False
-        due_mask, rejections = self.table.ingest_many(slots, cols, wall)
-        for i, reason, detail in rejections:
-            self.metrics.reject(reason, items[i]["loop_id"], detail)
-        for s in slots[due_mask].tolist():
-            due[s] = None
-        return True
-
-    def _reject_invalid(self, loop_id: str | None, exc: ValidationError) -> None:
-        slot = self.table.slot_of.get(loop_id)
-        if slot is not None:
-            self.table.n_rejected[slot] += 1
-        self.metrics.reject(classify(exc), loop_id, exc.errors()[0]["msg"])
-
-    def _ingest(self, loop_id: str, sample: Sample, due: dict[int, None], wall: float) -> None:
-        slot = self.table.slot_of.get(loop_id)
-        if slot is None:
-            self.metrics.reject(RejectReason.unknown_loop, loop_id, "not registered")
-            return
-        if slot in due:
-            self._flush(due, wall)
-        try:
-            if self.table.ingest(slot, sample, wall):
-                due[slot] = None
-        except Rejected as exc:
-            self.metrics.reject(exc.reason, loop_id, exc.detail)
-
-    def _flush(self, due: dict[int, None], wall: float) -> None:
-        if not due:
-            return
-        slots = np.fromiter(due, dtype=np.int64, count=len(due))
-        due.clear()
-        if self._store_failing_since is not None:
+    def _flush(self, wall: float) -> None:
+        result = self.engine.flush(wall)
+        if self.engine.skipped != self._skipped:
             # A step could be neither committed nor published, and the next one would
-            # start from gains the gateway never got: skip until the store works again.
-            self.metrics.steps_skipped.inc(len(slots))
-            return
-        started = time.perf_counter()
-        result = self.table.step(slots, wall)
-        self.metrics.inference_seconds.observe(time.perf_counter() - started)
-        self.metrics.inference_batch_size.observe(len(slots))
+            # start from gains the gateway never got: skipped until the store works again.
+            self.metrics.steps_skipped.inc(self.engine.skipped - self._skipped)
+            self._skipped = self.engine.skipped
+        if result is not None:
+            self._stepped(result)
+
+    def _stepped(self, result: StepResult) -> None:
+        self.metrics.inference_seconds.observe(result.inference_s)
+        self.metrics.inference_batch_size.observe(len(result))
         self._commit(result)
 
-    def _commit(self, result: StepResult | None, reason: UpdateReason = UpdateReason.agent) -> None:
+    def _commit(self, result: StepResult | None) -> None:
         """Persist the table's pending changes, then publish ``result``'s gains.
 
         If the store fails (disk full, database locked), the changes go back to the table
@@ -526,7 +368,7 @@ class Tuner:
         publishes what was held, in order.
         """
         if result is not None:
-            self._held.append((result, reason))
+            self._held.append(result)
         if self._store_failing_since is not None and time.monotonic() < self._retry_at:
             return
         gains, audit = self.table.drain_changes()
@@ -541,8 +383,8 @@ class Tuner:
             log.warning("store commits work again; publishing %d held steps", len(self._held))
             self._store_failing_since = None
         held, self._held = self._held, []
-        for result, reason in held:
-            self._publish(result, reason)
+        for result in held:
+            self._publish(result)
 
     def _store_failed(self, exc: Exception) -> None:
         now = time.monotonic()
@@ -566,9 +408,8 @@ class Tuner:
         """Why the store fails to commit, while it does (None: it works)."""
         return None if self._store_failing_since is None else self._store_error
 
-    def _publish(self, result: StepResult, reason: UpdateReason) -> None:
-        modes = [MODE_VALUES[c] for c in result.mode.tolist()]
-        messages = self._gains_messages(result, modes, reason)
+    def _publish(self, result: StepResult) -> None:
+        messages = result.messages(self.settings.instance_id)
         by_gateway: dict[str, list[dict]] = collections.defaultdict(list)
         for message, gateway in zip(messages, result.gateways, strict=True):
             if gateway is None:
@@ -579,27 +420,8 @@ class Tuner:
             for i in range(0, len(batch), MAX_BATCH):
                 payload = {"v": SCHEMA_VERSION, "gains": batch[i : i + MAX_BATCH]}
                 self.bus.publish(self.keys.gateway_gains(gateway), orjson.dumps(payload))
-        for mode, count in collections.Counter(modes).items():
+        for mode, count in collections.Counter(m["mode"] for m in messages).items():
             self.metrics.updates_published.labels(mode).inc(count)
-
-    def _gains_messages(
-        self, result: StepResult, modes: list[str], reason: UpdateReason
-    ) -> list[dict]:
-        """GainsMessage JSON objects, built directly (validating each model would cost more
-        than everything else the step does)."""
-        new, delta = result.new, result.new - result.old
-        instance, why = self.settings.instance_id, reason.value
-        return [
-            {
-                "v": SCHEMA_VERSION, "loop_id": loop_id, "seq": seq, "t": t, "dkp": dkp,
-                "dki": dki, "kp": kp, "ki": ki, "mode": mode, "reason": why,
-                "instance_id": instance,
-            }
-            for loop_id, seq, t, dkp, dki, kp, ki, mode in zip(
-                result.loop_ids, result.seq.tolist(), result.t.tolist(), delta[:, 0].tolist(),
-                delta[:, 1].tolist(), new[:, 0].tolist(), new[:, 1].tolist(), modes, strict=True,
-            )
-        ]  # fmt: skip
 
     def _answer(self, query: zenoh.Query) -> None:
         key = str(query.key_expr)
@@ -658,11 +480,9 @@ class Tuner:
 
     def views(self, offset: int, limit: int) -> LoopsPage:
         """A page of loops in registration order; parsed outside the table lock."""
-        with self.table.lock:
-            wall = time.time()
-            total = len(self.table)
-            page = itertools.islice(self.table.slot_of, offset, offset + limit)
-            raw = [self.table.raw_view(loop_id, wall) for loop_id in page]
+        with self.engine.lock:
+            total = len(self.engine)
+            raw = self.engine.raw_views(offset, limit)
         items = [view.parse() for view in raw]
         return LoopsPage(items=items, total=total, offset=offset, limit=limit)
 
@@ -696,7 +516,7 @@ class Tuner:
         with _taken_in_store():
             self.store.insert_loops(configs, audit, seqs)
         for config, seq in zip(configs, seqs, strict=True):
-            self.table.add(config, seq=seq, wall=wall)
+            self.engine.register(config, seq=seq, wall=wall)
         self.metrics.set_loop_counts(self.table.mode_counts())
 
     def patch(self, loop_id: str, patch: LoopPatch) -> LoopView:
@@ -726,7 +546,7 @@ class Tuner:
             self._known(loop_id)
             if self.store_failure is not None:
                 raise StoreUnavailable(self.store_failure)
-            self._commit(self.table.reset(loop_id, wall), UpdateReason.reset)
+            self._commit(self.engine.reset(loop_id, wall))
             return self.table.view(loop_id, wall)
 
     def delete(self, loop_id: str) -> None:
@@ -742,7 +562,7 @@ class Tuner:
                     loop_id, wall, None, int(self.table.seq[s]), mode, "deleted", gains, None
                 ),
             )
-            self.table.remove(loop_id)
+            self.engine.remove(loop_id)
             self.metrics.set_loop_counts(self.table.mode_counts())
 
     def history(self, loop_id: str, offset: int, limit: int) -> HistoryPage:

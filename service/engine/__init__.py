@@ -1,1 +1,18 @@
-"""The bus-free tuning engine (see :mod:`service.engine.engine`)."""
+"""The bus-free tuning engine: samples in, gain decisions out (see
+:mod:`service.engine.engine`)."""
+
+from service.engine.config import Guard, LoopConfig, LoopPatch, LoopView
+from service.engine.engine import TuningEngine
+from service.engine.updates import GainUpdate, StepResult
+from service.wire.decode import Rejection
+
+__all__ = [
+    "GainUpdate",
+    "Guard",
+    "LoopConfig",
+    "LoopPatch",
+    "LoopView",
+    "Rejection",
+    "StepResult",
+    "TuningEngine",
+]

@@ -75,7 +75,8 @@ class LoopConfig(BaseModel):
     scaling: ScalingSpec
     mode: Mode = Mode.auto
     forgetting: Annotated[float, Field(gt=0.0, le=1.0)] = Field(
-        DEFAULT_FORGETTING, description="Forgetting factor of the agent's hidden state (the paper's gamma)."
+        DEFAULT_FORGETTING,
+        description="Forgetting factor of the agent's hidden state (the paper's gamma).",
     )
     guard: Guard = Guard()
     gateway: GatewayId | None = Field(
@@ -177,5 +178,3 @@ class LoopView(BaseModel):
     int_e: float = Field(description="Integral of the error since reset, agent units.")
     hidden_norm: float = Field(description="Norm of the agent's hidden state (0 after reset).")
     counters: Counters
-
-

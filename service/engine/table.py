@@ -51,7 +51,9 @@ from service.agent.fast import FastPolicy, Precision
 from service.agent.model import Agent
 from service.engine.audit import AuditRow, audit_row
 from service.engine.config import Counters, LoopConfig, LoopView
-from service.wire.protocol import LoopStatus, Mode, RejectReason, Sample
+from service.engine.updates import MODE_VALUES, StepResult
+from service.wire.decode import Columns
+from service.wire.protocol import LoopStatus, Mode, RejectReason, UpdateReason
 
 MAX_AGENT_ERROR = 100.0
 """An error beyond this many agent units (training sees about 2) is an absurd sample."""
@@ -64,10 +66,13 @@ GAIN_RTOL = 1e-6
 as float32 reports them off by up to 6e-8 relative, which is no operator's change."""
 
 _MODES = list(Mode)
-MODE_VALUES = [m.value for m in _MODES]
-"""Mode names by the codes in :attr:`LoopTable.mode`."""
 _CODE = {m: i for i, m in enumerate(_MODES)}
 AUTO, ADVISORY, FROZEN = (_CODE[m] for m in (Mode.auto, Mode.advisory, Mode.frozen))
+STATUSES = [
+    LoopStatus.frozen, LoopStatus.waiting, LoopStatus.stale, LoopStatus.manual,
+    LoopStatus.saturated, LoopStatus.quiet, LoopStatus.tuning,
+]  # fmt: skip
+"""Statuses in order of precedence (see :meth:`LoopTable.statuses`)."""
 
 _F64 = (
     # gains now, registered, and replaced by an update still in flight
@@ -86,31 +91,6 @@ _F64 = (
 )  # fmt: skip
 _I64 = ["mode", "seq", "n_samples", "n_rejected", "n_steps", "n_updates", "n_quiet"]
 _BOOL = ["pending", "manual", "saturated"]
-
-
-class Rejected(Exception):
-    def __init__(self, reason: RejectReason, detail: str) -> None:
-        super().__init__(detail)
-        self.reason = reason
-        self.detail = detail
-
-
-@dataclass
-class StepResult:
-    """One batched RL step; arrays are aligned with ``loop_ids``."""
-
-    loop_ids: list[str]
-    t: np.ndarray
-    seq: np.ndarray
-    mode: np.ndarray
-    old: np.ndarray
-    """(n, 2) gains before the step."""
-    proposed: np.ndarray
-    """(n, 2) gains the agent proposed."""
-    new: np.ndarray
-    """(n, 2) gains after the safety guard (published)."""
-    gateways: list[str | None]
-    """The gateway each loop's gains go out batched to (None: one message per loop)."""
 
 
 class Configs:
@@ -272,7 +252,7 @@ class LoopTable:
         g = config.guard
         self.kp_unit[s], self.ki_unit[s] = sc.kp_per_agent, sc.ki_per_agent
         self.e_scale[s] = sc.e_scale
-        self.int_scale[s] = sc.e_scale / sc.time_unit_s
+        self.int_scale[s] = sc.int_scale
         self.period[s] = sc.rl_period_s
         self.stale_gap[s] = g.stale_periods * config.sample_period_s
         self.forgetting[s] = config.forgetting
@@ -343,72 +323,10 @@ class LoopTable:
             np.array([new]),
             np.array([new]),
             [self.gateways[s]],
+            UpdateReason.reset,
         )
 
     # -- samples ----------------------------------------------------------------------
-    def ingest(self, s: int, sample: Sample, wall: float) -> bool:
-        """Take one validated sample of the loop in slot ``s``; True if an RL step is due.
-
-        Raises :class:`Rejected` (the loop's state unchanged but for its counters).
-        """
-        try:
-            return self._ingest(s, sample, wall)
-        except Rejected:
-            self.n_rejected[s] += 1
-            raise
-
-    def _ingest(self, s: int, sample: Sample, wall: float) -> bool:
-        tokens = min(self.burst, self.tokens[s] + (wall - self.token_wall[s]) * self.rate)
-        self.token_wall[s] = wall
-        if tokens < 1.0:
-            self.tokens[s] = tokens
-            raise Rejected(RejectReason.flood, f"over {self.rate:g} samples/s")
-        self.tokens[s] = tokens - 1.0
-        t, last_t = sample.t, self.last_t[s]
-        if t <= last_t:  # False while last_t is NaN (no sample yet)
-            if t == last_t:
-                raise Rejected(RejectReason.duplicate, f"t={t} again")
-            if not self._new_clock(s, t):
-                raise Rejected(RejectReason.out_of_order, f"t={t} < last t={last_t}")
-            last_t = math.nan  # re-anchored: a fresh decimation window
-        e = sample.error
-        if abs(e) * self.e_scale[s] > MAX_AGENT_ERROR:
-            raise Rejected(RejectReason.out_of_range, f"|e|={abs(e):g} is absurd for this loop")
-        self.back_n[s] = 0.0
-        if sample.kp is not None or sample.ki is not None:
-            self._adopt(s, sample, wall)
-        if sample.sp is None:  # only the error: a setpoint change shows as a jump of it
-            moved = not math.isnan(last_t) and abs(e - self.last_e[s]) >= self.exc_step[s]
-        else:
-            moved = abs(sample.sp - self.sp_ref[s]) >= self.exc_step[s]  # False for NaN
-            if moved or math.isnan(self.sp_ref[s]):
-                self.sp_ref[s] = sample.sp
-        if moved:
-            self.excited_until[s] = t + self.exc_window[s]
-
-        paused = not sample.auto or sample.saturated
-        resumed = (self.manual[s] or self.saturated[s]) and not paused
-        self.n_samples[s] += 1
-        self.last_wall[s] = wall
-        self.manual[s] = not sample.auto
-        self.saturated[s] = sample.saturated
-        self.last_t[s] = t
-        if math.isnan(last_t) or t - last_t > self.stale_gap[s] or resumed:
-            self.next_due[s] = t + self.period[s]  # a new decimation window
-        elif not paused:
-            self.int_e[s] += 0.5 * (e + self.last_e[s]) * (t - last_t) * self.int_scale[s]
-        self.last_e[s] = e
-        if t < self.next_due[s]:
-            return False
-        period = self.period[s]
-        self.next_due[s] += period * (math.floor((t - self.next_due[s]) / period) + 1.0)
-        if self.mode[s] == FROZEN or not sample.auto or sample.saturated:
-            return False
-        if self._quiet(s, t):
-            self.n_quiet[s] += 1
-            return False
-        return True
-
     def _quiet(self, s, t):
         """Where the excitation gate is on and its window had closed by sample time ``t``
         (``s``, ``t``: one slot and time, or aligned arrays)."""
@@ -421,16 +339,18 @@ class LoopTable:
         self.back_n[s] = 0.0 if run >= CLOCK_RESET_SAMPLES else run
         return run >= CLOCK_RESET_SAMPLES
 
-    def ingest_many(
-        self, slots: np.ndarray, cols: dict[str, np.ndarray], wall: float
+    def ingest(
+        self, slots: np.ndarray, rows: Columns, wall: float
     ) -> tuple[np.ndarray, list[tuple[int, RejectReason, str]]]:
-        """:meth:`ingest` of many samples at once, vectorised, for *distinct* slots.
+        """Take decoded samples of *distinct* loops (``slots`` aligned with ``rows``).
 
-        ``cols``: float arrays ``t``, ``e`` (the error), ``sp``, ``kp``, ``ki`` (NaN: not
-        reported) and bool arrays ``auto``, ``saturated``, aligned with ``slots``.
-        Returns (due mask, rejections as (index, reason, detail)); the state ends exactly
-        as after ingesting the samples one by one.
+        The one implementation of the sample rules, vectorised: flood limit, duplicate and
+        out-of-order times (or a new plant clock), absurd errors, adoption of reported
+        gains, the excitation gate, the error integral and decimation to the RL period.
+        Returns (mask of the loops now due for an RL step, rejections as (row, reason,
+        detail)); a rejected sample changes nothing of its loop but its counters.
         """
+        cols = {k: getattr(rows, k) for k in ("t", "e", "sp", "kp", "ki", "auto", "saturated")}
         t, e = cols["t"], cols["e"]
         tokens = np.minimum(
             self.burst, self.tokens[slots] + (wall - self.token_wall[slots]) * self.rate
@@ -449,7 +369,6 @@ class LoopTable:
         ok = ~(flood | dup | late | absurd)
         rejections: list[tuple[int, RejectReason, str]] = []
         if not ok.all():
-            self.n_rejected[slots[~ok]] += 1
             for i in np.flatnonzero(~ok).tolist():
                 if flood[i]:
                     rejections.append((i, RejectReason.flood, f"over {self.rate:g} samples/s"))
@@ -465,8 +384,8 @@ class LoopTable:
             slots, last_t, t, e = slots[ok], last_t[ok], t[ok], e[ok]
             cols = {k: v[ok] for k, v in cols.items()}
         self.back_n[slots] = 0.0
-        self._adopt_many(slots, cols, wall)
-        self._excite_many(slots, cols, last_t)
+        self._adopt(slots, cols, wall)
+        self._excite(slots, cols, last_t)
 
         self.n_samples[slots] += 1
         self.last_wall[slots] = wall
@@ -495,8 +414,8 @@ class LoopTable:
         due[np.flatnonzero(ok)[due_ok]] = True
         return due, rejections
 
-    def _excite_many(self, slots: np.ndarray, cols: dict[str, np.ndarray], last_t) -> None:
-        """The excitation gate's part of :meth:`ingest_many` (before ``last_e`` moves on)."""
+    def _excite(self, slots: np.ndarray, cols: dict[str, np.ndarray], last_t) -> None:
+        """The excitation gate's part of :meth:`ingest` (before ``last_e`` moves on)."""
         sp, e, step = cols["sp"], cols["e"], self.exc_step[slots]
         ref = self.sp_ref[slots]
         has_sp = ~np.isnan(sp)
@@ -509,7 +428,7 @@ class LoopTable:
         self.sp_ref[slots] = np.where(has_sp & (moved | np.isnan(ref)), sp, ref)
         self.excited_until[slots[moved]] = cols["t"][moved] + self.exc_window[slots[moved]]
 
-    def _adopt_many(self, slots: np.ndarray, cols: dict[str, np.ndarray], wall: float) -> None:
+    def _adopt(self, slots: np.ndarray, cols: dict[str, np.ndarray], wall: float) -> None:
         has_kp, has_ki = ~np.isnan(cols["kp"]), ~np.isnan(cols["ki"])
         report = has_kp | has_ki
         if not report.any():
@@ -518,12 +437,12 @@ class LoopTable:
         cur_kp, cur_ki = self.kp[slots], self.ki[slots]
         kp = np.where(has_kp, cols["kp"][report], cur_kp)
         ki = np.where(has_ki, cols["ki"][report], cur_ki)
-        same = _close_v(kp, cur_kp) & _close_v(ki, cur_ki)
+        same = _close(kp, cur_kp) & _close(ki, cur_ki)
         in_flight = (
             ~same
             & self.pending[slots]
-            & _close_v(kp, self.prev_kp[slots])
-            & _close_v(ki, self.prev_ki[slots])
+            & _close(kp, self.prev_kp[slots])
+            & _close(ki, self.prev_ki[slots])
         )
         self.pending[slots[~in_flight]] = False
         changed = np.flatnonzero(~same & ~in_flight)
@@ -541,25 +460,6 @@ class LoopTable:
                     "adopted", old, (float(kp[i]), float(ki[i])), "gains reported by the gateway",
                 )
             )  # fmt: skip
-
-    def _adopt(self, s: int, sample: Sample, wall: float) -> None:
-        kp = self.kp[s] if sample.kp is None else sample.kp
-        ki = self.ki[s] if sample.ki is None else sample.ki
-        if _close(kp, self.kp[s]) and _close(ki, self.ki[s]):
-            self.pending[s] = False
-            return
-        if self.pending[s] and _close(kp, self.prev_kp[s]) and _close(ki, self.prev_ki[s]):
-            return
-        self.pending[s] = False
-        old = (self.kp[s], self.ki[s])
-        self.kp[s], self.ki[s] = kp, ki
-        self._gains_dirty.add(s)
-        self._audit.append(
-            audit_row(
-                self.ids[s], wall, sample.t, int(self.seq[s]), _MODES[self.mode[s]].value,
-                "adopted", old, (kp, ki), "gains reported by the gateway",
-            )
-        )  # fmt: skip
 
     # -- RL step ----------------------------------------------------------------------
     def step(self, slots: np.ndarray, wall: float) -> StepResult:
@@ -693,19 +593,22 @@ class LoopTable:
 
     # -- views ------------------------------------------------------------------------
     def status(self, s: int, wall: float) -> LoopStatus:
-        if self.mode[s] == FROZEN:
-            return LoopStatus.frozen
-        if math.isnan(self.last_t[s]):
-            return LoopStatus.waiting
-        if wall - self.last_wall[s] > self.stale_gap[s]:
-            return LoopStatus.stale
-        if self.manual[s]:
-            return LoopStatus.manual
-        if self.saturated[s]:
-            return LoopStatus.saturated
-        if self._quiet(s, self.last_t[s]):
-            return LoopStatus.quiet
-        return LoopStatus.tuning
+        return STATUSES[int(self.statuses(np.array([s]), wall)[0])]
+
+    def statuses(self, slots: np.ndarray, wall: float) -> np.ndarray:
+        """Each loop's :class:`LoopStatus` as an index into :data:`STATUSES`: the first
+        condition that holds, in this order of precedence."""
+        t = self.last_t[slots]
+        conditions = [
+            self.mode[slots] == FROZEN,
+            np.isnan(t),
+            wall - self.last_wall[slots] > self.stale_gap[slots],
+            self.manual[slots],
+            self.saturated[slots],
+            self._quiet(slots, t),  # NaN t: False, and waiting comes first
+            np.ones(slots.size, bool),
+        ]
+        return np.argmax(np.stack(conditions), axis=0)
 
     def view(self, loop_id: str, wall: float) -> LoopView:
         return self.raw_view(loop_id, wall).parse()
@@ -733,24 +636,10 @@ class LoopTable:
         )
 
     def status_counts(self, wall: float) -> dict[LoopStatus, int]:
-        """How many loops are in each :meth:`status`, vectorised (the same precedence)."""
+        """How many loops are in each :meth:`status`."""
         used = np.fromiter(self.slot_of.values(), np.int64, len(self.slot_of))
-        t = self.last_t[used]
-        conditions = [
-            (LoopStatus.frozen, self.mode[used] == FROZEN),
-            (LoopStatus.waiting, np.isnan(t)),
-            (LoopStatus.stale, wall - self.last_wall[used] > self.stale_gap[used]),
-            (LoopStatus.manual, self.manual[used]),
-            (LoopStatus.saturated, self.saturated[used]),
-            (LoopStatus.quiet, self._quiet(used, t)),  # NaN t: False, and waiting first
-        ]
-        left = np.ones(used.size, bool)
-        counts = {}
-        for status, holds in conditions:
-            counts[status] = int(np.count_nonzero(left & holds))
-            left &= ~holds
-        counts[LoopStatus.tuning] = int(np.count_nonzero(left))
-        return counts
+        counts = np.bincount(self.statuses(used, wall), minlength=len(STATUSES))
+        return {status: int(n) for status, n in zip(STATUSES, counts.tolist(), strict=True)}
 
     def mode_counts(self) -> dict[Mode, int]:
         used = np.fromiter(self.slot_of.values(), np.int64, len(self.slot_of))
@@ -758,11 +647,7 @@ class LoopTable:
         return {mode: int(counts[_CODE[mode]]) for mode in Mode}
 
 
-def _close(a: float, b: float) -> bool:
-    return abs(a - b) <= GAIN_RTOL * max(abs(a), abs(b))
-
-
-def _close_v(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def _close(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.abs(a - b) <= GAIN_RTOL * np.maximum(np.abs(a), np.abs(b))
 
 

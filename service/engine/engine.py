@@ -1,0 +1,270 @@
+"""The tuning engine: samples in, gain decisions out. No bus, no database, no HTTP.
+
+Everything between a decoded sample and a gains decision lives here and in the modules
+it uses: per-loop state (:mod:`service.engine.table`), the sample rules, decimation to
+the RL period, integration, adoption of an operator's gains, the excitation gate, the
+batched agent step and the safety guard. The daemon is this engine behind Zenoh, SQLite
+and FastAPI; ``pitune evaluate``, the tests, and anyone with their own plant simulator
+drive the same engine and get exactly what the daemon would publish::
+
+    from service.engine import TuningEngine, LoopConfig
+    eng = TuningEngine()                                 # the shipped agent
+    eng.register(LoopConfig(id="L1", kp=0.5, ki=0.01, sample_period_s=1.0,
+                            scaling={"k_hat": 1.2, "tau_hat": 30.0, "pv_scale": 10.0}))
+    updates = eng.ingest([{"loop_id": "L1", "t": 0.0, "sp": 55.0, "pv": 53.2}])
+    # -> [GainUpdate(loop_id, seq, t, kp, ki, dkp, dki, mode, reason), ...]
+
+Samples are in engineering units (plant seconds), any number of loops per call, in
+arrival order. A loop falls due when a sample's plant time reaches the end of its RL
+period; due loops are stepped together in one agent call at the end of :meth:`ingest`
+(or earlier, when a due loop receives another sample, so each step sees exactly the data
+up to its own due sample). The result is deterministic for the same samples and wall
+times (``wall`` only drives the flood limit and staleness).
+
+All methods take the engine's :attr:`lock` themselves (re-entrant: a caller may hold it
+across several calls, as the daemon does).
+"""
+
+from __future__ import annotations
+
+import collections
+import time
+from collections.abc import Callable, Iterable
+
+import numpy as np
+
+from service.agent.fast import Precision
+from service.agent.model import Agent, load_agent
+from service.engine.audit import AuditRow
+from service.engine.config import LoopConfig, LoopView
+from service.engine.table import LoopTable, RawView
+from service.engine.updates import GainUpdate, StepResult
+from service.wire.decode import Columns, Decoded, Rejection, decode_objects
+from service.wire.protocol import LoopStatus, Mode, RejectReason
+
+DEFAULT_MAX_RATE_HZ = 1000.0
+"""Per-loop samples per second (wall clock) above which samples are a flood."""
+
+RejectHandler = Callable[[Rejection], None]
+
+
+class TuningEngine:
+    """Per-loop tuning state of any number of loops and one batched agent."""
+
+    def __init__(
+        self,
+        agent: Agent | None = None,
+        *,
+        max_rate_hz: float = DEFAULT_MAX_RATE_HZ,
+        inference_workers: int = 1,
+        inference_precision: Precision = "float32",
+        on_reject: RejectHandler | None = None,
+    ) -> None:
+        self.agent = agent if agent is not None else load_agent()
+        self.table = LoopTable(
+            self.agent,
+            max_rate_hz=max_rate_hz,
+            inference_workers=inference_workers,
+            inference_precision=inference_precision,
+        )
+        self.lock = self.table.lock
+        self.on_reject = on_reject
+        self.rejected: collections.Counter[RejectReason] = collections.Counter()
+        """Samples rejected so far, by reason."""
+        self.received = 0
+        """Samples received so far (each ends accepted or in :attr:`rejected`)."""
+        self.stepping = True
+        """False: loops that fall due are not stepped (counted in :attr:`skipped`): the
+        daemon's choice while its store cannot record a step."""
+        self.skipped = 0
+        self._due: dict[int, None] = {}  # ordered set of slots
+
+    # -- registration -----------------------------------------------------------------
+    def register(self, config: LoopConfig, *, seq: int = 0, wall: float | None = None) -> None:
+        """Add a new loop at its registered gains; ``seq`` continues an earlier loop's."""
+        with self.lock:
+            self.table.add(config, seq=seq, wall=_now(wall))
+
+    def restore(
+        self,
+        config: LoopConfig,
+        *,
+        kp: float,
+        ki: float,
+        seq: int,
+        hidden: bytes | None,
+        runtime: str | None,
+        wall: float | None = None,
+    ) -> None:
+        """Add a loop as it was stored: its gains, seq and state snapshot."""
+        with self.lock:
+            self.table.add(
+                config, kp=kp, ki=ki, seq=seq, hidden=hidden, runtime=runtime, wall=_now(wall)
+            )
+
+    def reconfigure(self, config: LoopConfig) -> None:
+        with self.lock:
+            self.table.reconfigure(config)
+
+    def remove(self, loop_id: str) -> None:
+        with self.lock:
+            self._due.pop(self.table.slot(loop_id), None)
+            self.table.remove(loop_id)
+
+    def reset(self, loop_id: str, wall: float | None = None) -> StepResult | None:
+        """A fresh episode at the registered gains (see :meth:`LoopTable.reset`)."""
+        with self.lock:
+            self._due.pop(self.table.slot(loop_id), None)
+            return self.table.reset(loop_id, _now(wall))
+
+    def __contains__(self, loop_id: object) -> bool:
+        return loop_id in self.table.slot_of
+
+    def __len__(self) -> int:
+        return len(self.table)
+
+    def loop_ids(self) -> list[str]:
+        with self.lock:
+            return list(self.table.slot_of)
+
+    # -- samples ----------------------------------------------------------------------
+    def ingest(
+        self, samples: list[dict] | Decoded, *, wall: float | None = None
+    ) -> list[GainUpdate]:
+        """Take samples (JSON-like dicts, each with its ``loop_id``, or already decoded)
+        and return the gain updates due after them, in decision order."""
+        decoded = samples if isinstance(samples, Decoded) else decode_objects(list(samples))
+        with self.lock:
+            results = self.ingest_decoded(decoded, wall=wall)
+            last = self.flush(wall)
+        if last is not None:
+            results.append(last)
+        return [u for r in results for u in r.updates()]
+
+    def ingest_decoded(self, decoded: Decoded, *, wall: float | None = None) -> list[StepResult]:
+        """:meth:`ingest` without the final :meth:`flush` (the daemon decides when to step
+        loops that are due); returns the steps taken on the way (a due loop receiving
+        another sample is stepped first)."""
+        wall = _now(wall)
+        results: list[StepResult] = []
+        with self.lock:
+            self.received += decoded.received
+            for rejection in decoded.rejected:
+                self._reject(rejection)
+            rows = decoded.rows
+            if not len(rows):
+                return results
+            slot_of = self.table.slot_of
+            slots = np.fromiter((slot_of.get(i, -1) for i in rows.loop_ids), np.int64, len(rows))
+            unknown = slots < 0
+            if unknown.any():
+                for i in np.flatnonzero(unknown).tolist():
+                    self._reject(
+                        Rejection(
+                            int(rows.index[i]),
+                            rows.loop_ids[i],
+                            RejectReason.unknown_loop,
+                            "not registered",
+                        )
+                    )
+                rows, slots = rows.take(~unknown), slots[~unknown]
+            for run in self._segments(rows, slots):
+                if run is None:
+                    result = self.flush(wall)
+                    if result is not None:
+                        results.append(result)
+                    continue
+                part, part_slots = run
+                due, rejections = self.table.ingest(part_slots, part, wall)
+                for i, reason, detail in rejections:
+                    self._reject(Rejection(int(part.index[i]), part.loop_ids[i], reason, detail))
+                for s in part_slots[due].tolist():
+                    self._due[s] = None
+        return results
+
+    def _segments(self, rows: Columns, slots: np.ndarray):
+        """Runs of rows of distinct loops, none due, in arrival order; ``None`` between two
+        runs when the due loops must be stepped first (a due loop has another sample).
+
+        Lazy: each run is ingested before the next is cut, so "due" is up to date.
+        """
+        pending = self._due
+        due_now = np.fromiter(pending, np.int64, len(pending))
+        if np.unique(slots).size == slots.size and not np.isin(slots, due_now).any():
+            yield rows, slots  # the usual case: one run
+            return
+        start, seen = 0, set()
+        for i, s in enumerate(slots.tolist()):
+            if s in seen or s in pending:
+                if i > start:
+                    yield rows.take(np.arange(start, i)), slots[start:i]
+                start, seen = i, set()
+                if s in pending:
+                    yield None
+            seen.add(s)
+        yield rows.take(np.arange(start, slots.size)), slots[start:]
+
+    def flush(self, wall: float | None = None) -> StepResult | None:
+        """Step every due loop in one batched agent call (None if none is due)."""
+        with self.lock:
+            if not self._due:
+                return None
+            slots = np.fromiter(self._due, np.int64, len(self._due))
+            self._due.clear()
+            if not self.stepping:
+                self.skipped += slots.size
+                return None
+            started = time.perf_counter()
+            result = self.table.step(slots, _now(wall))
+            result.inference_s = time.perf_counter() - started
+            return result
+
+    @property
+    def due(self) -> int:
+        """Loops due for an RL step, waiting for :meth:`flush`."""
+        return len(self._due)
+
+    def _reject(self, rejection: Rejection) -> None:
+        self.rejected[rejection.reason] += 1
+        slot = self.table.slot_of.get(rejection.loop_id)
+        if slot is not None:
+            self.table.n_rejected[slot] += 1
+        if self.on_reject is not None:
+            self.on_reject(rejection)
+
+    # -- views and persistence ----------------------------------------------------------
+    def view(self, loop_id: str, wall: float | None = None) -> LoopView:
+        with self.lock:
+            return self.table.view(loop_id, _now(wall))
+
+    def raw_views(self, offset: int, limit: int, wall: float | None = None) -> list[RawView]:
+        """A page of loops in registration order, unparsed (parse outside the lock)."""
+        wall = _now(wall)
+        with self.lock:
+            ids = list(self.table.slot_of)[offset : offset + limit]
+            return [self.table.raw_view(loop_id, wall) for loop_id in ids]
+
+    def status_counts(self, wall: float | None = None) -> dict[LoopStatus, int]:
+        with self.lock:
+            return self.table.status_counts(_now(wall))
+
+    def mode_counts(self) -> dict[Mode, int]:
+        with self.lock:
+            return self.table.mode_counts()
+
+    def drain_changes(self) -> tuple[list[tuple[float, float, int, str]], list[AuditRow]]:
+        """Gains rows and audit rows to persist since the last call."""
+        with self.lock:
+            return self.table.drain_changes()
+
+    def requeue(self, gains: list, audit: list[AuditRow]) -> None:
+        with self.lock:
+            self.table.requeue(gains, audit)
+
+    def snapshot(self, loop_ids: Iterable[str] | None = None) -> list[tuple[str, bytes, str]]:
+        with self.lock:
+            return self.table.snapshot(loop_ids)
+
+
+def _now(wall: float | None) -> float:
+    return time.time() if wall is None else wall

@@ -1,0 +1,82 @@
+"""What the engine decides: gain updates, columnar (:class:`StepResult`) or one by one
+(:class:`GainUpdate`), and the gains messages the daemon publishes for them."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.wire.protocol import SCHEMA_VERSION, Mode, UpdateReason
+
+MODE_VALUES = [m.value for m in Mode]
+"""Mode names by their codes in the engine's arrays (the order of :class:`Mode`)."""
+
+
+@dataclass(frozen=True)
+class GainUpdate:
+    """New gains for one loop, engineering units (kp; ki per second)."""
+
+    loop_id: str
+    seq: int
+    t: float
+    """Plant time (s) of the sample that made the loop due (reset: its last sample, or 0)."""
+    kp: float
+    ki: float
+    dkp: float
+    dki: float
+    mode: str
+    """``auto`` (to be applied) or ``advisory`` (a proposal)."""
+    reason: str
+    """``agent`` (an RL step after the safety guard) or ``reset``."""
+
+
+@dataclass
+class StepResult:
+    """One batched decision (an RL step of several loops, or a reset); arrays are aligned
+    with ``loop_ids``."""
+
+    loop_ids: list[str]
+    t: np.ndarray
+    seq: np.ndarray
+    mode: np.ndarray
+    """Mode codes (see :data:`MODE_VALUES`)."""
+    old: np.ndarray
+    """(n, 2) gains before the step."""
+    proposed: np.ndarray
+    """(n, 2) gains the agent proposed."""
+    new: np.ndarray
+    """(n, 2) gains after the safety guard (published)."""
+    gateways: list[str | None]
+    """The gateway each loop's gains go out batched to (None: one message per loop)."""
+    reason: UpdateReason = UpdateReason.agent
+    inference_s: float = 0.0
+    """Seconds the agent's batched step took (0 for a reset)."""
+
+    def __len__(self) -> int:
+        return len(self.loop_ids)
+
+    def messages(self, instance_id: str) -> list[dict]:
+        """:class:`~service.wire.protocol.GainsMessage` JSON objects, built directly
+        (validating a model per loop would cost more than the whole step)."""
+        new, delta = self.new, self.new - self.old
+        why = self.reason.value
+        modes = [MODE_VALUES[c] for c in self.mode.tolist()]
+        return [
+            {
+                "v": SCHEMA_VERSION, "loop_id": loop_id, "seq": seq, "t": t, "dkp": dkp,
+                "dki": dki, "kp": kp, "ki": ki, "mode": mode, "reason": why,
+                "instance_id": instance_id,
+            }
+            for loop_id, seq, t, dkp, dki, kp, ki, mode in zip(
+                self.loop_ids, self.seq.tolist(), self.t.tolist(), delta[:, 0].tolist(),
+                delta[:, 1].tolist(), new[:, 0].tolist(), new[:, 1].tolist(), modes, strict=True,
+            )
+        ]  # fmt: skip
+
+    def updates(self) -> list[GainUpdate]:
+        """The same decisions one by one."""
+        return [
+            GainUpdate(**{k: m[k] for k in GainUpdate.__dataclass_fields__})
+            for m in self.messages("")
+        ]
