@@ -1,6 +1,7 @@
 """The stable agent API, the MDP and the training loop."""
 
 import csv
+import math
 
 import numpy as np
 import pytest
@@ -9,10 +10,18 @@ import torch
 from plant_sim import PIBatch, run_closed_loop, target_filter
 from plant_sim.foptd import FOPTDBatch
 from plant_sim.tunings import oracle
-from service.agent import DEFAULT_WEIGHTS, load_agent, save_actor, untrained_agent
+from service.agent import (
+    DEFAULT_WEIGHTS,
+    GAIN_FLOOR,
+    forget,
+    load_agent,
+    save_actor,
+    untrained_agent,
+)
 from service.learn.env import EnvConfig, TuningEnv
 from service.learn.oracle import ORACLE_RATIOS, oracle_gains, oracle_table
-from service.learn.train import TrainConfig, Trainer
+from service.learn.train import TrainConfig, Trainer, gae, ppo_policy_loss
+from service.units import AGENT_KI0, AGENT_KP0
 
 
 def _obs(n, rng):
@@ -56,6 +65,17 @@ def test_forgetting_scales_the_previous_hidden_state():
     d0, _ = agent.act(obs, state, forgetting=0.0)
     dz, _ = agent.act(obs, agent.initial_state(3))
     np.testing.assert_allclose(d0, dz, rtol=1e-6)
+
+
+def test_forget_scales_each_loops_hidden_state_in_every_layer():
+    h = torch.randn(2, 3, 5)
+    assert forget(h, 1.0) is h
+    torch.testing.assert_close(forget(h, 0.5), 0.5 * h)
+    per_loop = forget(h, torch.tensor([1.0, 0.5, 0.0]))
+    assert per_loop.shape == h.shape
+    torch.testing.assert_close(per_loop[:, 0], h[:, 0])
+    torch.testing.assert_close(per_loop[:, 1], 0.5 * h[:, 1])
+    assert not per_loop[:, 2].any()
 
 
 def test_act_rejects_bad_input():
@@ -120,8 +140,8 @@ def test_env_cost_adds_the_l1_penalty_and_clips_gains():
     env = TuningEnv(EnvConfig(), np.random.default_rng(0))
     env.reset(np.array([0.5]), np.array([0.5]), np.array([0.1]), horizon=2)
     obs, cost, mse = env.step(np.array([[0.4, -10.0]]))
-    assert obs[0, 0] == pytest.approx(0.45) and obs[0, 1] == pytest.approx(1e-3)
-    assert cost[0] == pytest.approx(mse[0] + 0.5 * 0.4 + 0.5 * (0.05 - 1e-3))
+    assert obs[0, 0] == pytest.approx(AGENT_KP0 + 0.4) and obs[0, 1] == pytest.approx(GAIN_FLOOR)
+    assert cost[0] == pytest.approx(mse[0] + 0.5 * 0.4 + 0.5 * (AGENT_KI0 - GAIN_FLOOR))
 
 
 def test_oracle_table_matches_the_optimiser_and_scales_with_the_plant():
@@ -133,6 +153,29 @@ def test_oracle_table_matches_the_optimiser_and_scales_with_the_plant():
         [kp, ki],
         rtol=0.02,
     )
+
+
+def test_gae_is_the_discounted_sum_of_td_errors():
+    T, gamma, lam = 4, 0.9, 0.8
+    rewards, values = torch.randn(T, 3), torch.randn(T, 3)
+    last = torch.randn(3)
+    nxt = torch.cat([values[1:], last[None]])
+    td = rewards + gamma * nxt - values
+    want = torch.stack(
+        [sum((gamma * lam) ** (k - t) * td[k] for k in range(t, T)) for t in range(T)]
+    )
+    torch.testing.assert_close(gae(rewards, values, last, gamma, lam), want)
+    # lambda 1: advantage + value is the discounted return bootstrapped from ``last``
+    ret = gae(rewards, values, last, gamma, 1.0)[0] + values[0]
+    torch.testing.assert_close(ret, sum(gamma**k * rewards[k] for k in range(T)) + gamma**T * last)
+
+
+def test_ppo_policy_loss_clips_the_ratio():
+    adv = torch.tensor([1.0, -1.0])
+    old = torch.zeros(2)
+    # ratio e^0.5 on both: the positive advantage is clipped at 1.2, the negative is not
+    loss = ppo_policy_loss(torch.full((2,), 0.5), old, adv, clip=0.2)
+    assert loss.item() == pytest.approx(-(1.2 - math.exp(0.5)) / 2)
 
 
 def _tiny(**kw):

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import torch
 
+from service.agent import Actor, Agent, AgentConfig, forget, load_agent, untrained_agent
 from service.agent import fast as inference
-from service.agent import Actor, Agent, AgentConfig, load_agent, untrained_agent
 from service.agent.fast import FastPolicy, cpu_has_native_bf16, resolve_precision
-from service.learn.evaluate import tune
+from service.learn.closed_loop import tune
 
 
 def _inputs(n: int, seed: int = 0):
@@ -39,6 +39,22 @@ def test_fast_policy_equals_agent_act(n, block):
     inplace = state.copy()
     fast.step_inplace(obs, inplace, gamma)
     np.testing.assert_array_equal(inplace, new_state)
+
+
+def test_fast_policy_kernel_forgets_as_forget_does():
+    """The C kernel's forgetting (gamma h inside the GRU step) is :func:`forget`'s."""
+    agent = untrained_agent(6)
+    obs, state, gamma = _inputs(50, seed=3)
+    h = torch.from_numpy(state).transpose(0, 1).contiguous()  # (layers, B, hidden)
+    with torch.no_grad():
+        mean, _, h_ref = agent.actor(
+            torch.from_numpy(obs).float().unsqueeze(0),
+            forget(h, torch.from_numpy(gamma).float()),
+        )
+    inplace = state.copy()
+    FastPolicy(agent, precision="float32").step_inplace(obs, inplace, gamma)
+    np.testing.assert_allclose(inplace, h_ref.transpose(0, 1).numpy(), rtol=1e-5, atol=1e-5)
+    assert not np.allclose(inplace, agent.act(obs, state, 1.0)[1], atol=1e-3)  # gamma mattered
 
 
 def test_fast_policy_scalar_forgetting_and_a_trained_like_actor():

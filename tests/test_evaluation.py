@@ -6,7 +6,10 @@ import numpy as np
 import pytest
 
 from service.agent import load_agent
-from service.learn.evaluate import FIGURES, convergence_time, evaluate, write_model_card
+from service.learn.closed_loop import convergence_time
+from service.learn.evaluate import evaluate
+from service.learn.report import FIGURES, write_model_card
+from service.units import RL_STEP_AGENT_UNITS
 
 
 def test_convergence_time_is_last_exit_from_the_10_percent_band():
@@ -14,7 +17,9 @@ def test_convergence_time_is_last_exit_from_the_10_percent_band():
     steps[:, 0, 0] = [0.1, 0.5, 0.95, 1.2, 0.95, 1.0, 1.0, 1.0, 1.0, 1.0]  # leaves band at 3
     steps[:, 1, 1] = [0.1, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0]  # in from index 1
     steps[:, 2, :] = 2.0  # never outside
-    np.testing.assert_allclose(convergence_time(steps), [4 * 2.75, 1 * 2.75, 0.0])
+    np.testing.assert_allclose(
+        convergence_time(steps), [4 * RL_STEP_AGENT_UNITS, RL_STEP_AGENT_UNITS, 0]
+    )
 
 
 @pytest.fixture(scope="module")

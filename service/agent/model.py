@@ -11,7 +11,7 @@ Stable API (used by the tuner daemon and by evaluation harnesses outside this re
 ``delta`` is (n, 2) = [dkp, dki], the deterministic (mean) action, to be *added* to
 the gains; numpy in gives numpy out. ``forgetting`` is the paper's gamma in
 z_t = f(gamma W z_{t-1} + U x_t + b), applied by scaling each GRU layer's previous
-hidden state before the step; a scalar or one value per loop.
+hidden state before the step (:func:`forget`); a scalar or one value per loop.
 
 Two departures from the paper, both recorded in the model card:
 
@@ -66,6 +66,19 @@ def features(obs: torch.Tensor) -> torch.Tensor:
     )
 
 
+def forget(h: torch.Tensor, gamma: torch.Tensor | float) -> torch.Tensor:
+    """The paper's forgetting factor: the previous hidden state ``gamma h`` a GRU step uses.
+
+    ``h`` is (layers, B, hidden); ``gamma`` a scalar or one value per loop, (B,). The one
+    place training, evaluation and inference apply it (the C kernel of
+    :class:`~service.agent.fast.FastPolicy` does the same, tested against this). The float
+    1.0 returns ``h`` itself: no multiplication on the common path of no forgetting.
+    """
+    if isinstance(gamma, float) and gamma == 1.0:
+        return h
+    return h * torch.as_tensor(gamma, dtype=h.dtype, device=h.device).reshape(1, -1, 1)
+
+
 def relative_to_delta(gains: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
     """Policy output (log-relative change, clipped) -> additive [dkp, dki]."""
     gains = gains.clamp_min(GAIN_FLOOR)
@@ -101,9 +114,7 @@ class Actor(nn.Module):
         self, obs: torch.Tensor, h: torch.Tensor, forgetting: torch.Tensor | float = 1.0
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """One time step for B loops: obs (B, 4), h (layers, B, hidden) -> mean (B, 2), h'."""
-        if not isinstance(forgetting, float) or forgetting != 1.0:
-            h = h * torch.as_tensor(forgetting, dtype=h.dtype).reshape(1, -1, 1)
-        mean, _, h = self.forward(obs.unsqueeze(0), h)
+        mean, _, h = self.forward(obs.unsqueeze(0), forget(h, forgetting))
         return mean[0], h
 
 

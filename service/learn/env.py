@@ -30,27 +30,41 @@ from plant_sim.foptd import FOPTDBatch
 from plant_sim.loop import target_filter
 from plant_sim.pi import PIBatch
 from service.agent.model import GAIN_FLOOR
+from service.units import AGENT_GAIN_RANGE, AGENT_KI0, AGENT_KP0, RL_STEP_AGENT_UNITS
 
 K_RANGE = (0.25, 1.0)
 TAU_RANGE = (0.25, 1.0)
 RATIO_RANGE = (0.0, 1.0)
-KP0 = KI0 = 0.05
 
 
 @dataclass(frozen=True)
 class EnvConfig:
+    """The MDP's constants; time in the agent's (dimensionless) units."""
+
     dt: float = 0.01
-    rl_period: float = 2.75
+    """Controller sample time."""
+    rl_period: float = RL_STEP_AGENT_UNITS
+    """Time between two RL steps (gain updates)."""
     sp_period: float = 11.0
+    """Time between setpoint toggles (4 RL steps, as in the paper)."""
     beta_kp: float = 0.5
+    """Cost per unit of |dkp| (the paper's beta_1)."""
     beta_ki: float = 0.5
-    gain_max: float = 50.0
+    """Cost per unit of |dki| (the paper's beta_2)."""
+    gain_max: float = AGENT_GAIN_RANGE[1]
+    """Upper clip of kp and ki (the lower one is ``GAIN_FLOOR``)."""
     err_cap: float = 25.0
+    """Cap of each squared tracking error in the cost, so unstable trials stay finite."""
     u_limit: float = 100.0
+    """Controller output limit +-u_limit (with anti-windup)."""
     init_noise: float = 0.1
+    """Standard deviation of the plant's initial output around 0."""
     noise_std: float = 0.0
+    """Measurement noise standard deviation."""
     drift_prob: float = 0.0
+    """Share of episodes whose dynamics change mid-episode (K step or tau ramp)."""
     sp_jitter: float = 0.0
+    """Relative spread of each episode's setpoint period (with a random phase); 0: none."""
 
 
 def sample_tasks(n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -79,8 +93,8 @@ class TuningEnv:
         theta: np.ndarray,
         *,
         horizon: int,
-        kp0: float | np.ndarray = KP0,
-        ki0: float | np.ndarray = KI0,
+        kp0: float | np.ndarray = AGENT_KP0,
+        ki0: float | np.ndarray = AGENT_KI0,
         sp0: float | np.ndarray | None = None,
     ) -> np.ndarray:
         """Start B episodes of ``horizon`` RL steps; return the first observation (B, 4)."""

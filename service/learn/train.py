@@ -45,66 +45,139 @@ from service.agent.model import (
     Agent,
     AgentConfig,
     Critic,
+    forget,
     relative_to_delta,
     save_actor,
 )
+from service.learn.closed_loop import tune
 from service.learn.env import K_RANGE, RATIO_RANGE, TAU_RANGE, EnvConfig, TuningEnv, sample_tasks
-from service.learn.evaluate import tune
 from service.learn.oracle import oracle_gains, oracle_table
+from service.units import DEFAULT_FORGETTING, RL_STEP_AGENT_UNITS
 
 
 @dataclass
 class TrainConfig:
+    """One training run's hyperparameters (each is a ``pitune train --flag``)."""
+
     seed: int = 1
+    """Seed of numpy's and torch's generators."""
     # imitation warm start (DAgger toward the step-test oracle)
     bc_epochs: int = 600
+    """Imitation epochs before PPO."""
     bc_horizon: int = 60
+    """RL steps per imitation episode."""
     bc_updates: int = 3
+    """Passes over each imitation rollout."""
     bc_minibatch: int = 100
+    """Episodes per imitation minibatch."""
     bc_explore: float = 0.1
+    """Std of the noise added to the policy's mean while collecting imitation rollouts."""
     bc_lr: float = 1e-3
+    """Adam learning rate of the imitation updates."""
     bc_label_gain: float = 1.0
+    """Label = this share of the log-distance to the oracle's gains (clipped to one step)."""
     # PPO (paper: 300 episodes an epoch, 40 steps, gamma 0.99, lambda 0.95, ...)
     epochs: int = 200
+    """PPO epochs (policy updates) after the value warm-up."""
     episodes: int = 300
+    """Episodes per epoch (imitation and PPO)."""
     horizon: int = 40
+    """RL steps per PPO episode."""
     gamma: float = 0.99
+    """Discount factor of the return (not the forgetting factor)."""
     gae_lambda: float = 0.95
+    """GAE's lambda."""
     clip: float = 0.2
+    """PPO's clip range of the probability ratio."""
     pi_lr: float = 3e-4
+    """Adam learning rate of the policy."""
     v_lr: float = 1e-3
+    """Adam learning rate of the critic."""
     pi_iters: int = 20
+    """Most policy gradient steps per epoch (fewer on the KL early stop)."""
     v_iters: int = 40
+    """Critic gradient steps per epoch."""
     target_kl: float = 0.015
+    """Policy updates of an epoch stop once the KL to the rollout policy exceeds 1.5x this."""
     value_warmup: int = 20
+    """Epochs that train only the critic, between imitation and PPO."""
     ppo_log_std: float = -2.5
+    """Exploration log-std set when PPO starts (imitation does not train it)."""
     value_scale: float = 10.0
+    """The critic predicts returns divided by this."""
     max_grad_norm: float = 0.5
+    """Gradient-norm clip of every update."""
     # task distribution extras
     drift_prob: float = 0.25
+    """Share of episodes whose dynamics drift (K step or tau ramp)."""
     sp_jitter: float = 0.3
+    """Relative spread of the setpoint period (random phase too)."""
     forgetting_prob: float = 0.3
-    forgetting: float = 0.99
+    """Share of episodes run with the forgetting factor below; the rest with 1."""
+    forgetting: float = DEFAULT_FORGETTING
+    """The forgetting factor used online."""
     # bookkeeping
     eval_every: int = 10
+    """Validate (and maybe keep ``best.pt``) every this many epochs."""
     eval_plants: int = 64
+    """Random validation plants (plus the 8 corners of the box)."""
     eval_steps: int = 100
+    """RL steps of the validation's closed-loop tuning."""
     checkpoint_minutes: float = 5.0
+    """Wall time between checkpoints."""
     threads: int = 1
+    """Torch intra-op threads."""
 
 
-def unroll(actor: Actor, obs: torch.Tensor, gamma: torch.Tensor):
-    """Actor over a whole sequence with per-episode forgetting: obs (T, B, 4), gamma (B,)."""
+def unroll(actor: Actor, obs: torch.Tensor, forgetting: torch.Tensor):
+    """Actor over a whole sequence with per-episode forgetting: obs (T, B, 4), forgetting (B,).
+
+    Returns mean (T, B, 2) and deep (T, B, hidden). Without forgetting the GRU runs the
+    sequence in one call; with it, step by step as the rollout did.
+    """
     h = torch.zeros(actor.cfg.layers, obs.shape[1], actor.cfg.hidden, device=obs.device)
-    if bool((gamma == 1.0).all()):
+    if bool((forgetting == 1.0).all()):
         mean, deep, _ = actor(obs, h)
         return mean, deep
     means, deeps = [], []
     for t in range(obs.shape[0]):
-        mean, deep, h = actor(obs[t : t + 1], h * gamma.view(1, -1, 1))
+        mean, deep, h = actor(obs[t : t + 1], forget(h, forgetting))
         means.append(mean)
         deeps.append(deep)
     return torch.cat(means), torch.cat(deeps)
+
+
+def gae(
+    rewards: torch.Tensor, values: torch.Tensor, last_value: torch.Tensor, gamma: float, lam: float
+) -> torch.Tensor:
+    """Generalised advantage estimates (Schulman et al. 2016) of fixed-length episodes.
+
+    rewards, values (T, B); last_value (B,), the critic's value of the state after the
+    last step (the episodes are cut, not ended). Returns advantages (T, B):
+    A_t = sum_l (gamma lam)^l delta_{t+l}, delta_t = r_t + gamma V_{t+1} - V_t.
+    """
+    horizon = rewards.shape[0]
+    adv = torch.zeros_like(rewards)
+    running = torch.zeros_like(last_value)
+    for t in reversed(range(horizon)):
+        nxt = last_value if t == horizon - 1 else values[t + 1]
+        delta = rewards[t] + gamma * nxt - values[t]
+        running = delta + gamma * lam * running
+        adv[t] = running
+    return adv
+
+
+def ppo_policy_loss(
+    logp: torch.Tensor, logp_old: torch.Tensor, adv: torch.Tensor, clip: float
+) -> torch.Tensor:
+    """PPO-clip's policy loss (to minimise), a scalar.
+
+    logp, logp_old: log-probabilities (T, B) of the taken actions under the current and
+    the rollout policy; adv (T, B): advantages (normalised); clip: the ratio's clip range.
+    """
+    ratio = torch.exp(logp - logp_old)
+    clipped = torch.clamp(ratio, 1 - clip, 1 + clip)
+    return -torch.min(ratio * adv, clipped * adv).mean()
 
 
 def validation_set(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -123,11 +196,13 @@ def validation_set(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 # precise and settled, not one that reaches good gains and then drifts away.
 VAL_MSE_BAR = 0.003
 VAL_DRIFT_BAR = 0.1
-VAL_SETTLED_STEP = 51  # 140 time units / 2.75 per RL step
+VAL_SETTLED_TIME = 140.0
+VAL_SETTLED_STEP = math.ceil(VAL_SETTLED_TIME / RL_STEP_AGENT_UNITS)
+"""The first RL step at or after :data:`VAL_SETTLED_TIME` (agent time units)."""
 
 
 def validate(actor: Actor, n: int, steps: int = 100, sp_jitter: float = 0.0) -> dict:
-    """The evaluation's closed-loop tuning (:func:`service.learn.evaluate.tune`) on the
+    """The evaluation's closed-loop tuning (:func:`service.learn.closed_loop.tune`) on the
     validation set for ``steps`` RL steps, then the step test, with setpoint changes on
     the agent's clock and (if ``sp_jitter``) at arbitrary times.
 
@@ -226,9 +301,8 @@ class Trainer:
         cfg = self.cfg
         env = TuningEnv(self.env_cfg, self.rng)
         obs = env.reset(*sample_tasks(n, self.rng), horizon=horizon)
-        gamma_np = self._episode_forgetting(n)
         dev = self.device
-        gamma = torch.as_tensor(gamma_np, dtype=torch.float32, device=dev).view(1, -1, 1)
+        forgetting = torch.as_tensor(self._episode_forgetting(n), dtype=torch.float32, device=dev)
         h = torch.zeros(self.actor.cfg.layers, n, self.actor.cfg.hidden, device=dev)
         keys = ("obs", "act", "logp", "cost", "mse", "priv", "deep", "label")
         buf = {k: [] for k in keys}
@@ -236,7 +310,7 @@ class Trainer:
         with torch.no_grad():
             for _ in range(horizon):
                 o = torch.as_tensor(obs, dtype=torch.float32, device=dev)
-                mean, deep, h = self.actor(o.unsqueeze(0), h * gamma)
+                mean, deep, h = self.actor(o.unsqueeze(0), forget(h, forgetting))
                 mean, deep = mean[0], deep[0]
                 if explore is None:
                     dist = Normal(mean, std)
@@ -257,12 +331,12 @@ class Trainer:
                 buf["cost"].append(torch.as_tensor(cost, dtype=torch.float32, device=dev))
                 buf["mse"].append(torch.as_tensor(mse, dtype=torch.float32, device=dev))
             o = torch.as_tensor(obs, dtype=torch.float32, device=dev)
-            _, deep, _ = self.actor(o.unsqueeze(0), h * gamma)
+            _, deep, _ = self.actor(o.unsqueeze(0), forget(h, forgetting))
             buf["last_obs"], buf["last_deep"] = o, deep[0]
             buf["last_priv"] = torch.as_tensor(env.privileged, dtype=torch.float32, device=dev)
         out = {k: torch.stack(v) for k, v in buf.items() if isinstance(v, list) and v}
         out.update({k: buf[k] for k in ("last_obs", "last_deep", "last_priv")})
-        out["gamma"] = torch.as_tensor(gamma_np, dtype=torch.float32, device=dev)
+        out["forgetting"] = forgetting
         return out
 
     # -- updates ----------------------------------------------------------------------
@@ -272,7 +346,7 @@ class Trainer:
         for _ in range(cfg.bc_updates):
             order = torch.randperm(cfg.episodes, device=self.device)
             for idx in order.split(cfg.bc_minibatch):
-                mean, _ = unroll(self.actor, batch["obs"][:, idx], batch["gamma"][idx])
+                mean, _ = unroll(self.actor, batch["obs"][:, idx], batch["forgetting"][idx])
                 loss = ((mean - batch["label"][:, idx]) ** 2).mean()
                 self.opt_bc.zero_grad()
                 loss.backward()
@@ -291,25 +365,16 @@ class Trainer:
         with torch.no_grad():
             values = self.critic(b["obs"], b["priv"], b["deep"]) * cfg.value_scale
             last_v = self.critic(b["last_obs"], b["last_priv"], b["last_deep"]) * cfg.value_scale
-            rewards = -b["cost"]
-            adv = torch.zeros_like(rewards)
-            gae = torch.zeros_like(last_v)
-            for t in reversed(range(cfg.horizon)):
-                nxt = last_v if t == cfg.horizon - 1 else values[t + 1]
-                delta = rewards[t] + cfg.gamma * nxt - values[t]
-                gae = delta + cfg.gamma * cfg.gae_lambda * gae
-                adv[t] = gae
+            adv = gae(-b["cost"], values, last_v, cfg.gamma, cfg.gae_lambda)
             returns = adv + values
             adv_n = (adv - adv.mean()) / (adv.std() + 1e-8)
 
         kl, pi_loss, iters = 0.0, torch.tensor(0.0), 0
         if train_policy:
             for iters in range(1, cfg.pi_iters + 1):  # noqa: B007 - reported below
-                mean, _ = unroll(self.actor, b["obs"], b["gamma"])
+                mean, _ = unroll(self.actor, b["obs"], b["forgetting"])
                 logp = Normal(mean, self.actor.log_std.exp()).log_prob(b["act"]).sum(-1)
-                ratio = torch.exp(logp - b["logp"])
-                clipped = torch.clamp(ratio, 1 - cfg.clip, 1 + cfg.clip)
-                pi_loss = -torch.min(ratio * adv_n, clipped * adv_n).mean()
+                pi_loss = ppo_policy_loss(logp, b["logp"], adv_n, cfg.clip)
                 kl = (b["logp"] - logp).mean().item()
                 if kl > 1.5 * cfg.target_kl:
                     break
@@ -413,6 +478,44 @@ def _git_commit() -> str:
         return "unknown"
 
 
+@dataclass(frozen=True)
+class RunOptions:
+    """Where a run lives and what this call does with it (not checkpointed, unlike TrainConfig)."""
+
+    out: Path = Path("runs/agent")
+    """Run directory: checkpoint.pt, best.pt, last.pt, metrics.csv."""
+    resume: bool = False
+    """Continue the run in ``out`` with its own saved TrainConfig."""
+    init_from: Path | None = None
+    """Start a new run's actor from this agent file."""
+    device: str = "cpu"
+    """Torch device."""
+    max_minutes: float | None = None
+    """Checkpoint and stop after this much wall time (continue with ``resume``)."""
+    export: Path | None = None
+    """When the run has finished, copy ``out/best.pt`` here."""
+
+
+def main(cfg: TrainConfig, opts: RunOptions) -> int:
+    """Start (or resume) a run, train it within ``opts.max_minutes``, export when finished."""
+    if opts.resume:
+        trainer = Trainer.resume(opts.out, opts.device)
+        print(f"resumed {opts.out} at epoch {trainer.epoch}")
+    else:
+        if (opts.out / "checkpoint.pt").exists():
+            raise SystemExit(f"{opts.out} already holds a run: use --resume or another --out")
+        trainer = Trainer(cfg, opts.out, opts.device)
+        if opts.init_from is not None:
+            trainer.init_actor_from(opts.init_from)
+    if not trainer.run(max_minutes=opts.max_minutes):
+        print(f"stopped at epoch {trainer.epoch}; continue with --resume")
+        return 0
+    if opts.export is not None:
+        opts.export.write_bytes((opts.out / "best.pt").read_bytes())
+        print(f"exported {opts.out / 'best.pt'} -> {opts.export}")
+    return 0
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=Path("runs/agent"), help="run directory")
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
@@ -431,20 +534,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.resume:
-        trainer = Trainer.resume(args.out, args.device)
-        print(f"resumed {args.out} at epoch {trainer.epoch}")
-    else:
-        if (args.out / "checkpoint.pt").exists():
-            raise SystemExit(f"{args.out} already holds a run: use --resume or another --out")
-        cfg = TrainConfig(**{f.name: getattr(args, f.name) for f in fields(TrainConfig)})
-        trainer = Trainer(cfg, args.out, args.device)
-        if args.init_from is not None:
-            trainer.init_actor_from(args.init_from)
-    if not trainer.run(max_minutes=args.max_minutes):
-        print(f"stopped at epoch {trainer.epoch}; continue with --resume")
-        return 0
-    if args.export is not None:
-        args.export.write_bytes((args.out / "best.pt").read_bytes())
-        print(f"exported {args.out / 'best.pt'} -> {args.export}")
-    return 0
+    def pick(config):
+        return config(**{f.name: getattr(args, f.name) for f in fields(config)})
+
+    return main(pick(TrainConfig), pick(RunOptions))
