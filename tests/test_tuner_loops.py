@@ -1,4 +1,6 @@
-"""The loop table: integration, decimation, batching, safety guard, adoption, snapshots."""
+"""The engine's loop table: integration, decimation, batching, safety guard, adoption,
+snapshots. Parametrised ``batched`` tests run the engine's vectorised path and the scalar
+reference (tests/engine_reference.py) on the same scenario."""
 
 import math
 
@@ -8,8 +10,9 @@ import pytest
 
 from service.agent import untrained_agent
 from service.engine.config import LoopConfig
-from service.engine.table import LoopTable, Rejected
+from service.engine.table import LoopTable
 from service.wire.protocol import LoopStatus, RejectReason, Sample
+from tests.engine_reference import Rejected, ingest_one, reference_ingest
 from tests.tuner_support import loop_body
 
 pytestmark = pytest.mark.timeout(30)
@@ -56,7 +59,9 @@ def feed(t: LoopTable, slot: int, times, errors=None) -> list[float]:
     """Ingest samples; return the sample times at which a step fell due."""
     errors = np.ones(len(times)) if errors is None else errors
     return [
-        ti for ti, ei in zip(times, errors, strict=True) if t.ingest(slot, sample(ti, ei), WALL)
+        ti
+        for ti, ei in zip(times, errors, strict=True)
+        if ingest_one(t, slot, sample(ti, ei), WALL)
     ]
 
 
@@ -126,9 +131,9 @@ def test_guard_limits_relative_change_then_bounds():
 
 def test_gain_outside_bounds_is_walked_back_gradually():
     t, s = table(ScalingAgent(1.0), guard={"kp_max": 1.0, "max_rel_change": 0.5})
-    t.ingest(s, sample(0.0, kp=4.0), WALL)  # an operator set kp far above the bound
+    ingest_one(t, s, sample(0.0, kp=4.0), WALL)  # an operator set kp far above the bound
     assert t.kp[s] == 4.0
-    assert t.ingest(s, sample(165.0, kp=4.0), WALL)
+    assert ingest_one(t, s, sample(165.0, kp=4.0), WALL)
     r = t.step(np.array([s]), WALL)
     assert r.new[0, 0] == pytest.approx(4.0 / 1.5)
 
@@ -148,18 +153,18 @@ def test_frozen_manual_saturated_and_stale_data_take_no_step():
     assert t.status(s, WALL) is LoopStatus.frozen
 
     t, s = table()
-    assert not t.ingest(s, sample(0.0), WALL)
-    assert not t.ingest(s, sample(170.0, auto=False), WALL)  # due, but in manual
+    assert not ingest_one(t, s, sample(0.0), WALL)
+    assert not ingest_one(t, s, sample(170.0, auto=False), WALL)  # due, but in manual
     assert t.status(s, WALL) is LoopStatus.manual
-    assert not t.ingest(s, sample(340.0, saturated=True), WALL)
+    assert not ingest_one(t, s, sample(340.0, saturated=True), WALL)
     assert t.status(s, WALL) is LoopStatus.saturated
-    assert not t.ingest(s, sample(500.0), WALL)  # back in auto: a new window, due at 665
-    assert t.ingest(s, sample(665.0), WALL)
+    assert not ingest_one(t, s, sample(500.0), WALL)  # back in auto: a new window, due at 665
+    assert ingest_one(t, s, sample(665.0), WALL)
 
     t, s = table(sample_period_s=1.0, guard={"stale_periods": 5.0})  # 5 s is stale
     feed(t, s, [0.0, 1.0, 2.0])
     int_before = t.int_e[s]
-    assert not t.ingest(s, sample(170.0), WALL)  # gap: no step on data that spans it
+    assert not ingest_one(t, s, sample(170.0), WALL)  # gap: no step on data that spans it
     assert t.int_e[s] == int_before  # and no integration across it
     assert t.next_due[s] == 170.0 + 165.0
     assert t.status(s, WALL + 4.0) is LoopStatus.tuning
@@ -169,7 +174,11 @@ def test_frozen_manual_saturated_and_stale_data_take_no_step():
 @pytest.mark.parametrize("batched", [False, True])
 def test_no_integration_in_manual_or_saturated_and_a_new_window_back_in_auto(batched):
     t, s = table(sample_period_s=1.0)
-    take = _batched_ingest if batched else (lambda t, s, smp: t.ingest(s, smp, WALL))
+    ingest = ingest_one if batched else reference_ingest
+
+    def take(t, s, smp):
+        return ingest(t, s, smp, WALL)
+
     for k in range(101):  # 100 s in auto at e = 5 cm
         take(t, s, sample(float(k), e=5.0))
     in_auto = t.int_e[s]
@@ -184,26 +193,17 @@ def test_no_integration_in_manual_or_saturated_and_a_new_window_back_in_auto(bat
     assert take(t, s, sample(1366.0, e=5.0))
 
 
-def _batched_ingest(t: LoopTable, s: int, smp: Sample) -> bool:
-    nan = math.nan
-    cols = {"t": np.array([smp.t]), "e": np.array([smp.error]), "sp": np.array([nan]),
-            "kp": np.array([nan]), "ki": np.array([nan]), "auto": np.array([smp.auto]),
-            "saturated": np.array([smp.saturated])}  # fmt: skip
-    due, _ = t.ingest_many(np.array([s]), cols, WALL)
-    return bool(due[0])
-
-
 def test_reported_gains_are_adopted_unless_an_update_is_in_flight():
     t, s = table(ScalingAgent(1.2))
     feed(t, s, [0.0, 165.0])
     t.step(np.array([s]), WALL)
     t.drain_changes()
     assert t.kp[s] == pytest.approx(0.6)
-    t.ingest(s, sample(166.0, kp=0.5, ki=0.01), WALL)  # gateway not caught up yet
+    ingest_one(t, s, sample(166.0, kp=0.5, ki=0.01), WALL)  # gateway not caught up yet
     assert t.kp[s] == pytest.approx(0.6)
-    t.ingest(s, sample(167.0, kp=0.6, ki=0.012), WALL)  # applied
+    ingest_one(t, s, sample(167.0, kp=0.6, ki=0.012), WALL)  # applied
     assert not t.pending[s]
-    t.ingest(s, sample(168.0, kp=0.5, ki=0.01), WALL)  # now an operator's change
+    ingest_one(t, s, sample(168.0, kp=0.5, ki=0.01), WALL)  # now an operator's change
     assert (t.kp[s], t.ki[s]) == (0.5, 0.01)
     gains, audit = t.drain_changes()
     assert gains == [(0.5, 0.01, 1, "LIC-101")]
@@ -218,13 +218,7 @@ def test_gains_reported_through_float32_are_not_an_operators_change(batched):
     t.drain_changes()
     kp, ki = (float(np.float32(g)) for g in (t.kp[s], t.ki[s]))  # a float32 DCS
     assert kp != t.kp[s] and ki != t.ki[s]
-    if batched:
-        cols = {"t": np.array([166.0]), "e": np.array([1.0]), "sp": np.array([np.nan]),
-                "kp": np.array([kp]), "ki": np.array([ki]), "auto": np.array([True]),
-                "saturated": np.array([False])}  # fmt: skip
-        t.ingest_many(np.array([s]), cols, WALL)
-    else:
-        t.ingest(s, sample(166.0, kp=kp, ki=ki), WALL)
+    (ingest_one if batched else reference_ingest)(t, s, sample(166.0, kp=kp, ki=ki), WALL)
     assert not t.pending[s]  # the update arrived
     assert t.drain_changes() == ([], [])  # and nothing was adopted
 
@@ -239,10 +233,10 @@ def test_gains_reported_through_float32_are_not_an_operators_change(batched):
 )
 def test_rejected_samples_leave_the_loop_untouched(t_next, kw, reason):
     t, s = table()
-    t.ingest(s, sample(10.0), WALL)
+    ingest_one(t, s, sample(10.0), WALL)
     before = _state_but_counters(t)
     with pytest.raises(Rejected) as info:
-        t.ingest(s, sample(t_next, **kw), WALL)
+        ingest_one(t, s, sample(t_next, **kw), WALL)
     assert info.value.reason is reason
     assert _state_but_counters(t) == before
     assert t.n_rejected[s] == 1 and t.n_samples[s] == 1
@@ -261,12 +255,12 @@ def test_flood_limit_per_loop_in_wall_time():
     accepted = 0
     for i in range(20):
         try:
-            t.ingest(s, sample(float(i)), WALL)  # all in the same wall instant
+            ingest_one(t, s, sample(float(i)), WALL)  # all in the same wall instant
             accepted += 1
         except Rejected as exc:
             assert exc.reason is RejectReason.flood
     assert accepted == 5
-    t.ingest(s, sample(100.0), WALL + 1.0)  # a second later there is room again
+    ingest_one(t, s, sample(100.0), WALL + 1.0)  # a second later there is room again
 
 
 def test_reset_and_snapshot_restore():
@@ -285,7 +279,7 @@ def test_reset_and_snapshot_restore():
     assert (t.kp[s], t.ki[s]) == (0.5, 0.01) and t.seq[s] == 2
     assert np.all(t.hidden[s] == 0) and t.int_e[s] == 0 and math.isnan(t.last_t[s])
     assert result.t[0] == 165.0 and t.status(s, WALL) is LoopStatus.waiting
-    assert not t.ingest(s, sample(3.0), WALL)  # the time reference starts over
+    assert not ingest_one(t, s, sample(3.0), WALL)  # the time reference starts over
 
 
 @pytest.mark.parametrize("batched", [False, True])
@@ -296,23 +290,12 @@ def test_a_far_future_sample_cannot_lock_the_loop_out(batched):
 
     t, s = table()
     assert feed(t, s, [0.0, 165.0]) == [165.0]
-    t.ingest(s, sample(1e9), WALL)  # accepted: nothing tells it from a long outage
+    ingest_one(t, s, sample(1e9), WALL)  # accepted: nothing tells it from a long outage
     rejected = []
     for k in range(CLOCK_RESET_SAMPLES):
         ti = 330.0 + 165.0 * k
         try:
-            if batched:
-                cols = {
-                    "t": np.array([ti]), "e": np.array([1.0]), "sp": np.array([np.nan]),
-                    "kp": np.array([np.nan]),
-                    "ki": np.array([np.nan]), "auto": np.array([True]),
-                    "saturated": np.array([False]),
-                }  # fmt: skip
-                _, rej = t.ingest_many(np.array([s]), cols, WALL)
-                if rej:
-                    rejected.append(rej[0][1])
-            else:
-                t.ingest(s, sample(ti), WALL)
+            (ingest_one if batched else reference_ingest)(t, s, sample(ti), WALL)
         except Rejected as exc:
             rejected.append(exc.reason)
     assert rejected == [RejectReason.out_of_order] * (CLOCK_RESET_SAMPLES - 1)
@@ -321,7 +304,7 @@ def test_a_far_future_sample_cannot_lock_the_loop_out(batched):
     assert feed(t, s, [last + 165.0]) == [last + 165.0]
     # an isolated late sample is still rejected and does not start a run of its own
     with pytest.raises(Rejected):
-        t.ingest(s, sample(10.0), WALL)
+        ingest_one(t, s, sample(10.0), WALL)
     assert t.back_n[s] == 1
     assert feed(t, s, [last + 330.0]) == [last + 330.0] and t.back_n[s] == 0
 
@@ -338,7 +321,7 @@ def _due_at(t: LoopTable, s: int, setpoints, start: float = 0.0) -> list[int]:
     return [
         k
         for k, sp in enumerate(setpoints)
-        if t.ingest(s, sample(start + 165.0 * k, e=None, sp=sp, pv=50.0), WALL)
+        if ingest_one(t, s, sample(start + 165.0 * k, e=None, sp=sp, pv=50.0), WALL)
     ]
 
 
@@ -369,10 +352,10 @@ def test_excitation_gate_ignores_small_steps_but_adds_up_a_ramp():
 
 def test_excitation_gate_on_error_only_samples_and_off_switch():
     t, s = _gated()
-    steady = [t.ingest(s, sample(165.0 * k, e=0.3), WALL) for k in range(4)]
+    steady = [ingest_one(t, s, sample(165.0 * k, e=0.3), WALL) for k in range(4)]
     assert steady == [False] * 4
     # the error jumps by 10 (a setpoint change as an e-only gateway sees it)
-    jumped = [t.ingest(s, sample(165.0 * k, e=10.3 - k), WALL) for k in range(4, 9)]
+    jumped = [ingest_one(t, s, sample(165.0 * k, e=10.3 - k), WALL) for k in range(4, 9)]
     assert jumped == [True, True, True, True, False]
     # gate off: every period due, status tuning
     t, s = table(guard={"excitation_periods": 0.0})
@@ -387,7 +370,7 @@ def test_excitation_state_survives_a_snapshot():
     config = t.configs[loop_id]
     s2 = t2.add(config, hidden=hidden, runtime=runtime, wall=WALL)
     assert (t2.sp_ref[s2], t2.excited_until[s2], t2.n_quiet[s2]) == (60.0, 330.0 + 495.0, 1)
-    assert t2.ingest(s2, sample(495.0, e=None, sp=60.0, pv=50.0), WALL)  # still open
+    assert ingest_one(t2, s2, sample(495.0, e=None, sp=60.0, pv=50.0), WALL)  # still open
     # a snapshot from before the gate (no such keys, fewer counters) restores as closed
     old = orjson.loads(runtime)
     del old["sp_ref"], old["excited_until"]
@@ -412,7 +395,7 @@ def test_status_counts_agree_with_each_loops_status():
         wall = WALL if kind == "stale" else WALL + 1e3  # stale: no sample for 1,000 s
         for k in range(6):  # gated: a setpoint step in the last sample keeps it tuning
             sp = 60.0 if kind == "gated" and k == 5 else 50.0
-            t.ingest(s, sample(165.0 * k, e=None, sp=sp, pv=50.0, **flags), wall)
+            ingest_one(t, s, sample(165.0 * k, e=None, sp=sp, pv=50.0, **flags), wall)
     counts = t.status_counts(WALL + 1e3)
     singles = [t.status(s, WALL + 1e3) for s in t.slot_of.values()]
     assert counts == {status: singles.count(status) for status in LoopStatus}

@@ -5,7 +5,7 @@ from pathlib import Path
 import pytest
 from pydantic import ValidationError
 
-from service.daemon.tuner import classify
+from service.wire.decode import classify
 from service.wire.doc import generated_block, render_schemas
 from service.wire.protocol import GainsMessage, Keys, Mode, RejectReason, Sample, SampleBatch
 

@@ -85,7 +85,7 @@ class Columns:
 
     @classmethod
     def empty(cls) -> Columns:
-        return _columns([], {}, [])
+        return _columns([], _raw([]), [])
 
 
 _ARRAYS = ("t", "e", "sp", "kp", "ki", "auto", "saturated", "index")
@@ -221,9 +221,7 @@ def _renumber(decoded: Decoded, index: list[int], rejected: list[Rejection], n: 
     """Map positions among the decoded objects back to positions among the messages."""
     pos = np.asarray(index, np.int64)
     decoded.rows.index = pos[decoded.rows.index] if len(pos) else decoded.rows.index
-    rejected += [
-        Rejection(index[r.index], r.loop_id, r.reason, r.detail) for r in decoded.rejected
-    ]
+    rejected += [Rejection(index[r.index], r.loop_id, r.reason, r.detail) for r in decoded.rejected]
     rejected.sort(key=lambda r: r.index)
     return Decoded(decoded.rows, rejected, n)
 

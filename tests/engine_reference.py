@@ -1,0 +1,121 @@
+"""The sample rules written one sample at a time: the specification the engine's one
+vectorised ingest path (``LoopTable.ingest``) is checked against, differentially.
+
+Kept in the tests only: the engine has exactly one implementation of each rule.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from service.engine.audit import audit_row
+from service.engine.table import FROZEN, GAIN_RTOL, MAX_AGENT_ERROR, LoopTable
+from service.wire.decode import decode_objects
+from service.wire.protocol import RejectReason, Sample
+
+
+class Rejected(Exception):
+    def __init__(self, reason: RejectReason, detail: str) -> None:
+        super().__init__(detail)
+        self.reason = reason
+        self.detail = detail
+
+
+def ingest_one(table: LoopTable, s: int, sample: Sample, wall: float) -> bool:
+    """The engine's vectorised path with one sample (counts a rejection on the loop, as
+    the engine does); True if the loop fell due. Raises :class:`Rejected`."""
+    rows = decode_objects([{**sample.model_dump(), "loop_id": table.ids[s]}]).rows
+    due, rejections = table.ingest(np.array([s]), rows, wall)
+    if rejections:
+        table.n_rejected[s] += 1
+        _, reason, detail = rejections[0]
+        raise Rejected(reason, detail)
+    return bool(due[0])
+
+
+def reference_ingest(table: LoopTable, s: int, sample: Sample, wall: float) -> bool:
+    """The same rules, scalar: True if the loop fell due. Raises :class:`Rejected`."""
+    try:
+        return _ingest(table, s, sample, wall)
+    except Rejected:
+        table.n_rejected[s] += 1
+        raise
+
+
+def _ingest(tb: LoopTable, s: int, sample: Sample, wall: float) -> bool:
+    tokens = min(tb.burst, tb.tokens[s] + (wall - tb.token_wall[s]) * tb.rate)
+    tb.token_wall[s] = wall
+    if tokens < 1.0:
+        tb.tokens[s] = tokens
+        raise Rejected(RejectReason.flood, f"over {tb.rate:g} samples/s")
+    tb.tokens[s] = tokens - 1.0
+    t, last_t = sample.t, tb.last_t[s]
+    if t <= last_t:  # False while last_t is NaN (no sample yet)
+        if t == last_t:
+            raise Rejected(RejectReason.duplicate, f"t={t} again")
+        if not tb._new_clock(s, t):
+            raise Rejected(RejectReason.out_of_order, f"t={t} < last t={last_t}")
+        last_t = math.nan  # re-anchored: a fresh decimation window
+    e = sample.error
+    if abs(e) * tb.e_scale[s] > MAX_AGENT_ERROR:
+        raise Rejected(RejectReason.out_of_range, f"|e|={abs(e):g} is absurd for this loop")
+    tb.back_n[s] = 0.0
+    if sample.kp is not None or sample.ki is not None:
+        _adopt(tb, s, sample, wall)
+    if sample.sp is None:  # only the error: a setpoint change shows as a jump of it
+        moved = not math.isnan(last_t) and abs(e - tb.last_e[s]) >= tb.exc_step[s]
+    else:
+        moved = abs(sample.sp - tb.sp_ref[s]) >= tb.exc_step[s]  # False for NaN
+        if moved or math.isnan(tb.sp_ref[s]):
+            tb.sp_ref[s] = sample.sp
+    if moved:
+        tb.excited_until[s] = t + tb.exc_window[s]
+
+    paused = not sample.auto or sample.saturated
+    resumed = (tb.manual[s] or tb.saturated[s]) and not paused
+    tb.n_samples[s] += 1
+    tb.last_wall[s] = wall
+    tb.manual[s] = not sample.auto
+    tb.saturated[s] = sample.saturated
+    tb.last_t[s] = t
+    if math.isnan(last_t) or t - last_t > tb.stale_gap[s] or resumed:
+        tb.next_due[s] = t + tb.period[s]  # a new decimation window
+    elif not paused:
+        tb.int_e[s] += 0.5 * (e + tb.last_e[s]) * (t - last_t) * tb.int_scale[s]
+    tb.last_e[s] = e
+    if t < tb.next_due[s]:
+        return False
+    period = tb.period[s]
+    tb.next_due[s] += period * (math.floor((t - tb.next_due[s]) / period) + 1.0)
+    if tb.mode[s] == FROZEN or not sample.auto or sample.saturated:
+        return False
+    if tb._quiet(s, t):
+        tb.n_quiet[s] += 1
+        return False
+    return True
+
+
+def _close(a: float, b: float) -> bool:
+    return abs(a - b) <= GAIN_RTOL * max(abs(a), abs(b))
+
+
+def _adopt(tb: LoopTable, s: int, sample: Sample, wall: float) -> None:
+    kp = tb.kp[s] if sample.kp is None else sample.kp
+    ki = tb.ki[s] if sample.ki is None else sample.ki
+    if _close(kp, tb.kp[s]) and _close(ki, tb.ki[s]):
+        tb.pending[s] = False
+        return
+    if tb.pending[s] and _close(kp, tb.prev_kp[s]) and _close(ki, tb.prev_ki[s]):
+        return
+    tb.pending[s] = False
+    old = (tb.kp[s], tb.ki[s])
+    tb.kp[s], tb.ki[s] = kp, ki
+    tb._gains_dirty.add(s)
+    tb._audit.append(
+        audit_row(
+            tb.ids[s], wall, sample.t, int(tb.seq[s]), tb.mode_of(s).value,
+            "adopted", old, (kp, ki), "gains reported by the gateway",
+        )
+    )  # fmt: skip
