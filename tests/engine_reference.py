@@ -11,7 +11,9 @@ import math
 import numpy as np
 
 from service.engine.audit import audit_row
-from service.engine.table import FROZEN, GAIN_RTOL, MAX_AGENT_ERROR, LoopTable
+from service.engine.modes import FROZEN
+from service.engine.rules import GAIN_RTOL, MAX_AGENT_ERROR
+from service.engine.table import LoopTable
 from service.wire.decode import decode_objects
 from service.wire.protocol import RejectReason, Sample
 

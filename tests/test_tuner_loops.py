@@ -286,7 +286,7 @@ def test_reset_and_snapshot_restore():
 def test_a_far_future_sample_cannot_lock_the_loop_out(batched):
     """A poisoned timestamp (or a gateway restarted on a new clock) is re-anchored after
     CLOCK_RESET_SAMPLES consistent samples instead of rejecting the loop's data forever."""
-    from service.engine.table import CLOCK_RESET_SAMPLES
+    from service.engine.rules import CLOCK_RESET_SAMPLES
 
     t, s = table()
     assert feed(t, s, [0.0, 165.0]) == [165.0]

@@ -1,39 +1,14 @@
-"""Per-loop runtime state, kept in numpy arrays indexed by a loop's slot.
+"""Per-loop runtime state of the engine, kept in numpy arrays indexed by a loop's slot.
 
-For each accepted sample the table integrates the error (trapezoid on the plant's
-timestamps), decimates to the RL period by sample time (never wall time, so an
-accelerated simulation tunes as fast as it publishes) and says whether the loop is
-due for an RL step. :meth:`LoopTable.step` then steps every due loop in one batched
-agent call and applies the safety guard, vectorised over the batch.
+:class:`LoopTable` holds the state and its life cycle: registration, configuration,
+reset, snapshot and restore, and the views of it (status, counters). The rules that
+change it live beside it: :mod:`service.engine.rules` takes samples (the sample rules,
+the excitation gate, integration and decimation), :mod:`service.engine.stepping` steps
+due loops through the agent and the safety guard.
 
-Safety guard, per loop:
-
-* new gains are clipped to the loop's absolute bounds, then to at most a relative
-  change ``r`` per update ([old / (1 + r), old * (1 + r)], symmetric in log space), so
-  a gain outside its bounds (an operator's choice) is walked back gradually;
-* no RL step while the gateway reports manual mode or a saturated output, and none
-  across a gap of more than ``stale_periods`` sample periods (the decimation window
-  restarts at the first sample after the gap, and the integral does not bridge it).
-  Nor is the error integrated while in manual or saturated (training never saw an
-  integral wound up by an error nobody controls), and the decimation window restarts
-  at the first sample back in auto, so a step sees a full RL period of control;
-* ``frozen`` loops are never stepped; ``advisory`` loops are stepped and their
-  proposals published, but their gains change only when the gateway reports them;
-* excitation gate: the agent learns from setpoint responses, and stepped on a loop
-  whose setpoint stands still it walks the gains far from where they were (see the
-  evaluation's quiet-loop line). A loop is stepped only in RL periods that end within
-  ``excitation_periods`` RL periods of a setpoint change of at least
-  ``excitation_min_step`` (agent units; for gateways that send only the error, a jump
-  of the error between two samples). Other periods leave the gains and the hidden
-  state untouched and count as ``quiet``.
-
-Gains the gateway reports in a sample are adopted when they differ from the tuner's
-(an operator changed them), except when they are exactly the gains an auto update just
-replaced: then the update is still in flight and adopting would undo it.
-
-Every method must be called with :attr:`LoopTable.lock` held; the table is shared by
-the bus worker and the admin API. Changes to persist (new gains, audit rows) accumulate
-until :meth:`LoopTable.drain_changes`.
+Every method must be called with :attr:`LoopTable.lock` held (the engine's methods take
+it); changes to persist (new gains, audit rows) accumulate until
+:meth:`LoopTable.drain_changes`.
 """
 
 from __future__ import annotations
@@ -49,25 +24,13 @@ import orjson
 
 from service.agent.fast import FastPolicy, Precision
 from service.agent.model import Agent
+from service.engine import rules, stepping
 from service.engine.audit import AuditRow, audit_row
 from service.engine.config import Counters, LoopConfig, LoopView
+from service.engine.modes import _CODE, _MODES, AUTO, FROZEN
 from service.engine.updates import MODE_VALUES, StepResult
-from service.wire.decode import Columns
-from service.wire.protocol import LoopStatus, Mode, RejectReason, UpdateReason
+from service.wire.protocol import LoopStatus, Mode, UpdateReason
 
-MAX_AGENT_ERROR = 100.0
-"""An error beyond this many agent units (training sees about 2) is an absurd sample."""
-CLOCK_RESET_SAMPLES = 10
-"""Consecutive, mutually increasing samples older than the loop's last one that are
-taken as a new plant clock (a restarted gateway, or a last sample from the far future)
-rather than rejected forever as out of order."""
-GAIN_RTOL = 1e-6
-"""Relative tolerance when comparing reported gains with the tuner's: a DCS storing gains
-as float32 reports them off by up to 6e-8 relative, which is no operator's change."""
-
-_MODES = list(Mode)
-_CODE = {m: i for i, m in enumerate(_MODES)}
-AUTO, ADVISORY, FROZEN = (_CODE[m] for m in (Mode.auto, Mode.advisory, Mode.frozen))
 STATUSES = [
     LoopStatus.frozen, LoopStatus.waiting, LoopStatus.stale, LoopStatus.manual,
     LoopStatus.saturated, LoopStatus.quiet, LoopStatus.tuning,
@@ -327,204 +290,11 @@ class LoopTable:
         )
 
     # -- samples ----------------------------------------------------------------------
-    def _quiet(self, s, t):
-        """Where the excitation gate is on and its window had closed by sample time ``t``
-        (``s``, ``t``: one slot and time, or aligned arrays)."""
-        return (self.exc_window[s] < math.inf) & (t > self.excited_until[s])
-
-    def _new_clock(self, s: int, t: float) -> bool:
-        """Count a run of consistent out-of-order samples; True when it is a new clock."""
-        run = self.back_n[s] + 1.0 if self.back_n[s] and t > self.back_t[s] else 1.0
-        self.back_t[s] = t
-        self.back_n[s] = 0.0 if run >= CLOCK_RESET_SAMPLES else run
-        return run >= CLOCK_RESET_SAMPLES
-
-    def ingest(
-        self, slots: np.ndarray, rows: Columns, wall: float
-    ) -> tuple[np.ndarray, list[tuple[int, RejectReason, str]]]:
-        """Take decoded samples of *distinct* loops (``slots`` aligned with ``rows``).
-
-        The one implementation of the sample rules, vectorised: flood limit, duplicate and
-        out-of-order times (or a new plant clock), absurd errors, adoption of reported
-        gains, the excitation gate, the error integral and decimation to the RL period.
-        Returns (mask of the loops now due for an RL step, rejections as (row, reason,
-        detail)); a rejected sample changes nothing of its loop but its counters.
-        """
-        cols = {k: getattr(rows, k) for k in ("t", "e", "sp", "kp", "ki", "auto", "saturated")}
-        t, e = cols["t"], cols["e"]
-        tokens = np.minimum(
-            self.burst, self.tokens[slots] + (wall - self.token_wall[slots]) * self.rate
-        )
-        self.token_wall[slots] = wall
-        flood = tokens < 1.0
-        self.tokens[slots] = np.where(flood, tokens, tokens - 1.0)
-        last_t = self.last_t[slots]
-        dup = ~flood & (t == last_t)
-        late = ~flood & (t < last_t)
-        for i in np.flatnonzero(late).tolist():  # rare: a new plant clock, or rejected
-            if self._new_clock(int(slots[i]), float(t[i])):
-                late[i] = False
-                last_t[i] = math.nan
-        absurd = ~(flood | dup | late) & (np.abs(e) * self.e_scale[slots] > MAX_AGENT_ERROR)
-        ok = ~(flood | dup | late | absurd)
-        rejections: list[tuple[int, RejectReason, str]] = []
-        if not ok.all():
-            for i in np.flatnonzero(~ok).tolist():
-                if flood[i]:
-                    rejections.append((i, RejectReason.flood, f"over {self.rate:g} samples/s"))
-                elif dup[i]:
-                    rejections.append((i, RejectReason.duplicate, f"t={t[i]} again"))
-                elif late[i]:
-                    rejections.append(
-                        (i, RejectReason.out_of_order, f"t={t[i]} < last t={last_t[i]}")
-                    )
-                else:
-                    detail = f"|e|={abs(e[i]):g} is absurd for this loop"
-                    rejections.append((i, RejectReason.out_of_range, detail))
-            slots, last_t, t, e = slots[ok], last_t[ok], t[ok], e[ok]
-            cols = {k: v[ok] for k, v in cols.items()}
-        self.back_n[slots] = 0.0
-        self._adopt(slots, cols, wall)
-        self._excite(slots, cols, last_t)
-
-        self.n_samples[slots] += 1
-        self.last_wall[slots] = wall
-        auto, saturated = cols["auto"], cols["saturated"]
-        paused = ~auto | saturated
-        resumed = (self.manual[slots] | self.saturated[slots]) & ~paused
-        self.manual[slots] = ~auto
-        self.saturated[slots] = saturated
-        self.last_t[slots] = t
-        fresh = np.isnan(last_t) | (t - last_t > self.stale_gap[slots]) | resumed
-        period = self.period[slots]
-        next_due = np.where(fresh, t + period, self.next_due[slots])
-        step = np.where(fresh | paused, 0.0, 0.5 * (e + self.last_e[slots]) * (t - last_t))
-        self.int_e[slots] += step * self.int_scale[slots]
-        self.last_e[slots] = e
-        reached = t >= next_due
-        next_due[reached] += period[reached] * (
-            np.floor((t[reached] - next_due[reached]) / period[reached]) + 1.0
-        )
-        self.next_due[slots] = next_due
-        due_ok = reached & (self.mode[slots] != FROZEN) & auto & ~saturated
-        quiet = due_ok & self._quiet(slots, t)
-        self.n_quiet[slots[quiet]] += 1
-        due_ok &= ~quiet
-        due = np.zeros(ok.size, bool)
-        due[np.flatnonzero(ok)[due_ok]] = True
-        return due, rejections
-
-    def _excite(self, slots: np.ndarray, cols: dict[str, np.ndarray], last_t) -> None:
-        """The excitation gate's part of :meth:`ingest` (before ``last_e`` moves on)."""
-        sp, e, step = cols["sp"], cols["e"], self.exc_step[slots]
-        ref = self.sp_ref[slots]
-        has_sp = ~np.isnan(sp)
-        with np.errstate(invalid="ignore"):  # NaN references compare False
-            moved = np.where(
-                has_sp,
-                np.abs(sp - ref) >= step,
-                ~np.isnan(last_t) & (np.abs(e - self.last_e[slots]) >= step),
-            )
-        self.sp_ref[slots] = np.where(has_sp & (moved | np.isnan(ref)), sp, ref)
-        self.excited_until[slots[moved]] = cols["t"][moved] + self.exc_window[slots[moved]]
-
-    def _adopt(self, slots: np.ndarray, cols: dict[str, np.ndarray], wall: float) -> None:
-        has_kp, has_ki = ~np.isnan(cols["kp"]), ~np.isnan(cols["ki"])
-        report = has_kp | has_ki
-        if not report.any():
-            return
-        slots, has_kp, has_ki = slots[report], has_kp[report], has_ki[report]
-        cur_kp, cur_ki = self.kp[slots], self.ki[slots]
-        kp = np.where(has_kp, cols["kp"][report], cur_kp)
-        ki = np.where(has_ki, cols["ki"][report], cur_ki)
-        same = _close(kp, cur_kp) & _close(ki, cur_ki)
-        in_flight = (
-            ~same
-            & self.pending[slots]
-            & _close(kp, self.prev_kp[slots])
-            & _close(ki, self.prev_ki[slots])
-        )
-        self.pending[slots[~in_flight]] = False
-        changed = np.flatnonzero(~same & ~in_flight)
-        if not changed.size:
-            return
-        t = cols["t"][report]
-        for i in changed.tolist():
-            s = int(slots[i])
-            old = (self.kp[s], self.ki[s])
-            self.kp[s], self.ki[s] = kp[i], ki[i]
-            self._gains_dirty.add(s)
-            self._audit.append(
-                audit_row(
-                    self.ids[s], wall, float(t[i]), int(self.seq[s]), _MODES[self.mode[s]].value,
-                    "adopted", old, (float(kp[i]), float(ki[i])), "gains reported by the gateway",
-                )
-            )  # fmt: skip
-
-    # -- RL step ----------------------------------------------------------------------
-    def step(self, slots: np.ndarray, wall: float) -> StepResult:
-        """One batched agent step of the loops in ``slots`` (each due, each once)."""
-        kp_unit, ki_unit = self.kp_unit[slots], self.ki_unit[slots]
-        old = np.column_stack([self.kp[slots], self.ki[slots]])
-        obs = np.column_stack(
-            [
-                old[:, 0] / kp_unit,
-                old[:, 1] / ki_unit,
-                self.last_e[slots] * self.e_scale[slots],
-                self.int_e[slots],
-            ]
-        )
-        if self._policy is not None:
-            state = self.hidden[slots]  # a contiguous copy, updated in place
-            delta = self._policy.step_inplace(obs, state, self.forgetting[slots])
-            self.hidden[slots] = state
-        else:
-            delta, self.hidden[slots] = self.agent.act(
-                obs, self.hidden[slots], self.forgetting[slots]
-            )
-        proposed = np.column_stack(
-            [(obs[:, 0] + delta[:, 0]) * kp_unit, (obs[:, 1] + delta[:, 1]) * ki_unit]
-        )
-        grow = 1.0 + self.max_rel[slots, None]
-        lo = np.column_stack([self.kp_min[slots], self.ki_min[slots]])
-        hi = np.column_stack([self.kp_max[slots], self.ki_max[slots]])
-        new = np.clip(np.clip(proposed, lo, hi), old / grow, old * grow)
-
-        auto = slots[self.mode[slots] == AUTO]
-        applied = self.mode[slots] == AUTO
-        self.prev_kp[auto], self.prev_ki[auto] = old[applied, 0], old[applied, 1]
-        self.kp[auto], self.ki[auto] = new[applied, 0], new[applied, 1]
-        self.pending[auto] = True
-        self.seq[slots] += 1
-        self.n_steps[slots] += 1
-        self.n_updates[slots] += 1
-        self._gains_dirty.update(slots.tolist())
-
-        ids, gateways, listed = self.ids, self.gateways, slots.tolist()
-        result = StepResult(
-            [ids[s] for s in listed],
-            self.last_t[slots],
-            self.seq[slots],
-            self.mode[slots],
-            old,
-            proposed,
-            new,
-            [gateways[s] for s in listed],
-        )
-        limited = np.flatnonzero(~np.isclose(proposed, new, rtol=GAIN_RTOL, atol=0.0).all(axis=1))
-        details = [""] * len(slots)
-        # formatting Python floats, not numpy scalars: a cold loop is limited in most steps
-        for i, (kp, ki) in zip(limited.tolist(), proposed[limited].tolist(), strict=True):
-            details[i] = _guard_detail(kp, ki)
-        mode_names = [MODE_VALUES[c] for c in result.mode.tolist()]
-        self._audit.extend(
-            zip(
-                result.loop_ids, [wall] * len(slots), result.t.tolist(), result.seq.tolist(),
-                mode_names, ["agent"] * len(slots), old[:, 0].tolist(), old[:, 1].tolist(),
-                new[:, 0].tolist(), new[:, 1].tolist(), details, strict=True,
-            )
-        )  # fmt: skip
-        return result
+    # -- samples and steps: the rules live in their own modules -------------------------
+    ingest = rules.ingest
+    step = stepping.step
+    _quiet = rules.quiet
+    _new_clock = rules.new_clock
 
     # -- persistence ------------------------------------------------------------------
     def drain_changes(self) -> tuple[list[tuple[float, float, int, str]], list[AuditRow]]:
@@ -645,11 +415,3 @@ class LoopTable:
         used = np.fromiter(self.slot_of.values(), np.int64, len(self.slot_of))
         counts = np.bincount(self.mode[used], minlength=len(_MODES))
         return {mode: int(counts[_CODE[mode]]) for mode in Mode}
-
-
-def _close(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.abs(a - b) <= GAIN_RTOL * np.maximum(np.abs(a), np.abs(b))
-
-
-def _guard_detail(kp: float, ki: float) -> str:
-    return f"limited by the safety guard (proposed kp={kp:.6g}, ki={ki:.6g})"

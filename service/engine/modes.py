@@ -1,0 +1,8 @@
+"""Mode codes: a loop's :class:`~service.wire.protocol.Mode` as a small integer in the
+engine's arrays (the order of the enum)."""
+
+from service.wire.protocol import Mode
+
+_MODES = list(Mode)
+_CODE = {m: i for i, m in enumerate(_MODES)}
+AUTO, ADVISORY, FROZEN = (_CODE[m] for m in (Mode.auto, Mode.advisory, Mode.frozen))

@@ -1,0 +1,194 @@
+"""The sample rules, vectorised over many loops: the one implementation.
+
+For each accepted sample the engine integrates the error (trapezoid on the plant's
+timestamps), decimates to the RL period by sample time (never wall time, so an
+accelerated simulation tunes as fast as it publishes) and says whether the loop is due
+for an RL step (:mod:`service.engine.stepping` then steps it).
+
+* A sample is rejected as a flood (over the per-loop rate, wall clock), a duplicate or
+  out of order (plant clock; a run of :data:`CLOCK_RESET_SAMPLES` consistent older
+  samples is taken as a new plant clock instead), or absurd (an error beyond
+  :data:`MAX_AGENT_ERROR` agent units). A rejected sample changes nothing of its loop.
+* No RL step while the gateway reports manual mode or a saturated output, and none
+  across a gap of more than ``stale_periods`` sample periods (the decimation window
+  restarts at the first sample after the gap, and the integral does not bridge it).
+  Nor is the error integrated while in manual or saturated (training never saw an
+  integral wound up by an error nobody controls), and the decimation window restarts
+  at the first sample back in auto, so a step sees a full RL period of control.
+* ``frozen`` loops are never stepped.
+* Excitation gate: the agent learns from setpoint responses, and stepped on a loop
+  whose setpoint stands still it walks the gains far from where they were (see the
+  evaluation's quiet-loop line). A loop is stepped only in RL periods that end within
+  ``excitation_periods`` RL periods of a setpoint change of at least
+  ``excitation_min_step`` (agent units; for gateways that send only the error, a jump
+  of the error between two samples). Other periods leave the gains and the hidden
+  state untouched and count as ``quiet``.
+* Gains the gateway reports in a sample are adopted when they differ from the tuner's
+  (an operator changed them), except when they are exactly the gains an auto update
+  just replaced: then the update is still in flight and adopting would undo it.
+
+The functions take the :class:`~service.engine.table.LoopTable` whose arrays they
+update; a scalar statement of the same rules, one sample at a time, is kept in the tests
+as the specification this module is checked against.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from service.engine.audit import audit_row
+from service.engine.modes import _MODES, FROZEN
+from service.wire.decode import Columns
+from service.wire.protocol import RejectReason
+
+if TYPE_CHECKING:
+    from service.engine.table import LoopTable
+
+MAX_AGENT_ERROR = 100.0
+"""An error beyond this many agent units (training sees about 2) is an absurd sample."""
+CLOCK_RESET_SAMPLES = 10
+"""Consecutive, mutually increasing samples older than the loop's last one that are
+taken as a new plant clock (a restarted gateway, or a last sample from the far future)
+rather than rejected forever as out of order."""
+GAIN_RTOL = 1e-6
+"""Relative tolerance when comparing reported gains with the tuner's: a DCS storing gains
+as float32 reports them off by up to 6e-8 relative, which is no operator's change."""
+
+
+def quiet(tb: LoopTable, s, t):
+    """Where the excitation gate is on and its window had closed by sample time ``t``
+    (``s``, ``t``: one slot and time, or aligned arrays)."""
+    return (tb.exc_window[s] < math.inf) & (t > tb.excited_until[s])
+
+
+def new_clock(tb: LoopTable, s: int, t: float) -> bool:
+    """Count a run of consistent out-of-order samples; True when it is a new clock."""
+    run = tb.back_n[s] + 1.0 if tb.back_n[s] and t > tb.back_t[s] else 1.0
+    tb.back_t[s] = t
+    tb.back_n[s] = 0.0 if run >= CLOCK_RESET_SAMPLES else run
+    return run >= CLOCK_RESET_SAMPLES
+
+
+def ingest(
+    tb: LoopTable, slots: np.ndarray, rows: Columns, wall: float
+) -> tuple[np.ndarray, list[tuple[int, RejectReason, str]]]:
+    """Take decoded samples of *distinct* loops (``slots`` aligned with ``rows``).
+
+    The one implementation of the sample rules, vectorised: flood limit, duplicate and
+    out-of-order times (or a new plant clock), absurd errors, adoption of reported
+    gains, the excitation gate, the error integral and decimation to the RL period.
+    Returns (mask of the loops now due for an RL step, rejections as (row, reason,
+    detail)); a rejected sample changes nothing of its loop but its counters.
+    """
+    cols = {k: getattr(rows, k) for k in ("t", "e", "sp", "kp", "ki", "auto", "saturated")}
+    t, e = cols["t"], cols["e"]
+    tokens = np.minimum(tb.burst, tb.tokens[slots] + (wall - tb.token_wall[slots]) * tb.rate)
+    tb.token_wall[slots] = wall
+    flood = tokens < 1.0
+    tb.tokens[slots] = np.where(flood, tokens, tokens - 1.0)
+    last_t = tb.last_t[slots]
+    dup = ~flood & (t == last_t)
+    late = ~flood & (t < last_t)
+    for i in np.flatnonzero(late).tolist():  # rare: a new plant clock, or rejected
+        if new_clock(tb, int(slots[i]), float(t[i])):
+            late[i] = False
+            last_t[i] = math.nan
+    absurd = ~(flood | dup | late) & (np.abs(e) * tb.e_scale[slots] > MAX_AGENT_ERROR)
+    ok = ~(flood | dup | late | absurd)
+    rejections: list[tuple[int, RejectReason, str]] = []
+    if not ok.all():
+        for i in np.flatnonzero(~ok).tolist():
+            if flood[i]:
+                rejections.append((i, RejectReason.flood, f"over {tb.rate:g} samples/s"))
+            elif dup[i]:
+                rejections.append((i, RejectReason.duplicate, f"t={t[i]} again"))
+            elif late[i]:
+                rejections.append((i, RejectReason.out_of_order, f"t={t[i]} < last t={last_t[i]}"))
+            else:
+                detail = f"|e|={abs(e[i]):g} is absurd for this loop"
+                rejections.append((i, RejectReason.out_of_range, detail))
+        slots, last_t, t, e = slots[ok], last_t[ok], t[ok], e[ok]
+        cols = {k: v[ok] for k, v in cols.items()}
+    tb.back_n[slots] = 0.0
+    _adopt(tb, slots, cols, wall)
+    _excite(tb, slots, cols, last_t)
+
+    tb.n_samples[slots] += 1
+    tb.last_wall[slots] = wall
+    auto, saturated = cols["auto"], cols["saturated"]
+    paused = ~auto | saturated
+    resumed = (tb.manual[slots] | tb.saturated[slots]) & ~paused
+    tb.manual[slots] = ~auto
+    tb.saturated[slots] = saturated
+    tb.last_t[slots] = t
+    fresh = np.isnan(last_t) | (t - last_t > tb.stale_gap[slots]) | resumed
+    period = tb.period[slots]
+    next_due = np.where(fresh, t + period, tb.next_due[slots])
+    step = np.where(fresh | paused, 0.0, 0.5 * (e + tb.last_e[slots]) * (t - last_t))
+    tb.int_e[slots] += step * tb.int_scale[slots]
+    tb.last_e[slots] = e
+    reached = t >= next_due
+    next_due[reached] += period[reached] * (
+        np.floor((t[reached] - next_due[reached]) / period[reached]) + 1.0
+    )
+    tb.next_due[slots] = next_due
+    due_ok = reached & (tb.mode[slots] != FROZEN) & auto & ~saturated
+    gated = due_ok & quiet(tb, slots, t)
+    tb.n_quiet[slots[gated]] += 1
+    due_ok &= ~gated
+    due = np.zeros(ok.size, bool)
+    due[np.flatnonzero(ok)[due_ok]] = True
+    return due, rejections
+
+
+def _excite(tb: LoopTable, slots: np.ndarray, cols: dict[str, np.ndarray], last_t) -> None:
+    """The excitation gate's part of :meth:`ingest` (before ``last_e`` moves on)."""
+    sp, e, step = cols["sp"], cols["e"], tb.exc_step[slots]
+    ref = tb.sp_ref[slots]
+    has_sp = ~np.isnan(sp)
+    with np.errstate(invalid="ignore"):  # NaN references compare False
+        moved = np.where(
+            has_sp,
+            np.abs(sp - ref) >= step,
+            ~np.isnan(last_t) & (np.abs(e - tb.last_e[slots]) >= step),
+        )
+    tb.sp_ref[slots] = np.where(has_sp & (moved | np.isnan(ref)), sp, ref)
+    tb.excited_until[slots[moved]] = cols["t"][moved] + tb.exc_window[slots[moved]]
+
+
+def _adopt(tb: LoopTable, slots: np.ndarray, cols: dict[str, np.ndarray], wall: float) -> None:
+    has_kp, has_ki = ~np.isnan(cols["kp"]), ~np.isnan(cols["ki"])
+    report = has_kp | has_ki
+    if not report.any():
+        return
+    slots, has_kp, has_ki = slots[report], has_kp[report], has_ki[report]
+    cur_kp, cur_ki = tb.kp[slots], tb.ki[slots]
+    kp = np.where(has_kp, cols["kp"][report], cur_kp)
+    ki = np.where(has_ki, cols["ki"][report], cur_ki)
+    same = _close(kp, cur_kp) & _close(ki, cur_ki)
+    in_flight = (
+        ~same & tb.pending[slots] & _close(kp, tb.prev_kp[slots]) & _close(ki, tb.prev_ki[slots])
+    )
+    tb.pending[slots[~in_flight]] = False
+    changed = np.flatnonzero(~same & ~in_flight)
+    if not changed.size:
+        return
+    t = cols["t"][report]
+    for i in changed.tolist():
+        s = int(slots[i])
+        old = (tb.kp[s], tb.ki[s])
+        tb.kp[s], tb.ki[s] = kp[i], ki[i]
+        tb._gains_dirty.add(s)
+        tb._audit.append(
+            audit_row(
+                tb.ids[s], wall, float(t[i]), int(tb.seq[s]), _MODES[tb.mode[s]].value,
+                "adopted", old, (float(kp[i]), float(ki[i])), "gains reported by the gateway",
+            )
+        )  # fmt: skip
+
+
+def _close(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.abs(a - b) <= GAIN_RTOL * np.maximum(np.abs(a), np.abs(b))
