@@ -59,15 +59,24 @@ class Proc:
     """A subprocess whose output goes to ``log`` (appended: restarts share one log)."""
 
     def __init__(
-        self, name: str, argv: list[str], *, log: Path, env: dict[str, str] | None = None
+        self,
+        name: str,
+        argv: list[str],
+        *,
+        log: Path,
+        env: dict[str, str] | None = None,
+        cpus: set[int] | None = None,
     ) -> None:
+        """Start ``argv`` in the checkout (``env``: :func:`clean_env` by default), pinned
+        to ``cpus`` from its first instruction if given."""
         self.name = name
         self.log = log
         log.parent.mkdir(parents=True, exist_ok=True)
+        pin = (lambda: os.sched_setaffinity(0, cpus)) if cpus else None
         with log.open("ab") as out:
             self.proc = subprocess.Popen(
                 argv, cwd=ROOT, env=clean_env() if env is None else env, stdout=out,
-                stderr=subprocess.STDOUT,
+                stderr=subprocess.STDOUT, preexec_fn=pin,
             )  # fmt: skip
 
     @property
@@ -148,9 +157,17 @@ class TunerProcess:
     a Zenoh listener); every :meth:`start` reuses them, so a restart resumes the state."""
 
     def __init__(
-        self, db: Path, *args: str, log: Path, token: str | None = None, env: dict | None = None
+        self,
+        db: Path,
+        *args: str,
+        log: Path,
+        token: str | None = None,
+        env: dict[str, str] | None = None,
+        cpus: set[int] | None = None,
     ) -> None:
+        """``args`` are added to the tuner's command line, ``env`` to its environment."""
         self.db = db
+        self.cpus = cpus
         self.log = log
         self.token = token
         self.api = f"http://127.0.0.1:{free_port()}"
@@ -164,7 +181,8 @@ class TunerProcess:
         argv = pitune("tuner", "--api-port", self.api.rsplit(":", 1)[1], "--listen", self.zenoh,
                       "--db", str(self.db), *self.args, *extra)  # fmt: skip
         token = {"PITUNE_API_TOKEN": self.token} if self.token else {}
-        self.proc = Proc("tuner", argv, log=self.log, env=clean_env(**token, **self.env))
+        env = clean_env(**token, **self.env)
+        self.proc = Proc("tuner", argv, log=self.log, env=env, cpus=self.cpus)
         self.proc.wait_ready(http_ok(f"{self.api}/readyz"), timeout)
         return self.proc
 

@@ -1,11 +1,18 @@
-"""A tiny run of the load benchmark (``pitune bench``), so that it cannot rot."""
+"""A tiny run of the load benchmark (``pitune bench``), so that it cannot rot. Rates and
+latencies depend on the machine's load: checked for consistency, not against a range."""
 
 from __future__ import annotations
 
 import argparse
 import json
 
+import pytest
+
 from service import bench as load
+from service.bench.command import bench_config
+from service.bench.config import BenchConfig
+
+pytestmark = pytest.mark.slow
 
 
 def test_tiny_benchmark_run_measures_everything(tmp_path, capsys):
@@ -19,13 +26,18 @@ def test_tiny_benchmark_run_measures_everything(tmp_path, capsys):
             "--out", str(tmp_path),
         ]
     )  # fmt: skip
+    assert bench_config(args) == BenchConfig(
+        loops=30, rate=10, duration=3, warmup=1, tau=(0.3, 0.5), memory_probe=10,
+        agent_weights="untrained", out=tmp_path,
+    )  # fmt: skip
     assert load.run(args) == 0
     (path,) = tmp_path.glob("*-30x10hz.json")
     result = json.loads(path.read_text())
     samples, updates = result["samples"], result["updates"]
     assert samples["lost"] == 0 and samples["rejected"] == 0
     assert samples["published"] == 30 * 10 * 4
-    assert 200 <= samples["published_per_s"] <= 400
+    # the window's samples are a part of the run's, whatever the generator's lag
+    assert 0 < samples["published_per_s"] * 3 <= samples["published"]
     assert updates["gains_in_window"] > 0 and updates["unmatched"] == 0
     lat = updates["latency_ms"]
     assert 0 < lat["p50"] <= lat["p99"] <= lat["max"] < 5000
@@ -34,6 +46,7 @@ def test_tiny_benchmark_run_measures_everything(tmp_path, capsys):
     assert result["inference"]["loops"] == 30
     assert result["bar"]["samples_lost"]["met"] is True
     assert result["daemon_exit"] is not None
+    assert result["config"]["tau"] == [0.3, 0.5] and result["config"]["out"] == str(tmp_path)
     assert result["machine_cpu"]["busy_percent"] > 0 and result["machine"]["cpus"] >= 1
     assert updates["gains_received"] >= updates["gains_in_window"]  # from GainsBatch messages
     out = capsys.readouterr().out

@@ -6,24 +6,21 @@ from __future__ import annotations
 
 import importlib.util
 import json
-import os
 import queue
 import sys
 import time
-from pathlib import Path
 
 import pytest
 import zenoh
 
 from plant_sim.gateway import Gateway, Source, Update
 from service.daemon.tuner import Tuner
-from service.demo import Child
 from service.engine.config import LoopConfig
+from service.procs import ROOT, Proc
 from service.wire.protocol import GainsBatch, GainsMessage, Keys, Mode, Sample, encode
 from tests.tuner_support import loop_body, open_peer, tuner_settings, wait_until
 
 pytestmark = pytest.mark.timeout(90)
-ROOT = Path(__file__).resolve().parents[1]
 EXAMPLE = ROOT / "deploy" / "examples" / "dcs_gateway.py"
 KEYS = Keys()
 
@@ -144,8 +141,14 @@ def test_batched_gains_of_a_gateway_follow_the_same_rule(tuner, other):
         updates = plant.until(lambda u: len(u) == 4, "the newer item")
         assert (updates[3].loop_id, updates[3].seq, updates[3].kp) == ("B1", 2, 0.8)
         assert plant.gateway.inbox.stale == 6
-        time.sleep(0.3)
-        assert plant.poll()[4:] == []
+        # the control: news for B2 on the same key, after the two batches above; nothing
+        # else came in between
+        (b2,) = (g for g in payload.gains if g.loop_id == "B2")
+        control = GainsBatch(gains=[b2.model_copy(update={"seq": 2, "kp": 0.4})])
+        other.put(KEYS.gateway_gains("gw-1"), encode(control))
+        updates = plant.until(lambda u: len(u) >= 5, "the control item")
+        assert [(u.loop_id, u.seq, u.kp) for u in updates[4:]] == [("B2", 2, 0.4)]
+        assert plant.gateway.inbox.stale == 6
         # the batches are not for the gateway without the id; it may still learn the
         # gains from a state reply, if its query on the tuner's token came after the step
         assert all(u.source is Source.state for u in deaf.poll())
@@ -208,11 +211,10 @@ def test_the_example_gateway_applies_state_and_batched_gains(tuner, other, tmp_p
     sub = other.declare_subscriber(
         KEYS.sample("LIC-101"), lambda s: samples.put(s.payload.to_bytes())
     )
-    child = Child(
+    child = Proc(
         "gateway",
         [sys.executable, str(EXAMPLE), "--connect", tuner.settings.zenoh_listen[0],
          "--gateway-id", "gw-1", "--period", "0.1", "--seconds", "10"],
-        env={**os.environ, "PYTHONPATH": str(ROOT)},
         log=tmp_path / "gateway.log",
     )  # fmt: skip
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import queue
 import time
 
@@ -10,17 +9,19 @@ import numpy as np
 import pytest
 import zenoh
 
-from plant_sim.process import LoopSpec, untuned_baseline
+from plant_sim.config import LoopSpec, PlantConfig, Simulation, untuned_baseline
+from plant_sim.process import plant_argv, plant_config
 from plant_sim.scenario import LoopSettings, Square, TankLoop
 from plant_sim.trajectory import Trajectory, TrajectoryWriter, read_log
 from service.cli import build_parser, main
-from service.demo import Child, pitune
 from service.engine.config import LoopConfig
+from service.procs import Proc, pitune
 from service.wire.protocol import GainsBatch, GainsMessage, Keys, Mode, Sample, encode
 from service.wire.session import free_port, session_config
 
 UNTUNED_TANK = (0.05 * 0.5 / 1.2, 0.05 * 0.5 / 1.2 / 60.0)
-"""Agent kp = ki = 0.05 through the hint 1.2 cm/(L/min), 30 s: one agent time unit is 60 s."""
+"""Agent kp = ki = 0.05 through the hint 1.2 cm/(L/min), 30 s: one agent time unit is 60 s
+(written out here, as the spec the unit contract of :mod:`service.units` must meet)."""
 SIMC_TANK = (0.25, 0.0048)
 """Improved SIMC for the tank's fit 1.9 exp(-15 s)/(47 s + 1) with tau_c = 2 tau."""
 
@@ -34,8 +35,8 @@ def run(loop, seconds: int) -> Trajectory:
     return Trajectory.from_scans([loop.scan() for _ in range(seconds)])
 
 
-def plant_args(*extra: str):
-    return build_parser("plant").parse_args(["plant", "run", *extra])
+def parsed(*argv: str) -> PlantConfig:
+    return plant_config(build_parser("plant").parse_args(["plant", "run", *argv]))
 
 
 # -- simulation ------------------------------------------------------------------------
@@ -69,8 +70,23 @@ def test_registration_body_is_a_valid_loop_config_with_the_papers_hint():
                   ("two_tank", "t:kp=x")]
 )  # fmt: skip
 def test_bad_loop_specs_are_refused(kind, text):
-    with pytest.raises(Exception, match="invalid loop id|missing|expected key|not a number"):
+    with pytest.raises(ValueError, match="invalid loop id|missing|expected key|not a number"):
         LoopSpec.parse(kind, text)
+
+
+def test_the_command_line_is_read_into_a_plant_config_once_and_written_back():
+    config = parsed("--tank", "t1:kp=0.3", "--foptd", "f1:K=2,tau=20,theta=5", "--noise", "1",
+                    "--duration", "60", "--gateway-id", "gw", "--connect", "tcp/h:1")  # fmt: skip
+    assert config.loops == (
+        LoopSpec("two_tank", "t1", {"kp": 0.3}),
+        LoopSpec("foptd", "f1", {"K": 2.0, "tau": 20.0, "theta": 5.0}),
+    )
+    assert config.sim == Simulation(noise=1.0, duration=60.0)
+    assert (config.gateway_id, config.connect) == ("gw", ("tcp/h:1",))
+    assert parsed(*plant_argv(config.loops, config.sim)) == PlantConfig(config.loops, config.sim)
+    assert parsed().loops == (LoopSpec("two_tank", "tank1"),)
+    with pytest.raises(SystemExit, match="duplicate loop ids"):
+        parsed("--tank", "a", "--foptd", "a:K=1,tau=1,theta=1")
 
 
 def test_tank_starts_in_steady_state_and_target_has_the_fit_dead_time():
@@ -149,12 +165,11 @@ def next_sample(samples: queue.SimpleQueue, loop_id: str, until, timeout: float 
 
 def test_plant_publishes_samples_and_applies_only_auto_gains(tmp_path):
     port = free_port()
-    child = Child(
+    child = Proc(
         "plant",
         pitune("plant", "run", "--tank", "tank1", "--foptd", "f1:K=2,tau=20,theta=5",
                "--listen", f"tcp/127.0.0.1:{port}", "--speed", "40", "--gain-range", "10",
                "--log-dir", str(tmp_path / "log"), "--progress", "0", "--gateway-id", "gw-p"),
-        env=dict(os.environ),
         log=tmp_path / "plant.log",
     )  # fmt: skip
     bus = None
@@ -212,11 +227,10 @@ def test_untuned_baseline_is_the_plant_run_without_a_tuner(tmp_path):
     """Same seed, noise and schedule: the in-process baseline reproduces the process's log."""
     argv = ["--tank", "tank1", "--noise", "1", "--seed", "7", "--speed", "0",
             "--duration", "1300", "--progress", "0"]  # fmt: skip
-    child = Child(
+    child = Proc(
         "plant",
         pitune("plant", "run", *argv, "--listen", f"tcp/127.0.0.1:{free_port()}",
                "--log-dir", str(tmp_path)),
-        env=dict(os.environ),
         log=tmp_path / "plant.log",
     )  # fmt: skip
     try:
@@ -224,7 +238,8 @@ def test_untuned_baseline_is_the_plant_run_without_a_tuner(tmp_path):
     finally:
         child.kill()
     logged = read_log(tmp_path / "tank1.csv")
-    baseline = untuned_baseline(plant_args(*argv))["tank1"]
+    config = parsed(*argv)
+    baseline = untuned_baseline(config.loops, config.sim)["tank1"]
     assert len(logged) == len(baseline) == 1300
     for column in ("t", "sp", "pv", "target", "kp", "ki", "op"):
         np.testing.assert_allclose(getattr(logged, column), getattr(baseline, column), rtol=1e-5)

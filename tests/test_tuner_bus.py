@@ -90,11 +90,12 @@ def test_advisory_is_marked_and_frozen_is_silent(bus):
     msg = gw.next_gains()
     assert (msg.loop_id, msg.mode) == ("ADV", Mode.advisory)
     received(tuner, 400)
-    with pytest.raises(queue.Empty):
-        gw.next_gains(timeout=0.2)
     assert tuner.view("ADV").kp == 0.5  # advisory updates are never assumed applied
     assert tuner.view("FRZ").status.value == "frozen"
     assert tuner.view("FRZ").counters.steps == 0
+    tuner.reset("ADV")  # the control: on the same path, after anything of FRZ's
+    control = gw.next_gains()
+    assert (control.loop_id, control.reason) == ("ADV", UpdateReason.reset), "FRZ is silent"
 
 
 def test_reset_publishes_the_registered_gains(bus):
@@ -135,8 +136,9 @@ def test_a_reset_is_not_undone_by_the_gains_the_gateway_still_reports(bus):
     assert (view.kp, view.ki, view.seq, view.hidden_norm) == (0.7, 0.02, 0, 0.0)
     gw.send("FRZ", {"t": 2.0, "e": 2.0, "kp": 0.7, "ki": 0.02})
     received(tuner, 175)
-    with pytest.raises(queue.Empty):
-        gw.next_gains(timeout=0.2)
+    tuner.reset("AUTO")  # the control: on the same path, after anything of FRZ's
+    control = gw.next_gains()
+    assert (control.loop_id, control.reason) == ("AUTO", UpdateReason.reset), "FRZ got gains"
     reset, adopted = tuner.history("FRZ", 0, 10).items[:2]
     assert (reset.reason, reset.kp_old, reset.kp_new, adopted.reason) == (
         "reset",
@@ -299,8 +301,8 @@ def test_loops_of_a_gateway_get_their_gains_in_one_batch(bus):
             (1, 165.0, UpdateReason.agent, "test-tuner")
         }
         assert gw.next_gains().loop_id == "SOLO"
-        with pytest.raises(queue.Empty):
-            gw.next_gains(timeout=0.2)
+        tuner.reset("SOLO")  # the control: on the same path, after the step's messages
+        assert gw.next_gains().reason is UpdateReason.reset, "fronted loops got messages"
         assert tuner.metrics.value("pitune_inference_batch_loops_sum") == 5  # one agent call
 
         # a patch to null sends the loop's gains one by one again, and is audited
@@ -308,8 +310,8 @@ def test_loops_of_a_gateway_get_their_gains_in_one_batch(bus):
         tuner.reset("B0")
         tuner.reset("B1")
         assert gw.next_gains().loop_id == "B0"
-        with pytest.raises(queue.Empty):
-            gw.next_gains(timeout=0.2)
+        tuner.reset("SOLO")  # the control: after B1's reset, which goes in a batch
+        assert gw.next_gains().loop_id == "SOLO", "B1's reset came on its own key"
         reset = GainsBatch.model_validate_json(batches.get(timeout=5))
         assert [(g.loop_id, g.reason) for g in reset.gains] == [("B1", UpdateReason.reset)]
         patched = tuner.history("B0", 0, 10).items[1]

@@ -1,4 +1,4 @@
-"""Helpers shared by the tuner tests: ports, settings, Zenoh peers, waiting.
+"""Helpers shared by the tuner tests: ports, settings, Zenoh peers, waiting, snapshots.
 
 ``free_port`` is re-exported from :mod:`service.wire.session` for the tests that import it here.
 """
@@ -7,10 +7,12 @@ from __future__ import annotations
 
 import json
 import queue
+import sqlite3
 import time
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 import zenoh
 
 from service.daemon.settings import Settings, load_settings
@@ -71,6 +73,17 @@ def wait_until(predicate: Callable[[], object], timeout: float = 5.0, what: str 
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out waiting for {what or predicate}")
         time.sleep(0.01)
+
+
+def snapshot_of(db: Path, loop_id: str) -> tuple[np.ndarray, dict] | None:
+    """(hidden state, runtime) of the loop's last snapshot in a tuner's database, if any."""
+    with sqlite3.connect(db) as conn:
+        rows = conn.execute(
+            "SELECT hidden, runtime FROM snapshots WHERE id = ?", (loop_id,)
+        ).fetchall()
+    if not rows:
+        return None
+    return np.frombuffer(rows[0][0], np.float32), json.loads(rows[0][1])
 
 
 class Gateway:
