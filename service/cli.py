@@ -15,9 +15,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "train": ("service.learn.train", "train the meta-RL agent offline (recurrent PPO)"),
     "evaluate": ("service.learn.evaluate", "reproduce the paper's experiments, write reports/"),
     "tuner": ("service.daemon.main", "run the tuner daemon (Zenoh bus + admin API)"),
-    "plant": ("plant_sim.process", "run simulated plants behind a DCS-like gateway"),
+    "plant": ("plant_sim.cli", "run simulated plants behind a DCS-like gateway (or OPC UA)"),
     "demo": ("service.demo", "tuner + two-tank plant end to end, write demo/"),
     "bench": ("service.bench", "load benchmark of the tuner daemon"),
+    "gateway": ("service.gateways.cli", "DCS gateways: OPC UA to the pitune bus; certificates"),
 }
 
 

@@ -1,0 +1,497 @@
+"""``pitune plant opcua``: a simulated DCS that exposes its PID blocks over OPC UA.
+
+The project's simulated loops (:mod:`plant_sim.scenario`: the two-tank level loop and
+FOPTD loops) run behind an asyncua server, each as a PID block in a DCS-like form, the
+way DeltaV, Experion or PCS 7 show one (node ids ``ns=<idx>;s=<loop>.<PARAM>``):
+
+======== ======= =========================================================================
+param    type    meaning
+======== ======= =========================================================================
+SP       Double  setpoint, PV units (the schedule of the simulated loop)
+PV       Double  measurement; written last in each scan, with the scan's source timestamp
+OUT      Double  controller output; an operator may write it in MAN
+MODE     Int32   1 MAN, 2 AUTO, 3 CAS (:data:`MODES`); operators write it
+GAIN     Double  controller gain, dimensionless (%/% of the PV and OUT spans)
+RESET    Double  integral time, minutes per repeat (ideal form)
+TUNE_EN  Boolean the block accepts tuning from pitune (operators set it)
+OUT_HI_ACT, OUT_LO_ACT  Boolean  the output is at its high / low limit
+OUT_HI_LIM, OUT_LO_LIM  Double   output limits (read only)
+======== ======= =========================================================================
+
+A GAIN or RESET written by a client takes effect at the next scan, bumplessly; a value
+outside the block's range (the loop's gain range) is clamped and the clamped value
+written back, as a DCS does. :meth:`SimulatedDcs.lock_gains` makes GAIN and RESET read
+only (a DCS that refuses the write). In MAN the output holds (OUT, operator-writable) and
+the PI tracks it, so the return to AUTO is bumpless.
+
+Time: source timestamps are the plant clock, ``epoch + t``: at ``--speed 1`` that is
+wall-clock time; faster simulations stamp their values with simulated time, which the
+gateway passes through as the samples' ``t``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import logging
+import math
+import signal
+import time
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+
+import numpy as np
+from asyncua import Server, ua
+from asyncua.crypto.permission_rules import User, UserRole
+from asyncua.crypto.truststore import TrustStore
+from asyncua.crypto.validator import CertificateValidator, CertificateValidatorOptions
+
+from plant_sim.scenario import TANK_FLOW_MAX, Scan, SimulatedLoop
+from plant_sim.trajectory import TrajectoryWriter
+from service.gateways.opcua.forms import GainForm, ITerm, PTerm
+
+log = logging.getLogger("pitune.dcs_sim")
+NAMESPACE = "urn:pitune:dcs-sim"
+SERVER_URI = "urn:pitune:dcs-sim:server"
+MAN, AUTO, CAS = 1, 2, 3
+MODES = {"MAN": MAN, "AUTO": AUTO, "CAS": CAS}
+AUTO_VALUES = [AUTO, CAS]
+TANK_PV_SPAN = 120.0
+"""The tank's level transmitter range, cm (0-120)."""
+
+
+@dataclass(frozen=True)
+class BlockScale:
+    """The PV and OUT spans of a block: GAIN is shown in %/% of them."""
+
+    pv_span: float
+    op_span: float
+
+    @property
+    def form(self) -> GainForm:
+        return GainForm(p=PTerm.gain, i=ITerm.reset_min, pv_span=self.pv_span, op_span=self.op_span)
+
+
+def block_scale(loop: SimulatedLoop) -> BlockScale:
+    if loop.kind == "two_tank":
+        return BlockScale(TANK_PV_SPAN, TANK_FLOW_MAX)
+    lo, hi = loop.settings.sp_low, loop.settings.sp_high
+    return BlockScale(max(4.0 * (hi - lo), 1e-6), 100.0)
+
+
+class UserManager:
+    """Users with passwords (role User), and anonymous sessions if allowed."""
+
+    def __init__(self, users: dict[str, str], allow_anonymous: bool) -> None:
+        self.users = users
+        self.allow_anonymous = allow_anonymous
+
+    def get_user(self, iserver, username=None, password=None, certificate=None):
+        if username is None:
+            return User(role=UserRole.User, name="anonymous") if self.allow_anonymous else None
+        if self.users.get(username) == password:
+            return User(role=UserRole.User, name=username)
+        return None
+
+
+class PidBlock:
+    """One loop as a DCS PID block in the address space."""
+
+    PARAMS = ("SP", "PV", "OUT", "MODE", "GAIN", "RESET", "TUNE_EN", "OUT_HI_ACT", "OUT_LO_ACT",
+              "OUT_HI_LIM", "OUT_LO_LIM")  # fmt: skip
+
+    def __init__(self, loop: SimulatedLoop, ns: int) -> None:
+        self.loop = loop
+        self.ns = ns
+        self.form = block_scale(loop).form
+        self.ids = {p: ua.NodeId(f"{loop.loop_id}.{p}", ns) for p in self.PARAMS}
+        self.shown: dict[str, object] = {}
+        self.op = 0.0
+        self.writes_seen = 0
+
+    def node(self, param: str) -> str:
+        """The node id string of a parameter, as a map file names it."""
+        return f"ns={self.ns};s={self.loop.loop_id}.{param}"
+
+    async def create(self, server: Server, folder) -> None:
+        obj = await folder.add_object(ua.NodeId(self.loop.loop_id, self.ns), self.loop.loop_id)
+        p, i = self.form.from_parallel(*self.loop.gains)
+        lo, hi = self.loop.op_limits
+        self.op = float(self.loop.pi.output()[0])
+        initial = {
+            "SP": (self.loop.sp.at(0.0), ua.VariantType.Double, False),
+            "PV": (self.loop.settings.sp_low, ua.VariantType.Double, False),
+            "OUT": (self.op, ua.VariantType.Double, True),
+            "MODE": (AUTO, ua.VariantType.Int32, True),
+            "GAIN": (p, ua.VariantType.Double, True),
+            "RESET": (i, ua.VariantType.Double, True),
+            "TUNE_EN": (True, ua.VariantType.Boolean, True),
+            "OUT_HI_ACT": (False, ua.VariantType.Boolean, False),
+            "OUT_LO_ACT": (False, ua.VariantType.Boolean, False),
+            "OUT_HI_LIM": (math.inf if hi is None else hi, ua.VariantType.Double, False),
+            "OUT_LO_LIM": (-math.inf if lo is None else lo, ua.VariantType.Double, False),
+        }
+        for param, (value, vtype, writable) in initial.items():
+            var = await obj.add_variable(self.ids[param], param, ua.Variant(value, vtype))
+            if writable:
+                await var.set_writable()
+            self.shown[param] = value
+
+    # -- one scan --------------------------------------------------------------------
+    def _read(self, server: Server, param: str):
+        aspace = server.iserver.aspace
+        return aspace.read_attribute_value(self.ids[param], ua.AttributeIds.Value).Value.Value
+
+    async def _write(self, server: Server, param: str, value, ts: datetime, force=False) -> None:
+        if not force and self.shown.get(param) == value:
+            return
+        self.shown[param] = value
+        vtype = {
+            bool: ua.VariantType.Boolean,
+            int: ua.VariantType.Int32,
+        }.get(type(value), ua.VariantType.Double)
+        dv = ua.DataValue(ua.Variant(value, vtype), SourceTimestamp=ts, ServerTimestamp=ts)
+        await server.write_attribute_value(self.ids[param], dv)
+
+    async def scan(self, server: Server, epoch: float) -> Scan:
+        loop = self.loop
+        ts = datetime.fromtimestamp(epoch + loop.t0 + loop.scans * loop.dt, UTC)
+        # gains written by a client since the last scan: bumpless, clamped to the range
+        p, i = self._read(server, "GAIN"), self._read(server, "RESET")
+        if (p, i) != (self.shown["GAIN"], self.shown["RESET"]):
+            self.writes_seen += 1
+            with contextlib.suppress(ValueError):  # zero or negative: keep the gains in force
+                loop.apply_gains(*self.form.to_parallel(p, i))
+            self.shown["GAIN"], self.shown["RESET"] = p, i
+        mode = self._read(server, "MODE")
+        if mode == MAN:
+            self.op = float(self._read(server, "OUT"))
+            scan = held_scan(loop, self.op)
+        else:
+            scan = loop.scan()
+            self.op = scan.op
+        self.shown["MODE"] = mode
+        in_force = self.form.from_parallel(scan.kp, scan.ki)
+        lo, hi = loop.op_limits
+        await self._write(server, "SP", float(scan.sp), ts)
+        await self._write(server, "OUT", float(scan.op), ts, force=True)
+        await self._write(server, "OUT_HI_ACT", bool(hi is not None and scan.op >= hi), ts)
+        await self._write(server, "OUT_LO_ACT", bool(lo is not None and scan.op <= lo), ts)
+        if not (_close(in_force[0], p) and _close(in_force[1], i)):  # clamped: show it
+            await self._write(server, "GAIN", float(in_force[0]), ts, force=True)
+            await self._write(server, "RESET", float(in_force[1]), ts, force=True)
+        await self._write(server, "PV", float(scan.pv), ts, force=True)  # last: the trigger
+        return scan
+
+
+def _close(a: float, b: float) -> bool:
+    return math.isclose(a, b, rel_tol=1e-9, abs_tol=0.0)
+
+
+def held_scan(loop: SimulatedLoop, op: float) -> Scan:
+    """A scan in manual: the output holds at ``op`` and the PI tracks it (bumpless back)."""
+    elapsed = loop.scans * loop.dt
+    sp = loop.sp.at(elapsed)
+    pv = loop._measure()
+    if loop.settings.noise:
+        pv += float(loop.rng.uniform(-loop.settings.noise, loop.settings.noise))
+    loop.pi.initialise(np.array([op]), np.array([sp - pv]))
+    target = float(loop.target.output()[0])
+    kp, ki = loop.gains
+    loop._advance(op, loop.load.at(elapsed))
+    loop.target.step(np.array([sp]))
+    loop.scans += 1
+    return Scan(t=loop.t0 + elapsed, sp=sp, pv=pv, target=target, op=op, kp=kp, ki=ki,
+                saturated=False)  # fmt: skip
+
+
+@dataclass
+class DcsSecurity:
+    """How the simulated server is secured (all None/empty: security None only)."""
+
+    certificate: Path | None = None
+    private_key: Path | None = None
+    trusted: list[Path] | None = None
+    """Client certificates (files or folders) allowed to connect; None: any valid one."""
+    allow_insecure: bool = False
+    users: dict[str, str] | None = None
+    allow_anonymous: bool = True
+
+
+class SimulatedDcs:
+    """An asyncua server around simulated loops; ``async with`` starts and stops it."""
+
+    def __init__(
+        self,
+        loops: list[SimulatedLoop],
+        *,
+        port: int,
+        host: str = "127.0.0.1",
+        security: DcsSecurity | None = None,
+        epoch: float | None = None,
+    ) -> None:
+        self.loops = loops
+        self.url = f"opc.tcp://{host}:{port}/pitune/dcs"
+        self.security = security or DcsSecurity(allow_insecure=True)
+        self.epoch = float(math.floor(time.time()) if epoch is None else epoch)
+        self.server: Server | None = None
+        self.blocks: dict[str, PidBlock] = {}
+        self.ns = 0
+
+    async def start(self) -> SimulatedDcs:
+        sec = self.security
+        users = UserManager(sec.users or {}, sec.allow_anonymous)
+        server = Server(user_manager=users)
+        await server.init()
+        server.set_endpoint(self.url)
+        server.set_server_name("pitune simulated DCS")
+        await server.set_application_uri(SERVER_URI)
+        policies = []
+        if sec.certificate is not None:
+            await server.load_certificate(str(sec.certificate))
+            await server.load_private_key(str(sec.private_key))
+            policies += [
+                ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt,
+                ua.SecurityPolicyType.Basic256Sha256_Sign,
+            ]
+            if sec.trusted is not None:
+                store = TrustStore(list(sec.trusted), [])
+                await store.load()
+                options = (
+                    CertificateValidatorOptions.TRUSTED_VALIDATION
+                    | CertificateValidatorOptions.PEER_CLIENT
+                )
+                server.set_certificate_validator(CertificateValidator(options, store))
+        if sec.allow_insecure:
+            policies.append(ua.SecurityPolicyType.NoSecurity)
+        server.set_security_policy(policies)
+        tokens = [ua.UserNameIdentityToken] if sec.users else []
+        if sec.allow_anonymous:
+            tokens.append(ua.AnonymousIdentityToken)
+        server.set_identity_tokens(tokens)
+        self.ns = await server.register_namespace(NAMESPACE)
+        folder = await server.nodes.objects.add_folder(ua.NodeId("PID", self.ns), "PID")
+        for loop in self.loops:
+            block = PidBlock(loop, self.ns)
+            await block.create(server, folder)
+            self.blocks[loop.loop_id] = block
+        await server.start()
+        self.server = server
+        return self
+
+    async def stop(self) -> None:
+        if self.server is not None:
+            server, self.server = self.server, None
+            await server.stop()
+
+    async def __aenter__(self) -> SimulatedDcs:
+        return await self.start()
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.stop()
+
+    async def scan(self) -> list[Scan]:
+        """One scan of every block, in order."""
+        assert self.server is not None, "not started"
+        return [await b.scan(self.server, self.epoch) for b in self.blocks.values()]
+
+    # -- what an operator or engineer does at the console -----------------------------
+    async def set_param(self, loop_id: str, param: str, value) -> None:
+        block = self.blocks[loop_id]
+        vtype = {bool: ua.VariantType.Boolean, int: ua.VariantType.Int32}.get(
+            type(value), ua.VariantType.Double
+        )
+        dv = ua.DataValue(ua.Variant(value, vtype))
+        await self.server.write_attribute_value(block.ids[param], dv)
+
+    async def set_mode(self, loop_id: str, mode: int) -> None:
+        await self.set_param(loop_id, "MODE", int(mode))
+
+    async def set_tuning_enable(self, loop_id: str, enabled: bool) -> None:
+        await self.set_param(loop_id, "TUNE_EN", bool(enabled))
+
+    async def lock_gains(self, loop_id: str, locked: bool = True) -> None:
+        """Make GAIN and RESET read-only to clients (writes are refused) or writable."""
+        block = self.blocks[loop_id]
+        for param in ("GAIN", "RESET"):
+            node = self.server.get_node(block.ids[param])
+            await node.set_writable(not locked)
+
+    def gains(self, loop_id: str) -> tuple[float, float]:
+        """(kp, ki) in force in the simulated loop."""
+        return self.blocks[loop_id].loop.gains
+
+    def site_map(self, *, limits_factor: float = 10.0, **server: object) -> dict:
+        """A map file (as a dict, TOML-ready) for a gateway of these blocks; the hard
+        limits are the blocks' present values divided and multiplied by ``limits_factor``."""
+        loops = []
+        for block in self.blocks.values():
+            p0, i0 = block.form.from_parallel(*block.loop.gains)
+            r = limits_factor
+            loops.append(
+                {
+                    "id": block.loop.loop_id,
+                    "sp": block.node("SP"),
+                    "pv": block.node("PV"),
+                    "op": block.node("OUT"),
+                    "mode": block.node("MODE"),
+                    "auto_values": AUTO_VALUES,
+                    "p": block.node("GAIN"),
+                    "i": block.node("RESET"),
+                    "form": block.form.model_dump(mode="json"),
+                    "tuning_enable": block.node("TUNE_EN"),
+                    "at_high_limit": block.node("OUT_HI_ACT"),
+                    "at_low_limit": block.node("OUT_LO_ACT"),
+                    "limits": {"p": [p0 / r, p0 * r], "i": [i0 / r, i0 * r]},
+                }
+            )
+        return {"server": {"url": self.url, **server}, "loops": loops}
+
+
+# -- command line ----------------------------------------------------------------------
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``pitune plant opcua`` (the loops are given as for ``plant run``)."""
+    from plant_sim.process import LoopSpec
+
+    parser.add_argument("--tank", dest="loops", action="append",
+                        type=lambda s: LoopSpec.parse("two_tank", s), metavar="ID[:k=v,...]",
+                        help="a two-tank level loop (default: one, 'tank1')")  # fmt: skip
+    parser.add_argument("--foptd", dest="loops", action="append",
+                        type=lambda s: LoopSpec.parse("foptd", s),
+                        metavar="ID:K=..,tau=..,theta=..[,k=v]", help="an FOPTD loop")  # fmt: skip
+    parser.add_argument("--many-foptd", type=int, default=0, metavar="N",
+                        help="also N FOPTD loops F0000.. (load tests)")  # fmt: skip
+    sim = parser.add_argument_group("simulation")
+    sim.add_argument("--scan", type=float, default=1.0, help="DCS scan interval, s (1)")
+    sim.add_argument("--speed", type=float, default=1.0, help="simulated s per wall s (1)")
+    sim.add_argument("--duration", type=float, default=None, help="stop after N simulated s")
+    sim.add_argument("--t0", type=float, default=0.0, help="plant clock at start, s")
+    sim.add_argument("--sp-period", type=float, default=600.0, help="s between SP steps (600)")
+    sim.add_argument("--noise", type=float, default=0.0, help="measurement noise +-N, PV units")
+    sim.add_argument("--load", type=float, default=0.0, help="load step, OP units")
+    sim.add_argument("--gain-range", type=float, default=100.0, help="block gain range (100)")
+    sim.add_argument("--seed", type=int, default=0)
+    srv = parser.add_argument_group("OPC UA server")
+    srv.add_argument("--host", default="127.0.0.1", help="endpoint host (0.0.0.0 in a container)")
+    srv.add_argument("--port", type=int, default=4840)
+    srv.add_argument("--certificate", type=Path, default=None, help="server certificate (DER)")
+    srv.add_argument("--private-key", type=Path, default=None, help="server key (PEM)")
+    srv.add_argument("--trust", type=Path, action="append", default=None, metavar="PATH",
+                     help="trusted client cert or folder (repeatable)")  # fmt: skip
+    srv.add_argument("--allow-insecure", action="store_true", help="also offer security None")
+    srv.add_argument("--user", action="append", default=[], metavar="NAME:PASSWORD_ENV",
+                     help="a user, password in $PASSWORD_ENV (repeatable)")  # fmt: skip
+    srv.add_argument("--no-anonymous", action="store_true", help="refuse anonymous sessions")
+    out = parser.add_argument_group("output")
+    out.add_argument("--write-map", type=Path, default=None, metavar="TOML",
+                     help="write a gateway map of these blocks")  # fmt: skip
+    out.add_argument("--log-dir", type=Path, default=None, help="write DIR/<loop id>.csv")
+    out.add_argument("--progress", type=float, default=600.0, help="status every N simulated s")
+
+
+def build_loops(args: argparse.Namespace) -> list[SimulatedLoop]:
+    from plant_sim.process import LoopSpec
+
+    specs = list(args.loops or [])
+    rng = np.random.default_rng(args.seed)
+    for k in range(args.many_foptd):
+        K, tau = rng.uniform(0.5, 2.0), rng.uniform(10.0, 60.0)
+        theta = rng.uniform(0.1, 0.5) * tau
+        specs.append(LoopSpec.parse("foptd", f"F{k:04d}:K={K:.3f},tau={tau:.2f},theta={theta:.2f}"))
+    if not specs:
+        specs = [LoopSpec("two_tank", "tank1", {})]
+    ids = [s.loop_id for s in specs]
+    if len(set(ids)) != len(ids):
+        raise SystemExit(f"pitune plant opcua: duplicate loop ids in {ids}")
+    return [s.build(args, seed=args.seed + i, t0=args.t0) for i, s in enumerate(specs)]
+
+
+def security_from_args(args: argparse.Namespace) -> DcsSecurity:
+    import os
+
+    users = {}
+    for item in args.user:
+        name, _, env = item.partition(":")
+        if not env or env not in os.environ:
+            raise SystemExit(f"pitune plant opcua: --user {item}: set ${env or 'NAME'}")
+        users[name] = os.environ[env]
+    if args.certificate is None and not args.allow_insecure:
+        raise SystemExit(
+            "pitune plant opcua: give --certificate/--private-key, or --allow-insecure"
+        )
+    return DcsSecurity(
+        certificate=args.certificate,
+        private_key=args.private_key,
+        trusted=args.trust,
+        allow_insecure=args.allow_insecure,
+        users=users or None,
+        allow_anonymous=not args.no_anonymous,
+    )
+
+
+async def serve(args: argparse.Namespace, stop: asyncio.Event) -> int:
+    loops = build_loops(args)
+    dcs = SimulatedDcs(loops, port=args.port, host=args.host, security=security_from_args(args))
+    async with dcs:
+        if args.write_map:
+            import tomli_w
+
+            site = dcs.site_map()
+            if args.certificate is None:
+                site["server"].update(security="None", allow_insecure=True)
+            args.write_map.parent.mkdir(parents=True, exist_ok=True)
+            args.write_map.write_text(tomli_w.dumps(site))
+        print(f"dcs: {len(loops)} PID blocks on {dcs.url} (ns={dcs.ns}), scan {args.scan:g} s, "
+              f"speed {args.speed:g}x", flush=True)  # fmt: skip
+        with contextlib.ExitStack() as stack:
+            writers = {}
+            if args.log_dir:
+                for loop in loops:
+                    w = TrajectoryWriter(args.log_dir / f"{loop.loop_id}.csv")
+                    stack.callback(w.close)
+                    writers[loop.loop_id] = w
+            await pace(dcs, args, stop, writers)
+    print("dcs stopped", flush=True)
+    return 0
+
+
+async def pace(dcs: SimulatedDcs, args, stop: asyncio.Event, writers: dict) -> None:
+    """Scan at ``speed`` times real time until ``--duration`` or ``stop``."""
+    last = round(args.duration / args.scan) if args.duration is not None else None
+    every = round(args.progress / args.scan) if args.progress > 0 else 0
+    start = time.monotonic()
+    k = 0
+    while not stop.is_set() and (last is None or k < last):
+        if args.speed > 0:
+            delay = start + k * args.scan / args.speed - time.monotonic()
+            if delay > 0:
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(stop.wait(), delay)
+                if stop.is_set():
+                    break
+        else:
+            await asyncio.sleep(0)
+        scans = await dcs.scan()
+        for scan, loop in zip(scans, dcs.loops, strict=True):
+            if loop.loop_id in writers:
+                writers[loop.loop_id].write(scan)
+        if every and k % every == 0 and scans:
+            s = scans[0]
+            print(f"t={s.t:9.0f}s {dcs.loops[0].loop_id}: sp={s.sp:.4g} pv={s.pv:.4g} "
+                  f"op={s.op:.4g} kp={s.kp:.4g} ki={s.ki:.4g}", flush=True)  # fmt: skip
+        k += 1
+
+
+def run(args: argparse.Namespace) -> int:
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s %(message)s")
+
+    async def main() -> int:
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, stop.set)
+        return await serve(args, stop)
+
+    return asyncio.run(main())

@@ -1,0 +1,11 @@
+"""The OPC UA gateway: a DCS's PID blocks on one side, the pitune bus on the other.
+
+* :mod:`.forms`: the PID blocks' gain forms and their conversions to pitune's parallel form;
+* :mod:`.sitemap`: the map file (TOML): server, security, bus, and one entry per loop;
+* :mod:`.certs`: self-signed client certificates (``pitune gateway certs``);
+* :mod:`.client`: the asyncua side (secure session, monitored items, write and read back);
+* :mod:`.bridge`: the gateway itself (samples out, gains in, write policy, reconnects);
+* :mod:`.cli`: ``pitune gateway opcua --map site.toml``.
+
+See ``docs/opcua.md``.
+"""
