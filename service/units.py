@@ -47,7 +47,9 @@ RL_STEP_AGENT_UNITS = 2.75
 AGENT_KP0 = AGENT_KI0 = 0.05
 """The paper's deliberately slow initial tuning (Kc = 0.05, tau_I = 1), agent units."""
 AGENT_GAIN_RANGE = (0.01, 50.0)
-"""Default bounds of kp and ki in agent units: the range the agent was trained in."""
+"""Default bounds of kp and ki in agent units. Training clips the gains to
+[``service.agent.GAIN_FLOOR`` = 0.001, 50]: the upper bound is training's, the lower one
+keeps a tuned loop an order of magnitude above the floor."""
 DEFAULT_FORGETTING = 0.99
 """The paper's forgetting factor gamma of the hidden state, used online."""
 

@@ -21,7 +21,7 @@ from service.agent import (
 from service.learn.env import EnvConfig, TuningEnv
 from service.learn.oracle import ORACLE_RATIOS, oracle_gains, oracle_table
 from service.learn.train import TrainConfig, Trainer, gae, ppo_policy_loss
-from service.units import AGENT_KI0, AGENT_KP0
+from service.units import AGENT_KI0, AGENT_KP0, DEFAULT_FORGETTING
 
 
 def _obs(n, rng):
@@ -55,10 +55,12 @@ def test_forgetting_scales_the_previous_hidden_state():
     obs = _obs(3, np.random.default_rng(1))
     _, state = agent.act(obs, agent.initial_state(3))
     d1, _ = agent.act(obs, state, forgetting=1.0)
-    d99, s99 = agent.act(obs, state, forgetting=0.99)
+    d99, s99 = agent.act(obs, state, forgetting=DEFAULT_FORGETTING)
     assert not np.allclose(d1, d99)
     # per-loop forgetting: equal to the scalar where the values agree
-    d_mix, s_mix = agent.act(obs, state, forgetting=np.array([1.0, 0.99, 0.99]))
+    d_mix, s_mix = agent.act(
+        obs, state, forgetting=np.array([1.0, DEFAULT_FORGETTING, DEFAULT_FORGETTING])
+    )
     np.testing.assert_allclose(d_mix[0], d1[0], rtol=1e-6)
     np.testing.assert_allclose(s_mix[1:], s99[1:], rtol=1e-6)
     # gamma = 0 is the same as a zero state

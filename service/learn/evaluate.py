@@ -14,7 +14,7 @@ import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Literal, get_args
 
 import numpy as np
 
@@ -33,6 +33,9 @@ from service.learn.experiments import (
 )
 from service.learn.report import render_report, write_figures, write_model_card
 
+Inference = Literal["reference", "auto", "float32", "bfloat16"]
+"""``agent.act`` (reference), or the tuner's FastPolicy in this precision."""
+
 
 @dataclass(frozen=True)
 class EvalConfig:
@@ -44,7 +47,7 @@ class EvalConfig:
     """Reduced version (CI, < 2 minutes): smaller grids, fewer RL steps, shorter runs."""
     weights: Path | None = None
     """Agent file; None: the shipped weights."""
-    precision: Literal["reference", "auto", "float32", "bfloat16"] = "reference"
+    precision: Inference = "reference"
     """``agent.act`` (reference), or the tuner's FastPolicy in this precision."""
     card: Path | None = None
     """Also write a model card here."""
@@ -140,13 +143,13 @@ def main(cfg: EvalConfig) -> int:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--weights", type=Path, default=None, help="agent file (default: shipped)")
-    p.add_argument("--out", type=Path, default=Path("reports"))
+    p.add_argument("--out", type=Path, default=EvalConfig.out)
     p.add_argument("--quick", action="store_true", help="reduced version (CI, < 2 minutes)")
     p.add_argument("--card", type=Path, default=None, help="also write a model card here")
     p.add_argument(
         "--precision",
-        choices=["reference", "auto", "float32", "bfloat16"],
-        default="reference",
+        choices=get_args(Inference),
+        default=EvalConfig.precision,
         help="agent.act (reference), or the tuner's FastPolicy in this precision",
     )
 

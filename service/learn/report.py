@@ -14,7 +14,7 @@ import numpy as np
 from plant_sim.loop import step_test
 from service.agent.model import Agent
 from service.learn.experiments import PAPER
-from service.units import AGENT_KI0, AGENT_KP0, RL_STEP_AGENT_UNITS
+from service.units import AGENT_KI0, AGENT_KP0, DEFAULT_FORGETTING, RL_STEP_AGENT_UNITS
 
 
 def _edges(centres: np.ndarray) -> np.ndarray:
@@ -154,7 +154,7 @@ def render_report(m: dict) -> str:
         f"median {a['simc_median_mse']:.4g}. Worst plant: {a['worst_plant']}.",
         "",
         "Not in the paper: with setpoint changes at arbitrary times (period 11 +-30%, random"
-        " phase, forgetting 0.99) the same grid scores worst"
+        f" phase, forgetting {DEFAULT_FORGETTING:g}) the same grid scores worst"
         f" {m['robustness']['worst_mse']:.4g}, median {m['robustness']['median_mse']:.4g}.",
         "",
         "Not in the paper: on a quiet loop (settled at its setpoint with the oracle's gains,"

@@ -517,7 +517,7 @@ def main(cfg: TrainConfig, opts: RunOptions) -> int:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--out", type=Path, default=Path("runs/agent"), help="run directory")
+    p.add_argument("--out", type=Path, default=RunOptions.out, help="run directory")
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
     p.add_argument(
         "--init-from", type=Path, default=None, help="start the actor from this agent file"
