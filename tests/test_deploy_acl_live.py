@@ -1,0 +1,250 @@
+"""The shipped Zenoh ACL with the services' real ways of talking, on loopback.
+
+Issue 19: in the compose stack the tuner received 0 samples through the router while
+tests/test_deploy.py passed. Those tests put with ``Session.put``; the plant simulator
+(and any Zenoh-idiomatic DCS gateway) puts through a *declared publisher*, and a declared
+publisher of Zenoh 1.x only sends when it knows of a matching subscriber: it learns of
+them from the router, which forwards subscriber declarations to it (the ``egress``
+``declare_subscriber`` of the ACL). The ACL denied that forwarding (default deny), so the
+plant's publisher dropped every sample on its own side, silently. Queriers
+(``declare_querier``) work the same way with queryable declarations.
+
+These tests use what the deployment uses: the router is ``deploy/zenoh_router.py`` (the
+zenohd stand-in) loaded from ``deploy/zenoh/router.json5`` with the example credentials,
+the clients load ``tuner.json5`` and ``gateway.json5``; the last test runs the ``pitune
+tuner`` and ``pitune plant run`` commands with the compose file's settings.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import queue
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import httpx
+import pytest
+import zenoh
+
+from service.wire.protocol import Keys
+from service.wire.session import free_port, session_config
+
+ROOT = Path(__file__).resolve().parents[1]
+DEPLOY = ROOT / "deploy"
+ZENOH = DEPLOY / "zenoh"
+KEYS = Keys()
+
+
+@contextmanager
+def python_router(tmp_path: Path, config: Path = ZENOH / "router.json5") -> Iterator[str]:
+    """deploy/zenoh_router.py from ``config`` on a free loopback port (the example
+    credentials); yields the endpoint clients connect to."""
+    port = free_port()
+    log = tmp_path / "router.log"
+    credentials = json.dumps(str(ZENOH / "credentials.txt"))
+    argv = [sys.executable, str(DEPLOY / "zenoh_router.py"), "--config", str(config),
+            "--set", f'listen/endpoints=["tcp/127.0.0.1:{port}"]',
+            "--set", f"transport/auth/usrpwd/dictionary_file={credentials}"]  # fmt: skip
+    with log.open("w") as out:
+        proc = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT, text=True)
+    try:
+        deadline = time.monotonic() + 30
+        while "listening" not in log.read_text():
+            assert proc.poll() is None, f"the router exited: {log.read_text()}"
+            assert time.monotonic() < deadline, f"the router did not start: {log.read_text()}"
+            time.sleep(0.1)
+        assert "access control on" in log.read_text(), log.read_text()
+        yield f"tcp/127.0.0.1:{port}"
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def client(user: str, endpoint: str) -> zenoh.Session:
+    """A session as the services build theirs: the user's deploy config through
+    :func:`service.wire.session.session_config`, connected to ``endpoint``."""
+    return zenoh.open(session_config(config_file=ZENOH / f"{user}.json5", connect=[endpoint]))
+
+
+@pytest.fixture
+def router(tmp_path) -> Iterator[str]:
+    with python_router(tmp_path) as endpoint:
+        yield endpoint
+
+
+def received(q: queue.SimpleQueue, n: int, timeout: float = 5.0) -> list[str]:
+    out, deadline = [], time.monotonic() + timeout
+    while len(out) < n and (left := deadline - time.monotonic()) > 0:
+        try:
+            out.append(q.get(timeout=left))
+        except queue.Empty:
+            break
+    return out
+
+
+# (publishing user, key it publishes, subscribing user, key expression it subscribes)
+FLOWS = {
+    "sample": ("gateway", KEYS.sample("tank1"), "tuner", KEYS.all_samples),
+    "sample batch": ("gateway", KEYS.batch, "tuner", KEYS.batch),
+    "gains": ("tuner", KEYS.gains("tank1"), "gateway", KEYS.all_gains),
+    "gains batch": ("tuner", KEYS.gateway_gains("gw-1"), "gateway", KEYS.gateway_gains("gw-1")),
+}
+
+
+@pytest.mark.parametrize("declared", [True, False], ids=["declared publisher", "session.put"])
+@pytest.mark.parametrize("flow", FLOWS)
+def test_every_protocol_flow_passes_the_shipped_acl(router, flow, declared):
+    """Each put of docs/protocol.md reaches its subscriber through the shipped ACL, from a
+    declared publisher (what the plant simulator uses) as well as from ``Session.put``,
+    whichever of the two sessions came first."""
+    pub_user, key, sub_user, sub_key = FLOWS[flow]
+    got: queue.SimpleQueue = queue.SimpleQueue()
+    publisher_session = client(pub_user, router)
+    subscriber_session = client(sub_user, router)
+    entities = []
+    try:
+        if declared:
+            entities.append(publisher_session.declare_publisher(key))
+        entities.append(subscriber_session.declare_subscriber(sub_key, lambda s: got.put(1)))
+        time.sleep(1.0)  # declarations and interests settle (not needed by the fix)
+        for _ in range(5):
+            if declared:
+                entities[0].put(b"{}")
+            else:
+                publisher_session.put(key, b"{}")
+            time.sleep(0.05)
+        n = len(received(got, 5))
+        assert n == 5, f"{flow}: {n} of 5 puts reached the {sub_user} through the ACL"
+    finally:
+        for entity in entities:
+            entity.undeclare()
+        subscriber_session.close()
+        publisher_session.close()
+
+
+def test_a_declared_querier_reaches_the_tuners_state_queryable(router):
+    """A gateway asking the loops' state with a declared querier (not only ``get``)."""
+    tuner, gateway = client("tuner", router), client("gateway", router)
+    entities = []
+    try:
+        entities.append(
+            tuner.declare_queryable(KEYS.all_states, lambda q: q.reply(KEYS.state("t1"), b"{}"))
+        )
+        entities.append(gateway.declare_querier(KEYS.all_states, timeout=3.0))
+        time.sleep(1.0)
+        replies = [r for r in entities[1].get() if r.ok is not None]
+        assert len(replies) == 1, "the state query got no reply through the ACL"
+    finally:
+        for entity in reversed(entities):
+            entity.undeclare()
+        gateway.close()
+        tuner.close()
+
+
+def test_the_acl_still_denies_a_gateway_the_samples_and_a_tuner_the_gains(router):
+    """Seeing a subscriber's declaration is not receiving its data: the gateway user still
+    cannot hear samples, nor publish gains; the tuner user still cannot publish samples."""
+    got: queue.SimpleQueue = queue.SimpleQueue()
+    users = ("tuner", "tuner", "gateway", "gateway")
+    tuner, rogue_tuner, gateway, rogue = (client(u, router) for u in users)
+    entities = []
+    try:
+        entities = [
+            rogue.declare_subscriber(KEYS.all_samples, lambda s: got.put("rogue heard a sample")),
+            tuner.declare_subscriber(KEYS.all_samples, lambda s: got.put("tuner got a sample")),
+            gateway.declare_subscriber(KEYS.all_gains, lambda s: got.put("gateway got gains")),
+        ]
+        forged_gains = rogue.declare_publisher(KEYS.gains("tank1"))
+        forged_sample = rogue_tuner.declare_publisher(KEYS.sample("tank1"))
+        entities += [forged_gains, forged_sample]
+        time.sleep(1.0)
+        forged_gains.put(b"{}")
+        forged_sample.put(b"{}")
+        time.sleep(0.5)
+        gateway.put(KEYS.sample("tank1"), b"{}")  # the control: real traffic flows
+        assert received(got, 5, timeout=2.0) == ["tuner got a sample"]
+    finally:
+        for entity in reversed(entities):
+            entity.undeclare()
+        for session in (rogue, gateway, rogue_tuner, tuner):
+            session.close()
+
+
+def pitune(*args: str) -> list[str]:
+    return [sys.executable, "-m", "service.cli", *args]
+
+
+def test_tuner_and_plant_commands_tune_through_the_router_with_the_shipped_acl(tmp_path):
+    """The compose stack without containers: ``pitune tuner`` with the compose file's
+    PITUNE_* settings and tuner.json5, ``pitune plant run`` with gateway.json5 (declared
+    publishers), both clients of the router loaded from router.json5. The tuner receives
+    the plant's samples and the plant applies the tuner's gains."""
+    api_port = free_port()
+    api = f"http://127.0.0.1:{api_port}"
+    token = "acl-live-test"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PITUNE_")}
+    env.update(PYTHONPATH=str(ROOT), PITUNE_API_TOKEN=token)
+    with python_router(tmp_path) as endpoint:
+        tuner_env = {
+            **env,
+            "PITUNE_ZENOH_MODE": "client",
+            "PITUNE_ZENOH_CONFIG": str(ZENOH / "tuner.json5"),
+            "PITUNE_ZENOH_CONNECT": json.dumps([endpoint]),
+            "PITUNE_ZENOH_LISTEN": "[]",
+            "PITUNE_API_HOST": "127.0.0.1",
+            "PITUNE_API_PORT": str(api_port),
+            "PITUNE_DB_PATH": str(tmp_path / "pitune.db"),
+            "PITUNE_LOG_LEVEL": "warning",
+        }
+        plant_argv = pitune("plant", "run", "--tank", "tank1", "--speed", "60", "--noise", "1",
+                            "--sp-period", "120", "--register", api,
+                            "--zenoh-config", str(ZENOH / "gateway.json5"),
+                            "--connect", endpoint, "--progress", "0")  # fmt: skip
+        logs = {name: (tmp_path / f"{name}.log").open("w") for name in ("tuner", "plant")}
+        procs = {}
+        try:
+            procs["tuner"] = subprocess.Popen(
+                pitune("tuner"), env=tuner_env, stdout=logs["tuner"], stderr=subprocess.STDOUT
+            )
+            procs["plant"] = subprocess.Popen(
+                plant_argv, env=env, stdout=logs["plant"], stderr=subprocess.STDOUT
+            )
+            view, deadline = {}, time.monotonic() + 90
+            while time.monotonic() < deadline:
+                for name, proc in procs.items():
+                    assert proc.poll() is None, (tmp_path / f"{name}.log").read_text()[-3000:]
+                try:
+                    view = httpx.get(f"{api}/loops/tank1", timeout=5).json()
+                except (httpx.HTTPError, ValueError):
+                    view = {}
+                if view.get("seq", 0) >= 2:
+                    break
+                time.sleep(1.0)
+            samples = view.get("counters", {}).get("samples", 0)
+            assert samples > 0, f"the tuner received no sample through the router: {view}"
+            assert view.get("seq", 0) >= 2, f"no gains published within 90 s: {view}"
+        finally:
+            for name in ("plant", "tuner"):
+                if name in procs:
+                    procs[name].terminate()
+            for name in ("plant", "tuner"):
+                if name in procs:
+                    try:
+                        procs[name].wait(20)
+                    except subprocess.TimeoutExpired:
+                        procs[name].kill()
+                        procs[name].wait()
+            for f in logs.values():
+                f.close()
+        plant_log = (tmp_path / "plant.log").read_text()
+        applied = [line for line in plant_log.splitlines() if "gain updates applied" in line]
+        assert applied and not applied[-1].startswith("plant stopped: 0 gain"), plant_log[-2000:]
