@@ -47,7 +47,7 @@ def reference_ingest(table: LoopTable, s: int, sample: Sample, wall: float) -> b
 
 
 def _ingest(tb: LoopTable, s: int, sample: Sample, wall: float) -> bool:
-    tokens = min(tb.burst, tb.tokens[s] + (wall - tb.token_wall[s]) * tb.rate)
+    tokens = min(tb.burst, tb.tokens[s] + max(wall - tb.token_wall[s], 0.0) * tb.rate)
     tb.token_wall[s] = wall
     if tokens < 1.0:
         tb.tokens[s] = tokens

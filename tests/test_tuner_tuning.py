@@ -15,7 +15,7 @@ from plant_sim import FOPTDBatch, PIBatch, step_test_mse
 from service.agent import DEFAULT_WEIGHTS, load_agent
 from service.daemon.tuner import Tuner
 from service.engine.config import LoopConfig
-from service.units import ScalingSpec
+from service.units import AGENT_KI0, AGENT_KP0, ScalingSpec
 from tests.tuner_support import GATE_OFF, TANK_SCALING, connected_gateway, tuner_settings
 
 pytestmark = pytest.mark.timeout(120)
@@ -24,8 +24,12 @@ K, TAU, THETA = 1.7, 55.0, 13.0
 SAMPLE_S, SP_PERIOD_S, STEPS = 5.0, 660.0, 40
 
 
-def run_plant(gateway, loop_id, scaling, kp0, ki0, n_steps):
-    """Simulate the loop in plant time, in lock-step with the tuner; return gains per step."""
+def run_plant(exchange, loop_id, scaling, kp0, ki0, n_steps):
+    """Simulate the loop in plant time, in lock-step with a tuner; return gains per step.
+
+    ``exchange(loop_id, sample, due)`` sends one sample and, when ``due`` (the first
+    sample past an RL period's end), returns the gains update it caused.
+    """
     plant = FOPTDBatch(K, TAU, THETA, dt=1.0)
     pi = PIBatch(kp0, ki0, dt=1.0)
     period = scaling.rl_period_s
@@ -36,9 +40,9 @@ def run_plant(gateway, loop_id, scaling, kp0, ki0, n_steps):
             sp = -sp
         e = sp - plant.output()[0]
         if t % SAMPLE_S == 0:
-            gateway.send(loop_id, {"t": t, "e": e, "kp": pi.kp[0], "ki": pi.ki[0]})
-            if t > 0 and t % period < SAMPLE_S:  # the first sample past a step boundary
-                msg = gateway.next_gains(timeout=10.0)
+            due = t > 0 and t % period < SAMPLE_S  # the first sample past a step boundary
+            msg = exchange(loop_id, {"t": t, "e": e, "kp": pi.kp[0], "ki": pi.ki[0]}, due)
+            if due:
                 assert msg.t == t and msg.seq == len(history)
                 pi.set_gains(msg.kp, msg.ki)
                 history.append((msg.kp, msg.ki))
@@ -47,22 +51,38 @@ def run_plant(gateway, loop_id, scaling, kp0, ki0, n_steps):
     return np.array(history)
 
 
-@pytest.mark.skipif(not DEFAULT_WEIGHTS.exists(), reason=f"no trained agent at {DEFAULT_WEIGHTS}")
-def test_shipped_agent_moves_the_gains_toward_good_values(tmp_path):
+def over_the_bus(gateway):
+    """``exchange`` through a tuner daemon on the bus (a test gateway)."""
+
+    def exchange(loop_id, sample, due):
+        gateway.send(loop_id, sample)
+        return gateway.next_gains(timeout=10.0) if due else None
+
+    return exchange
+
+
+def tank_config() -> tuple[LoopConfig, object]:
+    """The loop's registration (lock-step with the tuner: a gains message for every RL
+    period, so the excitation gate is off) and its resolved scaling."""
     scaling = ScalingSpec(**TANK_SCALING).resolve()
-    kp0, ki0 = scaling.to_engineering(0.05, 0.05)
-    # lock-step with the tuner: a gains message for every RL period, so the excitation
-    # gate is off (its first setpoint change is before the first sample)
+    kp0, ki0 = scaling.to_engineering(AGENT_KP0, AGENT_KI0)
     config = LoopConfig(
         id="LIC-101", kp=kp0, ki=ki0, sample_period_s=SAMPLE_S, scaling=TANK_SCALING,
         guard=GATE_OFF,
     )  # fmt: skip
+    return config, scaling
 
+
+@pytest.mark.skipif(not DEFAULT_WEIGHTS.exists(), reason=f"no trained agent at {DEFAULT_WEIGHTS}")
+def test_shipped_agent_moves_the_gains_toward_good_values(tmp_path):
+    config, scaling = tank_config()
     with Tuner(tuner_settings(tmp_path), agent=load_agent()) as tuner:
         gateway = connected_gateway(tuner.settings)
         try:
             tuner.register(config)
-            gains = run_plant(gateway, "LIC-101", scaling, kp0, ki0, STEPS)
+            gains = run_plant(
+                over_the_bus(gateway), "LIC-101", scaling, config.kp, config.ki, STEPS
+            )
         finally:
             gateway.close()
         assert tuner.view("LIC-101").counters.rejected == 0

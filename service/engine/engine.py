@@ -39,7 +39,7 @@ from service.engine.audit import AuditRow
 from service.engine.config import LoopConfig, LoopView
 from service.engine.table import LoopTable, RawView
 from service.engine.updates import GainUpdate, StepResult
-from service.wire.decode import Columns, Decoded, Rejection, decode_objects
+from service.wire.decode import Columns, Decoded, Rejection, decode_values
 from service.wire.protocol import LoopStatus, Mode, RejectReason
 
 DEFAULT_MAX_RATE_HZ = 1000.0
@@ -131,9 +131,10 @@ class TuningEngine:
     def ingest(
         self, samples: list[dict] | Decoded, *, wall: float | None = None
     ) -> list[GainUpdate]:
-        """Take samples (JSON-like dicts, each with its ``loop_id``, or already decoded)
-        and return the gain updates due after them, in decision order."""
-        decoded = samples if isinstance(samples, Decoded) else decode_objects(list(samples))
+        """Take samples (dicts as on the wire, each with its ``loop_id``; numpy floats are
+        fine; or already decoded) and return the gain updates due after them, in decision
+        order."""
+        decoded = samples if isinstance(samples, Decoded) else decode_values(list(samples))
         with self.lock:
             results = self.ingest_decoded(decoded, wall=wall)
             last = self.flush(wall)

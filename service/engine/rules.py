@@ -85,7 +85,9 @@ def ingest(
     """
     cols = {k: getattr(rows, k) for k in ("t", "e", "sp", "kp", "ki", "auto", "saturated")}
     t, e = cols["t"], cols["e"]
-    tokens = np.minimum(tb.burst, tb.tokens[slots] + (wall - tb.token_wall[slots]) * tb.rate)
+    # a wall clock stepped back (NTP) refills nothing, and locks no loop out either
+    elapsed = np.maximum(wall - tb.token_wall[slots], 0.0)
+    tokens = np.minimum(tb.burst, tb.tokens[slots] + elapsed * tb.rate)
     tb.token_wall[slots] = wall
     flood = tokens < 1.0
     tb.tokens[slots] = np.where(flood, tokens, tokens - 1.0)

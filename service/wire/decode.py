@@ -147,6 +147,18 @@ def decode_objects(items: list, *, strict_json: bool = True) -> Decoded:
     return Decoded(_columns(kept, _raw(kept), kept_index), rejected, n)
 
 
+def decode_values(items: list) -> Decoded:
+    """Decode Python values as if they had come over the wire as JSON: numpy floats are
+    floats, NaN and Infinity are rejected (what the daemon would make of them)."""
+    try:
+        text = json.dumps(items)
+    except (TypeError, ValueError):  # not JSON-able (an array, an object): the model says why
+        return decode_objects(items, strict_json=False)
+    return decode_objects(
+        json.loads(text), strict_json="NaN" not in text and "Infinity" not in text
+    )
+
+
 def decode_singles(messages: list[tuple[str | None, bytes]]) -> Decoded:
     """Decode single-sample messages: (loop id from the key, or None if the key is not a
     loop's sample key; JSON payload)."""

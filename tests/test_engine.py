@@ -1,0 +1,97 @@
+"""The tuning engine's public API: samples in, gain decisions out, no bus.
+
+The engine is what the daemon runs; driven with the same samples it decides exactly
+what the daemon publishes (checked against a real daemon on a real Zenoh bus).
+"""
+
+import numpy as np
+import pytest
+
+from service.agent import DEFAULT_WEIGHTS, load_agent, untrained_agent
+from service.daemon.tuner import Tuner
+from service.engine import GainUpdate, LoopConfig, TuningEngine
+from service.wire.protocol import RejectReason
+from tests.test_tuner_tuning import STEPS, over_the_bus, run_plant, tank_config
+from tests.tuner_support import GATE_OFF, connected_gateway, loop_body, tuner_settings
+
+pytestmark = pytest.mark.timeout(120)
+
+
+def through_the_engine(engine: TuningEngine):
+    """``exchange`` (see ``run_plant``) through the engine's public API."""
+
+    def exchange(loop_id, sample, due):
+        updates = engine.ingest([{"loop_id": loop_id, **sample}], wall=sample["t"])
+        assert len(updates) == due
+        return updates[0] if due else None
+
+    return exchange
+
+
+@pytest.mark.skipif(not DEFAULT_WEIGHTS.exists(), reason=f"no trained agent at {DEFAULT_WEIGHTS}")
+def test_the_engine_decides_exactly_what_the_daemon_publishes(tmp_path):
+    config, scaling = tank_config()
+    engine = TuningEngine(load_agent())
+    engine.register(config)
+    args = ("LIC-101", scaling, config.kp, config.ki, STEPS)
+    by_engine = run_plant(through_the_engine(engine), *args)
+
+    with Tuner(
+        tuner_settings(tmp_path, inference_precision="float32"), agent=load_agent()
+    ) as tuner:
+        gateway = connected_gateway(tuner.settings)
+        try:
+            tuner.register(config)
+            by_daemon = run_plant(over_the_bus(gateway), *args)
+        finally:
+            gateway.close()
+    np.testing.assert_array_equal(by_engine, by_daemon)
+    assert by_engine[-1, 0] > 3 * by_engine[0, 0]  # and it tuned: kp rose from the slow start
+
+
+def test_many_loops_per_call_a_due_loop_is_stepped_before_its_next_sample():
+    engine = TuningEngine(untrained_agent(0))
+    for i in range(3):  # RL period 165 s, one sample per period
+        engine.register(LoopConfig(**loop_body(f"L{i}", sample_period_s=165.0, guard=GATE_OFF)))
+    first = [{"loop_id": f"L{i}", "t": 0.0, "e": 1.0} for i in range(3)]
+    assert engine.ingest(first, wall=0.0) == []
+    # L0 and L1 fall due at t = 165; L0's next sample comes in the same call: L0 and L1
+    # are stepped first (one batched call), then L0 falls due again at the end
+    samples = [
+        {"loop_id": "L0", "t": 165.0, "e": 1.0},
+        {"loop_id": "L1", "t": 165.0, "e": 1.0},
+        {"loop_id": "L0", "t": 330.0, "e": 1.0},
+    ]
+    updates = engine.ingest(samples, wall=0.0)
+    assert [(u.loop_id, u.seq, u.t) for u in updates] == [
+        ("L0", 1, 165.0), ("L1", 1, 165.0), ("L0", 2, 330.0),
+    ]  # fmt: skip
+    assert all(isinstance(u, GainUpdate) and u.mode == "auto" and u.reason == "agent"
+               for u in updates)  # fmt: skip
+    assert engine.view("L0").kp == updates[-1].kp
+
+
+def test_rejections_are_counted_and_reported_and_change_nothing():
+    seen = []
+    engine = TuningEngine(untrained_agent(0), on_reject=seen.append)
+    engine.register(LoopConfig(**loop_body("L0", sample_period_s=1.0)))
+    engine.ingest([{"loop_id": "L0", "t": 5.0, "e": 1.0}], wall=0.0)
+    before = engine.view("L0")
+    bad = [
+        {"loop_id": "L0", "t": 5.0, "e": 1.0},  # duplicate
+        {"loop_id": "L0", "t": 4.0, "e": 1.0},  # out of order
+        {"loop_id": "nobody", "t": 6.0, "e": 1.0},
+        {"loop_id": "L0", "t": "6", "e": 1.0},
+        "not a sample",
+    ]
+    assert engine.ingest(bad, wall=0.0) == []
+    assert [(r.index, r.reason) for r in sorted(seen, key=lambda r: r.index)] == [
+        (0, RejectReason.duplicate), (1, RejectReason.out_of_order),
+        (2, RejectReason.unknown_loop), (3, RejectReason.schema), (4, RejectReason.schema),
+    ]  # fmt: skip
+    assert engine.received == 6 and sum(engine.rejected.values()) == 5
+    after = engine.view("L0")
+    assert after.counters.rejected == 3 and after.counters.samples == before.counters.samples
+    assert (after.kp, after.ki, after.int_e, after.last_sample_t) == (
+        before.kp, before.ki, before.int_e, before.last_sample_t,
+    )  # fmt: skip
