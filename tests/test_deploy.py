@@ -9,6 +9,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import json
 import os
@@ -26,8 +27,8 @@ import pytest
 import zenoh
 
 from service.cli import build_parser
-from service.demo import free_port
 from service.wire.protocol import Keys
+from service.wire.session import free_port
 
 ROOT = Path(__file__).resolve().parents[1]
 DEPLOY = ROOT / "deploy"
@@ -252,9 +253,8 @@ class Inbox:
                 return got[1], got[3]
         raise AssertionError(f"nothing tagged {tag!r} ({kind}) within {timeout} s: {self.got}")
 
-    def tags(self, settle: float = 0.5) -> set[str]:
-        """Every tag received so far, after ``settle`` seconds for stragglers."""
-        time.sleep(settle)
+    def tags(self) -> set[str]:
+        """Every tag received so far (call it after a control that proves the rest came)."""
         while True:
             try:
                 self.got.append(self.queue.get_nowait())
@@ -327,15 +327,15 @@ def test_acl_lets_a_gateway_do_what_the_protocol_says(router, tuner):
     entities = []
     try:
         entities = [
+            gateway.declare_subscriber(keys.gateway_gains(GATEWAY), inbox.on("batch")),
+            gateway.declare_subscriber(keys.all_gains, inbox.on("gains")),
             gateway.liveliness().declare_subscriber(
                 keys.all_tuners, inbox.on("alive"), history=True
             ),
-            gateway.declare_subscriber(keys.gateway_gains(GATEWAY), inbox.on("batch")),
-            gateway.declare_subscriber(keys.all_gains, inbox.on("gains")),
         ]
-        # (c) the token of the tuner that was up before the gateway came (history)
+        # (c) the token of the tuner that was up before the gateway came (history): the
+        # router answered it after the subscribers declared before, so it has them
         assert inbox.wait_for("alive")[0] == keys.tuner("test-tuner")
-        time.sleep(0.3)  # the subscribers reach the router before the samples
         step_all_loops(gateway)
         # (a) batched gains for the loops fronted by gw-1, a message of its own for SOLO
         key, payload = inbox.wait_for("batch")
@@ -385,12 +385,18 @@ def test_acl_denies_what_the_protocol_does_not_give(router, tuner):
             ),
             rogue.liveliness().declare_token(keys.tuner("impostor")),
         ]
-        time.sleep(0.5)  # declarations reach the router
         forged = b'{"forged": true}'
         rogue.put(keys.gains("B0"), forged)
         rogue.put(keys.gateway_gains(GATEWAY), forged)
         tuner_user.put(keys.sample("B0"), forged)
         tuner_user.put(keys.batch, forged)
+        # Controls on the same links: once the router answers the rogue's state query (the
+        # tuner's reply, not its own queryable's) and forwards the tuner user's gains to
+        # honest, it has handled what they sent before, forwarded or not.
+        replies = state_replies(rogue, keys.state("B0"))
+        assert any(ok and b"forged" not in payload for ok, payload in replies), replies
+        tuner_user.put(keys.gains("control"), b"control")
+        assert inbox.wait_for("gains") == (keys.gains("control"), b"control")
         step_all_loops(honest)  # the real traffic, as a control
         inbox.wait_for("batch"), inbox.wait_for("gains")
         replies = state_replies(honest, keys.all_states)
@@ -473,11 +479,17 @@ def test_tls_router_authenticates_tls_clients_and_a_sample_round_trips(tmp_path)
                 tuner.declare_subscriber(keys.all_samples, inbox.on("sample")),
                 gateway.declare_subscriber(keys.all_gains, inbox.on("gains")),
             ]
-            time.sleep(0.3)
-            gateway.put(keys.sample("LIC-101"), b'{"t": 1.0, "e": 0.5}')
-            assert inbox.wait_for("sample") == (keys.sample("LIC-101"), b'{"t": 1.0, "e": 0.5}')
-            tuner.put(keys.gains("LIC-101"), b'{"kp": 0.6}')
-            assert inbox.wait_for("gains") == (keys.gains("LIC-101"), b'{"kp": 0.6}')
+            # repeated until it round-trips: the subscriptions may still be on their way
+            for tag, sender, key, payload in (
+                ("sample", gateway, keys.sample("LIC-101"), b'{"t": 1.0, "e": 0.5}'),
+                ("gains", tuner, keys.gains("LIC-101"), b'{"kp": 0.6}'),
+            ):
+                got = None
+                while got is None:
+                    sender.put(key, payload)
+                    with contextlib.suppress(AssertionError):
+                        got = inbox.wait_for(tag, timeout=0.5)
+                assert got == (key, payload)
             untrusted = {"transport/link/tls/root_ca_certificate": str(stranger["ca"])}
             with pytest.raises(zenoh.ZError):
                 client(endpoint, "gateway-tls.json5", untrusted).close()
@@ -532,7 +544,7 @@ def test_compose_tuner_settings_make_an_authenticated_client_of_the_router(compo
 
 def test_example_dcs_gateway_publishes_samples_and_applies_auto_gains(tmp_path):
     """deploy/examples/dcs_gateway.py, the README's gateway, against a live Zenoh peer."""
-    from service.demo import Child
+    from service.procs import Proc
     from service.wire.protocol import GainsMessage, Keys, Mode, Sample, encode
 
     port = free_port()
@@ -543,26 +555,35 @@ def test_example_dcs_gateway_publishes_samples_and_applies_auto_gains(tmp_path):
     keys = Keys()
     with zenoh.open(config) as tuner:
         sub = tuner.declare_subscriber(keys.sample("LIC-101"), lambda s: samples.put(s.payload))
-        gateway = Child(
+        gateway = Proc(
             "gateway",
             [sys.executable, str(DEPLOY / "examples" / "dcs_gateway.py"),
-             "--connect", f"tcp/127.0.0.1:{port}", "--seconds", "6"],
-            env={**os.environ, "PYTHONPATH": str(ROOT)},
+             "--connect", f"tcp/127.0.0.1:{port}", "--period", "0.2", "--seconds", "10"],
             log=tmp_path / "gateway.log",
         )  # fmt: skip
         try:
+            kps: list[float] = []
 
-            def next_kp() -> float:
-                return Sample.model_validate_json(samples.get(timeout=15).to_bytes()).kp
+            def applied(kp: float) -> None:
+                """Until a sample reports ``kp`` in force (the kp of earlier ones in kps)."""
+                while not kps or kps[-1] != kp:
+                    kps.append(Sample.model_validate_json(samples.get(timeout=15).to_bytes()).kp)
 
-            assert next_kp() == 0.5
-            for seq, kp, mode in ((1, 0.7, Mode.auto), (2, 0.9, Mode.advisory)):
+            def send(seq: int, kp: float, mode: Mode) -> None:
                 msg = GainsMessage(loop_id="LIC-101", seq=seq, t=0.0, dkp=0.0, dki=0.0, kp=kp,
                                    ki=0.02, mode=mode, instance_id="test")  # fmt: skip
                 tuner.put(keys.gains("LIC-101"), encode(msg))
-                time.sleep(1.5)
-            kps = [next_kp() for _ in range(samples.qsize())]
-            assert kps[-1] == 0.7 and 0.9 not in kps, kps
+
+            # its first sample: the gateway's subscriptions, declared before, are known here
+            applied(0.5)
+            send(1, 0.7, Mode.auto)
+            applied(0.7)
+            send(2, 0.9, Mode.advisory)
+            for _ in range(3):  # scans that would report 0.9 if the gateway applied it
+                kps.append(Sample.model_validate_json(samples.get(timeout=15).to_bytes()).kp)
+            send(3, 0.8, Mode.auto)  # the control, on the same path after the advisory one
+            applied(0.8)
+            assert 0.9 not in kps, kps
             assert gateway.wait(20) == 0, gateway.tail()  # ends cleanly, no hang at exit
         finally:
             sub.undeclare()
