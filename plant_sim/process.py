@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from dataclasses import fields
 from pathlib import Path
 
 from plant_sim.config import DEFAULT_LOOPS, LoopSpec, PlantConfig, Simulation, build_loops
@@ -53,9 +54,9 @@ def _loop_spec(kind: str):
     return parse
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    sub = parser.add_subparsers(dest="plant_command", metavar="ACTION", required=True)
-    run_p = sub.add_parser("run", help="simulate loops and exchange samples/gains over Zenoh")
+def add_loop_arguments(run_p: argparse.ArgumentParser) -> None:
+    """``--tank``, ``--foptd`` and the ``simulation`` options, read by :func:`plant_config`
+    (and by any other simulator front end)."""
     run_p.add_argument(
         "--tank",
         dest="loops",
@@ -108,6 +109,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="accepted gains lie within initial/R..initial*R (100)",
     )
     sim.add_argument("--seed", type=int, default=SIM.seed)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="plant_command", metavar="ACTION", required=True)
+    run_p = sub.add_parser("run", help="simulate loops and exchange samples/gains over Zenoh")
+    add_loop_arguments(run_p)
     bus = run_p.add_argument_group("bus")
     bus.add_argument("--prefix", default=DEFAULT_PREFIX, help="key-expression prefix")
     bus.add_argument(
@@ -151,13 +158,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     plot_p.add_argument("--title", default="")
 
 
+def simulation(args: argparse.Namespace) -> Simulation:
+    """The ``simulation`` options of :func:`add_loop_arguments` as a :class:`Simulation`."""
+    return Simulation(**{f.name: getattr(args, f.name) for f in fields(Simulation)})
+
+
 def plant_config(args: argparse.Namespace) -> PlantConfig:
     """The parsed ``pitune plant run`` arguments as a :class:`PlantConfig`."""
-    sim = Simulation(**{f: getattr(args, f) for f in Simulation.__dataclass_fields__})
     try:
         return PlantConfig(
             loops=tuple(args.loops or DEFAULT_LOOPS),
-            sim=sim,
+            sim=simulation(args),
             prefix=args.prefix,
             mode=args.mode,
             connect=tuple(args.connect),
