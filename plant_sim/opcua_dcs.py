@@ -115,14 +115,19 @@ class PidBlock:
         """The node id string of a parameter, as a map file names it."""
         return f"ns={self.ns};s={self.loop.loop_id}.{param}"
 
-    async def create(self, server: Server, folder) -> None:
-        obj = await folder.add_object(ua.NodeId(self.loop.loop_id, self.ns), self.loop.loop_id)
-        p, i = self.form.from_parallel(*self.loop.gains)
-        lo, hi = self.loop.op_limits
-        self.op = float(self.loop.pi.output()[0])
+    async def create(self, server: Server, folder, epoch: float) -> None:
+        """The block's nodes, with the values of the loop's last scan (a DCS restarted
+        mid-run shows where the plant is), stamped with that scan's time."""
+        loop = self.loop
+        obj = await folder.add_object(ua.NodeId(loop.loop_id, self.ns), loop.loop_id)
+        p, i = self.form.from_parallel(*loop.gains)
+        lo, hi = loop.op_limits
+        self.op = float(loop.pi.output()[0])
+        last = (loop.scans - 1) * loop.dt
+        ts = datetime.fromtimestamp(epoch + loop.t0 + last, UTC)
         initial = {
-            "SP": (self.loop.sp.at(0.0), ua.VariantType.Double, False),
-            "PV": (self.loop.settings.sp_low, ua.VariantType.Double, False),
+            "SP": (loop.sp.at(max(last, 0.0)), ua.VariantType.Double, False),
+            "PV": (loop._measure(), ua.VariantType.Double, False),
             "OUT": (self.op, ua.VariantType.Double, True),
             "MODE": (AUTO, ua.VariantType.Int32, True),
             "GAIN": (p, ua.VariantType.Double, True),
@@ -137,6 +142,8 @@ class PidBlock:
             var = await obj.add_variable(self.ids[param], param, ua.Variant(value, vtype))
             if writable:
                 await var.set_writable()
+            dv = ua.DataValue(ua.Variant(value, vtype), SourceTimestamp=ts, ServerTimestamp=ts)
+            await server.write_attribute_value(self.ids[param], dv)
             self.shown[param] = value
 
     # -- one scan --------------------------------------------------------------------
@@ -275,7 +282,7 @@ class SimulatedDcs:
         folder = await server.nodes.objects.add_folder(ua.NodeId("PID", self.ns), "PID")
         for loop in self.loops:
             block = PidBlock(loop, self.ns)
-            await block.create(server, folder)
+            await block.create(server, folder, self.epoch)
             self.blocks[loop.loop_id] = block
         await server.start()
         self.server = server
@@ -303,7 +310,9 @@ class SimulatedDcs:
         vtype = {bool: ua.VariantType.Boolean, int: ua.VariantType.Int32}.get(
             type(value), ua.VariantType.Double
         )
-        dv = ua.DataValue(ua.Variant(value, vtype))
+        loop = block.loop  # stamped with the time of the last scan, as the DCS would
+        ts = datetime.fromtimestamp(self.epoch + loop.t0 + (loop.scans - 1) * loop.dt, UTC)
+        dv = ua.DataValue(ua.Variant(value, vtype), SourceTimestamp=ts, ServerTimestamp=ts)
         await self.server.write_attribute_value(block.ids[param], dv)
 
     async def set_mode(self, loop_id: str, mode: int) -> None:
@@ -323,15 +332,27 @@ class SimulatedDcs:
         """(kp, ki) in force in the simulated loop."""
         return self.blocks[loop_id].loop.gains
 
-    def site_map(self, *, limits_factor: float = 10.0, **server: object) -> dict:
+    def site_map(
+        self,
+        *,
+        limits_factor: float = 10.0,
+        registration: dict[str, dict] | None = None,
+        loop_defaults: dict | None = None,
+        **server: object,
+    ) -> dict:
         """A map file (as a dict, TOML-ready) for a gateway of these blocks; the hard
-        limits are the blocks' present values divided and multiplied by ``limits_factor``."""
+        limits are the blocks' present values divided and multiplied by ``limits_factor``;
+        ``registration``: loop id -> its [loops.registration] table."""
         loops = []
         for block in self.blocks.values():
             p0, i0 = block.form.from_parallel(*block.loop.gains)
             r = limits_factor
+            extra = dict(loop_defaults or {})
+            if registration and block.loop.loop_id in registration:
+                extra["registration"] = registration[block.loop.loop_id]
             loops.append(
                 {
+                    **extra,
                     "id": block.loop.loop_id,
                     "sp": block.node("SP"),
                     "pv": block.node("PV"),
@@ -392,6 +413,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def build_loops(args: argparse.Namespace) -> list[SimulatedLoop]:
+    return [s.build(args, seed=args.seed + i, t0=args.t0) for i, s in enumerate(loop_specs(args))]
+
+
+def loop_specs(args: argparse.Namespace) -> list:
+    """The loops of the command line (``LoopSpec`` s), or one tank, ``tank1``."""
     from plant_sim.process import LoopSpec
 
     specs = list(args.loops or [])
@@ -405,7 +431,7 @@ def build_loops(args: argparse.Namespace) -> list[SimulatedLoop]:
     ids = [s.loop_id for s in specs]
     if len(set(ids)) != len(ids):
         raise SystemExit(f"pitune plant opcua: duplicate loop ids in {ids}")
-    return [s.build(args, seed=args.seed + i, t0=args.t0) for i, s in enumerate(specs)]
+    return specs
 
 
 def security_from_args(args: argparse.Namespace) -> DcsSecurity:
@@ -438,7 +464,13 @@ async def serve(args: argparse.Namespace, stop: asyncio.Event) -> int:
         if args.write_map:
             import tomli_w
 
-            site = dcs.site_map()
+            specs = {s.loop_id: s for s in loop_specs(args)}
+            reg = {
+                i: {"scaling": s.hint().model_dump(exclude_none=True), "sample_period_s": args.scan}
+                for i, s in specs.items()
+            }
+            wall_ms = args.scan * 1000.0 / args.speed if args.speed > 0 else args.scan * 1000.0
+            site = dcs.site_map(registration=reg, loop_defaults={"sampling_interval_ms": wall_ms})
             if args.certificate is None:
                 site["server"].update(security="None", allow_insecure=True)
             args.write_map.parent.mkdir(parents=True, exist_ok=True)

@@ -160,6 +160,8 @@ class OpcUaGateway:
         self.outbox: deque[dict] = deque()
         self.link: OpcUaLink | None = None
         self.events: asyncio.Queue[Event] | None = asyncio.Queue() if record_events else None
+        self.history: list[Event] = []
+        """Every event, when recording (tests)."""
         self.status_interval_s = status_interval_s
         self._registered = site.tuner.register_url is None
         self._last_flush = 0.0
@@ -175,7 +177,9 @@ class OpcUaGateway:
     # -- events ----------------------------------------------------------------------
     def emit(self, kind: str, loop_id: str | None = None, seq: int | None = None, detail=""):
         if self.events is not None:
-            self.events.put_nowait(Event(kind, loop_id, seq, detail))
+            event = Event(kind, loop_id, seq, detail)
+            self.history.append(event)
+            self.events.put_nowait(event)
 
     async def wait_event(self, predicate: Callable[[Event], bool], timeout: float = 10.0) -> Event:
         """The next recorded event matching ``predicate`` (earlier ones are consumed)."""

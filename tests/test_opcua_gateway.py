@@ -1,0 +1,303 @@
+"""The OPC UA gateway against a real asyncua server (the simulated DCS, in-process) and
+real Zenoh on loopback: samples with source timestamps and the gains in force; the
+write policy (auto, tuning enable, hard limits, rate limit, seq rule); a refused write
+reported and adopted by a real tuner; an OPC UA server restart mid-run.
+
+Every wait is for a signal (a gateway event, a sample, a tuner view), with a deadline;
+the DCS is scanned by the test (simulated time), so nothing depends on wall-clock pace.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import math
+import queue
+import time
+
+import orjson
+import pytest
+import zenoh
+
+from plant_sim.opcua_dcs import AUTO, MAN, SimulatedDcs
+from plant_sim.process import LoopSpec
+from service.daemon.tuner import Tuner
+from service.engine.config import LoopConfig
+from service.gateways.opcua.bridge import Event, OpcUaGateway
+from service.gateways.opcua.sitemap import SiteMap, parse_map
+from service.wire.protocol import GainsMessage, Keys, Mode, encode
+from service.wire.session import free_port, session_config
+from tests.tuner_support import TANK_SCALING, endpoint, tuner_settings
+
+pytestmark = pytest.mark.timeout(120)
+KEYS = Keys()
+LOOP = "tank1"
+
+
+def tank(loop_id: str = LOOP, seed: int = 0):
+    args = argparse.Namespace(sp_period=600.0, load=0.0, noise=0.0, gain_range=100.0, scan=1.0)
+    return LoopSpec.parse("two_tank", loop_id).build(args, seed=seed, t0=0.0)
+
+
+def site_for(dcs: SimulatedDcs, connect: list[str], **loop: object) -> SiteMap:
+    """The DCS's map, security None (allowed), fast sampling, the bus on ``connect``."""
+    data = dcs.site_map(
+        security="None",
+        allow_insecure=True,
+        reconnect_min_s=0.1,
+        reconnect_max_s=0.5,
+        loop_defaults={"sampling_interval_ms": 10.0, "min_write_interval_s": 0.0, **loop},
+    )
+    data["bus"] = {"connect": connect, "batch_interval_s": 0.01}
+    return parse_map(data)
+
+
+def open_session(connect: list[str] | None = None, listen: list[str] | None = None):
+    return zenoh.open(session_config(mode="peer", connect=connect, listen=listen))
+
+
+async def until(predicate, timeout: float = 10.0, what: str = "") -> object:
+    """Await ``predicate()`` truthy (checked every 5 ms), else fail after ``timeout``."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = predicate()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what or predicate}")
+        await asyncio.sleep(0.005)
+
+
+@contextlib.asynccontextmanager
+async def running(gateway: OpcUaGateway):
+    stop = asyncio.Event()
+    task = asyncio.create_task(gateway.run(stop))
+    try:
+        await gateway.wait_event(lambda e: e.kind == "connected")
+        yield gateway
+    finally:
+        stop.set()
+        await task
+
+
+@contextlib.asynccontextmanager
+async def scanning(dcs: SimulatedDcs, period: float = 0.002):
+    """Scan the DCS in the background (one simulated second per scan)."""
+    stop = asyncio.Event()
+
+    async def scan() -> None:
+        while not stop.is_set():
+            if dcs.server is not None:
+                await dcs.scan()
+            await asyncio.sleep(period)
+
+    task = asyncio.create_task(scan())
+    try:
+        yield
+    finally:
+        stop.set()
+        await task
+
+
+class FakeTuner:
+    """A Zenoh peer posing as a tuner: liveliness token, sample batches in, gains out."""
+
+    def __init__(self) -> None:
+        self.endpoint = endpoint(free_port())
+        self.session = open_session(listen=[self.endpoint])
+        self.samples: queue.SimpleQueue[dict] = queue.SimpleQueue()
+        self.seen: list[dict] = []
+        self._sub = self.session.declare_subscriber(
+            KEYS.batch,
+            lambda s: [self.samples.put(x) for x in orjson.loads(s.payload.to_bytes())["samples"]],
+        )
+        self._token = self.session.liveliness().declare_token(KEYS.tuner("fake"))
+
+    def drain(self) -> list[dict]:
+        while True:
+            try:
+                self.seen.append(self.samples.get_nowait())
+            except queue.Empty:
+                return self.seen
+
+    def send(self, seq: int, kp: float, ki: float, mode: Mode = Mode.auto) -> None:
+        msg = GainsMessage(loop_id=LOOP, seq=seq, t=0.0, dkp=0.0, dki=0.0, kp=kp, ki=ki,
+                           mode=mode, instance_id="fake")  # fmt: skip
+        self.session.put(KEYS.gains(LOOP), encode(msg))
+
+    def close(self) -> None:
+        self._token.undeclare()
+        self._sub.undeclare()
+        self.session.close()
+
+
+def close(a, b, rel=1e-6) -> bool:
+    return all(math.isclose(x, y, rel_tol=rel) for x, y in zip(a, b, strict=True))
+
+
+def test_samples_and_the_write_policy():
+    """Samples carry the server's source timestamps, the block's gains converted and the
+    mode; gains are written only in auto, with tuning enabled, within the hard limits,
+    rate-limited, once per seq; advisory updates never."""
+
+    async def scenario() -> None:
+        fake = FakeTuner()
+        session = open_session(connect=[fake.endpoint])
+        try:
+            async with SimulatedDcs([tank()], port=free_port()) as dcs:
+                site = site_for(dcs, [fake.endpoint], min_write_interval_s=0.3)
+                gw = OpcUaGateway(site, session, record_events=True)
+                async with running(gw):
+                    await until(lambda: gw.bus.tuner_up, what="the tuner's token")
+                    kp0, ki0 = dcs.gains(LOOP)
+                    for _ in range(5):
+                        await dcs.scan()
+                    await until(lambda: len(fake.drain()) >= 6, what="6 samples")
+                    samples = fake.seen
+                    # the initial value (last scan before start, t = -1), then scans 0..4
+                    assert [s["t"] - dcs.epoch for s in samples[:6]] == [-1, 0, 1, 2, 3, 4]
+                    assert all(close((s["kp"], s["ki"]), (kp0, ki0)) for s in samples)
+                    assert samples[2]["sp"] == 60.0 and samples[2]["auto"] is True
+                    assert samples[2]["saturated"] is False
+
+                    async def outcome(seq: int) -> Event:
+                        return await gw.wait_event(
+                            lambda e: e.seq == seq and e.kind in ("written", "refused")
+                        )
+
+                    target = (kp0 * 1.2, ki0 * 1.1)
+                    fake.send(1, *target)
+                    assert (await outcome(1)).kind == "written"
+                    await dcs.scan()
+                    assert close(dcs.gains(LOOP), target)
+                    last = lambda: fake.drain()[-1]  # noqa: E731
+                    await until(lambda: close((last()["kp"], last()["ki"]), target))
+
+                    lr = gw.by_id[LOOP]
+                    await dcs.set_mode(LOOP, MAN)
+                    await dcs.scan()
+                    await until(lambda: not lr.auto, what="manual seen")
+                    fake.send(2, kp0, ki0)
+                    assert (await outcome(2)).detail == "manual"
+                    await dcs.scan()
+                    await until(lambda: fake.drain()[-1]["auto"] is False, what="auto false")
+
+                    await dcs.set_mode(LOOP, AUTO)
+                    await dcs.set_tuning_enable(LOOP, False)
+                    await until(lambda: lr.auto and not lr.enabled, what="auto, tuning off")
+                    fake.send(3, kp0, ki0)
+                    assert (await outcome(3)).detail == "tuning_disabled"
+
+                    await dcs.set_tuning_enable(LOOP, True)
+                    await until(lambda: lr.enabled, what="tuning on")
+                    fake.send(4, kp0 * 50, ki0)  # beyond the map's limits (x10)
+                    assert (await outcome(4)).detail == "beyond_limits"
+                    await dcs.scan()
+                    assert close(dcs.gains(LOOP), target)  # nothing written since seq 1
+
+                    fake.send(5, kp0, ki0)
+                    assert (await outcome(5)).kind == "written"
+                    t5 = time.monotonic()
+                    fake.send(6, kp0 * 0.9, ki0 * 0.9)
+                    assert (await outcome(6)).kind == "written"
+                    assert time.monotonic() - t5 >= 0.3 - 0.05  # the loop's rate limit
+                    fake.send(6, kp0 * 2, ki0)  # duplicate seq: dropped by the seq rule
+                    fake.send(7, kp0 * 2, ki0, mode=Mode.advisory)  # never written
+                    await until(lambda: gw.stats["advisory"] == 1 and gw.bus.inbox.stale == 1)
+                    await dcs.scan()
+                    assert close(dcs.gains(LOOP), (kp0 * 0.9, ki0 * 0.9))
+                    written = [e.seq for e in gw.history if e.kind == "written"]
+                    assert written == [1, 5, 6]
+                    assert gw.stats["written"] == 3
+        finally:
+            session.close()
+            fake.close()
+
+    asyncio.run(scenario())
+
+
+def tuner_with_tank(tmp_path, dcs_gains) -> Tuner:
+    tuner = Tuner(tuner_settings(tmp_path)).start()
+    kp, ki = dcs_gains
+    tuner.register(
+        LoopConfig(
+            id=LOOP,
+            kp=kp,
+            ki=ki,
+            sample_period_s=1.0,
+            scaling=TANK_SCALING,
+            guard={"excitation_periods": 0.0},
+        )  # fmt: skip
+    )
+    return tuner
+
+
+def test_a_write_the_server_refuses_is_reported_and_adopted(tmp_path):
+    async def scenario() -> None:
+        async with SimulatedDcs([tank()], port=free_port()) as dcs:
+            kp0, ki0 = dcs.gains(LOOP)
+            tuner = tuner_with_tank(tmp_path, (kp0, ki0))
+            session = open_session(connect=tuner.settings.zenoh_listen)
+            try:
+                gw = OpcUaGateway(site_for(dcs, []), session, record_events=True)
+                async with running(gw):
+                    await dcs.lock_gains(LOOP)
+                    async with scanning(dcs):
+                        refused = await gw.wait_event(lambda e: e.kind == "refused", timeout=60)
+                        assert refused.detail == "server:BadUserAccessDenied"
+                        assert gw.stats["written"] == 0
+                        # the tuner adopts the gains in force that the samples report
+                        await until(
+                            lambda: (
+                                tuner.view(LOOP).seq >= 2
+                                and close((tuner.view(LOOP).kp, tuner.view(LOOP).ki), (kp0, ki0))
+                            ),
+                            timeout=60,
+                            what="the tuner adopting the block's gains",
+                        )
+                    assert dcs.gains(LOOP) == (kp0, ki0)
+                    audit = tuner.history(LOOP, 0, 100)
+                    assert any(row.reason == "adopted" for row in audit.items)
+            finally:
+                session.close()
+                tuner.stop()
+
+    asyncio.run(scenario())
+
+
+def test_opc_ua_server_restart_mid_run_loses_and_repeats_no_update(tmp_path):
+    async def scenario() -> None:
+        port = free_port()
+        loop = tank()
+        dcs = await SimulatedDcs([loop], port=port).start()
+        kp0, ki0 = dcs.gains(LOOP)
+        tuner = tuner_with_tank(tmp_path, (kp0, ki0))
+        session = open_session(connect=tuner.settings.zenoh_listen)
+        try:
+            gw = OpcUaGateway(site_for(dcs, []), session, record_events=True)
+            async with running(gw):
+                written = lambda: [e.seq for e in gw.history if e.kind == "written"]  # noqa: E731
+                async with scanning(dcs):
+                    await until(lambda: len(written()) >= 2, timeout=60, what="2 writes")
+                await dcs.stop()
+                await gw.wait_event(lambda e: e.kind == "lost")
+                dcs = await SimulatedDcs([loop], port=port, epoch=dcs.epoch).start()
+                await gw.wait_event(lambda e: e.kind == "connected", timeout=20)
+                before = len(written())
+                async with scanning(dcs):
+                    await until(lambda: len(written()) >= before + 2, timeout=60, what="2 more")
+                    seqs = written()
+                    # every update the tuner published was written once, in order
+                    assert seqs == list(range(1, len(seqs) + 1))
+                    assert not [e for e in gw.history if e.kind == "refused"]
+                    await until(lambda: tuner.view(LOOP).seq == written()[-1], what="in step")
+                assert close(dcs.gains(LOOP), (tuner.view(LOOP).kp, tuner.view(LOOP).ki))
+                assert gw.stats["links_lost"] == 1 and gw.stats["connects"] == 2
+                assert gw.stats["samples_dropped"] == 0
+        finally:
+            session.close()
+            tuner.stop()
+            await dcs.stop()
+
+    asyncio.run(scenario())
