@@ -30,6 +30,7 @@ from __future__ import annotations
 import collections
 import time
 from collections.abc import Callable, Iterable
+from typing import Literal
 
 import numpy as np
 
@@ -57,7 +58,7 @@ class TuningEngine:
         *,
         max_rate_hz: float = DEFAULT_MAX_RATE_HZ,
         inference_workers: int = 1,
-        inference_precision: Precision = "float32",
+        inference_precision: Precision | Literal["reference"] = "float32",
         on_reject: RejectHandler | None = None,
     ) -> None:
         self.agent = agent if agent is not None else load_agent()

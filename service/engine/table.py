@@ -18,6 +18,7 @@ import math
 import threading
 from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 import orjson
@@ -126,13 +127,14 @@ class LoopTable:
         max_rate_hz: float,
         capacity: int = 64,
         inference_workers: int = 1,
-        inference_precision: Precision = "float32",
+        inference_precision: Precision | Literal["reference"] = "float32",
     ) -> None:
         self.agent = agent
-        # the allocation-free equivalent of agent.act (any other object: its own act)
+        # the allocation-free equivalent of agent.act; "reference" (and any object that
+        # is not an Agent) steps with the agent's own act
         self._policy = (
             FastPolicy(agent, workers=inference_workers, precision=inference_precision)
-            if isinstance(agent, Agent)
+            if isinstance(agent, Agent) and inference_precision != "reference"
             else None
         )
         self.inference_precision = self._policy.precision if self._policy else "agent.act"

@@ -32,6 +32,8 @@ from plant_sim.loop import step_test_mse
 from plant_sim.pi import PIBatch
 from plant_sim.tunings import simc_paper, to_parallel
 from plant_sim.two_tank import TwoTankBatch
+from service.agent.fast import FastPolicy
+from service.engine import LoopConfig, TuningEngine
 from service.learn.closed_loop import Policy, convergence_time, tune
 from service.learn.env import EnvConfig
 from service.learn.oracle import oracle_gains, oracle_table
@@ -202,40 +204,57 @@ def hidden_pca(agent: Policy, steps: int, quick: bool) -> dict:
 
 # -- two tanks -----------------------------------------------------------------------------
 def two_tank(agent: Policy | None, *, noise_cm: float, minutes: float, seed: int = 0) -> dict:
-    """Level loop of the two-tank plant, tuned by the agent (or left untuned if None).
+    """Level loop of the two-tank plant, tuned through the tuning engine (exactly what
+    the daemon would publish, safety guard and excitation gate included) or left untuned
+    if ``agent`` is None.
 
     Its own loop rather than :class:`plant_sim.scenario.TankLoop` (the tuner's plant
     process): the reported numbers come from this protocol, which differs from it.
     """
-    sc = ScalingSpec(k_hat=1.2, tau_hat=30.0, pv_scale=10.0).resolve()
+    hint = {"k_hat": 1.2, "tau_hat": 30.0, "pv_scale": 10.0}
+    sc = ScalingSpec(**hint).resolve()
     scan = 1.0
     tank = TwoTankBatch(1, level_cm=55.0, dt=scan, noise_cm=noise_cm, seed=seed)
     kp, ki = sc.to_engineering(AGENT_KP0, AGENT_KI0)
-    flow0 = tank.equilibrium_flow(55.0)
     level_pi = PIBatch(kp, ki, dt=scan, u_min=0.0, u_max=tank.p.f_max)
-    level_pi.initialise(flow0)
+    level_pi.initialise(tank.equilibrium_flow(55.0))
+    engine = None
+    if agent is not None:
+        engine = _engine_of(agent)
+        # the paper's protocol applies every step as proposed: the guard's relative-change
+        # limit is opened as far as it goes (the agent moves at most x2.7 a step itself)
+        config = LoopConfig(
+            id="LIC-101", kp=kp, ki=ki, sample_period_s=scan, scaling=hint,
+            guard={"max_rel_change": 10.0},
+        )  # fmt: skip
+        engine.register(config, wall=0.0)
     n = int(minutes * 60 / scan)
-    period = int(round(sc.rl_period_s / scan))
     # target: 1/(tau_cl s + 1), tau_cl = 2 tau as in training, for the hinted tau
     alpha = np.exp(-scan / (2 * AGENT_TAU * sc.time_unit_s))
-    state = agent.initial_state(1) if agent is not None else None
-    int_e, target = 0.0, 55.0
+    target = 55.0
     rec = {k: np.empty(n) for k in ("t", "sp", "pv", "target", "kp", "ki")}
     for k in range(n):
-        sp = 60.0 if (k * scan // 660) % 2 == 0 else 50.0
+        t = k * scan
+        sp = 60.0 if (t // 660) % 2 == 0 else 50.0
         pv = tank.measure()[0]
-        e = sp - pv
-        int_e += e * scan
-        if agent is not None and k % period == 0:
-            kp_a, ki_a = sc.to_agent(level_pi.kp[0], level_pi.ki[0])
-            obs = np.array([[kp_a, ki_a, e * sc.e_scale, int_e * sc.int_scale]])
-            delta, state = agent.act(obs, state, forgetting=DEFAULT_FORGETTING)
-            level_pi.set_gains(*sc.to_engineering(kp_a + delta[0, 0], ki_a + delta[0, 1]))
-        tank.step(level_pi.step(e))
+        if engine is not None:
+            sample = {"loop_id": "LIC-101", "t": t, "sp": sp, "pv": pv,
+                      "kp": level_pi.kp[0], "ki": level_pi.ki[0]}  # fmt: skip
+            for update in engine.ingest([sample], wall=t):
+                level_pi.set_gains(update.kp, update.ki)
+        tank.step(level_pi.step(sp - pv))
         target = alpha * target + (1 - alpha) * sp
-        rec_vals = (k * scan, sp, tank.level_cm[0], target, level_pi.kp[0], level_pi.ki[0])
+        rec_vals = (t, sp, tank.level_cm[0], target, level_pi.kp[0], level_pi.ki[0])
         for key, v in zip(rec, rec_vals, strict=True):
             rec[key][k] = v
     after = rec["t"] >= 660.0
     rec["mse"] = float(np.mean((rec["pv"][after] - rec["target"][after]) ** 2))
     return rec
+
+
+def _engine_of(policy: Policy) -> TuningEngine:
+    """A tuning engine computing with ``policy``: the tuner's fast path in its precision,
+    or ``agent.act`` (the reference)."""
+    if isinstance(policy, FastPolicy):
+        return TuningEngine(policy.agent, inference_precision=policy.precision)
+    return TuningEngine(policy, inference_precision="reference")
