@@ -233,40 +233,12 @@ def tuner_with_tank(tmp_path, dcs_gains) -> Tuner:
     return tuner
 
 
-def test_a_write_the_server_refuses_is_reported_and_adopted(tmp_path):
-    async def scenario() -> None:
-        async with SimulatedDcs([tank()], port=free_port()) as dcs:
-            kp0, ki0 = dcs.gains(LOOP)
-            tuner = tuner_with_tank(tmp_path, (kp0, ki0))
-            session = open_session(connect=tuner.settings.zenoh_listen)
-            try:
-                gw = OpcUaGateway(site_for(dcs, []), session, record_events=True)
-                async with running(gw):
-                    await dcs.lock_gains(LOOP)
-                    async with scanning(dcs):
-                        refused = await gw.wait_event(lambda e: e.kind == "refused", timeout=60)
-                        assert refused.detail == "server:BadUserAccessDenied"
-                        assert gw.stats["written"] == 0
-                        # the tuner adopts the gains in force that the samples report
-                        await until(
-                            lambda: (
-                                tuner.view(LOOP).seq >= 2
-                                and close((tuner.view(LOOP).kp, tuner.view(LOOP).ki), (kp0, ki0))
-                            ),
-                            timeout=60,
-                            what="the tuner adopting the block's gains",
-                        )
-                    assert dcs.gains(LOOP) == (kp0, ki0)
-                    audit = tuner.history(LOOP, 0, 100)
-                    assert any(row.reason == "adopted" for row in audit.items)
-            finally:
-                session.close()
-                tuner.stop()
+def test_real_tuner_refused_write_adopted_then_server_restart_loses_no_update(tmp_path):
+    """With a real tuner: a write the server refuses is reported (the gains in force in
+    the samples) and the tuner adopts them; writes then resume; the OPC UA server is
+    restarted mid-run and the gateway reconnects, resubscribes and goes on writing
+    every update exactly once, in seq order."""
 
-    asyncio.run(scenario())
-
-
-def test_opc_ua_server_restart_mid_run_loses_and_repeats_no_update(tmp_path):
     async def scenario() -> None:
         port = free_port()
         loop = tank()
@@ -277,9 +249,25 @@ def test_opc_ua_server_restart_mid_run_loses_and_repeats_no_update(tmp_path):
         try:
             gw = OpcUaGateway(site_for(dcs, []), session, record_events=True)
             async with running(gw):
+                view = lambda: tuner.view(LOOP)  # noqa: E731
                 written = lambda: [e.seq for e in gw.history if e.kind == "written"]  # noqa: E731
+                # 1. the DCS refuses the writes: the tuner adopts the gains in force
+                await dcs.lock_gains(LOOP)
                 async with scanning(dcs):
+                    refused = await gw.wait_event(lambda e: e.kind == "refused", timeout=60)
+                    assert (refused.seq, refused.detail) == (1, "server:BadUserAccessDenied")
+                    await until(
+                        lambda: view().seq >= 2 and close((view().kp, view().ki), (kp0, ki0)),
+                        timeout=60,
+                        what="the tuner adopting the block's gains",
+                    )
+                    assert dcs.gains(LOOP) == (kp0, ki0) and written() == []
+                    audit = tuner.history(LOOP, 0, 100).items
+                    assert any(row.reason == "adopted" for row in audit)
+                    # 2. writes allowed again: the next updates go through
+                    await dcs.lock_gains(LOOP, False)
                     await until(lambda: len(written()) >= 2, timeout=60, what="2 writes")
+                # 3. the server restarts mid-run
                 await dcs.stop()
                 await gw.wait_event(lambda e: e.kind == "lost")
                 dcs = await SimulatedDcs([loop], port=port, epoch=dcs.epoch).start()
@@ -287,12 +275,12 @@ def test_opc_ua_server_restart_mid_run_loses_and_repeats_no_update(tmp_path):
                 before = len(written())
                 async with scanning(dcs):
                     await until(lambda: len(written()) >= before + 2, timeout=60, what="2 more")
-                    seqs = written()
-                    # every update the tuner published was written once, in order
-                    assert seqs == list(range(1, len(seqs) + 1))
-                    assert not [e for e in gw.history if e.kind == "refused"]
-                    await until(lambda: tuner.view(LOOP).seq == written()[-1], what="in step")
-                assert close(dcs.gains(LOOP), (tuner.view(LOOP).kp, tuner.view(LOOP).ki))
+                    await until(lambda: view().seq == written()[-1], what="the tuner in step")
+                # every update was refused (while locked) or written, once, in seq order
+                seqs = written()
+                refusals = [e.seq for e in gw.history if e.kind == "refused"]
+                assert refusals + seqs == list(range(1, seqs[-1] + 1))
+                assert close(dcs.gains(LOOP), (view().kp, view().ki))
                 assert gw.stats["links_lost"] == 1 and gw.stats["connects"] == 2
                 assert gw.stats["samples_dropped"] == 0
         finally:
