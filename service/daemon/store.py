@@ -74,7 +74,6 @@ log = logging.getLogger("pitune.store")
 UPDATE_GAINS = "UPDATE loops SET kp = ?, ki = ?, seq = ? WHERE id = ?"
 
 
-
 @dataclass
 class StoredLoop:
     config: LoopConfig
