@@ -59,10 +59,12 @@ def _ingest(tb: LoopTable, s: int, sample: Sample, wall: float) -> bool:
             raise Rejected(RejectReason.duplicate, f"t={t} again")
         if not tb._new_clock(s, t):
             raise Rejected(RejectReason.out_of_order, f"t={t} < last t={last_t}")
-        last_t = math.nan  # re-anchored: a fresh decimation window
+        old_t, last_t = last_t, math.nan  # re-anchored: a fresh decimation window
     e = sample.error
     if abs(e) * tb.e_scale[s] > MAX_AGENT_ERROR:
         raise Rejected(RejectReason.out_of_range, f"|e|={abs(e):g} is absurd for this loop")
+    if math.isnan(last_t) and t <= tb.last_t[s]:  # a new clock: the gate's window moves too
+        tb.excited_until[s] += t - old_t
     tb.back_n[s] = 0.0
     if sample.kp is not None or sample.ki is not None:
         _adopt(tb, s, sample, wall)

@@ -2,6 +2,7 @@
 snapshots. Parametrised ``batched`` tests run the engine's vectorised path and the scalar
 reference (tests/engine_reference.py) on the same scenario."""
 
+import contextlib
 import math
 
 import numpy as np
@@ -360,6 +361,37 @@ def test_excitation_gate_on_error_only_samples_and_off_switch():
     # gate off: every period due, status tuning
     t, s = table(guard={"excitation_periods": 0.0})
     assert _due_at(t, s, [50.0] * 4) == [1, 2, 3] and t.status(s, WALL) == LoopStatus.tuning
+
+
+@pytest.mark.parametrize("batched", [False, True])
+def test_the_gate_moves_with_a_new_plant_clock(batched):
+    """A quiet loop whose gateway restarts its clock at 0 stays quiet (issue 18, 1); a
+    loop whose window was open keeps what was left of it on the new clock."""
+    from service.engine.rules import CLOCK_RESET_SAMPLES
+
+    ingest = ingest_one if batched else reference_ingest
+    t, s = _gated()
+    for k, sp in enumerate([50.0] * 3 + [60.0] + [60.0] * 6):  # moved at 495: open to 990
+        ingest(t, s, sample(165.0 * k, e=None, sp=sp, pv=50.0), WALL)
+    assert t.status(s, WALL) == LoopStatus.quiet
+    restarted = []
+    for k in range(CLOCK_RESET_SAMPLES + 6):  # the new clock from 0, setpoint still
+        try:
+            restarted.append(ingest(t, s, sample(165.0 * k, e=None, sp=60.0, pv=50.0), WALL))
+        except Rejected:
+            restarted.append(None)
+    assert restarted[: CLOCK_RESET_SAMPLES - 1] == [None] * (CLOCK_RESET_SAMPLES - 1)
+    assert not any(restarted[CLOCK_RESET_SAMPLES - 1 :])  # never due: still quiet
+    assert t.status(s, WALL) == LoopStatus.quiet
+
+    t, s = _gated()
+    for k, sp in enumerate([50.0, 60.0]):  # moved at 1165: open for 3 x 165 s
+        ingest(t, s, sample(1000.0 + 165.0 * k, e=None, sp=sp, pv=50.0), WALL)
+    for k in range(CLOCK_RESET_SAMPLES):
+        with contextlib.suppress(Rejected):
+            ingest(t, s, sample(10.0 * k, e=None, sp=60.0, pv=50.0), WALL)
+    # re-anchored at t = 90 (old clock 1165): the 495 s left of the window end at 585
+    assert t.excited_until[s] == pytest.approx(90.0 + 495.0)
 
 
 def test_excitation_state_survives_a_snapshot():

@@ -94,12 +94,17 @@ def ingest(
     last_t = tb.last_t[slots]
     dup = ~flood & (t == last_t)
     late = ~flood & (t < last_t)
+    reclocked = []
     for i in np.flatnonzero(late).tolist():  # rare: a new plant clock, or rejected
         if new_clock(tb, int(slots[i]), float(t[i])):
             late[i] = False
+            reclocked.append((i, last_t[i]))
             last_t[i] = math.nan
     absurd = ~(flood | dup | late) & (np.abs(e) * tb.e_scale[slots] > MAX_AGENT_ERROR)
     ok = ~(flood | dup | late | absurd)
+    for i, old_t in reclocked:  # every time kept on the plant clock moves with it
+        if ok[i]:
+            tb.excited_until[slots[i]] += t[i] - old_t
     rejections: list[tuple[int, RejectReason, str]] = []
     if not ok.all():
         for i in np.flatnonzero(~ok).tolist():
