@@ -1,0 +1,78 @@
+"""OPC UA security as a site requires it: Basic256Sha256 Sign & Encrypt with a client
+certificate from files (made by ``pitune gateway certs``), a user with a password from
+the environment; an untrusted certificate, a wrong password and security None are
+refused by a server that trusts only the gateway's certificate."""
+
+from __future__ import annotations
+
+import asyncio
+
+import pytest
+from asyncua import ua
+
+from plant_sim.opcua_dcs import SERVER_URI, DcsSecurity, SimulatedDcs
+from service.cli import main as pitune
+from service.gateways.opcua.certs import generate_pair
+from service.gateways.opcua.client import Item, OpcUaLink
+from service.gateways.opcua.sitemap import parse_map
+from service.wire.session import free_port
+from tests.test_opcua_gateway import LOOP, tank
+
+pytestmark = pytest.mark.timeout(120)
+PASSWORD_ENV = "PITUNE_TEST_OPCUA_PASSWORD"
+
+
+def test_encrypted_session_works_and_strangers_are_refused(tmp_path, monkeypatch):
+    certs = tmp_path / "certs"
+    # the command an integrator runs; the key file is private
+    assert pitune(["gateway", "certs", "--out", str(certs), "--host", "localhost"]) == 0
+    assert (certs / "gateway-key.pem").stat().st_mode & 0o077 == 0
+    generate_pair(certs / "intruder-cert.der", certs / "intruder-key.pem", hosts=["localhost"])
+    generate_pair(certs / "dcs-cert.der", certs / "dcs-key.pem", application_uri=SERVER_URI,
+                  hosts=["localhost"], server=True)  # fmt: skip
+    trusted = tmp_path / "trusted"
+    trusted.mkdir()
+    (trusted / "gateway-cert.der").write_bytes((certs / "gateway-cert.der").read_bytes())
+    monkeypatch.setenv(PASSWORD_ENV, "s3cret")
+    security = DcsSecurity(
+        certificate=certs / "dcs-cert.der", private_key=certs / "dcs-key.pem",
+        trusted=[trusted], users={"pitune": "s3cret"}, allow_anonymous=False,
+    )  # fmt: skip
+
+    async def scenario() -> None:
+        async with SimulatedDcs([tank()], port=free_port(), security=security) as dcs:
+            base = dcs.site_map(certificate="gateway-cert.der", private_key="gateway-key.pem",
+                                user="pitune", password_env=PASSWORD_ENV)  # fmt: skip
+
+            def server(**change):
+                data = {**base, "server": {**base["server"], **change}}
+                return parse_map(data, base=certs).server
+
+            async def connect(srv) -> list:
+                link = OpcUaLink(srv)
+                nodes = [(Item(0, "pv"), dcs.blocks[LOOP].node("PV"))]
+                try:
+                    changes = await link.open(nodes, sampling_ms={0: 100.0}, queue_size={0: 1},
+                                              publishing_ms=100.0)  # fmt: skip
+                    policy = link.client.security_policy
+                    return [changes, policy.URI, policy.Mode]
+                finally:
+                    await link.close()
+
+            changes, uri, mode = await connect(server())
+            assert uri.endswith("#Basic256Sha256")
+            assert mode == ua.MessageSecurityMode.SignAndEncrypt
+            assert changes[0].good and changes[0].value == dcs.loops[0].settings.sp_low
+
+            monkeypatch.setenv("PITUNE_TEST_NO_SUCH_VAR", "guess")
+            refused = {
+                "BadCertificateUntrusted": server(certificate="intruder-cert.der",
+                                                  private_key="intruder-key.pem"),
+                "BadUserAccessDenied": server(password_env="PITUNE_TEST_NO_SUCH_VAR"),
+                "No matching endpoints": server(security="None", allow_insecure=True),
+            }  # fmt: skip
+            for reason, srv in refused.items():
+                with pytest.raises(Exception, match=reason):  # asyncua raises several kinds
+                    await connect(srv)
+
+    asyncio.run(scenario())
