@@ -58,6 +58,8 @@ SERVER_URI = "urn:pitune:dcs-sim:server"
 MAN, AUTO, CAS = 1, 2, 3
 MODES = {"MAN": MAN, "AUTO": AUTO, "CAS": CAS}
 AUTO_VALUES = [AUTO, CAS]
+MAPPED_NODES = 9
+"""Nodes per block that :meth:`SimulatedDcs.site_map` maps."""
 TANK_PV_SPAN = 120.0
 """The tank's level transmitter range, cm (0-120)."""
 
@@ -328,6 +330,17 @@ class SimulatedDcs:
             node = self.server.get_node(block.ids[param])
             await node.set_writable(not locked)
 
+    def monitored_items(self) -> int:
+        """How many monitored items the server's clients have."""
+        subs = self.server.iserver.subscription_service.subscriptions.values()
+        return sum(len(s.monitored_item_srv._monitored_items) for s in subs)
+
+    async def wait_for_client(self, items: int, stop: asyncio.Event) -> None:
+        """Until clients monitor at least ``items`` nodes (or ``stop``)."""
+        while not stop.is_set() and self.monitored_items() < items:
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(stop.wait(), 0.02)
+
     def gains(self, loop_id: str) -> tuple[float, float]:
         """(kp, ki) in force in the simulated loop."""
         return self.blocks[loop_id].loop.gains
@@ -373,27 +386,12 @@ class SimulatedDcs:
 
 # -- command line ----------------------------------------------------------------------
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of ``pitune plant opcua`` (the loops are given as for ``plant run``)."""
-    from plant_sim.process import LoopSpec
+    """Options of ``pitune plant opcua``: the loops and simulation as for ``plant run``."""
+    from plant_sim.process import add_loop_arguments
 
-    parser.add_argument("--tank", dest="loops", action="append",
-                        type=lambda s: LoopSpec.parse("two_tank", s), metavar="ID[:k=v,...]",
-                        help="a two-tank level loop (default: one, 'tank1')")  # fmt: skip
-    parser.add_argument("--foptd", dest="loops", action="append",
-                        type=lambda s: LoopSpec.parse("foptd", s),
-                        metavar="ID:K=..,tau=..,theta=..[,k=v]", help="an FOPTD loop")  # fmt: skip
+    add_loop_arguments(parser)
     parser.add_argument("--many-foptd", type=int, default=0, metavar="N",
                         help="also N FOPTD loops F0000.. (load tests)")  # fmt: skip
-    sim = parser.add_argument_group("simulation")
-    sim.add_argument("--scan", type=float, default=1.0, help="DCS scan interval, s (1)")
-    sim.add_argument("--speed", type=float, default=1.0, help="simulated s per wall s (1)")
-    sim.add_argument("--duration", type=float, default=None, help="stop after N simulated s")
-    sim.add_argument("--t0", type=float, default=0.0, help="plant clock at start, s")
-    sim.add_argument("--sp-period", type=float, default=600.0, help="s between SP steps (600)")
-    sim.add_argument("--noise", type=float, default=0.0, help="measurement noise +-N, PV units")
-    sim.add_argument("--load", type=float, default=0.0, help="load step, OP units")
-    sim.add_argument("--gain-range", type=float, default=100.0, help="block gain range (100)")
-    sim.add_argument("--seed", type=int, default=0)
     srv = parser.add_argument_group("OPC UA server")
     srv.add_argument("--host", default="127.0.0.1", help="endpoint host (0.0.0.0 in a container)")
     srv.add_argument("--port", type=int, default=4840)
@@ -409,16 +407,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     out.add_argument("--write-map", type=Path, default=None, metavar="TOML",
                      help="write a gateway map of these blocks")  # fmt: skip
     out.add_argument("--log-dir", type=Path, default=None, help="write DIR/<loop id>.csv")
+    out.add_argument("--wait-for-gateway", action="store_true",
+                     help="start the clock once a client monitors all blocks")  # fmt: skip
     out.add_argument("--progress", type=float, default=600.0, help="status every N simulated s")
 
 
 def build_loops(args: argparse.Namespace) -> list[SimulatedLoop]:
-    return [s.build(args, seed=args.seed + i, t0=args.t0) for i, s in enumerate(loop_specs(args))]
+    from plant_sim import config
+    from plant_sim.process import simulation
+
+    return config.build_loops(tuple(loop_specs(args)), simulation(args), {})
 
 
 def loop_specs(args: argparse.Namespace) -> list:
     """The loops of the command line (``LoopSpec`` s), or one tank, ``tank1``."""
-    from plant_sim.process import LoopSpec
+    from plant_sim.config import DEFAULT_LOOPS, LoopSpec
 
     specs = list(args.loops or [])
     rng = np.random.default_rng(args.seed)
@@ -426,8 +429,7 @@ def loop_specs(args: argparse.Namespace) -> list:
         K, tau = rng.uniform(0.5, 2.0), rng.uniform(10.0, 60.0)
         theta = rng.uniform(0.1, 0.5) * tau
         specs.append(LoopSpec.parse("foptd", f"F{k:04d}:K={K:.3f},tau={tau:.2f},theta={theta:.2f}"))
-    if not specs:
-        specs = [LoopSpec("two_tank", "tank1", {})]
+    specs = specs or list(DEFAULT_LOOPS)
     ids = [s.loop_id for s in specs]
     if len(set(ids)) != len(ids):
         raise SystemExit(f"pitune plant opcua: duplicate loop ids in {ids}")
@@ -484,6 +486,9 @@ async def serve(args: argparse.Namespace, stop: asyncio.Event) -> int:
                     w = TrajectoryWriter(args.log_dir / f"{loop.loop_id}.csv")
                     stack.callback(w.close)
                     writers[loop.loop_id] = w
+            if args.wait_for_gateway:
+                await dcs.wait_for_client(MAPPED_NODES * len(loops), stop)
+                print("dcs: the gateway monitors every block: plant clock started", flush=True)
             await pace(dcs, args, stop, writers)
     print("dcs stopped", flush=True)
     return 0

@@ -9,7 +9,6 @@ the DCS is scanned by the test (simulated time), so nothing depends on wall-cloc
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import contextlib
 import math
@@ -20,8 +19,8 @@ import orjson
 import pytest
 import zenoh
 
+from plant_sim.config import LoopSpec, Simulation
 from plant_sim.opcua_dcs import AUTO, MAN, SimulatedDcs
-from plant_sim.process import LoopSpec
 from service.daemon.tuner import Tuner
 from service.engine.config import LoopConfig
 from service.gateways.opcua.bridge import Event, OpcUaGateway
@@ -36,8 +35,7 @@ LOOP = "tank1"
 
 
 def tank(loop_id: str = LOOP, seed: int = 0):
-    args = argparse.Namespace(sp_period=600.0, load=0.0, noise=0.0, gain_range=100.0, scan=1.0)
-    return LoopSpec.parse("two_tank", loop_id).build(args, seed=seed, t0=0.0)
+    return LoopSpec("two_tank", loop_id).build(Simulation(), seed=seed, t0=0.0)
 
 
 def site_for(dcs: SimulatedDcs, connect: list[str], **loop: object) -> SiteMap:

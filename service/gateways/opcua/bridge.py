@@ -232,10 +232,24 @@ class OpcUaGateway:
         monitored = self._monitored()
         while not stop.is_set():
             link = OpcUaLink(server)
+
+            async def first_read(changes: list[Change]) -> None:
+                # the gains in force are known now: register before sampling starts
+                self._apply(changes, types=True)
+                if not self._registered:
+                    await self._register()
+
             try:
-                initial = await link.open(
-                    monitored, sampling_ms=sampling, queue_size=queues, publishing_ms=publishing
+                await link.open(
+                    monitored,
+                    sampling_ms=sampling,
+                    queue_size=queues,
+                    publishing_ms=publishing,
+                    before_subscribe=first_read,
                 )
+            except RegistrationError:
+                await link.close()
+                raise
             except asyncio.CancelledError:
                 raise
             except Exception as exc:
@@ -251,11 +265,8 @@ class OpcUaGateway:
             self.stats["connects"] += 1
             log.info("OPC UA session up: %s, %d nodes monitored", server.url, len(monitored))
             try:
-                self._apply(initial, types=True)
                 self.link = link
                 self.emit("connected")
-                if not self._registered:
-                    await self._register()
                 while not stop.is_set():
                     self._apply(await link.events(timeout=0.5))
             except LinkLost as exc:

@@ -16,7 +16,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-from collections.abc import Iterable
+from collections.abc import Awaitable, Callable, Iterable
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Any
@@ -115,8 +115,10 @@ class OpcUaLink:
         sampling_ms: dict[int, float],
         queue_size: dict[int, int],
         publishing_ms: float,
+        before_subscribe: Callable[[list[Change]], Awaitable[None]] | None = None,
     ) -> list[Change]:
-        """Connect, read every node once (returned as changes), then monitor them all."""
+        """Connect, read every node once (returned as changes, and given to
+        ``before_subscribe`` first), then monitor them all."""
         client = await secure_client(self.server)
 
         async def on_lost(exc: Exception) -> None:
@@ -141,6 +143,8 @@ class OpcUaLink:
             for items, dv in zip(by_node.values(), initial, strict=True):
                 for item in items:
                     changes.append(_change(item, dv))
+            if before_subscribe is not None:
+                await before_subscribe(changes)
             self._sub = await client.create_subscription(publishing_ms, None, queue_maxsize=0)
             aiter(self._sub)  # iterator mode: creates the (unbounded) event queue now
             trigger = ua.DataChangeFilter(Trigger=ua.DataChangeTrigger.StatusValueTimestamp)
