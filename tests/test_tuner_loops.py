@@ -14,7 +14,7 @@ from service.engine.config import LoopConfig
 from service.engine.table import LoopTable
 from service.wire.protocol import LoopStatus, RejectReason, Sample
 from tests.engine_reference import Rejected, ingest_one, reference_ingest
-from tests.tuner_support import loop_body
+from tests.tuner_support import GATE_OFF, loop_body
 
 pytestmark = pytest.mark.timeout(30)
 WALL = 1_000.0
@@ -433,3 +433,41 @@ def test_status_counts_agree_with_each_loops_status():
     assert counts == {status: singles.count(status) for status in LoopStatus}
     assert counts[LoopStatus.quiet] == 2 and counts[LoopStatus.tuning] == 4
     assert sum(counts.values()) == 16
+
+
+@pytest.mark.parametrize("reference", [False, True])
+def test_one_absurd_loop_never_breaks_the_step_of_the_others(reference):
+    """Extreme but valid loops mixed into normal ones, all due at once (issue 18, 5):
+    the normal loops are stepped, each extreme one stepped or left out as a fault."""
+    rng = np.random.default_rng(5)
+    precision = "reference" if reference else "float32"
+    t = LoopTable(untrained_agent(0), max_rate_hz=1e6, capacity=4, inference_precision=precision)
+    normal, extreme = [], []
+    for i in range(40):
+        if i % 3:
+            body = loop_body(f"N{i}", sample_period_s=165.0, guard=GATE_OFF)
+            normal.append(t.add(LoopConfig(**body), wall=WALL))
+            continue
+        # slow, high-gain hints put an engineering ki of 1e12 beyond 1e30 agent units
+        hint = {k: float(10.0 ** rng.uniform(6, hi)) for k, hi in (("k_hat", 9), ("tau_hat", 8.5))}
+        hint["pv_scale"] = float(10.0 ** rng.uniform(3, 9))
+        body = loop_body(f"X{i}", sample_period_s=1e-3, scaling=hint, guard=GATE_OFF)
+        extreme.append(t.add(LoopConfig(**body), wall=WALL))
+    for s in normal + extreme:
+        ingest_one(t, s, sample(0.0, e=0.0), WALL)
+        gains = {} if s in normal else {"kp": 10.0 ** rng.uniform(-12, 12), "ki": 1e12}
+        e = 1.0 if s in normal else float(rng.uniform(-1e-6, 1e-6))
+        t.period[s] = 1.0  # everyone due at the next sample
+        ingest_one(t, s, sample(2.0, e=e, **gains), WALL)
+    # and numbers no sample can bring, however they came about
+    absurd = extreme[:3]
+    t.ki[absurd[0]], t.int_e[absurd[1]], t.last_e[absurd[2]] = 1e300, np.inf, np.nan
+    result = t.step(np.array(normal + extreme), WALL)
+    stepped = {t.slot_of[i] for i in result.loop_ids}
+    assert set(normal) <= stepped
+    assert np.isfinite(result.new).all() and (result.new > 0).all()
+    faulted = set(extreme) - stepped
+    assert set(absurd) <= faulted
+    assert all(t.n_faults[s] == 1 and t.n_steps[s] == 0 for s in faulted)
+    assert all(t.n_faults[s] == 0 for s in stepped)
+    assert np.isfinite(t.hidden[list(stepped)]).all()

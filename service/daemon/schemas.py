@@ -22,7 +22,9 @@ class BulkRegistered(BaseModel):
     registered: list[str] = Field(description="Ids of the loops registered, in request order.")
 
 
-AuditReason = Literal["registered", "agent", "reset", "adopted", "patched", "deleted"]
+AuditReason = Literal[
+    "registered", "agent", "reset", "adopted", "patched", "deleted", "fault"
+]  # fmt: skip
 
 
 class AuditEntry(BaseModel):

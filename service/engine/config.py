@@ -161,6 +161,11 @@ class Counters(BaseModel):
     quiet: int = Field(
         0, description="RL periods skipped by the excitation gate (no setpoint change)."
     )
+    faults: int = Field(
+        0,
+        description="Due RL steps left out because the loop's numbers went non-finite "
+        "(audit reason 'fault'); the other loops of the batch were stepped.",
+    )
 
 
 class LoopView(BaseModel):

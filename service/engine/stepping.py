@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from service.engine.audit import audit_row
 from service.engine.modes import AUTO
 from service.engine.rules import GAIN_RTOL
 from service.engine.updates import MODE_VALUES, StepResult
@@ -21,28 +22,38 @@ from service.engine.updates import MODE_VALUES, StepResult
 if TYPE_CHECKING:
     from service.engine.table import LoopTable
 
+OBS_LIMIT = 1e30
+"""Largest magnitude of an observation the agent is given: it computes in float32
+(largest 3.4e38), and gains or integrals beyond this are absurd in any unit."""
+
 
 def step(tb: LoopTable, slots: np.ndarray, wall: float) -> StepResult:
-    """One batched agent step of the loops in ``slots`` (each due, each once)."""
-    kp_unit, ki_unit = tb.kp_unit[slots], tb.ki_unit[slots]
-    old = np.column_stack([tb.kp[slots], tb.ki[slots]])
-    obs = np.column_stack(
-        [
-            old[:, 0] / kp_unit,
-            old[:, 1] / ki_unit,
-            tb.last_e[slots] * tb.e_scale[slots],
-            tb.int_e[slots],
-        ]
-    )
+    """One batched agent step of the loops in ``slots`` (each due, each once).
+
+    A loop whose numbers go non-finite or absurd (a gain of 1e12 on a loop of extreme
+    scaling, say) is left out of the batch, its state untouched, and recorded as a
+    ``fault``; the other loops are stepped as if it were not there.
+    """
+    obs = _observe(tb, slots)
+    sane = (np.abs(obs) <= OBS_LIMIT).all(axis=1)  # False for NaN too
+    if not sane.all():
+        _faults(tb, slots[~sane], wall, "observation non-finite or beyond 1e30")
+        slots, obs = slots[sane], obs[sane]
     if tb._policy is not None:
         state = tb.hidden[slots]  # a contiguous copy, updated in place
         delta = tb._policy.step_inplace(obs, state, tb.forgetting[slots])
-        tb.hidden[slots] = state
     else:
-        delta, tb.hidden[slots] = tb.agent.act(obs, tb.hidden[slots], tb.forgetting[slots])
+        delta, state = tb.agent.act(obs, tb.hidden[slots], tb.forgetting[slots])
+    kp_unit, ki_unit = tb.kp_unit[slots], tb.ki_unit[slots]
     proposed = np.column_stack(
         [(obs[:, 0] + delta[:, 0]) * kp_unit, (obs[:, 1] + delta[:, 1]) * ki_unit]
     )
+    sane = np.isfinite(proposed).all(axis=1) & np.isfinite(state).all(axis=(1, 2))
+    if not sane.all():
+        _faults(tb, slots[~sane], wall, "non-finite agent output")
+        slots, proposed, state = slots[sane], proposed[sane], state[sane]
+    tb.hidden[slots] = state
+    old = np.column_stack([tb.kp[slots], tb.ki[slots]])
     grow = 1.0 + tb.max_rel[slots, None]
     lo = np.column_stack([tb.kp_min[slots], tb.ki_min[slots]])
     hi = np.column_stack([tb.kp_max[slots], tb.ki_max[slots]])
@@ -83,6 +94,31 @@ def step(tb: LoopTable, slots: np.ndarray, wall: float) -> StepResult:
         )
     )  # fmt: skip
     return result
+
+
+def _observe(tb: LoopTable, slots: np.ndarray) -> np.ndarray:
+    """The agent's observation [kp, ki, e, int_e] in its units, (n, 4)."""
+    with np.errstate(over="ignore", invalid="ignore"):  # absurd loops are caught after
+        return np.column_stack(
+            [
+                tb.kp[slots] / tb.kp_unit[slots],
+                tb.ki[slots] / tb.ki_unit[slots],
+                tb.last_e[slots] * tb.e_scale[slots],
+                tb.int_e[slots],
+            ]
+        )
+
+
+def _faults(tb: LoopTable, slots: np.ndarray, wall: float, why: str) -> None:
+    tb.n_faults[slots] += 1
+    for s in slots.tolist():
+        gains = (float(tb.kp[s]), float(tb.ki[s]))
+        tb._audit.append(
+            audit_row(
+                tb.ids[s], wall, float(tb.last_t[s]), int(tb.seq[s]), tb.mode_of(s).value,
+                "fault", gains, gains, f"not stepped: {why}",
+            )
+        )  # fmt: skip
 
 
 def _guard_detail(kp: float, ki: float) -> str:

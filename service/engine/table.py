@@ -53,7 +53,9 @@ _F64 = (
     # run of out-of-order samples that may be a new clock: length and last t
     "back_n", "back_t",
 )  # fmt: skip
-_I64 = ["mode", "seq", "n_samples", "n_rejected", "n_steps", "n_updates", "n_quiet"]
+_I64 = [
+    "mode", "seq", "n_samples", "n_rejected", "n_steps", "n_updates", "n_quiet", "n_faults",
+]  # fmt: skip
 _BOOL = ["pending", "manual", "saturated"]
 
 
@@ -404,6 +406,7 @@ class LoopTable:
                 steps=int(self.n_steps[s]),
                 updates=int(self.n_updates[s]),
                 quiet=int(self.n_quiet[s]),
+                faults=int(self.n_faults[s]),
             ),
         )
 
