@@ -53,7 +53,7 @@ keeps a tuned loop an order of magnitude above the floor."""
 DEFAULT_FORGETTING = 0.99
 """The paper's forgetting factor gamma of the hidden state, used online."""
 
-Factor = Annotated[float, Field(ge=1e-9, le=1e9, allow_inf_nan=False)]
+Factor = Annotated[float, Field(strict=True, ge=1e-9, le=1e9, allow_inf_nan=False)]
 """Every hint and factor lies within 1e-9..1e9, so derived gains stay finite and nonzero."""
 
 

@@ -6,6 +6,7 @@ what the daemon publishes (checked against a real daemon on a real Zenoh bus).
 
 import numpy as np
 import pytest
+from pydantic import ValidationError
 
 from service.agent import DEFAULT_WEIGHTS, load_agent, untrained_agent
 from service.daemon.tuner import Tuner
@@ -95,3 +96,22 @@ def test_rejections_are_counted_and_reported_and_change_nothing():
     assert (after.kp, after.ki, after.int_e, after.last_sample_t) == (
         before.kp, before.ki, before.int_e, before.last_sample_t,
     )  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        {"kp": "1"},
+        {"kp": True},
+        {"sample_period_s": "1"},
+        {"scaling": {"k_hat": "1.2", "tau_hat": 30.0}},
+        {"guard": {"max_rel_change": "0.5"}},
+        {"forgetting": "0.99"},
+    ],
+)
+def test_registration_numbers_are_as_strict_as_the_wire(bad):
+    """The REST API refuses a number given as a string, as the bus schema does (issue
+    18, 4); an integer stays a number."""
+    with pytest.raises(ValidationError, match="valid number"):
+        LoopConfig(**{**loop_body("L0"), **bad})
+    assert LoopConfig(**{**loop_body("L0"), "kp": 1}).kp == 1.0

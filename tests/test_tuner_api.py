@@ -36,7 +36,9 @@ def test_register_inspect_patch_reset_delete(client):
     guard = view["config"]["guard"]
     assert guard["kp_min"] == pytest.approx(0.01 * 0.1 / 0.24)  # agent range, mapped
     assert guard["ki_max"] == pytest.approx(50.0 * 0.1 / 0.24 / 60.0)
-    assert view["counters"] == {"samples": 0, "rejected": 0, "steps": 0, "updates": 0, "quiet": 0}
+    assert view["counters"] == {
+        "samples": 0, "rejected": 0, "steps": 0, "updates": 0, "quiet": 0, "faults": 0
+    }  # fmt: skip
 
     assert client.post("/loops", json=loop_body("LIC-101"), headers=AUTH).status_code == 409
     client.post("/loops", json=loop_body("FIC-7", mode="frozen"), headers=AUTH)

@@ -13,9 +13,9 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from service.units import AGENT_GAIN_RANGE, DEFAULT_FORGETTING, Scaling, ScalingSpec
 from service.wire.protocol import MAX_MAGNITUDE, Gain, GatewayId, LoopId, LoopStatus, Mode
 
-Fraction = Annotated[float, Field(gt=0.0, le=10.0, allow_inf_nan=False)]
-ExcitationPeriods = Annotated[float, Field(ge=0.0, le=1e6, allow_inf_nan=False)]
-ExcitationStep = Annotated[float, Field(gt=0.0, le=100.0, allow_inf_nan=False)]
+Fraction = Annotated[float, Field(strict=True, gt=0.0, le=10.0, allow_inf_nan=False)]
+ExcitationPeriods = Annotated[float, Field(strict=True, ge=0.0, le=1e6, allow_inf_nan=False)]
+ExcitationStep = Annotated[float, Field(strict=True, gt=0.0, le=100.0, allow_inf_nan=False)]
 
 
 class Guard(BaseModel):
@@ -32,7 +32,7 @@ class Guard(BaseModel):
         description="Largest relative change per update: each gain stays within "
         "[old / (1 + r), old * (1 + r)].",
     )
-    stale_periods: Annotated[float, Field(ge=1.0, le=1e6)] = Field(
+    stale_periods: Annotated[float, Field(strict=True, ge=1.0, le=1e6)] = Field(
         5.0, description="Tuning pauses after this many sample periods without a sample."
     )
     excitation_periods: ExcitationPeriods = Field(
@@ -69,12 +69,12 @@ class LoopConfig(BaseModel):
     id: LoopId
     kp: Gain = Field(description="Registered proportional gain, engineering units.")
     ki: Gain = Field(description="Registered integral gain, engineering units per second.")
-    sample_period_s: Annotated[float, Field(gt=0.0, le=1e6)] = Field(
+    sample_period_s: Annotated[float, Field(strict=True, gt=0.0, le=1e6)] = Field(
         description="The gateway's sample clock, seconds (staleness is measured in it)."
     )
     scaling: ScalingSpec
     mode: Mode = Mode.auto
-    forgetting: Annotated[float, Field(gt=0.0, le=1.0)] = Field(
+    forgetting: Annotated[float, Field(strict=True, gt=0.0, le=1.0)] = Field(
         DEFAULT_FORGETTING,
         description="Forgetting factor of the agent's hidden state (the paper's gamma).",
     )
@@ -128,13 +128,13 @@ class LoopPatch(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     mode: Mode | None = None
-    forgetting: Annotated[float, Field(gt=0.0, le=1.0)] | None = None
+    forgetting: Annotated[float, Field(strict=True, gt=0.0, le=1.0)] | None = None
     kp_min: Gain | None = None
     kp_max: Gain | None = None
     ki_min: Gain | None = None
     ki_max: Gain | None = None
     max_rel_change: Fraction | None = None
-    stale_periods: Annotated[float, Field(ge=1.0, le=1e6)] | None = None
+    stale_periods: Annotated[float, Field(strict=True, ge=1.0, le=1e6)] | None = None
     excitation_periods: ExcitationPeriods | None = None
     excitation_min_step: ExcitationStep | None = None
     gateway: GatewayId | None = Field(

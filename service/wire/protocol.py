@@ -47,7 +47,7 @@ _ID_RE = re.compile(LOOP_ID_PATTERN)
 _PREFIX_RE = re.compile(r"^[A-Za-z0-9_.\-]+(/[A-Za-z0-9_.\-]+)*$")
 
 Number = Annotated[float, Field(ge=-MAX_MAGNITUDE, le=MAX_MAGNITUDE)]
-Gain = Annotated[float, Field(gt=0.0, le=MAX_MAGNITUDE)]
+Gain = Annotated[float, Field(strict=True, gt=0.0, le=MAX_MAGNITUDE)]
 LoopId = Annotated[str, Field(pattern=LOOP_ID_PATTERN, examples=["LIC-101"])]
 GatewayId = Annotated[str, Field(pattern=LOOP_ID_PATTERN, examples=["gw-north"])]
 Version = Annotated[int, Field(ge=1, le=SCHEMA_VERSION, description="Schema version.")]
