@@ -348,18 +348,19 @@ class SimulatedDcs:
     def site_map(
         self,
         *,
-        limits_factor: float = 10.0,
+        limits_factor: float | None = None,
         registration: dict[str, dict] | None = None,
         loop_defaults: dict | None = None,
         **server: object,
     ) -> dict:
         """A map file (as a dict, TOML-ready) for a gateway of these blocks; the hard
-        limits are the blocks' present values divided and multiplied by ``limits_factor``;
+        limits are the blocks' present values divided and multiplied by ``limits_factor``
+        (default: each loop's gain range, what the simulated block itself accepts);
         ``registration``: loop id -> its [loops.registration] table."""
         loops = []
         for block in self.blocks.values():
             p0, i0 = block.form.from_parallel(*block.loop.gains)
-            r = limits_factor
+            r = limits_factor or block.loop.settings.gain_range
             extra = dict(loop_defaults or {})
             if registration and block.loop.loop_id in registration:
                 extra["registration"] = registration[block.loop.loop_id]

@@ -41,6 +41,7 @@ def tank(loop_id: str = LOOP, seed: int = 0):
 def site_for(dcs: SimulatedDcs, connect: list[str], **loop: object) -> SiteMap:
     """The DCS's map, security None (allowed), fast sampling, the bus on ``connect``."""
     data = dcs.site_map(
+        limits_factor=10.0,
         security="None",
         allow_insecure=True,
         reconnect_min_s=0.1,
