@@ -10,6 +10,7 @@ import math
 
 import numpy as np
 
+from service.engine import rules
 from service.engine.audit import audit_row
 from service.engine.modes import FROZEN
 from service.engine.rules import GAIN_RTOL, MAX_AGENT_ERROR
@@ -29,7 +30,7 @@ def ingest_one(table: LoopTable, s: int, sample: Sample, wall: float) -> bool:
     """The engine's vectorised path with one sample (counts a rejection on the loop, as
     the engine does); True if the loop fell due. Raises :class:`Rejected`."""
     rows = decode_objects([{**sample.model_dump(), "loop_id": table.ids[s]}]).rows
-    due, rejections = table.ingest(np.array([s]), rows, wall)
+    due, rejections = rules.ingest(table, np.array([s]), rows, wall)
     if rejections:
         table.n_rejected[s] += 1
         _, reason, detail = rejections[0]
@@ -57,7 +58,7 @@ def _ingest(tb: LoopTable, s: int, sample: Sample, wall: float) -> bool:
     if t <= last_t:  # False while last_t is NaN (no sample yet)
         if t == last_t:
             raise Rejected(RejectReason.duplicate, f"t={t} again")
-        if not tb._new_clock(s, t):
+        if not rules.new_clock(tb, s, t):
             raise Rejected(RejectReason.out_of_order, f"t={t} < last t={last_t}")
         old_t, last_t = last_t, math.nan  # re-anchored: a fresh decimation window
     e = sample.error
@@ -95,7 +96,7 @@ def _ingest(tb: LoopTable, s: int, sample: Sample, wall: float) -> bool:
     tb.next_due[s] += period * (math.floor((t - tb.next_due[s]) / period) + 1.0)
     if tb.mode[s] == FROZEN or not sample.auto or sample.saturated:
         return False
-    if tb._quiet(s, t):
+    if tb.gate_closed(s, t):
         tb.n_quiet[s] += 1
         return False
     return True

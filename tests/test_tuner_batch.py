@@ -12,7 +12,9 @@ from hypothesis import strategies as st
 from pydantic import ValidationError
 
 from service.agent import untrained_agent
+from service.engine import rules
 from service.engine.config import LoopConfig
+from service.engine.stepping import step
 from service.engine.table import _BOOL, _F64, _I64, LoopTable
 from service.wire.decode import classify, decode_batch, decode_objects
 from service.wire.protocol import MAX_BATCH, BatchedSample, Mode, RejectReason, Sample
@@ -88,7 +90,7 @@ def _fast(table: LoopTable, items: list[dict], wall: float):
     decoded = decode_objects(items)
     assert not decoded.rejected
     slots = np.array([table.slot_of[i] for i in decoded.rows.loop_ids], np.int64)
-    mask, rejections = table.ingest(slots, decoded.rows, wall)
+    mask, rejections = rules.ingest(table, slots, decoded.rows, wall)
     table.n_rejected[slots[[i for i, _, _ in rejections]]] += 1  # as the engine counts them
     rejected = [(items[i]["loop_id"], reason, detail) for i, reason, detail in rejections]
     return slots[mask].tolist(), rejected
@@ -115,8 +117,8 @@ def test_vectorised_ingest_equals_the_scalar_reference(seed, rate):
         assert _plain(fast.drain_changes()) == _plain(slow.drain_changes())
         due = np.array([s for s in range(N) if rng.random() < 0.3], dtype=np.int64)
         if due.size:  # steps change gains and put updates in flight
-            slow.step(due, wall)
-            fast.step(due, wall)
+            step(slow, due, wall)
+            step(fast, due, wall)
             np.testing.assert_array_equal(fast.hidden, slow.hidden)
 
 

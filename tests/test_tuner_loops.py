@@ -11,6 +11,7 @@ import pytest
 
 from service.agent import untrained_agent
 from service.engine.config import LoopConfig
+from service.engine.stepping import step
 from service.engine.table import LoopTable
 from service.wire.protocol import LoopStatus, RejectReason, Sample
 from tests.engine_reference import Rejected, ingest_one, reference_ingest
@@ -101,7 +102,7 @@ def test_due_loops_are_stepped_in_one_batched_call_with_their_own_forgetting():
     ]
     for s, e in zip(slots, (1.0, -2.0, 0.5), strict=True):
         assert feed(t, s, [0.0, 165.0], [e, e]) == [165.0]
-    result = t.step(np.array(slots), WALL)
+    result = step(t, np.array(slots), WALL)
     assert len(agent.calls) == 1
     obs, forgetting = agent.calls[0]
     np.testing.assert_allclose(forgetting, [0.9, 0.91, 0.92])
@@ -118,7 +119,7 @@ def test_due_loops_are_stepped_in_one_batched_call_with_their_own_forgetting():
 def test_guard_limits_relative_change_then_bounds():
     t, s = table(ScalingAgent(10.0), guard={"max_rel_change": 0.25})
     feed(t, s, [0.0, 165.0])
-    r = t.step(np.array([s]), WALL)
+    r = step(t, np.array([s]), WALL)
     np.testing.assert_allclose(r.proposed[0], [5.0, 0.1])
     np.testing.assert_allclose(r.new[0], [0.625, 0.0125])  # x1.25 at most
     assert (t.kp[s], t.ki[s]) == pytest.approx((0.625, 0.0125))
@@ -126,7 +127,7 @@ def test_guard_limits_relative_change_then_bounds():
 
     t, s = table(ScalingAgent(0.01), guard={"kp_min": 0.45, "max_rel_change": 1.0})
     feed(t, s, [0.0, 165.0])
-    r = t.step(np.array([s]), WALL)
+    r = step(t, np.array([s]), WALL)
     np.testing.assert_allclose(r.new[0], [0.45, 0.005])  # kp at its bound, ki halved
 
 
@@ -135,14 +136,14 @@ def test_gain_outside_bounds_is_walked_back_gradually():
     ingest_one(t, s, sample(0.0, kp=4.0), WALL)  # an operator set kp far above the bound
     assert t.kp[s] == 4.0
     assert ingest_one(t, s, sample(165.0, kp=4.0), WALL)
-    r = t.step(np.array([s]), WALL)
+    r = step(t, np.array([s]), WALL)
     assert r.new[0, 0] == pytest.approx(4.0 / 1.5)
 
 
 def test_advisory_publishes_but_keeps_the_gains():
     t, s = table(ScalingAgent(1.2), mode="advisory")
     feed(t, s, [0.0, 165.0])
-    r = t.step(np.array([s]), WALL)
+    r = step(t, np.array([s]), WALL)
     np.testing.assert_allclose(r.new[0], [0.6, 0.012])
     assert (t.kp[s], t.ki[s]) == (0.5, 0.01)
     assert t.seq[s] == 1 and not t.pending[s]
@@ -197,7 +198,7 @@ def test_no_integration_in_manual_or_saturated_and_a_new_window_back_in_auto(bat
 def test_reported_gains_are_adopted_unless_an_update_is_in_flight():
     t, s = table(ScalingAgent(1.2))
     feed(t, s, [0.0, 165.0])
-    t.step(np.array([s]), WALL)
+    step(t, np.array([s]), WALL)
     t.drain_changes()
     assert t.kp[s] == pytest.approx(0.6)
     ingest_one(t, s, sample(166.0, kp=0.5, ki=0.01), WALL)  # gateway not caught up yet
@@ -215,7 +216,7 @@ def test_reported_gains_are_adopted_unless_an_update_is_in_flight():
 def test_gains_reported_through_float32_are_not_an_operators_change(batched):
     t, s = table(ScalingAgent(1.2 + 1e-7))
     feed(t, s, [0.0, 165.0])
-    t.step(np.array([s]), WALL)
+    step(t, np.array([s]), WALL)
     t.drain_changes()
     kp, ki = (float(np.float32(g)) for g in (t.kp[s], t.ki[s]))  # a float32 DCS
     assert kp != t.kp[s] and ki != t.ki[s]
@@ -267,7 +268,7 @@ def test_flood_limit_per_loop_in_wall_time():
 def test_reset_and_snapshot_restore():
     t, s = table()
     feed(t, s, [0.0, 165.0], [2.0, 2.0])
-    t.step(np.array([s]), WALL)
+    step(t, np.array([s]), WALL)
     rows = t.snapshot()
     config = t.configs["LIC-101"]
     restored = LoopTable(untrained_agent(0), max_rate_hz=1e6)
@@ -462,7 +463,7 @@ def test_one_absurd_loop_never_breaks_the_step_of_the_others(reference):
     # and numbers no sample can bring, however they came about
     absurd = extreme[:3]
     t.ki[absurd[0]], t.int_e[absurd[1]], t.last_e[absurd[2]] = 1e300, np.inf, np.nan
-    result = t.step(np.array(normal + extreme), WALL)
+    result = step(t, np.array(normal + extreme), WALL)
     stepped = {t.slot_of[i] for i in result.loop_ids}
     assert set(normal) <= stepped
     assert np.isfinite(result.new).all() and (result.new > 0).all()

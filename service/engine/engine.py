@@ -36,6 +36,7 @@ import numpy as np
 
 from service.agent.fast import Precision
 from service.agent.model import Agent, load_agent
+from service.engine import rules, stepping
 from service.engine.audit import AuditRow
 from service.engine.config import LoopConfig, LoopView
 from service.engine.table import LoopTable, RawView
@@ -177,7 +178,7 @@ class TuningEngine:
                         results.append(result)
                     continue
                 part, part_slots = run
-                due, rejections = self.table.ingest(part_slots, part, wall)
+                due, rejections = rules.ingest(self.table, part_slots, part, wall)
                 for i, reason, detail in rejections:
                     self._reject(Rejection(int(part.index[i]), part.loop_ids[i], reason, detail))
                 for s in part_slots[due].tolist():
@@ -217,7 +218,7 @@ class TuningEngine:
                 self.skipped += slots.size
                 return None
             started = time.perf_counter()
-            result = self.table.step(slots, _now(wall))
+            result = stepping.step(self.table, slots, _now(wall))
             result.inference_s = time.perf_counter() - started
             return result
 

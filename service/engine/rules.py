@@ -35,17 +35,14 @@ as the specification this module is checked against.
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from service.engine.audit import audit_row
 from service.engine.modes import _MODES, FROZEN
+from service.engine.table import LoopTable
 from service.wire.decode import Columns
 from service.wire.protocol import RejectReason
-
-if TYPE_CHECKING:
-    from service.engine.table import LoopTable
 
 MAX_AGENT_ERROR = 100.0
 """An error beyond this many agent units (training sees about 2) is an absurd sample."""
@@ -56,12 +53,6 @@ rather than rejected forever as out of order."""
 GAIN_RTOL = 1e-6
 """Relative tolerance when comparing reported gains with the tuner's: a DCS storing gains
 as float32 reports them off by up to 6e-8 relative, which is no operator's change."""
-
-
-def quiet(tb: LoopTable, s, t):
-    """Where the excitation gate is on and its window had closed by sample time ``t``
-    (``s``, ``t``: one slot and time, or aligned arrays)."""
-    return (tb.exc_window[s] < math.inf) & (t > tb.excited_until[s])
 
 
 def new_clock(tb: LoopTable, s: int, t: float) -> bool:
@@ -143,7 +134,7 @@ def ingest(
     )
     tb.next_due[slots] = next_due
     due_ok = reached & (tb.mode[slots] != FROZEN) & auto & ~saturated
-    gated = due_ok & quiet(tb, slots, t)
+    gated = due_ok & tb.gate_closed(slots, t)
     tb.n_quiet[slots[gated]] += 1
     due_ok &= ~gated
     due = np.zeros(ok.size, bool)

@@ -10,17 +10,13 @@ gains change only when the gateway reports new ones.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
 from service.engine.audit import audit_row
 from service.engine.modes import AUTO
 from service.engine.rules import GAIN_RTOL
+from service.engine.table import LoopTable
 from service.engine.updates import MODE_VALUES, StepResult
-
-if TYPE_CHECKING:
-    from service.engine.table import LoopTable
 
 OBS_LIMIT = 1e30
 """Largest magnitude of an observation the agent is given: it computes in float32

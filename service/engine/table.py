@@ -25,7 +25,6 @@ import orjson
 
 from service.agent.fast import FastPolicy, Precision
 from service.agent.model import Agent
-from service.engine import rules, stepping
 from service.engine.audit import AuditRow, audit_row
 from service.engine.config import Counters, LoopConfig, LoopView
 from service.engine.modes import _CODE, _MODES, AUTO, FROZEN
@@ -294,11 +293,10 @@ class LoopTable:
         )
 
     # -- samples ----------------------------------------------------------------------
-    # -- samples and steps: the rules live in their own modules -------------------------
-    ingest = rules.ingest
-    step = stepping.step
-    _quiet = rules.quiet
-    _new_clock = rules.new_clock
+    def gate_closed(self, s, t):
+        """Where the excitation gate is on and its window had closed by sample time ``t``
+        (``s``, ``t``: one slot and time, or aligned arrays)."""
+        return (self.exc_window[s] < math.inf) & (t > self.excited_until[s])
 
     # -- persistence ------------------------------------------------------------------
     def drain_changes(self) -> tuple[list[tuple[float, float, int, str]], list[AuditRow]]:
@@ -379,7 +377,7 @@ class LoopTable:
             wall - self.last_wall[slots] > self.stale_gap[slots],
             self.manual[slots],
             self.saturated[slots],
-            self._quiet(slots, t),  # NaN t: False, and waiting comes first
+            self.gate_closed(slots, t),  # NaN t: False, and waiting comes first
             np.ones(slots.size, bool),
         ]
         return np.argmax(np.stack(conditions), axis=0)
