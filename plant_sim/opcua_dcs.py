@@ -473,7 +473,11 @@ async def serve(args: argparse.Namespace, stop: asyncio.Event) -> int:
                 for i, s in specs.items()
             }
             wall_ms = args.scan * 1000.0 / args.speed if args.speed > 0 else args.scan * 1000.0
-            site = dcs.site_map(registration=reg, loop_defaults={"sampling_interval_ms": wall_ms})
+            # the monitored items' queues hold 10 s of plant time: no sample lost while
+            # the gateway is slow to publish (a fast simulation scans every few ms)
+            queue = max(10, min(10_000, round(10_000.0 / wall_ms)))
+            defaults = {"sampling_interval_ms": wall_ms, "queue_size": queue}
+            site = dcs.site_map(registration=reg, loop_defaults=defaults)
             if args.certificate is None:
                 site["server"].update(security="None", allow_insecure=True)
             args.write_map.parent.mkdir(parents=True, exist_ok=True)

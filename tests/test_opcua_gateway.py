@@ -25,7 +25,7 @@ from service.daemon.tuner import Tuner
 from service.engine.config import LoopConfig
 from service.gateways.opcua.bridge import Event, OpcUaGateway
 from service.gateways.opcua.sitemap import SiteMap, parse_map
-from service.wire.protocol import GainsMessage, Keys, Mode, encode
+from service.wire.protocol import GainsMessage, Keys, LoopStatus, Mode, StateReply, encode
 from service.wire.session import free_port, session_config
 from tests.tuner_support import TANK_SCALING, endpoint, tuner_settings
 
@@ -102,16 +102,34 @@ async def scanning(dcs: SimulatedDcs, period: float = 0.002):
 class FakeTuner:
     """A Zenoh peer posing as a tuner: liveliness token, sample batches in, gains out."""
 
-    def __init__(self) -> None:
+    def __init__(self, connect: list[str] | None = None) -> None:
+        """Listens on its own port, or is a client of the router at ``connect``."""
         self.endpoint = endpoint(free_port())
-        self.session = open_session(listen=[self.endpoint])
+        if connect:
+            self.session = zenoh.open(session_config(mode="client", connect=connect))
+        else:
+            self.session = open_session(listen=[self.endpoint])
         self.samples: queue.SimpleQueue[dict] = queue.SimpleQueue()
         self.seen: list[dict] = []
+        self.state: tuple[int, float, float] | None = None
+        """(seq, kp, ki) the state queryable answers for the loop."""
         self._sub = self.session.declare_subscriber(
             KEYS.batch,
             lambda s: [self.samples.put(x) for x in orjson.loads(s.payload.to_bytes())["samples"]],
         )
+        self._queryable = self.session.declare_queryable(KEYS.all_states, self._on_query)
         self._token = self.session.liveliness().declare_token(KEYS.tuner("fake"))
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        try:
+            if self.state is not None:
+                seq, kp, ki = self.state
+                reply = StateReply(loop_id=LOOP, kp=kp, ki=ki, mode=Mode.auto,
+                                   status=LoopStatus.tuning, seq=seq, last_t=None,
+                                   instance_id="fake")  # fmt: skip
+                query.reply(KEYS.state(LOOP), encode(reply))
+        finally:
+            query.drop()
 
     def drain(self) -> list[dict]:
         while True:
@@ -126,8 +144,9 @@ class FakeTuner:
         self.session.put(KEYS.gains(LOOP), encode(msg))
 
     def close(self) -> None:
-        self._token.undeclare()
-        self._sub.undeclare()
+        for entity in (self._token, self._queryable, self._sub):
+            with contextlib.suppress(zenoh.ZError):
+                entity.undeclare()
         self.session.close()
 
 
@@ -286,5 +305,52 @@ def test_real_tuner_refused_write_adopted_then_server_restart_loses_no_update(tm
             session.close()
             tuner.stop()
             await dcs.stop()
+
+    asyncio.run(scenario())
+
+
+def test_zenoh_router_restart_buffers_samples_and_recovers_missed_gains():
+    """Gateway and tuner are Zenoh clients of a router. While the router is down the
+    samples are held (bounded buffer) and sent in order when the tuner's token is back;
+    the gains published meanwhile are recovered by the state query, and written once."""
+    router_ep = endpoint(free_port())
+
+    def router():
+        return zenoh.open(session_config(mode="router", listen=[router_ep]))
+
+    async def scenario() -> None:
+        rtr = router()
+        fake = FakeTuner(connect=[router_ep])
+        session = zenoh.open(session_config(mode="client", connect=[router_ep]))
+        try:
+            async with SimulatedDcs([tank()], port=free_port()) as dcs:
+                gw = OpcUaGateway(site_for(dcs, [router_ep]), session, record_events=True)
+                async with running(gw):
+                    kp0, ki0 = dcs.gains(LOOP)
+                    await until(lambda: gw.bus.tuner_up, what="the tuner's token")
+                    await dcs.scan()
+                    fake.send(1, kp0 * 1.1, ki0)
+                    assert (await gw.wait_event(lambda e: e.kind != "received")).seq == 1
+                    await until(lambda: len(fake.drain()) >= 2, what="samples before")
+                    rtr.close()  # the router goes down
+                    await until(lambda: not gw.bus.tuner_up, what="the token gone")
+                    for _ in range(5):
+                        await dcs.scan()
+                    await until(lambda: len(gw.outbox) == 5, what="5 samples held")
+                    fake.state = (2, kp0 * 1.2, ki0 * 1.1)  # published while away: lost
+                    rtr = router()  # back on the same port: both clients reconnect
+                    written = await gw.wait_event(lambda e: e.kind == "written", timeout=30)
+                    assert (written.seq, written.detail) == (2, "")
+                    await until(lambda: len(fake.drain()) >= 7, timeout=20, what="the buffer")
+                    ts = [s["t"] - dcs.epoch for s in fake.seen]
+                    assert ts == sorted(set(ts)) and ts[-5:] == [1, 2, 3, 4, 5]
+                    await dcs.scan()
+                    assert close(dcs.gains(LOOP), (kp0 * 1.2, ki0 * 1.1))
+                    assert [e.seq for e in gw.history if e.kind == "written"] == [1, 2]
+                    assert gw.stats["samples_dropped"] == 0
+        finally:
+            session.close()
+            fake.close()
+            rtr.close()
 
     asyncio.run(scenario())

@@ -93,7 +93,7 @@ async def serve(site, status_interval: float) -> int:
             print(f"pitune gateway opcua: {exc}", file=sys.stderr)
             return 1
         finally:
-            print(f"gateway stopped: {gateway.status_line()}", flush=True)
+            print(f"gateway stopped: {gateway.status_line()}; {dict(gateway.stats)}", flush=True)
     finally:
         session.close()
     return 0
