@@ -4,13 +4,21 @@ The app's lifespan owns the :class:`~service.daemon.tuner.Tuner`: it starts with
 is stopped (bus closed, state snapshotted) when the server shuts down. Handlers are
 plain ``def`` functions: they take the loop table's lock, so they run in the thread
 pool rather than on the event loop.
+
+The API documentation needs no internet: ``/docs`` is a page rendered here from the
+OpenAPI document (no script, no style sheet, nothing from a CDN: plant networks are
+isolated), ``/openapi.json`` is the document itself for any OpenAPI viewer; FastAPI's
+Swagger UI and ReDoc pages, which load their code from a CDN, are off.
 """
 
 from __future__ import annotations
 
+import asyncio
+import html
 import ipaddress
 import logging
 import secrets
+import time
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Annotated
@@ -27,11 +35,12 @@ from fastapi import (
     status,
 )
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.responses import HTMLResponse, JSONResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from prometheus_client import CONTENT_TYPE_LATEST
 
 from service.agent.model import Agent
+from service.daemon.logs import StatusWatch, table_statuses
 from service.daemon.schemas import (
     MAX_BULK,
     MAX_PAGE,
@@ -78,22 +87,36 @@ loops = APIRouter(prefix="/loops", tags=["loops"])
 # Only changes need the token: reads stay open like /healthz and /metrics (the demo and
 # dashboards read loops without one); protect reads by binding to loopback or a proxy.
 mutating = [Depends(require_token)]
-Offset = Annotated[int, Query(ge=0)]
+MAX_OFFSET = 2**53
+"""Largest page offset: the largest integer a JSON number carries exactly, far beyond
+any table; larger ones (which overflowed SQLite's 64-bit integers: 500) are a 422."""
+STATUS_CHECK_S = 5.0
+"""Seconds between two checks of the loops' statuses for the log (and of the ends of
+rejection bursts)."""
+Offset = Annotated[int, Query(ge=0, le=MAX_OFFSET)]
 Limit = Annotated[int, Query(ge=1, le=MAX_PAGE)]
 
 
 @loops.post("", status_code=201, dependencies=mutating, responses={409: {}})
-def register_loop(config: LoopConfig, tuner: TunerDep) -> LoopView:
+def register_loop(config: LoopConfig, tuner: TunerDep, request: Request) -> LoopView:
     """Register a loop; it starts at its registered gains with a fresh agent state."""
-    return tuner.register(config)
+    view = tuner.register(config)
+    _event(tuner, request, "registered", "loop %r registered (%s, kp=%.6g ki=%.6g, seq %d)",
+           config.id, view.mode, view.kp, view.ki, view.seq)  # fmt: skip
+    return view
 
 
 @loops.post("/bulk", status_code=201, dependencies=mutating, responses={409: {}})
 def register_loops(
-    configs: Annotated[list[LoopConfig], Body(max_length=MAX_BULK)], tuner: TunerDep
+    configs: Annotated[list[LoopConfig], Body(max_length=MAX_BULK)],
+    tuner: TunerDep,
+    request: Request,
 ) -> BulkRegistered:
     """Register many loops in one call (a large site), all or none: 409 if any id is taken."""
-    return BulkRegistered(registered=tuner.register_many(configs))
+    ids = tuner.register_many(configs)
+    first = ", ".join(repr(i) for i in ids[:5]) + (", ..." if len(ids) > 5 else "")
+    _event(tuner, request, "registered", "%d loops registered in bulk: %s", len(ids), first)
+    return BulkRegistered(registered=ids)
 
 
 @loops.get("")
@@ -109,25 +132,32 @@ def get_loop(loop_id: str, tuner: TunerDep) -> LoopView:
 
 
 @loops.patch("/{loop_id}", dependencies=mutating, responses={404: {}, 422: {}})
-def patch_loop(loop_id: str, patch: LoopPatch, tuner: TunerDep) -> LoopView:
+def patch_loop(loop_id: str, patch: LoopPatch, tuner: TunerDep, request: Request) -> LoopView:
     """Change the mode, forgetting factor or safety limits."""
     try:
-        return tuner.patch(loop_id, patch)
+        view = tuner.patch(loop_id, patch)
     except ValueError as exc:
         raise HTTPException(422, str(exc)) from None
+    _event(tuner, request, "patched", "loop %r config changed: %s",
+           loop_id, patch.model_dump_json(exclude_unset=True))  # fmt: skip
+    return view
 
 
 @loops.post("/{loop_id}/reset", dependencies=mutating, responses={404: {}})
-def reset_loop(loop_id: str, tuner: TunerDep) -> LoopView:
+def reset_loop(loop_id: str, tuner: TunerDep, request: Request) -> LoopView:
     """Zero hidden state and integral, and the registered gains published (a frozen loop:
     the agent state only, its gains are left alone)."""
-    return tuner.reset(loop_id)
+    view = tuner.reset(loop_id)
+    _event(tuner, request, "reset", "loop %r reset (kp=%.6g ki=%.6g, seq %d)",
+           loop_id, view.kp, view.ki, view.seq)  # fmt: skip
+    return view
 
 
 @loops.delete("/{loop_id}", status_code=204, dependencies=mutating, responses={404: {}})
-def delete_loop(loop_id: str, tuner: TunerDep) -> None:
+def delete_loop(loop_id: str, tuner: TunerDep, request: Request) -> None:
     """Unregister a loop; its audit log is kept."""
     tuner.delete(loop_id)
+    _event(tuner, request, "deleted", "loop %r deleted", loop_id)
 
 
 @loops.get("/{loop_id}/history", responses={404: {}})
@@ -139,6 +169,13 @@ def loop_history(
 ) -> HistoryPage:
     """The loop's audit log, newest first."""
     return tuner.history(loop_id, offset, limit)
+
+
+def _event(tuner: Tuner, request: Request, kind: str, message: str, *args: object) -> None:
+    """One INFO line per admin change (rate-limited per kind), with the caller's address."""
+    client = request.client.host if request.client else "?"
+    tuner.metrics.events.limiter.log(logging.INFO, kind, message + " via the API from %s",
+                                     *args, client)  # fmt: skip
 
 
 ops = APIRouter(tags=["operations"])
@@ -195,29 +232,93 @@ def _is_loopback(host: str) -> bool:
         return False
 
 
-def create_app(settings: Settings, agent: Agent | None = None) -> FastAPI:
-    """The admin API with a tuner owned by its lifespan (``agent``: override, for tests)."""
+def _check_statuses(tuner: Tuner, watch: StatusWatch) -> None:
+    """Log status changes of the loops and the ends of rejection bursts."""
+    with tuner.table.lock:
+        statuses = table_statuses(tuner.table, time.time())
+    watch.check(statuses)
+    tuner.metrics.flush_logs()
+
+
+async def _watch_statuses(tuner: Tuner, interval_s: float) -> None:
+    watch = StatusWatch(tuner.metrics.events)
+    while True:
+        try:
+            await asyncio.to_thread(_check_statuses, tuner, watch)
+        except Exception:  # never let the log's watcher take the API down
+            log.exception("status check failed")
+        await asyncio.sleep(interval_s)
+
+
+def _docs_page(app: FastAPI) -> str:
+    """The API's reference as plain HTML, from its OpenAPI document."""
+    spec = app.openapi()
+    e = html.escape
+    parts = [
+        "<!doctype html><html><head><meta charset='utf-8'>",
+        f"<title>{e(spec['info']['title'])}</title></head><body>",
+        f"<h1>{e(spec['info']['title'])} (API {e(spec['info']['version'])})</h1>",
+        f"<p>{e(spec['info'].get('summary', ''))}</p>",
+        "<p>Machine-readable: <a href='openapi.json'>openapi.json</a> (OpenAPI "
+        f"{e(spec['openapi'])}; load it into any OpenAPI viewer).</p>",
+    ]
+    for path, methods in spec["paths"].items():
+        for method, op in methods.items():
+            parts.append(f"<h2><code>{e(method.upper())} {e(path)}</code></h2>")
+            parts.append(f"<p>{e(op.get('description') or op.get('summary') or '')}</p>")
+            params = op.get("parameters", [])
+            if params:
+                items = "".join(
+                    f"<li><code>{e(p['name'])}</code> ({e(p['in'])}"
+                    f"{', required' if p.get('required') else ''}): "
+                    f"<code>{e(str(p.get('schema', {})))}</code></li>"
+                    for p in params
+                )
+                parts.append(f"<ul>{items}</ul>")
+            body = op.get("requestBody", {}).get("content", {}).get("application/json")
+            if body:
+                parts.append(f"<p>Body: <code>{e(str(body.get('schema', {})))}</code></p>")
+            codes = ", ".join(e(code) for code in op.get("responses", {}))
+            parts.append(f"<p>Responses: {codes}</p>")
+    parts.append("</body></html>")
+    return "".join(parts)
+
+
+def create_app(
+    settings: Settings, agent: Agent | None = None, tuner: Tuner | None = None
+) -> FastAPI:
+    """The admin API with a tuner owned by its lifespan (``agent``: override, for tests).
+
+    ``tuner``: one already started (``pitune tuner`` starts it before the server, so a
+    start-up failure is reported in one line); the lifespan stops it at shutdown."""
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         _warn_if_open(settings)
-        tuner = Tuner(settings, agent)
-        tuner.start()
-        app.state.tuner = tuner
+        owned = tuner if tuner is not None else Tuner(settings, agent).start()
+        app.state.tuner = owned
+        watcher = asyncio.create_task(_watch_statuses(owned, STATUS_CHECK_S))
         try:
             yield
         finally:
-            tuner.stop()
+            watcher.cancel()
+            owned.stop()
 
     app = FastAPI(
         title="pitune tuner",
         summary="Online PI tuning with a meta-RL agent over Zenoh: admin API.",
         version="1",
         lifespan=lifespan,
+        docs_url=None,  # Swagger UI and ReDoc load their code from a CDN
+        redoc_url=None,
     )
     app.state.settings = settings
     app.include_router(loops)
     app.include_router(ops)
+
+    @app.get("/docs", include_in_schema=False, response_class=HTMLResponse)
+    def docs() -> HTMLResponse:
+        return HTMLResponse(_docs_page(app))
 
     @app.exception_handler(UnknownLoop)
     async def unknown_loop(request: Request, exc: UnknownLoop) -> JSONResponse:

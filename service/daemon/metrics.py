@@ -1,7 +1,10 @@
 """Prometheus metrics of one tuner, and rate-limited logging of rejected input.
 
 Each tuner owns its registry, so several tuners in one process (tests) never share
-counters.
+counters. The registry also carries the process's metrics (``process_*``: CPU seconds,
+resident memory, open and maximum file descriptors, start time; ``python_gc_*``;
+``python_info``), and no counter has a ``_created`` series (``disable_created_metrics``:
+they double the exposition and no dashboard reads them).
 """
 
 from __future__ import annotations
@@ -9,17 +12,32 @@ from __future__ import annotations
 import logging
 import time
 
-from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
+from prometheus_client import (
+    CollectorRegistry,
+    Counter,
+    Gauge,
+    GCCollector,
+    Histogram,
+    PlatformCollector,
+    ProcessCollector,
+    disable_created_metrics,
+    generate_latest,
+)
 
+from service.daemon.logs import EventLog
 from service.wire.protocol import LoopStatus, Mode, RejectReason
 
 log = logging.getLogger("pitune.tuner")
+disable_created_metrics()  # process-wide: no `_created` series beside any counter
 
 
 class Metrics:
     def __init__(self) -> None:
         self.registry = CollectorRegistry()
         r = self.registry
+        ProcessCollector(registry=r)
+        PlatformCollector(registry=r)
+        GCCollector(registry=r)
         self.samples_received = Counter(
             "pitune_samples_received", "Sample messages received on the bus.", registry=r
         )
@@ -72,6 +90,14 @@ class Metrics:
         for mode in (Mode.auto, Mode.advisory):  # frozen loops publish nothing
             self.updates_published.labels(mode.value)
         self._rejections = RateLimitedLog(log)
+        self.events = EventLog()
+        """INFO lines of loop changes: call ``events.audit(rows)`` with the audit rows
+        committed (see :mod:`service.daemon.logs`)."""
+
+    def flush_logs(self) -> None:
+        """Sum up rejection bursts and suppressed event lines whose interval is over."""
+        self._rejections.flush()
+        self.events.flush()
 
     def reject(self, reason: RejectReason, loop_id: str | None, detail: str) -> None:
         """Count a rejected sample and log it (at most once per interval and reason).
@@ -120,3 +146,17 @@ class RateLimitedLog:
         self._last[key] = now
         self.logger.warning(message)
         return True
+
+    def flush(self) -> None:
+        """Log the count of messages suppressed in intervals that are over: the end of
+        a burst is reported even if no message of its key follows."""
+        now = time.monotonic()
+        for key, count in list(self._suppressed.items()):
+            if now - self._last.get(key, -float("inf")) >= self.interval_s:
+                del self._suppressed[key]
+                self.logger.warning(
+                    "%d more %s messages suppressed in the last %.0f s",
+                    count,
+                    key,
+                    now - self._last[key],
+                )

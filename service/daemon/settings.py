@@ -2,21 +2,31 @@
 
 Precedence, highest first: explicit values (command-line flags), environment
 variables, the config file (``--config`` or ``PITUNE_CONFIG``), defaults. List values
-in the environment are JSON, e.g. ``PITUNE_ZENOH_CONNECT='["tcp/10.0.0.5:7447"]'``.
+in the environment are JSON or comma-separated, e.g.
+``PITUNE_ZENOH_CONNECT='["tcp/10.0.0.5:7447"]'`` or
+``PITUNE_ZENOH_CONNECT=tcp/10.0.0.5:7447,tcp/10.0.0.6:7447``. Choices are taken in any
+case (``PITUNE_LOG_LEVEL=INFO``). ``PITUNE_DB`` is an alias of ``PITUNE_DB_PATH``; any
+other ``PITUNE_*`` variable the tuner does not know is reported by
+:func:`unknown_variables` (the daemon warns, naming the closest setting).
 """
 
 from __future__ import annotations
 
+import difflib
+import json
 import os
 import re
 import socket
+from collections.abc import Mapping
 from contextvars import ContextVar
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import Field, SecretStr, field_validator
+from pydantic.fields import FieldInfo
 from pydantic_settings import (
     BaseSettings,
+    NoDecode,
     PydanticBaseSettingsSource,
     SettingsConfigDict,
     TomlConfigSettingsSource,
@@ -25,6 +35,22 @@ from pydantic_settings import (
 from service.wire.protocol import DEFAULT_PREFIX, LOOP_ID_PATTERN, Keys
 
 _config_file: ContextVar[Path | None] = ContextVar("pitune_config_file", default=None)
+ENV_PREFIX = "PITUNE_"
+ENV_ALIASES = {"PITUNE_DB": "db_path"}
+"""Other names accepted for a setting's variable (the flag is ``--db``)."""
+OTHER_VARIABLES = frozenset(
+    {
+        "PITUNE_CONFIG",  # the config file
+        # read by other pitune programs or by deploy/docker-compose.yml, not the tuner
+        "PITUNE_API_BIND",
+        "PITUNE_ZENOH_BIND",
+        "PITUNE_ZENOH_SECRETS",
+        "PITUNE_TLS_DIR",
+        "PITUNE_OPCUA_PASSWORD",
+    }
+)
+Endpoints = Annotated[list[str], NoDecode]
+"""Zenoh endpoints: a list, or in the environment JSON or a comma-separated list."""
 
 
 def default_instance_id() -> str:
@@ -46,13 +72,21 @@ class Settings(BaseSettings):
         default_factory=default_instance_id
     )
     zenoh_mode: Literal["peer", "client", "router"] = "peer"
-    zenoh_listen: list[str] = ["tcp/127.0.0.1:7447"]
-    zenoh_connect: list[str] = []
+    zenoh_listen: Endpoints = Field(
+        ["tcp/127.0.0.1:7447"], description="Zenoh endpoints to listen on."
+    )
+    zenoh_connect: Endpoints = Field(
+        [], description="Zenoh endpoints (routers or peers) to connect to."
+    )
     zenoh_config: Path | None = Field(
         None, description="Zenoh JSON5 config file (TLS, auth); the options above override it."
     )
     zenoh_multicast_scouting: bool = False
-    db_path: Path = Path("pitune.db")
+    db_path: Path = Field(
+        Path("pitune.db"),
+        description="SQLite database (also PITUNE_DB); one tuner at a time owns it "
+        "(a lock on <db>.lock).",
+    )
     agent_weights: str | None = Field(
         None,
         description="Agent weights file; 'untrained' for a random agent (tests only). "
@@ -88,7 +122,36 @@ class Settings(BaseSettings):
         description="Seconds of failing store commits after which the daemon exits "
         "(status 74) for its supervisor to restart it from the store.",
     )
-    log_level: Literal["debug", "info", "warning", "error"] = "info"
+    log_level: Literal["debug", "info", "warning", "error"] = Field(
+        "info", description="Least severe log level written (any case)."
+    )
+    log_format: Literal["text", "json"] = Field(
+        "text",
+        description="Log lines as text (timestamp, level, logger, message) or JSON lines.",
+    )
+
+    @field_validator("log_level", "log_format", "zenoh_mode", "inference_precision", mode="before")
+    @classmethod
+    def _any_case(cls, value: object) -> object:
+        """``INFO``, ``Info`` and ``info`` are the same choice (``warn``: ``warning``)."""
+        if isinstance(value, str):
+            value = value.strip().lower()
+            return "warning" if value == "warn" else value
+        return value
+
+    @field_validator("zenoh_listen", "zenoh_connect", mode="before")
+    @classmethod
+    def _endpoint_list(cls, value: object) -> object:
+        """A JSON list or a comma-separated list of endpoints (the environment's text)."""
+        if not isinstance(value, str):
+            return value
+        text = value.strip()
+        if text.startswith("["):
+            try:
+                return json.loads(text)
+            except json.JSONDecodeError as exc:
+                raise ValueError(f"not a JSON list of endpoints: {exc}") from None
+        return [part.strip() for part in text.split(",") if part.strip()]
 
     @field_validator("api_token", mode="before")
     @classmethod
@@ -118,12 +181,57 @@ class Settings(BaseSettings):
         file_secret_settings: PydanticBaseSettingsSource,
     ) -> tuple[PydanticBaseSettingsSource, ...]:
         path = _config_file.get() or os.environ.get("PITUNE_CONFIG")
-        sources: tuple[PydanticBaseSettingsSource, ...] = (init_settings, env_settings)
+        sources: tuple[PydanticBaseSettingsSource, ...] = (
+            init_settings,
+            env_settings,
+            _AliasEnvSource(settings_cls),
+        )
         if path:
             if not Path(path).is_file():
                 raise FileNotFoundError(f"config file not found: {path}")
             sources += (TomlConfigSettingsSource(settings_cls, toml_file=path),)
         return sources
+
+
+class _AliasEnvSource(PydanticBaseSettingsSource):
+    """:data:`ENV_ALIASES`: below the settings' own variables, above the config file."""
+
+    def get_field_value(self, field: FieldInfo, field_name: str) -> tuple[Any, str, bool]:
+        return None, field_name, False
+
+    def __call__(self) -> dict[str, Any]:
+        values: dict[str, Any] = {}
+        for variable, field in ENV_ALIASES.items():
+            own = ENV_PREFIX + field.upper()
+            if variable in os.environ and own not in os.environ:
+                values[field] = os.environ[variable]
+        return values
+
+
+def setting_variables() -> dict[str, str]:
+    """Each setting's environment variable -> its field name."""
+    return {ENV_PREFIX + name.upper(): name for name in Settings.model_fields}
+
+
+def unknown_variables(environ: Mapping[str, str] | None = None) -> list[str]:
+    """One message per ``PITUNE_*`` variable the tuner does not read, with the closest
+    setting's variable when one is close (a typo, or a name from another program)."""
+    environ = os.environ if environ is None else environ
+    known = setting_variables()
+    messages = []
+    for name in sorted(environ):
+        if (
+            not name.startswith(ENV_PREFIX)
+            or name in known
+            or name in ENV_ALIASES
+            or name in OTHER_VARIABLES
+            or name.startswith("PITUNE_TEST_")
+        ):
+            continue
+        close = difflib.get_close_matches(name, list(known), n=1, cutoff=0.6)
+        hint = f"; did you mean {close[0]}?" if close else ""
+        messages.append(f"environment variable {name} is not a tuner setting, ignored{hint}")
+    return messages
 
 
 def load_settings(config_file: Path | str | None = None, **overrides: object) -> Settings:

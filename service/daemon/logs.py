@@ -1,0 +1,198 @@
+"""The tuner's logging: one line format for pitune's and uvicorn's loggers, and the
+rate-limited INFO lines an operator reads (registrations, gain changes, adoptions,
+status changes).
+
+:func:`configure` installs one handler on the root logger, text (``timestamp level
+logger: message``) or JSON lines (``{"ts", "level", "logger", "message"}``, plus
+``exc`` with a traceback); uvicorn runs with ``log_config=None`` so its loggers
+propagate to that handler instead of printing their own format.
+
+:class:`EventLog` turns audit rows into one INFO line each, at most ``burst`` lines per
+kind (registered, agent, adopted, reset, ...) and ``interval_s``; the rest are counted
+and summed up in one line once the interval is over, so a 10,000-loop site stepping
+every RL period writes a few lines per interval, not 10,000. :class:`StatusWatch`
+logs the loops whose status (tuning, quiet, stale, manual, ...) changed since the last
+check, through the same limiter.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import logging
+import sys
+import threading
+import time
+from collections.abc import Iterable
+from typing import TextIO
+
+TEXT_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+UVICORN_LOGGERS = ("uvicorn", "uvicorn.error", "uvicorn.access", "uvicorn.asgi")
+log = logging.getLogger("pitune.events")
+
+
+def _timestamp(record: logging.LogRecord) -> str:
+    """ISO 8601, UTC, milliseconds: sortable and unambiguous across time zones."""
+    moment = dt.datetime.fromtimestamp(record.created, dt.UTC)
+    return moment.isoformat(timespec="milliseconds").replace("+00:00", "Z")
+
+
+class TextFormatter(logging.Formatter):
+    def __init__(self) -> None:
+        super().__init__(TEXT_FORMAT)
+
+    def formatTime(self, record: logging.LogRecord, datefmt: str | None = None) -> str:  # noqa: N802
+        return _timestamp(record)
+
+
+class JsonFormatter(logging.Formatter):
+    """One JSON object per line; a traceback goes into ``exc``, never across lines."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        entry = {
+            "ts": _timestamp(record),
+            "level": record.levelname,
+            "logger": record.name,
+            "message": record.getMessage(),
+        }
+        if record.exc_info:
+            entry["exc"] = self.formatException(record.exc_info)
+        return json.dumps(entry, ensure_ascii=False, default=str)
+
+
+def configure(level: str = "info", fmt: str = "text", stream: TextIO | None = None) -> None:
+    """One handler on the root logger for every logger of the process, uvicorn's too."""
+    handler = logging.StreamHandler(sys.stderr if stream is None else stream)
+    handler.setFormatter(JsonFormatter() if fmt == "json" else TextFormatter())
+    root = logging.getLogger()
+    for old in list(root.handlers):
+        root.removeHandler(old)
+    root.addHandler(handler)
+    root.setLevel(level.upper())
+    for name in UVICORN_LOGGERS:  # uvicorn's own handlers (if any) would print twice
+        logger = logging.getLogger(name)
+        logger.handlers.clear()
+        logger.propagate = True
+
+
+class Limiter:
+    """At most ``burst`` lines per key and ``interval_s``; the rest counted and summed
+    up in one line (at the next line of that key after the interval, or :meth:`flush`)."""
+
+    def __init__(
+        self,
+        logger: logging.Logger,
+        burst: int = 20,
+        interval_s: float = 10.0,
+        clock=time.monotonic,
+    ) -> None:
+        self.logger = logger
+        self.burst = burst
+        self.interval_s = interval_s
+        self.clock = clock
+        self._lock = threading.Lock()
+        self._window: dict[str, tuple[float, int, int]] = {}
+        """key -> (window start, lines logged, lines suppressed)."""
+
+    def log(self, level: int, key: str, message: str, *args: object) -> bool:
+        now = self.clock()
+        with self._lock:
+            start, logged, suppressed = self._window.get(key, (now, 0, 0))
+            if now - start >= self.interval_s:
+                self._summary(key, suppressed, now - start)
+                start, logged, suppressed = now, 0, 0
+            if logged >= self.burst:
+                self._window[key] = (start, logged, suppressed + 1)
+                return False
+            self._window[key] = (start, logged + 1, suppressed)
+        self.logger.log(level, message, *args)
+        return True
+
+    def flush(self) -> None:
+        """Sum up the windows that are over (call it now and then: a burst may be the
+        last of its kind for a long time)."""
+        now = self.clock()
+        with self._lock:
+            for key, (start, _logged, suppressed) in list(self._window.items()):
+                if now - start >= self.interval_s:
+                    self._summary(key, suppressed, now - start)
+                    del self._window[key]
+
+    def _summary(self, key: str, suppressed: int, seconds: float) -> None:
+        if suppressed:
+            self.logger.info("%d more %s events not logged in %.0f s", suppressed, key, seconds)
+
+
+def _gains(kp: float | None, ki: float | None) -> str:
+    return "none" if kp is None else f"kp={kp:.6g} ki={ki:.6g}"
+
+
+class EventLog:
+    """One INFO line per change of a loop (from its audit row), rate-limited per kind."""
+
+    def __init__(self, logger: logging.Logger = log, burst: int = 20, interval_s: float = 10.0):
+        self.limiter = Limiter(logger, burst, interval_s)
+
+    def audit(self, rows: Iterable[tuple]) -> None:
+        """Log audit rows (:data:`service.engine.audit.AUDIT_COLUMNS` order): agent
+        updates, adoptions, resets, registrations, patches, deletions."""
+        if not self.limiter.logger.isEnabledFor(logging.INFO):
+            return
+        for loop_id, _wall, t, seq, mode, reason, kp0, ki0, kp1, ki1, detail in rows:
+            at = "" if t is None else f" at t={t:g}"
+            if reason == "registered":
+                message = f"loop {loop_id!r} registered ({mode}, {_gains(kp1, ki1)}, seq {seq})"
+            elif reason == "deleted":
+                message = f"loop {loop_id!r} deleted ({mode}, last {_gains(kp0, ki0)})"
+            elif reason == "patched":
+                message = f"loop {loop_id!r} config changed: {detail} (now {mode})"
+            elif reason == "adopted":
+                message = (
+                    f"loop {loop_id!r} adopted the gateway's gains {_gains(kp1, ki1)} "
+                    f"(were {_gains(kp0, ki0)}){at}: an operator's change"
+                )
+            else:  # agent, reset, ...: gains published
+                message = (
+                    f"loop {loop_id!r} gains {_gains(kp0, ki0)} -> {_gains(kp1, ki1)} "
+                    f"({reason}, {mode}, seq {seq}){at}"
+                )
+            self.limiter.log(logging.INFO, str(reason), "%s", message)
+
+    def flush(self) -> None:
+        self.limiter.flush()
+
+
+class StatusWatch:
+    """Logs the loops whose status changed since the previous :meth:`check`."""
+
+    def __init__(self, events: EventLog) -> None:
+        self.events = events
+        self._last: dict[str, str] = {}
+
+    def check(self, statuses: dict[str, str]) -> list[tuple[str, str | None, str]]:
+        """``statuses``: loop id -> status now. Logs and returns (id, old, new) for each
+        change; a loop seen for the first time is not a change (its registration is)."""
+        changes = [
+            (loop_id, self._last[loop_id], status)
+            for loop_id, status in statuses.items()
+            if loop_id in self._last and self._last[loop_id] != status
+        ]
+        self._last = dict(statuses)
+        for loop_id, old, new in changes:
+            self.events.limiter.log(
+                logging.INFO, "status", "loop %r status %s -> %s", loop_id, old, new
+            )
+        return changes
+
+
+def table_statuses(table, wall: float) -> dict[str, str]:
+    """Every loop's status from a :class:`~service.engine.table.LoopTable` (hold its
+    lock): one vectorised pass."""
+    import numpy as np
+
+    from service.engine.table import STATUSES
+
+    ids = list(table.slot_of)
+    slots = np.fromiter(table.slot_of.values(), np.int64, len(ids))
+    codes = table.statuses(slots, wall).tolist() if ids else []
+    return {loop_id: STATUSES[code].value for loop_id, code in zip(ids, codes, strict=True)}
