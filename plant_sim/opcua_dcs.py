@@ -427,7 +427,7 @@ def loop_specs(args: argparse.Namespace) -> list:
     specs = list(args.loops or [])
     rng = np.random.default_rng(args.seed)
     for k in range(args.many_foptd):
-        K, tau = rng.uniform(0.5, 2.0), rng.uniform(10.0, 60.0)
+        K, tau = rng.uniform(0.5, 2.0), rng.uniform(3.0, 12.0)
         theta = rng.uniform(0.1, 0.5) * tau
         specs.append(LoopSpec.parse("foptd", f"F{k:04d}:K={K:.3f},tau={tau:.2f},theta={theta:.2f}"))
     specs = specs or list(DEFAULT_LOOPS)
@@ -494,20 +494,24 @@ async def serve(args: argparse.Namespace, stop: asyncio.Event) -> int:
             if args.wait_for_gateway:
                 await dcs.wait_for_client(MAPPED_NODES * len(loops), stop)
                 print("dcs: the gateway monitors every block: plant clock started", flush=True)
-            await pace(dcs, args, stop, writers)
-    print("dcs stopped", flush=True)
+            scans, late = await pace(dcs, args, stop, writers)
+    print(f"dcs stopped after {scans} scans (worst scan started {late:.3f} s late)",
+          flush=True)  # fmt: skip
     return 0
 
 
-async def pace(dcs: SimulatedDcs, args, stop: asyncio.Event, writers: dict) -> None:
-    """Scan at ``speed`` times real time until ``--duration`` or ``stop``."""
+async def pace(dcs: SimulatedDcs, args, stop: asyncio.Event, writers: dict) -> tuple[int, float]:
+    """Scan at ``speed`` times real time until ``--duration`` or ``stop``; the number of
+    scans and how far behind schedule the latest one started (s)."""
     last = round(args.duration / args.scan) if args.duration is not None else None
     every = round(args.progress / args.scan) if args.progress > 0 else 0
     start = time.monotonic()
     k = 0
+    late = 0.0
     while not stop.is_set() and (last is None or k < last):
         if args.speed > 0:
             delay = start + k * args.scan / args.speed - time.monotonic()
+            late = max(late, -delay)
             if delay > 0:
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(stop.wait(), delay)
@@ -524,6 +528,7 @@ async def pace(dcs: SimulatedDcs, args, stop: asyncio.Event, writers: dict) -> N
             print(f"t={s.t:9.0f}s {dcs.loops[0].loop_id}: sp={s.sp:.4g} pv={s.pv:.4g} "
                   f"op={s.op:.4g} kp={s.kp:.4g} ki={s.ki:.4g}", flush=True)  # fmt: skip
         k += 1
+    return k, late
 
 
 def run(args: argparse.Namespace) -> int:

@@ -25,6 +25,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                     choices=("debug", "info", "warning", "error"))  # fmt: skip
     op.add_argument("--status-interval", type=float, default=60.0,
                     help="status line every N s (60)")  # fmt: skip
+    op.add_argument("--report", type=Path, default=None, metavar="JSON",
+                    help="write counters and write latencies here at exit")  # fmt: skip
     certs = sub.add_parser("certs", help="generate a self-signed OPC UA certificate and key")
     certs.add_argument("--out", type=Path, required=True, help="folder for the files")
     certs.add_argument("--name", default="gateway", help="file stem: NAME-cert.der, NAME-key.pem")
@@ -61,10 +63,10 @@ def run(args: argparse.Namespace) -> int:
         return 2
     if args.check:
         return asyncio.run(check(site))
-    return asyncio.run(serve(site, args.status_interval))
+    return asyncio.run(serve(site, args.status_interval, args.report))
 
 
-async def serve(site, status_interval: float) -> int:
+async def serve(site, status_interval: float, report: Path | None = None) -> int:
     import zenoh
 
     from service.gateways.opcua.bridge import OpcUaGateway, RegistrationError
@@ -94,6 +96,10 @@ async def serve(site, status_interval: float) -> int:
             return 1
         finally:
             print(f"gateway stopped: {gateway.status_line()}; {dict(gateway.stats)}", flush=True)
+            if report is not None:
+                import json
+
+                report.write_text(json.dumps(gateway.report(), indent=2) + "\n")
     finally:
         session.close()
     return 0

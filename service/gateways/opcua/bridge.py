@@ -335,6 +335,18 @@ class OpcUaGateway:
                 f"{s['samples_dropped']}); writes {s['written']}, refused "
                 f"{sum(v for k, v in s.items() if k.startswith('refused'))}")  # fmt: skip
 
+    def report(self) -> dict:
+        """Counters and write latencies (s, update taken off the bus to verified write)."""
+        lat = sorted(self.latencies)
+
+        def pct(q: float) -> float | None:
+            return lat[min(len(lat) - 1, int(q * len(lat)))] if lat else None
+
+        return {"loops": len(self.loops), "counters": dict(self.stats),
+                "buffered": len(self.outbox), "write_latency_s": {
+                    "n": len(lat), "p50": pct(0.5), "p99": pct(0.99),
+                    "max": lat[-1] if lat else None}}  # fmt: skip
+
     def _take_updates(self) -> None:
         now = time.monotonic()
         for update in self.bus.gains():
