@@ -70,3 +70,55 @@ def test_an_empty_api_token_is_no_token(monkeypatch, value):
     assert load_settings().api_token is None
     monkeypatch.setenv("PITUNE_API_TOKEN", "s3cret")
     assert load_settings().api_token.get_secret_value() == "s3cret"
+
+
+def test_choices_in_any_case_and_endpoints_as_json_or_comma_separated(monkeypatch):
+    monkeypatch.setenv("PITUNE_LOG_LEVEL", "INFO")
+    monkeypatch.setenv("PITUNE_LOG_FORMAT", "Json")
+    monkeypatch.setenv("PITUNE_ZENOH_MODE", "CLIENT")
+    monkeypatch.setenv("PITUNE_ZENOH_CONNECT", "tcp/10.0.0.5:7447, tcp/10.0.0.6:7447")
+    monkeypatch.setenv("PITUNE_ZENOH_LISTEN", "tcp/0.0.0.0:7447")
+    s = load_settings()
+    assert (s.log_level, s.log_format, s.zenoh_mode) == ("info", "json", "client")
+    assert s.zenoh_connect == ["tcp/10.0.0.5:7447", "tcp/10.0.0.6:7447"]
+    assert s.zenoh_listen == ["tcp/0.0.0.0:7447"]
+    monkeypatch.setenv("PITUNE_ZENOH_CONNECT", '["tcp/10.0.0.5:7447"]')
+    monkeypatch.setenv("PITUNE_LOG_LEVEL", "warn")
+    s = load_settings()
+    assert s.zenoh_connect == ["tcp/10.0.0.5:7447"] and s.log_level == "warning"
+    monkeypatch.setenv("PITUNE_ZENOH_CONNECT", "")
+    assert load_settings().zenoh_connect == []
+    monkeypatch.setenv("PITUNE_ZENOH_CONNECT", '["tcp/10.0.0.5:7447"')
+    with pytest.raises(ValidationError, match="JSON"):
+        load_settings()
+
+
+def test_pitune_db_is_an_alias_and_unknown_variables_are_named(tmp_path, monkeypatch):
+    from service.daemon.settings import unknown_variables
+
+    config = tmp_path / "pitune.toml"
+    config.write_text('db_path = "/from/file.db"\n')
+    monkeypatch.setenv("PITUNE_DB", "/from/alias.db")
+    assert str(load_settings(config).db_path) == "/from/alias.db"  # over the file
+    assert str(load_settings(config, db_path="/flag.db").db_path) == "/flag.db"
+    monkeypatch.setenv("PITUNE_DB_PATH", "/from/own.db")
+    assert str(load_settings(config).db_path) == "/from/own.db"  # its own name wins
+    environ = {
+        "PITUNE_DB": "x", "PITUNE_API_TOKEN": "t", "PITUNE_CONFIG": "c", "PITUNE_TLS_DIR": "d",
+        "PITUNE_LOGLEVEL": "INFO", "PITUNE_SNAPSHOT_INTERVAL": "5", "PITUNE_XYZZY": "1",
+        "HOME": "/root",
+    }  # fmt: skip
+    assert unknown_variables(environ) == [
+        "environment variable PITUNE_LOGLEVEL is not a tuner setting, ignored; "
+        "did you mean PITUNE_LOG_LEVEL?",
+        "environment variable PITUNE_SNAPSHOT_INTERVAL is not a tuner setting, ignored; "
+        "did you mean PITUNE_SNAPSHOT_INTERVAL_S?",
+        "environment variable PITUNE_XYZZY is not a tuner setting, ignored",
+    ]
+
+
+def test_flags_take_choices_in_any_case():
+    parser = argparse.ArgumentParser()
+    daemon.add_arguments(parser)
+    args = parser.parse_args(["--log-level", "DEBUG", "--zenoh-mode", "Client"])
+    assert (args.log_level, args.zenoh_mode) == ("debug", "client")

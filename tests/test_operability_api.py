@@ -1,0 +1,218 @@
+"""Admin API and logs of an operated tuner (issues 17 and 18 item 7): documentation
+served without a CDN, process metrics without ``_created`` series, pagination that
+never gives a 5xx, one log format (text or JSON) for pitune and uvicorn, INFO lines of
+loop changes, rate-limited."""
+
+import io
+import json
+import logging
+import re
+import signal
+
+import pytest
+from fastapi.testclient import TestClient
+
+from service.daemon import logs
+from service.daemon.api import MAX_OFFSET, create_app
+from service.daemon.metrics import Metrics
+from service.engine.audit import audit_row
+from service.procs import TunerProcess
+from tests.tuner_support import loop_body, tuner_settings
+
+pytestmark = pytest.mark.timeout(90)
+
+
+@pytest.fixture
+def root_logger():
+    """The root logger's handlers and level, restored after a test that configures it."""
+    root = logging.getLogger()
+    saved = (list(root.handlers), root.level)
+    yield
+    root.handlers[:] = saved[0]
+    root.setLevel(saved[1])
+
+
+@pytest.fixture
+def client(tmp_path):
+    with TestClient(create_app(tuner_settings(tmp_path))) as c:
+        yield c
+
+
+def test_docs_need_no_internet(client):
+    page = client.get("/docs")
+    assert page.status_code == 200 and page.headers["content-type"].startswith("text/html")
+    assert "POST /loops" in page.text and "openapi.json" in page.text
+    assert not re.search(r"(src|href)=['\"]?(https?:)?//", page.text)  # no external asset
+    assert "<script" not in page.text
+    assert client.get("/redoc").status_code == 404  # ReDoc loads from a CDN: off
+    assert client.get("/openapi.json").json()["paths"]["/loops"]
+
+
+@pytest.mark.parametrize("path", ["/loops", "/loops/L1/history"])
+@pytest.mark.parametrize(
+    "query",
+    [
+        "offset=100000000000000000000",
+        "offset=9223372036854775808",
+        "offset=9223372036854775807",
+        f"offset={MAX_OFFSET + 1}",
+        "offset=-1",
+        "limit=100000000000000000000",
+        "limit=0",
+        "offset=1e3",
+    ],
+)
+def test_huge_pagination_values_are_4xx_never_5xx(client, path, query):
+    client.post("/loops", json=loop_body("L1"))
+    r = client.get(f"{path}?{query}")
+    assert r.status_code == 422, r.text
+
+
+@pytest.mark.parametrize("path", ["/loops", "/loops/L1/history"])
+def test_the_largest_offset_is_an_empty_page(client, path):
+    client.post("/loops", json=loop_body("L1"))
+    r = client.get(f"{path}?offset={MAX_OFFSET}")
+    assert r.status_code == 200 and r.json()["items"] == [], r.text
+
+
+def test_metrics_have_process_metrics_and_no_created_series(client):
+    client.post("/loops", json=loop_body("L1"))
+    text = client.get("/metrics").text
+    for name in (
+        "process_cpu_seconds_total",
+        "process_resident_memory_bytes",
+        "process_open_fds",
+        "process_max_fds",
+        "python_gc_collections_total",
+        "python_info",
+        "pitune_samples_received_total",
+    ):
+        assert re.search(rf"^{name}(\{{| )", text, re.M), name
+    assert "_created" not in text
+
+
+def test_json_log_lines(root_logger):
+    stream = io.StringIO()
+    logs.configure("INFO", "json", stream)
+    logging.getLogger("pitune.test").info("hello %s", "world")
+    logging.getLogger("uvicorn.error").info("Application startup complete.")
+    try:
+        raise ValueError("boom")
+    except ValueError:
+        logging.getLogger("pitune.test").exception("failed")
+    logging.getLogger("pitune.test").debug("not shown")
+    lines = stream.getvalue().splitlines()
+    entries = [json.loads(line) for line in lines]
+    assert [(e["level"], e["logger"], e["message"]) for e in entries] == [
+        ("INFO", "pitune.test", "hello world"),
+        ("INFO", "uvicorn.error", "Application startup complete."),
+        ("ERROR", "pitune.test", "failed"),
+    ]
+    assert re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}Z", entries[0]["ts"])
+    assert "ValueError: boom" in entries[2]["exc"]
+
+
+def test_text_log_lines_have_timestamp_level_logger(root_logger):
+    stream = io.StringIO()
+    logs.configure("info", "text", stream)
+    logging.getLogger("uvicorn.access").info('%s - "%s %s"', "127.0.0.1", "GET", "/x")
+    line = stream.getvalue().strip()
+    assert re.fullmatch(
+        r'\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}Z INFO uvicorn\.access: 127\.0\.0\.1 - "GET /x"',
+        line,
+    ), line
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_event_lines_per_change_rate_limited(caplog):
+    clock = Clock()
+    events = logs.EventLog(logging.getLogger("pitune.events"), burst=3, interval_s=10.0)
+    events.limiter.clock = clock
+    rows = [
+        audit_row(f"L{i}", 0.0, 5.0, 1, "auto", "agent", (1.0, 0.1), (1.5, 0.15)) for i in range(10)
+    ]
+    adopted = audit_row("L0", 0.0, 6.0, 1, "auto", "adopted", (1.5, 0.15), (2.0, 0.2))
+    with caplog.at_level(logging.INFO, "pitune.events"):
+        events.audit(rows + [adopted])
+        messages = [r.getMessage() for r in caplog.records]
+        assert len(messages) == 4  # 3 agent lines, then the adoption (its own kind)
+        assert messages[0] == (
+            "loop 'L0' gains kp=1 ki=0.1 -> kp=1.5 ki=0.15 (agent, auto, seq 1) at t=5"
+        )
+        assert "adopted the gateway's gains kp=2 ki=0.2" in messages[3]
+        caplog.clear()
+        clock.now = 10.0
+        events.flush()  # the burst is over: its count, once
+        events.flush()
+        assert [r.getMessage() for r in caplog.records] == [
+            "7 more agent events not logged in 10 s"
+        ]
+
+
+def test_status_changes_are_logged_once(caplog):
+    watch = logs.StatusWatch(logs.EventLog())
+    with caplog.at_level(logging.INFO, "pitune.events"):
+        assert watch.check({"A": "waiting", "B": "tuning"}) == []  # first sight
+        assert watch.check({"A": "tuning", "B": "tuning", "C": "waiting"}) == [
+            ("A", "waiting", "tuning")
+        ]
+        assert watch.check({"A": "stale", "C": "waiting"}) == [("A", "tuning", "stale")]
+    assert [r.getMessage() for r in caplog.records] == [
+        "loop 'A' status waiting -> tuning",
+        "loop 'A' status tuning -> stale",
+    ]
+
+
+def test_rejection_bursts_end_with_their_count(caplog):
+    metrics = Metrics()
+    metrics._rejections.interval_s = 0.0  # every interval is over at once
+    from service.wire.protocol import RejectReason
+
+    with caplog.at_level(logging.WARNING, "pitune.tuner"):
+        metrics._rejections.interval_s = 3600.0
+        for _ in range(5):
+            metrics.reject(RejectReason.out_of_order, "L1", "older")
+        metrics._rejections.interval_s = 0.0
+        metrics.flush_logs()
+    messages = [r.getMessage() for r in caplog.records]
+    assert len(messages) == 2 and "sample rejected" in messages[0]
+    assert messages[1].startswith("4 more out_of_order messages suppressed")
+
+
+def test_admin_changes_are_logged_at_info(client, caplog):
+    with caplog.at_level(logging.INFO, "pitune.events"):
+        client.post("/loops", json=loop_body("L1"))
+        client.post("/loops/bulk", json=[loop_body(f"B{i}") for i in range(7)])
+        client.patch("/loops/L1", json={"mode": "advisory"})
+        client.post("/loops/L1/reset")
+        client.delete("/loops/L1")
+    messages = [r.getMessage() for r in caplog.records]
+    assert messages[0].startswith("loop 'L1' registered (auto, kp=0.5 ki=0.01, seq 0) via the API")
+    assert messages[1].startswith("7 loops registered in bulk: 'B0', 'B1', 'B2', 'B3', 'B4', ...")
+    assert "config changed" in messages[2] and "advisory" in messages[2]
+    assert messages[3].startswith("loop 'L1' reset") and messages[4].startswith("loop 'L1' deleted")
+
+
+def test_the_daemon_writes_json_lines_only(tmp_path):
+    """pitune's and uvicorn's lines, start to SIGTERM, each one JSON object."""
+    tuner = TunerProcess(tmp_path / "pitune.db", "--agent-weights", "untrained",
+                         "--log-format", "JSON", log=tmp_path / "tuner.log",
+                         env={"PITUNE_LOG_LEVEL": "INFO"})  # fmt: skip
+    try:
+        proc = tuner.start()
+        with tuner.http() as api:
+            assert api.post("/loops", json=loop_body("L1")).status_code == 201
+        assert proc.signal(signal.SIGTERM) == 0
+    finally:
+        tuner.stop()
+    entries = [json.loads(line) for line in tuner.log.read_text().splitlines()]
+    loggers = {e["logger"] for e in entries}
+    assert {"pitune.tuner", "pitune.events", "uvicorn.error", "uvicorn.access"} <= loggers
+    assert any("registered" in e["message"] for e in entries if e["logger"] == "pitune.events")
