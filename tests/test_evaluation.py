@@ -63,3 +63,19 @@ def test_model_card_lists_training_and_results(quick_report, tmp_path):
     text = card.read_text()
     assert "Changes from the paper" in text and "Asymptotic MSE, worst" in text
     assert f"Epochs: {agent.meta['epoch']}" in text
+
+
+def test_robust_suite_runs_through_the_engine_and_reports(tmp_path):
+    """The quick robustness suite: every condition row has its numbers, the report and
+    the figure are written, and the paper protocol through the engine tunes."""
+    from service.learn.robust import robust_suite
+
+    result = robust_suite(load_agent(), tmp_path, quick=True)
+    rows = {r["condition"]: r for r in result["conditions"]}
+    assert set(rows) == {"paper protocol", "noise 0.05"}
+    for r in rows.values():
+        assert 0 < r["median_mse"] <= r["worst_mse"] and 0 <= r["beats_simc"] <= 1
+    assert rows["paper protocol"]["unstable"] == 0
+    assert rows["paper protocol"]["worst_mse"] < 0.05  # untuned start: about 1.8
+    assert (tmp_path / "robust.md").read_text().count("| noise 0.05 |") == 1
+    assert (tmp_path / "fig10_robust_noise_load.png").stat().st_size > 10_000

@@ -14,11 +14,20 @@ import numpy as np
 
 from service.agent.fast import FastPolicy
 from service.agent.model import Agent
+from service.engine import TuningEngine
 from service.learn.env import EnvConfig, TuningEnv
 from service.units import RL_STEP_AGENT_UNITS
 
 Policy = Agent | FastPolicy
 """``agent.act`` (the reference) or the tuner's inference path."""
+
+
+def engine_of(policy: Policy) -> TuningEngine:
+    """A tuning engine computing with ``policy``: the tuner's fast path in its precision,
+    or ``agent.act`` (the reference)."""
+    if isinstance(policy, FastPolicy):
+        return TuningEngine(policy.agent, inference_precision=policy.precision)
+    return TuningEngine(policy, inference_precision="reference")
 
 
 def tune(

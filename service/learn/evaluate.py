@@ -1,7 +1,8 @@
 """``pitune evaluate``: the paper's section 5 on an agent, beside the paper's numbers.
 
 Writes ``metrics.json``, PNG figures and ``report.md`` into the output directory
-(``reports/`` by default) and optionally a model card. Every experiment
+(``runs/evaluate/`` by default; ``--out reports`` rewrites the shipped report) and
+optionally a model card. Every experiment
 (:mod:`service.learn.experiments`) goes through the stable agent API
 (:func:`service.agent.load_agent`) or the tuner's inference path
 (:class:`service.agent.fast.FastPolicy`); :mod:`service.learn.report` renders the results.
@@ -32,6 +33,7 @@ from service.learn.experiments import (
     two_tank,
 )
 from service.learn.report import render_report, write_figures, write_model_card
+from service.learn.robust import robust_suite
 
 Inference = Literal["reference", "auto", "float32", "bfloat16"]
 """``agent.act`` (reference), or the tuner's FastPolicy in this precision."""
@@ -41,8 +43,9 @@ Inference = Literal["reference", "auto", "float32", "bfloat16"]
 class EvalConfig:
     """What ``pitune evaluate`` runs and where it writes."""
 
-    out: Path = Path("reports")
-    """Directory for metrics.json, report.md and the figures."""
+    out: Path = Path("runs/evaluate")
+    """Directory for metrics.json, report.md and the figures (created; the shipped
+    report in ``reports/`` is rewritten only when asked for with ``--out reports``)."""
     quick: bool = False
     """Reduced version (CI, < 2 minutes): smaller grids, fewer RL steps, shorter runs."""
     weights: Path | None = None
@@ -51,6 +54,9 @@ class EvalConfig:
     """``agent.act`` (reference), or the tuner's FastPolicy in this precision."""
     card: Path | None = None
     """Also write a model card here."""
+    robust: bool = False
+    """Run the robustness suite through the tuning engine (:mod:`service.learn.robust`)
+    instead of the paper's experiments."""
 
 
 def evaluate(agent: Policy, out: Path, quick: bool = False) -> dict:
@@ -134,6 +140,10 @@ def main(cfg: EvalConfig) -> int:
     """Evaluate, print the report, write the card; exit code 1 if a bar is not met (full run)."""
     agent = load_agent(cfg.weights)
     policy = agent if cfg.precision == "reference" else FastPolicy(agent, precision=cfg.precision)
+    if cfg.robust:
+        result = robust_suite(policy, cfg.out, quick=cfg.quick)
+        print((cfg.out / "robust.md").read_text())
+        return 0 if all(r["meets_bar"] for r in result["conditions"]) or cfg.quick else 1
     metrics = evaluate(policy, cfg.out, quick=cfg.quick)
     print((cfg.out / "report.md").read_text())
     if cfg.card is not None:
@@ -143,7 +153,18 @@ def main(cfg: EvalConfig) -> int:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--weights", type=Path, default=None, help="agent file (default: shipped)")
-    p.add_argument("--out", type=Path, default=EvalConfig.out)
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=EvalConfig.out,
+        help="output directory, created if missing (the shipped report: --out reports)",
+    )
+    p.add_argument(
+        "--robust",
+        action="store_true",
+        help="the robustness suite through the tuning engine (noise, load, setpoint moves, "
+        "hint errors, dead time, second-order plants) instead of the paper's section 5",
+    )
     p.add_argument("--quick", action="store_true", help="reduced version (CI, < 2 minutes)")
     p.add_argument("--card", type=Path, default=None, help="also write a model card here")
     p.add_argument(
@@ -162,5 +183,6 @@ def run(args: argparse.Namespace) -> int:
             weights=args.weights,
             precision=args.precision,
             card=args.card,
+            robust=args.robust,
         )
     )

@@ -32,9 +32,8 @@ from plant_sim.loop import step_test_mse
 from plant_sim.pi import PIBatch
 from plant_sim.tunings import simc_paper, to_parallel
 from plant_sim.two_tank import TwoTankBatch
-from service.agent.fast import FastPolicy
-from service.engine import LoopConfig, TuningEngine
-from service.learn.closed_loop import Policy, convergence_time, tune
+from service.engine import LoopConfig
+from service.learn.closed_loop import Policy, convergence_time, engine_of, tune
 from service.learn.env import EnvConfig
 from service.learn.oracle import oracle_gains, oracle_table
 from service.units import AGENT_KI0, AGENT_KP0, AGENT_TAU, DEFAULT_FORGETTING, ScalingSpec
@@ -220,7 +219,7 @@ def two_tank(agent: Policy | None, *, noise_cm: float, minutes: float, seed: int
     level_pi.initialise(tank.equilibrium_flow(55.0))
     engine = None
     if agent is not None:
-        engine = _engine_of(agent)
+        engine = engine_of(agent)
         # the paper's protocol applies every step as proposed: the guard's relative-change
         # limit is opened as far as it goes (the agent moves at most x2.7 a step itself)
         config = LoopConfig(
@@ -250,11 +249,3 @@ def two_tank(agent: Policy | None, *, noise_cm: float, minutes: float, seed: int
     after = rec["t"] >= 660.0
     rec["mse"] = float(np.mean((rec["pv"][after] - rec["target"][after]) ** 2))
     return rec
-
-
-def _engine_of(policy: Policy) -> TuningEngine:
-    """A tuning engine computing with ``policy``: the tuner's fast path in its precision,
-    or ``agent.act`` (the reference)."""
-    if isinstance(policy, FastPolicy):
-        return TuningEngine(policy.agent, inference_precision=policy.precision)
-    return TuningEngine(policy, inference_precision="reference")
