@@ -290,10 +290,15 @@ class SimulatedDcs:
         self.server = server
         return self
 
-    async def stop(self) -> None:
+    async def stop(self, timeout: float = 10.0) -> None:
+        """Stop the server. asyncua's stop can wait forever for a client connection it did
+        not close (seen after clients reconnected): give up after ``timeout``."""
         if self.server is not None:
             server, self.server = self.server, None
-            await server.stop()
+            try:
+                await asyncio.wait_for(server.stop(), timeout)
+            except TimeoutError:
+                log.warning("OPC UA server stop timed out after %g s", timeout)
 
     async def __aenter__(self) -> SimulatedDcs:
         return await self.start()
@@ -532,6 +537,9 @@ async def pace(dcs: SimulatedDcs, args, stop: asyncio.Event, writers: dict) -> t
 
 
 def run(args: argparse.Namespace) -> int:
+    import faulthandler
+
+    faulthandler.register(signal.SIGUSR1)  # kill -USR1 <pid>: every thread's stack on stderr
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s %(message)s")
 
     async def main() -> int:

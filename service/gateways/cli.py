@@ -47,6 +47,9 @@ def run(args: argparse.Namespace) -> int:
                       server=args.server)  # fmt: skip
         print(f"wrote {cert} and {key} (mode 0600); trust {cert.name} on the OPC UA server")
         return 0
+    import faulthandler
+
+    faulthandler.register(signal.SIGUSR1)  # kill -USR1 <pid>: every thread's stack on stderr
     logging.basicConfig(
         level=getattr(logging, args.log_level.upper()),
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",

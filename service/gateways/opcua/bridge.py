@@ -136,6 +136,8 @@ class Event:
     loop_id: str | None = None
     seq: int | None = None
     detail: str = ""
+    at: float = field(default_factory=time.monotonic)
+    """When it happened (time.monotonic())."""
 
 
 class OpcUaGateway:

@@ -74,7 +74,7 @@ def plain(value: Any) -> Any:
 
 async def secure_client(server: ServerMap) -> Client:
     """A client configured per the map (not connected)."""
-    client = Client(server.url, timeout=server.timeout_s)
+    client = Client(server.url, timeout=server.timeout_s, watchdog_intervall=server.watchdog_s)
     client.application_uri = server.application_uri
     client.name = client.description = "pitune OPC UA gateway"
     if server.security is Security.basic256sha256:

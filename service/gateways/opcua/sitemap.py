@@ -66,6 +66,10 @@ class ServerMap(BaseModel):
     user: str | None = Field(None, description="User name; absent: anonymous.")
     password_env: str = "PITUNE_OPCUA_PASSWORD"
     timeout_s: PositiveS = 4.0
+    watchdog_s: PositiveS = Field(
+        5.0, description="Keep-alive probe period and timeout: a busy server that answers "
+        "slower than this is taken for lost (a closed connection is noticed at once)."
+    )  # fmt: skip
     reconnect_min_s: PositiveS = 0.5
     reconnect_max_s: PositiveS = 30.0
     publishing_interval_ms: float | None = Field(
