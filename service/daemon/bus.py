@@ -1,9 +1,15 @@
 """The tuner's Zenoh side: session, sample subscribers, state queryable, liveliness token.
 
 Zenoh callbacks run on Zenoh's threads and must never block, so they only copy the
-key and payload into a bounded queue (a full queue drops the message and says so);
-the tuner's worker thread does everything else, queries included, so a state reply
-always reflects every sample received before the query.
+key and payload into the tuner's :class:`Inbox`, bounded in messages and in bytes (a
+full inbox drops the message and counts it, a message over
+:data:`~service.wire.protocol.MAX_MESSAGE_BYTES` is refused unread and counted); the
+tuner's worker thread does everything else, queries included, in the order the
+callbacks queued them. Zenoh delivers the sample subscribers and the queryables on
+separate threads, so a query may be queued before a sample the gateway sent just
+before it: a state reply reflects the samples handled before the query was, and a
+gateway that needs one of its samples reflected asks with ``after_t`` (see
+docs/protocol.md, State).
 
 A callback subscriber still declared when the interpreter exits hangs it (zenoh 1.10),
 so :meth:`Bus.close` undeclares everything and closes the session; the tuner calls it
@@ -12,15 +18,18 @@ on every shutdown path.
 
 from __future__ import annotations
 
+import collections
 import logging
 import queue
+import threading
+import time
 from collections.abc import Callable
 from enum import IntEnum
 
 import zenoh
 
 from service.daemon.settings import Settings
-from service.wire.protocol import Keys
+from service.wire.protocol import MAX_MESSAGE_BYTES, Keys
 from service.wire.session import session_config
 
 log = logging.getLogger("pitune.bus")
@@ -36,10 +45,83 @@ class Kind(IntEnum):
     sample = 0
     batch = 1
     query = 2
+    gateway_query = 3
+    """A ``{prefix}/gateways/{gateway}/state`` query (one StateBatch reply)."""
 
 
 Item = tuple[Kind, str, object]
 """(kind, key expression, payload bytes or the zenoh.Query)."""
+QUERY_BYTES = 512
+"""What a queued query counts against the inbox's byte bound."""
+
+
+class Inbox:
+    """The bounded queue between the Zenoh callbacks and the worker: at most
+    ``max_items`` messages and ``max_bytes`` payload bytes (a burst of large batches
+    cannot grow the process by more than that). :meth:`offer` never blocks."""
+
+    def __init__(self, max_items: int, max_bytes: int) -> None:
+        self.max_items = max_items
+        self.max_bytes = max_bytes
+        self.nbytes = 0
+        self._items: collections.deque[tuple[Item, int]] = collections.deque()
+        self._cond = threading.Condition(threading.Lock())
+
+    def offer(self, item: Item, nbytes: int) -> bool:
+        """Queue ``item`` if there is room; False (nothing queued) if not."""
+        with self._cond:
+            if len(self._items) >= self.max_items or self.nbytes + nbytes > self.max_bytes:
+                return False
+            self._items.append((item, nbytes))
+            self.nbytes += nbytes
+            self._cond.notify()
+            return True
+
+    def put_nowait(self, item: Item) -> None:
+        """:meth:`offer` that raises ``queue.Full`` (the queue.Queue interface)."""
+        if not self.offer(item, _size(item)):
+            raise queue.Full
+
+    def put(self, item: Item) -> None:
+        """Queue ``item`` whatever the bounds (the stop marker)."""
+        with self._cond:
+            self._items.append((item, 0))
+            self._cond.notify()
+
+    def get(self, timeout: float | None = None) -> Item:
+        with self._cond:
+            if timeout is None:
+                while not self._items:
+                    self._cond.wait()
+            else:
+                deadline = time.monotonic() + timeout
+                while not self._items:
+                    left = deadline - time.monotonic()
+                    if left <= 0.0:
+                        raise queue.Empty
+                    self._cond.wait(left)
+            item, nbytes = self._items.popleft()
+            self.nbytes -= nbytes
+            return item
+
+    def get_nowait(self) -> Item:
+        with self._cond:
+            if not self._items:
+                raise queue.Empty
+            item, nbytes = self._items.popleft()
+            self.nbytes -= nbytes
+            return item
+
+    def qsize(self) -> int:
+        return len(self._items)
+
+    def empty(self) -> bool:
+        return not self._items
+
+
+def _size(item: Item) -> int:
+    payload = item[2]
+    return len(payload) if isinstance(payload, bytes | bytearray) else QUERY_BYTES
 
 
 def zenoh_config(settings: Settings) -> zenoh.Config:
@@ -67,14 +149,19 @@ class Bus:
     """One Zenoh session; incoming messages go to ``inbox``, to be drained by one worker."""
 
     def __init__(
-        self, settings: Settings, inbox: queue.Queue, on_overload: Callable[[Kind], None]
+        self,
+        settings: Settings,
+        inbox: Inbox,
+        on_overload: Callable[[Item, str], None],
     ) -> None:
         self.settings = settings
         self.keys: Keys = settings.keys
         self.inbox = inbox
         self._on_overload = on_overload
+        """Called with an item not queued and why ("overload" or "too_large")."""
         self.session: zenoh.Session | None = None
         self._entities: list = []
+        self._token = None
 
     def open(self) -> None:
         self.session = zenoh.open(zenoh_config(self.settings))
@@ -83,9 +170,10 @@ class Bus:
             self._entities = [
                 s.declare_subscriber(k.all_samples, self._handler(Kind.sample)),
                 s.declare_subscriber(k.batch, self._handler(Kind.batch)),
-                s.declare_queryable(k.all_states, self._on_query),
-                s.liveliness().declare_token(k.tuner(self.settings.instance_id)),
+                s.declare_queryable(k.all_states, self._query_handler(Kind.query)),
+                s.declare_queryable(k.all_gateway_states, self._query_handler(Kind.gateway_query)),
             ]
+            self._token = s.liveliness().declare_token(k.tuner(self.settings.instance_id))
         except BaseException:
             self.close()
             raise
@@ -94,20 +182,63 @@ class Bus:
     def is_open(self) -> bool:
         return self.session is not None and not self.session.is_closed()
 
+    @property
+    def connected(self) -> bool:
+        """Whether samples can arrive and gains can leave: the session is open and, when
+        this tuner is meant to reach routers or peers (connect endpoints, client mode),
+        at least one router or peer is connected. A tuner that only listens (gateways
+        connect to it) is connected once its session is open."""
+        session = self.session
+        if session is None or session.is_closed():
+            return False
+        if not self._must_connect():
+            return True
+        try:
+            info = session.info
+            return bool(info.routers_zid()) or bool(info.peers_zid())
+        except zenoh.ZError:  # closed meanwhile
+            return False
+
+    def _must_connect(self) -> bool:
+        if self.settings.zenoh_mode == "client" or self.settings.zenoh_connect:
+            return True
+        if self.settings.zenoh_config is None:
+            return False
+        try:
+            endpoints = zenoh_config(self.settings).get_json("connect/endpoints")
+        except (zenoh.ZError, ValueError):
+            return False
+        return endpoints not in ("[]", "null", "{}", "")
+
     def _handler(self, kind: Kind) -> Callable[[zenoh.Sample], None]:
         def on_sample(sample: zenoh.Sample) -> None:
-            self._put((kind, str(sample.key_expr), sample.payload.to_bytes()))
+            payload = sample.payload
+            key = str(sample.key_expr)
+            if len(payload) > MAX_MESSAGE_BYTES:  # refused unread: no copy, no parse
+                self._on_overload((kind, key, b""), "too_large")
+                return
+            data = payload.to_bytes()
+            if not self.inbox.offer((kind, key, data), len(data)):
+                self._on_overload((kind, key, data), "overload")
 
         return on_sample
 
-    def _on_query(self, query: zenoh.Query) -> None:
-        self._put((Kind.query, str(query.key_expr), query))
+    def _query_handler(self, kind: Kind) -> Callable[[zenoh.Query], None]:
+        def on_query(query: zenoh.Query) -> None:
+            item = (kind, str(query.key_expr), query)
+            if not self.inbox.offer(item, QUERY_BYTES):
+                self._on_overload(item, "overload")
 
-    def _put(self, item: Item) -> None:
-        try:
-            self.inbox.put_nowait(item)
-        except queue.Full:
-            self._on_overload(item[0])
+        return on_query
+
+    def stop_receiving(self) -> None:
+        """Undeclare the subscribers and queryables (the session stays open to publish)."""
+        for entity in reversed(self._entities):
+            try:
+                entity.undeclare()
+            except zenoh.ZError as exc:  # already gone with a closed session
+                log.debug("undeclare failed: %s", exc)
+        self._entities = []
 
     def publish(self, key: str, payload: bytes) -> None:
         """Put a gains message (per loop or batched); dropped once the bus is closed (the
@@ -130,13 +261,14 @@ class Bus:
         )
 
     def close(self) -> None:
-        """Undeclare subscribers, queryable and token, then close the session (idempotent)."""
-        for entity in reversed(self._entities):
+        """Undeclare subscribers, queryables and token, then close the session (idempotent)."""
+        self.stop_receiving()
+        if self._token is not None:
             try:
-                entity.undeclare()
-            except zenoh.ZError as exc:  # already gone with a closed session
+                self._token.undeclare()
+            except zenoh.ZError as exc:
                 log.debug("undeclare failed: %s", exc)
-        self._entities = []
+            self._token = None
         if self.session is not None and not self.session.is_closed():
             self.session.close()
         self.session = None

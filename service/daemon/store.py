@@ -64,6 +64,10 @@ CREATE TABLE IF NOT EXISTS audit (
     detail TEXT NOT NULL DEFAULT ''
 );
 CREATE INDEX IF NOT EXISTS audit_loop ON audit (loop_id, id);
+CREATE TABLE IF NOT EXISTS meta (
+    key TEXT PRIMARY KEY,
+    value TEXT NOT NULL
+);
 CREATE TABLE IF NOT EXISTS journal (
     id INTEGER PRIMARY KEY AUTOINCREMENT,
     rows BLOB NOT NULL,  -- JSON {"gains": [[kp, ki, seq, id], ...], "audit": [[...], ...]}
@@ -150,6 +154,26 @@ class Store:
                 progress = self._apply(db, None)
                 yield db
             self._advance(progress)
+
+    # -- epoch ------------------------------------------------------------------------
+    def next_epoch(self, wall: float) -> int:
+        """Start a new epoch of this store and return it (committed, fsynced).
+
+        The epoch is above every earlier epoch of this store, and at least the wall clock
+        in milliseconds: a tuner started later on a fresh store (a replaced tuner) has a
+        larger epoch than the one it replaced, as long as the clocks of the two hosts
+        agree to within the time between the two starts. Gateways order a loop's updates
+        by (epoch, seq).
+        """
+        with self.transaction() as db:
+            row = db.execute("SELECT value FROM meta WHERE key = 'epoch'").fetchone()
+            epoch = max(int(row[0]) + 1 if row else 1, int(wall * 1000))
+            db.execute(
+                "INSERT INTO meta (key, value) VALUES ('epoch', ?) "
+                "ON CONFLICT(key) DO UPDATE SET value = excluded.value",
+                (str(epoch),),
+            )
+        return epoch
 
     # -- journal ----------------------------------------------------------------------
     def apply_journal(self, max_rows: int | None = None) -> int:

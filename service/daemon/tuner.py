@@ -15,6 +15,19 @@ committed to the store (as one journal row per step batch, see
 one per gateway for loops registered with a gateway. The worker applies the journal to
 the store's tables while it has nothing else to do. Nothing about tuning is decided
 here: this module owns lifecycle, persistence policy and publishing.
+
+Accounting: every sample received ends in exactly one counter, accepted (the loops'
+``samples``) or rejected (by reason), and ``pitune_samples_received_total`` is counted
+*after* the samples are judged, so once it reaches N those N are in their counters. A
+message dropped unread (the inbox full: ``overload``; over
+:data:`~service.wire.protocol.MAX_MESSAGE_BYTES`: ``too_large``) counts as one received
+and one rejected sample whatever it held: not reading it is the point of dropping it.
+
+Publishing never holds the worker: committed gains go to a :class:`Lane` per
+destination (one for the per-loop keys, one per gateway), each with its own thread
+doing the blocking put; a lane keeps only the newest message per loop (gains are
+absolute and gateways drop older seqs), so it is bounded by its loops and a stuck
+gateway delays only its own lane.
 """
 
 from __future__ import annotations
@@ -29,13 +42,14 @@ import queue
 import sqlite3
 import threading
 import time
+from collections.abc import Callable
 
 import orjson
 import torch
 import zenoh
 
 from service.agent.model import Agent, load_agent, untrained_agent
-from service.daemon.bus import JSON, Bus, Item, Kind, reply
+from service.daemon.bus import JSON, Bus, Inbox, Item, Kind, reply
 from service.daemon.metrics import Metrics, RateLimitedLog
 from service.daemon.schemas import HistoryPage, LoopsPage
 from service.daemon.settings import Settings
@@ -50,6 +64,7 @@ from service.wire.protocol import (
     SCHEMA_VERSION,
     ErrorReply,
     RejectReason,
+    StateBatch,
     StateReply,
     encode,
 )
@@ -69,6 +84,94 @@ COMMIT_RETRY_S = 1.0
 EXIT_STORE_FAILED = 74
 """Exit status after ``store_failure_exit_s`` of failing commits (EX_IOERR)."""
 _RANGE_ERRORS = {"less_than_equal", "greater_than_equal", "less_than", "greater_than"}
+QUEUE_BYTES = 256 * 1024 * 1024
+"""Payload bytes the inbox holds at most (``queue_bytes`` setting when there is one)."""
+AFTER_T_WAIT_S = 1.0
+"""Longest a state query with ``after_t`` waits for its loop's sample."""
+LANE_BOUND = 100_000
+"""Messages a lane holds before it keeps only the newest of each loop."""
+LANE_DRAIN_S = 5.0
+"""Longest :meth:`Tuner.stop` waits for the lanes to publish what they hold."""
+
+
+class Lane:
+    """Committed gains messages waiting for one destination, and the thread publishing
+    them: the per-loop keys (``gateway`` None) or one gateway's GainsBatch key.
+
+    Messages go out in the order submitted. While the destination blocks, messages
+    pile up; past ``bound`` of them, only the newest of each loop is kept (gains are
+    absolute, and gateways drop a seq below one they took), so a lane holds at most
+    ``max(bound, loops)`` messages however long its destination blocks.
+    """
+
+    def __init__(
+        self,
+        gateway: str | None,
+        send: Callable[[str | None, list[dict]], None],
+        bound: int = LANE_BOUND,
+    ):
+        self.gateway = gateway
+        self._send = send
+        self.bound = bound
+        self._pending: list[dict] = []
+        self._cond = threading.Condition()
+        self._busy = False
+        self._closing = False
+        self.superseded = 0
+        """Messages replaced by a newer one of the same loop before they went out."""
+        self.thread = threading.Thread(
+            target=self._run, name=f"pitune-publish-{gateway or 'loops'}", daemon=True
+        )
+        self.thread.start()
+
+    def submit(self, messages: list[dict]) -> None:
+        with self._cond:
+            self._pending.extend(messages)
+            if len(self._pending) > self.bound:
+                newest = {m["loop_id"]: i for i, m in enumerate(self._pending)}
+                kept = [self._pending[i] for i in sorted(newest.values())]
+                self.superseded += len(self._pending) - len(kept)
+                self._pending = kept
+            self._cond.notify_all()
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while not self._pending and not self._closing:
+                    self._cond.wait()
+                if not self._pending:
+                    return
+                batch, self._pending = self._pending, []
+                self._busy = True
+            try:
+                self._send(self.gateway, batch)
+            except Exception:
+                log.exception("publishing %d gains messages failed", len(batch))
+            finally:
+                with self._cond:
+                    self._busy = False
+                    self._cond.notify_all()
+
+    @property
+    def idle(self) -> bool:
+        return not self._pending and not self._busy
+
+    def drain(self, timeout: float) -> bool:
+        """Wait until everything submitted went out; False on timeout."""
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while self._pending or self._busy:
+                left = deadline - time.monotonic()
+                if left <= 0.0:
+                    return False
+                self._cond.wait(left)
+            return True
+
+    def close(self, timeout: float) -> None:
+        with self._cond:
+            self._closing = True
+            self._cond.notify_all()
+        self.thread.join(timeout)
 
 
 class Conflict(Exception):
@@ -154,7 +257,16 @@ class Tuner:
         )
         self.table = self.engine.table
         self._skipped = 0
-        self.inbox: queue.Queue[Item] = queue.Queue(settings.queue_size)
+        self.inbox = Inbox(settings.queue_size, getattr(settings, "queue_bytes", QUEUE_BYTES))
+        self.epoch: int | None = None
+        """The store's epoch of this run (set by :meth:`start`)."""
+        self.lanes: dict[str | None, Lane] = {}
+        self._lanes_lock = threading.Lock()
+        self._parked: dict[str, list[tuple[float, float, zenoh.Query]]] = {}
+        """State queries with ``after_t`` waiting for their loop's sample: loop id ->
+        [(after_t, monotonic deadline, query)]."""
+        self.queries_dropped = 0
+        """State queries dropped unanswered because the inbox was full."""
         self.store: Store | None = None
         self.bus: Bus | None = None
         self._worker: threading.Thread | None = None
@@ -170,6 +282,7 @@ class Tuner:
     def start(self) -> Tuner:
         self.store = Store(self.settings.db_path)
         wall = time.time()
+        self.epoch = self.store.next_epoch(wall)
         with self.table.lock:
             for stored in self.store.load():
                 self.engine.restore(
@@ -196,8 +309,9 @@ class Tuner:
         self._worker = threading.Thread(target=self._run, name="pitune-worker", daemon=True)
         self._worker.start()
         log.info(
-            "tuner %s up: prefix %r, listen %s, connect %s, inference %s",
+            "tuner %s (epoch %d) up: prefix %r, listen %s, connect %s, inference %s",
             self.settings.instance_id,
+            self.epoch,
             self.settings.key_prefix,
             self.settings.zenoh_listen,
             self.settings.zenoh_connect,
@@ -206,13 +320,22 @@ class Tuner:
         return self
 
     def stop(self) -> None:
-        """Close the bus, handle what was already received, snapshot, close the store."""
+        """Stop receiving, handle what was already received, publish what is committed
+        (at most LANE_DRAIN_S), close the bus, snapshot, close the store."""
         if self.bus is not None:
-            self.bus.close()
+            self.bus.stop_receiving()
         if self._worker is not None:
             self.inbox.put(_STOP)
             self._worker.join(timeout=30.0)
             self._worker = None
+        deadline = time.monotonic() + LANE_DRAIN_S
+        for lane in list(self.lanes.values()):
+            if not lane.drain(max(0.0, deadline - time.monotonic())):
+                log.warning("gains for %s not all published at stop", lane.gateway or "loops")
+        if self.bus is not None:
+            self.bus.close()
+        for lane in list(self.lanes.values()):
+            lane.close(timeout=1.0)
         if self.store is not None:
             self.snapshot()
             self.store.close()
@@ -230,8 +353,15 @@ class Tuner:
         return self._worker is not None and self._worker.is_alive()
 
     @property
+    def bus_ready(self) -> bool:
+        """Samples can arrive and gains can leave: the session is open and, if this tuner
+        connects to routers or peers, one is connected (see :attr:`Bus.connected`)."""
+        return self.bus is not None and self.bus.connected
+
+    @property
     def ready(self) -> bool:
-        return self.alive and self.bus is not None and self.bus.is_open
+        """The worker runs and the bus is ready (``/readyz``)."""
+        return self.alive and self.bus_ready
 
     def snapshot(self) -> None:
         """Snapshot every loop now (shutdown, tests)."""
@@ -272,6 +402,9 @@ class Tuner:
                     wait = 0.0
                 else:
                     wait = next_snapshot - time.monotonic()
+                if self._parked:  # the earliest after_t query to answer anyway
+                    first = min(d for q in self._parked.values() for _, d, _ in q)
+                    wait = min(wait, first - time.monotonic())
                 items = [self.inbox.get(timeout=max(0.0, wait))]
             except queue.Empty:
                 items = []
@@ -312,6 +445,9 @@ class Tuner:
             if self._store_failing_since is not None:
                 with self.table.lock:
                     self._commit(None)  # retry, even without traffic
+            if self._parked:
+                with self.table.lock:
+                    self._answer_parked()
             return
         wall = time.time()
         engine = self.engine
@@ -319,17 +455,21 @@ class Tuner:
         with engine.lock:
             engine.stepping = self._store_failing_since is None
             for kind, _key, payload in _group_singles(items):
-                if kind is Kind.query:
-                    self._flush(wall)  # the reply reflects every sample received before it
-                    self._answer(payload)
+                if kind is Kind.query or kind is Kind.gateway_query:
+                    self._flush(wall)  # the reply reflects every sample handled before it
+                    if kind is Kind.query:
+                        self._answer(payload)
+                    else:
+                        self._answer_gateway(payload)
                     continue
                 if kind is Kind.sample:
                     decoded = decode_singles([(self.keys.loop_id(k), p) for k, p in payload])
                 else:
                     decoded = decode_batch(payload)
-                self.metrics.samples_received.inc(decoded.received)
                 for result in engine.ingest_decoded(decoded, wall=wall):
                     self._stepped(result)
+                # received last: once it reaches N, those N samples are in their counters
+                self.metrics.samples_received.inc(decoded.received)
                 # Batch the due loops, but never hold one back for long behind a backlog.
                 if not engine.due:
                     flush_at = math.inf
@@ -340,6 +480,8 @@ class Tuner:
                     flush_at = math.inf
             self._flush(wall)
             self._commit(None)
+            if self._parked:
+                self._answer_parked()
 
     def _on_reject(self, rejection: Rejection) -> None:
         self.metrics.reject(rejection.reason, rejection.loop_id, rejection.detail)
@@ -409,24 +551,50 @@ class Tuner:
         return None if self._store_failing_since is None else self._store_error
 
     def _publish(self, result: StepResult) -> None:
+        """Hand a committed step's messages to their lanes (never blocks on the bus)."""
         messages = result.messages(self.settings.instance_id)
-        by_gateway: dict[str, list[dict]] = collections.defaultdict(list)
+        by_gateway: dict[str | None, list[dict]] = collections.defaultdict(list)
         for message, gateway in zip(messages, result.gateways, strict=True):
-            if gateway is None:
-                self.bus.publish(self.keys.gains(message["loop_id"]), orjson.dumps(message))
-            else:
-                by_gateway[gateway].append(message)
+            message["epoch"] = self.epoch
+            by_gateway[gateway].append(message)
         for gateway, batch in by_gateway.items():
-            for i in range(0, len(batch), MAX_BATCH):
-                payload = {"v": SCHEMA_VERSION, "gains": batch[i : i + MAX_BATCH]}
-                self.bus.publish(self.keys.gateway_gains(gateway), orjson.dumps(payload))
+            self._lane(gateway).submit(batch)
+
+    def _lane(self, gateway: str | None) -> Lane:
+        lane = self.lanes.get(gateway)
+        if lane is None:
+            with self._lanes_lock:
+                lane = self.lanes.get(gateway)
+                if lane is None:
+                    lane = self.lanes[gateway] = Lane(gateway, self._send)
+        return lane
+
+    def _send(self, gateway: str | None, messages: list[dict]) -> None:
+        """A lane's blocking part, on its own thread: no lock of the tuner is held."""
         for mode, count in collections.Counter(m["mode"] for m in messages).items():
             self.metrics.updates_published.labels(mode).inc(count)
+        if gateway is None:
+            for message in messages:
+                self.bus.publish(self.keys.gains(message["loop_id"]), orjson.dumps(message))
+            return
+        for i in range(0, len(messages), MAX_BATCH):
+            payload = {"v": SCHEMA_VERSION, "gains": messages[i : i + MAX_BATCH]}
+            self.bus.publish(self.keys.gateway_gains(gateway), orjson.dumps(payload))
+
+    @property
+    def superseded(self) -> int:
+        """Gains messages replaced in their lane by a newer one before they went out."""
+        return sum(lane.superseded for lane in list(self.lanes.values()))
 
     def _answer(self, query: zenoh.Query) -> None:
         key = str(query.key_expr)
         loop_id = self.keys.loop_id(key)
         if loop_id is not None and loop_id in self.table.slot_of:
+            after_t = _after_t(query)
+            if after_t is not None and not self._reflects(loop_id, after_t):
+                deadline = time.monotonic() + AFTER_T_WAIT_S
+                self._parked.setdefault(loop_id, []).append((after_t, deadline, query))
+                return
             reply(query, encode(self._state(loop_id)))
             return
         if "*" in key:  # e.g. a reconnecting gateway asking for all its loops at once
@@ -439,24 +607,77 @@ class Tuner:
             return
         reply(query, encode(ErrorReply(loop_id=loop_id or key, error="unknown loop")), error=True)
 
+    def _reflects(self, loop_id: str, after_t: float) -> bool:
+        t = self.table.last_t[self.table.slot(loop_id)]
+        return not math.isnan(t) and t >= after_t
+
+    def _answer_parked(self) -> None:
+        """Answer the parked ``after_t`` queries whose sample came, or whose wait is over
+        (the reply's ``last_t`` then says the sample was not handled: rejected or lost)."""
+        now = time.monotonic()
+        for loop_id in list(self._parked):
+            waiting = self._parked.pop(loop_id)
+            if loop_id not in self.table.slot_of:  # deleted meanwhile
+                for _, _, query in waiting:
+                    error = ErrorReply(loop_id=loop_id, error="unknown loop")
+                    reply(query, encode(error), error=True)
+                continue
+            still = []
+            for after_t, deadline, query in waiting:
+                if now >= deadline or self._reflects(loop_id, after_t):
+                    reply(query, encode(self._state(loop_id)))
+                else:
+                    still.append((after_t, deadline, query))
+            if still:
+                self._parked[loop_id] = still
+
+    def _answer_gateway(self, query: zenoh.Query) -> None:
+        """One StateBatch with every loop registered with the gateway in the key."""
+        gateway = self.keys.gateway_id(str(query.key_expr))
+        if gateway is None:
+            error = ErrorReply(loop_id=str(query.key_expr), error="not a gateway's state key")
+            reply(query, encode(error), error=True)
+            return
+        tb = self.table
+        states = [
+            self._state(loop_id) for loop_id, s in tb.slot_of.items() if tb.gateways[s] == gateway
+        ]
+        batch = StateBatch(
+            gateway=gateway, instance_id=self.settings.instance_id, epoch=self.epoch, states=states
+        )
+        reply(query, encode(batch))
+
     def _state(self, loop_id: str) -> StateReply:
-        s = self.table.slot(loop_id)
-        t = self.table.last_t[s]
+        tb = self.table
+        s = tb.slot(loop_id)
         return StateReply(
             loop_id=loop_id,
-            kp=float(self.table.kp[s]),
-            ki=float(self.table.ki[s]),
-            mode=self.table.mode_of(s),
-            status=self.table.status(s, time.time()),
-            seq=int(self.table.seq[s]),
-            last_t=None if math.isnan(t) else float(t),
+            kp=float(tb.kp[s]),
+            ki=float(tb.ki[s]),
+            mode=tb.mode_of(s),
+            status=tb.status(s, time.time()),
+            seq=int(tb.seq[s]),
+            last_t=_finite(tb.last_t[s]),
             instance_id=self.settings.instance_id,
+            epoch=self.epoch,
+            rl_period_s=_finite(tb.period[s]),
+            next_due_t=_finite(tb.next_due[s]),
+            gateway=tb.gateways[s],
         )
 
-    def _overload(self, kind: Kind) -> None:
-        if kind is not Kind.query:
-            self.metrics.samples_received.inc()
-        self.metrics.reject(RejectReason.overload, None, f"input queue full, {kind.name} dropped")
+    def _overload(self, item: Item, why: str) -> None:
+        """A message the bus callback did not queue (a Zenoh thread: never blocks)."""
+        kind, key = item[0], item[1]
+        if kind is Kind.query or kind is Kind.gateway_query:
+            self.queries_dropped += 1  # not a sample: no sample counter
+            self._failure_log.warning("query", f"input queue full: state query {key!r} dropped")
+            with contextlib.suppress(zenoh.ZError):
+                item[2].drop()  # the querier gets no reply rather than waiting its timeout
+            return
+        reason = RejectReason.too_large if why == "too_large" else RejectReason.overload
+        detail = f"{kind.name} message dropped unread ({why})"
+        self.metrics.reject(reason, None, detail)
+        self.metrics.samples_received.inc()  # after its counter, as in _handle
 
     # -- admin operations (the REST API) ----------------------------------------------
     def loop_ids(self) -> list[str]:
@@ -571,6 +792,25 @@ class Tuner:
         if not total and loop_id not in self.table.slot_of:
             raise UnknownLoop(loop_id)
         return HistoryPage(items=items, total=total, offset=offset, limit=limit)
+
+
+def _finite(x: float) -> float | None:
+    return None if math.isnan(x) else float(x)
+
+
+def _after_t(query: zenoh.Query) -> float | None:
+    """The query's ``after_t`` parameter (None: absent or not a finite number)."""
+    try:
+        raw = query.parameters.get("after_t")
+    except Exception:  # noqa: BLE001 - a malformed selector is no parameter
+        return None
+    if raw is None:
+        return None
+    try:
+        value = float(raw)
+    except ValueError:
+        return None
+    return value if math.isfinite(value) else None
 
 
 @contextlib.contextmanager

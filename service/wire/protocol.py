@@ -11,7 +11,11 @@ Key expressions, under a configurable prefix (default ``pitune``)::
     {prefix}/loops/{loop_id}/gains    tuner -> gateway   GainsMessage, one per RL step
     {prefix}/gateways/{gateway}/gains tuner -> gateway   GainsBatch (loops registered with
                                                          that gateway, one per step batch)
-    {prefix}/loops/{loop_id}/state    queryable          StateReply (or ErrorReply)
+    {prefix}/loops/{loop_id}/state    queryable          StateReply (or ErrorReply); the
+                                                         parameter ``after_t=<t>`` waits for
+                                                         a sample of that loop at t or later
+    {prefix}/gateways/{gateway}/state queryable          StateBatch: every loop registered
+                                                         with that gateway, in one reply
     {prefix}/tuners/{instance_id}     liveliness token while a tuner is up
 
 Payloads are JSON (``application/json``). Every message carries ``v``, the schema
@@ -34,12 +38,20 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 SCHEMA_VERSION = 1
+SCHEMA_REVISION = 2
+"""Additive revisions within :data:`SCHEMA_VERSION` (optional fields only, ``v`` unchanged):
+1 the original; 2 ``Sample.applied_seq``, ``epoch`` in gains and state messages, the
+supervision fields of :class:`StateReply`, :class:`StateBatch` and ``after_t``
+(docs/protocol.md, Versioning)."""
 DEFAULT_PREFIX = "pitune"
 ENCODING = "application/json"
 MAX_MAGNITUDE = 1e12
 """Largest absolute value any number on the wire may have; anything bigger is absurd."""
 MAX_BATCH = 100_000
 """Most samples in a :class:`SampleBatch`, gains messages in a :class:`GainsBatch`."""
+MAX_MESSAGE_BYTES = 32 * 1024 * 1024
+"""Largest sample message (single or batch) a tuner reads: 100,000 samples of up to ~330
+bytes each. A bigger one is refused unread (``too_large``)."""
 
 LOOP_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$"
 """Loop and instance ids are single key-expression chunks: no '/', no wildcards."""
@@ -80,6 +92,15 @@ class LoopStatus(StrEnum):
     """No setpoint change in the last ``excitation_periods`` RL periods: tuning waits
     for one (the agent learns from setpoint responses)."""
     frozen = "frozen"
+    identifying = "identifying"
+    """Registered without a model hint: the tuner identifies the loop's model from its
+    closed-loop data and does not tune it until it is confident of one."""
+    hint_mismatch = "hint_mismatch"
+    """The identified model disagrees with the scaling in force (hint) by more than the
+    loop's tolerance; tuning continues with the hint (auto-rescale off)."""
+    out_of_envelope = "out_of_envelope"
+    """The identified dynamics, in the agent's units, are outside the region the agent was
+    trained on (or integrating): tuning pauses until a rescale or a new identification."""
 
 
 class UpdateReason(StrEnum):
@@ -108,7 +129,10 @@ class RejectReason(StrEnum):
     flood = "flood"
     """More samples per second on one loop than the configured limit."""
     overload = "overload"
-    """The daemon's input queue is full."""
+    """The daemon's input queue is full (in messages or bytes): the message was dropped
+    unread and counts as one sample, whatever it held."""
+    too_large = "too_large"
+    """A message over :data:`MAX_MESSAGE_BYTES`, refused unread: counts as one sample."""
 
 
 _WIRE = ConfigDict(strict=True, allow_inf_nan=False, extra="ignore", frozen=True)
@@ -131,9 +155,21 @@ class Sample(BaseModel):
         None, description="Proportional gain in force in the DCS; a change is adopted."
     )
     ki: Gain | None = Field(None, description="Integral gain in force in the DCS (per second).")
+    op: Number | None = Field(
+        None,
+        description="Controller output (the PI's output, engineering units), for the "
+        "identification of the loop's model; when absent the tuner reconstructs it from "
+        "the PI law and the gains in force.",
+    )
     auto: bool = Field(True, description="False while the loop is in manual: tuning pauses.")
     saturated: bool = Field(
         False, description="True while the controller output is at a limit: tuning pauses."
+    )
+    applied_seq: int | None = Field(
+        None,
+        ge=0,
+        description="seq of the last gains message the DCS has applied to this loop (0: "
+        "none): the kp/ki reported are that update's, not an operator's change (revision 2).",
     )
 
     @model_validator(mode="after")
@@ -181,6 +217,12 @@ class GainsMessage(BaseModel):
     )
     reason: UpdateReason = UpdateReason.agent
     instance_id: str = Field(description="The tuner instance that published the update.")
+    epoch: int | None = Field(
+        None,
+        ge=1,
+        description="The store's epoch: larger for every later tuner start (on the same "
+        "store, or a fresh one). Order updates of a loop by (epoch, seq) (revision 2).",
+    )
 
 
 class GainsBatch(BaseModel):
@@ -210,6 +252,33 @@ class StateReply(BaseModel):
     seq: int = Field(ge=0, description="Sequence number of the last gains message (0: none).")
     last_t: float | None = Field(description="Plant time (s) of the last accepted sample.")
     instance_id: str
+    epoch: int | None = Field(None, ge=1, description="The store's epoch (see GainsMessage).")
+    rl_period_s: float | None = Field(
+        None, description="Plant seconds between two RL steps of this loop (revision 2)."
+    )
+    next_due_t: float | None = Field(
+        None,
+        description="Plant time at which the loop's next RL step falls due; while the "
+        "status is 'tuning', an update is expected soon after a sample at or after it.",
+    )
+    gateway: str | None = Field(
+        None,
+        description="The gateway whose GainsBatch carries this loop's gains (None: "
+        "its own gains key).",
+    )
+
+
+class StateBatch(BaseModel):
+    """Reply of ``{prefix}/gateways/{gateway}/state``: the state of every loop registered
+    with that gateway, in one message (revision 2)."""
+
+    model_config = _WIRE
+
+    v: Version = SCHEMA_VERSION
+    gateway: GatewayId
+    instance_id: str
+    epoch: int | None = Field(None, ge=1)
+    states: list[StateReply]
 
 
 class ErrorReply(BaseModel):
@@ -228,6 +297,7 @@ WIRE_MODELS: tuple[type[BaseModel], ...] = (
     GainsMessage,
     GainsBatch,
     StateReply,
+    StateBatch,
     ErrorReply,
 )
 
@@ -258,6 +328,23 @@ class Keys:
 
     def gateway_gains(self, gateway: str) -> str:
         return f"{self.prefix}/gateways/{gateway}/gains"
+
+    def gateway_state(self, gateway: str) -> str:
+        return f"{self.prefix}/gateways/{gateway}/state"
+
+    @property
+    def all_gateway_states(self) -> str:
+        return self.gateway_state("*")
+
+    def gateway_id(self, key: str) -> str | None:
+        """The gateway in ``{prefix}/gateways/{gateway}/{kind}``, or None."""
+        head = f"{self.prefix}/gateways/"
+        if not key.startswith(head):
+            return None
+        parts = key[len(head) :].split("/")
+        if len(parts) != 2 or not is_valid_id(parts[0]):
+            return None
+        return parts[0]
 
     def tuner(self, instance_id: str) -> str:
         return f"{self.prefix}/tuners/{instance_id}"
