@@ -32,7 +32,7 @@ from service.wire.protocol import (
     RejectReason,
 )
 
-FLOAT_FIELDS = ("t", "e", "sp", "pv", "kp", "ki")
+FLOAT_FIELDS = ("t", "e", "sp", "pv", "kp", "ki", "op")
 _RANGE_ERRORS = {"less_than_equal", "greater_than_equal", "less_than", "greater_than"}
 _FLOAT = {float}
 _OPT_FLOAT = {float, type(None)}
@@ -70,6 +70,8 @@ class Columns:
     auto: np.ndarray
     saturated: np.ndarray
     index: np.ndarray
+    op: np.ndarray | None = None
+    """Controller output, NaN where the sample did not carry it (identification only)."""
 
     def __len__(self) -> int:
         return len(self.loop_ids)
@@ -80,7 +82,7 @@ class Columns:
         picked = np.flatnonzero(rows) if rows.dtype == bool else rows
         return Columns(
             [ids[i] for i in picked.tolist()],
-            *(getattr(self, f)[picked] for f in _ARRAYS),
+            *(None if getattr(self, f) is None else getattr(self, f)[picked] for f in _ARRAYS),
         )
 
     @classmethod
@@ -88,7 +90,7 @@ class Columns:
         return _columns([], _raw([]), [])
 
 
-_ARRAYS = ("t", "e", "sp", "kp", "ki", "auto", "saturated", "index")
+_ARRAYS = ("t", "e", "sp", "kp", "ki", "auto", "saturated", "index", "op")
 
 
 @dataclass
@@ -285,7 +287,7 @@ def _plain_rows_each(items: list) -> np.ndarray:
 def _numbers_ok(cols: dict[str, np.ndarray]) -> np.ndarray:
     with np.errstate(invalid="ignore"):
         ok = np.ones(cols["t"].shape, bool)
-        for k in ("t", "e", "sp", "pv"):  # NaN (absent) compares False: passes
+        for k in ("t", "e", "sp", "pv", "op"):  # NaN (absent) compares False: passes
             ok &= ~(np.abs(cols[k]) > MAX_MAGNITUDE)
         for k in ("kp", "ki"):
             ok &= ~((cols[k] <= 0.0) | (cols[k] > MAX_MAGNITUDE))
@@ -308,4 +310,5 @@ def _columns(items: list[dict], raw: dict[str, list], index) -> Columns:
         np.fromiter((d.get("auto", True) for d in items), bool, n),
         np.fromiter((d.get("saturated", False) for d in items), bool, n),
         np.asarray(list(index), np.int64).reshape(n),
+        cols["op"],
     )

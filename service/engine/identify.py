@@ -1,0 +1,402 @@
+"""Closed-loop identification of a loop's process model: pure numerics, no engine state.
+
+An *event* is a window of one loop's closed-loop data (sample times, setpoint,
+measurement and controller output) that starts at a setpoint move and ends at the next
+one (or when it grows too long). :func:`fit_event` fits a first-order-plus-dead-time
+model from the controller output to the measurement over the window::
+
+    pv(t) = b + K x(t),    tau x'(t) = u(t - theta) - u(t0) - x(t),    x(t0) = 0
+
+(the plant at steady state when the window opens: the offset ``b`` absorbs the
+operating point and, when the output is reconstructed from the PI law, the unknown
+integral term). The fit is an output-error fit: the model is simulated from the
+controller output alone, so measurement noise does not bias it as it would an
+equation-error (ARX) fit, and the controller's reaction to noise is small where the
+move is large against the noise (which the acceptance rules require).
+
+Two steps: a grid over (tau, theta), each point linear in (K, b) and solved in closed
+form, vectorised over the grid; then :func:`scipy.optimize.least_squares` refines the
+best point over (K, log tau, theta, b). An integrating model ``K/s e^{-theta s}``
+is fitted the same way and compared.
+
+:func:`combine` turns the recent accepted events into one model with a confidence:
+events must each fit well, see the response above the noise, pin down K and tau
+(standard errors from the Jacobian), and agree with each other.
+
+Sampling assumption: the samples are (near) uniform in time; the filter uses the
+median sample interval. The delayed input is interpolated linearly between samples
+(continuous in theta, as the optimiser needs), which smooths a step by half a sample.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.signal import lfilter
+
+MIN_SAMPLES = 12
+"""Fewest samples in an event worth fitting."""
+MIN_R2 = 0.75
+"""Smallest share of the measurement's variance over the window the model must explain."""
+MIN_SNR = 8.0
+"""Smallest ratio of the modelled response (peak to peak) to the residual noise (rms)."""
+MAX_REL_SE = 0.1
+"""Largest relative standard error of K and of tau of the joint fit of a confident model."""
+MAX_PREDICTION = 1.5
+"""Consistency: the model of the earlier events must predict the last event's PV within
+this many times the noise (rms)."""
+MIN_EVENTS = 2
+"""Excited events needed for a confident model."""
+INTEGRATING_RATIO = 0.8
+"""The integrating model wins when its residual sum of squares is below this share of
+the FOPTD fit's (and the FOPTD's tau runs beyond the window)."""
+
+_TAU_GRID = 28
+_THETA_GRID = 12
+
+
+@dataclass
+class EventFit:
+    """One event (a setpoint move and the data up to the next) as identification saw it."""
+
+    t0: float
+    t1: float
+    n: int
+    move: float
+    """The setpoint move that opened the event (engineering units, signed)."""
+    snr: float = math.nan
+    """Peak-to-peak response the model shows in the event, in multiples of the noise."""
+    excited: bool = False
+
+    def as_dict(self) -> dict:
+        return {k: _num(v) for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> EventFit:
+        names = cls.__dataclass_fields__
+        return cls(**{k: (math.nan if v is None else v) for k, v in d.items() if k in names})
+
+
+@dataclass
+class Model:
+    """The FOPTD model of a segment and how far to trust it."""
+
+    k: float
+    tau: float
+    theta: float
+    noise: float
+    """Residual rms (PV units): the measurement noise."""
+    move: float
+    """Typical setpoint move (median |move| of the excited events)."""
+    r2: float
+    k_rse: float
+    tau_rse: float
+    integrating: bool = False
+    events: int = 0
+    """Excited events the model comes from."""
+    prediction: float = math.inf
+    """Rms error (in noise units) with which the model of the earlier events predicts
+    the last one."""
+    confidence: float = 0.0
+    """0..1: excitation x precision x consistency."""
+    confident: bool = False
+
+    def as_dict(self) -> dict:
+        return {k: _num(v) for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Model:
+        names = cls.__dataclass_fields__
+        return cls(**{k: (math.inf if v is None else v) for k, v in d.items() if k in names})
+
+
+@dataclass
+class Assessment:
+    events: list[EventFit]
+    model: Model | None = None
+    why: str = ""
+    """Why the model is not confident ('' when it is)."""
+
+
+def _num(v):
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    return v
+
+
+def reconstruct_op(t, e, kp, ki) -> np.ndarray:
+    """The controller output of a parallel PI ``u = kp e + I``, ``I' = ki e`` (backward
+    Euler on the sample times), bumpless on gain changes (a change of kp moves I so that
+    u does not jump), from I = 0 at the first sample: the output up to a constant, which
+    the fit's offset absorbs. Assumes the DCS runs the PI at (about) the sample period,
+    with no feedforward, bias change or output tracking in the window."""
+    t, e, kp, ki = (np.asarray(v, np.float64) for v in (t, e, kp, ki))
+    dt = np.diff(t, prepend=t[:1])
+    # bumpless: I jumps by -(kp_k - kp_{k-1}) e_{k-1} at a change of kp
+    dkp = np.diff(kp, prepend=kp[:1])
+    e_prev = np.concatenate([e[:1], e[:-1]])
+    integral = np.cumsum(ki * e * dt - dkp * e_prev)
+    return kp * e + integral
+
+
+def _delayed(t: np.ndarray, u: np.ndarray, theta: np.ndarray, dt: float) -> np.ndarray:
+    """u(t_k + dt/2 - theta) for each theta (rows), held at u[0] before the window."""
+    at = t[None, :] - np.asarray(theta, np.float64).reshape(-1, 1)
+    return np.interp(at, t, u, left=u[0])
+
+
+def _response(t, v, tau, theta, dt, integrating=False) -> np.ndarray:
+    """x for one (tau, theta) (or the integral of the delayed input)."""
+    vd = _delayed(t, v, np.array([theta]), dt)[0]
+    if integrating:
+        return np.concatenate([[0.0], np.cumsum(vd[:-1]) * dt])
+    a = math.exp(-dt / tau)
+    x = lfilter([0.0, 1.0 - a], [1.0, -a], vd)
+    return x
+
+
+@dataclass
+class Window:
+    """One event's data, times relative to its start, the output relative to its first
+    value (a reconstructed output is known only up to a constant)."""
+
+    t: np.ndarray
+    pv: np.ndarray
+    v: np.ndarray
+    dt: float
+
+    @classmethod
+    def of(cls, t, pv, op) -> Window:
+        t, pv, op = (np.asarray(x, np.float64) for x in (t, pv, op))
+        return cls(t - t[0], pv, op - op[0], float(np.median(np.diff(t))))
+
+    @property
+    def span(self) -> float:
+        return float(self.t[-1])
+
+
+def _lstsq(basis: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Least squares of y on each (n, j) basis of a batch (g, n, j), via normal equations."""
+    ata = np.einsum("gni,gnj->gij", basis, basis) + 1e-12 * np.eye(basis.shape[2])
+    aty = np.einsum("gni,n->gi", basis, y)
+    return np.linalg.solve(ata, aty[..., None])[..., 0]
+
+
+def _grid(windows: list[Window], span: float, dt: float) -> tuple[float, float]:
+    """Best (tau, theta) on a log/linear grid, each point linear in every window's
+    (b, K, c) (independent K per window: a start for the joint refinement)."""
+    taus = np.geomspace(max(0.2 * dt, 1e-9), 4.0 * span, _TAU_GRID)
+    thetas = np.linspace(0.0, 0.6 * span, _THETA_GRID)
+    sse = np.zeros((taus.size, thetas.size))
+    for w in windows:
+        vd = _delayed(w.t, w.v, thetas, w.dt)  # (n_theta, n)
+        steps = np.arange(w.t.size)
+        for i, tau in enumerate(taus):
+            a = math.exp(-w.dt / tau)
+            x = lfilter([0.0, 1.0 - a], [1.0, -a], vd, axis=1)
+            # pv = b + K x + c a^k (c: the plant not at rest when the window opens)
+            basis = np.stack([np.ones_like(x), x, np.broadcast_to(a**steps, x.shape)], axis=2)
+            coef = _lstsq(basis, w.pv)
+            sse[i] += ((np.einsum("gnj,gj->gn", basis, coef) - w.pv[None, :]) ** 2).sum(axis=1)
+    i, j = np.unravel_index(int(np.argmin(sse)), sse.shape)
+    return float(taus[i]), float(thetas[j])
+
+
+@dataclass
+class Fit:
+    k: float
+    tau: float
+    theta: float
+    r2: float
+    snr: float
+    noise: float
+    k_rse: float
+    tau_rse: float
+    integrating: bool
+    params: np.ndarray
+    """(K, log tau, theta, b_1.., c_1..) as fitted (to predict other data)."""
+    model: list[np.ndarray]
+    """The model's pv over each window."""
+
+
+def predict(params: np.ndarray, w: Window, b: float, c: float) -> np.ndarray:
+    """The pv an FOPTD fit predicts over a window, given that window's b and c."""
+    k, tau, theta = params[0], math.exp(params[1]), params[2]
+    steps = np.arange(w.t.size)
+    return b + k * _response(w.t, w.v, tau, theta, w.dt) + c * np.exp(-w.dt * steps / tau)
+
+
+def fit_windows(windows: list[Window]) -> Fit:
+    """Least-squares FOPTD fit shared by the windows (each with its own offset b and
+    initial transient c): grid start, then :func:`scipy.optimize.least_squares`."""
+    span = max(w.span for w in windows)
+    dt = float(np.median([w.dt for w in windows]))
+    tau0, theta0 = _grid(windows, span, dt)
+    m = len(windows)
+    steps = [np.arange(w.t.size) for w in windows]
+
+    def unpack(p):
+        return p[0], math.exp(p[1]), p[2], p[3 : 3 + m], p[3 + m :]
+
+    def residual(p):
+        k, tau, theta, b, c = unpack(p)
+        return np.concatenate(
+            [
+                b[i] + k * _response(w.t, w.v, tau, theta, w.dt)
+                + c[i] * np.exp(-w.dt * steps[i] / tau) - w.pv
+                for i, w in enumerate(windows)
+            ]
+        )  # fmt: skip
+
+    # linear start for (K, b, c) at the grid's (tau, theta)
+    starts = []
+    for i, w in enumerate(windows):
+        x = _response(w.t, w.v, tau0, theta0, w.dt)
+        basis = np.stack([np.ones_like(x), x, np.exp(-w.dt * steps[i] / tau0)], axis=1)
+        starts.append(_lstsq(basis[None], w.pv)[0])
+    starts = np.array(starts)
+    k0 = float(np.median(starts[:, 1]))
+    lo = [-np.inf, math.log(max(0.05 * dt, 1e-9)), 0.0] + [-np.inf] * (2 * m)
+    hi = [np.inf, math.log(20.0 * span), 0.9 * span] + [np.inf] * (2 * m)
+    p0 = np.concatenate([[k0, math.log(tau0), theta0], starts[:, 0], starts[:, 2]])
+    p0 = np.clip(p0, np.add(lo, 1e-9), np.subtract(hi, 1e-9))
+    pv_scale = [max(float(np.std(w.pv)), 1e-12) for w in windows]
+    x_scale = [max(abs(k0), 1e-12), 1.0, max(dt, span / 20.0), *pv_scale, *pv_scale]
+    res = least_squares(residual, p0, bounds=(lo, hi), x_scale=x_scale, max_nfev=100 + 20 * m)
+    k, tau, theta, _b, _c = unpack(res.x)
+    r = res.fun
+    n = r.size
+    sse = float(r @ r)
+    sst = sum(float(((w.pv - w.pv.mean()) ** 2).sum()) for w in windows)
+    noise = math.sqrt(sse / max(n - res.x.size, 1))
+    model = np.concatenate([w.pv for w in windows]) + r
+    try:
+        cov = np.linalg.inv(res.jac.T @ res.jac) * noise**2
+        se = np.sqrt(np.maximum(np.diag(cov), 0.0))
+        k_rse = float(se[0] / abs(k)) if k else math.inf
+        tau_rse = float(se[1])  # log tau: relative
+    except np.linalg.LinAlgError:
+        k_rse = tau_rse = math.inf
+    # the integrating alternative, pv = b + K int(u(t - theta)) dt, at the same theta
+    sse_i = 0.0
+    for w in windows:
+        xi = _response(w.t, w.v, 1.0, theta, w.dt, integrating=True)
+        basis = np.stack([np.ones_like(xi), xi], axis=1)
+        coef = _lstsq(basis[None], w.pv)[0]
+        sse_i += float(((basis @ coef - w.pv) ** 2).sum())
+    integrating = sse_i < INTEGRATING_RATIO * sse or (tau > 2.0 * span and sse_i <= sse)
+    return Fit(
+        k=float(k), tau=tau, theta=float(theta),
+        r2=1.0 - sse / sst if sst > 0 else 0.0,
+        snr=float(np.ptp(model)) / max(noise, 1e-300), noise=noise,
+        k_rse=k_rse, tau_rse=tau_rse, integrating=bool(integrating), params=res.x,
+        model=np.split(model, np.cumsum([w.t.size for w in windows])[:-1]),
+    )  # fmt: skip
+
+
+def screen(t, pv, op) -> str:
+    """Why a window cannot be fitted at all ('' if it can)."""
+    n = len(t)
+    if n < MIN_SAMPLES:
+        return f"too few samples ({n} < {MIN_SAMPLES})"
+    pv, op = np.asarray(pv, np.float64), np.asarray(op, np.float64)
+    if not (np.isfinite(pv).all() and np.isfinite(op).all()):
+        return "non-finite data"
+    if np.ptp(pv) == 0.0 or np.mean(np.diff(pv) == 0.0) > 0.5:
+        return "measurement frozen (stuck transmitter?)"
+    if np.ptp(op) == 0.0:
+        return "controller output did not move"
+    return ""
+
+
+def assess(t, sp, pv, op, starts: list[int]) -> Assessment:
+    """Identify from one contiguous segment of closed-loop data (no gap, manual or
+    saturated sample inside) whose events (setpoint moves) start at the indices
+    ``starts``; the last event runs to the end of the data.
+
+    One FOPTD model is fitted to the whole segment (one offset, one initial transient:
+    far better determined than a fit per event). Each event is then judged by the
+    response the model shows in it against the noise (a move too small for the noise
+    excites nothing), and the model fitted without the last event must predict that
+    event (consistency between events). Confident when :data:`MIN_EVENTS` events are
+    excited, the fit explains the data (:data:`MIN_R2`), K and tau are pinned down
+    (:data:`MAX_REL_SE`), the prediction holds (:data:`MAX_PREDICTION`) and an
+    integrating model does not fit better.
+    """
+    t, sp, pv, op = (np.asarray(x, np.float64) for x in (t, sp, pv, op))
+    bounds = [*starts, t.size]
+    events = [
+        EventFit(
+            t0=float(t[a]), t1=float(t[b - 1]), n=b - a,
+            move=float(sp[a] - sp[a - 1]) if a > 0 else 0.0,
+        )
+        for a, b in zip(bounds[:-1], bounds[1:], strict=True)
+    ]  # fmt: skip
+    out = Assessment(events=events)
+    if len(starts) < MIN_EVENTS:
+        out.why = f"waiting for setpoint moves ({len(starts)} of {MIN_EVENTS} seen)"
+        return out
+    first = starts[0]
+    t, sp, pv, op = t[first:], sp[first:], pv[first:], op[first:]
+    bounds = [b - first for b in bounds]
+    out.why = screen(t, pv, op)
+    if out.why:
+        return out
+    whole = Window.of(t, pv, op)
+    joint = fit_windows([whole])
+    pred = joint.model[0]
+    excited = 0
+    for ev, a, b in zip(events, bounds[:-1], bounds[1:], strict=True):
+        ev.snr = float(np.ptp(pred[a:b])) / max(joint.noise, 1e-300)
+        ev.excited = bool(ev.snr >= MIN_SNR)
+        excited += ev.excited
+    out.model = Model(
+        k=joint.k, tau=joint.tau, theta=joint.theta, noise=joint.noise,
+        move=float(np.median([abs(ev.move) for ev in events if ev.excited] or [0.0])),
+        r2=joint.r2, k_rse=joint.k_rse, tau_rse=joint.tau_rse,
+        integrating=joint.integrating, events=excited,
+    )  # fmt: skip
+    # consistency: the model of all but the last event predicts the last event
+    cut = bounds[-2]
+    if cut >= MIN_SAMPLES and excited >= MIN_EVENTS:
+        head = Window.of(t[:cut], pv[:cut], op[:cut])
+        early = fit_windows([head])
+        b, c = early.params[3], early.params[4]
+        guess = predict(early.params, whole, b, c)
+        rms = float(np.sqrt(np.mean((guess[cut:] - pv[cut:]) ** 2)))
+        out.model.prediction = rms / max(joint.noise, 1e-300)
+    out.why = _verdict(out.model, excited)
+    m = out.model
+    worst = max(m.k_rse, m.tau_rse)
+    precision = min(1.0, max(0.0, 1.5 - 0.5 * worst / MAX_REL_SE))
+    consistency = min(1.0, max(0.0, (2.0 * MAX_PREDICTION - m.prediction) / MAX_PREDICTION))
+    m.confidence = float(
+        min(1.0, excited / MIN_EVENTS) * precision * consistency * (m.r2 >= MIN_R2)
+    )
+    m.confident = not out.why
+    return out
+
+
+def _verdict(m: Model, excited: int) -> str:
+    if m.integrating:
+        return "integrating: K/s e^(-theta s) fits better than an FOPTD model"
+    if not m.k > 0.0:
+        return f"process gain {m.k:.3g} has the wrong sign for this controller"
+    if excited < MIN_EVENTS:
+        return (
+            f"move too small for the noise ({excited} of {MIN_EVENTS} events show a "
+            f"response {MIN_SNR:g}x the noise {m.noise:.3g})"
+        )
+    if m.r2 < MIN_R2:
+        return f"poor fit (R2 {m.r2:.2f} < {MIN_R2:g})"
+    if not (m.k_rse <= MAX_REL_SE and m.tau_rse <= MAX_REL_SE):
+        return f"K or tau not pinned down (rel. s.e. {m.k_rse:.2f}, {m.tau_rse:.2f})"
+    if not m.prediction <= MAX_PREDICTION:
+        return (
+            f"events disagree (the earlier events' model predicts the last with "
+            f"{m.prediction:.2f}x the noise)"
+        )
+    return ""
