@@ -122,3 +122,26 @@ def test_a_tuner_in_a_store_directory_takes_the_lock_beside_the_database(tmp_pat
     finally:
         lock.release()
     daemon.StoreLock(tmp_path / "sub" / "x.db", "other").release()  # free again
+
+
+def test_a_second_tuner_on_the_same_key_prefix_refuses_to_start(tmp_path):
+    """Two stores, one bus: the second tuner sees the first one's liveliness token on its
+    prefix, waits out a lease (a tuner killed moments ago) and refuses; on its own prefix
+    it starts."""
+    first = TunerProcess(tmp_path / "a" / "pitune.db", "--agent-weights", "untrained",
+                         "--instance-id", "first", log=tmp_path / "first.log")  # fmt: skip
+    try:
+        first.start()
+        second = start(tmp_path, "--connect", first.zenoh, "--instance-id", "second")
+        line = one_line(second, daemon.EXIT_LOCKED, "key prefix 'pitune'", "--prefix")
+        assert "pitune/tuners/first" in line
+        assert "waiting up to" in second.stderr  # it waited for the token to go first
+        other = TunerProcess(tmp_path / "b" / "pitune.db", "--agent-weights", "untrained",
+                             "--connect", first.zenoh, "--prefix", "site2/pitune",
+                             log=tmp_path / "other.log")  # fmt: skip
+        try:
+            other.start()
+        finally:
+            other.stop()
+    finally:
+        first.stop()

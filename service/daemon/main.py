@@ -25,6 +25,7 @@ import signal
 import socket
 import sqlite3
 import sys
+import time
 from pathlib import Path
 
 import uvicorn
@@ -57,8 +58,13 @@ EXIT_CODES = {
     "not an SQLite database)",
     EXIT_STORE_FAILED: "the store failed to commit for store_failure_exit_s while running "
     "(restart it: it resumes from the store)",
-    EXIT_LOCKED: "another tuner owns the store (its <db>.lock is held)",
+    EXIT_LOCKED: "another tuner owns the store (its <db>.lock is held), or runs on the "
+    "bus with the same key prefix",
 }
+PREFIX_LEASE_S = 12.0
+"""How long a tuner waits at start-up for another tuner's liveliness token on its key
+prefix to go: longer than Zenoh's default lease (10 s), after which the token of a tuner
+killed moments ago (a supervisor's restart) has expired."""
 
 # flag -> settings field; flags left out fall back to environment, config file, defaults
 FLAGS = {
@@ -337,6 +343,39 @@ def start_tuner(settings: Settings):
     return tuner
 
 
+def other_tuners(tuner, settings: Settings) -> list[str]:
+    """Liveliness tokens of other tuners on this key prefix (this tuner's excluded)."""
+    keys = settings.keys
+    replies = tuner.bus.session.liveliness().get(keys.all_tuners, timeout=1.0)
+    found = {str(reply.ok.key_expr) for reply in replies if reply.ok is not None}
+    return sorted(found - {keys.tuner(settings.instance_id)})
+
+
+def check_alone_on_prefix(tuner, settings: Settings, wait_s: float = PREFIX_LEASE_S) -> None:
+    """Refuse to run beside another tuner with the same key prefix on the bus: both
+    would tune the same loops. A token still there after ``wait_s`` is a live tuner."""
+    deadline = time.monotonic() + wait_s
+    others = other_tuners(tuner, settings)
+    if others:
+        log.warning(
+            "another tuner is on the bus with key prefix %r: %s; waiting up to %.0f s for "
+            "its token to go (a tuner stopped moments ago)",
+            settings.key_prefix,
+            ", ".join(others),
+            wait_s,
+        )
+    while others and time.monotonic() < deadline:
+        time.sleep(1.0)
+        others = other_tuners(tuner, settings)
+    if others:
+        raise StartupError(
+            EXIT_LOCKED,
+            f"another tuner runs on the bus with key prefix {settings.key_prefix!r} "
+            f"({', '.join(others)}): both would tune the same loops. Stop it, or give this "
+            "tuner its own --prefix (PITUNE_KEY_PREFIX)",
+        )
+
+
 def run(args: argparse.Namespace) -> int:
     configured = False
     try:
@@ -377,6 +416,7 @@ def serve(settings: Settings) -> int:
     tuner = None
     try:
         tuner = start_tuner(settings)
+        check_alone_on_prefix(tuner, settings)
         from service.daemon.api import create_app
 
         server = uvicorn.Server(
