@@ -14,8 +14,11 @@ an FOPTD loop's default hint is its true model).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, fields
 from pathlib import Path
+
+from pydantic import ValidationError
 
 from plant_sim.scenario import (
     TANK_HINT,
@@ -32,6 +35,15 @@ from service.wire.protocol import DEFAULT_PREFIX, is_valid_id
 TANK_SP = (50.0, 60.0)
 SP_PERIOD_S = 600.0
 """The tank's setpoint toggles every 10 simulated minutes, as in the paper's figure 10."""
+
+
+def _in_range(key: str, value: float) -> bool:
+    """Loop parameters: PV limits any finite numbers, dead time >= 0, the rest > 0."""
+    if not math.isfinite(value):
+        return False
+    if key in ("lo", "hi"):
+        return True
+    return value >= 0.0 if key == "theta" else value > 0.0
 
 
 @dataclass(frozen=True)
@@ -64,7 +76,20 @@ class LoopSpec:
         missing = [k for k in cls.FOPTD_REQUIRED if kind == "foptd" and k not in params]
         if missing:
             raise ValueError(f"{text!r}: missing {', '.join(missing)}")
-        return cls(kind, loop_id, params)
+        bad = [k for k, v in params.items() if not _in_range(k, v)]
+        if params.get("lo", -1.0) >= params.get("hi", 1.0):
+            bad.append("lo < hi")
+        if bad:
+            raise ValueError(
+                f"{text!r}: {', '.join(bad)} out of range (K, tau, gains and hints > 0; "
+                "theta >= 0; reverse-acting plants are not simulated)"
+            )
+        spec = cls(kind, loop_id, params)
+        try:
+            spec.initial_gains()
+        except ValidationError as exc:
+            raise ValueError(f"{text!r}: {exc.errors()[0]['msg']}") from None
+        return spec
 
     def text(self) -> str:
         """The command-line form :meth:`parse` reads back."""

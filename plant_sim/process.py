@@ -20,6 +20,7 @@ Loop syntax: :mod:`plant_sim.config`.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 from dataclasses import fields
@@ -54,6 +55,18 @@ def _loop_spec(kind: str):
     return parse
 
 
+def _at_least(low: float, *, strict: bool = False):
+    """An argparse type: a finite number >= ``low`` (> with ``strict``), else a clear error."""
+
+    def parse(text: str) -> float:
+        value = float(text)
+        if not (math.isfinite(value) and (value > low if strict else value >= low)):
+            raise argparse.ArgumentTypeError(f"{text}: must be {'>' if strict else '>='} {low:g}")
+        return value
+
+    return parse
+
+
 def add_loop_arguments(run_p: argparse.ArgumentParser) -> None:
     """``--tank``, ``--foptd`` and the ``simulation`` options, read by :func:`plant_config`
     (and by any other simulator front end)."""
@@ -74,15 +87,20 @@ def add_loop_arguments(run_p: argparse.ArgumentParser) -> None:
         help="an FOPTD loop K exp(-theta s)/(tau s + 1), seconds",
     )
     sim = run_p.add_argument_group("simulation")
-    sim.add_argument("--scan", type=float, default=SIM.scan, help="DCS scan interval, s (1)")
+    sim.add_argument(
+        "--scan", type=_at_least(1e-3), default=SIM.scan, help="DCS scan interval, s (1)"
+    )
     sim.add_argument(
         "--speed",
-        type=float,
+        type=_at_least(0.0),
         default=SIM.speed,
         help="simulated s per wall s; 0 = as fast as possible",
     )
     sim.add_argument(
-        "--duration", type=float, default=SIM.duration, help="stop after this many simulated s"
+        "--duration",
+        type=_at_least(0.0, strict=True),
+        default=SIM.duration,
+        help="stop after this many simulated s",
     )
     sim.add_argument(
         "--t0",
@@ -91,10 +109,16 @@ def add_loop_arguments(run_p: argparse.ArgumentParser) -> None:
         help="plant clock at start, s (0); a loop the tuner knows resumes after its last sample",
     )
     sim.add_argument(
-        "--sp-period", type=float, default=SIM.sp_period, help="s between setpoint steps (600)"
+        "--sp-period",
+        type=_at_least(0.0, strict=True),
+        default=SIM.sp_period,
+        help="s between setpoint steps (600)",
     )
     sim.add_argument(
-        "--noise", type=float, default=SIM.noise, help="uniform measurement noise +-N, PV units"
+        "--noise",
+        type=_at_least(0.0),
+        default=SIM.noise,
+        help="uniform measurement noise +-N, PV units",
     )
     sim.add_argument(
         "--load",

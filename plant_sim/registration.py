@@ -48,6 +48,12 @@ def register(
                 if response.is_success:
                     known[spec.loop_id] = response.json()
                     continue
+            if response.status_code == 401:
+                raise RegistrationError(
+                    f"registering {spec.loop_id} at {url} refused (HTTP 401): the tuner "
+                    "requires its API token; set PITUNE_API_TOKEN to it"
+                    + (" (the one given was refused)" if token else "")
+                )
             if not response.is_success:
                 raise RegistrationError(
                     f"registering {spec.loop_id} failed: HTTP {response.status_code} "

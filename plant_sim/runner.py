@@ -10,6 +10,7 @@ follows docs/protocol.md (:mod:`plant_sim.gateway`).
 from __future__ import annotations
 
 import signal
+import sys
 import time
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack, closing
@@ -58,8 +59,15 @@ def to_sample(scan: Scan) -> Sample:
     )
 
 
+EXIT_NO_TUNER = 3
+"""Exit status of a run that registered its loops but never heard a tuner on the bus."""
+
+
 def simulate(config: PlantConfig, loops: list[SimulatedLoop]) -> int:
-    """Run the loops on the bus until the duration or a signal; always close the session."""
+    """Run the loops on the bus until the duration or a signal; always close the session.
+
+    Exits 0, or :data:`EXIT_NO_TUNER` when the loops were registered (``--register``) but
+    no tuner was ever heard on the bus (a tuner on another bus or prefix, say)."""
     stop = StopFlag()
     sim = config.sim
     by_id = {loop.loop_id: loop for loop in loops}
@@ -87,6 +95,7 @@ def simulate(config: PlantConfig, loops: list[SimulatedLoop]) -> int:
                 for loop_id in (by_id if config.log_dir else ())
             }
             applied, ignored = run_scans(config, loops, gateway, writers, stop)
+        heard = gateway.tuner_up() or applied or ignored
         gateway.close()
         print(
             f"plant stopped: {applied} gain updates applied, {ignored} advisory ignored, "
@@ -95,6 +104,14 @@ def simulate(config: PlantConfig, loops: list[SimulatedLoop]) -> int:
         )
     finally:
         session.close()
+    if not heard:
+        print(
+            f"plant: no tuner was heard on this bus (no gains, no liveliness token under "
+            f"{config.prefix}/tuners/*): check --connect/--listen, --prefix and the tuner",
+            file=sys.stderr,
+            flush=True,
+        )
+        return EXIT_NO_TUNER if config.register else 0
     return 0
 
 

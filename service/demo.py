@@ -31,7 +31,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from plant_sim.config import LoopSpec, Simulation, untuned_baseline
+from plant_sim.config import SP_PERIOD_S, LoopSpec, Simulation, untuned_baseline
 from plant_sim.process import plant_argv
 from plant_sim.scenario import TANK_FIT
 from plant_sim.trajectory import plot, read_log
@@ -49,14 +49,50 @@ class DemoError(RuntimeError):
 
 
 # -- the demo ----------------------------------------------------------------------------
+MIN_MINUTES = MSE_CHANGES * SP_PERIOD_S / 60.0 + 1.0
+"""Shortest run that has the setpoint changes the tracking MSE covers (every 10 min)."""
+
+
+def _minutes(text: str) -> float:
+    value = float(text)
+    if not value >= MIN_MINUTES:
+        raise argparse.ArgumentTypeError(
+            f"{text}: at least {MIN_MINUTES:g} minutes (the tracking MSE covers the last "
+            f"{MSE_CHANGES} setpoint changes, one every {SP_PERIOD_S / 60:g} minutes)"
+        )
+    return value
+
+
+def _speed(text: str) -> float:
+    value = float(text)
+    if not 0.0 < value <= 10_000.0:
+        raise argparse.ArgumentTypeError(f"{text}: a speed factor in (0, 10000]")
+    return value
+
+
+def _noise(text: str) -> float:
+    value = float(text)
+    if not 0.0 <= value <= 10.0:
+        raise argparse.ArgumentTypeError(f"{text}: noise amplitude in [0, 10] cm")
+    return value
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=Path("demo"), help="output folder (demo/)")
-    parser.add_argument("--minutes", type=float, default=60.0, help="simulated span, minutes (60)")
     parser.add_argument(
-        "--speed", type=float, default=60.0, help="simulated seconds per wall second (60)"
+        "--minutes",
+        type=_minutes,
+        default=60.0,
+        help=f"simulated span, minutes, at least {MIN_MINUTES:g} (60)",
     )
     parser.add_argument(
-        "--noise", type=float, default=0.0, help="level measurement noise +-N cm (paper: 1)"
+        "--speed", type=_speed, default=60.0, help="simulated seconds per wall second (60)"
+    )
+    parser.add_argument(
+        "--noise",
+        type=_noise,
+        default=0.0,
+        help="level measurement noise +-N cm (0; the paper's noisy run uses 1)",
     )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(

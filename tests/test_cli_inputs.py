@@ -1,0 +1,41 @@
+"""Bad command-line input gets one clear line and changes nothing (issue 17)."""
+
+import pytest
+
+from plant_sim.config import LoopSpec
+from service.cli import build_parser
+
+
+@pytest.mark.parametrize(
+    ("argv", "says"),
+    [
+        (["demo", "--minutes", "5"], "at least 21 minutes"),
+        (["demo", "--minutes", "0"], "at least 21 minutes"),
+        (["demo", "--speed", "-1"], "a speed factor in (0, 10000]"),
+        (["demo", "--noise", "-1"], "noise amplitude in [0, 10] cm"),
+        (["plant", "run", "--speed", "-5"], "--speed: -5: must be >= 0"),
+        (["plant", "run", "--duration", "0"], "--duration: 0: must be > 0"),
+        (["plant", "run", "--foptd", "f1:K=2,tau=-20,theta=5"], "tau out of range"),
+        (["plant", "run", "--foptd", "f1:K=2,tau=20"], "missing theta"),
+    ],
+)
+def test_bad_arguments_are_refused_with_a_reason(argv, says, capsys):
+    with pytest.raises(SystemExit) as info:
+        build_parser(argv[0]).parse_args(argv)
+    assert info.value.code == 2
+    assert says in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("text", "says"),
+    [
+        ("f1:K=2,tau=20,theta=-1", "theta out of range"),
+        ("f1:K=nan,tau=20,theta=1", "K out of range"),
+        ("f1:K=2,tau=20,theta=1,lo=3,hi=-3", "lo < hi"),
+        ("f1:K=1e12,tau=20,theta=1", "less than or equal to 1000000000"),
+    ],
+)
+def test_loop_specs_are_checked_when_parsed(text, says):
+    with pytest.raises(ValueError, match=says.replace("(", r"\(")):
+        LoopSpec.parse("foptd", text)
+    assert LoopSpec.parse("foptd", "f1:K=2,tau=20,theta=5,lo=-3,hi=3").params["lo"] == -3.0
