@@ -122,7 +122,7 @@ class OpcUaLink:
         client = await secure_client(self.server)
 
         async def on_lost(exc: Exception) -> None:
-            log.warning("OPC UA connection lost: %s", exc)
+            log.warning("OPC UA connection lost: %r", exc)
             self.lost.set()
 
         client.connection_lost_callback = on_lost
