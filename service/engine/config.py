@@ -16,6 +16,7 @@ from service.wire.protocol import MAX_MAGNITUDE, Gain, GatewayId, LoopId, LoopSt
 Fraction = Annotated[float, Field(strict=True, gt=0.0, le=10.0, allow_inf_nan=False)]
 ExcitationPeriods = Annotated[float, Field(strict=True, ge=0.0, le=1e6, allow_inf_nan=False)]
 ExcitationStep = Annotated[float, Field(strict=True, gt=0.0, le=100.0, allow_inf_nan=False)]
+Tolerance = Annotated[float, Field(strict=True, gt=1.0, le=100.0, allow_inf_nan=False)]
 
 
 class Guard(BaseModel):
@@ -46,6 +47,28 @@ class Guard(BaseModel):
         description="Smallest setpoint change that counts, in agent units (multiples of "
         "pv_scale). Gateways sending only e: a jump of e between two samples.",
     )
+    identify: bool = Field(
+        True,
+        description="Identify the loop's FOPTD model from its closed-loop data (needs sp "
+        "and pv in the samples). A loop registered without scaling is tuned only once "
+        "identified; a hinted loop's hint is checked against the model.",
+    )
+    hint_tolerance: Tolerance = Field(
+        2.0,
+        description="The identified K or tau disagreeing with the scaling in force by more "
+        "than this factor flags the loop (status hint_mismatch, audit 'mismatch').",
+    )
+    auto_rescale: bool = Field(
+        False,
+        description="On a mismatch, rescale the loop to the identified model (audit "
+        "'rescaled') and restart its episode, instead of only flagging it.",
+    )
+    envelope_guard: bool = Field(
+        True,
+        description="Pause tuning (status out_of_envelope) while the identified dynamics, "
+        "in agent units, lie outside the agent's training box by the envelope margin, or "
+        "the process looks integrating.",
+    )
 
 
 class LoopConfig(BaseModel):
@@ -61,7 +84,8 @@ class LoopConfig(BaseModel):
                     "ki": 0.01,
                     "sample_period_s": 1.0,
                     "scaling": {"k_hat": 1.2, "tau_hat": 30.0, "pv_scale": 10.0},
-                }
+                },
+                {"id": "TIC-7", "kp": 2.0, "ki": 0.02, "sample_period_s": 5.0},
             ]
         },
     )
@@ -72,7 +96,11 @@ class LoopConfig(BaseModel):
     sample_period_s: Annotated[float, Field(strict=True, gt=0.0, le=1e6)] = Field(
         description="The gateway's sample clock, seconds (staleness is measured in it)."
     )
-    scaling: ScalingSpec
+    scaling: ScalingSpec | None = Field(
+        None,
+        description="The model hint (section 5.4 scaling). Absent: the loop starts "
+        "'identifying' and is tuned once its model is identified from its data.",
+    )
     mode: Mode = Mode.auto
     forgetting: Annotated[float, Field(strict=True, gt=0.0, le=1.0)] = Field(
         DEFAULT_FORGETTING,
@@ -88,13 +116,16 @@ class LoopConfig(BaseModel):
 
     @model_validator(mode="after")
     def _resolve_bounds(self) -> LoopConfig:
+        if self.scaling is None:  # bounds left unset resolve once the model is identified
+            check_given_bounds(self.guard, self.kp, self.ki)
+            return self
         self.guard = resolve_bounds(self.guard, self.scaling.resolve(), self.kp, self.ki)
         check_bounds(self.guard, self.kp, self.ki)
         return self
 
     @property
-    def resolved_scaling(self) -> Scaling:
-        return self.scaling.resolve()
+    def resolved_scaling(self) -> Scaling | None:
+        return None if self.scaling is None else self.scaling.resolve()
 
 
 def resolve_bounds(guard: Guard, scaling: Scaling, kp: float, ki: float) -> Guard:
@@ -113,6 +144,20 @@ def resolve_bounds(guard: Guard, scaling: Scaling, kp: float, ki: float) -> Guar
     }
     unset = {k: v for k, v in defaults.items() if getattr(guard, k) is None}
     return Guard.model_validate({**guard.model_dump(), **unset})
+
+
+def check_given_bounds(guard: Guard, kp: float, ki: float) -> None:
+    """:func:`check_bounds` for the bounds that are set (a loop without scaling)."""
+    inf = float("inf")
+    full = guard.model_copy(
+        update={
+            "kp_min": guard.kp_min if guard.kp_min is not None else 0.0,
+            "kp_max": guard.kp_max if guard.kp_max is not None else inf,
+            "ki_min": guard.ki_min if guard.ki_min is not None else 0.0,
+            "ki_max": guard.ki_max if guard.ki_max is not None else inf,
+        }
+    )
+    check_bounds(full, kp, ki)
 
 
 def check_bounds(guard: Guard, kp: float, ki: float) -> None:
@@ -137,6 +182,10 @@ class LoopPatch(BaseModel):
     stale_periods: Annotated[float, Field(strict=True, ge=1.0, le=1e6)] | None = None
     excitation_periods: ExcitationPeriods | None = None
     excitation_min_step: ExcitationStep | None = None
+    identify: bool | None = None
+    hint_tolerance: Tolerance | None = None
+    auto_rescale: bool | None = None
+    envelope_guard: bool | None = None
     gateway: GatewayId | None = Field(
         None, description="Set a gateway (batched gains), or null: one message per loop again."
     )
@@ -149,7 +198,10 @@ class LoopPatch(BaseModel):
         guard = config.guard.model_copy(
             update=self.model_dump(exclude={"mode", "forgetting", "gateway"}, exclude_none=True)
         )
-        check_bounds(guard, config.kp, config.ki)
+        if config.scaling is None:
+            check_given_bounds(guard, config.kp, config.ki)
+        else:
+            check_bounds(guard, config.kp, config.ki)
         return config.model_copy(update={**top, "guard": guard})
 
 
@@ -166,14 +218,79 @@ class Counters(BaseModel):
         description="Due RL steps left out because the loop's numbers went non-finite "
         "(audit reason 'fault'); the other loops of the batch were stepped.",
     )
+    identified: int = Field(
+        0, description="Models adopted from identification (first scaling or a rescale)."
+    )
+    mismatches: int = Field(
+        0, description="Times the identified model was found to disagree with the scaling."
+    )
+    envelope_pauses: int = Field(0, description="Times tuning paused as out_of_envelope.")
+
+
+class IdentifiedModel(BaseModel):
+    """An FOPTD model identified from closed-loop data (engineering units, seconds)."""
+
+    k: float = Field(description="Process gain, PV units per output unit.")
+    tau: float = Field(description="Time constant, s.")
+    theta: float = Field(description="Dead time, s.")
+    noise: float = Field(description="Residual rms, PV units (the measurement noise).")
+    move: float = Field(description="Typical setpoint move of the events, PV units.")
+    r2: float = Field(description="Share of the PV's variance the model explains.")
+    k_rse: float | None = Field(description="Relative standard error of K.")
+    tau_rse: float | None = Field(description="Relative standard error of tau.")
+    integrating: bool = Field(description="An integrating model K/s e^-theta s fits better.")
+    events: int = Field(description="Events whose response stands out of the noise.")
+    prediction: float | None = Field(
+        description="Rms error, in noise units, of the earlier events' model on the last."
+    )
+    confidence: float = Field(description="0..1: excitation x precision x consistency.")
+    confident: bool
+
+
+class IdentificationEvent(BaseModel):
+    """A setpoint move and the data up to the next, as identification saw it."""
+
+    t0: float
+    t1: float
+    n: int = Field(description="Samples recorded.")
+    move: float = Field(description="The setpoint move, PV units.")
+    snr: float | None = Field(description="Modelled response over the noise (peak to peak).")
+    excited: bool
+
+
+class Identification(BaseModel):
+    """What the loop's identification knows (``GET /loops/{id}``)."""
+
+    state: str = Field(
+        description="'identifying' (no scaling yet), 'checking' (a scaling in force, "
+        "identification running), 'off'."
+    )
+    why: str = Field(description="Why the latest assessment is not confident ('' if it is).")
+    model: IdentifiedModel | None = Field(description="The latest assessment's model.")
+    in_force: IdentifiedModel | None = Field(
+        description="The identified model the scaling in force comes from (None: the hint)."
+    )
+    in_force_t: float | None = Field(description="Plant time it was adopted.")
+    apparent: dict[str, float] | None = Field(
+        description="The latest model in the agent's units under the scaling in force: "
+        "gain, tau, theta/tau (training box 0.25-1, 0.25-1, 0-1)."
+    )
+    events: list[IdentificationEvent] = Field(
+        description="The events of the latest assessment (the current segment)."
+    )
+    mismatch: bool
+    out_of_envelope: bool
 
 
 class LoopView(BaseModel):
     """A loop as ``GET /loops/{id}`` shows it."""
 
     config: LoopConfig
-    scaling: Scaling = Field(description="The resolved unit mapping.")
-    rl_period_s: float = Field(description="Plant seconds between two gain updates.")
+    scaling: Scaling | None = Field(
+        description="The unit mapping in force (the hint's, or the identified model's); "
+        "None while identifying."
+    )
+    rl_period_s: float | None = Field(description="Plant seconds between two gain updates.")
     kp: float
     ki: float
     mode: Mode
@@ -183,3 +300,4 @@ class LoopView(BaseModel):
     int_e: float = Field(description="Integral of the error since reset, agent units.")
     hidden_norm: float = Field(description="Norm of the agent's hidden state (0 after reset).")
     counters: Counters
+    identification: Identification | None = None

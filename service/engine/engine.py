@@ -36,7 +36,7 @@ import numpy as np
 
 from service.agent.fast import Precision
 from service.agent.model import Agent, load_agent
-from service.engine import rules, stepping
+from service.engine import rules, stepping, watch
 from service.engine.audit import AuditRow
 from service.engine.config import LoopConfig, LoopView
 from service.engine.table import LoopTable, RawView
@@ -118,6 +118,16 @@ class TuningEngine:
         with self.lock:
             self._due.pop(self.table.slot(loop_id), None)
             return self.table.reset(loop_id, _now(wall))
+
+    def identify(self, loop_id: str, wall: float | None = None) -> None:
+        """Identify the loop again from scratch (``POST /loops/{id}/identify``): the
+        identified scaling is dropped (a loop registered without a hint is 'identifying'
+        again and not tuned until a new model is confident; a hinted loop goes back to its
+        hint), the mismatch and envelope flags are cleared; audit row 'identify'."""
+        with self.lock:
+            s = self.table.slot(loop_id)
+            self._due.pop(s, None)
+            watch.restart(self.table, s, _now(wall))
 
     def __contains__(self, loop_id: object) -> bool:
         return loop_id in self.table.slot_of

@@ -15,7 +15,12 @@ for an RL step (:mod:`service.engine.stepping` then steps it).
   Nor is the error integrated while in manual or saturated (training never saw an
   integral wound up by an error nobody controls), and the decimation window restarts
   at the first sample back in auto, so a step sees a full RL period of control.
-* ``frozen`` loops are never stepped.
+* ``frozen`` loops are never stepped, nor loops without a scaling yet (identifying:
+  their RL period is unknown, so they never fall due) or paused as out of the agent's
+  envelope.
+* Identification (:mod:`service.engine.watch`): samples with sp and pv are recorded in
+  segments that open at setpoint moves; each move closes an event and assesses the
+  segment, which may put a model in force (see that module).
 * Excitation gate: the agent learns from setpoint responses, and stepped on a loop
   whose setpoint stands still it walks the gains far from where they were (see the
   evaluation's quiet-loop line). A loop is stepped only in RL periods that end within
@@ -38,6 +43,7 @@ import math
 
 import numpy as np
 
+from service.engine import watch
 from service.engine.audit import audit_row
 from service.engine.modes import _MODES, FROZEN
 from service.engine.table import LoopTable
@@ -75,6 +81,7 @@ def ingest(
     detail)); a rejected sample changes nothing of its loop but its counters.
     """
     cols = {k: getattr(rows, k) for k in ("t", "e", "sp", "kp", "ki", "auto", "saturated")}
+    cols["op"] = rows.op if rows.op is not None else np.full(len(rows), math.nan)
     t, e = cols["t"], cols["e"]
     # a wall clock stepped back (NTP) refills nothing, and locks no loop out either
     elapsed = np.maximum(wall - tb.token_wall[slots], 0.0)
@@ -123,6 +130,7 @@ def ingest(
     tb.saturated[slots] = saturated
     tb.last_t[slots] = t
     fresh = np.isnan(last_t) | (t - last_t > tb.stale_gap[slots]) | resumed
+    watch.record(tb, slots, cols, last_t, fresh, wall)
     period = tb.period[slots]
     next_due = np.where(fresh, t + period, tb.next_due[slots])
     step = np.where(fresh | paused, 0.0, 0.5 * (e + tb.last_e[slots]) * (t - last_t))
@@ -133,7 +141,7 @@ def ingest(
         np.floor((t[reached] - next_due[reached]) / period[reached]) + 1.0
     )
     tb.next_due[slots] = next_due
-    due_ok = reached & (tb.mode[slots] != FROZEN) & auto & ~saturated
+    due_ok = reached & (tb.mode[slots] != FROZEN) & auto & ~saturated & ~tb.out_env[slots]
     gated = due_ok & tb.gate_closed(slots, t)
     tb.n_quiet[slots[gated]] += 1
     due_ok &= ~gated

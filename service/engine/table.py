@@ -25,15 +25,18 @@ import orjson
 
 from service.agent.fast import FastPolicy, Precision
 from service.agent.model import Agent
+from service.engine import watch
 from service.engine.audit import AuditRow, audit_row
-from service.engine.config import Counters, LoopConfig, LoopView
+from service.engine.config import Counters, Identification, LoopConfig, LoopView, resolve_bounds
 from service.engine.modes import _CODE, _MODES, AUTO, FROZEN
 from service.engine.updates import MODE_VALUES, StepResult
+from service.units import Scaling
 from service.wire.protocol import LoopStatus, Mode, UpdateReason
 
 STATUSES = [
-    LoopStatus.frozen, LoopStatus.waiting, LoopStatus.stale, LoopStatus.manual,
-    LoopStatus.saturated, LoopStatus.quiet, LoopStatus.tuning,
+    LoopStatus.frozen, LoopStatus.waiting, LoopStatus.stale, LoopStatus.identifying,
+    LoopStatus.out_of_envelope, LoopStatus.manual, LoopStatus.saturated,
+    LoopStatus.hint_mismatch, LoopStatus.quiet, LoopStatus.tuning,
 ]  # fmt: skip
 """Statuses in order of precedence (see :meth:`LoopTable.statuses`)."""
 
@@ -51,11 +54,23 @@ _F64 = (
     "exc_step", "exc_window", "sp_ref", "excited_until",
     # run of out-of-order samples that may be a new clock: length and last t
     "back_n", "back_t",
+    # identification (service.engine.watch): the reconstructed PI's integral term and the
+    # kp it was last computed with, the last sample seen, the setpoint last seen
+    "op_int", "op_kp", "prev_t", "prev_sp", "prev_pv", "prev_op", "id_sp",
 )  # fmt: skip
 _I64 = [
     "mode", "seq", "n_samples", "n_rejected", "n_steps", "n_updates", "n_quiet", "n_faults",
+    "n_identified", "n_mismatch", "n_envelope",
 ]  # fmt: skip
-_BOOL = ["pending", "manual", "saturated"]
+"""Mode, seq, then the counters (persisted in this order: new ones go at the end)."""
+_REC = ["rec", "rec_n", "rec_k", "rec_stride"]
+"""Identification recorder: pool row (-1: not recording), samples held, samples seen,
+recording stride."""
+_BOOL = [
+    "pending", "manual", "saturated",
+    # identification: it runs, a scaling is in force, flagged, paused, last sample usable
+    "watch", "scaled", "mismatch", "out_env", "prev_ok",
+]  # fmt: skip
 
 
 class Configs:
@@ -98,14 +113,18 @@ class RawView:
     int_e: float
     hidden_norm: float
     counters: Counters
+    scaling: Scaling | None = None
+    """The scaling in force (the hint's or the identified model's)."""
+    identification: Identification | None = None
 
     def parse(self) -> LoopView:
         config = LoopConfig.model_validate_json(self.config)
-        scaling = config.resolved_scaling
+        scaling = self.scaling
         return LoopView(
             config=config,
             scaling=scaling,
-            rl_period_s=scaling.rl_period_s,
+            rl_period_s=None if scaling is None else scaling.rl_period_s,
+            identification=self.identification,
             mode=config.mode,
             kp=self.kp,
             ki=self.ki,
@@ -149,13 +168,15 @@ class LoopTable:
         self._free: list[int] = []
         self._gains_dirty: set[int] = set()
         self._audit: list[AuditRow] = []
+        self.ident: list[watch.IdState | None] = []
+        self.recorder = watch.Recorder()
         self._allocate(capacity)
 
     # -- storage ----------------------------------------------------------------------
     def _allocate(self, capacity: int) -> None:
         old = len(self.ids)
         layers, hidden = self.agent.cfg.layers, self.agent.cfg.hidden
-        for names, dtype in ((_F64, np.float64), (_I64, np.int64), (_BOOL, bool)):
+        for names, dtype in ((_F64, np.float64), (_I64, np.int64), (_REC, np.int64), (_BOOL, bool)):
             for name in names:
                 arr = np.zeros(capacity, dtype)
                 if old:
@@ -167,6 +188,7 @@ class LoopTable:
         self.hidden = h
         self.ids.extend([None] * (capacity - old))
         self.gateways.extend([None] * (capacity - old))
+        self.ident.extend([None] * (capacity - old))
         self._free.extend(range(capacity - 1, old - 1, -1))
 
     def __len__(self) -> int:
@@ -206,6 +228,12 @@ class LoopTable:
         for name in _I64[2:]:
             getattr(self, name)[s] = 0
         self.tokens[s], self.token_wall[s] = self.burst, wall
+        self.ident[s] = watch.IdState()
+        self.rec[s], self.rec_n[s], self.rec_k[s], self.rec_stride[s] = -1, 0, 0, 1
+        self.mismatch[s] = self.out_env[s] = self.prev_ok[s] = False
+        self.op_int[s] = self.op_kp[s] = 0.0
+        self.prev_t[s] = self.prev_sp[s] = self.prev_pv[s] = self.prev_op[s] = math.nan
+        self.id_sp[s] = math.nan
         self._configure(s, config)
         self._restart(s)
         if hidden is not None and runtime is not None:
@@ -214,21 +242,41 @@ class LoopTable:
 
     def _configure(self, s: int, config: LoopConfig) -> None:
         self.configs[config.id] = config
-        sc = config.resolved_scaling
+        identified = self.ident[s].scaling
+        sc = identified or config.resolved_scaling
+        self.ident[s].in_force_scaling = sc
         g = config.guard
+        if identified is not None and config.scaling is None:
+            # bounds the user left unset follow the identified model
+            g = resolve_bounds(g, identified, float(self.reg_kp[s]), float(self.reg_ki[s]))
+        self.stale_gap[s] = g.stale_periods * config.sample_period_s
+        self.forgetting[s] = config.forgetting
+        self.max_rel[s] = g.max_rel_change
+        self.mode[s] = _CODE[config.mode]
+        self.gateways[s] = config.gateway
+        self.watch[s] = g.identify
+        self.scaled[s] = sc is not None
+        if sc is None:  # identifying: no unit mapping yet, never due
+            self.kp_unit[s] = self.ki_unit[s] = self.period[s] = self.exc_step[s] = math.nan
+            self.e_scale[s] = self.int_scale[s] = 0.0
+            self.exc_window[s] = math.inf
+            self.kp_min[s] = g.kp_min or 0.0
+            self.kp_max[s] = g.kp_max or math.inf
+            self.ki_min[s] = g.ki_min or 0.0
+            self.ki_max[s] = g.ki_max or math.inf
+            return
         self.kp_unit[s], self.ki_unit[s] = sc.kp_per_agent, sc.ki_per_agent
         self.e_scale[s] = sc.e_scale
         self.int_scale[s] = sc.int_scale
         self.period[s] = sc.rl_period_s
-        self.stale_gap[s] = g.stale_periods * config.sample_period_s
-        self.forgetting[s] = config.forgetting
         self.kp_min[s], self.kp_max[s] = g.kp_min, g.kp_max
         self.ki_min[s], self.ki_max[s] = g.ki_min, g.ki_max
-        self.max_rel[s] = g.max_rel_change
         self.exc_step[s] = g.excitation_min_step / sc.e_scale
         self.exc_window[s] = g.excitation_periods * sc.rl_period_s or math.inf
-        self.mode[s] = _CODE[config.mode]
-        self.gateways[s] = config.gateway
+
+    def scaling_of(self, s: int) -> Scaling | None:
+        """The scaling in force: identified, else the config's hint, else None."""
+        return self.ident[s].in_force_scaling
 
     def _restart(self, s: int) -> None:
         """A fresh episode: zero hidden state and integral, no time reference."""
@@ -244,7 +292,10 @@ class LoopTable:
         self._configure(self.slot(config.id), config)
 
     def remove(self, loop_id: str) -> None:
-        s = self.slot_of.pop(loop_id)
+        s = self.slot_of[loop_id]
+        watch.stop(self, s)
+        self.ident[s] = None
+        del self.slot_of[loop_id]
         del self.configs[loop_id]
         self.ids[s] = None
         self._gains_dirty.discard(s)
@@ -343,7 +394,13 @@ class LoopTable:
                 "manual": bool(self.manual[s]),
                 "saturated": bool(self.saturated[s]),
                 "counters": [int(getattr(self, n)[s]) for n in _I64[2:]],
-            }
+                "ident": {
+                    **self.ident[s].dump(),
+                    "mismatch": bool(self.mismatch[s]),
+                    "out_env": bool(self.out_env[s]),
+                },
+            },
+            option=orjson.OPT_SERIALIZE_NUMPY,
         ).decode()
 
     def _restore(self, s: int, hidden: bytes, runtime: str) -> None:
@@ -362,6 +419,11 @@ class LoopTable:
         # snapshots from before a counter was added list fewer: those stay 0
         for name, value in zip(_I64[2:], rt["counters"], strict=False):
             getattr(self, name)[s] = value
+        ident = rt.get("ident")  # absent in snapshots from before identification
+        if ident is not None:
+            self.ident[s] = watch.IdState.load(ident)
+            self.mismatch[s], self.out_env[s] = ident["mismatch"], ident["out_env"]
+            self._configure(s, self.configs[self.ids[s]])
 
     # -- views ------------------------------------------------------------------------
     def status(self, s: int, wall: float) -> LoopStatus:
@@ -375,8 +437,11 @@ class LoopTable:
             self.mode[slots] == FROZEN,
             np.isnan(t),
             wall - self.last_wall[slots] > self.stale_gap[slots],
+            ~self.scaled[slots],
+            self.out_env[slots],
             self.manual[slots],
             self.saturated[slots],
+            self.mismatch[slots],
             self.gate_closed(slots, t),  # NaN t: False, and waiting comes first
             np.ones(slots.size, bool),
         ]
@@ -405,7 +470,12 @@ class LoopTable:
                 updates=int(self.n_updates[s]),
                 quiet=int(self.n_quiet[s]),
                 faults=int(self.n_faults[s]),
+                identified=int(self.n_identified[s]),
+                mismatches=int(self.n_mismatch[s]),
+                envelope_pauses=int(self.n_envelope[s]),
             ),
+            scaling=self.ident[s].in_force_scaling,
+            identification=watch.view(self, s),
         )
 
     def status_counts(self, wall: float) -> dict[LoopStatus, int]:

@@ -1,0 +1,374 @@
+"""Identification inside the engine: each loop's closed-loop data recorded into segments,
+assessed at each setpoint move, and the model put to use.
+
+The sample rule (:func:`record`, called by :func:`service.engine.rules.ingest` for every
+accepted sample; stated one sample at a time in ``tests/engine_reference.py``):
+
+* Only loops with ``guard.identify`` and samples that carry sp and pv (pv = sp - e).
+* The controller output is the sample's ``op``; where absent it is reconstructed from
+  the PI law and the gains the tuner holds in force (:func:`~service.engine.identify.
+  reconstruct_op`: parallel PI ``u = kp e + I``, ``I' = ki e`` at the sample period,
+  bumpless gain changes, no feedforward or output tracking).
+* A *segment* opens at a setpoint move (any change of sp) and records every sample
+  (every ``stride``-th once long: the buffer halves its resolution when full) until a
+  sample in manual, saturated, after a stale gap or on a new plant clock breaks it (the
+  data up to there are assessed first). A later move closes the running event and
+  opens the next, unless the running event holds fewer than :data:`MIN_EVENT_SAMPLES`
+  (a ramping setpoint is one event).
+* At each close the segment is assessed (:func:`~service.engine.identify.assess`).
+  A confident model without a scaling in force becomes the loop's scaling (audit
+  'identified'); with one in force it is compared: a disagreement beyond
+  ``guard.hint_tolerance`` flags the loop (audit 'mismatch') and, with
+  ``guard.auto_rescale``, rescales it (audit 'rescaled'); outside the training box by
+  :data:`ENVELOPE_MARGIN` (or integrating) pauses it (audit 'out_of_envelope').
+
+The recorder buffers are shared by all loops of a table (a pool of rows, one per open
+segment), so memory goes only to loops that are recording.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from service.engine import identify
+from service.engine.audit import audit_row
+from service.engine.config import Identification
+from service.units import AGENT_GAIN, AGENT_TAU, Scaling
+
+CAP = 512
+"""Samples a segment holds before it halves its resolution (or drops its oldest event)."""
+MIN_EVENT_SAMPLES = 8
+"""Recorded samples an event needs before a new setpoint move closes it."""
+MAX_EVENTS = 6
+"""Events a segment keeps (older ones are dropped: the plant may drift)."""
+TRAINING_BOX = {"gain": (0.25, 1.0), "tau": (0.25, 1.0), "theta_ratio": (0.0, 1.0)}
+"""The agent's training box (service/learn/env.py), agent units."""
+ENVELOPE_MARGIN = 1.5
+"""Factor beyond the training box (gain and tau; theta/tau up to 1.5) at which a loop is
+out of the agent's envelope."""
+NOISE_SCALE = 10.0
+"""A hint-free loop's pv_scale is the typical setpoint move, at least this many times
+the measurement noise (the agent sees errors of order 1 and noise well below)."""
+COLUMNS = 4  # t, sp, pv, op
+
+
+@dataclass
+class IdState:
+    """A loop's identification state beyond its arrays (Python objects)."""
+
+    events: list[identify.EventFit] = field(default_factory=list)
+    model: identify.Model | None = None
+    why: str = "waiting for a setpoint move"
+    in_force: identify.Model | None = None
+    in_force_t: float | None = None
+    scaling: Scaling | None = None
+    """The scaling identification put in force (None: the config's hint, or none)."""
+    starts: list[int] = field(default_factory=list)
+    """Event starts (indices into the loop's recorder row)."""
+    in_force_scaling: Scaling | None = None
+    """The scaling in force (identified or the hint; kept by the table's configure)."""
+
+    def dump(self) -> dict:
+        return {
+            "events": [ev.as_dict() for ev in self.events],
+            "model": None if self.model is None else self.model.as_dict(),
+            "why": self.why,
+            "in_force": None if self.in_force is None else self.in_force.as_dict(),
+            "in_force_t": self.in_force_t,
+            "scaling": None if self.scaling is None else self.scaling.model_dump(),
+        }
+
+    @classmethod
+    def load(cls, d: dict) -> IdState:
+        return cls(
+            events=[identify.EventFit.from_dict(e) for e in d.get("events", [])],
+            model=None if d.get("model") is None else identify.Model.from_dict(d["model"]),
+            why=d.get("why", ""),
+            in_force=None if d.get("in_force") is None else identify.Model.from_dict(d["in_force"]),
+            in_force_t=d.get("in_force_t"),
+            scaling=None if d.get("scaling") is None else Scaling(**d["scaling"]),
+        )
+
+
+class Recorder:
+    """The pool of segment buffers of a table: row r holds (t, sp, pv, op) x CAP."""
+
+    def __init__(self) -> None:
+        self.data = np.zeros((0, COLUMNS, CAP))
+        self.free: list[int] = []
+
+    def take(self) -> int:
+        if not self.free:
+            old = self.data.shape[0]
+            grown = np.zeros((max(4, 2 * old), COLUMNS, CAP))
+            grown[:old] = self.data
+            self.data = grown
+            self.free.extend(range(grown.shape[0] - 1, old - 1, -1))
+        return self.free.pop()
+
+    def give(self, row: int) -> None:
+        self.free.append(row)
+
+
+# -- the sample rule ---------------------------------------------------------------------
+def record(tb, slots: np.ndarray, cols: dict, last_t: np.ndarray, fresh: np.ndarray, wall):
+    """Record accepted samples of distinct loops (before ``last_e`` moves on)."""
+    t, e, sp = cols["t"], cols["e"], cols["sp"]
+    op = cols.get("op")
+    watch = tb.watch[slots] & ~np.isnan(sp)
+    if not watch.any():
+        return
+    idx = np.flatnonzero(watch)
+    s, t, e, sp, fresh = slots[idx], t[idx], e[idx], sp[idx], fresh[idx]
+    op = np.full(idx.size, np.nan) if op is None else op[idx]
+    pv = sp - e
+    auto, saturated = cols["auto"][idx], cols["saturated"][idx]
+    # the controller output, reconstructed where the sample has none
+    kp, ki = tb.kp[s], tb.ki[s]
+    dt = np.where(fresh, 0.0, t - last_t[idx])
+    e_prev = tb.last_e[s]
+    integral = np.where(fresh, 0.0, tb.op_int[s] - (kp - tb.op_kp[s]) * e_prev) + ki * e * dt
+    tb.op_int[s], tb.op_kp[s] = integral, kp
+    op = np.where(np.isnan(op), kp * e + integral, op)
+    broken = fresh | ~auto | saturated
+    with np.errstate(invalid="ignore"):
+        moved = (sp != tb.id_sp[s]) & ~np.isnan(tb.id_sp[s])
+    tb.id_sp[s] = sp
+    recording = tb.rec[s] >= 0
+    # rare paths, loop by loop: breaks, moves (open or close an event)
+    special = np.flatnonzero((recording & broken) | (moved & ~broken))
+    done = np.zeros(idx.size, bool)
+    for i in special.tolist():
+        done[i] = True
+        si = int(s[i])
+        row = (float(t[i]), float(sp[i]), float(pv[i]), float(op[i]))
+        if recording[i] and broken[i]:
+            why = "manual" if not auto[i] else "output saturated" if saturated[i] else "data gap"
+            _close(tb, si, float(t[i]), wall, final=True, why=f"segment ended: {why}")
+        elif recording[i]:
+            st: IdState = tb.ident[si]
+            if tb.rec_n[si] - st.starts[-1] >= MIN_EVENT_SAMPLES:
+                _close(tb, si, float(t[i]), wall)
+                st.starts.append(int(tb.rec_n[si]))
+            _append(tb, si, row, force=True)
+        else:
+            _open(tb, si, row)
+    # the usual path, vectorised: append to open segments at their stride
+    plain = np.flatnonzero(~done & recording & ~broken)
+    if plain.size:
+        ps = s[plain]
+        k = tb.rec_k[ps]
+        take = k % tb.rec_stride[ps] == 0
+        tb.rec_k[ps] = k + 1
+        rows, n = tb.rec[ps[take]], tb.rec_n[ps[take]]
+        sel = plain[take]
+        data = tb.recorder.data
+        for c, col in enumerate((t, sp, pv, op)):
+            data[rows, c, n] = col[sel]
+        tb.rec_n[ps[take]] = n + 1
+        for si in ps[take][n + 1 >= CAP].tolist():
+            _compress(tb, si)
+    tb.prev_t[s], tb.prev_sp[s], tb.prev_pv[s], tb.prev_op[s] = t, sp, pv, op
+    tb.prev_ok[s] = ~broken
+
+
+def _open(tb, s: int, row: tuple) -> None:
+    r = tb.recorder.take()
+    tb.rec[s], tb.rec_n[s], tb.rec_k[s], tb.rec_stride[s] = r, 0, 1, 1
+    st: IdState = tb.ident[s]
+    if tb.prev_ok[s] and not math.isnan(tb.prev_t[s]):  # the sample before the move
+        _append(tb, s, (tb.prev_t[s], tb.prev_sp[s], tb.prev_pv[s], tb.prev_op[s]))
+    st.starts = [int(tb.rec_n[s])]
+    _append(tb, s, row)
+
+
+def _append(tb, s: int, row: tuple, force: bool = False) -> None:
+    n = int(tb.rec_n[s])
+    tb.recorder.data[tb.rec[s], :, n] = row
+    tb.rec_n[s] = n + 1
+    if force:
+        tb.rec_k[s] = 1
+    if n + 1 >= CAP:
+        _compress(tb, s)
+
+
+def _compress(tb, s: int) -> None:
+    """A full buffer drops its oldest event (keeping one sample before the next) if it
+    has several, else halves its resolution (event starts kept)."""
+    st: IdState = tb.ident[s]
+    data = tb.recorder.data[tb.rec[s]]
+    n = int(tb.rec_n[s])
+    if len(st.starts) >= 3:
+        cut = st.starts[1] - 1
+        data[:, : n - cut] = data[:, cut:n]
+        tb.rec_n[s] = n - cut
+        st.starts = [a - cut for a in st.starts[1:]]
+        return
+    keep = np.zeros(n, bool)
+    keep[::2] = True
+    keep[[a for a in st.starts if a < n]] = True
+    keep[[a - 1 for a in st.starts if 0 < a <= n]] = True
+    kept = np.flatnonzero(keep)
+    data[:, : kept.size] = data[:, kept]
+    tb.rec_n[s] = kept.size
+    st.starts = [int(np.searchsorted(kept, a)) for a in st.starts]
+    tb.rec_stride[s] *= 2
+
+
+def _close(tb, s: int, t: float, wall: float, *, final: bool = False, why: str = "") -> None:
+    """Assess the segment so far (its last event complete); ``final``: and release it."""
+    st: IdState = tb.ident[s]
+    n = int(tb.rec_n[s])
+    data = tb.recorder.data[tb.rec[s], :, :n]
+    starts = [a for a in st.starts if a < n]
+    if len(starts) >= identify.MIN_EVENTS and n >= identify.MIN_SAMPLES:
+        result = identify.assess(data[0], data[1], data[2], data[3], starts)
+        st.events = result.events[-MAX_EVENTS:]
+        st.model, st.why = result.model, result.why
+        if result.model is not None and result.model.confident:
+            use(tb, s, result.model, t, wall)
+    elif final:
+        st.why = why
+    if final:
+        tb.recorder.give(int(tb.rec[s]))
+        tb.rec[s] = -1
+        st.starts = []
+    if len(st.starts) > MAX_EVENTS:  # forget the oldest event
+        cut = st.starts[1] - 1
+        data = tb.recorder.data[tb.rec[s]]
+        data[:, : n - cut] = data[:, cut:n]
+        tb.rec_n[s] = n - cut
+        st.starts = [a - cut for a in st.starts[1:]]
+
+
+def stop(tb, s: int) -> None:
+    """Drop a loop's open segment (removal, a new identification)."""
+    if tb.rec[s] >= 0:
+        tb.recorder.give(int(tb.rec[s]))
+        tb.rec[s] = -1
+    if tb.ident[s] is not None:
+        tb.ident[s].starts = []
+
+
+# -- using a model ---------------------------------------------------------------------
+def apparent(scaling: Scaling, m: identify.Model) -> dict[str, float]:
+    return {
+        "gain": scaling.apparent_gain(m.k),
+        "tau": scaling.apparent_tau(m.tau),
+        "theta_ratio": m.theta / m.tau,
+    }
+
+
+def model_scaling(m: identify.Model, pv_scale: float | None = None) -> Scaling:
+    """The section 5.4 scaling of a model: it appears with gain 0.5 and tau 0.5."""
+    if pv_scale is None:
+        pv_scale = max(m.move, NOISE_SCALE * m.noise)
+    e_scale = 1.0 / pv_scale
+    return Scaling(
+        e_scale=e_scale, u_scale=e_scale * m.k / AGENT_GAIN, time_unit_s=m.tau / AGENT_TAU
+    )
+
+
+def use(tb, s: int, m: identify.Model, t: float, wall: float) -> None:
+    """A confident model: the first scaling of a hint-free loop, or a check of the one in
+    force (mismatch flag, auto-rescale, envelope guard)."""
+    st: IdState = tb.ident[s]
+    config = tb.configs[tb.ids[s]]
+    guard = config.guard
+    detail = json.dumps({k: v for k, v in m.as_dict().items()}, separators=(",", ":"))
+    if not tb.scaled[s]:
+        _put_in_force(tb, s, m, model_scaling(m), t, wall, "identified", detail)
+        return
+    scaling = st.in_force_scaling
+    app = apparent(scaling, m)
+    off = max(abs(math.log(app["gain"] / AGENT_GAIN)), abs(math.log(app["tau"] / AGENT_TAU)))
+    if off > math.log(guard.hint_tolerance):
+        if guard.auto_rescale:
+            pv_scale = 1.0 / scaling.e_scale
+            _put_in_force(tb, s, m, model_scaling(m, pv_scale), t, wall, "rescaled", detail)
+            tb.mismatch[s] = False
+            scaling = tb.ident[s].scaling
+            app = apparent(scaling, m)
+        elif not tb.mismatch[s]:
+            tb.mismatch[s] = True
+            tb.n_mismatch[s] += 1
+            _audit(tb, s, t, wall, "mismatch", detail)
+    else:
+        tb.mismatch[s] = False
+    out = guard.envelope_guard and (m.integrating or not in_envelope(app))
+    if out and not tb.out_env[s]:
+        tb.n_envelope[s] += 1
+        _audit(tb, s, t, wall, "out_of_envelope", json.dumps(app, separators=(",", ":")))
+    elif not out and tb.out_env[s]:
+        _audit(tb, s, t, wall, "in_envelope", json.dumps(app, separators=(",", ":")))
+    tb.out_env[s] = out
+
+
+def in_envelope(app: dict[str, float]) -> bool:
+    g_lo, g_hi = TRAINING_BOX["gain"]
+    t_lo, t_hi = TRAINING_BOX["tau"]
+    return (
+        g_lo / ENVELOPE_MARGIN <= app["gain"] <= g_hi * ENVELOPE_MARGIN
+        and t_lo / ENVELOPE_MARGIN <= app["tau"] <= t_hi * ENVELOPE_MARGIN
+        and app["theta_ratio"] <= TRAINING_BOX["theta_ratio"][1] * ENVELOPE_MARGIN
+    )
+
+
+def _put_in_force(tb, s, m, scaling: Scaling, t, wall, reason: str, detail: str) -> None:
+    st: IdState = tb.ident[s]
+    st.scaling, st.in_force, st.in_force_t = scaling, m, t
+    tb.reconfigure(tb.configs[tb.ids[s]])
+    # a fresh episode from the gains in force, a decimation window from now
+    tb.hidden[s] = 0.0
+    tb.int_e[s] = 0.0
+    tb.next_due[s] = t + tb.period[s]
+    if tb.exc_window[s] < math.inf:
+        tb.excited_until[s] = t + tb.exc_window[s]
+    tb.out_env[s] = False
+    tb.n_identified[s] += 1
+    _audit(tb, s, t, wall, reason, detail)
+
+
+def _audit(tb, s: int, t: float, wall: float, reason: str, detail: str) -> None:
+    gains = (float(tb.kp[s]), float(tb.ki[s]))
+    tb._audit.append(
+        audit_row(tb.ids[s], wall, t, int(tb.seq[s]), tb.mode_of(s).value, reason, gains,
+                  gains, detail)
+    )  # fmt: skip
+
+
+def restart(tb, s: int, wall: float) -> None:
+    """Identify again from scratch (``POST /loops/{id}/identify``): the identified
+    scaling is dropped (a hint-free loop is 'identifying' again, a hinted one back on its
+    hint), flags cleared, the open segment discarded."""
+    stop(tb, s)
+    tb.ident[s] = IdState(why="identification restarted")
+    tb.mismatch[s] = tb.out_env[s] = False
+    tb.reconfigure(tb.configs[tb.ids[s]])
+    t = tb.last_t[s]
+    _audit(tb, s, None if math.isnan(t) else float(t), wall, "identify", "restarted")
+
+
+# -- views --------------------------------------------------------------------------
+def view(tb, s: int) -> Identification | None:
+    st: IdState = tb.ident[s]
+    if st is None:
+        return None
+    scaling = st.in_force_scaling
+    state = "off" if not tb.watch[s] else "checking" if tb.scaled[s] else "identifying"
+    model = st.model
+    return Identification(
+        state=state,
+        why=st.why,
+        model=None if model is None else model.as_dict(),
+        in_force=None if st.in_force is None else st.in_force.as_dict(),
+        in_force_t=st.in_force_t,
+        apparent=None if model is None or scaling is None else apparent(scaling, model),
+        events=[ev.as_dict() for ev in st.events],
+        mismatch=bool(tb.mismatch[s]),
+        out_of_envelope=bool(tb.out_env[s]),
+    )
