@@ -17,7 +17,7 @@ from service.daemon.api import MAX_OFFSET, create_app
 from service.daemon.metrics import Metrics
 from service.engine.audit import audit_row
 from service.procs import TunerProcess
-from tests.tuner_support import loop_body, tuner_settings
+from tests.tuner_support import loop_body, tuner_settings, wait_until
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -216,3 +216,30 @@ def test_the_daemon_writes_json_lines_only(tmp_path):
     loggers = {e["logger"] for e in entries}
     assert {"pitune.tuner", "pitune.events", "uvicorn.error", "uvicorn.access"} <= loggers
     assert any("registered" in e["message"] for e in entries if e["logger"] == "pitune.events")
+
+
+def test_gain_changes_and_adoptions_reach_the_log(tmp_path, caplog):
+    """Needs ``Tuner._commit`` to hand the committed audit rows to
+    ``self.metrics.events.audit`` (service/daemon/tuner.py, not this module's owner)."""
+    import inspect
+
+    from service.daemon.tuner import Tuner
+    from service.engine.config import LoopConfig
+    from tests.tuner_support import connected_gateway
+
+    if "events.audit" not in inspect.getsource(Tuner._commit):
+        pytest.xfail("Tuner._commit does not call metrics.events.audit yet")
+    with caplog.at_level(logging.INFO, "pitune.events"), Tuner(tuner_settings(tmp_path)) as t:
+        t.register(LoopConfig(**loop_body("AUTO")))
+        gw = connected_gateway(t.settings)
+        try:
+            for i in range(170):
+                gw.send("AUTO", {"t": float(i), "e": 1.0})
+            gw.next_gains()
+            gw.send("AUTO", {"t": 170.0, "e": 1.0, "kp": 0.9, "ki": 0.02})  # an operator's
+            wait_until(lambda: t.view("AUTO").kp == 0.9)
+        finally:
+            gw.close()
+    messages = [r.getMessage() for r in caplog.records]
+    assert any(m.startswith("loop 'AUTO' gains kp=0.5 ki=0.01 -> ") for m in messages)
+    assert any("adopted the gateway's gains kp=0.9 ki=0.02" in m for m in messages)

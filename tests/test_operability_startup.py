@@ -106,7 +106,7 @@ def test_a_second_tuner_on_the_same_store_refuses_to_start(tmp_path):
             with pytest.raises(subprocess.TimeoutExpired):
                 second.wait(8)
         finally:
-            second.send_signal(signal.SIGTERM)
+            second.send_signal(signal.SIGINT)  # Ctrl-C: a clean shutdown, status 0
             assert second.wait(30) == 0, second.stderr.read()
     finally:
         first.stop()

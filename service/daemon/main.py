@@ -410,9 +410,11 @@ def serve(settings: Settings) -> int:
         server = state["server"]
         sys.exit(0 if server is not None and server.started else 1)
 
-    # uvicorn shuts down gracefully on SIGTERM, then re-raises the signal with the handler
-    # it found installed; make that a clean exit so supervisors see status 0, not -15.
+    # uvicorn shuts down gracefully on SIGTERM and SIGINT, then re-raises the signal with
+    # the handler it found installed; make that a clean exit so supervisors see status 0,
+    # not -15 (or a KeyboardInterrupt traceback for Ctrl-C).
     signal.signal(signal.SIGTERM, on_sigterm)
+    signal.signal(signal.SIGINT, on_sigterm)
     tuner = None
     try:
         tuner = start_tuner(settings)
