@@ -404,11 +404,9 @@ def serve(settings: Settings) -> int:
         else StoreLock(settings.db_path, settings.instance_id)
     )
     sock = bind_api(settings)
-    state = {"server": None}
 
     def on_sigterm(*_: object) -> None:
-        server = state["server"]
-        sys.exit(0 if server is not None and server.started else 1)
+        sys.exit(EXIT_OK)  # also during start-up: a stop asked for, the finally cleans up
 
     # uvicorn shuts down gracefully on SIGTERM and SIGINT, then re-raises the signal with
     # the handler it found installed; make that a clean exit so supervisors see status 0,
@@ -429,7 +427,6 @@ def serve(settings: Settings) -> int:
                 lifespan="on",
             )
         )
-        state["server"] = server
         log.info("admin API on http://%s:%d", settings.api_host, sock.getsockname()[1])
         server.run(sockets=[sock])
         return EXIT_OK if server.started else EXIT_FAILED
