@@ -43,7 +43,9 @@ OTHER_VARIABLES = frozenset(
         "PITUNE_CONFIG",  # the config file
         # read by other pitune programs or by deploy/docker-compose.yml, not the tuner
         "PITUNE_API_BIND",
+        "PITUNE_API_HOST_PORT",
         "PITUNE_ZENOH_BIND",
+        "PITUNE_ZENOH_HOST_PORT",
         "PITUNE_ZENOH_SECRETS",
         "PITUNE_TLS_DIR",
         "PITUNE_OPCUA_PASSWORD",
