@@ -394,6 +394,12 @@ def run(args: argparse.Namespace) -> int:
         return exc.code
     except KeyboardInterrupt:
         return 130
+    except Exception:  # a bug: its traceback, in the log's format when there is one
+        if not configured:
+            raise
+        log.critical("unexpected failure", exc_info=True)
+        logging.shutdown()
+        return EXIT_FAILED
 
 
 def serve(settings: Settings) -> int:
