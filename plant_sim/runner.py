@@ -95,7 +95,7 @@ def simulate(config: PlantConfig, loops: list[SimulatedLoop]) -> int:
                 for loop_id in (by_id if config.log_dir else ())
             }
             applied, ignored = run_scans(config, loops, gateway, writers, stop)
-        heard = gateway.tuner_up() or applied or ignored
+        heard = gateway.tuner_up or applied or ignored
         gateway.close()
         print(
             f"plant stopped: {applied} gain updates applied, {ignored} advisory ignored, "
