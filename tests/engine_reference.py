@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 
-from service.engine import rules
+from service.engine import rules, watch
 from service.engine.audit import audit_row
 from service.engine.modes import FROZEN
 from service.engine.rules import GAIN_RTOL, MAX_AGENT_ERROR
@@ -85,21 +85,62 @@ def _ingest(tb: LoopTable, s: int, sample: Sample, wall: float) -> bool:
     tb.manual[s] = not sample.auto
     tb.saturated[s] = sample.saturated
     tb.last_t[s] = t
-    if math.isnan(last_t) or t - last_t > tb.stale_gap[s] or resumed:
+    fresh = math.isnan(last_t) or t - last_t > tb.stale_gap[s] or resumed
+    if tb.watch[s] and sample.sp is not None:
+        _record(tb, s, sample, e, last_t, fresh, wall)
+    if fresh:
         tb.next_due[s] = t + tb.period[s]  # a new decimation window
     elif not paused:
         tb.int_e[s] += 0.5 * (e + tb.last_e[s]) * (t - last_t) * tb.int_scale[s]
     tb.last_e[s] = e
-    if t < tb.next_due[s]:
+    if not t >= tb.next_due[s]:  # NaN (no scaling yet: identifying): never due
         return False
     period = tb.period[s]
     tb.next_due[s] += period * (math.floor((t - tb.next_due[s]) / period) + 1.0)
-    if tb.mode[s] == FROZEN or not sample.auto or sample.saturated:
+    if tb.mode[s] == FROZEN or not sample.auto or sample.saturated or tb.out_env[s]:
         return False
     if tb.gate_closed(s, t):
         tb.n_quiet[s] += 1
         return False
     return True
+
+
+def _record(tb: LoopTable, s: int, sample: Sample, e: float, last_t, fresh, wall) -> None:
+    """Identification's sample rule (service.engine.watch.record), one sample."""
+    t, sp = sample.t, sample.sp
+    pv = sp - e
+    kp, ki = tb.kp[s], tb.ki[s]
+    if fresh:
+        integral = ki * e * 0.0
+    else:  # the PI's integral term: bumpless kp change, backward Euler
+        integral = tb.op_int[s] - (kp - tb.op_kp[s]) * tb.last_e[s] + ki * e * (t - last_t)
+    tb.op_int[s], tb.op_kp[s] = integral, kp
+    op = kp * e + integral if sample.op is None else sample.op
+    broken = fresh or not sample.auto or sample.saturated
+    moved = not math.isnan(tb.id_sp[s]) and sp != tb.id_sp[s]
+    tb.id_sp[s] = sp
+    row = (t, sp, pv, op)
+    if tb.rec[s] >= 0 and broken:
+        why = (
+            "manual" if not sample.auto else "output saturated" if sample.saturated else "data gap"
+        )
+        watch._close(tb, s, t, wall, final=True, why=f"segment ended: {why}")
+    elif tb.rec[s] >= 0 and moved:
+        starts = tb.ident[s].starts
+        if tb.rec_n[s] - starts[-1] >= watch.MIN_EVENT_SAMPLES:
+            watch._close(tb, s, t, wall)
+            starts = tb.ident[s].starts
+            starts.append(int(tb.rec_n[s]))
+        watch._append(tb, s, row, force=True)
+    elif tb.rec[s] < 0 and moved and not broken:
+        watch._open(tb, s, row)
+    elif tb.rec[s] >= 0:  # recording, every stride-th sample
+        take = tb.rec_k[s] % tb.rec_stride[s] == 0
+        tb.rec_k[s] += 1
+        if take:
+            watch._append(tb, s, row)
+    tb.prev_t[s], tb.prev_sp[s], tb.prev_pv[s], tb.prev_op[s] = t, sp, pv, op
+    tb.prev_ok[s] = not broken
 
 
 def _close(a: float, b: float) -> bool:

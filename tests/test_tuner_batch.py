@@ -15,7 +15,7 @@ from service.agent import untrained_agent
 from service.engine import rules
 from service.engine.config import LoopConfig
 from service.engine.stepping import step
-from service.engine.table import _BOOL, _F64, _I64, LoopTable
+from service.engine.table import _BOOL, _F64, _I64, _REC, LoopTable
 from service.wire.decode import classify, decode_batch, decode_objects
 from service.wire.protocol import MAX_BATCH, BatchedSample, Mode, RejectReason, Sample
 from tests.engine_reference import Rejected, reference_ingest
@@ -33,6 +33,8 @@ def _tables(rate: float) -> tuple[LoopTable, LoopTable]:
             scaling = {"k_hat": 1.2, "tau_hat": 1.0 + i % 4, "pv_scale": 10.0}  # RL every 5.5..22 s
             gate = {"excitation_periods": 3.0 * (i % 2)}  # the excitation gate on odd loops
             body = loop_body(f"L{i}", sample_period_s=1.0, mode=mode, scaling=scaling, guard=gate)
+            if i % 4 == 3:  # registered without a hint: identifying
+                body["scaling"] = None
             t.add(LoopConfig(**body), wall=0.0)
         tables.append(t)
     return tables[0], tables[1]
@@ -112,8 +114,16 @@ def test_vectorised_ingest_equals_the_scalar_reference(seed, rate):
         wall = 100.0 + 0.5 * k
         items = _random_batch(rng, slow, 10.0 + 2.0 * k)
         assert _slow(slow, items, wall) == _fast(fast, items, wall), k
-        for name in (*_F64, *_I64, *_BOOL):
+        for name in (*_F64, *_I64, *_REC, *_BOOL):
             np.testing.assert_array_equal(getattr(fast, name), getattr(slow, name), err_msg=name)
+        for s in range(N):  # identification: recorded data, events, models
+            rec = fast.rec[s]
+            if rec >= 0:
+                n = fast.rec_n[s]
+                np.testing.assert_array_equal(
+                    fast.recorder.data[rec, :, :n], slow.recorder.data[slow.rec[s], :, :n]
+                )
+            assert fast.ident[s].dump() == slow.ident[s].dump()
         assert _plain(fast.drain_changes()) == _plain(slow.drain_changes())
         due = np.array([s for s in range(N) if rng.random() < 0.3], dtype=np.int64)
         if due.size:  # steps change gains and put updates in flight
