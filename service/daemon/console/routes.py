@@ -1,0 +1,731 @@
+"""The operator console's routes: pages, their JSON, the live stream, login and actions.
+
+Reads are open like the REST GETs. Every action needs a console session: the login form
+checks the API token once and keeps only a session id in an HttpOnly, SameSite=Strict
+cookie (the token itself never reaches the browser's storage or script); each session
+has its own CSRF token, which the pages carry and every state-changing request must
+send back (header ``X-CSRF-Token``, or the ``csrf`` form field of the logout form).
+Requests whose ``Origin`` names another host are refused as well.
+
+Nothing here holds the engine's lock for long: the overview copies a few numpy columns
+of the loop table under it (a few ms at 10,000 loops) and filters, sorts and pages
+outside it; a loop's page reads the REST views and the ring of recent samples
+(:mod:`service.daemon.recent`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import inspect
+import json
+import logging
+import math
+import re
+import secrets
+import string
+import threading
+import time
+import urllib.parse
+from dataclasses import dataclass, field
+from functools import cache
+from importlib import resources
+from typing import Any
+
+import numpy as np
+from fastapi import APIRouter, HTTPException, Query, Request
+from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse, Response
+from fastapi.responses import StreamingResponse
+
+from service.engine.config import LoopPatch
+from service.engine.table import STATUSES
+from service.wire.protocol import Mode, RejectReason
+
+log = logging.getLogger("pitune.console")
+router = APIRouter(prefix="/ui", include_in_schema=False)
+
+COOKIE = "pitune_ui"
+SESSION_IDLE_S = 8 * 3600.0
+"""A session unused this long is logged out."""
+MAX_SESSIONS = 1000
+PAGE_MAX = 500
+STREAM_TICK_S = 0.5
+"""How often a loop page's stream looks for new samples."""
+STREAM_MAX_S = 300.0
+"""A stream ends after this long; the browser reconnects where it left off."""
+_MODES = list(Mode)
+_STATUS_NAMES = [s.value for s in STATUSES]
+_SORTS = {
+    "registered", "id", "status", "mode", "kp", "ki", "last_sample", "last_change",
+    "samples", "steps", "updates", "rejected", "rms_e", "gateway",
+}  # fmt: skip
+_NAME = re.compile(r"[^A-Za-z0-9_.@-]")
+
+
+# -- sessions ---------------------------------------------------------------------------
+@dataclass
+class Session:
+    csrf: str
+    actor: str
+    created: float
+    seen: float = field(default_factory=time.monotonic)
+
+
+class Sessions:
+    """Console sessions in memory (a restart logs everyone out)."""
+
+    def __init__(self) -> None:
+        self._by_id: dict[str, Session] = {}
+        self._lock = threading.Lock()
+
+    def create(self, actor: str) -> tuple[str, Session]:
+        sid = secrets.token_urlsafe(32)
+        session = Session(csrf=secrets.token_urlsafe(32), actor=actor, created=time.time())
+        with self._lock:
+            self._expire()
+            if len(self._by_id) >= MAX_SESSIONS:  # drop the least recently used
+                oldest = min(self._by_id, key=lambda k: self._by_id[k].seen)
+                del self._by_id[oldest]
+            self._by_id[sid] = session
+        return sid, session
+
+    def get(self, sid: str | None) -> Session | None:
+        if not sid:
+            return None
+        with self._lock:
+            session = self._by_id.get(sid)
+            if session is None:
+                return None
+            now = time.monotonic()
+            if now - session.seen > SESSION_IDLE_S:
+                del self._by_id[sid]
+                return None
+            session.seen = now
+            return session
+
+    def drop(self, sid: str | None) -> None:
+        with self._lock:
+            self._by_id.pop(sid or "", None)
+
+    def _expire(self) -> None:
+        now = time.monotonic()
+        for sid in [k for k, s in self._by_id.items() if now - s.seen > SESSION_IDLE_S]:
+            del self._by_id[sid]
+
+
+def _state(request: Request, name: str, factory):
+    value = getattr(request.app.state, name, None)
+    if value is None:
+        value = factory()
+        setattr(request.app.state, name, value)
+    return value
+
+
+def _sessions(request: Request) -> Sessions:
+    return _state(request, "console_sessions", Sessions)
+
+
+def _session(request: Request) -> Session | None:
+    return _sessions(request).get(request.cookies.get(COOKIE))
+
+
+def _same_origin(request: Request) -> bool:
+    origin = request.headers.get("origin")
+    if not origin or origin == "null":
+        return origin is None
+    return urllib.parse.urlsplit(origin).netloc == request.headers.get("host", "")
+
+
+def _acting(request: Request) -> Session:
+    """The session of a state-changing request: logged in, CSRF token and origin right."""
+    session = _session(request)
+    if session is None:
+        raise HTTPException(401, "log in to the console first (the API token)")
+    given = request.headers.get("x-csrf-token", "")
+    if not secrets.compare_digest(given.encode(), session.csrf.encode()):
+        raise HTTPException(403, "missing or wrong CSRF token")
+    if not _same_origin(request):
+        raise HTTPException(403, "cross-origin request refused")
+    return session
+
+
+def _token_ok(request: Request, given: str) -> bool:
+    token = request.app.state.settings.api_token
+    if token is None:  # an open API: the console is open too (any token logs in)
+        return True
+    return secrets.compare_digest(given.encode(), token.get_secret_value().encode())
+
+
+# -- helpers ----------------------------------------------------------------------------
+def _tuner(request: Request):
+    tuner = getattr(request.app.state, "tuner", None)
+    if tuner is None:
+        raise HTTPException(503, "the tuner is starting")
+    return tuner
+
+
+def _recent(tuner):
+    return getattr(tuner, "recent", None)
+
+
+@cache
+def _template(name: str) -> string.Template:
+    text = resources.files(__package__).joinpath("templates", name).read_text("utf-8")
+    return string.Template(text)
+
+
+def _page(request: Request, title: str, body: str, script: str, **values: str) -> HTMLResponse:
+    """A console page: the layout around the template ``body``, values HTML-escaped."""
+    import html
+
+    session = _session(request)
+    settings = request.app.state.settings
+    esc = {k: html.escape(str(v), quote=True) for k, v in values.items()}
+    content = _template(body).safe_substitute(esc)
+    who = (
+        f"<span class='who'>{html.escape(session.actor)}</span>"
+        "<form method='post' action='/ui/logout' class='inline'>"
+        f"<input type='hidden' name='csrf' value='{html.escape(session.csrf)}'>"
+        "<button id='logout' type='submit'>Log out</button></form>"
+        if session
+        else f"<a id='login-link' href='/ui/login?next={urllib.parse.quote(request.url.path)}'>"
+        "Log in</a>"
+    )
+    page = _template("layout.html").safe_substitute(
+        title=html.escape(title),
+        content=content,
+        who=who,
+        csrf=html.escape(session.csrf if session else ""),
+        logged_in="1" if session else "",
+        open_api="1" if settings.api_token is None else "",
+        scripts="".join(
+            f"<script src='/ui/static/{html.escape(name)}'></script>"
+            for name in (["vendor/uplot/uPlot.iife.min.js"] if script == "loop.js" else [])
+            + ["console.js"] + ([script] if script else [])
+        ),
+        styles="<link rel='stylesheet' href='/ui/static/vendor/uplot/uPlot.min.css'>"
+        if script == "loop.js"
+        else "",
+    )
+    return HTMLResponse(page, headers=_NO_STORE)
+
+
+_NO_STORE = {
+    "Cache-Control": "no-store",
+    "X-Content-Type-Options": "nosniff",
+    "X-Frame-Options": "DENY",
+    "Referrer-Policy": "same-origin",
+    "Content-Security-Policy": "default-src 'self'; img-src 'self' data:; "
+    "style-src 'self'; script-src 'self'; connect-src 'self'; frame-ancestors 'none'",
+}
+
+
+def _finite(x: float) -> float | None:
+    return None if x is None or not math.isfinite(x) else float(x)
+
+
+def _accepts(method, name: str) -> bool:
+    try:
+        return name in inspect.signature(method).parameters
+    except (TypeError, ValueError):
+        return False
+
+
+# -- pages ------------------------------------------------------------------------------
+@router.get("", response_class=HTMLResponse)
+@router.get("/", response_class=HTMLResponse)
+def overview_page(request: Request) -> HTMLResponse:
+    return _page(request, "Loops", "overview.html", "overview.js")
+
+
+@router.get("/loops/{loop_id}", response_class=HTMLResponse)
+def loop_page(loop_id: str, request: Request) -> HTMLResponse:
+    tuner = _tuner(request)
+    if loop_id not in tuner.table.slot_of:
+        return _page(request, "Unknown loop", "unknown.html", "", loop_id=loop_id)
+    modes = " ".join(m.value for m in Mode)
+    return _page(request, loop_id, "loop.html", "loop.js", loop_id=loop_id, modes=modes)
+
+
+@router.get("/tuner", response_class=HTMLResponse)
+def tuner_page(request: Request) -> HTMLResponse:
+    return _page(request, "Tuner", "tuner.html", "tuner.js")
+
+
+@router.get("/login", response_class=HTMLResponse)
+def login_page(request: Request, next: str = "/ui", error: str = "") -> HTMLResponse:
+    return _page(request, "Log in", "login.html", "", next=_safe_next(next), error=error)
+
+
+def _safe_next(target: str) -> str:
+    """Only a path of the console (no scheme, no host: no open redirect)."""
+    parts = urllib.parse.urlsplit(target)
+    if parts.scheme or parts.netloc or not parts.path.startswith("/ui") or "\\" in target:
+        return "/ui"
+    return parts.path
+
+
+@router.post("/login")
+async def login(request: Request) -> Response:
+    if not _same_origin(request):
+        raise HTTPException(403, "cross-origin request refused")
+    form = urllib.parse.parse_qs((await request.body()).decode("utf-8", "replace"))
+    token = form.get("token", [""])[0]
+    name = _NAME.sub("", form.get("name", [""])[0])[:40]
+    target = _safe_next(form.get("next", ["/ui"])[0])
+    client = request.client.host if request.client else "?"
+    if not _token_ok(request, token):
+        log.warning("console login refused (wrong token) from %s", client)
+        query = urllib.parse.urlencode({"next": target, "error": "wrong token"})
+        return RedirectResponse(f"/ui/login?{query}", status_code=303)
+    actor = f"ui:{name}" if name else "ui"
+    sessions = _sessions(request)
+    sessions.drop(request.cookies.get(COOKIE))
+    sid, _ = sessions.create(actor)
+    log.info("console login of %s from %s", actor, client)
+    response = RedirectResponse(target, status_code=303)
+    response.set_cookie(
+        COOKIE, sid, httponly=True, samesite="strict", path="/ui",
+        secure=request.url.scheme == "https", max_age=int(SESSION_IDLE_S),
+    )  # fmt: skip
+    return response
+
+
+@router.post("/logout")
+async def logout(request: Request) -> Response:
+    session = _session(request)
+    if session is not None:
+        form = urllib.parse.parse_qs((await request.body()).decode("utf-8", "replace"))
+        given = form.get("csrf", [""])[0] or request.headers.get("x-csrf-token", "")
+        if not secrets.compare_digest(given.encode(), session.csrf.encode()):
+            raise HTTPException(403, "missing or wrong CSRF token")
+        _sessions(request).drop(request.cookies.get(COOKIE))
+    response = RedirectResponse("/ui", status_code=303)
+    response.delete_cookie(COOKIE, path="/ui", httponly=True, samesite="strict")
+    return response
+
+
+# -- overview ---------------------------------------------------------------------------
+def _columns(tuner) -> dict[str, Any]:
+    """The overview's columns of every loop, copied under the engine lock (vectorised)."""
+    wall = time.time()
+    tb = tuner.table
+    with tuner.engine.lock:
+        ids = list(tb.slot_of)
+        slots = np.fromiter(tb.slot_of.values(), np.int64, len(ids))
+        cols = {
+            "status": tb.statuses(slots, wall) if len(ids) else np.zeros(0, np.int64),
+            "mode": tb.mode[slots],
+            "kp": tb.kp[slots],
+            "ki": tb.ki[slots],
+            "last_sample": tb.last_t[slots],
+            "last_wall": tb.last_wall[slots],
+            "seq": tb.seq[slots],
+            "samples": tb.n_samples[slots],
+            "steps": tb.n_steps[slots],
+            "updates": tb.n_updates[slots],
+            "rejected": tb.n_rejected[slots],
+            "quiet": tb.n_quiet[slots],
+        }
+        gateways = [tb.gateways[s] or "" for s in slots.tolist()]
+    cols["ids"] = ids
+    cols["gateway"] = gateways
+    cols["wall"] = wall
+    return cols
+
+
+@router.get("/api/loops")
+def overview_data(
+    request: Request,
+    offset: int = Query(0, ge=0, le=2**53),
+    limit: int = Query(100, ge=1, le=PAGE_MAX),
+    q: str = Query("", max_length=200),
+    status: str = Query("", max_length=400),
+    mode: str = Query("", max_length=100),
+    sort: str = Query("registered"),
+    desc: bool = False,
+) -> JSONResponse:
+    """A page of loops, filtered (id or gateway containing ``q``, any case; statuses and
+    modes comma-separated), sorted, with the counts per status of all loops."""
+    started = time.perf_counter()
+    tuner = _tuner(request)
+    c = _columns(tuner)
+    ids = c["ids"]
+    n = len(ids)
+    recent = _recent(tuner)
+    summary = recent.summary(ids) if recent is not None and n else None
+    keep = np.ones(n, bool)
+    if q:
+        needle = q.strip().lower()
+        gws = c["gateway"]
+        keep &= np.fromiter(
+            (needle in i.lower() or needle in g.lower() for i, g in zip(ids, gws, strict=True)),
+            bool,
+            n,
+        )
+    if status:
+        codes = [_STATUS_NAMES.index(s) for s in status.split(",") if s in _STATUS_NAMES]
+        keep &= np.isin(c["status"], codes)
+    if mode:
+        codes = [i for i, m in enumerate(_MODES) if m.value in mode.split(",")]
+        keep &= np.isin(c["mode"], codes)
+    rows = np.flatnonzero(keep)
+    sort = sort if sort in _SORTS else "registered"
+    if sort != "registered" and rows.size:
+        if sort == "id":
+            key = np.array([ids[i] for i in rows.tolist()], dtype=object)
+        elif sort == "gateway":
+            key = np.array([c["gateway"][i] for i in rows.tolist()], dtype=object)
+        elif sort in ("last_change", "rms_e"):
+            col = "last_wall" if sort == "last_change" else "rms_e"
+            key = (
+                np.nan_to_num(summary[col][rows], nan=-np.inf)
+                if summary is not None
+                else np.zeros(rows.size)
+            )
+        elif sort == "status":
+            key = np.array(_STATUS_NAMES, dtype=object)[c["status"][rows]]
+        else:
+            key = c[sort][rows]
+            if key.dtype.kind == "f":
+                key = np.nan_to_num(key, nan=-np.inf)
+        order = np.argsort(key, kind="stable")
+        rows = rows[order[::-1] if desc else order]
+    elif desc:
+        rows = rows[::-1]
+    page = rows[offset : offset + limit]
+    items = []
+    for i in page.tolist():
+        last_change = None
+        if summary is not None and math.isfinite(summary["last_wall"][i]):
+            from service.daemon.recent import REASONS
+
+            last_change = {
+                "wall": float(summary["last_wall"][i]),
+                "reason": REASONS[int(summary["reason"][i])],
+                "dkp": _finite(summary["dkp"][i]),
+                "dki": _finite(summary["dki"][i]),
+            }
+        items.append(
+            {
+                "id": ids[i],
+                "status": _STATUS_NAMES[int(c["status"][i])],
+                "mode": _MODES[int(c["mode"][i])].value,
+                "kp": float(c["kp"][i]),
+                "ki": float(c["ki"][i]),
+                "seq": int(c["seq"][i]),
+                "gateway": c["gateway"][i] or None,
+                "last_sample_t": _finite(c["last_sample"][i]),
+                "last_sample_age_s": _finite(c["wall"] - c["last_wall"][i])
+                if c["samples"][i]
+                else None,
+                "last_change": last_change,
+                "rms_e": _finite(summary["rms_e"][i]) if summary is not None else None,
+                "counters": {
+                    k: int(c[k][i]) for k in ("samples", "steps", "updates", "rejected", "quiet")
+                },
+            }
+        )
+    counts = np.bincount(c["status"], minlength=len(_STATUS_NAMES)) if n else [0] * len(STATUSES)
+    mode_counts = np.bincount(c["mode"], minlength=len(_MODES)) if n else [0] * len(_MODES)
+    body = {
+        "items": items,
+        "total": n,
+        "matched": int(rows.size),
+        "offset": offset,
+        "limit": limit,
+        "statuses": {s: int(k) for s, k in zip(_STATUS_NAMES, counts, strict=True)},
+        "modes": {m.value: int(k) for m, k in zip(_MODES, mode_counts, strict=True)},
+        "trends": recent is not None,
+        "server_ms": round((time.perf_counter() - started) * 1000, 1),
+    }
+    return JSONResponse(body, headers={"Cache-Control": "no-store"})
+
+
+# -- a loop -----------------------------------------------------------------------------
+def _known(tuner, loop_id: str) -> None:
+    if loop_id not in tuner.table.slot_of:
+        raise HTTPException(404, f"unknown loop {loop_id!r}")
+
+
+def _live(tuner, loop_id: str) -> dict | None:
+    """The loop's fast-changing figures (no config parsing), None if it is gone."""
+    tb = tuner.table
+    wall = time.time()
+    with tuner.engine.lock:
+        s = tb.slot_of.get(loop_id)
+        if s is None:
+            return None
+        return {
+            "status": _STATUS_NAMES[int(tb.statuses(np.array([s]), wall)[0])],
+            "mode": _MODES[int(tb.mode[s])].value,
+            "kp": float(tb.kp[s]),
+            "ki": float(tb.ki[s]),
+            "seq": int(tb.seq[s]),
+            "last_sample_t": _finite(tb.last_t[s]),
+            "samples": int(tb.n_samples[s]),
+            "steps": int(tb.n_steps[s]),
+            "updates": int(tb.n_updates[s]),
+            "rejected": int(tb.n_rejected[s]),
+            "quiet": int(tb.n_quiet[s]),
+        }
+
+
+@router.get("/api/loops/{loop_id}/recent")
+def loop_recent(loop_id: str, request: Request, n: int = 0, gn: int = 0) -> JSONResponse:
+    """The loop's recent samples and gains from the ring (after ``n`` / ``gn``)."""
+    tuner = _tuner(request)
+    _known(tuner, loop_id)
+    recent = _recent(tuner)
+    data = recent.since(loop_id, n, gn) if recent is not None else None
+    return JSONResponse({"recent": data, "live": _live(tuner, loop_id)})
+
+
+def _tick(tuner, loop_id: str, n: int, gn: int) -> dict | None:
+    live = _live(tuner, loop_id)
+    if live is None:
+        return None
+    recent = _recent(tuner)
+    data = recent.since(loop_id, n, gn) if recent is not None else None
+    return {"live": live, "recent": data}
+
+
+@router.get("/api/loops/{loop_id}/stream")
+async def loop_stream(loop_id: str, request: Request, n: int = 0, gn: int = 0):
+    """Server-sent events: the loop's new samples and gains, and its live figures, at
+    most every STREAM_TICK_S while something changed (a comment every 15 s otherwise)."""
+    tuner = _tuner(request)
+    _known(tuner, loop_id)
+    last_id = request.headers.get("last-event-id", "")
+    if re.fullmatch(r"\d+\.\d+", last_id):  # a reconnect: go on where it left off
+        n, gn = (int(x) for x in last_id.split("."))
+
+    async def events():
+        nonlocal n, gn
+        end = time.monotonic() + STREAM_MAX_S
+        quiet_since = time.monotonic()
+        previous = None
+        yield "retry: 1000\n\n"
+        while time.monotonic() < end and tuner.alive:
+            if await request.is_disconnected():
+                return
+            data = await asyncio.to_thread(_tick, tuner, loop_id, n, gn)
+            if data is None:
+                yield "event: gone\ndata: {}\n\n"
+                return
+            rec = data["recent"]
+            fresh = rec is not None and (rec["n"] != n or rec["gn"] != gn)
+            if fresh or data["live"] != previous:
+                if rec is not None:
+                    n, gn = rec["n"], rec["gn"]
+                previous = data["live"]
+                quiet_since = time.monotonic()
+                yield f"id: {n}.{gn}\ndata: {json.dumps(data, allow_nan=False)}\n\n"
+            elif time.monotonic() - quiet_since > 15.0:
+                quiet_since = time.monotonic()
+                yield ": keep-alive\n\n"
+            await asyncio.sleep(STREAM_TICK_S)
+
+    headers = {"Cache-Control": "no-store", "X-Accel-Buffering": "no"}
+    return StreamingResponse(events(), media_type="text/event-stream", headers=headers)
+
+
+# -- actions ----------------------------------------------------------------------------
+def _log_action(tuner, request: Request, session: Session, what: str, loop_id: str) -> None:
+    client = request.client.host if request.client else "?"
+    tuner.metrics.events.limiter.log(
+        logging.INFO, "console", "loop %r %s by %s via the console from %s",
+        loop_id, what, session.actor, client,
+    )  # fmt: skip
+
+
+def _jsonable(view) -> dict:
+    return json.loads(view.model_dump_json())
+
+
+@router.post("/api/loops/{loop_id}/patch")
+async def patch_loop(loop_id: str, request: Request) -> JSONResponse:
+    """PATCH /loops/{id} for a logged-in console (mode, guard limits, ...)."""
+    session = _acting(request)
+    tuner = _tuner(request)
+    try:
+        patch = LoopPatch.model_validate_json(await request.body())
+    except ValueError as exc:
+        errors = getattr(exc, "errors", lambda: [])()
+        msg = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in errors)
+        raise HTTPException(422, msg or str(exc)) from None
+    kwargs = {"actor": session.actor} if _accepts(tuner.patch, "actor") else {}
+    try:
+        view = await asyncio.to_thread(tuner.patch, loop_id, patch, **kwargs)
+    except ValueError as exc:
+        raise HTTPException(422, str(exc)) from None
+    except LookupError:
+        raise HTTPException(404, f"unknown loop {loop_id!r}") from None
+    _log_action(tuner, request, session, f"patched {patch.model_dump_json(exclude_unset=True)}",
+                loop_id)  # fmt: skip
+    return JSONResponse(_jsonable(view))
+
+
+@router.post("/api/loops/{loop_id}/reset")
+async def reset_loop(loop_id: str, request: Request) -> JSONResponse:
+    session = _acting(request)
+    tuner = _tuner(request)
+    kwargs = {"actor": session.actor} if _accepts(tuner.reset, "actor") else {}
+    try:
+        view = await asyncio.to_thread(tuner.reset, loop_id, **kwargs)
+    except LookupError:
+        raise HTTPException(404, f"unknown loop {loop_id!r}") from None
+    except Exception as exc:  # StoreUnavailable
+        if type(exc).__name__ == "StoreUnavailable":
+            raise HTTPException(503, str(exc)) from None
+        raise
+    _log_action(tuner, request, session, "reset", loop_id)
+    return JSONResponse(_jsonable(view))
+
+
+# -- the tuner --------------------------------------------------------------------------
+_INFERENCE_BUCKETS = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.25, 1.0)
+
+
+def _quantile(m, name: str, q: float) -> float | None:
+    """Upper bound of the histogram bucket holding the quantile ``q``."""
+    total = m.value(f"{name}_count")
+    if not total:
+        return None
+    for le in _INFERENCE_BUCKETS:
+        if m.value(f"{name}_bucket", le=str(le)) >= q * total:
+            return le
+    return math.inf
+
+
+def _tuner_figures(tuner) -> dict:
+    m = tuner.metrics
+    rejected = {r.value: int(m.value("pitune_samples_rejected_total", reason=r.value))
+                for r in RejectReason}  # fmt: skip
+    updates = {mode.value: int(m.value("pitune_updates_published_total", mode=mode.value))
+               for mode in Mode}  # fmt: skip
+    inf = "pitune_inference_batch_seconds"
+    count = m.value(f"{inf}_count")
+    store = tuner.store
+    recent = _recent(tuner)
+    return {
+        "alive": tuner.alive,
+        "ready": tuner.ready,
+        "bus_ready": tuner.bus_ready,
+        "instance_id": tuner.settings.instance_id,
+        "epoch": tuner.epoch,
+        "key_prefix": tuner.settings.key_prefix,
+        "inference_precision": str(tuner.table.inference_precision),
+        "queue_depth": tuner.inbox.qsize(),
+        "queue_size": tuner.settings.queue_size,
+        "received": int(m.value("pitune_samples_received_total")),
+        "rejected": rejected,
+        "rejected_total": sum(rejected.values()),
+        "updates": updates,
+        "inference": {
+            "batches": int(count),
+            "mean_ms": m.value(f"{inf}_sum") / count * 1000 if count else None,
+            "p50_le_ms": _ms(_quantile(m, inf, 0.5)),
+            "p99_le_ms": _ms(_quantile(m, inf, 0.99)),
+            "loops_per_batch": (
+                m.value("pitune_inference_batch_loops_sum") / count if count else None
+            ),
+        },
+        "store": {
+            "ok": tuner.store_failure is None,
+            "failure": tuner.store_failure,
+            "path": str(tuner.settings.db_path),
+            "journal_rows": store.journal_rows if store is not None else None,
+            "commit_failures": int(m.value("pitune_store_commit_failures_total")),
+            "steps_skipped": int(m.value("pitune_steps_skipped_total")),
+        },
+        "queries_dropped": tuner.queries_dropped,
+        "superseded": tuner.superseded,
+        "process": {
+            "rss_mb": m.value("process_resident_memory_bytes") / 2**20,
+            "cpu_s": m.value("process_cpu_seconds_total"),
+            "open_fds": int(m.value("process_open_fds")),
+        },
+        "trends_mb": recent.nbytes / 2**20 if recent is not None else None,
+    }
+
+
+def _ms(x: float | None) -> float | str | None:
+    if x is None:
+        return None
+    return "> 1000" if math.isinf(x) else x * 1000
+
+
+class _Rates:
+    """Rates from the counters' growth over the last ~10 s of polls."""
+
+    def __init__(self) -> None:
+        self.points: collections.deque = collections.deque()
+        self.lock = threading.Lock()
+
+    def rates(self, now: float, values: dict[str, float]) -> dict[str, float | None]:
+        with self.lock:
+            self.points.append((now, values))
+            while len(self.points) > 2 and now - self.points[1][0] >= 10.0:
+                self.points.popleft()
+            then, old = self.points[0]
+        dt = now - then
+        if dt < 0.5:
+            return {k: None for k in values}
+        return {k: (v - old[k]) / dt for k, v in values.items()}
+
+
+@router.get("/api/tuner")
+def tuner_data(request: Request) -> JSONResponse:
+    tuner = _tuner(request)
+    figures = _tuner_figures(tuner)
+    with tuner.engine.lock:
+        wall = time.time()
+        statuses = tuner.table.status_counts(wall)
+        modes = tuner.table.mode_counts()
+    figures["loops"] = {
+        "total": sum(modes.values()),
+        "statuses": {s.value: n for s, n in statuses.items()},
+        "modes": {m.value: n for m, n in modes.items()},
+    }
+    rates = _state(request, "console_rates", _Rates)
+    figures["rates"] = rates.rates(
+        time.monotonic(),
+        {
+            "received": figures["received"],
+            "rejected": figures["rejected_total"],
+            "updates": sum(figures["updates"].values()),
+            "batches": figures["inference"]["batches"],
+        },
+    )
+    return JSONResponse(json.loads(json.dumps(figures, default=str)))
+
+
+# -- static assets (vendored, no CDN) ----------------------------------------------------
+_TYPES = {".js": "text/javascript", ".css": "text/css", ".txt": "text/plain", "": "text/plain"}
+
+
+@cache
+def _asset(path: str) -> tuple[bytes, str] | None:
+    """A file under static/ (no '..', no hidden files), with its content type."""
+    parts = path.split("/")
+    if any(not p or p.startswith(".") for p in parts):
+        return None
+    node = resources.files(__package__).joinpath("static", *parts)
+    if not node.is_file():
+        return None
+    suffix = "." + parts[-1].rsplit(".", 1)[1] if "." in parts[-1] else ""
+    kind = _TYPES.get(suffix)
+    if kind is None:
+        return None
+    return node.read_bytes(), kind
+
+
+@router.get("/static/{path:path}")
+def static(path: str) -> Response:
+    found = _asset(path)
+    if found is None:
+        raise HTTPException(404, "no such asset")
+    data, kind = found
+    headers = {"Cache-Control": "public, max-age=3600", "X-Content-Type-Options": "nosniff"}
+    return Response(data, media_type=kind, headers=headers)

@@ -1,0 +1,53 @@
+// pitune console: shared helpers (no framework, no build step).
+"use strict";
+const pitune = (() => {
+  const csrf = document.querySelector('meta[name="pitune-csrf"]').content;
+  const loggedIn = document.body.dataset.loggedIn === "1";
+  const esc = (s) => String(s ?? "").replace(/[&<>"']/g, (c) => ({"&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;"}[c]));
+  const num = (x, digits = 4) => {
+    if (x === null || x === undefined || Number.isNaN(x)) return "–";
+    if (x === 0) return "0";
+    const a = Math.abs(x);
+    if (a >= 1e5 || a < 1e-3) return x.toExponential(digits - 1);
+    return x.toPrecision(digits).replace(/\.?0+$/, "");
+  };
+  const int = (x) => (x === null || x === undefined ? "–" : Number(x).toLocaleString("en-US"));
+  const ago = (wallS) => {
+    if (!wallS) return "–";
+    const s = Math.max(0, Date.now() / 1000 - wallS);
+    if (s < 60) return `${s.toFixed(0)} s ago`;
+    if (s < 3600) return `${(s / 60).toFixed(0)} min ago`;
+    if (s < 86400) return `${(s / 3600).toFixed(1)} h ago`;
+    return new Date(wallS * 1000).toISOString().slice(0, 16).replace("T", " ");
+  };
+  const when = (wallS) => new Date(wallS * 1000).toISOString().slice(0, 19).replace("T", " ");
+  let toastTimer = null;
+  const toast = (msg, bad = false) => {
+    const el = document.getElementById("toast");
+    el.textContent = msg;
+    el.className = bad ? "show bad" : "show";
+    clearTimeout(toastTimer);
+    toastTimer = setTimeout(() => { el.className = ""; }, 4000);
+  };
+  async function getJSON(url) {
+    const r = await fetch(url, {headers: {Accept: "application/json"}, cache: "no-store"});
+    if (!r.ok) throw new Error(`${r.status} ${r.statusText}`);
+    return r.json();
+  }
+  // A state-changing request: the session cookie goes along (same origin), the CSRF token in a header.
+  async function act(url, body) {
+    const r = await fetch(url, {
+      method: "POST",
+      headers: {"Content-Type": "application/json", "X-CSRF-Token": csrf},
+      body: body === undefined ? "" : JSON.stringify(body),
+    });
+    let detail = "";
+    try { detail = (await r.json()).detail; } catch (e) { /* not JSON */ }
+    if (!r.ok) {
+      const msg = typeof detail === "string" ? detail : JSON.stringify(detail);
+      throw new Error(`${r.status}: ${msg || r.statusText}`);
+    }
+    return detail === undefined ? null : detail;
+  }
+  return {csrf, loggedIn, esc, num, int, ago, when, toast, getJSON, act};
+})();

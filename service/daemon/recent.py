@@ -1,0 +1,325 @@
+"""The recent samples and published gains of every loop, in memory, for the console's trends.
+
+:class:`Recent` keeps, per registered loop, a ring of the last :data:`POINTS` accepted
+samples (plant time, setpoint, error, controller output, the gains the gateway reports)
+and a ring of the last :data:`GAINS` gains decisions the tuner published (wall time,
+plant time, kp, ki, reason). Nothing here is persisted: after a restart the trends start
+empty (the audit log in the store keeps every change).
+
+Size, fixed per loop and allocated the first time a loop sends a sample (slots grow by
+doubling, like the engine's table):
+
+* samples: ``t`` float64 + ``sp``, ``e``, ``op``, ``kp``, ``ki`` float32 = 28 bytes a point,
+  x :data:`POINTS` (256) = 7 KB per loop;
+* gains: ``wall``, ``t``, ``kp``, ``ki`` float64 + reason code = 33 bytes, x :data:`GAINS`
+  (32) = 1 KB per loop;
+
+so about 8 KB per loop: 80 MB at 10,000 loops (``Recent(points=..., gains=...)`` to
+change it; ``nbytes`` says what is allocated). 256 points are 4 minutes of a loop
+sampled every second: the trend shows recent behaviour, the audit log the long story.
+
+Writes are vectorised (one numpy scatter per field per batch of decoded samples, however
+many loops it holds); they come from the tuner's worker, reads from the API's threads,
+serialised by the ring's own lock (held for microseconds, never the engine's).
+Samples of ids that are not registered are ignored (``known``: the engine's id-to-slot
+mapping, read under the engine lock the worker already holds).
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+POINTS = 256
+"""Samples kept per loop."""
+GAINS = 32
+"""Published gains decisions kept per loop."""
+REASONS = ["agent", "reset", "adopted", "rollback", "approved", "other"]
+"""Reason codes of the gains ring (an unknown reason is 'other')."""
+_SAMPLE_F32 = ("sp", "e", "op", "kp", "ki")
+
+
+class Recent:
+    """Bounded per-loop rings of recent samples and published gains (see the module doc)."""
+
+    def __init__(
+        self,
+        known: Mapping[str, Any] | None = None,
+        points: int = POINTS,
+        gains: int = GAINS,
+        capacity: int = 64,
+    ) -> None:
+        self.known = known
+        self.points = int(points)
+        self.gains_n = int(gains)
+        self.lock = threading.Lock()
+        self.slot_of: dict[str, int] = {}
+        self._free: list[int] = []
+        self._cap = 0
+        self._grow(capacity)
+
+    # -- storage ----------------------------------------------------------------------
+    def _grow(self, capacity: int) -> None:
+        old = self._cap
+        p, g = self.points, self.gains_n
+
+        def grown(arr: np.ndarray | None, shape: tuple, dtype, fill) -> np.ndarray:
+            new = np.full(shape, fill, dtype)
+            if arr is not None and old:
+                new[:old] = arr
+            return new
+
+        self.t = grown(getattr(self, "t", None), (capacity, p), np.float64, np.nan)
+        for name in _SAMPLE_F32:
+            setattr(self, name, grown(getattr(self, name, None), (capacity, p), np.float32, np.nan))
+        self.n = grown(getattr(self, "n", None), (capacity,), np.int64, 0)
+        """Samples ever written per slot (the next one goes to ``n % points``)."""
+        self.g_wall = grown(getattr(self, "g_wall", None), (capacity, g), np.float64, np.nan)
+        self.g_t = grown(getattr(self, "g_t", None), (capacity, g), np.float64, np.nan)
+        self.g_kp = grown(getattr(self, "g_kp", None), (capacity, g), np.float64, np.nan)
+        self.g_ki = grown(getattr(self, "g_ki", None), (capacity, g), np.float64, np.nan)
+        self.g_reason = grown(getattr(self, "g_reason", None), (capacity, g), np.uint8, 0)
+        self.g_n = grown(getattr(self, "g_n", None), (capacity,), np.int64, 0)
+        self._free.extend(range(capacity - 1, old - 1, -1))
+        self._cap = capacity
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the rings."""
+        names = ("t", *_SAMPLE_F32, "n", "g_wall", "g_t", "g_kp", "g_ki", "g_reason", "g_n")
+        return sum(getattr(self, name).nbytes for name in names)
+
+    def _slots(self, ids: list[str]) -> np.ndarray:
+        """Ring slots of ``ids`` (-1: not a registered loop), allocating new ones."""
+        get = self.slot_of.get
+        slots = [get(i, -1) for i in ids]
+        if -1 in slots:
+            for k, loop_id in enumerate(ids):
+                if slots[k] != -1:
+                    continue
+                if loop_id in self.slot_of:
+                    slots[k] = self.slot_of[loop_id]
+                elif self.known is None or loop_id in self.known:
+                    if not self._free:
+                        self._grow(2 * self._cap)
+                    s = self._free.pop()
+                    self.slot_of[loop_id] = s
+                    slots[k] = s
+        return np.asarray(slots, np.int64)
+
+    def _clear(self, s: int) -> None:
+        self.t[s] = np.nan
+        for name in _SAMPLE_F32:
+            getattr(self, name)[s] = np.nan
+        self.n[s] = 0
+        self.g_wall[s] = self.g_t[s] = self.g_kp[s] = self.g_ki[s] = np.nan
+        self.g_n[s] = 0
+
+    def forget(self, loop_id: str) -> None:
+        """Drop a loop's rings (deleted)."""
+        with self.lock:
+            s = self.slot_of.pop(loop_id, None)
+            if s is not None:
+                self._clear(s)
+                self._free.append(s)
+
+    def retain(self, loop_ids: Mapping[str, Any] | set[str]) -> int:
+        """Drop the rings of loops not in ``loop_ids`` (deleted meanwhile); how many."""
+        with self.lock:
+            gone = [i for i in self.slot_of if i not in loop_ids]
+        for loop_id in gone:
+            self.forget(loop_id)
+        return len(gone)
+
+    # -- writes (the tuner's worker) ---------------------------------------------------
+    def add_samples(self, columns: Any) -> None:
+        """Accepted or not yet judged samples as decoded columns
+        (:class:`service.wire.decode.Columns`: ``loop_ids``, ``t``, ``sp``, ``e``, ``kp``,
+        ``ki``, optional ``op``), in order; rows of unknown loops are skipped."""
+        ids = columns.loop_ids
+        if not len(ids):
+            return
+        with self.lock:
+            slots = self._slots(ids)
+            keep = np.flatnonzero(slots >= 0)
+            if not keep.size:
+                return
+            slots = slots[keep]
+            order = np.argsort(slots, kind="stable")
+            ordered = slots[order]
+            starts = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1]])
+            counts = np.diff(np.r_[starts, ordered.size])
+            rank = np.arange(ordered.size) - np.repeat(starts, counts)
+            total = np.repeat(counts, counts)
+            last = rank >= total - self.points  # only the newest `points` of a loop
+            rows = keep[order][last]
+            s = ordered[last]
+            pos = (self.n[s] + rank[last]) % self.points
+            self.t[s, pos] = np.asarray(columns.t)[rows]
+            for name in _SAMPLE_F32:
+                values = getattr(columns, name, None)
+                if values is None:
+                    getattr(self, name)[s, pos] = np.nan
+                else:
+                    getattr(self, name)[s, pos] = np.asarray(values)[rows]
+            self.n[ordered[starts]] += counts
+
+    def add_gains(self, result: Any, wall: float | None = None) -> None:
+        """A published decision (:class:`service.engine.updates.StepResult`:
+        ``loop_ids``, ``t``, ``new`` (n, 2), ``reason``)."""
+        ids = result.loop_ids
+        if not len(ids):
+            return
+        import time
+
+        wall = time.time() if wall is None else wall
+        reason = getattr(result.reason, "value", result.reason)
+        code = REASONS.index(reason) if reason in REASONS else len(REASONS) - 1
+        new = np.asarray(result.new, np.float64).reshape(-1, 2)
+        t = np.asarray(result.t, np.float64)
+        with self.lock:
+            slots = self._slots(list(ids))
+            for k in np.flatnonzero(slots >= 0).tolist():  # one decision per loop and step
+                s = int(slots[k])
+                pos = self.g_n[s] % self.gains_n
+                self.g_wall[s, pos] = wall
+                self.g_t[s, pos] = t[k]
+                self.g_kp[s, pos], self.g_ki[s, pos] = new[k]
+                self.g_reason[s, pos] = code
+                self.g_n[s] += 1
+
+    # -- reads (the console) -----------------------------------------------------------
+    def count(self, loop_id: str) -> tuple[int, int]:
+        """(samples, gains decisions) ever written for the loop."""
+        with self.lock:
+            s = self.slot_of.get(loop_id)
+            return (0, 0) if s is None else (int(self.n[s]), int(self.g_n[s]))
+
+    def since(self, loop_id: str, samples_seen: int = 0, gains_seen: int = 0) -> dict:
+        """The loop's points after the first ``samples_seen`` samples and
+        ``gains_seen`` decisions (what the ring still holds of them), JSON-ready: columns
+        with None for NaN, ``n``/``gn``: the counts to pass next time."""
+        with self.lock:
+            s = self.slot_of.get(loop_id)
+            if s is None:
+                return {"n": 0, "gn": 0, "t": [], "sp": [], "pv": [], "op": [], "kp": [],
+                        "ki": [], "gains": []}  # fmt: skip
+            n, gn = int(self.n[s]), int(self.g_n[s])
+            first = max(samples_seen, n - self.points, 0)
+            idx = np.arange(first, n) % self.points
+            t = self.t[s, idx].copy()
+            sp = self.sp[s, idx].astype(np.float64)
+            e = self.e[s, idx].astype(np.float64)
+            op = self.op[s, idx].astype(np.float64)
+            kp = self.kp[s, idx].astype(np.float64)
+            ki = self.ki[s, idx].astype(np.float64)
+            gfirst = max(gains_seen, gn - self.gains_n, 0)
+            gidx = np.arange(gfirst, gn) % self.gains_n
+            gains = [
+                {"wall": w, "t": _num(tt), "kp": p, "ki": i, "reason": REASONS[r]}
+                for w, tt, p, i, r in zip(
+                    self.g_wall[s, gidx].tolist(), self.g_t[s, gidx].tolist(),
+                    self.g_kp[s, gidx].tolist(), self.g_ki[s, gidx].tolist(),
+                    self.g_reason[s, gidx].tolist(), strict=True,
+                )
+            ]  # fmt: skip
+        pv = sp - e
+        return {
+            "n": n,
+            "gn": gn,
+            "t": _col(t),
+            "sp": _col(sp),
+            "pv": _col(pv),
+            "e": _col(e),
+            "op": _col(op),
+            "kp": _col(kp),
+            "ki": _col(ki),
+            "gains": gains,
+        }
+
+    def summary(self, loop_ids: list[str]) -> dict[str, np.ndarray]:
+        """Per loop of ``loop_ids``, vectorised: ``last_wall`` of the last published gains
+        (NaN: none since start), its ``reason`` code, ``dkp``/``dki`` (relative change of
+        that decision against the one before, NaN if unknown), ``rms_e`` (rms error over
+        the ring, NaN without samples)."""
+        m = len(loop_ids)
+        out = {
+            k: np.full(m, np.nan)
+            for k in ("last_wall", "dkp", "dki", "rms_e")
+        }
+        out["reason"] = np.full(m, -1, np.int64)
+        with self.lock:
+            slots = np.fromiter((self.slot_of.get(i, -1) for i in loop_ids), np.int64, m)
+            has = np.flatnonzero(slots >= 0)
+            if not has.size:
+                return out
+            s = slots[has]
+            gn = self.g_n[s]
+            got = gn > 0
+            last = (gn - 1) % self.gains_n
+            prev = (gn - 2) % self.gains_n
+            rows, k = has[got], s[got]
+            out["last_wall"][rows] = self.g_wall[k, last[got]]
+            out["reason"][rows] = self.g_reason[k, last[got]]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                two = gn[got] > 1
+                pk = np.where(two, self.g_kp[k, prev[got]], np.nan)
+                pi = np.where(two, self.g_ki[k, prev[got]], np.nan)
+                out["dkp"][rows] = self.g_kp[k, last[got]] / pk - 1.0
+                out["dki"][rows] = self.g_ki[k, last[got]] / pi - 1.0
+            e = self.e[s]
+            with np.errstate(invalid="ignore"), _quiet():
+                out["rms_e"][has] = np.sqrt(np.nanmean(np.square(e, dtype=np.float64), axis=1))
+        return out
+
+
+class _quiet:
+    """Silence numpy's 'mean of empty slice' warning (a loop without samples: NaN)."""
+
+    def __enter__(self):
+        import warnings
+
+        self._w = warnings.catch_warnings()
+        self._w.__enter__()
+        warnings.simplefilter("ignore", RuntimeWarning)
+
+    def __exit__(self, *exc):
+        self._w.__exit__(*exc)
+
+
+def _num(x: float) -> float | None:
+    return None if math.isnan(x) else x
+
+
+def _col(values: np.ndarray) -> list[float | None]:
+    return [None if v != v else v for v in values.tolist()]
+
+
+def attach(tuner: Any, points: int = POINTS, gains: int = GAINS) -> Recent:
+    """Give a :class:`~service.daemon.tuner.Tuner` a ring fed by its worker, unless it has
+    one (the daemon's own wiring): wraps the engine's ``ingest_decoded`` and the tuner's
+    ``_publish``. For tests and tools that run a tuner without that wiring."""
+    existing = getattr(tuner, "recent", None)
+    if isinstance(existing, Recent):
+        return existing
+    recent = Recent(known=tuner.table.slot_of, points=points, gains=gains)
+    engine = tuner.engine
+    ingest = engine.ingest_decoded
+    publish = tuner._publish
+
+    def ingest_decoded(decoded, *args, **kwargs):
+        recent.add_samples(decoded)
+        return ingest(decoded, *args, **kwargs)
+
+    def _publish(result):
+        recent.add_gains(result)
+        return publish(result)
+
+    engine.ingest_decoded = ingest_decoded
+    tuner._publish = _publish
+    tuner.recent = recent
+    return recent
