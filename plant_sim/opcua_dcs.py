@@ -58,8 +58,6 @@ SERVER_URI = "urn:pitune:dcs-sim:server"
 MAN, AUTO, CAS = 1, 2, 3
 MODES = {"MAN": MAN, "AUTO": AUTO, "CAS": CAS}
 AUTO_VALUES = [AUTO, CAS]
-MAPPED_NODES = 9
-"""Nodes per block that :meth:`SimulatedDcs.site_map` maps."""
 TANK_PV_SPAN = 120.0
 """The tank's level transmitter range, cm (0-120)."""
 
@@ -340,14 +338,20 @@ class SimulatedDcs:
             node = self.server.get_node(block.ids[param])
             await node.set_writable(not locked)
 
-    def monitored_items(self) -> int:
-        """How many monitored items the server's clients have."""
+    def monitored(self) -> set[ua.NodeId]:
+        """The nodes the server's clients monitor."""
         subs = self.server.iserver.subscription_service.subscriptions.values()
-        return sum(len(s.monitored_item_srv._monitored_items) for s in subs)
+        return {
+            m.read_value_id.NodeId
+            for s in subs
+            for m in s.monitored_item_srv._monitored_items.values()
+            if m.read_value_id is not None
+        }
 
-    async def wait_for_client(self, items: int, stop: asyncio.Event) -> None:
-        """Until clients monitor at least ``items`` nodes (or ``stop``)."""
-        while not stop.is_set() and self.monitored_items() < items:
+    async def wait_for_client(self, stop: asyncio.Event) -> None:
+        """Until a client monitors every block's PV (or ``stop``)."""
+        pvs = {b.ids["PV"] for b in self.blocks.values()}
+        while not stop.is_set() and not pvs <= self.monitored():
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(stop.wait(), 0.02)
 
@@ -419,7 +423,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      help="write a gateway map of these blocks")  # fmt: skip
     out.add_argument("--log-dir", type=Path, default=None, help="write DIR/<loop id>.csv")
     out.add_argument("--wait-for-gateway", action="store_true",
-                     help="start the clock once a client monitors all blocks")  # fmt: skip
+                     help="start the clock once a client monitors every PV")  # fmt: skip
     out.add_argument("--progress", type=float, default=600.0, help="status every N simulated s")
 
 
@@ -502,7 +506,7 @@ async def serve(args: argparse.Namespace, stop: asyncio.Event) -> int:
                     stack.callback(w.close)
                     writers[loop.loop_id] = w
             if args.wait_for_gateway:
-                await dcs.wait_for_client(MAPPED_NODES * len(loops), stop)
+                await dcs.wait_for_client(stop)
                 print("dcs: the gateway monitors every block: plant clock started", flush=True)
             scans, late = await pace(dcs, args, stop, writers)
     print(f"dcs stopped after {scans} scans (worst scan started {late:.3f} s late)",

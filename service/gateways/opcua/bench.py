@@ -26,6 +26,7 @@ import time
 import tomllib
 from pathlib import Path
 
+import httpx
 import tomli_w
 
 from service.procs import Proc, TunerProcess, clean_env, pitune
@@ -54,6 +55,8 @@ def run_bench(args: argparse.Namespace, workdir: Path) -> dict:
         site["tuner"] = {"register_url": tuner.api, "timeout_s": 120}
         for loop in site["loops"]:
             loop["min_write_interval_s"] = 0.0
+            if not args.with_op:
+                del loop["op"]  # samples do not carry OP: monitoring it only loads the server
             loop["registration"]["extra"] = {"guard": {"max_rel_change": 0.5}}
         site_file = workdir / "site.toml"
         site_file.write_text(tomli_w.dumps(site))
@@ -81,15 +84,16 @@ def run_bench(args: argparse.Namespace, workdir: Path) -> dict:
         cpu = {"gateway": (gateway.cpu_seconds() - cpu0["gateway"]) / wall * 100}
         time.sleep(2.0)  # the last samples and writes in flight
         cpu_dcs_line = dcs.tail(3)
+        gateway.stop()
         with tuner.http() as http:
+            http.timeout = httpx.Timeout(120.0)
             views, offset = [], 0
             while True:
-                page = http.get("/loops", params={"offset": offset, "limit": 1000}).json()
+                page = http.get("/loops", params={"offset": offset, "limit": 100}).json()
                 views += page["items"]
                 offset += len(page["items"])
                 if offset >= page["total"] or not page["items"]:
                     break
-        gateway.stop()
         out = json.loads(report.read_text())
         m = re.search(r"after (\d+) scans \(worst scan started ([\d.]+) s late\)", cpu_dcs_line)
         scans, late = (int(m.group(1)), float(m.group(2))) if m else (None, None)
@@ -134,6 +138,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--loops", type=int, default=1000)
     parser.add_argument("--duration", type=float, default=120.0, help="simulated = wall s")
     parser.add_argument("--sp-period", type=float, default=30.0)
+    parser.add_argument("--with-op", action="store_true", help="also monitor each block's OUT")
     parser.add_argument("--workdir", type=Path, default=None)
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args(argv)
