@@ -50,6 +50,10 @@ RUN set -eu; \
     echo "pip sources: ${links:-no wheelhouse} ${index:-pypi.org}; torch: $torch_index" ; \
     pip install $links $torch_index torch==2.13.0; \
     echo "$links $index" > /src/pip-sources
+# Then every pinned dependency, in a layer of its own that a change of pitune's code does
+# not invalidate (`pip install .` below only adds pitune).
+# hadolint ignore=SC2046,DL3013
+RUN pip install $(cat /src/pip-sources) --requirement /src/constraints.txt
 COPY pyproject.toml README.md ./
 COPY service ./service
 COPY plant_sim ./plant_sim
