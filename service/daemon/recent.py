@@ -27,8 +27,10 @@ mapping, read under the engine lock the worker already holds).
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
+import time
 from collections.abc import Mapping
 from typing import Any
 
@@ -41,6 +43,7 @@ GAINS = 32
 REASONS = ["agent", "reset", "adopted", "rollback", "approved", "other"]
 """Reason codes of the gains ring (an unknown reason is 'other')."""
 _SAMPLE_F32 = ("sp", "e", "op", "kp", "ki")
+log = logging.getLogger("pitune.tuner")
 
 
 class Recent:
@@ -57,6 +60,7 @@ class Recent:
         self.points = int(points)
         self.gains_n = int(gains)
         self.lock = threading.Lock()
+        self._failed_at = -math.inf
         self.slot_of: dict[str, int] = {}
         self._free: list[int] = []
         self._cap = 0
@@ -139,7 +143,9 @@ class Recent:
     def add_samples(self, columns: Any) -> None:
         """Accepted or not yet judged samples as decoded columns
         (:class:`service.wire.decode.Columns`: ``loop_ids``, ``t``, ``sp``, ``e``, ``kp``,
-        ``ki``, optional ``op``), in order; rows of unknown loops are skipped."""
+        ``ki``, optional ``op``) or what holds them (``Decoded.rows``), in order; rows of
+        unknown loops are skipped."""
+        columns = getattr(columns, "rows", columns)
         ids = columns.loop_ids
         if not len(ids):
             return
@@ -174,8 +180,6 @@ class Recent:
         ids = result.loop_ids
         if not len(ids):
             return
-        import time
-
         wall = time.time() if wall is None else wall
         reason = getattr(result.reason, "value", result.reason)
         code = REASONS.index(reason) if reason in REASONS else len(REASONS) - 1
@@ -191,6 +195,17 @@ class Recent:
                 self.g_kp[s, pos], self.g_ki[s, pos] = new[k]
                 self.g_reason[s, pos] = code
                 self.g_n[s] += 1
+
+    def safely(self, add, data) -> None:
+        """``add(data)``, logging (once a minute) instead of raising: the trends must
+        never stop the tuner's worker."""
+        try:
+            add(data)
+        except Exception:
+            now = time.monotonic()
+            if now - self._failed_at > 60.0:
+                self._failed_at = now
+                log.exception("recording recent samples failed (the trends miss them)")
 
     # -- reads (the console) -----------------------------------------------------------
     def count(self, loop_id: str) -> tuple[int, int]:
@@ -312,11 +327,11 @@ def attach(tuner: Any, points: int = POINTS, gains: int = GAINS) -> Recent:
     publish = tuner._publish
 
     def ingest_decoded(decoded, *args, **kwargs):
-        recent.add_samples(decoded)
+        recent.safely(recent.add_samples, decoded)
         return ingest(decoded, *args, **kwargs)
 
     def _publish(result):
-        recent.add_gains(result)
+        recent.safely(recent.add_gains, result)
         return publish(result)
 
     engine.ingest_decoded = ingest_decoded
