@@ -17,6 +17,7 @@ check, through the same limiter.
 
 from __future__ import annotations
 
+import collections
 import datetime as dt
 import json
 import logging
@@ -94,17 +95,21 @@ class Limiter:
         self._window: dict[str, tuple[float, int, int]] = {}
         """key -> (window start, lines logged, lines suppressed)."""
 
-    def log(self, level: int, key: str, message: str, *args: object) -> bool:
+    def take(self, key: str, n: int = 1) -> int:
+        """How many of ``n`` lines of ``key`` may be logged now; the rest are counted."""
         now = self.clock()
         with self._lock:
             start, logged, suppressed = self._window.get(key, (now, 0, 0))
             if now - start >= self.interval_s:
                 self._summary(key, suppressed, now - start)
                 start, logged, suppressed = now, 0, 0
-            if logged >= self.burst:
-                self._window[key] = (start, logged, suppressed + 1)
-                return False
-            self._window[key] = (start, logged + 1, suppressed)
+            allowed = max(0, min(n, self.burst - logged))
+            self._window[key] = (start, logged + allowed, suppressed + n - allowed)
+        return allowed
+
+    def log(self, level: int, key: str, message: str, *args: object) -> bool:
+        if not self.take(key):
+            return False
         self.logger.log(level, message, *args)
         return True
 
@@ -138,25 +143,32 @@ class EventLog:
         updates, adoptions, resets, registrations, patches, deletions."""
         if not self.limiter.logger.isEnabledFor(logging.INFO):
             return
-        for loop_id, _wall, t, seq, mode, reason, kp0, ki0, kp1, ki1, detail in rows:
-            at = "" if t is None else f" at t={t:g}"
-            if reason == "registered":
-                message = f"loop {loop_id!r} registered ({mode}, {_gains(kp1, ki1)}, seq {seq})"
-            elif reason == "deleted":
-                message = f"loop {loop_id!r} deleted ({mode}, last {_gains(kp0, ki0)})"
-            elif reason == "patched":
-                message = f"loop {loop_id!r} config changed: {detail} (now {mode})"
-            elif reason == "adopted":
-                message = (
-                    f"loop {loop_id!r} adopted the gateway's gains {_gains(kp1, ki1)} "
-                    f"(were {_gains(kp0, ki0)}){at}: an operator's change"
-                )
-            else:  # agent, reset, ...: gains published
-                message = (
-                    f"loop {loop_id!r} gains {_gains(kp0, ki0)} -> {_gains(kp1, ki1)} "
-                    f"({reason}, {mode}, seq {seq}){at}"
-                )
-            self.limiter.log(logging.INFO, str(reason), "%s", message)
+        by_reason: dict[str, list[tuple]] = collections.defaultdict(list)
+        for row in rows:  # the worker calls this per step: format only what is logged
+            by_reason[row[5]].append(row)
+        for reason, group in by_reason.items():
+            for row in group[: self.limiter.take(str(reason), len(group))]:
+                self.limiter.logger.info("%s", self._message(row))
+
+    @staticmethod
+    def _message(row: tuple) -> str:
+        loop_id, _wall, t, seq, mode, reason, kp0, ki0, kp1, ki1, detail = row
+        at = "" if t is None else f" at t={t:g}"
+        if reason == "registered":
+            return f"loop {loop_id!r} registered ({mode}, {_gains(kp1, ki1)}, seq {seq})"
+        if reason == "deleted":
+            return f"loop {loop_id!r} deleted ({mode}, last {_gains(kp0, ki0)})"
+        if reason == "patched":
+            return f"loop {loop_id!r} config changed: {detail} (now {mode})"
+        if reason == "adopted":
+            return (
+                f"loop {loop_id!r} adopted the gateway's gains {_gains(kp1, ki1)} "
+                f"(were {_gains(kp0, ki0)}){at}: an operator's change"
+            )
+        return (  # agent, reset, ...: gains published
+            f"loop {loop_id!r} gains {_gains(kp0, ki0)} -> {_gains(kp1, ki1)} "
+            f"({reason}, {mode}, seq {seq}){at}"
+        )
 
     def flush(self) -> None:
         self.limiter.flush()
