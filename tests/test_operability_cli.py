@@ -3,6 +3,7 @@ every sub-command and the default of every option in ``--help``."""
 
 import argparse
 import re
+from pathlib import Path
 
 import pytest
 
@@ -72,3 +73,9 @@ def test_tuner_help_lists_every_setting_and_the_exit_codes():
         assert variable in text
     for code in daemon.EXIT_CODES:
         assert re.search(rf"^\s+{code}\s+\w", text, re.M), code
+
+
+def test_docs_list_every_exit_status():
+    text = (Path(__file__).parents[1] / "docs" / "tuner.md").read_text()
+    documented = {int(code) for code in re.findall(r"^\| (\d+) \|", text, re.M)}
+    assert documented == set(daemon.EXIT_CODES)
