@@ -466,8 +466,7 @@ class Tuner:
                     decoded = decode_singles([(self.keys.loop_id(k), p) for k, p in payload])
                 else:
                     decoded = decode_batch(payload)
-                for result in engine.ingest_decoded(decoded, wall=wall):
-                    self._stepped(result)
+                self._ingest(decoded, wall)
                 # received last: once it reaches N, those N samples are in their counters
                 self.metrics.samples_received.inc(decoded.received)
                 # Batch the due loops, but never hold one back for long behind a backlog.
@@ -482,6 +481,26 @@ class Tuner:
             self._commit(None)
             if self._parked:
                 self._answer_parked()
+
+    def _ingest(self, decoded, wall: float) -> None:
+        """Samples into the engine. Should the engine fail (a defect), the samples it had
+        not judged yet are counted as rejected ``internal`` and the worker goes on with
+        the next message: one bad message never takes the others with it."""
+        engine, tb = self.engine, self.table
+        before = sum(engine.rejected.values()) + int(tb.n_samples.sum())
+        try:
+            for result in engine.ingest_decoded(decoded, wall=wall):
+                self._stepped(result)
+        except Exception as exc:
+            judged = sum(engine.rejected.values()) + int(tb.n_samples.sum()) - before
+            lost = max(decoded.received - judged, 0)
+            log.exception(
+                "handling %d samples failed; %d counted as internal", decoded.received, lost
+            )
+            if lost:
+                self.metrics.samples_rejected.labels(RejectReason.internal.value).inc(lost)
+                engine.rejected[RejectReason.internal] += lost
+            del exc
 
     def _on_reject(self, rejection: Rejection) -> None:
         self.metrics.reject(rejection.reason, rejection.loop_id, rejection.detail)

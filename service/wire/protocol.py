@@ -133,6 +133,8 @@ class RejectReason(StrEnum):
     unread and counts as one sample, whatever it held."""
     too_large = "too_large"
     """A message over :data:`MAX_MESSAGE_BYTES`, refused unread: counts as one sample."""
+    internal = "internal"
+    """The tuner failed while handling the sample (a defect: its log says which)."""
 
 
 _WIRE = ConfigDict(strict=True, allow_inf_nan=False, extra="ignore", frozen=True)
