@@ -1,0 +1,98 @@
+"""Issue 18 defect 2: what a state reply reflects, tested exactly as docs/protocol.md
+states it. Zenoh runs the sample subscribers and the queryable on separate threads, so a
+plain query sent right after a sample may be handled before it; a query with
+``after_t=<t>`` is answered only once the loop has a sample at ``t`` or later (or after
+AFTER_T_WAIT_S, with ``last_t`` below ``t`` saying so). Under 10,000 samples/s of load on
+other loops, 0 of 1,000 such queries are answered before their sample."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+
+import pytest
+
+from service.daemon.tuner import AFTER_T_WAIT_S, Tuner
+from service.engine.config import LoopConfig
+from tests.tuner_support import connected_gateway, loop_body, open_peer, tuner_settings
+
+pytestmark = pytest.mark.timeout(180)
+LOAD_LOOPS = 100
+LOAD_RATE = 10_000  # samples/s
+
+
+def _state(session, key: str) -> dict:
+    replies = list(session.get(key, timeout=5.0))
+    assert len(replies) == 1 and replies[0].ok is not None, replies
+    return json.loads(replies[0].ok.payload.to_bytes())
+
+
+def _load(settings, stop: threading.Event, sent: list[int]) -> None:
+    """LOAD_RATE samples/s on LOAD_LOOPS other loops, as batches of 100 every 10 ms."""
+    session = open_peer(settings.zenoh_listen)
+    try:
+        t, next_at = 0.0, time.monotonic()
+        while not stop.is_set():
+            t += 1.0
+            batch = {"samples": [{"loop_id": f"L{i}", "t": t, "e": 0.1} for i in range(100)]}
+            session.put(settings.keys.batch, json.dumps(batch).encode())
+            sent[0] += 100
+            next_at += 100 / LOAD_RATE
+            time.sleep(max(0.0, next_at - time.monotonic()))
+    finally:
+        session.close()
+
+
+def test_a_query_with_after_t_reflects_the_sample_sent_before_it(tmp_path):
+    settings = tuner_settings(tmp_path)
+    with Tuner(settings) as tuner:
+        tuner.register_many([LoopConfig(**loop_body(f"L{i}")) for i in range(LOAD_LOOPS)])
+        tuner.register(LoopConfig(**loop_body("PROBE")))
+        gw = connected_gateway(settings)
+        stop, sent = threading.Event(), [0]
+        load = threading.Thread(target=_load, args=(settings, stop, sent))
+        load.start()
+        try:
+            key = settings.keys.state("PROBE")
+            publisher = gw.session.declare_publisher(settings.keys.sample("PROBE"))
+            start_sent, started = sent[0], time.monotonic()
+            early_plain = 0
+            for k in range(1, 201):  # plain queries: what is not guaranteed, measured
+                publisher.put(json.dumps({"t": float(k), "e": 0.1}).encode())
+                early_plain += _state(gw.session, key)["last_t"] != float(k)
+            early, slow = 0, 0
+            for k in range(201, 1201):
+                publisher.put(json.dumps({"t": float(k), "e": 0.1}).encode())
+                asked = time.monotonic()
+                state = _state(gw.session, f"{key}?after_t={float(k)}")
+                early += state["last_t"] is None or state["last_t"] < float(k)
+                slow += time.monotonic() - asked >= AFTER_T_WAIT_S
+            rate = (sent[0] - start_sent) / (time.monotonic() - started)
+            publisher.undeclare()
+        finally:
+            stop.set()
+            load.join()
+            gw.close()
+        print(f"load {rate:.0f} samples/s; plain queries before their sample: {early_plain}/200")
+        assert rate >= 0.8 * LOAD_RATE, f"load only {rate:.0f} samples/s"
+        assert early == 0 and slow == 0, (early, slow)
+        assert tuner.view("PROBE").counters.samples == 1200
+
+
+def test_after_t_of_a_sample_that_never_comes_answers_after_the_wait(tmp_path):
+    """The wait is bounded: the reply then says the sample was not handled."""
+    settings = tuner_settings(tmp_path)
+    with Tuner(settings) as tuner:
+        tuner.register(LoopConfig(**loop_body("PROBE")))
+        gw = connected_gateway(settings)
+        try:
+            gw.send("PROBE", {"t": 5.0, "e": 0.1})
+            key = settings.keys.state("PROBE")
+            assert _state(gw.session, f"{key}?after_t=5.0")["last_t"] == 5.0  # the control
+            asked = time.monotonic()
+            state = _state(gw.session, f"{key}?after_t=6.0")
+            waited = time.monotonic() - asked
+            assert state["last_t"] == 5.0 and AFTER_T_WAIT_S <= waited < AFTER_T_WAIT_S + 1.0
+        finally:
+            gw.close()
