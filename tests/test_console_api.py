@@ -1,0 +1,131 @@
+"""The console's routes without a browser: pages, assets, sessions, CSRF, the overview's
+server-side filter/sort/search, the tuner's figures (a real tuner, in-process)."""
+
+from __future__ import annotations
+
+import re
+
+import pytest
+from fastapi.testclient import TestClient
+
+from service.daemon.api import create_app
+from service.daemon.console.screenshots import with_console
+from service.daemon.recent import attach
+from tests.tuner_support import loop_body, tuner_settings
+
+TOKEN = "console-secret"
+BEARER = {"Authorization": f"Bearer {TOKEN}"}
+
+
+@pytest.fixture
+def client(tmp_path):
+    app = with_console(create_app(tuner_settings(tmp_path, api_token=TOKEN)))
+    with TestClient(app) as c:
+        attach(app.state.tuner)
+        yield c
+
+
+def csrf_of(page: str) -> str:
+    return re.search(r'name="pitune-csrf" content="([^"]*)"', page).group(1)
+
+
+def login(client, name="alice") -> str:
+    r = client.post("/ui/login", data={"token": TOKEN, "name": name}, follow_redirects=False)
+    assert r.status_code == 303
+    return csrf_of(client.get("/ui").text)
+
+
+def test_pages_and_vendored_assets_with_licence(client):
+    client.post("/loops", json=loop_body("L1"), headers=BEARER)
+    for path in ("/ui", "/ui/loops/L1", "/ui/tuner", "/ui/login"):
+        r = client.get(path)
+        assert r.status_code == 200 and "<!doctype html>" in r.text
+        assert "http://" not in r.text and "https://" not in r.text  # nothing from a CDN
+        assert "script-src 'self'" in r.headers["content-security-policy"]
+    assert "Unknown loop" in client.get("/ui/loops/nope").text
+    js = client.get("/ui/static/vendor/uplot/uPlot.iife.min.js")
+    assert js.status_code == 200 and js.headers["content-type"].startswith("text/javascript")
+    assert "MIT" in client.get("/ui/static/vendor/uplot/LICENSE").text
+    for bad in ("/ui/static/../routes.py", "/ui/static/%2e%2e/routes.py", "/ui/static/x.py"):
+        assert client.get(bad).status_code == 404
+    assert "/ui" not in client.get("/openapi.json").text  # not part of the REST API
+
+
+def test_actions_need_a_session_and_its_csrf_token_and_record_the_actor(client):
+    client.post("/loops", json=loop_body("L1"), headers=BEARER)
+    assert client.post("/ui/api/loops/L1/patch", json={"mode": "advisory"}).status_code == 401
+    r = client.post("/ui/login", data={"token": "wrong"}, follow_redirects=False)
+    assert r.status_code == 303 and "error=wrong+token" in r.headers["location"]
+    r = client.post("/ui/login", data={"token": TOKEN, "name": "alice"}, follow_redirects=False)
+    cookie = r.headers["set-cookie"]
+    assert "HttpOnly" in cookie and "SameSite=strict" in cookie and "Path=/ui" in cookie
+    assert TOKEN not in cookie
+    csrf = csrf_of(client.get("/ui").text)
+    assert client.post("/ui/api/loops/L1/patch", json={"mode": "advisory"}).status_code == 403
+    wrong = {"X-CSRF-Token": "x" * len(csrf)}
+    assert client.post("/ui/api/loops/L1/reset", headers=wrong).status_code == 403
+    other = {"X-CSRF-Token": csrf, "Origin": "http://evil.example"}
+    assert client.post("/ui/api/loops/L1/reset", headers=other).status_code == 403
+    ok = {"X-CSRF-Token": csrf}
+    r = client.post("/ui/api/loops/L1/patch", json={"mode": "advisory"}, headers=ok)
+    assert r.status_code == 200 and r.json()["mode"] == "advisory"
+    r = client.post("/ui/api/loops/L1/patch", json={"kp_min": 1e6}, headers=ok)
+    assert r.status_code == 422 and "bounds" in r.json()["detail"]
+    assert client.post("/ui/api/loops/L1/patch", json={"bogus": 1}, headers=ok).status_code == 422
+    assert client.post("/ui/api/loops/nope/reset", headers=ok).status_code == 404
+    assert client.post("/ui/api/loops/L1/reset", headers=ok).status_code == 200
+    history = client.get("/loops/L1/history").json()["items"]
+    assert [h["reason"] for h in history[:2]] == ["reset", "patched"]
+    tuner = client.app.state.tuner
+    import inspect
+
+    if "actor" in inspect.signature(tuner.patch).parameters:  # the daemon's integration
+        assert "ui:alice" in history[1]["detail"]
+    r = client.post("/ui/logout", data={"csrf": csrf}, follow_redirects=False)
+    assert r.status_code == 303
+    assert client.post("/ui/api/loops/L1/reset", headers=ok).status_code == 401
+
+
+def test_logout_needs_the_csrf_token_and_login_refuses_foreign_origins_and_redirects(client):
+    csrf = login(client)
+    assert client.post("/ui/logout", data={"csrf": "nope"}).status_code == 403
+    r = client.post("/ui/login", data={"token": TOKEN}, headers={"Origin": "http://evil"})
+    assert r.status_code == 403
+    for target in ("https://evil.example/ui", "//evil.example/ui", "/docs", "/ui\\@evil"):
+        r = client.post("/ui/login", data={"token": TOKEN, "next": target},
+                        follow_redirects=False)  # fmt: skip
+        assert r.headers["location"] == "/ui"
+    stale, csrf = csrf, csrf_of(client.get("/ui").text)  # a login starts a new session
+    assert stale != csrf
+    assert client.post("/ui/logout", data={"csrf": csrf}, follow_redirects=False).status_code == 303
+    assert 'id="login-link"' in client.get("/ui").text
+
+
+def test_overview_filters_sorts_searches_and_pages_on_the_server(client):
+    bodies = [loop_body(f"L-{i:03d}", kp=0.1 + i / 100, gateway="gw-a" if i % 2 else None)
+              for i in range(120)]  # fmt: skip
+    assert client.post("/loops/bulk", json=bodies, headers=BEARER).status_code == 201
+    client.patch("/loops/L-007", json={"mode": "frozen"}, headers=BEARER)
+    page = client.get("/ui/api/loops", params={"limit": 50}).json()
+    assert page["total"] == page["matched"] == 120 and len(page["items"]) == 50
+    assert page["items"][0]["id"] == "L-000" and page["statuses"]["frozen"] == 1
+    assert page["statuses"]["waiting"] == 119 and page["modes"]["frozen"] == 1
+    page = client.get("/ui/api/loops", params={"q": "l-01", "sort": "kp", "desc": True}).json()
+    assert [i["id"] for i in page["items"]] == [f"L-{i:03d}" for i in range(19, 9, -1)]
+    page = client.get("/ui/api/loops", params={"q": "GW-A", "offset": 50, "limit": 20}).json()
+    assert page["matched"] == 60 and len(page["items"]) == 10
+    assert all(i["gateway"] == "gw-a" for i in page["items"])
+    page = client.get("/ui/api/loops", params={"status": "frozen"}).json()
+    assert [i["id"] for i in page["items"]] == ["L-007"] and page["items"][0]["mode"] == "frozen"
+    page = client.get("/ui/api/loops", params={"mode": "auto", "sort": "id", "desc": True}).json()
+    assert page["matched"] == 119 and page["items"][0]["id"] == "L-119"
+    assert client.get("/ui/api/loops", params={"limit": 501}).status_code == 422
+    assert client.get("/ui/api/loops", params={"sort": "nonsense"}).status_code == 200
+
+
+def test_tuner_figures(client):
+    d = client.get("/ui/api/tuner").json()
+    assert d["alive"] and d["store"]["ok"] and d["queue_depth"] == 0
+    assert set(d["rejected"]) >= {"malformed_json", "unknown_loop", "out_of_order"}
+    assert d["loops"]["total"] == 0 and "received" in d["rates"]
+    assert d["trends_mb"] is not None

@@ -1,0 +1,88 @@
+"""The daemon's ring of recent samples and gains (service/daemon/recent.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.daemon.recent import Recent
+from service.engine.updates import StepResult
+from service.wire.decode import Columns, Decoded
+from service.wire.protocol import UpdateReason
+
+
+def columns(ids, t, sp=None, e=None, op=None):
+    n = len(ids)
+    nan = np.full(n, np.nan)
+    return Columns(
+        list(ids), np.asarray(t, float), np.asarray(e if e is not None else nan, float),
+        np.asarray(sp if sp is not None else nan, float), np.full(n, 0.5), np.full(n, 0.01),
+        np.ones(n, bool), np.zeros(n, bool), np.arange(n),
+        None if op is None else np.asarray(op, float),
+    )  # fmt: skip
+
+
+def step(ids, t, kp, ki, reason=UpdateReason.agent):
+    n = len(ids)
+    new = np.column_stack([kp, ki]).astype(float)
+    return StepResult(
+        list(ids), np.asarray(t, float), np.arange(n), np.zeros(n, np.int64), new * 0.9,
+        new, new, [None] * n, reason,
+    )  # fmt: skip
+
+
+def test_interleaved_loops_keep_their_own_order_and_pv_is_sp_minus_e():
+    r = Recent(known={"A": 0, "B": 1}, points=8)
+    r.add_samples(columns(["A", "B", "A", "X", "B", "A"], [1, 1, 2, 2, 2, 3],
+                          sp=[10] * 6, e=[1, 2, 3, 4, 5, 6]))  # fmt: skip
+    a = r.since("A")
+    assert a["t"] == [1.0, 2.0, 3.0] and a["n"] == 3
+    assert a["pv"] == [9.0, 7.0, 4.0]
+    assert r.since("B")["t"] == [1.0, 2.0]
+    assert "X" not in r.slot_of  # not registered: ignored
+    assert r.since("X")["n"] == 0
+
+
+def test_ring_wraps_and_keeps_the_newest_points_also_within_one_batch():
+    r = Recent(points=4)
+    r.add_samples(Decoded(columns(["A"] * 10, range(10)), [], 10))  # Decoded is accepted
+    assert r.since("A")["t"] == [6.0, 7.0, 8.0, 9.0] and r.since("A")["n"] == 10
+    r.add_samples(columns(["A", "A"], [10, 11]))
+    assert r.since("A")["t"] == [8.0, 9.0, 10.0, 11.0]
+    assert r.since("A", samples_seen=10)["t"] == [10.0, 11.0]  # only what is new
+    assert r.since("A", samples_seen=12)["t"] == []
+
+
+def test_unknown_fields_are_none_and_op_is_kept():
+    r = Recent(points=4)
+    r.add_samples(columns(["A", "A"], [1, 2], op=[30.0, 31.0]))
+    got = r.since("A")
+    assert got["op"] == [30.0, 31.0] and got["sp"] == [None, None] and got["pv"] == [None, None]
+
+
+def test_gains_ring_and_summary():
+    r = Recent(points=4, gains=3)
+    r.add_samples(columns(["A", "B"], [1, 1], sp=[10, 10], e=[3, 4]))
+    for k in range(5):
+        r.add_gains(step(["A"], [k], [1.0 + k], [0.1]), wall=100.0 + k)
+    r.add_gains(step(["B"], [0], [2.0], [0.2], UpdateReason.reset), wall=50.0)
+    gains = r.since("A")["gains"]
+    assert [g["kp"] for g in gains] == [3.0, 4.0, 5.0] and gains[-1]["reason"] == "agent"
+    assert r.since("A", gains_seen=4)["gains"][0]["kp"] == 5.0
+    s = r.summary(["A", "B", "C"])
+    assert s["last_wall"][0] == 104.0 and s["last_wall"][1] == 50.0 and np.isnan(s["last_wall"][2])
+    assert abs(s["dkp"][0] - (5.0 / 4.0 - 1)) < 1e-12 and np.isnan(s["dkp"][1])
+    assert s["rms_e"][0] == 3.0 and s["rms_e"][1] == 4.0 and np.isnan(s["rms_e"][2])
+
+
+def test_size_is_bounded_per_loop_and_forget_frees_the_slot():
+    r = Recent(points=256, gains=32, capacity=1)
+    ids = [f"L{i}" for i in range(100)]
+    for _ in range(3):
+        r.add_samples(columns(ids * 10, np.repeat(np.arange(10.0), 100)))
+    per_loop = r.nbytes / r._cap
+    assert per_loop < 8.5 * 1024  # documented: about 8 KB per loop
+    r.forget("L5")
+    assert r.since("L5")["n"] == 0
+    assert r.retain(set(ids[:50])) == 50  # L50..L99
+    r.add_samples(columns(["L1"], [99.0]))
+    assert r.since("L1")["t"][-1] == 99.0
