@@ -98,7 +98,7 @@ def test_logout_needs_the_csrf_token_and_login_refuses_foreign_origins_and_redir
     stale, csrf = csrf, csrf_of(client.get("/ui").text)  # a login starts a new session
     assert stale != csrf
     assert client.post("/ui/logout", data={"csrf": csrf}, follow_redirects=False).status_code == 303
-    assert 'id="login-link"' in client.get("/ui").text
+    assert "id='login-link'" in client.get("/ui").text
 
 
 def test_overview_filters_sorts_searches_and_pages_on_the_server(client):
