@@ -309,7 +309,7 @@ class SimulatedDcs:
         assert self.server is not None, "not started"
         scans = []
         for k, block in enumerate(self.blocks.values()):
-            if k and k % 50 == 0:
+            if k and k % 20 == 0:
                 await asyncio.sleep(0)  # let the server answer its clients mid-scan
             scans.append(await block.scan(self.server, self.epoch))
         return scans

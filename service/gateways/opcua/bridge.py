@@ -458,8 +458,8 @@ class OpcUaGateway:
                 self.emit("written", lr.cfg.id, seq)
 
     def _flush(self, *, force: bool = False) -> None:
-        if not self.outbox or not self.bus.tuner_up:
-            return
+        if not self.outbox or not self.bus.tuner_up or not self._registered:
+            return  # held: no tuner to take them, or it does not know the loops yet
         now = time.monotonic()
         if not force and now - self._last_flush < self.site.bus.batch_interval_s:
             return
