@@ -38,10 +38,12 @@ def tank(loop_id: str = LOOP, seed: int = 0):
     return LoopSpec("two_tank", loop_id).build(Simulation(), seed=seed, t0=0.0)
 
 
-def site_for(dcs: SimulatedDcs, connect: list[str], **loop: object) -> SiteMap:
+def site_for(
+    dcs: SimulatedDcs, connect: list[str], limits_factor: float = 10.0, **loop: object
+) -> SiteMap:
     """The DCS's map, security None (allowed), fast sampling, the bus on ``connect``."""
     data = dcs.site_map(
-        limits_factor=10.0,
+        limits_factor=limits_factor,
         security="None",
         allow_insecure=True,
         reconnect_min_s=0.1,
@@ -238,15 +240,11 @@ def test_samples_and_the_write_policy():
 def tuner_with_tank(tmp_path, dcs_gains) -> Tuner:
     tuner = Tuner(tuner_settings(tmp_path)).start()
     kp, ki = dcs_gains
+    # a 10x faster model hint than the tank's: an RL step every 16.5 samples, not 165
+    scaling = {**TANK_SCALING, "tau_hat": TANK_SCALING["tau_hat"] / 10}
+    guard = {"excitation_periods": 0.0}
     tuner.register(
-        LoopConfig(
-            id=LOOP,
-            kp=kp,
-            ki=ki,
-            sample_period_s=1.0,
-            scaling=TANK_SCALING,
-            guard={"excitation_periods": 0.0},
-        )  # fmt: skip
+        LoopConfig(id=LOOP, kp=kp, ki=ki, sample_period_s=1.0, scaling=scaling, guard=guard)
     )
     return tuner
 
@@ -265,7 +263,8 @@ def test_real_tuner_refused_write_adopted_then_server_restart_loses_no_update(tm
         tuner = tuner_with_tank(tmp_path, (kp0, ki0))
         session = open_session(connect=tuner.settings.zenoh_listen)
         try:
-            gw = OpcUaGateway(site_for(dcs, []), session, record_events=True)
+            site = site_for(dcs, [], limits_factor=1000.0)  # the untrained agent roams
+            gw = OpcUaGateway(site, session, record_events=True)
             async with running(gw):
                 view = lambda: tuner.view(LOOP)  # noqa: E731
                 written = lambda: [e.seq for e in gw.history if e.kind == "written"]  # noqa: E731
