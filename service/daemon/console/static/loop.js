@@ -63,7 +63,9 @@
     pvChart.setSeries(3, {show: hasOp});
     pvChart.setData([S.t, S.sp, S.pv, S.op]);
     // gains chart: the samples' times plus the decisions' times, decisions held until the next
-    const xs = Array.from(new Set([...S.t, ...G.map((g) => g.t)])).sort((a, b) => a - b);
+    // (decisions before the first sample only set the value the steps start from)
+    const t0 = S.t.length ? S.t[0] : -Infinity;
+    const xs = Array.from(new Set([...S.t, ...G.map((g) => g.t).filter((t) => t >= t0)])).sort((a, b) => a - b);
     const at = new Map(S.t.map((t, i) => [t, i]));
     const gs = [...G].sort((a, b) => a.t - b.t);
     const kp = [], ki = [], pkp = [], pki = [];
@@ -143,8 +145,11 @@
     try { view = await pitune.getJSON(`/loops/${enc}`); showView(); showLive(); } catch (e) { /* gone: the stream says so */ }
   }
 
+  // Who made a change: the audit detail's "actor" (JSON detail) or its "actor=..." suffix.
   function actor(detail) {
-    try { const d = JSON.parse(detail); return d && typeof d === "object" ? (d.actor || d.by || "") : ""; } catch (e) { return ""; }
+    try { const d = JSON.parse(detail); if (d && typeof d === "object") return d.actor || ""; } catch (e) { /* text */ }
+    const m = /(?:^|; )actor=(\S+)$/.exec(detail || "");
+    return m ? m[1] : "";
   }
 
   async function loadHistory() {
