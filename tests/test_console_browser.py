@@ -70,10 +70,10 @@ def test_operator_session_end_to_end(daemon, new_page):
         page.fill('#guard-form input[name="max_rel_change"]', "0.25")
         page.click("#save-guard")
         wait_until(
-            lambda: httpx.get(f"{daemon.url}/loops/LIC-7").json()["config"]["guard"][
-                "max_rel_change"
-            ]
-            == 0.25,
+            lambda: (
+                httpx.get(f"{daemon.url}/loops/LIC-7").json()["config"]["guard"]["max_rel_change"]
+                == 0.25
+            ),
             what="the new limit",
         )
 
@@ -151,8 +151,12 @@ def test_tuner_page_shows_health_traffic_and_rejections(daemon, new_page):
         page.goto(f"{daemon.url}/ui/tuner")
         page.locator("#store-ok").wait_for()
         assert page.locator("#health").inner_text() == "healthy"
-        page.wait_for_function("document.getElementById('t-rejected').innerText.includes('unknown_loop')")
-        page.wait_for_function("/\\d+(\\.\\d+)? \\/s/.test(document.getElementById('t-traffic').innerText)")
+        page.wait_for_function(
+            "document.getElementById('t-rejected').innerText.includes('unknown_loop')"
+        )
+        page.wait_for_function(
+            "/\\d+(\\.\\d+)? \\/s/.test(document.getElementById('t-traffic').innerText)"
+        )
     finally:
         plant.close()
 

@@ -262,10 +262,7 @@ class Recent:
         that decision against the one before, NaN if unknown), ``rms_e`` (rms error over
         the ring, NaN without samples)."""
         m = len(loop_ids)
-        out = {
-            k: np.full(m, np.nan)
-            for k in ("last_wall", "dkp", "dki", "rms_e")
-        }
+        out = {k: np.full(m, np.nan) for k in ("last_wall", "dkp", "dki", "rms_e")}
         out["reason"] = np.full(m, -1, np.int64)
         with self.lock:
             slots = np.fromiter((self.slot_of.get(i, -1) for i in loop_ids), np.int64, m)

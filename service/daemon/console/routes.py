@@ -34,8 +34,13 @@ from typing import Any
 
 import numpy as np
 from fastapi import APIRouter, HTTPException, Query, Request
-from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse, Response
-from fastapi.responses import StreamingResponse
+from fastapi.responses import (
+    HTMLResponse,
+    JSONResponse,
+    RedirectResponse,
+    Response,
+    StreamingResponse,
+)
 
 from service.engine.config import LoopPatch
 from service.engine.table import STATUSES
@@ -201,7 +206,8 @@ def _page(request: Request, title: str, body: str, script: str, **values: str) -
         scripts="".join(
             f"<script src='/ui/static/{html.escape(name)}'></script>"
             for name in (["vendor/uplot/uPlot.iife.min.js"] if script == "loop.js" else [])
-            + ["console.js"] + ([script] if script else [])
+            + ["console.js"]
+            + ([script] if script else [])
         ),
         styles="<link rel='stylesheet' href='/ui/static/vendor/uplot/uPlot.min.css'>"
         if script == "loop.js"
@@ -215,8 +221,10 @@ _NO_STORE = {
     "X-Content-Type-Options": "nosniff",
     "X-Frame-Options": "DENY",
     "Referrer-Policy": "same-origin",
+    # uPlot sizes its elements with inline styles: 'unsafe-inline' for styles only
     "Content-Security-Policy": "default-src 'self'; img-src 'self' data:; "
-    "style-src 'self' 'unsafe-inline'; script-src 'self'; connect-src 'self'; frame-ancestors 'none'",
+    "style-src 'self' 'unsafe-inline'; script-src 'self'; connect-src 'self'; "
+    "frame-ancestors 'none'",
 }
 
 

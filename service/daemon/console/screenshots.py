@@ -143,9 +143,9 @@ class SimPlant:
 
     def __init__(self, settings, loops: list[SimLoop], dt: float = 1.0, speed: float = 20.0,
                  seed: int = 0) -> None:  # fmt: skip
-        from service.wire.session import session_config
-
         import zenoh
+
+        from service.wire.session import session_config
 
         self.keys = settings.keys
         self.loops = {loop.id: loop for loop in loops}
