@@ -41,7 +41,7 @@ MIN_SAMPLES = 12
 """Fewest samples in an event worth fitting."""
 MIN_R2 = 0.75
 """Smallest share of the measurement's variance over the window the model must explain."""
-MIN_SNR = 8.0
+MIN_SNR = 5.0
 """Smallest ratio of the modelled response (peak to peak) to the residual noise (rms)."""
 MAX_REL_SE = 0.1
 """Largest relative standard error of K and of tau of the joint fit of a confident model."""
@@ -142,20 +142,34 @@ def reconstruct_op(t, e, kp, ki) -> np.ndarray:
     return kp * e + integral
 
 
-def _delayed(t: np.ndarray, u: np.ndarray, theta: np.ndarray, dt: float) -> np.ndarray:
-    """u(t_k + dt/2 - theta) for each theta (rows), held at u[0] before the window."""
-    at = t[None, :] - np.asarray(theta, np.float64).reshape(-1, 1)
-    return np.interp(at, t, u, left=u[0])
+def _delayed(v: np.ndarray, tau: float, theta: np.ndarray, dt: float) -> np.ndarray:
+    """The input each sample interval contributes, for each dead time (rows), exactly as a
+    zero-order hold sees it: an interval [t_k, t_k+1) receives u[k-d-1] for its first
+    f dt and u[k-d] for the rest (theta = (d + f) dt), weighted as the first-order lag
+    integrates them, so that ``x[k+1] = a x[k] + (1 - a) w[k]``. Continuous in theta (as
+    the optimiser needs) without blending the input's noise beyond what the plant does.
+    Held at u[0] before the window."""
+    theta = np.asarray(theta, np.float64).reshape(-1)
+    n = v.size
+    d = np.floor(theta / dt).astype(np.int64)
+    f = theta / dt - d
+    a = math.exp(-dt / tau)
+    a1 = np.exp(-(1.0 - f) * dt / tau)
+    w_old = (a1 - a) / (1.0 - a)
+    k = np.arange(n)
+    new = v[np.clip(k[None, :] - d[:, None], 0, n - 1)]
+    old = v[np.clip(k[None, :] - d[:, None] - 1, 0, n - 1)]
+    return new + w_old[:, None] * (old - new)
 
 
 def _response(t, v, tau, theta, dt, integrating=False) -> np.ndarray:
     """x for one (tau, theta) (or the integral of the delayed input)."""
-    vd = _delayed(t, v, np.array([theta]), dt)[0]
     if integrating:
+        vd = _delayed(v, 1e12 * dt, np.array([theta]), dt)[0]
         return np.concatenate([[0.0], np.cumsum(vd[:-1]) * dt])
+    vd = _delayed(v, tau, np.array([theta]), dt)[0]
     a = math.exp(-dt / tau)
-    x = lfilter([0.0, 1.0 - a], [1.0, -a], vd)
-    return x
+    return lfilter([0.0, 1.0 - a], [1.0, -a], vd)
 
 
 @dataclass
@@ -180,9 +194,9 @@ class Window:
 
 def _lstsq(basis: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Least squares of y on each (n, j) basis of a batch (g, n, j), via normal equations."""
-    ata = np.einsum("gni,gnj->gij", basis, basis) + 1e-12 * np.eye(basis.shape[2])
-    aty = np.einsum("gni,n->gi", basis, y)
-    return np.linalg.solve(ata, aty[..., None])[..., 0]
+    bt = basis.transpose(0, 2, 1)
+    ata = bt @ basis + 1e-12 * np.eye(basis.shape[2])
+    return np.linalg.solve(ata, bt @ y[:, None])[..., 0]
 
 
 def _grid(windows: list[Window], span: float, dt: float) -> tuple[float, float]:
@@ -192,15 +206,15 @@ def _grid(windows: list[Window], span: float, dt: float) -> tuple[float, float]:
     thetas = np.linspace(0.0, 0.6 * span, _THETA_GRID)
     sse = np.zeros((taus.size, thetas.size))
     for w in windows:
-        vd = _delayed(w.t, w.v, thetas, w.dt)  # (n_theta, n)
         steps = np.arange(w.t.size)
         for i, tau in enumerate(taus):
+            vd = _delayed(w.v, tau, thetas, w.dt)  # (n_theta, n)
             a = math.exp(-w.dt / tau)
             x = lfilter([0.0, 1.0 - a], [1.0, -a], vd, axis=1)
             # pv = b + K x + c a^k (c: the plant not at rest when the window opens)
             basis = np.stack([np.ones_like(x), x, np.broadcast_to(a**steps, x.shape)], axis=2)
             coef = _lstsq(basis, w.pv)
-            sse[i] += ((np.einsum("gnj,gj->gn", basis, coef) - w.pv[None, :]) ** 2).sum(axis=1)
+            sse[i] += (((basis @ coef[:, :, None])[..., 0] - w.pv[None, :]) ** 2).sum(axis=1)
     i, j = np.unravel_index(int(np.argmin(sse)), sse.shape)
     return float(taus[i]), float(thetas[j])
 
@@ -229,12 +243,20 @@ def predict(params: np.ndarray, w: Window, b: float, c: float) -> np.ndarray:
     return b + k * _response(w.t, w.v, tau, theta, w.dt) + c * np.exp(-w.dt * steps / tau)
 
 
-def fit_windows(windows: list[Window]) -> Fit:
+def fit_windows(windows: list[Window], start: tuple[float, float] | None = None) -> Fit:
     """Least-squares FOPTD fit shared by the windows (each with its own offset b and
-    initial transient c): grid start, then :func:`scipy.optimize.least_squares`."""
+    initial transient c): :func:`scipy.optimize.least_squares` from a grid search's best
+    (tau, theta), or from ``start`` (a model already known)."""
     span = max(w.span for w in windows)
     dt = float(np.median([w.dt for w in windows]))
-    tau0, theta0 = _grid(windows, span, dt)
+    if start is not None and 0.05 * dt < start[0] < 20.0 * span and 0 <= start[1] < 0.9 * span:
+        fit = _refine(windows, span, dt, *start)
+        if fit.k > 0.0 and fit.r2 >= MIN_R2:
+            return fit  # else: the grid search after all
+    return _refine(windows, span, dt, *_grid(windows, span, dt))
+
+
+def _refine(windows: list[Window], span: float, dt: float, tau0: float, theta0: float) -> Fit:
     m = len(windows)
     steps = [np.arange(w.t.size) for w in windows]
 
@@ -312,7 +334,9 @@ def screen(t, pv, op) -> str:
     return ""
 
 
-def assess(t, sp, pv, op, starts: list[int]) -> Assessment:
+def assess(
+    t, sp, pv, op, starts: list[int], start: tuple[float, float] | None = None
+) -> Assessment:
     """Identify from one contiguous segment of closed-loop data (no gap, manual or
     saturated sample inside) whose events (setpoint moves) start at the indices
     ``starts``; the last event runs to the end of the data.
@@ -346,7 +370,7 @@ def assess(t, sp, pv, op, starts: list[int]) -> Assessment:
     if out.why:
         return out
     whole = Window.of(t, pv, op)
-    joint = fit_windows([whole])
+    joint = fit_windows([whole], start)
     pred = joint.model[0]
     excited = 0
     for ev, a, b in zip(events, bounds[:-1], bounds[1:], strict=True):
@@ -363,12 +387,12 @@ def assess(t, sp, pv, op, starts: list[int]) -> Assessment:
     cut = bounds[-2]
     if cut >= MIN_SAMPLES and excited >= MIN_EVENTS:
         head = Window.of(t[:cut], pv[:cut], op[:cut])
-        early = fit_windows([head])
+        early = fit_windows([head], (joint.tau, joint.theta))
         b, c = early.params[3], early.params[4]
         guess = predict(early.params, whole, b, c)
         rms = float(np.sqrt(np.mean((guess[cut:] - pv[cut:]) ** 2)))
         out.model.prediction = rms / max(joint.noise, 1e-300)
-    out.why = _verdict(out.model, excited)
+    out.why = _verdict(out.model, excited, len(events))
     m = out.model
     worst = max(m.k_rse, m.tau_rse)
     precision = min(1.0, max(0.0, 1.5 - 0.5 * worst / MAX_REL_SE))
@@ -380,15 +404,15 @@ def assess(t, sp, pv, op, starts: list[int]) -> Assessment:
     return out
 
 
-def _verdict(m: Model, excited: int) -> str:
+def _verdict(m: Model, excited: int, n_events: int) -> str:
     if m.integrating:
         return "integrating: K/s e^(-theta s) fits better than an FOPTD model"
     if not m.k > 0.0:
         return f"process gain {m.k:.3g} has the wrong sign for this controller"
     if excited < MIN_EVENTS:
         return (
-            f"move too small for the noise ({excited} of {MIN_EVENTS} events show a "
-            f"response {MIN_SNR:g}x the noise {m.noise:.3g})"
+            f"move too small for the noise ({excited} of {n_events} events show a "
+            f"response {MIN_SNR:g}x the noise {m.noise:.3g}; {MIN_EVENTS} needed)"
         )
     if m.r2 < MIN_R2:
         return f"poor fit (R2 {m.r2:.2f} < {MIN_R2:g})"

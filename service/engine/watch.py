@@ -198,11 +198,11 @@ def _append(tb, s: int, row: tuple, force: bool = False) -> None:
 
 def _compress(tb, s: int) -> None:
     """A full buffer drops its oldest event (keeping one sample before the next) if it
-    has several, else halves its resolution (event starts kept)."""
+    holds :data:`MAX_EVENTS`, else halves its resolution (event starts kept)."""
     st: IdState = tb.ident[s]
     data = tb.recorder.data[tb.rec[s]]
     n = int(tb.rec_n[s])
-    if len(st.starts) >= 3:
+    if len(st.starts) >= MAX_EVENTS:
         cut = st.starts[1] - 1
         data[:, : n - cut] = data[:, cut:n]
         tb.rec_n[s] = n - cut
@@ -226,7 +226,9 @@ def _close(tb, s: int, t: float, wall: float, *, final: bool = False, why: str =
     data = tb.recorder.data[tb.rec[s], :, :n]
     starts = [a for a in st.starts if a < n]
     if len(starts) >= identify.MIN_EVENTS and n >= identify.MIN_SAMPLES:
-        result = identify.assess(data[0], data[1], data[2], data[3], starts)
+        known = st.in_force  # a warm start (the grid search otherwise)
+        start = None if known is None else (known.tau, known.theta)
+        result = identify.assess(data[0], data[1], data[2], data[3], starts, start)
         st.events = result.events[-MAX_EVENTS:]
         st.model, st.why = result.model, result.why
         if result.model is not None and result.model.confident:
