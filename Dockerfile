@@ -1,4 +1,3 @@
-# syntax=docker/dockerfile:1
 # pitune: the tuner daemon, the plant simulator and the demo, CPU only.
 #   docker build -t pitune:local .
 #   docker run --rm -p 127.0.0.1:8750:8750 -e PITUNE_API_TOKEN="$(openssl rand -hex 32)" \
