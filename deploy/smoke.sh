@@ -77,6 +77,12 @@ if [ -z "$ENGINE" ]; then
   else die "no container engine: neither a docker daemon nor podman"; fi
 fi
 command -v "$ENGINE" >/dev/null || die "$ENGINE is not installed"
+if [ "$ENGINE" = docker ] && [ -n "${DOCKER_HOST:-}" ] &&
+   docker version --format '{{range .Server.Components}}{{.Name}} {{end}}' 2>/dev/null | grep -q Podman; then
+  # the docker CLI on Podman's API socket: Podman's rules apply (health checks, build format)
+  command -v podman >/dev/null || die "DOCKER_HOST is a Podman socket: run this on the Podman host"
+  ENGINE=podman
+fi
 WORK=$(mktemp -d "${TMPDIR:-/tmp}/pitune-smoke.XXXXXX")
 PODMAN_PID=
 COMPOSE=()
