@@ -4,6 +4,7 @@ server-side filter/sort/search, the tuner's figures (a real tuner, in-process)."
 from __future__ import annotations
 
 import re
+import time
 
 import pytest
 from fastapi.testclient import TestClient
@@ -129,3 +130,53 @@ def test_tuner_figures(client):
     assert set(d["rejected"]) >= {"malformed_json", "unknown_loop", "out_of_order"}
     assert d["loops"]["total"] == 0 and "received" in d["rates"]
     assert d["trends_mb"] is not None
+
+
+def test_stream_sends_only_new_samples_says_bye_and_resumes_from_last_event_id(tmp_path):
+    """The loop page's server-sent events over a real socket, with a simulated plant."""
+    import json
+
+    import httpx
+
+    from service.daemon.console.screenshots import SimLoop, SimPlant, serve
+
+    with serve(tuner_settings(tmp_path)) as daemon:
+        loop = SimLoop(id="S1")
+        assert httpx.post(f"{daemon.url}/loops", json=loop.body(1.0)).status_code == 201
+        plant = SimPlant(daemon.settings, [loop], speed=20.0).start()
+        try:
+            events, last_id = [], None
+            started = time.monotonic()
+            with httpx.stream("GET", f"{daemon.url}/ui/api/loops/S1/stream", timeout=30) as r:
+                assert r.headers["content-type"].startswith("text/event-stream")
+                kind, data = "message", None
+                for line in r.iter_lines():
+                    if line.startswith("id: "):
+                        last_id = line[4:]
+                    elif line.startswith("event: "):
+                        kind = line[7:]
+                    elif line.startswith("data: "):
+                        data = json.loads(line[6:])
+                    elif line == "" and data is not None:
+                        events.append((kind, data))
+                        kind, data = "message", None
+            assert time.monotonic() - started < 10.0  # a stream ends by itself
+            assert events[-1][0] == "bye"
+            samples = [e for k, e in events if k == "message" and e["recent"]["t"]]
+            assert len(samples) >= 2
+            ts = [t for e in samples for t in e["recent"]["t"]]
+            assert ts == sorted(ts) and len(ts) == len(set(ts))  # each sample once
+            n = samples[-1]["recent"]["n"]
+            assert last_id.split(".")[0] == str(n)
+            assert samples[-1]["live"]["samples"] >= n - 5
+            headers = {"Last-Event-ID": last_id}
+            with httpx.stream("GET", f"{daemon.url}/ui/api/loops/S1/stream", headers=headers,
+                              timeout=30) as r:  # fmt: skip
+                for line in r.iter_lines():
+                    if line.startswith("data: ") and json.loads(line[6:]).get("recent"):
+                        first = json.loads(line[6:])["recent"]
+                        break
+            assert first["t"][0] > ts[-1]  # resumed after what was sent
+            assert httpx.get(f"{daemon.url}/ui/api/loops/nope/stream").status_code == 404
+        finally:
+            plant.close()

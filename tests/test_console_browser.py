@@ -57,6 +57,9 @@ def test_operator_session_end_to_end(daemon, new_page):
         )  # new samples arrive over the stream
         assert float(page.locator("#trend-count").get_attribute("data-last-t")) > t_before
         assert page.evaluate("window.pituneTrend.pv.data[0].length") >= before + 10
+        page.wait_for_function(  # across the renewal of the stream (every 4 s)
+            f"document.getElementById('trend-count').dataset.points >= {before + 60}"
+        )
         assert page.locator("#live").inner_text() == "● live"
 
         page.click("#mode-advisory")

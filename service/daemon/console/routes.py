@@ -56,8 +56,10 @@ MAX_SESSIONS = 1000
 PAGE_MAX = 500
 STREAM_TICK_S = 0.5
 """How often a loop page's stream looks for new samples."""
-STREAM_MAX_S = 300.0
-"""A stream ends after this long; the browser reconnects where it left off."""
+STREAM_MAX_S = 4.0
+"""A stream ends after this long (event ``bye``) and the page opens the next one where it
+left off: the server's graceful shutdown, which waits for open responses, is never held
+up longer than this by an open console."""
 _MODES = list(Mode)
 _STATUS_NAMES = [s.value for s in STATUSES]
 _SORTS = {
@@ -513,8 +515,11 @@ async def loop_stream(loop_id: str, request: Request, n: int = 0, gn: int = 0):
         end = time.monotonic() + STREAM_MAX_S
         quiet_since = time.monotonic()
         previous = None
-        yield "retry: 1000\n\n"
-        while time.monotonic() < end and tuner.alive:
+        yield "retry: 2000\n\n"
+        while True:
+            if time.monotonic() >= end or not tuner.alive:
+                yield f"id: {n}.{gn}\nevent: bye\ndata: {{}}\n\n"
+                return
             if await request.is_disconnected():
                 return
             data = await asyncio.to_thread(_tick, tuner, loop_id, n, gn)

@@ -212,6 +212,13 @@
     } catch (e) { pitune.toast(`loading failed: ${e.message}`, true); }
     await loadView();
     loadHistory();
+    connect();
+    setInterval(loadView, 10000);
+  }
+
+  // One stream lasts a few seconds (the daemon's shutdown never waits on it); at its end
+  // ("bye") the next one starts where it left off. Errors: EventSource retries by itself.
+  function connect() {
     const es = new EventSource(`/ui/api/loops/${enc}/stream?n=${n}&gn=${gn}`);
     es.onmessage = (e) => {
       const d = JSON.parse(e.data);
@@ -220,9 +227,9 @@
       $("live").textContent = "● live";
       $("live").className = "live";
     };
+    es.addEventListener("bye", () => { es.close(); connect(); });
     es.addEventListener("gone", () => { es.close(); $("live").textContent = "loop deleted"; });
     es.onerror = () => { $("live").textContent = "reconnecting…"; $("live").className = "muted"; };
-    setInterval(loadView, 10000);
   }
   start();
 })();
