@@ -134,6 +134,9 @@ def _record(tb: LoopTable, s: int, sample: Sample, e: float, last_t, fresh, wall
         watch._append(tb, s, row, force=True)
     elif tb.rec[s] < 0 and moved and not broken:
         watch._open(tb, s, row)
+    elif tb.rec[s] < 0 and moved:
+        why = "manual" if not sample.auto else "output saturated" if sample.saturated else "data gap"
+        tb.ident[s].why = f"setpoint move not usable: {why}"
     elif tb.rec[s] >= 0:  # recording, every stride-th sample
         take = tb.rec_k[s] % tb.rec_stride[s] == 0
         tb.rec_k[s] += 1

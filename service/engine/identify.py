@@ -52,7 +52,8 @@ MIN_EVENTS = 2
 """Excited events needed for a confident model."""
 INTEGRATING_RATIO = 0.8
 """The integrating model wins when its residual sum of squares is below this share of
-the FOPTD fit's (and the FOPTD's tau runs beyond the window)."""
+the FOPTD fit's, or within 10% of it while the FOPTD's tau runs beyond the window (a lag
+that slow is an integrator as far as the data tell)."""
 
 _TAU_GRID = 28
 _THETA_GRID = 12
@@ -302,14 +303,19 @@ def _refine(windows: list[Window], span: float, dt: float, tau0: float, theta0: 
         tau_rse = float(se[1])  # log tau: relative
     except np.linalg.LinAlgError:
         k_rse = tau_rse = math.inf
-    # the integrating alternative, pv = b + K int(u(t - theta)) dt, at the same theta
+    # the integrating alternative, pv = b + K int(u(t - theta)) dt + c t (c: the initial
+    # slope), linear in (b, K, c) for each dead time of a grid (and the FOPTD's)
     sse_i = 0.0
+    thetas = np.append(np.linspace(0.0, 0.6 * span, _THETA_GRID), theta)
     for w in windows:
-        xi = _response(w.t, w.v, 1.0, theta, w.dt, integrating=True)
-        basis = np.stack([np.ones_like(xi), xi], axis=1)
-        coef = _lstsq(basis[None], w.pv)[0]
-        sse_i += float(((basis @ coef - w.pv) ** 2).sum())
-    integrating = sse_i < INTEGRATING_RATIO * sse or (tau > 2.0 * span and sse_i <= sse)
+        best = math.inf
+        for th in thetas.tolist():
+            xi = _response(w.t, w.v, 1.0, th, w.dt, integrating=True)
+            basis = np.stack([np.ones_like(xi), xi, w.t], axis=1)
+            coef = _lstsq(basis[None], w.pv)[0]
+            best = min(best, float(((basis @ coef - w.pv) ** 2).sum()))
+        sse_i += best
+    integrating = sse_i < INTEGRATING_RATIO * sse or (tau > span and sse_i <= 1.1 * sse)
     return Fit(
         k=float(k), tau=tau, theta=float(theta),
         r2=1.0 - sse / sst if sst > 0 else 0.0,

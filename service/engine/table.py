@@ -69,7 +69,7 @@ recording stride."""
 _BOOL = [
     "pending", "manual", "saturated",
     # identification: it runs, a scaling is in force, flagged, paused, last sample usable
-    "watch", "scaled", "mismatch", "out_env", "prev_ok",
+    "watch", "scaled", "mismatch", "out_env", "prev_ok", "env_guard",
 ]  # fmt: skip
 
 
@@ -255,6 +255,7 @@ class LoopTable:
         self.mode[s] = _CODE[config.mode]
         self.gateways[s] = config.gateway
         self.watch[s] = g.identify
+        self.env_guard[s] = g.envelope_guard
         self.scaled[s] = sc is not None
         if sc is None:  # identifying: no unit mapping yet, never due
             self.kp_unit[s] = self.ki_unit[s] = self.period[s] = self.exc_step[s] = math.nan

@@ -142,6 +142,9 @@ def record(tb, slots: np.ndarray, cols: dict, last_t: np.ndarray, fresh: np.ndar
     # rare paths, loop by loop: breaks, moves (open or close an event)
     special = np.flatnonzero((recording & broken) | (moved & ~broken))
     done = np.zeros(idx.size, bool)
+    for i in np.flatnonzero(moved & broken & ~recording).tolist():  # say why nothing opens
+        why = "manual" if not auto[i] else "output saturated" if saturated[i] else "data gap"
+        tb.ident[int(s[i])].why = f"setpoint move not usable: {why}"
     for i in special.tolist():
         done[i] = True
         si = int(s[i])
@@ -233,6 +236,8 @@ def _close(tb, s: int, t: float, wall: float, *, final: bool = False, why: str =
         st.model, st.why = result.model, result.why
         if result.model is not None and result.model.confident:
             use(tb, s, result.model, t, wall)
+        elif result.model is not None and tb.scaled[s]:
+            _envelope(tb, s, result.model, t, wall, sure=False)
     elif final:
         st.why = why
     if final:
@@ -301,13 +306,41 @@ def use(tb, s: int, m: identify.Model, t: float, wall: float) -> None:
             _audit(tb, s, t, wall, "mismatch", detail)
     else:
         tb.mismatch[s] = False
-    out = guard.envelope_guard and (m.integrating or not in_envelope(app))
+    _envelope(tb, s, m, t, wall, sure=True)
+
+
+def _envelope(tb, s: int, m: identify.Model, t: float, wall: float, *, sure: bool) -> None:
+    """The envelope guard. A confident model (``sure``) decides both ways; one that is
+    not yet pinned down only pauses, and only when even K and tau two standard errors
+    toward the box leave it (a drifting plant is never pinned down by data that mix its
+    old and new dynamics)."""
+    if not tb.env_guard[s]:
+        return
+    app = apparent(tb.ident[s].in_force_scaling, m)
+    if sure:
+        out = m.integrating or not in_envelope(app)
+    else:
+        if not (m.r2 >= identify.MIN_R2 and m.events >= identify.MIN_EVENTS and m.k > 0):
+            return
+        out = not in_envelope(_toward_box(app, 2.0 * m.k_rse, 2.0 * m.tau_rse))
+        if not out:
+            return
     if out and not tb.out_env[s]:
         tb.n_envelope[s] += 1
         _audit(tb, s, t, wall, "out_of_envelope", json.dumps(app, separators=(",", ":")))
     elif not out and tb.out_env[s]:
         _audit(tb, s, t, wall, "in_envelope", json.dumps(app, separators=(",", ":")))
     tb.out_env[s] = out
+
+
+def _toward_box(app: dict[str, float], k_margin: float, tau_margin: float) -> dict:
+    """Apparent gain and tau moved toward the box's centre by the given relative margins."""
+    mid = AGENT_GAIN
+
+    def shrink(x: float, r: float) -> float:
+        return x / (1 + r) if x > mid else x * (1 + r)
+
+    return {**app, "gain": shrink(app["gain"], k_margin), "tau": shrink(app["tau"], tau_margin)}
 
 
 def in_envelope(app: dict[str, float]) -> bool:

@@ -1,0 +1,249 @@
+"""Closed-loop identification (issue 13): the fit, hint-free registration through the
+engine, bad data that must not identify, hints checked, snapshots, integrating loops and
+the envelope guard."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from plant_sim.foptd import FOPTDBatch
+from plant_sim.pi import PIBatch
+from plant_sim.tunings import simc_paper, to_parallel
+from service.agent import untrained_agent
+from service.engine import LoopConfig, TuningEngine
+from service.engine.identify import assess, reconstruct_op
+from service.wire.protocol import LoopStatus
+
+pytestmark = pytest.mark.timeout(120)
+
+K, TAU, THETA, H = 2.0, 40.0, 10.0, 4.0
+"""The loop of most tests: 10 samples per time constant."""
+
+
+def gains(k=K, tau=TAU, theta=THETA, share=0.5):
+    kp, ki = to_parallel(*simc_paper(k, tau, theta))
+    return float(share * kp), float(share * ki)
+
+
+def drive(
+    engine: TuningEngine,
+    loop_id: str = "L",
+    *,
+    k=K,
+    tau=TAU,
+    theta=THETA,
+    h=H,
+    moves=6,
+    every=5.0,
+    size=20.0,
+    noise=1.0,
+    seed=0,
+    auto=True,
+    saturated=False,
+    frozen_pv=False,
+    send_op=False,
+    tau_end=None,
+    integrating=False,
+    t0=0.0,
+) -> list:
+    """Run one simulated loop through the engine: ``moves`` setpoint moves of +-``size``
+    every ``every`` time constants; returns the gain updates published."""  # fmt: skip
+    kp, ki = engine.view(loop_id, wall=0.0).kp, engine.view(loop_id, wall=0.0).ki
+    if integrating:
+        plant = FOPTDBatch(1.0, 1e9, theta / h, dt=1.0, noise_std=noise, seed=seed)
+    else:
+        plant = FOPTDBatch(k, tau / h, theta / h, dt=1.0, noise_std=noise, seed=seed,
+                           max_theta=theta / h)  # fmt: skip
+    plant.reset(50.0)
+    pi = PIBatch(kp, ki * h, dt=1.0)
+    pi.initialise(0.0 if integrating else 50.0 / k)
+    n = int(round((moves + 1) * every * tau / h))
+    sp, updates = 50.0, []
+    for j in range(n):
+        t = t0 + j * h
+        if j and j % int(round(every * tau / h)) == 0:
+            sp = 50.0 + size * (1 if (j // int(round(every * tau / h))) % 2 else -1)
+        if tau_end is not None:
+            plant.set_params(tau=(tau + (tau_end - tau) * j / n) / h)
+        y = float(plant.measure()[0])
+        if frozen_pv:
+            y = 50.0
+        sample = {"loop_id": loop_id, "t": t, "sp": sp, "pv": y, "kp": float(pi.kp[0]),
+                  "ki": float(pi.ki[0] / h), "auto": auto, "saturated": saturated}  # fmt: skip
+        u_now = float(pi.output()[0])
+        if send_op:
+            sample["op"] = u_now
+        new = engine.ingest([sample], wall=float(j))
+        for up in new:
+            pi.set_gains(up.kp, up.ki * h)
+        updates += new
+        u = pi.step(sp - y) if auto else np.array([50.0 / k])
+        if integrating:
+            plant.step(u * (k * h) * 1e9)  # a lag of tau 1e9 samples integrates k u dt
+        else:
+            plant.step(u)
+    return updates
+
+
+def hint_free(loop_id="L", **guard) -> LoopConfig:
+    kp, ki = gains()
+    return LoopConfig(id=loop_id, kp=kp, ki=ki, sample_period_s=H, guard=guard)
+
+
+def hinted(loop_id="L", k_hat=K, tau_hat=TAU, **guard) -> LoopConfig:
+    kp, ki = gains()
+    scaling = {"k_hat": k_hat, "tau_hat": tau_hat, "pv_scale": 20.0}
+    return LoopConfig(id=loop_id, kp=kp, ki=ki, sample_period_s=H, scaling=scaling, guard=guard)
+
+
+# -- the numerics --------------------------------------------------------------------
+def test_fit_recovers_an_foptd_plant_from_closed_loop_data_with_a_reconstructed_output():
+    kp, ki = gains()
+    plant = FOPTDBatch(K, TAU, THETA, dt=H, noise_std=1.0, seed=3)
+    plant.reset(50.0)
+    pi = PIBatch(kp, ki, dt=H)
+    pi.initialise(50.0 / K)
+    n, every = 300, 50
+    sp = 50.0 + 20.0 * np.where((np.arange(n) // every) % 2 == 1, 1.0, -1.0)
+    sp[:every] = 50.0
+    pv = np.empty(n)
+    for j in range(n):
+        pv[j] = plant.measure()[0]
+        plant.step(pi.step(sp[j] - pv[j]))
+    t = np.arange(n) * H
+    op = reconstruct_op(t, sp - pv, np.full(n, kp), np.full(n, ki))
+    starts = list(range(every, n, every))
+    result = assess(t[every - 1 :], sp[every - 1 :], pv[every - 1 :], op[every - 1 :],
+                    [s - every + 1 for s in starts])  # fmt: skip
+    m = result.model
+    assert result.why == "" and m.confident and m.confidence > 0.5
+    assert m.k == pytest.approx(K, rel=0.1) and m.tau == pytest.approx(TAU, rel=0.2)
+    assert m.noise == pytest.approx(1.0, rel=0.2) and not m.integrating
+    assert all(ev.excited for ev in result.events)
+
+
+# -- hint-free registration -----------------------------------------------------------
+def test_a_hint_free_loop_is_identified_then_tuned_and_survives_a_restart():
+    engine = TuningEngine(untrained_agent(0))
+    engine.register(hint_free(), wall=0.0)
+    assert engine.view("L", wall=0.0).scaling is None
+    updates = drive(engine, moves=3)
+    view = engine.view("L", wall=0.0)
+    assert view.counters.identified == 0 or updates  # gains only once identified
+    updates += drive(engine, moves=3, seed=1)
+    view = engine.view("L", wall=1e9)
+    ident = view.identification
+    assert view.counters.identified == 1, ident.why
+    assert ident.in_force.k == pytest.approx(K, rel=0.3)
+    assert ident.in_force.tau == pytest.approx(TAU, rel=0.3)
+    assert view.scaling.time_unit_s == pytest.approx(ident.in_force.tau / 0.5)
+    assert updates and all(u.reason == "agent" for u in updates)
+    _, audit = engine.drain_changes()
+    assert [r[5] for r in audit].count("identified") == 1
+    first_update_t = updates[0].t
+    identified_t = ident.in_force_t
+    assert first_update_t > identified_t  # nothing published before the model
+    # the runtime snapshot carries it over a restart
+    ((loop_id, hidden, runtime),) = engine.snapshot()
+    again = TuningEngine(untrained_agent(0))
+    again.restore(hint_free(), kp=view.kp, ki=view.ki, seq=view.seq, hidden=hidden,
+                  runtime=runtime, wall=0.0)  # fmt: skip
+    restored = again.view("L", wall=0.0)
+    assert restored.scaling == view.scaling
+    assert restored.identification.in_force == ident.in_force
+    assert restored.counters.identified == 1
+    # and identification starts over on request
+    again.identify("L", wall=0.0)
+    assert again.view("L", wall=0.0).scaling is None
+    assert again.view("L", wall=0.0).status in (LoopStatus.identifying, LoopStatus.stale)
+
+
+def test_hint_free_loop_takes_no_step_and_publishes_nothing_while_identifying():
+    engine = TuningEngine(untrained_agent(0))
+    engine.register(hint_free(), wall=0.0)
+    assert drive(engine, moves=1) == []
+    view = engine.view("L", wall=float(10**6))
+    assert view.counters.steps == 0
+    engine.ingest([{"loop_id": "L", "t": 1e6, "sp": 50.0, "pv": 50.0}], wall=1e6)
+    assert engine.view("L", wall=1e6).status == LoopStatus.identifying
+
+
+# -- bad data ---------------------------------------------------------------------------
+@pytest.mark.parametrize(
+    ("case", "why"),
+    [
+        ({"auto": False}, "manual"),
+        ({"saturated": True}, "saturated"),
+        ({"frozen_pv": True}, "frozen"),
+        ({"size": 0.3}, "too small for the noise"),
+    ],
+)
+def test_bad_data_yields_no_identification_and_says_why(case, why):
+    engine = TuningEngine(untrained_agent(0))
+    engine.register(hint_free(), wall=0.0)
+    updates = drive(engine, moves=6, **case)
+    view = engine.view("L", wall=float(10**4))
+    assert updates == [] and view.counters.identified == 0 and view.scaling is None
+    assert view.status in (LoopStatus.identifying, LoopStatus.stale)
+    assert why in view.identification.why, view.identification.why
+    model = view.identification.model
+    assert model is None or not model.confident
+
+
+# -- hints checked -----------------------------------------------------------------------
+@pytest.mark.parametrize("factor", [("k_hat", 3.0), ("tau_hat", 1 / 3)])
+def test_a_wrong_hint_is_flagged_and_rescaled_on_request(factor):
+    name, f = factor
+    engine = TuningEngine(untrained_agent(0))
+    engine.register(hinted("A", **{name: {"k_hat": K, "tau_hat": TAU}[name] * f}), wall=0.0)
+    engine.register(
+        hinted("B", auto_rescale=True, **{name: {"k_hat": K, "tau_hat": TAU}[name] * f}),
+        wall=0.0,
+    )
+    drive(engine, "A", moves=6)
+    drive(engine, "B", moves=6)
+    a, b = engine.view("A", wall=1e9), engine.view("B", wall=1e9)
+    assert a.counters.mismatches == 1 and a.identification.mismatch
+    assert a.status in (LoopStatus.hint_mismatch, LoopStatus.out_of_envelope, LoopStatus.stale)
+    assert b.counters.identified >= 1 and not b.identification.mismatch
+    assert b.scaling.apparent_gain(K) == pytest.approx(0.5, rel=0.3)
+    assert b.scaling.apparent_tau(TAU) == pytest.approx(0.5, rel=0.3)
+    _, audit = engine.drain_changes()
+    reasons = [(r[0], r[5]) for r in audit]
+    assert ("A", "mismatch") in reasons and ("B", "rescaled") in reasons
+
+
+def test_a_right_hint_is_confirmed_not_flagged():
+    engine = TuningEngine(untrained_agent(0))
+    engine.register(hinted(k_hat=K * 1.3, tau_hat=TAU / 1.3), wall=0.0)
+    drive(engine, moves=6)
+    view = engine.view("L", wall=1e9)
+    assert view.identification.model is not None and view.identification.model.confident
+    assert view.counters.mismatches == 0 and not view.identification.out_of_envelope
+
+
+# -- integrating loops and the envelope ------------------------------------------------------
+def test_an_integrating_loop_is_reported_as_such_and_never_identified_as_foptd():
+    engine = TuningEngine(untrained_agent(0))
+    kp, ki = 0.05, 0.0002
+    engine.register(LoopConfig(id="L", kp=kp, ki=ki, sample_period_s=H), wall=0.0)
+    drive(engine, k=0.01, moves=6, integrating=True, every=8.0, size=10.0, noise=0.2)
+    view = engine.view("L", wall=1e9)
+    assert view.counters.identified == 0
+    assert "integrating" in view.identification.why, view.identification.why
+
+
+def test_a_plant_gone_out_of_the_agents_envelope_is_paused():
+    engine = TuningEngine(untrained_agent(0))
+    engine.register(hint_free(), wall=0.0)
+    drive(engine, moves=4)
+    assert engine.view("L", wall=1e9).counters.identified == 1
+    # the plant slows down 5x (a fouled exchanger, a valve change): out of the box
+    drive(engine, tau=5 * TAU, moves=5, seed=2, t0=1e5)
+    view = engine.view("L", wall=1e9)
+
+    assert view.counters.envelope_pauses >= 1 and view.identification.out_of_envelope
+    assert math.isfinite(view.identification.model.tau)
