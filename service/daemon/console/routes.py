@@ -42,6 +42,7 @@ from fastapi.responses import (
     StreamingResponse,
 )
 
+from service.daemon.recent import REASONS
 from service.engine.config import LoopPatch
 from service.engine.table import STATUSES
 from service.wire.protocol import Mode, RejectReason
@@ -54,6 +55,8 @@ SESSION_IDLE_S = 8 * 3600.0
 """A session unused this long is logged out."""
 MAX_SESSIONS = 1000
 PAGE_MAX = 500
+LOGIN_PENALTY_S = 1.0
+"""Seconds a wrong token waits for its answer."""
 STREAM_TICK_S = 0.5
 """How often a loop page's stream looks for new samples."""
 STREAM_MAX_S = 4.0
@@ -286,6 +289,7 @@ async def login(request: Request) -> Response:
     client = request.client.host if request.client else "?"
     if not _token_ok(request, token):
         log.warning("console login refused (wrong token) from %s", client)
+        await asyncio.sleep(LOGIN_PENALTY_S)  # slows guessing down
         query = urllib.parse.urlencode({"next": target, "error": "wrong token"})
         return RedirectResponse(f"/ui/login?{query}", status_code=303)
     actor = f"ui:{name}" if name else "ui"
@@ -408,8 +412,6 @@ def overview_data(
     for i in page.tolist():
         last_change = None
         if summary is not None and math.isfinite(summary["last_wall"][i]):
-            from service.daemon.recent import REASONS
-
             last_change = {
                 "wall": float(summary["last_wall"][i]),
                 "reason": REASONS[int(summary["reason"][i])],
