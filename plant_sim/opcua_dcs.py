@@ -509,6 +509,9 @@ async def serve(args: argparse.Namespace, stop: asyncio.Event) -> int:
                 await dcs.wait_for_client(stop)
                 print("dcs: the gateway monitors every block: plant clock started", flush=True)
             scans, late = await pace(dcs, args, stop, writers)
+            if not stop.is_set():  # --duration reached: let the last scan's publish go out
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(stop.wait(), 1.0)
     print(f"dcs stopped after {scans} scans (worst scan started {late:.3f} s late)",
           flush=True)  # fmt: skip
     return 0
