@@ -247,3 +247,25 @@ def test_a_plant_gone_out_of_the_agents_envelope_is_paused():
 
     assert view.counters.envelope_pauses >= 1 and view.identification.out_of_envelope
     assert math.isfinite(view.identification.model.tau)
+
+
+# -- through the daemon's API (unchanged daemon: the engine's view and statuses) -------------
+def test_the_daemon_registers_a_hint_free_loop_and_shows_its_identification(tmp_path):
+    from fastapi.testclient import TestClient
+
+    from service.daemon.api import create_app
+    from tests.tuner_support import tuner_settings
+
+    kp, ki = gains()
+    body = {"id": "TIC-7", "kp": kp, "ki": ki, "sample_period_s": H}
+    with TestClient(create_app(tuner_settings(tmp_path))) as client:
+        r = client.post("/loops", json=body)
+        assert r.status_code == 201, r.text
+        view = r.json()
+        assert view["scaling"] is None and view["rl_period_s"] is None
+        assert view["identification"]["state"] == "identifying"
+        assert view["config"]["scaling"] is None and view["config"]["guard"]["kp_min"] is None
+        assert 'pitune_loops_by_status{status="identifying"}' in client.get("/metrics").text
+    with TestClient(create_app(tuner_settings(tmp_path))) as client:  # restored from the store
+        view = client.get("/loops/TIC-7").json()
+        assert view["identification"]["state"] == "identifying"
