@@ -32,7 +32,42 @@ BASE_IMAGE = "python:3.11-slim-bookworm"
 STAND_IN_BASE = "localhost/pitune-base:bookworm"
 
 SMOKE_TIMEOUT_S = 1200
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(SMOKE_TIMEOUT_S + 120)]
+CONSTRAINTS = ROOT / "deploy" / "constraints.txt"
+WHEELHOUSE = ROOT / "deploy" / "wheelhouse"
+
+
+def normalize(name: str) -> str:
+    return re.sub(r"[-_.]+", "-", name).lower()
+
+
+def pins() -> dict[str, str]:
+    """deploy/constraints.txt as {normalized name: version}."""
+    out = {}
+    for line in CONSTRAINTS.read_text().splitlines():
+        if line.strip() and not line.startswith("#"):
+            name, version = line.split("==")
+            out[normalize(name)] = version.strip()
+    return out
+
+
+def test_constraints_pin_every_dependency_of_the_project():
+    """The image installs its dependencies from deploy/constraints.txt before pitune (a
+    cached layer, and the offline wheelhouse holds exactly these): a dependency added to
+    pyproject.toml must be pinned there too."""
+    import tomllib
+
+    from packaging.requirements import Requirement
+
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    pinned = pins()
+    for text in project["dependencies"]:
+        req = Requirement(text)
+        name = normalize(req.name)
+        assert name in pinned, (
+            f"{req.name} is not in deploy/constraints.txt: rebuild the image and regenerate "
+            "it (docs/deploy.md, Building the image), then deploy/wheelhouse.sh"
+        )
+        assert req.specifier.contains(pinned[name], prereleases=True), (name, pinned[name])
 
 
 def run(*argv: str, timeout: float = 30) -> subprocess.CompletedProcess:
@@ -55,12 +90,14 @@ def has_image(engine: str, image: str) -> bool:
 def smoke_arguments(engine: str) -> list[str]:
     """smoke.sh's options for this machine, or skip saying what is missing."""
     extra = shlex.split(os.environ.get("PITUNE_SMOKE_ARGS", ""))
-    wheels = list((ROOT / "deploy" / "wheelhouse").glob("*.whl"))
+    wheels = list(WHEELHOUSE.glob("*.whl"))
     if not wheels and not extra:
         pytest.skip(
             "no wheelhouse in deploy/wheelhouse (deploy/wheelhouse.sh) and no "
             "PITUNE_SMOKE_ARGS (e.g. --index-url URL): the image's sources are unknown"
         )
+    if not extra and (missing := stale_wheelhouse()):
+        pytest.skip(f"deploy/wheelhouse lacks {missing[:5]}: run deploy/wheelhouse.sh")
     args = ["--engine", engine, *extra]
     if "--base" not in extra and not has_image(engine, BASE_IMAGE):
         if not has_image(engine, STAND_IN_BASE):
@@ -88,6 +125,17 @@ def compose_binary() -> str | None:
     return str(binary) if binary.is_file() else None
 
 
+def stale_wheelhouse() -> list[str]:
+    """The pins of deploy/constraints.txt that have no wheel in deploy/wheelhouse."""
+    have = set()
+    for wheel in WHEELHOUSE.glob("*.whl"):
+        name, version = wheel.name.split("-")[:2]
+        have.add((normalize(name), version))
+    return [f"{n}=={v}" for n, v in pins().items() if (n, v) not in have]
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(SMOKE_TIMEOUT_S + 120)
 def test_smoke_script_brings_the_stack_up_and_it_tunes(tmp_path):
     engine = working_engine()
     if engine is None:
