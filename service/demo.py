@@ -33,7 +33,7 @@ import numpy as np
 
 from plant_sim.config import SP_PERIOD_S, LoopSpec, Simulation, untuned_baseline
 from plant_sim.process import plant_argv
-from plant_sim.scenario import TANK_FIT
+from plant_sim.scenario import TANK_FIT, TANK_HINT
 from plant_sim.trajectory import plot, read_log
 from plant_sim.tunings import simc_improved, to_parallel
 from service.procs import Proc, ProcError, Stack
@@ -99,6 +99,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--workdir", type=Path, default=None, help="keep the database and logs here (default: temp)"
     )
     parser.add_argument("--agent-weights", default=None, metavar="FILE", help="for the tuner")
+    parser.add_argument(
+        "--no-hint",
+        action="store_true",
+        help="register the loop without a model hint: the tuner identifies the model from "
+        "the closed-loop data first (docs/identification.md)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -132,6 +138,8 @@ class Demo:
         ) as st:
             print(f"starting the tuner (API {st.api}, Zenoh {st.zenoh}) ...", flush=True)
             tuner = st.start_tuner()
+            if self.args.no_hint:  # registered first: the plant's own registration resumes it
+                self.register_without_hint(st.api)
             plant = st.start_plant(*plant_argv((LOOP,), self.sim))
             print(f"plant simulator started: {self.args.minutes:g} simulated minutes "
                   f"at {self.args.speed:g}x", flush=True)  # fmt: skip
@@ -139,6 +147,22 @@ class Demo:
             if tuner.stop() != 0:  # the tuner exits 0 after a graceful SIGTERM shutdown
                 raise tuner.failed()
             return view
+
+    def register_without_hint(self, api: str) -> None:
+        body = LOOP.registration(self.sim.scan)
+        del body["scaling"]
+        deadline = time.monotonic() + 60.0
+        with httpx.Client(base_url=api, timeout=5.0) as client:
+            while True:
+                try:
+                    response = client.post("/loops", json=body)
+                    break
+                except httpx.TransportError:
+                    if time.monotonic() > deadline:
+                        raise DemoError(f"tuner API at {api} unreachable") from None
+                    time.sleep(0.2)
+        if response.status_code != 201:
+            raise DemoError(f"registering without a hint: HTTP {response.status_code}")
 
     def follow(self, api: str, plant: Proc, tuner: Proc) -> dict:
         """Show progress until the plant finishes its span; the loop's final view."""
@@ -192,6 +216,10 @@ class Demo:
             "final_gains": {"kp": view["kp"], "ki": view["ki"]},
             "gain_updates": view["seq"],
             "simc_reference_gains": {"kp": simc_kp, "ki": simc_ki},
+            "hint": None if self.args.no_hint else {"k": TANK_HINT[0], "tau_s": TANK_HINT[1]},
+            "linearisation": dict(zip(("k", "tau_s", "theta_s"), TANK_FIT, strict=True)),
+            "identified": _identified(view),
+            "status": view.get("status"),
         }
         (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
         (out / "summary.md").write_text(summary_markdown(summary))
@@ -207,14 +235,58 @@ class Demo:
         return summary
 
 
+def _identified(view: dict) -> dict | None:
+    """The model identification put in force (or its latest, unconfident, one)."""
+    ident = view.get("identification") or {}
+    model = ident.get("in_force") or ident.get("model")
+    if model is None:
+        return {"why": ident.get("why", "")} if ident else None
+    return {
+        "k": model["k"], "tau_s": model["tau"], "theta_s": model["theta"],
+        "confidence": model["confidence"], "in_force": ident.get("in_force") is not None,
+        "why": ident.get("why", ""),
+    }  # fmt: skip
+
+
+def _model_lines(s: dict) -> str:
+    lines = [
+        "",
+        "| model of the tank | K (cm per L/min) | tau (s) | theta (s) |",
+        "|---|---|---|---|",
+    ]
+    if s.get("hint"):
+        lines.append(
+            f"| the paper's crude hint | {s['hint']['k']:g} | {s['hint']['tau_s']:g} | - |"
+        )
+    lin = s["linearisation"]
+    lines.append(
+        f"| linearisation around 55 cm | {lin['k']:g} | {lin['tau_s']:g} | {lin['theta_s']:g} |"
+    )
+    ident = s.get("identified")
+    if ident and "k" in ident:
+        what = "identified from the closed loop" + ("" if ident["in_force"] else " (not confident)")
+        lines.append(
+            f"| {what} | {ident['k']:.3g} | {ident['tau_s']:.3g} | {ident['theta_s']:.3g} |"
+        )
+    elif ident:
+        lines.append(f"| not identified: {ident['why']} | - | - | - |")
+    return "\n".join(lines) + "\n"
+
+
+def _hint_line(s: dict) -> str:
+    if s.get("hint") is None:
+        return "No model hint: the tuner identified the loop (status " + str(s.get("status")) + ")."
+    return "Model hint given to the tuner: 1.2 cm/(L/min), 30 s."
+
+
 def summary_markdown(s: dict) -> str:
     reg, fin, simc = s["registered_gains"], s["final_gains"], s["simc_reference_gains"]
     return f"""# pitune demo: two-tank level loop
 
 {s["simulated_minutes"]:g} simulated minutes at {s["speed"]:g}x real time ({s["wall_s"]:g} s wall),
 level setpoint stepping between 50 and 60 cm every 10 minutes, measurement noise
-+-{s["noise_cm"]:g} cm, seed {s["seed"]}. Model hint given to the tuner: 1.2 cm/(L/min), 30 s.
-
++-{s["noise_cm"]:g} cm, seed {s["seed"]}. {_hint_line(s)}
+{_model_lines(s)}
 Tracking MSE, level vs target trajectory exp(-15 s)/(94 s + 1) applied to the setpoint,
 over the last {MSE_CHANGES} setpoint changes (t >= {s["mse_window_start_s"]:g} s):
 

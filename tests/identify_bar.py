@@ -205,78 +205,96 @@ def _apply(engine, updates, pi, plants, out, steps, rescaled_seen, after_rescale
             out.kp[i], out.ki[i] = u.kp, u.ki
 
 
-def report(n: int = 60, seed: int = 0) -> dict:
+def one(which: str, n: int, seed: int) -> dict:
+    """One of the runs, as JSON-able numbers (``python -m tests.identify_bar --run``)."""
     plants = Plants.random(n, seed)
-    true = run(plants, hints=[plants.hint(i) for i in range(n)])
-    blind = run(plants, hints=[None] * n)
-    mse_true = plants.agent_mse(true.kp, true.ki)
-    mse_blind = plants.agent_mse(blind.kp, blind.ki)
-    ident = np.array([m is not None for m in blind.identified_model])
-    within4 = ident & (blind.moves_at_identification >= 0) & (blind.moves_at_identification <= 4)
-    k_err = np.array(
-        [m.k / plants.K[i] - 1 if m else np.nan for i, m in enumerate(blind.identified_model)]
-    )
-    tau_err = np.array(
-        [m.tau / plants.tau[i] - 1 if m else np.nan for i, m in enumerate(blind.identified_model)]
-    )
-    ratio = mse_blind / mse_true
     factors = [(3.0, 1.0), (1 / 3, 1.0), (1.0, 3.0), (1.0, 1 / 3)]
-    wrong = [plants.hint(i, *factors[i % 4]) for i in range(n)]
-    flagged = run(plants, hints=wrong, auto_rescale=False)
-    rescaled = run(plants, hints=wrong, auto_rescale=True, steps_after_rescale=True)
-    mse_rescaled = plants.agent_mse(rescaled.kp, rescaled.ki)
-    res = {
-        "loops": n,
-        "identified": int(ident.sum()),
-        "identified_within_4_moves": int(within4.sum()),
-        "moves_at_identification": blind.moves_at_identification.tolist(),
-        "k_within_30": int((np.abs(k_err[ident]) <= 0.3).sum()),
-        "tau_within_30": int((np.abs(tau_err[ident]) <= 0.3).sum()),
-        "k_err_worst": float(np.nanmax(np.abs(k_err))) if ident.any() else None,
-        "tau_err_worst": float(np.nanmax(np.abs(tau_err))) if ident.any() else None,
-        "mse_ratio_within_1.5": int((ratio <= 1.5).sum()),
-        "mse_ratio_median": float(np.median(ratio)),
-        "mse_ratio_worst": float(np.max(ratio)),
-        "unstable_blind": int((~np.isfinite(mse_blind) | (mse_blind > 1.0)).sum()),
-        "mse_true_median": float(np.median(mse_true)),
-        "mse_blind_median": float(np.median(mse_blind)),
-        "wrong_hint_flagged": int(
-            (flagged.flagged | rescaled.flagged | (rescaled.moves_at_identification >= 0)).sum()
-        ),
-        "wrong_hint_flagged_no_rescale": int(flagged.flagged.sum()),
-        "wrong_hint_statuses": {s: flagged.statuses.count(s) for s in set(flagged.statuses)},
-        "rescaled": int(sum(m is not None for m in rescaled.identified_model)),
-        "rescaled_ratio_within_1.5": int((mse_rescaled / mse_true <= 1.5).sum()),
-        "rescaled_ratio_median": float(np.median(mse_rescaled / mse_true)),
-        "rescaled_ratio_worst": float(np.max(mse_rescaled / mse_true)),
-        "wrong_hint_no_rescale_ratio_median": float(
-            np.median(plants.agent_mse(flagged.kp, flagged.ki) / mse_true)
-        ),
-        "seconds": [true.seconds, blind.seconds, flagged.seconds, rescaled.seconds],
-        "per_loop": {
-            "ratio": ratio.tolist(),
-            "k_err": k_err.tolist(),
-            "tau_err": tau_err.tolist(),
-            "rescaled_ratio": (mse_rescaled / mse_true).tolist(),
-            "theta_ratio": (plants.theta / plants.tau).tolist(),
-            "samples_per_tau": (plants.tau / plants.h).tolist(),
-        },
-    }
-    return res
+    if which == "true":
+        r = run(plants, hints=[plants.hint(i) for i in range(n)])
+    elif which == "blind":
+        r = run(plants, hints=[None] * n)
+    else:
+        wrong = [plants.hint(i, *factors[i % 4]) for i in range(n)]
+        r = run(plants, hints=wrong, auto_rescale=True, steps_after_rescale=True)
+    models = [None if m is None else [m.k, m.tau, m.theta] for m in r.identified_model]
+    return {
+        "kp": r.kp.tolist(), "ki": r.ki.tolist(), "done": r.done.tolist(),
+        "moves": r.moves_at_identification.tolist(), "models": models,
+        "statuses": r.statuses, "flagged": r.flagged.tolist(), "seconds": r.seconds,
+    }  # fmt: skip
+
+
+def summary(runs: dict, n: int, seed: int) -> dict:
+    plants = Plants.random(n, seed)
+    mse = {k: plants.agent_mse(np.array(v["kp"]), np.array(v["ki"])) for k, v in runs.items()}
+    out = {"loops": n}
+    true = mse["true"]
+    if "blind" in runs:
+        b = runs["blind"]
+        ident = np.array([m is not None for m in b["models"]])
+        moves = np.array(b["moves"])
+        k_err = np.array(
+            [m[0] / plants.K[i] - 1 if m else np.nan for i, m in enumerate(b["models"])]
+        )
+        tau_err = np.array(
+            [m[1] / plants.tau[i] - 1 if m else np.nan for i, m in enumerate(b["models"])]
+        )
+        ratio = mse["blind"] / true
+        out.update(
+            identified=int(ident.sum()),
+            identified_within_4_moves=int((ident & (moves >= 0) & (moves <= 4)).sum()),
+            moves_at_identification=b["moves"],
+            k_within_30=int((np.abs(k_err[ident]) <= 0.3).sum()),
+            tau_within_30=int((np.abs(tau_err[ident]) <= 0.3).sum()),
+            k_err_worst=float(np.nanmax(np.abs(k_err))),
+            tau_err_worst=float(np.nanmax(np.abs(tau_err))),
+            mse_ratio_within_1_5=int((ratio <= 1.5).sum()),
+            mse_ratio_median=float(np.median(ratio)),
+            mse_ratio_worst=float(np.max(ratio)),
+            unstable=int((~np.isfinite(mse["blind"]) | (mse["blind"] > 1.0)).sum()),
+            done=int(np.sum(b["done"])),
+            ratio=np.round(ratio, 2).tolist(),
+        )
+    if "rescaled" in runs:
+        r = runs["rescaled"]
+        ratio = mse["rescaled"] / true
+        out.update(
+            wrong_hint_rescaled=int(sum(m is not None for m in r["models"])),
+            wrong_hint_ratio_within_1_5=int((ratio <= 1.5).sum()),
+            wrong_hint_ratio_median=float(np.median(ratio)),
+            wrong_hint_ratio_worst=float(np.max(ratio)),
+            wrong_hint_done=int(np.sum(r["done"])),
+            wrong_hint_ratio=np.round(ratio, 2).tolist(),
+        )
+    out.update(
+        mse_true_median=float(np.median(true)),
+        mse_start_median=float(np.median(plants.agent_mse(plants.kp0, plants.ki0))),
+        seconds={k: v["seconds"] for k, v in runs.items()},
+    )
+    return out
 
 
 def main() -> None:
+    import json
+
     parser = argparse.ArgumentParser()
     parser.add_argument("--loops", type=int, default=60)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--run", choices=["true", "blind", "rescaled"])
+    parser.add_argument("--summary", nargs="*", help="JSON files of --run outputs")
     args = parser.parse_args()
-    res = report(args.loops, args.seed)
-    per = res.pop("per_loop")
-    for k, v in res.items():
+    if args.run:
+        print(json.dumps(one(args.run, args.loops, args.seed)))
+        return
+    if args.summary:
+        runs = {}
+        for path in args.summary:
+            with open(path) as f:
+                runs[path.rsplit("/", 1)[-1].split(".")[0]] = json.load(f)
+    else:
+        runs = {w: one(w, args.loops, args.seed) for w in ("true", "blind", "rescaled")}
+    for k, v in summary(runs, args.loops, args.seed).items():
         print(f"{k}: {v}")
-    import json
-
-    print(json.dumps(per))
 
 
 if __name__ == "__main__":
