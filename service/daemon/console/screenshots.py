@@ -69,8 +69,8 @@ def serve(settings, agent=None, host: str = "127.0.0.1") -> Iterator[Daemon]:
     app = with_console(create_app(settings, agent=agent))
     port = free_port()
     config = uvicorn.Config(
-        app, host=host, port=port, log_level="warning", lifespan="on",
-        timeout_graceful_shutdown=2, access_log=False,
+        app, host=host, port=port, lifespan="on", timeout_graceful_shutdown=2,
+        access_log=False, log_config=None, log_level=None,  # the process's logging untouched
     )  # fmt: skip
     server = uvicorn.Server(config)
     thread = threading.Thread(target=server.run, name="console-uvicorn", daemon=True)
