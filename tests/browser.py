@@ -58,8 +58,10 @@ def chromium() -> str:
     return CHROMIUM
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def browser(chromium: str) -> Iterator[object]:
+    """One Chromium per test module (Playwright's sync API runs its own event loop: it is
+    closed before other modules' asyncio tests run)."""
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as pw:
