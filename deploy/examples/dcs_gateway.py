@@ -3,14 +3,19 @@
 It follows docs/protocol.md through :class:`plant_sim.gateway.Gateway`:
 
 * samples are published with ``CongestionControl.BLOCK`` (never silently dropped);
-* a gains message is applied only if its ``seq`` is above the last one taken for that
-  loop from the same tuner ``instance_id`` (duplicates and late arrivals are dropped),
-  and only if its mode is ``auto`` (``advisory`` ones are for a human to judge);
+* a gains message is applied only if its ``(epoch, seq)`` is above the last one taken
+  for that loop (duplicates, late arrivals and late messages of a replaced tuner are
+  dropped), and only if its mode is ``auto`` (``advisory`` ones are for a human to judge);
+* each sample reports ``applied_seq``, the last update written to the PID block, so the
+  tuner tells a gateway lagging behind from an operator's change;
 * whenever a tuner's liveliness token appears (tuner started, or this gateway
   (re)connected), it asks the tuner for the loops' state and applies the gains it
-  missed meanwhile (same ``seq`` rule); it says when no tuner is up;
+  missed meanwhile (same rule); it says when no tuner is up;
 * ``--gateway-id ID`` also applies the batched gains (``GainsBatch``) of the loops
-  registered with ``"gateway": "ID"``.
+  registered with ``"gateway": "ID"``, and asks their state in one query (one
+  ``StateBatch`` reply);
+* it warns when a loop the tuner says is tuning has had no update for more than two RL
+  periods (the "update overdue" watchdog), and asks the state again.
 
 Replace the :class:`Dcs` stand-in with your DCS's calls (OPC UA, Modbus, ...). Run it
 beside a tuner on this host, or through the compose deployment's router:
@@ -58,10 +63,16 @@ def scan(gateway: Gateway, dcs: Dcs) -> int:
     for update in gateway.gains():
         if update.mode == Mode.auto:
             dcs.write_gains(update.loop_id, update.kp, update.ki)
+            gateway.applied(update)  # reported as applied_seq from the next sample on
             applied += 1
+    now = time.time()
+    overdue = [loop_id for loop_id in dcs.blocks if gateway.overdue(loop_id, now)]
+    if overdue:
+        log.warning("update overdue for %s: asking the tuner's state", overdue)
+        gateway.query_state()
     for loop_id in dcs.blocks:
         sp, pv = dcs.read_loop(loop_id)
-        gateway.publish(loop_id, Sample(t=time.time(), sp=sp, pv=pv, **dcs.gains(loop_id)))
+        gateway.publish(loop_id, Sample(t=now, sp=sp, pv=pv, **dcs.gains(loop_id)))
     return applied
 
 
