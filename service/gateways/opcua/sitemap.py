@@ -2,8 +2,8 @@
 
 A site is commissioned by writing this file; ``docs/opcua.md`` has a complete example and
 ``pitune plant opcua --write-map`` writes the one of the simulated DCS. Node ids are
-OPC UA strings (``ns=2;s=LIC-101.PV``, ``ns=3;i=1042``; ``nsu=<namespace uri>;s=...``
-is resolved against the server's namespace array at connect time).
+OPC UA strings with a namespace index (``ns=2;s=LIC-101.PV``, ``ns=3;i=1042``); the
+``nsu=<namespace uri>`` form is not resolved (yet): read the index off the server.
 
 Keys of ``[defaults]`` apply to every ``[[loops]]`` entry that does not set them.
 Passwords and tokens never live in the file: ``password_env`` and ``token_env`` name the
@@ -25,7 +25,7 @@ from service.gateways.opcua.forms import GainForm
 from service.units import ScalingSpec
 from service.wire.protocol import DEFAULT_PREFIX, GatewayId, LoopId
 
-NodeRef = Annotated[str, Field(min_length=3, max_length=512, pattern=r"^(ns|nsu|i|s|g|b)=")]
+NodeRef = Annotated[str, Field(min_length=3, max_length=512, pattern=r"^(ns|i|s|g|b)=")]
 ModeValue = bool | int | str
 PositiveS = Annotated[float, Field(gt=0.0, le=86400.0, allow_inf_nan=False)]
 
