@@ -139,7 +139,7 @@ class Demo:
             print(f"starting the tuner (API {st.api}, Zenoh {st.zenoh}) ...", flush=True)
             tuner = st.start_tuner()
             if self.args.no_hint:  # registered first: the plant's own registration resumes it
-                self.register_without_hint(st.api)
+                self.register_without_hint(st.api, st.token)
             plant = st.start_plant(*plant_argv((LOOP,), self.sim))
             print(f"plant simulator started: {self.args.minutes:g} simulated minutes "
                   f"at {self.args.speed:g}x", flush=True)  # fmt: skip
@@ -148,11 +148,12 @@ class Demo:
                 raise tuner.failed()
             return view
 
-    def register_without_hint(self, api: str) -> None:
+    def register_without_hint(self, api: str, token: str) -> None:
         body = LOOP.registration(self.sim.scan)
         del body["scaling"]
         deadline = time.monotonic() + 60.0
-        with httpx.Client(base_url=api, timeout=5.0) as client:
+        auth = {"Authorization": f"Bearer {token}"}
+        with httpx.Client(base_url=api, timeout=5.0, headers=auth) as client:
             while True:
                 try:
                     response = client.post("/loops", json=body)

@@ -50,6 +50,8 @@ MAX_PREDICTION = 1.5
 this many times the noise (rms)."""
 MIN_EVENTS = 2
 """Excited events needed for a confident model."""
+IMPRECISE = "K or tau not pinned down"
+"""The verdict of a model that passes every check but precision."""
 INTEGRATING_RATIO = 0.8
 """The integrating model wins when its residual sum of squares is below this share of
 the FOPTD fit's, or within 10% of it while the FOPTD's tau runs beyond the window (a lag
@@ -423,7 +425,7 @@ def _verdict(m: Model, excited: int, n_events: int) -> str:
     if m.r2 < MIN_R2:
         return f"poor fit (R2 {m.r2:.2f} < {MIN_R2:g})"
     if not (m.k_rse <= MAX_REL_SE and m.tau_rse <= MAX_REL_SE):
-        return f"K or tau not pinned down (rel. s.e. {m.k_rse:.2f}, {m.tau_rse:.2f})"
+        return f"{IMPRECISE} (rel. s.e. {m.k_rse:.2f}, {m.tau_rse:.2f})"
     if not m.prediction <= MAX_PREDICTION:
         return (
             f"events disagree (the earlier events' model predicts the last with "

@@ -236,7 +236,7 @@ def _close(tb, s: int, t: float, wall: float, *, final: bool = False, why: str =
         st.model, st.why = result.model, result.why
         if result.model is not None and result.model.confident:
             use(tb, s, result.model, t, wall)
-        elif result.model is not None and tb.scaled[s]:
+        elif result.why.startswith(identify.IMPRECISE) and tb.scaled[s]:
             _envelope(tb, s, result.model, t, wall, sure=False)
     elif final:
         st.why = why
@@ -310,10 +310,10 @@ def use(tb, s: int, m: identify.Model, t: float, wall: float) -> None:
 
 
 def _envelope(tb, s: int, m: identify.Model, t: float, wall: float, *, sure: bool) -> None:
-    """The envelope guard. A confident model (``sure``) decides both ways; one that is
-    not yet pinned down only pauses, and only when even K and tau two standard errors
-    toward the box leave it (a drifting plant is never pinned down by data that mix its
-    old and new dynamics)."""
+    """The envelope guard. A confident model (``sure``) decides both ways; one that passes
+    every check but precision only pauses, and only when even K and tau two standard
+    errors toward the box leave it (a drifting plant is never pinned down by data that mix
+    its old and new dynamics). A model that fails any other check is not used at all."""
     if not tb.env_guard[s]:
         return
     app = apparent(tb.ident[s].in_force_scaling, m)
