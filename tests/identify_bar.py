@@ -38,9 +38,10 @@ MOVE_EVERY = [3.0, 6.0]
 PV_SCALE = 15.0
 """The true hint's pv_scale: the typical move."""
 STEPS = 60
-BATCH = 4
+BATCH = 8
 """Samples per loop per ingest call: gains apply up to BATCH - 1 samples late (an RL
-period is at least 27 samples here), in every run alike."""
+period is at least 27 samples here), in every run alike (the machine is shared: fewer,
+larger calls)."""
 NOISE_FACTOR = 1.0
 START_TUNING = 0.5
 """The loops' existing gains: this fraction of the paper's SIMC tuning (sluggish)."""
@@ -99,7 +100,7 @@ def run(
     auto_rescale: bool = False,
     steps_after_rescale: bool = False,
     seed: int = 1,
-    max_tau: float = 500.0,
+    max_tau: float = 420.0,
 ) -> Run:
     """Drive every loop until it has taken STEPS agent steps (counted from its last
     identification or rescale when ``steps_after_rescale``), or ``max_tau`` time constants."""

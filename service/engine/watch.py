@@ -53,6 +53,10 @@ out of the agent's envelope."""
 NOISE_SCALE = 10.0
 """A hint-free loop's pv_scale is the typical setpoint move, at least this many times
 the measurement noise (the agent sees errors of order 1 and noise well below)."""
+CHECK_EVERY = 3
+"""Once a model is in force and the latest assessment confirmed it (no mismatch, in the
+envelope), the segment is assessed at every third event close only (the fits are the
+engine's main cost); a flagged or paused loop is assessed at every one."""
 COLUMNS = 4  # t, sp, pv, op
 
 
@@ -69,6 +73,8 @@ class IdState:
     """The scaling identification put in force (None: the config's hint, or none)."""
     starts: list[int] = field(default_factory=list)
     """Event starts (indices into the loop's recorder row)."""
+    skipped: int = 0
+    """Event closes since the last assessment (see :data:`CHECK_EVERY`)."""
     in_force_scaling: Scaling | None = None
     """The scaling in force (identified or the hint; kept by the table's configure)."""
 
@@ -228,6 +234,12 @@ def _close(tb, s: int, t: float, wall: float, *, final: bool = False, why: str =
     n = int(tb.rec_n[s])
     data = tb.recorder.data[tb.rec[s], :, :n]
     starts = [a for a in st.starts if a < n]
+    settled = st.in_force is not None and st.model is not None and st.model.confident
+    if settled and not final and not tb.mismatch[s] and not tb.out_env[s]:
+        st.skipped += 1  # a model in force the last assessment confirmed: check less often
+        if st.skipped < CHECK_EVERY:
+            return _trim(tb, s, n)
+    st.skipped = 0
     if len(starts) >= identify.MIN_EVENTS and n >= identify.MIN_SAMPLES:
         known = st.in_force  # a warm start (the grid search otherwise)
         start = None if known is None else (known.tau, known.theta)
@@ -244,6 +256,11 @@ def _close(tb, s: int, t: float, wall: float, *, final: bool = False, why: str =
         tb.recorder.give(int(tb.rec[s]))
         tb.rec[s] = -1
         st.starts = []
+    _trim(tb, s, n)
+
+
+def _trim(tb, s: int, n: int) -> None:
+    st: IdState = tb.ident[s]
     if len(st.starts) > MAX_EVENTS:  # forget the oldest event
         cut = st.starts[1] - 1
         data = tb.recorder.data[tb.rec[s]]
