@@ -40,6 +40,7 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from prometheus_client import CONTENT_TYPE_LATEST
 
 from service.agent.model import Agent
+from service.daemon import console
 from service.daemon.logs import StatusWatch, table_statuses
 from service.daemon.schemas import (
     MAX_BULK,
@@ -315,6 +316,7 @@ def create_app(
     app.state.settings = settings
     app.include_router(loops)
     app.include_router(ops)
+    app.include_router(console.router)  # the operator console at /ui (docs/console.md)
 
     @app.get("/docs", include_in_schema=False, response_class=HTMLResponse)
     def docs() -> HTMLResponse:
