@@ -31,6 +31,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("service.demo", "tuner + two-tank plant end to end, write demo/"),
     "bench": ("service.bench", "load benchmark of the tuner daemon"),
     "gateway": ("service.gateways.cli", "DCS gateways: OPC UA to the pitune bus; certificates"),
+    "store": ("service.daemon.export", "the tuner's store: export the audit history (JSON lines)"),
 }
 EPILOG = """\
 Quick start: `pitune demo` runs a tuner and a simulated two-tank plant for an hour of

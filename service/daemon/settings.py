@@ -194,6 +194,30 @@ class Settings(BaseSettings):
             sources += (TomlConfigSettingsSource(settings_cls, toml_file=path),)
         return sources
 
+    # -- retention of the audit (gains) history: see service/daemon/store.py ----------
+    history_max_rows_per_loop: Annotated[int, Field(ge=1)] | None = Field(
+        10_000,
+        description="Audit rows kept per registered loop, newest first (~130 bytes each; "
+        "10,000 is ~19 days of a loop stepped every 165 s); none: no row limit.",
+    )
+    history_max_age_days: Annotated[float, Field(gt=0.0)] | None = Field(
+        365.0,
+        description="Audit rows older than this are pruned (the newest of each loop "
+        "is kept); none: no age limit.",
+    )
+    history_max_rows_deleted: Annotated[int, Field(ge=1)] = Field(
+        100, description="Audit rows kept of a deleted loop (its newest, with its last seq)."
+    )
+    history_archive: Path | None = Field(
+        None,
+        description="JSON-lines file the pruned audit rows are appended to (fsynced) "
+        "before they are deleted; none: pruned rows are gone (export them first with "
+        "'pitune store export').",
+    )
+    history_prune_interval_s: Annotated[float, Field(gt=0.0)] = Field(
+        3600.0, description="Seconds between two retention passes over the audit history."
+    )
+
 
 class _AliasEnvSource(PydanticBaseSettingsSource):
     """:data:`ENV_ALIASES`: below the settings' own variables, above the config file."""

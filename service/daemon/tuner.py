@@ -88,6 +88,8 @@ QUEUE_BYTES = 256 * 1024 * 1024
 """Payload bytes the inbox holds at most (``queue_bytes`` setting when there is one)."""
 AFTER_T_WAIT_S = 1.0
 """Longest a state query with ``after_t`` waits for its loop's sample."""
+PRUNE_CHUNK = 200
+"""Loop ids whose audit history is pruned per idle worker iteration."""
 LANE_BOUND = 100_000
 """Messages a lane holds before it keeps only the newest of each loop."""
 LANE_DRAIN_S = 5.0
@@ -266,6 +268,10 @@ class Tuner:
         """State queries with ``after_t`` waiting for their loop's sample: loop id ->
         [(after_t, monotonic deadline, query)]."""
         self.queries_dropped = 0
+        self._prune_todo: list[str] = []
+        self._next_prune = 0.0
+        self.pruned = 0
+        """Audit rows deleted by the retention policy since start."""
         """State queries dropped unanswered because the inbox was full."""
         self.store: Store | None = None
         self.bus: Bus | None = None
@@ -398,10 +404,10 @@ class Tuner:
             try:
                 if self._store_failing_since is not None:  # until the next retry
                     wait = self._retry_at - time.monotonic()
-                elif self._snapshot_todo or self.store.journal_rows:
+                elif self._snapshot_todo or self.store.journal_rows or self._prune_todo:
                     wait = 0.0
                 else:
-                    wait = next_snapshot - time.monotonic()
+                    wait = min(next_snapshot, self._next_prune) - time.monotonic()
                 if self._parked:  # the earliest after_t query to answer anyway
                     first = min(d for q in self._parked.values() for _, d, _ in q)
                     wait = min(wait, first - time.monotonic())
@@ -428,10 +434,31 @@ class Tuner:
                     with self.table.lock:
                         self._snapshot_todo = list(self.table.slot_of)
                     self._snapshot_some()
+                elif self.inbox.empty():
+                    self._retain()
             except Exception:
                 log.exception("worker iteration failed; continuing")
             if stop:
                 return
+
+    def _retain(self) -> None:
+        """The retention policy, PRUNE_CHUNK loop ids per idle worker iteration, a pass
+        every ``history_prune_interval_s`` (see :meth:`Store.prune`)."""
+        st = self.settings
+        if not self._prune_todo:
+            if time.monotonic() < self._next_prune:
+                return
+            self._next_prune = time.monotonic() + getattr(st, "history_prune_interval_s", 3600.0)
+            self._prune_todo = self.store.audit_ids()
+        chunk, self._prune_todo = self._prune_todo[:PRUNE_CHUNK], self._prune_todo[PRUNE_CHUNK:]
+        max_age_days = getattr(st, "history_max_age_days", None)
+        self.pruned += self.store.prune(
+            chunk,
+            older_than=None if max_age_days is None else time.time() - max_age_days * 86400.0,
+            keep_rows=getattr(st, "history_max_rows_per_loop", None),
+            keep_rows_deleted=getattr(st, "history_max_rows_deleted", None),
+            archive=getattr(st, "history_archive", None),
+        )
 
     def _apply_journal(self) -> None:
         """A chunk of the journal into the store's tables, when no message waits (or the

@@ -1,0 +1,100 @@
+"""Issue 18 defect 8: the audit history is pruned by age and by rows per loop, a deleted
+loop keeps a bounded tail (its newest row, with its last seq, always), pruned rows can be
+archived first (JSON lines) or exported (``pitune store export``); nothing younger than
+the horizon and within the row limit is lost; the file stops growing."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from service.daemon.store import Store
+from service.daemon.tuner import Tuner
+from service.engine.audit import audit_row
+from service.engine.config import LoopConfig
+from tests.tuner_support import loop_body, tuner_settings, wait_until
+
+pytestmark = pytest.mark.timeout(120)
+DAY = 86400.0
+
+
+def _fill(store: Store, ids: list[str], steps: int, start_wall: float, dt: float) -> None:
+    for k in range(1, steps + 1):
+        wall = start_wall + k * dt
+        gains = [(0.5, 0.01, k, i) for i in ids]
+        audit = [audit_row(i, wall, 165.0 * k, k, "auto", "agent", (0.5, 0.01), (0.5, 0.01))
+                 for i in ids]  # fmt: skip
+        store.record_gains(gains, audit)
+    store.apply_journal()
+
+
+def test_prune_by_rows_and_age_keeps_the_newest_and_archives_the_rest(tmp_path):
+    store = Store(tmp_path / "s.db")
+    ids = ["KEEP", "GONE"]
+    configs = [LoopConfig(**loop_body(i)) for i in ids]
+    reg = [audit_row(c.id, 0.0, None, 0, "auto", "registered", None, (0.5, 0.01)) for c in configs]
+    store.insert_loops(configs, reg, [0, 0])
+    _fill(store, ids, 60, start_wall=0.0, dt=DAY)  # one step a day for 60 days
+    store.delete_loop("GONE", audit_row("GONE", 61 * DAY, None, 60, "auto", "deleted", None, None))
+    archive = tmp_path / "archive.jsonl"
+    before = {i: store.history(i, 0, 1000)[1] for i in ids}
+    n = store.prune(ids, older_than=40 * DAY + 1, keep_rows=30, keep_rows_deleted=3,
+                    archive=archive)  # fmt: skip
+    kept = {i: store.history(i, 0, 1000)[1] for i in ids}
+    # KEEP: the rows of the last 20 days (younger than the horizon) and within 30 rows
+    assert [e.seq for e in kept["KEEP"]] == list(range(60, 40, -1))
+    assert [e.id for e in kept["KEEP"]] == [e.id for e in before["KEEP"][:20]]
+    assert [e.reason for e in kept["GONE"]] == ["deleted", "agent", "agent"]
+    archived = [json.loads(line) for line in archive.read_text().splitlines()]
+    assert len(archived) == n == (61 - 20) + (62 - 3)
+    assert {r["id"] for r in archived}.isdisjoint({e.id for k in kept.values() for e in k})
+    assert store.last_seqs(ids) == {"KEEP": 60, "GONE": 60}  # a new GONE continues at 61
+    # the age rule never takes a loop's newest row
+    store.prune(["GONE"], older_than=1000 * DAY, keep_rows=None, keep_rows_deleted=None)
+    assert [e.reason for e in store.history("GONE", 0, 10)[1]] == ["deleted"]
+    store.close()
+
+
+def test_the_file_stops_growing_under_the_default_row_limit(tmp_path):
+    """200 loops stepped 400 times, pruned to 100 rows each after every 100 steps: the
+    file ends no bigger than after the first 200 steps (pages are reused)."""
+    store = Store(tmp_path / "s.db")
+    ids = [f"L{i}" for i in range(200)]
+    configs = [LoopConfig(**loop_body(i)) for i in ids]
+    reg = [audit_row(c.id, 0.0, None, 0, "auto", "registered", None, (0.5, 0.01)) for c in configs]
+    store.insert_loops(configs, reg, [0] * len(ids))
+    sizes = []
+    for chunk in range(4):
+        _fill(store, ids, 100, start_wall=chunk * 100.0, dt=1.0)
+        store.prune(ids, older_than=None, keep_rows=100, keep_rows_deleted=1)
+        store._db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+        sizes.append((tmp_path / "s.db").stat().st_size)
+    (total,) = store._db.execute("SELECT COUNT(*) FROM audit").fetchone()
+    assert total == 200 * 100
+    assert sizes[3] <= sizes[1] * 1.1, sizes  # measured: +1% per pass, converging
+    store.close()
+
+
+def test_the_tuner_prunes_in_its_idle_time_and_export_writes_json_lines(tmp_path):
+    settings = tuner_settings(
+        tmp_path, history_max_rows_per_loop=5, history_prune_interval_s=0.2,
+        history_archive=tmp_path / "pruned.jsonl",
+    )  # fmt: skip
+    with Tuner(settings) as tuner:
+        tuner.register(LoopConfig(**loop_body("LIC-101")))
+        for _ in range(12):
+            tuner.reset("LIC-101")
+        wait_until(lambda: tuner.history("LIC-101", 0, 50).total == 5, what="the prune")
+        assert [e.seq for e in tuner.history("LIC-101", 0, 50).items] == [12, 11, 10, 9, 8]
+        out = subprocess.run(
+            [sys.executable, "-m", "service.cli", "store", "export", "--db",
+             str(settings.db_path), "--loop", "LIC-101"],
+            capture_output=True, check=True, timeout=60,
+        )  # fmt: skip
+    rows = [json.loads(line) for line in out.stdout.splitlines()]
+    assert [r["seq"] for r in rows] == [8, 9, 10, 11, 12]
+    pruned = [json.loads(line) for line in (tmp_path / "pruned.jsonl").read_text().splitlines()]
+    assert [r["seq"] for r in pruned] == [0, 1, 2, 3, 4, 5, 6, 7]
