@@ -131,18 +131,28 @@ def test_every_protocol_flow_passes_the_shipped_acl(router, flow, declared):
         publisher_session.close()
 
 
-def test_a_declared_querier_reaches_the_tuners_state_queryable(router):
-    """A gateway asking the loops' state with a declared querier (not only ``get``)."""
+# (the tuner's queryable, the key a gateway asks): per loop, and StateBatch per gateway
+QUERIES = {
+    "loop state": (KEYS.all_states, KEYS.state("t1")),
+    "gateway state": (KEYS.all_gateway_states, KEYS.gateway_state("gw-1")),
+}
+
+
+@pytest.mark.parametrize("declared", [True, False], ids=["declared querier", "session.get"])
+@pytest.mark.parametrize("query", QUERIES)
+def test_state_queries_reach_the_tuners_queryable_through_the_shipped_acl(router, query, declared):
+    """A gateway asking the state (a loop's, or its StateBatch) gets the tuner's reply,
+    with ``Session.get`` as well as with a declared querier."""
+    served, asked = QUERIES[query]
     tuner, gateway = client("tuner", router), client("gateway", router)
     entities = []
     try:
-        entities.append(
-            tuner.declare_queryable(KEYS.all_states, lambda q: q.reply(KEYS.state("t1"), b"{}"))
-        )
-        entities.append(gateway.declare_querier(KEYS.all_states, timeout=3.0))
+        entities.append(tuner.declare_queryable(served, lambda q: q.reply(q.key_expr, b"{}")))
+        if declared:
+            entities.append(gateway.declare_querier(asked, timeout=3.0))
         time.sleep(1.0)
-        replies = [r for r in entities[1].get() if r.ok is not None]
-        assert len(replies) == 1, "the state query got no reply through the ACL"
+        replies = entities[1].get() if declared else gateway.get(asked, timeout=3.0)
+        assert len([r for r in replies if r.ok is not None]) == 1, f"{query}: no reply"
     finally:
         for entity in reversed(entities):
             entity.undeclare()
