@@ -35,11 +35,17 @@ def register(
         def call(method: str, path: str, **kw) -> httpx.Response:
             while True:
                 try:
-                    return client.request(method, path, **kw)
+                    response = client.request(method, path, **kw)
                 except httpx.TransportError as exc:
                     if time.monotonic() > deadline:
                         raise RegistrationError(f"tuner API at {url} unreachable: {exc}") from exc
                     time.sleep(0.2)
+                    continue
+                # a proxy in front of a tuner still starting answers 502-504: retried too
+                if response.status_code in (502, 503, 504) and time.monotonic() <= deadline:
+                    time.sleep(0.5)
+                    continue
+                return response
 
         for spec in specs:
             response = call("POST", "/loops", json=spec.registration(scan, gateway))
