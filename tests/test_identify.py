@@ -209,6 +209,7 @@ def test_a_wrong_hint_is_flagged_and_rescaled_on_request(factor):
     assert a.counters.mismatches == 1 and a.identification.mismatch
     assert a.status in (LoopStatus.hint_mismatch, LoopStatus.out_of_envelope, LoopStatus.stale)
     assert b.counters.identified >= 1 and not b.identification.mismatch
+    assert b.counters.mismatches == 1  # flagged, then rescaled
     assert b.scaling.apparent_gain(K) == pytest.approx(0.5, rel=0.3)
     assert b.scaling.apparent_tau(TAU) == pytest.approx(0.5, rel=0.3)
     _, audit = engine.drain_changes()

@@ -311,16 +311,14 @@ def use(tb, s: int, m: identify.Model, t: float, wall: float) -> None:
     app = apparent(scaling, m)
     off = max(abs(math.log(app["gain"] / AGENT_GAIN)), abs(math.log(app["tau"] / AGENT_TAU)))
     if off > math.log(guard.hint_tolerance):
+        if not tb.mismatch[s]:  # flagged (and, with auto-rescale, rescaled right after)
+            tb.n_mismatch[s] += 1
+            _audit(tb, s, t, wall, "mismatch", detail)
+        tb.mismatch[s] = True
         if guard.auto_rescale:
             pv_scale = 1.0 / scaling.e_scale
             _put_in_force(tb, s, m, model_scaling(m, pv_scale), t, wall, "rescaled", detail)
             tb.mismatch[s] = False
-            scaling = tb.ident[s].scaling
-            app = apparent(scaling, m)
-        elif not tb.mismatch[s]:
-            tb.mismatch[s] = True
-            tb.n_mismatch[s] += 1
-            _audit(tb, s, t, wall, "mismatch", detail)
     else:
         tb.mismatch[s] = False
     _envelope(tb, s, m, t, wall, sure=True)
