@@ -252,7 +252,8 @@ def summary(runs: dict, n: int, seed: int) -> dict:
             mse_ratio_within_1_5=int((ratio <= 1.5).sum()),
             mse_ratio_median=float(np.median(ratio)),
             mse_ratio_worst=float(np.max(ratio)),
-            unstable=int((~np.isfinite(mse["blind"]) | (mse["blind"] > 1.0)).sum()),
+            # a stable loop's step-test MSE stays below 4 (output stuck at -1, target +1)
+            unstable=int((~np.isfinite(mse["blind"]) | (mse["blind"] > 4.0)).sum()),
             done=int(np.sum(b["done"])),
             ratio=np.round(ratio, 2).tolist(),
         )
