@@ -135,7 +135,8 @@ def _record(tb: LoopTable, s: int, sample: Sample, e: float, last_t, fresh, wall
     elif tb.rec[s] < 0 and moved and not broken:
         watch._open(tb, s, row)
     elif tb.rec[s] < 0 and moved:
-        why = "manual" if not sample.auto else "output saturated" if sample.saturated else "data gap"
+        why = "output saturated" if sample.saturated else "data gap"
+        why = why if sample.auto else "manual"
         tb.ident[s].why = f"setpoint move not usable: {why}"
     elif tb.rec[s] >= 0:  # recording, every stride-th sample
         take = tb.rec_k[s] % tb.rec_stride[s] == 0
