@@ -84,7 +84,7 @@ COMMIT_RETRY_S = 1.0
 EXIT_STORE_FAILED = 74
 """Exit status after ``store_failure_exit_s`` of failing commits (EX_IOERR)."""
 _RANGE_ERRORS = {"less_than_equal", "greater_than_equal", "less_than", "greater_than"}
-QUEUE_BYTES = 256 * 1024 * 1024
+QUEUE_BYTES = 128 * 1024 * 1024
 """Payload bytes the inbox holds at most (``queue_bytes`` setting when there is one)."""
 AFTER_T_WAIT_S = 1.0
 """Longest a state query with ``after_t`` waits for its loop's sample."""
