@@ -666,12 +666,14 @@ class Tuner:
             if loop_id not in self.table.slot_of:  # deleted meanwhile
                 for _, _, query in waiting:
                     error = ErrorReply(loop_id=loop_id, error="unknown loop")
-                    reply(query, encode(error), error=True)
+                    with contextlib.suppress(zenoh.ZError):  # the querier may be gone
+                        reply(query, encode(error), error=True)
                 continue
             still = []
             for after_t, deadline, query in waiting:
                 if now >= deadline or self._reflects(loop_id, after_t):
-                    reply(query, encode(self._state(loop_id)))
+                    with contextlib.suppress(zenoh.ZError):  # the querier may be gone
+                        reply(query, encode(self._state(loop_id)))
                 else:
                     still.append((after_t, deadline, query))
             if still:
