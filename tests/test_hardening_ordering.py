@@ -29,16 +29,19 @@ def _state(session, key: str) -> dict:
 
 
 def _load(settings, stop: threading.Event, sent: list[int]) -> None:
-    """LOAD_RATE samples/s on LOAD_LOOPS other loops, as batches of 100 every 10 ms."""
+    """LOAD_RATE samples/s on LOAD_LOOPS other loops: every 50 ms a batch of 500 (five
+    samples per loop, in time order)."""
     session = open_peer(settings.zenoh_listen)
     try:
         t, next_at = 0.0, time.monotonic()
         while not stop.is_set():
-            t += 1.0
-            batch = {"samples": [{"loop_id": f"L{i}", "t": t, "e": 0.1} for i in range(100)]}
-            session.put(settings.keys.batch, json.dumps(batch).encode())
-            sent[0] += 100
-            next_at += 100 / LOAD_RATE
+            samples = []
+            for _ in range(5):
+                t += 1.0
+                samples += [{"loop_id": f"L{i}", "t": t, "e": 0.1} for i in range(LOAD_LOOPS)]
+            session.put(settings.keys.batch, json.dumps({"samples": samples}).encode())
+            sent[0] += len(samples)
+            next_at += len(samples) / LOAD_RATE
             time.sleep(max(0.0, next_at - time.monotonic()))
     finally:
         session.close()
