@@ -605,6 +605,11 @@ class Tuner:
             by_gateway[gateway].append(message)
         for gateway, batch in by_gateway.items():
             self._lane(gateway).submit(batch)
+        # counted when handed to the publishers (committed, to go out in order): a reader
+        # of the metrics after a reset or a step sees it; a message a newer one of its
+        # loop replaced in a blocked lane is in `superseded`
+        for mode, count in collections.Counter(m["mode"] for m in messages).items():
+            self.metrics.updates_published.labels(mode).inc(count)
 
     def _lane(self, gateway: str | None) -> Lane:
         lane = self.lanes.get(gateway)
@@ -617,8 +622,6 @@ class Tuner:
 
     def _send(self, gateway: str | None, messages: list[dict]) -> None:
         """A lane's blocking part, on its own thread: no lock of the tuner is held."""
-        for mode, count in collections.Counter(m["mode"] for m in messages).items():
-            self.metrics.updates_published.labels(mode).inc(count)
         if gateway is None:
             for message in messages:
                 self.bus.publish(self.keys.gains(message["loop_id"]), orjson.dumps(message))
