@@ -25,9 +25,12 @@ and one rejected sample whatever it held: not reading it is the point of droppin
 
 Publishing never holds the worker: committed gains go to a :class:`Lane` per
 destination (one for the per-loop keys, one per gateway), each with its own thread
-doing the blocking put; a lane keeps only the newest message per loop (gains are
-absolute and gateways drop older seqs), so it is bounded by its loops and a stuck
-gateway delays only its own lane.
+doing the blocking put, in order; past LANE_BOUND waiting messages a lane keeps only
+the newest of each loop (gains are absolute and gateways drop older seqs), so it stays
+bounded, and a stuck gateway delays only its own lane.
+
+Retention: in idle time the worker prunes the audit history by the settings'
+``history_*`` policy (:meth:`Store.prune`), PRUNE_CHUNK loops per iteration.
 """
 
 from __future__ import annotations
