@@ -233,5 +233,5 @@ def test_demo_fails_with_a_clear_message_when_the_tuner_cannot_start(tmp_path):
     result = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert result.returncode == 1
     assert "pitune demo failed: tuner exited" in result.stderr
-    assert "agent weights not found" in result.stderr
+    assert "agent weights file not found" in result.stderr
     assert not (tmp_path / "demo").exists()
