@@ -315,7 +315,7 @@ def test_loops_of_a_gateway_get_their_gains_in_one_batch(bus):
         reset = GainsBatch.model_validate_json(batches.get(timeout=5))
         assert [(g.loop_id, g.reason) for g in reset.gains] == [("B1", UpdateReason.reset)]
         patched = tuner.history("B0", 0, 10).items[1]
-        assert (patched.reason, patched.detail) == ("patched", '{"gateway":null}')
+        assert (patched.reason, patched.detail) == ("patched", '{"gateway":null,"actor":"api"}')
     finally:
         sub.undeclare()
 

@@ -54,6 +54,7 @@ import zenoh
 from service.agent.model import Agent, load_agent, untrained_agent
 from service.daemon.bus import JSON, Bus, Inbox, Item, Kind, reply
 from service.daemon.metrics import Metrics, RateLimitedLog
+from service.daemon.recent import Recent
 from service.daemon.schemas import HistoryPage, LoopsPage
 from service.daemon.settings import Settings
 from service.daemon.store import Store
@@ -261,6 +262,8 @@ class Tuner:
             on_reject=self._on_reject,
         )
         self.table = self.engine.table
+        self.recent = Recent(known=self.table.slot_of)
+        """Recent samples and published gains of each loop, for the console's trends."""
         self._skipped = 0
         self.inbox = Inbox(settings.queue_size, getattr(settings, "queue_bytes", QUEUE_BYTES))
         self.epoch: int | None = None
@@ -517,6 +520,7 @@ class Tuner:
         not judged yet are counted as rejected ``internal`` and the worker goes on with
         the next message: one bad message never takes the others with it."""
         engine, tb = self.engine, self.table
+        self.recent.safely(self.recent.add_samples, decoded.rows)  # the console's trends
         before = sum(engine.rejected.values()) + int(tb.n_samples.sum())
         try:
             for result in engine.ingest_decoded(decoded, wall=wall):
@@ -570,6 +574,8 @@ class Tuner:
                 self.table.requeue(gains, audit)
                 self._store_failed(exc)
                 return
+            # INFO per gain change / adoption, rate-limited (the API logs resets with their caller)
+            self.metrics.events.audit(row for row in audit if row[5] != "reset")
         if self._store_failing_since is not None:
             log.warning("store commits work again; publishing %d held steps", len(self._held))
             self._store_failing_since = None
@@ -601,6 +607,7 @@ class Tuner:
 
     def _publish(self, result: StepResult) -> None:
         """Hand a committed step's messages to their lanes (never blocks on the bus)."""
+        self.recent.safely(self.recent.add_gains, result)
         messages = result.messages(self.settings.instance_id)
         by_gateway: dict[str | None, list[dict]] = collections.defaultdict(list)
         for message, gateway in zip(messages, result.gateways, strict=True):
@@ -794,8 +801,9 @@ class Tuner:
             self.engine.register(config, seq=seq, wall=wall)
         self.metrics.set_loop_counts(self.table.mode_counts())
 
-    def patch(self, loop_id: str, patch: LoopPatch) -> LoopView:
-        """ValueError if the patch makes the bounds inconsistent."""
+    def patch(self, loop_id: str, patch: LoopPatch, actor: str = "api") -> LoopView:
+        """ValueError if the patch makes the bounds inconsistent; ``actor`` (the REST API,
+        or ``ui:<name>`` from the console) is recorded in the audit row's detail."""
         wall = time.time()
         with self.table.lock:
             self._known(loop_id)
@@ -806,7 +814,7 @@ class Tuner:
                 config,
                 audit_row(
                     loop_id, wall, None, int(self.table.seq[s]), config.mode.value, "patched",
-                    gains, gains, patch.model_dump_json(exclude_unset=True),
+                    gains, gains, _with_actor(patch.model_dump_json(exclude_unset=True), actor),
                 ),
             )  # fmt: skip
             self.table.reconfigure(config)
@@ -838,6 +846,7 @@ class Tuner:
                 ),
             )
             self.engine.remove(loop_id)
+            self.recent.forget(loop_id)
             self.metrics.set_loop_counts(self.table.mode_counts())
 
     def history(self, loop_id: str, offset: int, limit: int) -> HistoryPage:
@@ -882,3 +891,8 @@ def _registered(config: LoopConfig, wall: float, seq: int) -> AuditRow:
         config.id, wall, None, seq, config.mode.value, "registered",
         None, (config.kp, config.ki), config.model_dump_json(),
     )  # fmt: skip
+
+
+def _with_actor(detail: str, actor: str) -> str:
+    """A JSON object's text with the ``actor`` key added (audit details of changes)."""
+    return orjson.dumps({**orjson.loads(detail), "actor": actor}).decode()
