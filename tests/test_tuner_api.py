@@ -256,3 +256,32 @@ def test_the_loop_list_is_paginated(open_client):
     assert client.get("/loops", params={"offset": 300}).json()["items"] == []
     for params in ({"limit": 1001}, {"limit": 0}, {"offset": -1}):
         assert client.get("/loops", params=params).status_code == 422, params
+
+
+def test_identify_history_export_and_tuner_totals(client):
+    """POST /loops/{id}/identify restarts identification (token needed), the history
+    exports as JSON lines oldest first, and the tuner's own totals are in /metrics."""
+    import json
+
+    body = {k: v for k, v in loop_body("L1").items() if k != "scaling"}  # no hint
+    assert client.post("/loops", json=body, headers=AUTH).status_code == 201
+    assert client.post("/loops/L1/identify").status_code == 401
+    r = client.post("/loops/L1/identify", headers=AUTH)
+    assert r.status_code == 200, r.text
+    assert r.json()["status"] in ("waiting", "identifying")
+    assert client.post("/loops/nope/identify", headers=AUTH).status_code == 404
+    client.patch("/loops/L1", json={"mode": "advisory"}, headers=AUTH)
+    r = client.get("/loops/L1/history.jsonl")
+    assert r.status_code == 200 and r.headers["content-type"] == "application/x-ndjson"
+    rows = [json.loads(line) for line in r.text.splitlines()]
+    assert [row["reason"] for row in rows][:1] == ["registered"]
+    assert rows[-1]["reason"] == "patched" and [row["id"] for row in rows] == sorted(
+        row["id"] for row in rows
+    )
+    since = client.get("/loops/L1/history.jsonl", params={"since_id": rows[0]["id"]})
+    assert len(since.text.splitlines()) == len(rows) - 1
+    assert client.get("/loops/nope/history.jsonl").status_code == 404
+    text = client.get("/metrics").text
+    for name in ("pitune_state_queries_dropped_total", "pitune_gains_superseded_total",
+                 "pitune_audit_pruned_total", "pitune_queue_bytes"):  # fmt: skip
+        assert f"\n{name} " in text, name

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import asyncio
 import html
+import io
 import ipaddress
 import logging
 import secrets
@@ -172,6 +173,25 @@ def loop_history(
     return tuner.history(loop_id, offset, limit)
 
 
+@loops.get("/{loop_id}/history.jsonl", response_class=Response, responses={404: {}})
+def loop_history_jsonl(loop_id: str, tuner: TunerDep, since_id: Offset = 0) -> Response:
+    """The loop's audit log, oldest first, as JSON lines (to archive before retention
+    prunes it; ``since_id``: only rows after this audit id)."""
+    buf = io.BytesIO()
+    if not tuner.store.export(buf, loop_id, since_id) and loop_id not in tuner.loop_ids():
+        raise HTTPException(404, "unknown loop")
+    return Response(buf.getvalue(), media_type="application/x-ndjson")
+
+
+@loops.post("/{loop_id}/identify", dependencies=mutating, responses={404: {}, 503: {}})
+def identify_loop(loop_id: str, tuner: TunerDep, request: Request) -> LoopView:
+    """Identify the loop's model again from its closed-loop data (drops the identified
+    scaling; a loop registered without a hint stops tuning until it is confident)."""
+    view = tuner.identify(loop_id)
+    _event(tuner, request, "identify", "loop %r: identification restarted", loop_id)
+    return view
+
+
 def _event(tuner: Tuner, request: Request, kind: str, message: str, *args: object) -> None:
     """One INFO line per admin change (rate-limited per kind), with the caller's address."""
     client = request.client.host if request.client else "?"
@@ -196,7 +216,8 @@ def healthz(tuner: TunerDep) -> Health:
 def readyz(tuner: TunerDep) -> Health:
     """Readiness: worker running, Zenoh session open, store committing."""
     if not tuner.ready:
-        return _unhealthy("starting", "bus or worker not up")
+        why = "worker not up" if not tuner.alive else "bus not connected: no router or peer"
+        return _unhealthy("starting", why)
     if tuner.store_failure is not None:
         return _unhealthy("failing", tuner.store_failure)
     return Health(status="ok")

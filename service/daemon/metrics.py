@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 
 from prometheus_client import (
     CollectorRegistry,
@@ -23,12 +24,25 @@ from prometheus_client import (
     disable_created_metrics,
     generate_latest,
 )
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 
 from service.daemon.logs import EventLog
 from service.wire.protocol import LoopStatus, Mode, RejectReason
 
 log = logging.getLogger("pitune.tuner")
 disable_created_metrics()  # process-wide: no `_created` series beside any counter
+
+
+class _Totals:
+    """A collector of numbers kept by the tuner itself (no double bookkeeping)."""
+
+    def __init__(self, read: dict[str, tuple[str, Callable[[], float]]]) -> None:
+        self.read = read
+
+    def collect(self):
+        for name, (text, value) in self.read.items():
+            family = GaugeMetricFamily if name.endswith("_bytes") else CounterMetricFamily
+            yield family(name, text, value=float(value()))
 
 
 class Metrics:
@@ -90,6 +104,12 @@ class Metrics:
         for mode in (Mode.auto, Mode.advisory):  # frozen loops publish nothing
             self.updates_published.labels(mode.value)
         self._rejections = RateLimitedLog(log)
+        self.identification = Counter(
+            "pitune_identification",
+            "Identification outcomes (identified, mismatch, rescaled, out_of_envelope, ...).",
+            ["outcome"],
+            registry=r,
+        )
         self.events = EventLog()
         """INFO lines of loop changes: call ``events.audit(rows)`` with the audit rows
         committed (see :mod:`service.daemon.logs`)."""
@@ -116,6 +136,11 @@ class Metrics:
     def set_loop_counts(self, counts: dict[Mode, int]) -> None:
         for mode in Mode:
             self.loops.labels(mode.value).set(counts.get(mode, 0))
+
+    def totals(self, read: dict[str, tuple[str, Callable[[], float]]]) -> None:
+        """Counters kept as plain numbers elsewhere (name: (help, reader)), read at each
+        scrape; a name ending in ``_bytes`` is a gauge."""
+        self.registry.register(_Totals(read))
 
     def render(self) -> bytes:
         return generate_latest(self.registry)

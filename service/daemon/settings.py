@@ -217,6 +217,11 @@ class Settings(BaseSettings):
     history_prune_interval_s: Annotated[float, Field(gt=0.0)] = Field(
         3600.0, description="Seconds between two retention passes over the audit history."
     )
+    queue_bytes: Annotated[int, Field(ge=1 << 20)] = Field(
+        128 * 1024 * 1024,
+        description="Payload bytes the input queue holds at most (beside queue_size messages); "
+        "a message that does not fit is dropped and counted.",
+    )
 
 
 class _AliasEnvSource(PydanticBaseSettingsSource):

@@ -88,8 +88,6 @@ COMMIT_RETRY_S = 1.0
 EXIT_STORE_FAILED = 74
 """Exit status after ``store_failure_exit_s`` of failing commits (EX_IOERR)."""
 _RANGE_ERRORS = {"less_than_equal", "greater_than_equal", "less_than", "greater_than"}
-QUEUE_BYTES = 128 * 1024 * 1024
-"""Payload bytes the inbox holds at most (``queue_bytes`` setting when there is one)."""
 AFTER_T_WAIT_S = 1.0
 """Longest a state query with ``after_t`` waits for its loop's sample."""
 PRUNE_CHUNK = 200
@@ -180,6 +178,12 @@ class Lane:
         self.thread.join(timeout)
 
 
+IDENTIFICATION_OUTCOMES = frozenset(
+    {"identified", "rescaled", "mismatch", "out_of_envelope", "in_envelope", "identify"}
+)
+"""Audit reasons of the engine's identification (counted per outcome)."""
+
+
 class Conflict(Exception):
     """The loop already exists."""
 
@@ -265,7 +269,7 @@ class Tuner:
         self.recent = Recent(known=self.table.slot_of)
         """Recent samples and published gains of each loop, for the console's trends."""
         self._skipped = 0
-        self.inbox = Inbox(settings.queue_size, getattr(settings, "queue_bytes", QUEUE_BYTES))
+        self.inbox = Inbox(settings.queue_size, settings.queue_bytes)
         self.epoch: int | None = None
         """The store's epoch of this run (set by :meth:`start`)."""
         self.lanes: dict[str | None, Lane] = {}
@@ -274,11 +278,31 @@ class Tuner:
         """State queries with ``after_t`` waiting for their loop's sample: loop id ->
         [(after_t, monotonic deadline, query)]."""
         self.queries_dropped = 0
+        """State queries dropped unanswered because the inbox was full."""
         self._prune_todo: list[str] = []
         self._next_prune = 0.0
         self.pruned = 0
         """Audit rows deleted by the retention policy since start."""
-        """State queries dropped unanswered because the inbox was full."""
+        self.metrics.totals(
+            {
+                "pitune_state_queries_dropped": (
+                    "State queries dropped unanswered (input queue full).",
+                    lambda: self.queries_dropped,
+                ),
+                "pitune_gains_superseded": (
+                    "Gains messages replaced in a blocked lane by a newer one of their loop.",
+                    lambda: self.superseded,
+                ),
+                "pitune_audit_pruned": (
+                    "Audit rows deleted by the retention policy.",
+                    lambda: self.pruned,
+                ),
+                "pitune_queue_bytes": (
+                    "Payload bytes waiting in the input queue.",
+                    lambda: self.inbox.nbytes,
+                ),
+            }
+        )
         self.store: Store | None = None
         self.bus: Bus | None = None
         self._worker: threading.Thread | None = None
@@ -567,6 +591,10 @@ class Tuner:
         if self._store_failing_since is not None and time.monotonic() < self._retry_at:
             return
         gains, audit = self.table.drain_changes()
+        for row in audit:
+            if row[5] in IDENTIFICATION_OUTCOMES:  # counted, and its state saved promptly
+                self.metrics.identification.labels(row[5]).inc()
+                self._snapshot_todo.append(row[0])
         if gains or audit:
             try:
                 self.store.record_gains(gains, audit)
@@ -819,6 +847,20 @@ class Tuner:
             )  # fmt: skip
             self.table.reconfigure(config)
             self.metrics.set_loop_counts(self.table.mode_counts())
+            return self.table.view(loop_id, wall)
+
+    def identify(self, loop_id: str) -> LoopView:
+        """``POST /loops/{id}/identify``: identification from scratch (the identified
+        scaling is dropped; a hint-free loop stops tuning until a new model is confident).
+        StoreUnavailable while commits fail."""
+        wall = time.time()
+        with self.table.lock:
+            self._known(loop_id)
+            if self.store_failure is not None:
+                raise StoreUnavailable(self.store_failure)
+            self.engine.identify(loop_id, wall)
+            self._commit(None)  # its audit row
+            self._write_snapshot([loop_id])  # identification state is in the snapshot
             return self.table.view(loop_id, wall)
 
     def reset(self, loop_id: str) -> LoopView:
