@@ -36,7 +36,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, model_validator
 
 AGENT_GAIN = 0.5
 """Process gain at which a hinted loop appears to the agent."""
@@ -60,7 +60,8 @@ Factor = Annotated[float, Field(strict=True, ge=1e-9, le=1e9, allow_inf_nan=Fals
 class ScalingSpec(BaseModel):
     """How to map a loop into the agent's units: a model hint, overridable factor by factor."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    _resolved: Scaling = PrivateAttr()
 
     k_hat: Factor | None = Field(
         None,
@@ -93,18 +94,19 @@ class ScalingSpec(BaseModel):
             raise ValueError("need k_hat (model hint) or an explicit u_scale")
         if self.time_unit_s is None and self.tau_hat is None:
             raise ValueError("need tau_hat (model hint) or an explicit time_unit_s")
+        e_scale = self.e_scale or 1.0 / (self.pv_scale or 1.0)
+        u_scale = self.u_scale or e_scale * self.k_hat / AGENT_GAIN
+        time_unit_s = self.time_unit_s or self.tau_hat / AGENT_TAU
         try:
-            self.resolve()
+            self._resolved = Scaling(e_scale=e_scale, u_scale=u_scale, time_unit_s=time_unit_s)
         except ValidationError as exc:
             msg = exc.errors()[0]["msg"]
             raise ValueError(f"derived scaling factor out of range: {msg}") from None
         return self
 
     def resolve(self) -> Scaling:
-        e_scale = self.e_scale or 1.0 / (self.pv_scale or 1.0)
-        u_scale = self.u_scale or e_scale * self.k_hat / AGENT_GAIN
-        time_unit_s = self.time_unit_s or self.tau_hat / AGENT_TAU
-        return Scaling(e_scale=e_scale, u_scale=u_scale, time_unit_s=time_unit_s)
+        """The factors, derived once, when the spec is validated."""
+        return self._resolved
 
 
 class Scaling(BaseModel):
