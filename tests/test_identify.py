@@ -270,3 +270,43 @@ def test_the_daemon_registers_a_hint_free_loop_and_shows_its_identification(tmp_
     with TestClient(create_app(tuner_settings(tmp_path))) as client:  # restored from the store
         view = client.get("/loops/TIC-7").json()
         assert view["identification"]["state"] == "identifying"
+
+
+def test_samples_out_of_order_or_on_a_new_clock_never_break_identification():
+    """Fuzzed samples (times going back, new plant clocks, resets, error-only samples in
+    between) reach a segment's assessment without an exception, and are accepted and
+    rejected exactly as by a loop that does not identify."""
+    import random
+
+    engines = [TuningEngine(untrained_agent()) for _ in range(2)]
+    for eng in engines:
+        eng.register(hint_free(), wall=0.0)
+    engines[1].table.watch[engines[1].table.slot("L")] = False  # the twin: no identification
+    r = random.Random(2)
+    t, sp = 0.0, 50.0
+    for j in range(600):
+        t += r.choice([4.0] * 20 + [-30.0, -400.0, 0.0, 1e-9])
+        if r.random() < 0.05:
+            sp = 50.0 + r.choice([-20.0, 20.0])
+        reset = r.random() < 0.01
+        if r.random() < 0.7:
+            smp = {"loop_id": "L", "t": t, "sp": sp, "pv": sp + r.gauss(0, 3), "kp": 1.0,
+                   "ki": 0.05}  # fmt: skip
+        else:
+            smp = {"loop_id": "L", "t": t, "e": r.gauss(0, 3)}
+        for eng in engines:
+            if reset:
+                eng.reset("L", wall=float(j))
+            eng.ingest([smp], wall=float(j))
+    counts = [eng.view("L", wall=600.0).counters for eng in engines]
+    assert (counts[0].samples, counts[0].rejected) == (counts[1].samples, counts[1].rejected)
+    assert counts[0].rejected > 0 and counts[0].samples > 100
+
+
+def test_a_window_whose_times_do_not_increase_is_not_fitted():
+    t = np.arange(40.0)
+    t[25:] -= 100.0  # a new plant clock inside the segment
+    pv = np.sin(t / 5.0)
+    op = np.cos(t / 7.0)
+    out = assess(t, 50.0 + 0 * t, pv, op, [0, 10, 20, 30])
+    assert out.model is None and "not increasing" in out.why

@@ -252,6 +252,8 @@ def fit_windows(windows: list[Window], start: tuple[float, float] | None = None)
     (tau, theta), or from ``start`` (a model already known)."""
     span = max(w.span for w in windows)
     dt = float(np.median([w.dt for w in windows]))
+    if not (span > 0.0 and dt > 0.0):  # screen() keeps such windows out of assess()
+        raise ValueError(f"degenerate window (span {span}, dt {dt}): nothing to fit")
     if start is not None and 0.05 * dt < start[0] < 20.0 * span and 0 <= start[1] < 0.9 * span:
         fit = _refine(windows, span, dt, *start)
         if fit.k > 0.0 and fit.r2 >= MIN_R2:
@@ -332,9 +334,11 @@ def screen(t, pv, op) -> str:
     n = len(t)
     if n < MIN_SAMPLES:
         return f"too few samples ({n} < {MIN_SAMPLES})"
-    pv, op = np.asarray(pv, np.float64), np.asarray(op, np.float64)
-    if not (np.isfinite(pv).all() and np.isfinite(op).all()):
+    t, pv, op = (np.asarray(x, np.float64) for x in (t, pv, op))
+    if not (np.isfinite(t).all() and np.isfinite(pv).all() and np.isfinite(op).all()):
         return "non-finite data"
+    if not (np.diff(t) > 0.0).all():  # a window of no duration: nothing to fit
+        return "sample times not increasing (a new plant clock inside the segment)"
     if np.ptp(pv) == 0.0 or np.mean(np.diff(pv) == 0.0) > 0.5:
         return "measurement frozen (stuck transmitter?)"
     if np.ptp(op) == 0.0:

@@ -189,7 +189,8 @@ def _open(tb, s: int, row: tuple) -> None:
     r = tb.recorder.take()
     tb.rec[s], tb.rec_n[s], tb.rec_k[s], tb.rec_stride[s] = r, 0, 1, 1
     st: IdState = tb.ident[s]
-    if tb.prev_ok[s] and not math.isnan(tb.prev_t[s]):  # the sample before the move
+    # the sample before the move (not one from before a new plant clock or a reset)
+    if tb.prev_ok[s] and tb.prev_t[s] < row[0]:
         _append(tb, s, (tb.prev_t[s], tb.prev_sp[s], tb.prev_pv[s], tb.prev_op[s]))
     st.starts = [int(tb.rec_n[s])]
     _append(tb, s, row)
