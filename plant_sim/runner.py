@@ -4,7 +4,7 @@ Every DCS scan of simulated time (``speed`` times real time, 0 for as fast as po
 each loop publishes a :class:`~service.wire.protocol.Sample` in engineering units with
 the gains in force. Gains messages whose mode is ``auto`` are applied bumplessly,
 clipped to the loop's own bounds; ``advisory`` ones are only counted. The bus side
-follows docs/protocol.md (:mod:`plant_sim.gateway`).
+follows docs/protocol.md (:mod:`service.gateways.base`).
 """
 
 from __future__ import annotations
@@ -18,9 +18,9 @@ from contextlib import ExitStack, closing
 import zenoh
 
 from plant_sim.config import PlantConfig
-from plant_sim.gateway import Gateway
 from plant_sim.scenario import Scan, SimulatedLoop
 from plant_sim.trajectory import TrajectoryWriter
+from service.gateways.base import Gateway
 from service.wire.protocol import Keys, Mode, Sample
 from service.wire.session import session_config
 

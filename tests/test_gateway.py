@@ -1,4 +1,4 @@
-"""The gateway side of the protocol (plant_sim.gateway, deploy/examples/dcs_gateway.py)
+"""The gateway side of the protocol (service.gateways.base, deploy/examples/dcs_gateway.py)
 against a real tuner on loopback: QoS of samples, the seq rule per (loop, instance_id),
 batched gains, the state query on (re)connect and the tuners' liveliness."""
 
@@ -13,9 +13,9 @@ import time
 import pytest
 import zenoh
 
-from plant_sim.gateway import Gateway, Source, Update
 from service.daemon.tuner import Tuner
 from service.engine.config import LoopConfig
+from service.gateways.base import Gateway, Source, Update
 from service.procs import ROOT, Proc
 from service.wire.protocol import GainsBatch, GainsMessage, Keys, Mode, Sample, encode
 from tests.tuner_support import loop_body, open_peer, tuner_settings, wait_until

@@ -11,10 +11,10 @@ import queue
 
 import pytest
 
-from plant_sim.gateway import GainsInbox, Gateway, Source
 from service.daemon.store import Store
 from service.daemon.tuner import Tuner
 from service.engine.config import LoopConfig
+from service.gateways.base import GainsInbox, Gateway, Source
 from service.wire.protocol import GainsMessage, Keys, Sample, StateBatch
 from tests.tuner_support import loop_body, open_peer, tuner_settings, wait_until
 

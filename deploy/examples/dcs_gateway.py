@@ -1,6 +1,6 @@
 """A minimal reference DCS gateway for pitune: publish samples, apply ``auto`` gains.
 
-It follows docs/protocol.md through :class:`plant_sim.gateway.Gateway`:
+It follows docs/protocol.md through :class:`service.gateways.base.Gateway`:
 
 * samples are published with ``CongestionControl.BLOCK`` (never silently dropped);
 * a gains message is applied only if its ``(epoch, seq)`` is above the last one taken
@@ -30,7 +30,7 @@ import time
 
 import zenoh
 
-from plant_sim.gateway import Gateway
+from service.gateways.base import Gateway
 from service.wire.protocol import Keys, Mode, Sample, is_valid_id
 from service.wire.session import session_config
 

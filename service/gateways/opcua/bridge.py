@@ -12,7 +12,7 @@ is present (tuner down, Zenoh router or link down) they are held in a buffer of 
 ``buffer_max_samples`` (the oldest are dropped beyond, and counted) and sent when a tuner
 is back, still in order per loop.
 
-Gains. Updates come through :class:`plant_sim.gateway.Gateway` (sequence rule, batched
+Gains. Updates come through :class:`service.gateways.base.Gateway` (sequence rule, batched
 gains, state query whenever a tuner's token appears). An ``auto`` update becomes the
 loop's pending write (a newer one replaces it); it is written, in the block's own form,
 only when all hold at that moment:
@@ -47,7 +47,7 @@ import httpx
 import orjson
 import zenoh
 
-from plant_sim.gateway import SAMPLE_CONGESTION, Gateway, Update
+from service.gateways.base import SAMPLE_CONGESTION, Gateway, Update
 from service.gateways.opcua.client import Change, Item, LinkLost, OpcUaLink, now_epoch
 from service.gateways.opcua.forms import FormError
 from service.gateways.opcua.sitemap import LoopMap, SiteMap

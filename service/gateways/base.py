@@ -1,0 +1,361 @@
+"""The plant side of the pitune bus: what a DCS gateway does, over Zenoh.
+
+A gateway (the plant simulator here, a real DCS gateway in
+``deploy/examples/dcs_gateway.py``) follows ``docs/protocol.md``:
+
+* it publishes one :class:`~service.wire.protocol.Sample` per loop and DCS scan on
+  ``{prefix}/loops/{id}/sample`` with ``CongestionControl.BLOCK`` (never dropped);
+* it receives :class:`~service.wire.protocol.GainsMessage` on ``{prefix}/loops/*/gains``
+  and, with a ``gateway_id``, :class:`~service.wire.protocol.GainsBatch` on
+  ``{prefix}/gateways/{gateway_id}/gains`` (loops registered with that gateway);
+* it orders a loop's gains messages and state replies by ``(epoch, seq)`` and drops one
+  that is not above the last it took for the loop (a duplicate, a late arrival, or a
+  late message of a tuner instance since replaced, on the same store or a fresh one);
+  messages without ``epoch`` (tuners of protocol revision 1) fall back to the seq rule
+  per tuner ``instance_id``;
+* it watches the tuners' liveliness tokens ``{prefix}/tuners/*`` and, whenever one
+  appears (a tuner started, or this gateway (re)connected), asks for the state of its
+  loops and takes the gains it missed while away: with a ``gateway_id``, one
+  ``{prefix}/gateways/{gateway_id}/state`` query answered by one
+  :class:`~service.wire.protocol.StateBatch` (loops not in it, registered without that
+  gateway, are asked one by one; a tuner without that queryable is asked
+  ``{prefix}/loops/*/state``); without, ``{prefix}/loops/*/state``;
+* it reports in each sample ``applied_seq``, the seq of the last update the DCS applied
+  to the loop in the current epoch (:meth:`Gateway.applied`), so the tuner never takes
+  a gateway lagging behind its updates for an operator's change;
+* it keeps each loop's RL period and next due time from the state replies, for an
+  "update overdue" watchdog (:meth:`Gateway.overdue`).
+
+Zenoh callbacks run on Zenoh's threads and must never block: they only queue the raw
+payloads, and the gateway's own loop validates and applies them between scans
+(:meth:`Gateway.gains`; the DCS's PID blocks are not thread-safe either).
+
+Messages are the pydantic models of :mod:`service.wire.protocol`, the single source of truth
+for the wire format.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from enum import Enum
+
+import zenoh
+from pydantic import ValidationError
+
+from service.wire.protocol import (
+    ENCODING,
+    GainsBatch,
+    GainsMessage,
+    Keys,
+    Mode,
+    Sample,
+    StateBatch,
+    StateReply,
+    encode,
+)
+
+log = logging.getLogger("pitune.gateway")
+SAMPLE_CONGESTION = zenoh.CongestionControl.BLOCK
+"""Samples are never dropped under congestion (docs/protocol.md, Samples)."""
+STATE_QUERY_TIMEOUT_S = 10.0
+
+
+class Source(Enum):
+    """Where a gains update came from."""
+
+    gains = "gains"
+    """A per-loop :class:`GainsMessage`."""
+    batch = "batch"
+    """An item of a :class:`GainsBatch`."""
+    state = "state"
+    """A :class:`StateReply` (state query on (re)connect): gains published while away."""
+    state_batch = "state_batch"
+    """A :class:`StateBatch`: the state of a gateway's loops in one reply."""
+
+
+@dataclass(frozen=True)
+class Update:
+    """Gains for one loop that passed the sequence rule, to apply if ``mode`` is auto."""
+
+    loop_id: str
+    kp: float
+    ki: float
+    mode: Mode
+    seq: int
+    instance_id: str
+    source: Source
+    epoch: int | None = None
+
+
+@dataclass
+class GainsInbox:
+    """Raw gains payloads in, validated updates out, duplicates and late ones dropped.
+
+    The sequence rule of docs/protocol.md, per loop: a message whose ``(epoch, seq)`` is
+    not above the highest one taken for that loop is a duplicate, arrived out of order,
+    or comes from a tuner instance since replaced, and is dropped. ``advisory`` messages
+    and state replies count too (``seq`` increases per loop whatever the mode), so a late
+    ``auto`` message never undoes a newer update. A message without ``epoch`` (a tuner of
+    revision 1) is judged against the messages of its own ``instance_id`` only.
+    """
+
+    loops: frozenset[str] | None = None
+    """The loops of interest (None: all); messages of other loops are ignored."""
+    invalid: int = 0
+    stale: int = 0
+    _raw: queue.SimpleQueue = field(default_factory=queue.SimpleQueue)
+    _last: dict[tuple[str, str], int] = field(default_factory=dict)
+    _order: dict[str, tuple[int, int]] = field(default_factory=dict)
+    """Per loop, the highest (epoch, seq) taken."""
+    supervision: dict[str, StateReply] = field(default_factory=dict)
+    """The last state reply of each loop (RL period, next due time, status, gateway)."""
+    batch_replies: list[StateBatch] = field(default_factory=list)
+    """StateBatch replies drained and not yet looked at by the :class:`Gateway`."""
+    update_t: dict[str, float] = field(default_factory=dict)
+    """Plant time of the newest gains message taken per loop (reason agent)."""
+
+    def put_raw(self, source: Source, payload: bytes) -> None:
+        """Queue a payload (the only thing a Zenoh callback may do)."""
+        self._raw.put((source, payload))
+
+    def drain(self) -> list[Update]:
+        """Updates received since the last call, in arrival order, after the seq rule."""
+        out: list[Update] = []
+        while True:
+            try:
+                source, payload = self._raw.get_nowait()
+            except queue.Empty:
+                return out
+            try:
+                if source is Source.gains:
+                    messages = [GainsMessage.model_validate_json(payload)]
+                elif source is Source.batch:
+                    messages = GainsBatch.model_validate_json(payload).gains
+                elif source is Source.state_batch:
+                    batch = StateBatch.model_validate_json(payload)
+                    self.batch_replies.append(batch)
+                    messages = batch.states
+                else:
+                    messages = [StateReply.model_validate_json(payload)]
+            except ValidationError:
+                self.invalid += 1
+                continue
+            for msg in messages:
+                update = self.take(msg, source)
+                if update is not None:
+                    out.append(update)
+
+    def take(self, msg: GainsMessage | StateReply, source: Source) -> Update | None:
+        """Apply the sequence rule to one message: the update, or None if dropped."""
+        if self.loops is not None and msg.loop_id not in self.loops:
+            return None
+        if isinstance(msg, StateReply):
+            self.supervision[msg.loop_id] = msg
+            if msg.seq == 0 or msg.mode is Mode.frozen:
+                return None  # no gains published yet, or none to apply
+        state = source in (Source.state, Source.state_batch)
+        key = (msg.loop_id, msg.instance_id)
+        last = self._last.get(key)
+        if msg.epoch is not None:
+            newer = (msg.epoch, msg.seq) > self._order.get(msg.loop_id, (0, 0))
+        else:
+            newer = last is None or msg.seq > last
+        if not newer:
+            if not state:  # a state reply of known gains is no news
+                self.stale += 1
+            return None
+        self._last[key] = msg.seq
+        if isinstance(msg, GainsMessage) and msg.reason == "agent":
+            self.update_t[msg.loop_id] = msg.t
+        if msg.epoch is not None:
+            self._order[msg.loop_id] = (msg.epoch, msg.seq)
+        return Update(
+            msg.loop_id, msg.kp, msg.ki, Mode(msg.mode), msg.seq, msg.instance_id, source,
+            msg.epoch,
+        )  # fmt: skip
+
+    def current_epoch(self, loop_id: str) -> int | None:
+        """The epoch of the newest message taken for the loop (None: none with one)."""
+        order = self._order.get(loop_id)
+        return None if order is None else order[0]
+
+
+class Gateway:
+    """Publishes the samples of the given loops and collects the gains addressed to them.
+
+    ``gateway_id``: also receive the :class:`GainsBatch` messages of the loops registered
+    with ``"gateway": gateway_id``. Call :meth:`close` on every exit path (a callback
+    subscriber left declared hangs the interpreter at exit).
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        loop_ids: Iterable[str],
+        keys: Keys,
+        *,
+        gateway_id: str | None = None,
+    ) -> None:
+        self.session = session
+        self.keys = keys
+        self.gateway_id = gateway_id
+        loop_ids = list(loop_ids)
+        self.loop_ids = frozenset(loop_ids)
+        self.inbox = GainsInbox(loops=self.loop_ids)
+        self._applied: dict[str, tuple[int | None, int]] = {}
+        self._batch_answered = False
+        self.tuners: set[str] = set()
+        """Key expressions of the tuners' liveliness tokens seen alive."""
+        self._events: queue.SimpleQueue[tuple[zenoh.SampleKind, str]] = queue.SimpleQueue()
+        self._publishers = {}
+        self._entities: list = []
+        try:
+            for loop_id in loop_ids:
+                self._publishers[loop_id] = session.declare_publisher(
+                    keys.sample(loop_id), encoding=ENCODING, congestion_control=SAMPLE_CONGESTION
+                )
+            self._entities.append(
+                session.declare_subscriber(keys.all_gains, self._queue(Source.gains))
+            )
+            if gateway_id is not None:
+                self._entities.append(
+                    session.declare_subscriber(
+                        keys.gateway_gains(gateway_id), self._queue(Source.batch)
+                    )
+                )
+            # history: the tokens of tuners already up are delivered at once
+            self._entities.append(
+                session.liveliness().declare_subscriber(
+                    keys.all_tuners, self._on_tuner, history=True
+                )
+            )
+        except BaseException:
+            self.close()
+            raise
+
+    def _queue(self, source: Source):
+        def on_sample(sample: zenoh.Sample) -> None:
+            self.inbox.put_raw(source, sample.payload.to_bytes())
+
+        return on_sample
+
+    def _on_tuner(self, sample: zenoh.Sample) -> None:
+        self._events.put((sample.kind, str(sample.key_expr)))
+
+    def _on_reply(self, reply: zenoh.Reply) -> None:
+        if reply.ok is not None:  # error replies (unknown loop) change nothing
+            self.inbox.put_raw(Source.state, reply.ok.payload.to_bytes())
+
+    def _on_batch_reply(self, reply: zenoh.Reply) -> None:
+        if reply.ok is not None:
+            self._batch_answered = True
+            self.inbox.put_raw(Source.state_batch, reply.ok.payload.to_bytes())
+
+    def _batch_query_done(self) -> None:
+        if not self._batch_answered:  # a tuner of revision 1: no gateway queryable
+            self._events.put((None, "fallback"))
+
+    def query_state(self) -> None:
+        """Ask the tuner for the state of this gateway's loops; the replies arrive as
+        :class:`Update` s from :meth:`gains` (non-blocking). With a ``gateway_id``, one
+        query of the gateway's state key (one StateBatch reply); else every loop's."""
+        if self.gateway_id is None:
+            self._query_all()
+            return
+        self._batch_answered = False
+        self.session.get(
+            self.keys.gateway_state(self.gateway_id),
+            zenoh.handlers.Callback(self._on_batch_reply, self._batch_query_done),
+            timeout=STATE_QUERY_TIMEOUT_S,
+        )
+
+    def _query_all(self) -> None:
+        self.session.get(self.keys.all_states, self._on_reply, timeout=STATE_QUERY_TIMEOUT_S)
+
+    def _query_missing(self) -> None:
+        """Loops of this gateway a StateBatch did not cover: asked one by one."""
+        while self.inbox.batch_replies:
+            batch = self.inbox.batch_replies.pop(0)
+            covered = {s.loop_id for s in batch.states}
+            for loop_id in sorted(self.loop_ids - covered):
+                self.session.get(
+                    self.keys.state(loop_id), self._on_reply, timeout=STATE_QUERY_TIMEOUT_S
+                )
+
+    def _watch_tuners(self) -> None:
+        while True:
+            try:
+                kind, key = self._events.get_nowait()
+            except queue.Empty:
+                return
+            if kind is None:  # the gateway query went unanswered
+                log.info("no StateBatch reply: asking every loop's state")
+                self._query_all()
+            elif kind == zenoh.SampleKind.PUT:
+                log.info("tuner up: %s; asking the state of the loops", key)
+                self.tuners.add(key)
+                self.query_state()
+            else:
+                self.tuners.discard(key)
+                if not self.tuners:
+                    log.warning("no tuner up (%s left): no gains until one is back", key)
+
+    @property
+    def tuner_up(self) -> bool:
+        """Whether a tuner's liveliness token is present (as of the last :meth:`gains`)."""
+        return bool(self.tuners)
+
+    def publish(self, loop_id: str, sample: Sample) -> None:
+        """Publish ``sample``; without an ``applied_seq`` of its own it reports the last
+        update :meth:`applied` marked for the loop in the current epoch."""
+        if sample.applied_seq is None:
+            seq = self.applied_seq(loop_id)
+            if seq is not None:
+                sample = sample.model_copy(update={"applied_seq": seq})
+        self._publishers[loop_id].put(encode(sample))
+
+    def applied(self, update: Update) -> None:
+        """Record that the DCS applied ``update`` (reported as ``applied_seq``)."""
+        self._applied[update.loop_id] = (update.epoch, update.seq)
+
+    def applied_seq(self, loop_id: str) -> int | None:
+        """The seq of the last update applied to the loop, if it is of the epoch of the
+        newest update taken (seqs of another epoch mean nothing to the tuner now)."""
+        applied = self._applied.get(loop_id)
+        if applied is None or applied[0] != self.inbox.current_epoch(loop_id):
+            return None
+        return applied[1]
+
+    def overdue(self, loop_id: str, plant_t: float, periods: float = 2.0) -> bool:
+        """Whether an update of a loop the tuner last said was ``tuning`` is overdue at
+        plant time ``plant_t``: more than ``periods`` RL periods past the later of its
+        next due time (state reply) and its last update. Ask the state again then
+        (:meth:`query_state`): a quiet, stale or manual loop gets no updates."""
+        state = self.inbox.supervision.get(loop_id)
+        if state is None or state.status != "tuning" or not state.rl_period_s:
+            return False
+        due = max(
+            state.next_due_t if state.next_due_t is not None else -float("inf"),
+            self.inbox.update_t.get(loop_id, -float("inf")) + state.rl_period_s,
+        )
+        return plant_t > due + periods * state.rl_period_s
+
+    def gains(self) -> list[Update]:
+        """Updates for this gateway's loops received since the last call, after the
+        sequence rule; ``mode`` says whether to apply them (auto) or only show them."""
+        self._watch_tuners()
+        updates = self.inbox.drain()
+        self._query_missing()
+        return updates
+
+    def close(self) -> None:
+        """Undeclare subscribers and publishers (idempotent); the session is the caller's."""
+        for entity in [*reversed(self._entities), *self._publishers.values()]:
+            try:
+                entity.undeclare()
+            except zenoh.ZError as exc:  # already gone with a closed session
+                log.debug("undeclare failed: %s", exc)
+        self._entities, self._publishers = [], {}
