@@ -137,12 +137,12 @@ _value = st.one_of(
     st.floats(allow_nan=False, allow_infinity=False, min_value=-2e12, max_value=2e12),
     st.sampled_from([0.0, -1.0, 1.0, 0.5, 1e12, 2e12]),
 )  # fmt: skip
+_KEYS = ("loop_id", "t", "e", "sp", "pv", "kp", "ki", "auto", "saturated", "v", "extra",
+         "applied_seq")  # fmt: skip
 _item = st.one_of(
     st.dictionaries(
-        st.sampled_from(
-            ["loop_id", "t", "e", "sp", "pv", "kp", "ki", "auto", "saturated", "v", "extra"]
-        ),  # fmt: skip
-        st.one_of(_value, st.sampled_from(["L0", "L1", "bad/id", ""])),
+        st.sampled_from(_KEYS),
+        st.one_of(_value, st.sampled_from(["L0", "L1", "bad/id", "", 7, 2**63, 2**70])),
         max_size=9,
     ),
     _value,
@@ -175,6 +175,8 @@ def test_the_decoder_agrees_with_the_pydantic_models(items):
             assert (np.isnan(got) and value is None) or got == value
         assert decoded.rows.auto[row] == model.auto
         assert decoded.rows.saturated[row] == model.saturated
+        seq = -1 if model.applied_seq is None else min(model.applied_seq, 2**63 - 1)
+        assert decoded.rows.applied_seq[row] == seq
     assert decoded.rows.index.tolist() == sorted(accepted)
 
 

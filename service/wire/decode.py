@@ -72,6 +72,9 @@ class Columns:
     index: np.ndarray
     op: np.ndarray | None = None
     """Controller output, NaN where the sample did not carry it (identification only)."""
+    applied_seq: np.ndarray | None = None
+    """int64: seq of the last gains message the DCS applied, -1 where the sample did not
+    carry it (None: no row carried it, as for columns built without a decoder)."""
 
     def __len__(self) -> int:
         return len(self.loop_ids)
@@ -90,7 +93,9 @@ class Columns:
         return _columns([], _raw([]), [])
 
 
-_ARRAYS = ("t", "e", "sp", "kp", "ki", "auto", "saturated", "index", "op")
+_ARRAYS = ("t", "e", "sp", "kp", "ki", "auto", "saturated", "index", "op", "applied_seq")
+_SEQ_MAX = 2**63 - 1
+"""An ``applied_seq`` beyond int64 (valid JSON, never a real seq) is kept as this."""
 
 
 @dataclass
@@ -249,8 +254,9 @@ def _plain_rows(items: list) -> np.ndarray:
 
     Plain: a JSON object with a valid string ``loop_id``, ``t`` a float, ``e``/``sp``/
     ``pv``/``kp``/``ki`` floats or absent (not null), ``e`` or both ``sp`` and ``pv``,
-    booleans ``auto``/``saturated`` and integer ``v`` of this version when present, every
-    number within :data:`MAX_MAGNITUDE` and gains positive. Anything else (ints, strings,
+    booleans ``auto``/``saturated``, integer ``v`` of this version and an integer
+    ``applied_seq`` >= 0 (within int64) when present, every number within
+    :data:`MAX_MAGNITUDE` and gains positive. Anything else (ints, strings,
     nulls, ...) is for the model to judge.
     """
     if items and set(map(type, items)) == {dict} and _plain_whole(items):
@@ -273,10 +279,15 @@ def _plain_whole(items: list[dict]) -> bool:
         or set(map(type, flags["saturated"])) != _BOOL
         or set(map(type, flags["v"])) != _INT
         or set(flags["v"]) != {SCHEMA_VERSION}
+        or not all(_seq_ok(d["applied_seq"]) for d in items if "applied_seq" in d)
     ):
         return False
     cols = {k: np.array(v, dtype=np.float64) for k, v in raw.items()}  # None -> NaN
     return bool(_numbers_ok(cols).all())
+
+
+def _seq_ok(v) -> bool:
+    return type(v) is int and 0 <= v <= _SEQ_MAX  # not bool, not null: the model's to judge
 
 
 def _plain_rows_each(items: list) -> np.ndarray:
@@ -311,4 +322,9 @@ def _columns(items: list[dict], raw: dict[str, list], index) -> Columns:
         np.fromiter((d.get("saturated", False) for d in items), bool, n),
         np.asarray(list(index), np.int64).reshape(n),
         cols["op"],
+        np.fromiter(
+            (-1 if (a := d.get("applied_seq")) is None else min(a, _SEQ_MAX) for d in items),
+            np.int64,
+            n,
+        ),
     )
