@@ -12,7 +12,7 @@ import numpy as np
 
 from service.engine import rules, watch
 from service.engine.audit import audit_row
-from service.engine.modes import FROZEN
+from service.engine.modes import AUTO, FROZEN
 from service.engine.rules import GAIN_RTOL, MAX_AGENT_ERROR
 from service.engine.table import LoopTable
 from service.wire.decode import decode_objects
@@ -154,10 +154,14 @@ def _close(a: float, b: float) -> bool:
 def _adopt(tb: LoopTable, s: int, sample: Sample, wall: float) -> None:
     kp = tb.kp[s] if sample.kp is None else sample.kp
     ki = tb.ki[s] if sample.ki is None else sample.ki
+    applied = -1 if sample.applied_seq is None else sample.applied_seq
+    if tb.mode[s] == AUTO and 0 <= applied < tb.seq[s]:
+        return  # the gateway has not applied the latest update yet: it stays pending
     if _close(kp, tb.kp[s]) and _close(ki, tb.ki[s]):
         tb.pending[s] = False
         return
-    if tb.pending[s] and _close(kp, tb.prev_kp[s]) and _close(ki, tb.prev_ki[s]):
+    current = tb.mode[s] == AUTO and applied == tb.seq[s]  # then a difference is an operator's
+    if not current and tb.pending[s] and _close(kp, tb.prev_kp[s]) and _close(ki, tb.prev_ki[s]):
         return
     tb.pending[s] = False
     old = (tb.kp[s], tb.ki[s])

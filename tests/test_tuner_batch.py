@@ -68,6 +68,8 @@ def _random_batch(rng, table: LoopTable, k: float) -> list[dict]:
             item["kp"] = float(kp)
             if rng.random() < 0.7:
                 item["ki"] = float([table.ki[s], table.prev_ki[s] or 0.02, 0.05][choice])
+            if rng.random() < 0.5:  # the update the DCS applied: behind, current, ahead
+                item["applied_seq"] = max(0, int(table.seq[s]) + int(rng.integers(-2, 2)))
         if rng.random() < 0.1:
             item["auto"] = False
         if rng.random() < 0.1:

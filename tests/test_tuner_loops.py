@@ -11,6 +11,7 @@ import pytest
 
 from service.agent import untrained_agent
 from service.engine.config import LoopConfig
+from service.engine.modes import ADVISORY
 from service.engine.stepping import step
 from service.engine.table import LoopTable
 from service.wire.protocol import LoopStatus, RejectReason, Sample
@@ -210,6 +211,55 @@ def test_reported_gains_are_adopted_unless_an_update_is_in_flight():
     gains, audit = t.drain_changes()
     assert gains == [(0.5, 0.01, 1, "LIC-101")]
     assert [row[5] for row in audit] == ["adopted"]
+
+
+def _two_updates_ahead(batched: bool):
+    """A loop stepped twice (seq 2: 0.5 -> 0.6 -> 0.72) whose gateway applied neither."""
+    t, s = table(ScalingAgent(1.2))
+    feed(t, s, [0.0, 165.0])
+    step(t, np.array([s]), WALL)
+    feed(t, s, [330.0])
+    step(t, np.array([s]), WALL)
+    t.drain_changes()
+    assert int(t.seq[s]) == 2 and t.kp[s] == pytest.approx(0.72) and t.pending[s]
+    return t, s, ingest_one if batched else reference_ingest
+
+
+@pytest.mark.parametrize("batched", [False, True])
+def test_a_lagging_gateway_reporting_applied_seq_is_not_adopted(batched):
+    t, s, ingest = _two_updates_ahead(batched)
+    ingest(t, s, sample(331.0, kp=0.5, ki=0.01, applied_seq=0), WALL)  # two updates behind
+    assert t.kp[s] == pytest.approx(0.72) and t.pending[s]
+    assert t.drain_changes() == ([], [])
+    ingest(t, s, sample(332.0, kp=0.6, ki=0.012, applied_seq=1), WALL)  # one behind
+    assert t.kp[s] == pytest.approx(0.72) and t.pending[s]
+    ingest(t, s, sample(333.0, kp=0.72, ki=0.0144, applied_seq=2), WALL)  # caught up
+    assert not t.pending[s] and t.drain_changes() == ([], [])
+
+
+@pytest.mark.parametrize("batched", [False, True])
+def test_stale_gains_without_applied_seq_are_adopted_as_today(batched):
+    t, s, ingest = _two_updates_ahead(batched)
+    ingest(t, s, sample(331.0, kp=0.5, ki=0.01), WALL)  # not the gains just replaced
+    assert (t.kp[s], t.ki[s]) == (0.5, 0.01) and not t.pending[s]
+    gains, audit = t.drain_changes()
+    assert gains == [(0.5, 0.01, 2, "LIC-101")] and [row[5] for row in audit] == ["adopted"]
+
+
+@pytest.mark.parametrize("batched", [False, True])
+@pytest.mark.parametrize("advisory", [False, True])
+def test_applied_seq_equal_with_other_gains_is_an_operators_change(batched, advisory):
+    t, s, ingest = _two_updates_ahead(batched)
+    if advisory:  # advisory loops keep the rule without applied_seq: the gains just
+        t.mode[s] = ADVISORY  # replaced (0.6) are an update in flight, even at seq 2
+        ingest(t, s, sample(331.0, kp=0.6, ki=0.012, applied_seq=2), WALL)
+        assert t.kp[s] == pytest.approx(0.72) and t.pending[s]
+        return
+    # 0.6 are the gains just replaced: without applied_seq they would count as in flight
+    ingest(t, s, sample(331.0, kp=0.6, ki=0.012, applied_seq=2), WALL)
+    assert (t.kp[s], t.ki[s]) == (0.6, 0.012) and not t.pending[s]
+    gains, audit = t.drain_changes()
+    assert gains == [(0.6, 0.012, 2, "LIC-101")] and [row[5] for row in audit] == ["adopted"]
 
 
 @pytest.mark.parametrize("batched", [False, True])

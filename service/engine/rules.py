@@ -30,7 +30,11 @@ for an RL step (:mod:`service.engine.stepping` then steps it).
   state untouched and count as ``quiet``.
 * Gains the gateway reports in a sample are adopted when they differ from the tuner's
   (an operator changed them), except when they are exactly the gains an auto update
-  just replaced: then the update is still in flight and adopting would undo it.
+  just replaced: then the update is still in flight and adopting would undo it. An
+  ``auto`` loop's sample that says which update the DCS applied (``applied_seq``) is
+  judged by it instead: below the loop's seq the gateway lags (nothing adopted, the
+  update stays pending); equal, gains that differ are an operator's change (adopted)
+  and equal ones confirm the update; above the seq, the rule without it.
 
 The functions take the :class:`~service.engine.table.LoopTable` whose arrays they
 update; a scalar statement of the same rules, one sample at a time, is kept in the tests
@@ -45,7 +49,7 @@ import numpy as np
 
 from service.engine import watch
 from service.engine.audit import audit_row
-from service.engine.modes import _MODES, FROZEN
+from service.engine.modes import _MODES, AUTO, FROZEN
 from service.engine.table import LoopTable
 from service.wire.decode import Columns
 from service.wire.protocol import RejectReason
@@ -82,6 +86,8 @@ def ingest(
     """
     cols = {k: getattr(rows, k) for k in ("t", "e", "sp", "kp", "ki", "auto", "saturated")}
     cols["op"] = rows.op if rows.op is not None else np.full(len(rows), math.nan)
+    seqs = rows.applied_seq
+    cols["applied_seq"] = seqs if seqs is not None else np.full(len(rows), -1, np.int64)
     t, e = cols["t"], cols["e"]
     # a wall clock stepped back (NTP) refills nothing, and locks no loop out either
     elapsed = np.maximum(wall - tb.token_wall[slots], 0.0)
@@ -175,8 +181,16 @@ def _adopt(tb: LoopTable, slots: np.ndarray, cols: dict[str, np.ndarray], wall: 
     kp = np.where(has_kp, cols["kp"][report], cur_kp)
     ki = np.where(has_ki, cols["ki"][report], cur_ki)
     same = _close(kp, cur_kp) & _close(ki, cur_ki)
-    in_flight = (
-        ~same & tb.pending[slots] & _close(kp, tb.prev_kp[slots]) & _close(ki, tb.prev_ki[slots])
+    # an auto loop's applied_seq (-1: absent) says whether the gateway caught up
+    applied, auto = cols["applied_seq"][report], tb.mode[slots] == AUTO
+    lags = auto & (applied >= 0) & (applied < tb.seq[slots])
+    current = auto & (applied == tb.seq[slots])
+    in_flight = lags | (
+        ~same
+        & ~current
+        & tb.pending[slots]
+        & _close(kp, tb.prev_kp[slots])
+        & _close(ki, tb.prev_ki[slots])
     )
     tb.pending[slots[~in_flight]] = False
     changed = np.flatnonzero(~same & ~in_flight)
