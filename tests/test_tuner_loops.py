@@ -10,6 +10,7 @@ import orjson
 import pytest
 
 from service.agent import untrained_agent
+from service.engine import TuningEngine
 from service.engine.config import LoopConfig
 from service.engine.modes import ADVISORY
 from service.engine.stepping import step
@@ -332,6 +333,39 @@ def test_reset_and_snapshot_restore():
     assert np.all(t.hidden[s] == 0) and t.int_e[s] == 0 and math.isnan(t.last_t[s])
     assert result.t[0] == 165.0 and t.status(s, WALL) is LoopStatus.waiting
     assert not ingest_one(t, s, sample(3.0), WALL)  # the time reference starts over
+
+
+@pytest.mark.parametrize("batched", [False, True])
+def test_a_resets_t_is_the_newest_sample_accepted_since_the_last_reset(batched):
+    """docs/protocol.md (Gains): the plant time of the newest sample accepted since the
+    registration or the last reset, 0.0 if there is none."""
+    t, s = table()
+    ingest = ingest_one if batched else reference_ingest
+    assert t.reset("LIC-101", WALL).t[0] == 0.0  # nothing accepted since registration
+    for ti in (10.0, 20.0):
+        ingest(t, s, sample(ti), WALL)
+    assert t.reset("LIC-101", WALL).t[0] == 20.0
+    assert t.reset("LIC-101", WALL).t[0] == 0.0  # nothing accepted since the last reset
+    ingest(t, s, sample(5.0), WALL)  # older than before the reset: accepted, the newest
+    with contextlib.suppress(Rejected):
+        ingest(t, s, sample(4.0), WALL)  # rejected: not counted
+    assert t.reset("LIC-101", WALL).t[0] == 5.0
+    audit = t.drain_changes()[1]
+    assert [row[2] for row in audit] == [None, 20.0, None, 5.0]
+
+
+@pytest.mark.parametrize("mode", ["auto", "advisory", "frozen"])
+def test_a_reset_records_its_actor_in_the_audit_detail(mode):
+    engine = TuningEngine(untrained_agent(0))
+    engine.register(LoopConfig(**loop_body(mode=mode)), wall=WALL)
+    engine.reset("LIC-101", wall=WALL, actor="alice@console")
+    engine.reset("LIC-101", wall=WALL)  # no actor: the detail as before
+    details = [row[-1] for row in engine.drain_changes()[1] if row[5] == "reset"]
+    frozen = "agent state only: a frozen loop's gains are not published"
+    if mode == "frozen":
+        assert details == [f"{frozen}; actor=alice@console", frozen]
+    else:
+        assert details == ["actor=alice@console", ""]
 
 
 @pytest.mark.parametrize("batched", [False, True])

@@ -113,11 +113,12 @@ class TuningEngine:
             self._due.pop(self.table.slot(loop_id), None)
             self.table.remove(loop_id)
 
-    def reset(self, loop_id: str, wall: float | None = None) -> StepResult | None:
-        """A fresh episode at the registered gains (see :meth:`LoopTable.reset`)."""
+    def reset(self, loop_id: str, wall: float | None = None, actor: str = "") -> StepResult | None:
+        """A fresh episode at the registered gains (see :meth:`LoopTable.reset`); ``actor``
+        (who reset) goes into the audit row's detail."""
         with self.lock:
             self._due.pop(self.table.slot(loop_id), None)
-            return self.table.reset(loop_id, _now(wall))
+            return self.table.reset(loop_id, _now(wall), actor=actor)
 
     def identify(self, loop_id: str, wall: float | None = None) -> None:
         """Identify the loop again from scratch (``POST /loops/{id}/identify``): the

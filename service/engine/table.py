@@ -302,7 +302,7 @@ class LoopTable:
         self._gains_dirty.discard(s)
         self._free.append(s)
 
-    def reset(self, loop_id: str, wall: float) -> StepResult | None:
+    def reset(self, loop_id: str, wall: float, actor: str = "") -> StepResult | None:
         """A fresh episode and the registered gains; the result is to be published.
 
         The gains move as an agent step's would: an ``auto`` loop takes them at once, as
@@ -310,8 +310,14 @@ class LoopTable:
         must not be adopted back); an ``advisory`` loop keeps its gains until the gateway
         reports new ones. A ``frozen`` loop gets no gains messages, so only its episode
         restarts and its gains stay those in force: None, nothing to publish.
+
+        The update's ``t`` is the plant time of the newest sample accepted since the
+        registration or the last reset (0.0 if none: docs/protocol.md, Gains). ``actor``
+        (who reset, when known) is recorded as ``actor=<actor>`` in the audit row's detail,
+        after any other text with ``"; "``.
         """
         s = self.slot(loop_id)
+        who = f"actor={actor}" if actor else ""
         old = (float(self.kp[s]), float(self.ki[s]))
         new = (float(self.reg_kp[s]), float(self.reg_ki[s]))
         t = self.last_t[s]
@@ -319,9 +325,11 @@ class LoopTable:
         self._restart(s)
         mode = self.mode[s]
         if mode == FROZEN:
+            detail = "agent state only: a frozen loop's gains are not published"
+            detail = f"{detail}; {who}" if who else detail
             self._audit.append(
                 audit_row(loop_id, wall, t, int(self.seq[s]), Mode.frozen.value, "reset", old,
-                          old, "agent state only: a frozen loop's gains are not published")
+                          old, detail)
             )  # fmt: skip
             return None
         if mode == AUTO:
@@ -330,7 +338,7 @@ class LoopTable:
         self.seq[s] += 1
         self._gains_dirty.add(s)
         self._audit.append(
-            audit_row(loop_id, wall, t, int(self.seq[s]), MODE_VALUES[mode], "reset", old, new)
+            audit_row(loop_id, wall, t, int(self.seq[s]), MODE_VALUES[mode], "reset", old, new, who)
         )
         return StepResult(
             [loop_id],
