@@ -863,7 +863,7 @@ class Tuner:
             self._write_snapshot([loop_id])  # identification state is in the snapshot
             return self.table.view(loop_id, wall)
 
-    def reset(self, loop_id: str) -> LoopView:
+    def reset(self, loop_id: str, actor: str = "api") -> LoopView:
         """Zero hidden state and integral; the registered gains, published unless the loop
         is frozen (see :meth:`LoopTable.reset`). StoreUnavailable while commits fail."""
         wall = time.time()
@@ -871,7 +871,7 @@ class Tuner:
             self._known(loop_id)
             if self.store_failure is not None:
                 raise StoreUnavailable(self.store_failure)
-            self._commit(self.engine.reset(loop_id, wall))
+            self._commit(self.engine.reset(loop_id, wall, actor=actor))
             return self.table.view(loop_id, wall)
 
     def delete(self, loop_id: str) -> None:
