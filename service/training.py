@@ -48,9 +48,18 @@ from service.agent import (
     relative_to_delta,
     save_actor,
 )
-from service.env import K_RANGE, RATIO_RANGE, TAU_RANGE, EnvConfig, TuningEnv, sample_tasks
+from service.env import (
+    K_RANGE,
+    RATIO_RANGE,
+    TAU_RANGE,
+    EnvConfig,
+    TuningEnv,
+    sample_conditions,
+    sample_tasks,
+    sample_tasks_v3,
+)
 from service.evaluation import tune
-from service.oracle import oracle_gains, oracle_table
+from service.oracle import oracle_gains, oracle_gains3, oracle_table, oracle_table3
 
 
 @dataclass
@@ -85,6 +94,19 @@ class TrainConfig:
     sp_jitter: float = 0.3
     forgetting_prob: float = 0.3
     forgetting: float = 0.99
+    # v3 real-loop conditions (service.env.EnvConfig; core_share 1.0 = the paper's MDP only)
+    core_share: float = 1.0
+    noise_prob: float = 0.0
+    load_prob: float = 0.0
+    load_walk_prob: float = 0.0
+    sp_random_prob: float = 0.0
+    sp_amp_prob: float = 0.0
+    sp_long_prob: float = 0.0
+    quiet_prob: float = 0.0
+    wide_prob: float = 0.0
+    ratio_prob: float = 0.0
+    lag2_prob: float = 0.0
+    val_robust: bool = False
     # bookkeeping
     eval_every: int = 10
     eval_plants: int = 64
@@ -126,7 +148,9 @@ VAL_DRIFT_BAR = 0.1
 VAL_SETTLED_STEP = 51  # 140 time units / 2.75 per RL step
 
 
-def validate(actor: Actor, n: int, steps: int = 100, sp_jitter: float = 0.0) -> dict:
+def validate(
+    actor: Actor, n: int, steps: int = 100, sp_jitter: float = 0.0, robust: bool = False
+) -> dict:
     """The evaluation's closed-loop tuning (:func:`service.evaluation.tune`) on the
     validation set for ``steps`` RL steps, then the step test, with setpoint changes on
     the agent's clock and (if ``sp_jitter``) at arbitrary times.
@@ -146,11 +170,41 @@ def validate(actor: Actor, n: int, steps: int = 100, sp_jitter: float = 0.0) -> 
         medians.append(float(np.median(mse)))
         settled = gains[min(VAL_SETTLED_STEP, steps) :]
         drift = max(drift, float(np.max(np.abs(settled / gains[-1] - 1.0))))
-    return {
+    out = {
         "val_worst": worst,
         "val_median": max(medians),
         "val_drift": drift,
         "val_score": max(worst / VAL_MSE_BAR, drift / VAL_DRIFT_BAR),
+    }
+    if robust:
+        out.update(validate_robust(agent, (K, tau, theta)))
+        out["val_score"] = max(
+            out["val_score"],
+            out["val_r_worst"] / VAL_ROBUST_WORST_BAR,
+            out["val_r_median"] / VAL_ROBUST_MEDIAN_BAR,
+        )
+    return out
+
+
+VAL_ROBUST_WORST_BAR = 0.029
+VAL_ROBUST_MEDIAN_BAR = 0.003
+VAL_ROBUST = ("noise_0.05", "noise_0.1", "noise_0.05_lp", "load_steps", "load_walk", "sp_amp_0.2",
+              "sp_amp_3", "sp_hold_22", "sp_irregular", "tau_x2", "tau_x3", "tau_/3", "K_x3",
+              "K_/3", "ratio_2", "second_order")  # fmt: skip
+
+
+def validate_robust(agent: Agent, plants) -> dict:
+    """The robustness conditions of :mod:`service.robust_eval` (all but theta/tau = 3,
+    where even the oracle misses the bar) on the validation plants, 80 RL steps: the
+    worst and the largest median over the conditions (unstable loops count as inf)."""
+    from service.robust_eval import robust_table
+
+    table = robust_table(agent, steps=80, names=list(VAL_ROBUST), plants=plants)
+    worst = max(r["worst_mse"] if r["unstable"] == 0 else math.inf for r in table.values())
+    return {
+        "val_r_worst": worst,
+        "val_r_median": max(r["median_mse"] for r in table.values()),
+        "val_r_which": max(table, key=lambda k: table[k]["worst_mse"]),
     }
 
 
@@ -168,8 +222,13 @@ class Trainer:
         self.opt_bc = torch.optim.Adam(self.actor.parameters(), lr=cfg.bc_lr)
         self.opt_pi = torch.optim.Adam(self.actor.parameters(), lr=cfg.pi_lr)
         self.opt_v = torch.optim.Adam(self.critic.parameters(), lr=cfg.v_lr)
-        self.env_cfg = EnvConfig(drift_prob=cfg.drift_prob, sp_jitter=cfg.sp_jitter)
-        self.table = oracle_table()
+        v3 = ("core_share", "noise_prob", "load_prob", "load_walk_prob", "sp_random_prob",
+              "sp_amp_prob", "sp_long_prob", "quiet_prob", "wide_prob", "ratio_prob", "lag2_prob")  # fmt: skip
+        self.env_cfg = EnvConfig(
+            drift_prob=cfg.drift_prob, sp_jitter=cfg.sp_jitter, **{k: getattr(cfg, k) for k in v3}
+        )
+        self.real = cfg.core_share < 1.0  # v3: real-loop conditions and the widened oracle
+        self.table = oracle_table3() if self.real else oracle_table()
         self.epoch = 0
         self.elapsed = 0.0
         self.best = math.inf
@@ -225,7 +284,12 @@ class Trainer:
         """Run ``n`` episodes; ``explore`` None samples the policy, else mean + N(0, explore)."""
         cfg = self.cfg
         env = TuningEnv(self.env_cfg, self.rng)
-        obs = env.reset(*sample_tasks(n, self.rng), horizon=horizon)
+        if self.real:
+            K, tau, theta, tau2, core = sample_tasks_v3(n, self.rng, self.env_cfg)
+            cond = sample_conditions(n, self.rng, self.env_cfg, core)
+            obs = env.reset(K, tau, theta, horizon=horizon, tau2=tau2, conditions=cond)
+        else:
+            obs = env.reset(*sample_tasks(n, self.rng), horizon=horizon)
         gamma_np = self._episode_forgetting(n)
         dev = self.device
         gamma = torch.as_tensor(gamma_np, dtype=torch.float32, device=dev).view(1, -1, 1)
@@ -244,7 +308,11 @@ class Trainer:
                     buf["logp"].append(dist.log_prob(a).sum(-1))
                 else:
                     a = mean + explore * torch.randn_like(mean)
-                target = oracle_gains(self.table, env.K, env.tau, env.theta)
+                if self.real:  # hold the gains until a setpoint move has been seen
+                    target = oracle_gains3(self.table, env.K, env.tau, env.theta, env.tau2)
+                    target = np.where(env.excited[:, None], target, obs[:, :2])
+                else:
+                    target = oracle_gains(self.table, env.K, env.tau, env.theta)
                 label = np.clip(
                     cfg.bc_label_gain * np.log(target / obs[:, :2]), -MAX_LOG_STEP, MAX_LOG_STEP
                 )
@@ -349,7 +417,7 @@ class Trainer:
         columns = [
             "epoch", "phase", "wall_s", "mean_cost", "final_mse", "bc_loss", "kl",
             "pi_iters", "pi_loss", "v_loss", "val_worst", "val_median", "val_drift",
-            "val_score",
+            "val_r_worst", "val_r_median", "val_r_which", "val_score",
         ]  # fmt: skip
         new_log = not log_path.exists()
         last_ckpt = time.monotonic()
@@ -370,7 +438,15 @@ class Trainer:
                     row = self.ppo_epoch(self.epoch >= cfg.bc_epochs + cfg.value_warmup)
                 self.epoch += 1
                 if self.epoch % cfg.eval_every == 0 or self.epoch == total:
-                    row.update(validate(self.actor, cfg.eval_plants, cfg.eval_steps, cfg.sp_jitter))
+                    row.update(
+                        validate(
+                            self.actor,
+                            cfg.eval_plants,
+                            cfg.eval_steps,
+                            cfg.sp_jitter,
+                            cfg.val_robust,
+                        )
+                    )
                     if row["val_score"] < self.best:
                         self.best = row["val_score"]
                         save_actor(self.actor, self.out / "best.pt", self.card_meta(row))
@@ -427,7 +503,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--export", type=Path, default=None, help="after training, copy OUT/best.pt to this path"
     )
     for f in fields(TrainConfig):
-        p.add_argument(f"--{f.name.replace('_', '-')}", type=type(f.default), default=f.default)
+        kind = type(f.default)
+        if kind is bool:
+            kind = lambda v: v.lower() in ("1", "true", "yes")  # noqa: E731
+        p.add_argument(f"--{f.name.replace('_', '-')}", type=kind, default=f.default)
 
 
 def run(args: argparse.Namespace) -> int:
