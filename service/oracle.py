@@ -112,10 +112,9 @@ def batch_oracle(K, tau, theta, tau2=0.0, *, tol: float = 0.003, max_iter: int =
         if live.size == 0:
             break
         cand = z[live, None, :] + step[live, None, None] * dirs[None]  # (m, 8, 2)
-        rep = lambda a: np.repeat(a[live], len(dirs))  # noqa: E731
-        mse = step_test_mse2(
-            rep(K), rep(tau), rep(theta), *np.exp(cand.reshape(-1, 2)).T, rep(tau2)
-        ).reshape(-1, len(dirs))
+        Kr, taur, thetar, tau2r = (np.repeat(a[live], len(dirs)) for a in (K, tau, theta, tau2))
+        kp, ki = np.exp(cand.reshape(-1, 2)).T
+        mse = step_test_mse2(Kr, taur, thetar, kp, ki, tau2r).reshape(-1, len(dirs))
         j = np.argmin(mse, axis=1)
         m = mse[np.arange(live.size), j]
         better = m < best[live]

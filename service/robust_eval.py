@@ -184,8 +184,8 @@ def long_run(agent, *, steps: int = 400) -> dict:
     """400 RL steps, forgetting 0.99, noise 0.05, irregular setpoints: gain wander."""
     K, tau, theta = robust_grid()
     n = K.size
-    case = {"K": K, "tau": tau, "theta": theta, "tau2": np.zeros(n),
-            "cond": {"noise": np.full(n, 0.05), "sp_random": np.ones(n, bool), "sp_hold": np.full(n, 4.0)}}  # fmt: skip
+    cond = {"noise": np.full(n, 0.05), "sp_random": np.ones(n, bool), "sp_hold": np.full(n, 4.0)}
+    case = {"K": K, "tau": tau, "theta": theta, "tau2": np.zeros(n), "cond": cond}
     gains = run_batch(agent, case, steps=steps, forgetting=0.99)
     late = gains[steps // 2 :]
     wander = np.max(np.abs(late / late.mean(0) - 1), axis=(0, 2))
@@ -228,30 +228,30 @@ def render(m: dict, label: str = "") -> str:
     if "long_run" in m:
         lr = m["long_run"]
         lines.append(
-            f"\nlong run (400 steps, noise 0.05, irregular): wander worst {100 * lr['wander_worst']:.0f}% "
-            f"median {100 * lr['wander_median']:.0f}% (bar 15%); final MSE worst {lr['worst_mse']:.4f} "
-            f"median {lr['median_mse']:.5f}, unstable {lr['unstable']}"
+            "\nlong run (400 steps, noise 0.05, irregular): wander worst "
+            f"{100 * lr['wander_worst']:.0f}% median {100 * lr['wander_median']:.0f}% (bar 15%); "
+            f"final MSE worst {lr['worst_mse']:.4f} median {lr['median_mse']:.5f}, "
+            f"unstable {lr['unstable']}"
         )
     q = m["quiet"]
     lines.append(
-        f"\nquiet loop (noise 0.05, load steps, 100 steps): gain change worst {100 * q['change_worst']:.0f}% "
-        f"median {100 * q['change_median']:.0f}% (bar 10%)"
+        "\nquiet loop (noise 0.05, load steps, 100 steps): gain change worst "
+        f"{100 * q['change_worst']:.0f}% median {100 * q['change_median']:.0f}% (bar 10%)"
     )
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> int:
-    """``python -m service.robust_eval [--weights W] [--quick] [--out DIR]``: prints the
-    table and writes DIR/robust.json and DIR/robust.md (hook for ``pitune evaluate --robust``)."""
-    import argparse
+def add_arguments(p) -> None:
+    """Arguments of the robustness evaluation (to wire as ``pitune evaluate --robust``)."""
+    p.add_argument("--weights", type=Path, default=None, help="agent file (default: shipped)")
+    p.add_argument("--quick", action="store_true", help="skip the 400-step long run")
+    p.add_argument("--out", type=Path, default=None, help="write robust.json and robust.md here")
 
+
+def run(args) -> int:
+    """Print the robustness table; with ``--out`` also write DIR/robust.json and robust.md."""
     from service.agent import load_agent
 
-    p = argparse.ArgumentParser()
-    p.add_argument("--weights", type=Path, default=None)
-    p.add_argument("--quick", action="store_true")
-    p.add_argument("--out", type=Path, default=None)
-    args = p.parse_args(argv)
     agent = load_agent(args.weights) if args.weights else load_agent()
     m = evaluate_robust(agent, quick=args.quick)
     text = render(m, str(args.weights or "shipped"))
@@ -263,5 +263,9 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-if __name__ == "__main__":
-    raise SystemExit(main())
+if __name__ == "__main__":  # python -m service.robust_eval [--weights W] [--quick] [--out DIR]
+    import argparse
+
+    parser = argparse.ArgumentParser(description="robustness table (issue 12)")
+    add_arguments(parser)
+    raise SystemExit(run(parser.parse_args()))
