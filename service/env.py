@@ -87,7 +87,7 @@ class EnvConfig:
     sp_long_prob: float = 0.0
     """Share of toggle episodes with a long period, U[11, 55] time units (4-20 RL periods)."""
     quiet_prob: float = 0.0
-    """Share starting quiet: setpoint at the plant's value, no move for 5-40 RL periods."""
+    """Share starting quiet: setpoint at the plant's value, no move for 5-100 RL periods."""
     wide_prob: float = 0.0
     """Share whose K and tau are each multiplied (p 0.5 each) by a factor log-U[1/3, 3]."""
     ratio_max: float = 2.0
@@ -145,7 +145,7 @@ def sample_conditions(n: int, rng: np.random.Generator, cfg: EnvConfig, core: np
         "sp_hold": U(1.0, 8.0),
         "sp_ramp": np.where(sp_random, 0.2, 0.0),
         "sp_period": np.where(pick(cfg.sp_long_prob), U(11.0, 55.0), cfg.sp_period),
-        "quiet": np.where(pick(cfg.quiet_prob), U(5.0, 40.0) * cfg.rl_period, 0.0),
+        "quiet": np.where(pick(cfg.quiet_prob), U(5.0, 100.0) * cfg.rl_period, 0.0),
     }
 
 

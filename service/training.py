@@ -50,6 +50,8 @@ from service.agent import (
 )
 from service.env import (
     K_RANGE,
+    KI0,
+    KP0,
     RATIO_RANGE,
     TAU_RANGE,
     EnvConfig,
@@ -106,6 +108,7 @@ class TrainConfig:
     wide_prob: float = 0.0
     ratio_prob: float = 0.0
     lag2_prob: float = 0.0
+    init_gain_prob: float = 0.0  # share of the rest starting at the oracle x log-U[1/3, 3]
     val_robust: bool = False
     # bookkeeping
     eval_every: int = 10
@@ -288,7 +291,14 @@ class Trainer:
         if self.real:
             K, tau, theta, tau2, core = sample_tasks_v3(n, self.rng, self.env_cfg)
             cond = sample_conditions(n, self.rng, self.env_cfg, core)
-            obs = env.reset(K, tau, theta, horizon=horizon, tau2=tau2, conditions=cond)
+            # a share of the real-loop episodes starts from someone's gains, not 0.05
+            g0 = oracle_gains3(self.table, K, tau, theta, tau2)
+            g0 = g0 * np.exp(self.rng.uniform(-np.log(3), np.log(3), (n, 2)))
+            mine = ~core & (self.rng.random(n) < cfg.init_gain_prob)
+            kp0, ki0 = np.where(mine[:, None], g0, [KP0, KI0]).T
+            obs = env.reset(
+                K, tau, theta, horizon=horizon, tau2=tau2, conditions=cond, kp0=kp0, ki0=ki0
+            )
         else:
             obs = env.reset(*sample_tasks(n, self.rng), horizon=horizon)
         gamma_np = self._episode_forgetting(n)
