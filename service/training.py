@@ -110,6 +110,7 @@ class TrainConfig:
     lag2_prob: float = 0.0
     init_gain_prob: float = 0.0  # share of the rest starting at the oracle x log-U[1/3, 3]
     val_robust: bool = False
+    keep_validated: bool = False
     # bookkeeping
     eval_every: int = 10
     eval_plants: int = 64
@@ -458,6 +459,10 @@ class Trainer:
                             cfg.val_robust,
                         )
                     )
+                    if cfg.keep_validated:  # every validated actor, for a final pick
+                        save_actor(
+                            self.actor, self.out / f"val_{self.epoch:04d}.pt", self.card_meta(row)
+                        )
                     if row["val_score"] < self.best:
                         self.best = row["val_score"]
                         save_actor(self.actor, self.out / "best.pt", self.card_meta(row))
