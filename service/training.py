@@ -75,6 +75,7 @@ class TrainConfig:
     bc_explore: float = 0.1
     bc_lr: float = 1e-3
     bc_label_gain: float = 1.0
+    bc_hold_weight: float = 1.0  # loss weight of the hold label on quiet steps (v3)
     # PPO (paper: 300 episodes an epoch, 40 steps, gamma 0.99, lambda 0.95, ...)
     epochs: int = 200
     episodes: int = 300
@@ -306,7 +307,7 @@ class Trainer:
         dev = self.device
         gamma = torch.as_tensor(gamma_np, dtype=torch.float32, device=dev).view(1, -1, 1)
         h = torch.zeros(self.actor.cfg.layers, n, self.actor.cfg.hidden, device=dev)
-        keys = ("obs", "act", "logp", "cost", "mse", "priv", "deep", "label")
+        keys = ("obs", "act", "logp", "cost", "mse", "priv", "deep", "label", "weight")
         buf = {k: [] for k in keys}
         std = self.actor.log_std.exp()
         with torch.no_grad():
@@ -329,6 +330,10 @@ class Trainer:
                     cfg.bc_label_gain * np.log(target / obs[:, :2]), -MAX_LOG_STEP, MAX_LOG_STEP
                 )
                 buf["label"].append(torch.as_tensor(label, dtype=torch.float32, device=dev))
+                # hold steps (no setpoint move seen yet): any bias there accumulates over
+                # a long quiet stretch, so they weigh bc_hold_weight in the loss
+                w = np.where(env.excited, 1.0, cfg.bc_hold_weight) if self.real else np.ones(n)
+                buf["weight"].append(torch.as_tensor(w, dtype=torch.float32, device=dev))
                 buf["obs"].append(o)
                 buf["act"].append(a)
                 buf["priv"].append(torch.as_tensor(env.privileged, dtype=torch.float32, device=dev))
@@ -353,7 +358,8 @@ class Trainer:
             order = torch.randperm(cfg.episodes, device=self.device)
             for idx in order.split(cfg.bc_minibatch):
                 mean, _ = unroll(self.actor, batch["obs"][:, idx], batch["gamma"][idx])
-                loss = ((mean - batch["label"][:, idx]) ** 2).mean()
+                w = batch["weight"][:, idx, None]
+                loss = (w * (mean - batch["label"][:, idx]) ** 2).mean()
                 self.opt_bc.zero_grad()
                 loss.backward()
                 nn.utils.clip_grad_norm_(self.actor.parameters(), cfg.max_grad_norm)
