@@ -9,7 +9,10 @@ discretised exactly under a zero-order hold at the control interval ``dt``:
     x[k+1] = a x[k] + K (1 - a) u[k - d],     a = exp(-dt / tau),   d = round(theta / dt)
 
 so a piecewise-constant input gives the continuous-time response at the sample
-instants, and the dead time is exact to one ``dt``. The delay line is a ring buffer of
+instants, and the dead time is exact to one ``dt``. Optionally (``tau2`` > 0) a second
+lag 1/(tau2 s + 1) follows the first (a second-order plus dead-time plant), advanced
+as z[k+1] = a2 z[k] + (1 - a2) x[k+1], a2 = exp(-dt / tau2), accurate to one ``dt``;
+``tau2`` = 0 is the plain FOPTD plant, bit for bit. The delay line is a ring buffer of
 past inputs shared by all plants (each plant reads it at its own lag).
 
 Units are whatever the caller uses consistently: time in the same unit as ``tau``,
@@ -54,6 +57,8 @@ class FOPTDBatch:
         Standard deviation of white measurement noise added by :meth:`measure`.
     seed:
         Seed (or ``numpy.random.Generator``) for the measurement noise.
+    tau2:
+        Time constant of an optional second lag in series (0: none, the default).
     """
 
     def __init__(
@@ -67,6 +72,7 @@ class FOPTDBatch:
         max_theta: float | None = None,
         noise_std: ArrayLike = 0.0,
         seed: int | np.random.Generator | None = None,
+        tau2: ArrayLike = 0.0,
     ) -> None:
         if dt <= 0:
             raise ValueError("dt must be positive")
@@ -80,6 +86,12 @@ class FOPTDBatch:
         self._ptr = 0
         self._rows = np.arange(self.n)
         self.x = np.zeros(self.n)
+        self.x1 = self.x  # state of the first lag (the output unless a second lag follows)
+        self.tau2 = _as_batch(tau2, self.n, "tau2")
+        if np.any(self.tau2 < 0):
+            raise ValueError("tau2 must be non-negative")
+        self.lag2 = bool(np.any(self.tau2 > 0))
+        self.a2 = np.exp(-self.dt / np.where(self.tau2 > 0, self.tau2, 1.0))
         self.noise_std = _as_batch(noise_std, self.n, "noise_std")
         self.rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
         self.set_params(K=K, tau=tau, theta=theta_arr)
@@ -119,6 +131,7 @@ class FOPTDBatch:
         """Put every plant at steady state with output ``y0`` (input y0/K held forever)."""
         y0 = _as_batch(y0, self.n, "y0")
         self.x = y0.copy()
+        self.x1 = self.x.copy() if self.lag2 else self.x
         self._buf[:] = (y0 / self.K)[:, None]
 
     def output(self) -> np.ndarray:
@@ -139,7 +152,13 @@ class FOPTDBatch:
         self._buf[:, self._ptr] = u
         delayed = self._buf[self._rows, (self._ptr - self.delay) % self._buf.shape[1]]
         self._ptr = (self._ptr + 1) % self._buf.shape[1]
-        self.x = self.a * self.x + self.b * delayed
+        if not self.lag2:
+            self.x = self.a * self.x + self.b * delayed
+            self.x1 = self.x
+            return self.x
+        self.x1 = self.a * self.x1 + self.b * delayed
+        lagged = self.a2 * self.x + (1.0 - self.a2) * self.x1
+        self.x = np.where(self.tau2 > 0, lagged, self.x1)
         return self.x
 
 

@@ -50,9 +50,25 @@ from service.agent.model import (
     save_actor,
 )
 from service.learn.closed_loop import tune
-from service.learn.env import K_RANGE, RATIO_RANGE, TAU_RANGE, EnvConfig, TuningEnv, sample_tasks
-from service.learn.oracle import oracle_gains, oracle_table
-from service.units import DEFAULT_FORGETTING, RL_STEP_AGENT_UNITS
+from service.learn.env import (
+    CONDITIONS,
+    K_RANGE,
+    RATIO_RANGE,
+    TAU_RANGE,
+    EnvConfig,
+    TuningEnv,
+    sample_conditions,
+    sample_tasks,
+    sample_tasks_v3,
+)
+from service.learn.oracle import (
+    oracle_gains,
+    oracle_gains3,
+    oracle_table,
+    oracle_table3,
+    step_test_mse2,
+)
+from service.units import AGENT_KI0, AGENT_KP0, DEFAULT_FORGETTING, RL_STEP_AGENT_UNITS
 
 
 @dataclass
@@ -76,6 +92,8 @@ class TrainConfig:
     """Adam learning rate of the imitation updates."""
     bc_label_gain: float = 1.0
     """Label = this share of the log-distance to the oracle's gains (clipped to one step)."""
+    bc_hold_weight: float = 1.0
+    """Loss weight of the hold label on quiet steps (no setpoint move seen yet; v3)."""
     # PPO (paper: 300 episodes an epoch, 40 steps, gamma 0.99, lambda 0.95, ...)
     epochs: int = 200
     """PPO epochs (policy updates) after the value warm-up."""
@@ -116,6 +134,35 @@ class TrainConfig:
     """Share of episodes run with the forgetting factor below; the rest with 1."""
     forgetting: float = DEFAULT_FORGETTING
     """The forgetting factor used online."""
+    # v3 real-loop conditions (service.learn.env.EnvConfig; core_share 1.0 = the paper's MDP)
+    core_share: float = 1.0
+    """Share of episodes exactly as the paper's MDP; below 1 turns on the v3 distribution."""
+    noise_prob: float = 0.0
+    """Share of the other episodes with measurement noise (EnvConfig.noise_prob)."""
+    load_prob: float = 0.0
+    """Share of the other episodes with input load steps (EnvConfig.load_prob)."""
+    load_walk_prob: float = 0.0
+    """Share of the other episodes with a slow load random walk (EnvConfig.load_walk_prob)."""
+    sp_random_prob: float = 0.0
+    """Share of the other episodes with random setpoint moves (EnvConfig.sp_random_prob)."""
+    sp_amp_prob: float = 0.0
+    """Share of the other toggle episodes with a random amplitude (EnvConfig.sp_amp_prob)."""
+    sp_long_prob: float = 0.0
+    """Share of the other toggle episodes with a long period (EnvConfig.sp_long_prob)."""
+    quiet_prob: float = 0.0
+    """Share of the other episodes starting quiet (EnvConfig.quiet_prob)."""
+    wide_prob: float = 0.0
+    """Share of the other episodes with K and tau off the hint by up to 3x (EnvConfig)."""
+    ratio_prob: float = 0.0
+    """Share of the other episodes with theta/tau up to 2 (EnvConfig.ratio_prob)."""
+    lag2_prob: float = 0.0
+    """Share of the other episodes with a second-order plant (EnvConfig.lag2_prob)."""
+    init_gain_prob: float = 0.0
+    """Share of the other episodes starting at the oracle's gains x log-U[1/3, 3]."""
+    val_robust: bool = False
+    """Validation also scores the v3 robustness conditions (:func:`validate_robust`)."""
+    keep_validated: bool = False
+    """Save every validated actor as OUT/val_EPOCH.pt (for a final pick)."""
     # bookkeeping
     eval_every: int = 10
     """Validate (and maybe keep ``best.pt``) every this many epochs."""
@@ -201,7 +248,9 @@ VAL_SETTLED_STEP = math.ceil(VAL_SETTLED_TIME / RL_STEP_AGENT_UNITS)
 """The first RL step at or after :data:`VAL_SETTLED_TIME` (agent time units)."""
 
 
-def validate(actor: Actor, n: int, steps: int = 100, sp_jitter: float = 0.0) -> dict:
+def validate(
+    actor: Actor, n: int, steps: int = 100, sp_jitter: float = 0.0, robust: bool = False
+) -> dict:
     """The evaluation's closed-loop tuning (:func:`service.learn.closed_loop.tune`) on the
     validation set for ``steps`` RL steps, then the step test, with setpoint changes on
     the agent's clock and (if ``sp_jitter``) at arbitrary times.
@@ -221,11 +270,90 @@ def validate(actor: Actor, n: int, steps: int = 100, sp_jitter: float = 0.0) -> 
         medians.append(float(np.median(mse)))
         settled = gains[min(VAL_SETTLED_STEP, steps) :]
         drift = max(drift, float(np.max(np.abs(settled / gains[-1] - 1.0))))
-    return {
+    out = {
         "val_worst": worst,
         "val_median": max(medians),
         "val_drift": drift,
         "val_score": max(worst / VAL_MSE_BAR, drift / VAL_DRIFT_BAR),
+    }
+    if robust:
+        out.update(validate_robust(agent, (K, tau, theta)))
+        out["val_score"] = max(
+            out["val_score"],
+            out["val_r_worst"] / VAL_ROBUST_WORST_BAR,
+            out["val_r_median"] / VAL_ROBUST_MEDIAN_BAR,
+        )
+    return out
+
+
+VAL_ROBUST_WORST_BAR = 0.029
+VAL_ROBUST_MEDIAN_BAR = 0.003
+VAL_ROBUST_STEPS = 80
+
+
+def robust_cases(K, tau, theta) -> dict[str, dict]:
+    """The v3 robustness conditions of the validation, one at a time on the plants
+    (K, tau, theta): name -> {K, tau, theta, tau2 (the true plant), cond (the
+    :data:`~service.learn.env.CONDITIONS` of :meth:`TuningEnv.reset`)}."""
+    n = K.size
+    full = lambda v: np.full(n, v, dtype=float)  # noqa: E731
+    base = {"K": K, "tau": tau, "theta": theta, "tau2": np.zeros(n), "cond": {}}
+    periodic = {"load_step": full(0.5), "load_every": full(7.0), "load_periodic": np.ones(n, bool)}
+    return {
+        "noise_0.05": base | {"cond": {"noise": full(0.05)}},
+        "noise_0.1": base | {"cond": {"noise": full(0.1)}},
+        "noise_0.05_lp": base | {"cond": {"noise": full(0.05), "noise_tf": full(0.1)}},
+        "load_steps": base | {"cond": periodic},
+        "load_walk": base | {"cond": {"load_walk": full(0.25)}},
+        "sp_amp_0.2": base | {"cond": {"sp_amp": full(0.2)}},
+        "sp_amp_3": base | {"cond": {"sp_amp": full(3.0)}},
+        "sp_hold_22": base | {"cond": {"sp_period": full(22.0)}},
+        "sp_irregular": base | {"cond": {"sp_random": np.ones(n, bool), "sp_hold": full(4.0)}},
+        "tau_x2": base | {"tau": 2 * tau},
+        "tau_x3": base | {"tau": 3 * tau},
+        "tau_/3": base | {"tau": tau / 3},
+        "K_x3": base | {"K": 3 * K},
+        "K_/3": base | {"K": K / 3},
+        "ratio_2": base | {"theta": 2 * tau},
+        "second_order": base | {"tau2": 0.3 * tau},
+    }
+
+
+def validate_robust(agent: Agent, plants, steps: int = VAL_ROBUST_STEPS) -> dict:
+    """The v3 robustness conditions (:func:`robust_cases`) on the validation plants, all
+    in one :class:`TuningEnv` batch from the default gains for ``steps`` RL steps
+    (forgetting 1), the final gains scored by the step test on the true plant
+    (:func:`~service.learn.oracle.step_test_mse2`; unstable loops give inf). Returns the
+    worst and the largest median over the conditions, and the worst condition's name.
+    (The full robustness suite, through the tuning engine, is ``pitune evaluate --robust``.)
+    """
+    cases = robust_cases(*plants)
+    names = list(cases)
+    m = plants[0].size
+    batch = {k: np.concatenate([cases[c][k] for c in names]) for k in ("K", "tau", "theta", "tau2")}
+    cond = {}
+    for key in {k for c in cases.values() for k in c["cond"]}:
+        neutral = CONDITIONS[key][0]
+        cond[key] = np.concatenate(
+            [np.broadcast_to(cases[c]["cond"].get(key, neutral), (m,)) for c in names]
+        )
+    env = TuningEnv(EnvConfig(init_noise=0.0), np.random.default_rng(0))
+    sp0 = cond.get("sp_amp", np.ones(batch["K"].size))
+    obs = env.reset(
+        batch["K"], batch["tau"], batch["theta"], horizon=steps, sp0=sp0, tau2=batch["tau2"],
+        conditions=cond,
+    )  # fmt: skip
+    state = agent.initial_state(batch["K"].size)
+    for _ in range(steps):
+        delta, state = agent.act(obs, state)
+        obs, _, _ = env.step(delta)
+    mse = step_test_mse2(batch["K"], batch["tau"], batch["theta"], *obs[:, :2].T, batch["tau2"])
+    mse = np.where(np.isfinite(mse), mse, math.inf).reshape(len(names), m)
+    worst = mse.max(axis=1)
+    return {
+        "val_r_worst": float(worst.max()),
+        "val_r_median": float(np.median(mse, axis=1).max()),
+        "val_r_which": names[int(np.argmax(worst))],
     }
 
 
@@ -243,8 +371,14 @@ class Trainer:
         self.opt_bc = torch.optim.Adam(self.actor.parameters(), lr=cfg.bc_lr)
         self.opt_pi = torch.optim.Adam(self.actor.parameters(), lr=cfg.pi_lr)
         self.opt_v = torch.optim.Adam(self.critic.parameters(), lr=cfg.v_lr)
-        self.env_cfg = EnvConfig(drift_prob=cfg.drift_prob, sp_jitter=cfg.sp_jitter)
-        self.table = oracle_table()
+        v3 = ("core_share", "noise_prob", "load_prob", "load_walk_prob", "sp_random_prob",
+              "sp_amp_prob", "sp_long_prob", "quiet_prob", "wide_prob", "ratio_prob",
+              "lag2_prob")  # fmt: skip
+        self.env_cfg = EnvConfig(
+            drift_prob=cfg.drift_prob, sp_jitter=cfg.sp_jitter, **{k: getattr(cfg, k) for k in v3}
+        )
+        self.real = cfg.core_share < 1.0  # v3: real-loop conditions and the widened oracle
+        self.table = oracle_table3() if self.real else oracle_table()
         self.epoch = 0
         self.elapsed = 0.0
         self.best = math.inf
@@ -300,11 +434,23 @@ class Trainer:
         """Run ``n`` episodes; ``explore`` None samples the policy, else mean + N(0, explore)."""
         cfg = self.cfg
         env = TuningEnv(self.env_cfg, self.rng)
-        obs = env.reset(*sample_tasks(n, self.rng), horizon=horizon)
+        if self.real:
+            K, tau, theta, tau2, core = sample_tasks_v3(n, self.rng, self.env_cfg)
+            cond = sample_conditions(n, self.rng, self.env_cfg, core)
+            # a share of the real-loop episodes starts from someone's gains, not 0.05
+            g0 = oracle_gains3(self.table, K, tau, theta, tau2)
+            g0 = g0 * np.exp(self.rng.uniform(-np.log(3), np.log(3), (n, 2)))
+            mine = ~core & (self.rng.random(n) < cfg.init_gain_prob)
+            kp0, ki0 = np.where(mine[:, None], g0, [AGENT_KP0, AGENT_KI0]).T
+            obs = env.reset(
+                K, tau, theta, horizon=horizon, tau2=tau2, conditions=cond, kp0=kp0, ki0=ki0
+            )
+        else:
+            obs = env.reset(*sample_tasks(n, self.rng), horizon=horizon)
         dev = self.device
         forgetting = torch.as_tensor(self._episode_forgetting(n), dtype=torch.float32, device=dev)
         h = torch.zeros(self.actor.cfg.layers, n, self.actor.cfg.hidden, device=dev)
-        keys = ("obs", "act", "logp", "cost", "mse", "priv", "deep", "label")
+        keys = ("obs", "act", "logp", "cost", "mse", "priv", "deep", "label", "weight")
         buf = {k: [] for k in keys}
         std = self.actor.log_std.exp()
         with torch.no_grad():
@@ -318,11 +464,19 @@ class Trainer:
                     buf["logp"].append(dist.log_prob(a).sum(-1))
                 else:
                     a = mean + explore * torch.randn_like(mean)
-                target = oracle_gains(self.table, env.K, env.tau, env.theta)
+                if self.real:  # hold the gains until a setpoint move has been seen
+                    target = oracle_gains3(self.table, env.K, env.tau, env.theta, env.tau2)
+                    target = np.where(env.excited[:, None], target, obs[:, :2])
+                else:
+                    target = oracle_gains(self.table, env.K, env.tau, env.theta)
                 label = np.clip(
                     cfg.bc_label_gain * np.log(target / obs[:, :2]), -MAX_LOG_STEP, MAX_LOG_STEP
                 )
                 buf["label"].append(torch.as_tensor(label, dtype=torch.float32, device=dev))
+                # hold steps (no setpoint move seen yet): any bias there accumulates over
+                # a long quiet stretch, so they weigh bc_hold_weight in the loss
+                w = np.where(env.excited, 1.0, cfg.bc_hold_weight) if self.real else np.ones(n)
+                buf["weight"].append(torch.as_tensor(w, dtype=torch.float32, device=dev))
                 buf["obs"].append(o)
                 buf["act"].append(a)
                 buf["priv"].append(torch.as_tensor(env.privileged, dtype=torch.float32, device=dev))
@@ -347,7 +501,8 @@ class Trainer:
             order = torch.randperm(cfg.episodes, device=self.device)
             for idx in order.split(cfg.bc_minibatch):
                 mean, _ = unroll(self.actor, batch["obs"][:, idx], batch["forgetting"][idx])
-                loss = ((mean - batch["label"][:, idx]) ** 2).mean()
+                w = batch["weight"][:, idx, None]
+                loss = (w * (mean - batch["label"][:, idx]) ** 2).mean()
                 self.opt_bc.zero_grad()
                 loss.backward()
                 nn.utils.clip_grad_norm_(self.actor.parameters(), cfg.max_grad_norm)
@@ -414,7 +569,7 @@ class Trainer:
         columns = [
             "epoch", "phase", "wall_s", "mean_cost", "final_mse", "bc_loss", "kl",
             "pi_iters", "pi_loss", "v_loss", "val_worst", "val_median", "val_drift",
-            "val_score",
+            "val_r_worst", "val_r_median", "val_r_which", "val_score",
         ]  # fmt: skip
         new_log = not log_path.exists()
         last_ckpt = time.monotonic()
@@ -435,7 +590,19 @@ class Trainer:
                     row = self.ppo_epoch(self.epoch >= cfg.bc_epochs + cfg.value_warmup)
                 self.epoch += 1
                 if self.epoch % cfg.eval_every == 0 or self.epoch == total:
-                    row.update(validate(self.actor, cfg.eval_plants, cfg.eval_steps, cfg.sp_jitter))
+                    row.update(
+                        validate(
+                            self.actor,
+                            cfg.eval_plants,
+                            cfg.eval_steps,
+                            cfg.sp_jitter,
+                            cfg.val_robust,
+                        )
+                    )
+                    if cfg.keep_validated:  # every validated actor, for a final pick
+                        save_actor(
+                            self.actor, self.out / f"val_{self.epoch:04d}.pt", self.card_meta(row)
+                        )
                     if row["val_score"] < self.best:
                         self.best = row["val_score"]
                         save_actor(self.actor, self.out / "best.pt", self.card_meta(row))
@@ -530,7 +697,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--export", type=Path, default=None, help="after training, copy OUT/best.pt to this path"
     )
     for f in fields(TrainConfig):
-        p.add_argument(f"--{f.name.replace('_', '-')}", type=type(f.default), default=f.default)
+        kind = type(f.default)
+        if kind is bool:
+            kind = lambda v: v.lower() in ("1", "true", "yes")  # noqa: E731
+        p.add_argument(f"--{f.name.replace('_', '-')}", type=kind, default=f.default)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -1,0 +1,140 @@
+"""v3: real-loop conditions of the training environment, the widened oracle and the
+training features (init_gain_prob, bc_hold_weight, val_robust)."""
+
+import numpy as np
+import pytest
+
+from plant_sim.foptd import FOPTDBatch
+from plant_sim.loop import step_test_mse
+from service.agent import load_agent
+from service.learn.env import (
+    EnvConfig,
+    TuningEnv,
+    sample_conditions,
+    sample_tasks,
+    sample_tasks_v3,
+)
+from service.learn.oracle import (
+    ORACLE3_LAG2,
+    ORACLE3_RATIOS,
+    ORACLE3_TAUS,
+    batch_oracle,
+    oracle_gains,
+    oracle_gains3,
+    oracle_table,
+    oracle_table3,
+    step_test_mse2,
+)
+from service.learn.train import TrainConfig, Trainer, validate_robust
+
+
+def test_second_lag_is_off_by_default_and_follows_the_analytic_response():
+    u = np.ones(300)
+    plain, zero = FOPTDBatch(0.7, 0.5, 0.1), FOPTDBatch(0.7, 0.5, 0.1, tau2=0.0)
+    np.testing.assert_array_equal([plain.step(v) for v in u], [zero.step(v) for v in u])
+    tau, tau2, dt = 0.5, 0.2, 0.01
+    plant = FOPTDBatch(1.0, tau, 0.0, dt=dt, tau2=tau2)
+    y = np.array([plant.step(1.0)[0] for _ in range(300)])
+    t = dt * np.arange(1, 301)
+    exact = 1 - (tau * np.exp(-t / tau) - tau2 * np.exp(-t / tau2)) / (tau - tau2)
+    assert np.max(np.abs(y - exact)) < 0.01
+
+
+def test_step_test_mse2_is_the_paper_metric_for_foptd_plants():
+    args = (np.array([0.5, 1.0]), np.array([0.4, 0.9]), np.array([0.1, 0.5]), 0.6, 0.9)
+    np.testing.assert_array_equal(step_test_mse2(*args), step_test_mse(*args))
+    assert np.all(np.isfinite(step_test_mse2(*args, tau2=0.1)))
+
+
+def test_oracle_table3_matches_the_v2_table_and_the_direct_search():
+    t3 = oracle_table3()
+    assert t3.shape == (ORACLE3_RATIOS.size, ORACLE3_TAUS.size, ORACLE3_LAG2.size, 2)
+    K, tau, theta = sample_tasks(20, np.random.default_rng(0))
+    np.testing.assert_allclose(
+        oracle_gains3(t3, K, tau, theta), oracle_gains(oracle_table(), K, tau, theta), rtol=0.03
+    )
+    K, tau, theta, tau2 = (
+        np.array([0.3, 2.0]),
+        np.array([2.5, 0.1]),
+        np.array([3.0, 0.15]),
+        np.array([0.0, 0.04]),
+    )
+    kp, ki, _ = batch_oracle(K, tau, theta, tau2)
+    np.testing.assert_allclose(
+        oracle_gains3(t3, K, tau, theta, tau2), np.stack([kp, ki], 1), rtol=0.05
+    )
+
+
+def test_neutral_conditions_are_the_paper_mdp():
+    K, tau, theta = sample_tasks(6, np.random.default_rng(1))
+    runs = []
+    for cond in (None, {"noise": np.zeros(6), "sp_amp": np.ones(6)}):
+        env = TuningEnv(EnvConfig(sp_jitter=0.3), np.random.default_rng(2))
+        env.reset(K, tau, theta, horizon=5, conditions=cond)
+        runs.append([env.step(np.zeros((6, 2)))[0] for _ in range(5)])
+    np.testing.assert_array_equal(runs[0], runs[1])
+
+
+def test_conditions_noise_load_quiet_and_random_moves():
+    n = 4
+    env = TuningEnv(EnvConfig(init_noise=0.0), np.random.default_rng(0))
+    cond = {
+        "noise": np.array([0.0, 0.1, 0.0, 0.0]),
+        "load_step": np.array([0.0, 0.0, 0.5, 0.0]),
+        "load_every": np.full(n, 7.0),
+        "load_periodic": np.array([False, False, True, False]),
+        "quiet": np.array([0.0, 0.0, 1e9, 0.0]),
+        "sp_random": np.array([False, False, False, True]),
+        "sp_amp": np.array([1.0, 1.0, 1.0, 2.0]),
+    }
+    env.reset(
+        np.full(n, 0.5), np.full(n, 0.5), np.full(n, 0.1), horizon=20, sp0=1.0, conditions=cond
+    )
+    assert env.excited.tolist() == [True, True, False, True]
+    sps, es = [], []
+    for _ in range(20):
+        obs, _, mse = env.step(np.zeros((n, 2)))
+        sps.append(env.sp.copy())
+        es.append(obs[:, 2] + env.plant.output() - env.sp)  # -noise
+    sps, es = np.array(sps), np.array(es)
+    assert np.all(sps[:, 2] == 0.0) and not env.excited[2]  # quiet: no setpoint move
+    assert abs(env.plant.output()[2]) > 0.01  # but the load moves the plant
+    assert np.std(es[:, 1]) == pytest.approx(0.1, rel=0.5) and np.allclose(es[:, 0], 0.0)
+    assert len(np.unique(sps[:, 3])) > 2 and np.all(np.abs(sps[:, 3]) <= 2.0)
+
+
+def test_sampled_conditions_leave_the_core_share_untouched():
+    cfg = EnvConfig(core_share=0.5, noise_prob=1.0, load_prob=1.0, wide_prob=1.0, lag2_prob=1.0)
+    rng = np.random.default_rng(0)
+    K, tau, theta, tau2, core = sample_tasks_v3(400, rng, cfg)
+    c = sample_conditions(400, rng, cfg, core)
+    assert 0.4 < core.mean() < 0.6
+    assert np.all(c["noise"][core] == 0) and np.all(c["noise"][~core] > 0)
+    assert np.all(tau2[core] == 0) and np.all(tau2[~core] > 0)
+    assert K[core].min() >= 0.25 and K[core].max() <= 1 and K[~core].max() > 1
+
+
+def test_default_configs_are_the_paper_mdp(tmp_path):
+    trainer = Trainer(TrainConfig(), tmp_path)
+    assert not trainer.real and trainer.table.shape == oracle_table().shape
+    assert trainer.env_cfg == EnvConfig(drift_prob=0.25, sp_jitter=0.3)
+
+
+def test_real_loop_rollout_weights_hold_steps_and_starts_from_oracle_gains(tmp_path):
+    cfg = TrainConfig(
+        core_share=0.0, quiet_prob=1.0, init_gain_prob=1.0, bc_hold_weight=0.25, episodes=8
+    )
+    trainer = Trainer(cfg, tmp_path)
+    assert trainer.real
+    batch = trainer.rollout(8, 3, explore=0.1)
+    assert set(batch["weight"].unique().tolist()) <= {0.25, 1.0}
+    assert (batch["weight"] == 0.25).any()  # quiet starts: no setpoint move yet
+    assert not np.allclose(batch["obs"][0, :, :2].numpy(), 0.05)  # oracle x log-U[1/3, 3]
+    assert batch["forgetting"].shape == (8,)
+
+
+def test_validate_robust_runs_through_the_agent_api():
+    plants = (np.array([0.5]), np.array([0.5]), np.array([0.25]))
+    out = validate_robust(load_agent(), plants, steps=3)
+    assert set(out) == {"val_r_worst", "val_r_median", "val_r_which"}
+    assert np.isfinite(out["val_r_worst"]) and out["val_r_median"] <= out["val_r_worst"]
