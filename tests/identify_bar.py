@@ -107,7 +107,7 @@ def run(
     n = plants.K.size
     engine = TuningEngine(load_agent())
     for i in range(n):
-        guard = {"auto_rescale": auto_rescale}
+        guard = {"auto_rescale": auto_rescale, "identify": True}  # hints checked (opt-in)
         engine.register(
             LoopConfig(
                 id=f"L{i}", kp=float(plants.kp0[i]), ki=float(plants.ki0[i]),

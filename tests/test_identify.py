@@ -94,8 +94,10 @@ def hint_free(loop_id="L", **guard) -> LoopConfig:
 
 
 def hinted(loop_id="L", k_hat=K, tau_hat=TAU, **guard) -> LoopConfig:
+    """A hinted loop whose hint is checked (identification is opt-in with a hint)."""
     kp, ki = gains()
     scaling = {"k_hat": k_hat, "tau_hat": tau_hat, "pv_scale": 20.0}
+    guard = {"identify": True, **guard}
     return LoopConfig(id=loop_id, kp=kp, ki=ki, sample_period_s=H, scaling=scaling, guard=guard)
 
 
@@ -310,3 +312,16 @@ def test_a_window_whose_times_do_not_increase_is_not_fitted():
     op = np.cos(t / 7.0)
     out = assess(t, 50.0 + 0 * t, pv, op, [0, 10, 20, 30])
     assert out.model is None and "not increasing" in out.why
+
+
+def test_identification_is_on_by_default_only_without_a_hint():
+    engine = TuningEngine(untrained_agent(0))
+    engine.register(hint_free(), wall=0.0)
+    kp, ki = gains()
+    plain = LoopConfig(
+        id="H", kp=kp, ki=ki, sample_period_s=H,
+        scaling={"k_hat": K, "tau_hat": TAU, "pv_scale": 20.0},
+    )  # fmt: skip
+    engine.register(plain, wall=0.0)
+    watch = engine.table.watch
+    assert watch[engine.table.slot_of[hint_free().id]] and not watch[engine.table.slot_of["H"]]

@@ -47,11 +47,14 @@ class Guard(BaseModel):
         description="Smallest setpoint change that counts, in agent units (multiples of "
         "pv_scale). Gateways sending only e: a jump of e between two samples.",
     )
-    identify: bool = Field(
-        True,
+    identify: bool | None = Field(
+        None,
         description="Identify the loop's FOPTD model from its closed-loop data (needs sp "
         "and pv in the samples). A loop registered without scaling is tuned only once "
-        "identified; a hinted loop's hint is checked against the model.",
+        "identified; a hinted loop's hint is checked against the model. Default (null): "
+        "on for a loop registered without scaling, off for a hinted one (with the checks "
+        "on, the robustness suite's hint-error conditions came out worse, and they cost "
+        "memory and CPU: docs/identification.md).",
     )
     hint_tolerance: Tolerance = Field(
         2.0,

@@ -254,7 +254,7 @@ class LoopTable:
         self.max_rel[s] = g.max_rel_change
         self.mode[s] = _CODE[config.mode]
         self.gateways[s] = config.gateway
-        self.watch[s] = g.identify
+        self.watch[s] = config.scaling is None if g.identify is None else g.identify
         self.env_guard[s] = g.envelope_guard
         self.scaled[s] = sc is not None
         if sc is None:  # identifying: no unit mapping yet, never due
