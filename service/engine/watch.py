@@ -414,7 +414,10 @@ def view(tb, s: int) -> Identification | None:
     model = st.model
     return Identification(
         state=state,
-        why=st.why,
+        why=st.why
+        if tb.watch[s]
+        else "identification off (guard.identify; on by default "
+        "only for loops registered without a hint)",
         model=None if model is None else model.as_dict(),
         in_force=None if st.in_force is None else st.in_force.as_dict(),
         in_force_t=st.in_force_t,
