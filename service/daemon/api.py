@@ -14,6 +14,9 @@ Swagger UI and ReDoc pages, which load their code from a CDN, are off.
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import ctypes
+import gc
 import html
 import io
 import ipaddress
@@ -26,6 +29,7 @@ from typing import Annotated
 
 from fastapi import (
     APIRouter,
+    BackgroundTasks,
     Body,
     Depends,
     FastAPI,
@@ -113,9 +117,11 @@ def register_loops(
     configs: Annotated[list[LoopConfig], Body(max_length=MAX_BULK)],
     tuner: TunerDep,
     request: Request,
+    after: BackgroundTasks,
 ) -> BulkRegistered:
     """Register many loops in one call (a large site), all or none: 409 if any id is taken."""
     ids = tuner.register_many(configs)
+    after.add_task(release_memory)  # once the request's parsed configs are gone
     first = ", ".join(repr(i) for i in ids[:5]) + (", ..." if len(ids) > 5 else "")
     _event(tuner, request, "registered", "%d loops registered in bulk: %s", len(ids), first)
     return BulkRegistered(registered=ids)
@@ -190,6 +196,15 @@ def identify_loop(loop_id: str, tuner: TunerDep, request: Request) -> LoopView:
     view = tuner.identify(loop_id)
     _event(tuner, request, "identify", "loop %r: identification restarted", loop_id)
     return view
+
+
+def release_memory() -> None:
+    """Give the memory of a large request back to the system: its parsed models are freed,
+    but the allocator keeps their pages (a 9,000-loop bulk registration left ~2 KB per
+    loop behind) until asked (glibc's malloc_trim; elsewhere nothing to do)."""
+    gc.collect()
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
 
 
 def _event(tuner: Tuner, request: Request, kind: str, message: str, *args: object) -> None:
