@@ -129,7 +129,7 @@ def test_received_is_never_ahead_of_the_samples_counted(tuner):
         time.sleep(0.0005)
     worker.join()
     received, rejected, accepted = _counts(tuner)
-    assert received > 10_000 and accepted > 1_000 and observed > 10
+    assert received > 10_000 and accepted > 1_000 and observed >= 3  # reads while it ran
     assert received == rejected + accepted
     assert not ahead, f"{len(ahead)} of {observed} reads saw samples in no counter: {ahead[:3]}"
 
