@@ -82,6 +82,33 @@ class Condition:
     second_lag: float = 0.0
     """A second lag of this many times tau after the first (0: first order)."""
 
+    def plants(self, K: np.ndarray, tau: np.ndarray, theta: np.ndarray):
+        """The true plants (K, tau, theta, second lag) when the hint says (K, tau, theta)."""
+        K, tau = K * self.k_factor, tau * self.tau_factor
+        theta = theta * self.tau_factor if self.ratio is None else self.ratio * tau
+        return K, tau, theta, self.second_lag * tau
+
+    def training_case(self, n: int) -> dict[str, np.ndarray]:
+        """This condition as per-episode arrays of the training environment
+        (:data:`service.learn.env.CONDITIONS`) for ``n`` episodes, so that training's
+        validation and ``pitune evaluate --robust`` test the same list. The environment's
+        load walk is an OU process: its stationary std is half this walk's bound."""
+        full = lambda v: np.full(n, v)  # noqa: E731
+        out: dict[str, np.ndarray] = {}
+        if self.noise:
+            out |= {"noise": full(self.noise), "noise_tf": full(self.noise_filter)}
+        if self.load_step:
+            out |= {"load_step": full(self.load_step), "load_every": full(self.load_period),
+                    "load_periodic": full(True)}  # fmt: skip
+        if self.load_walk:
+            out["load_walk"] = full(self.load_walk / 2)
+        out["sp_amp"] = full(self.sp_amplitude)
+        if self.sp_irregular:
+            out |= {"sp_random": full(True), "sp_hold": full(self.sp_hold / RL_STEP_AGENT_UNITS)}
+        else:
+            out["sp_period"] = full(self.sp_hold)
+        return out
+
 
 CONDITIONS = (
     Condition("paper protocol"),
@@ -149,9 +176,7 @@ def run_condition(
     rng = np.random.default_rng(seed)
     K0, tau0, r = grid() if plants is None else plants
     n = K0.size
-    K, tau = K0 * cond.k_factor, tau0 * cond.tau_factor
-    theta = (np.full(n, cond.ratio) if cond.ratio is not None else r) * tau
-    lag = cond.second_lag * tau
+    K, tau, theta, lag = cond.plants(K0, tau0, r * tau0)
     sc = ScalingSpec(**HINT).resolve()
     unit = sc.time_unit_s
     # the plants in engineering units: seen through the hint they are (K, tau, theta)

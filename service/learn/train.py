@@ -24,7 +24,6 @@ Departures from the paper (Appendix A), recorded in the model card:
 from __future__ import annotations
 
 import argparse
-import copy
 import csv
 import json
 import math
@@ -38,23 +37,16 @@ import torch
 from torch import nn
 from torch.distributions import Normal
 
-from plant_sim.loop import step_test_mse
 from service.agent.model import (
     MAX_LOG_STEP,
     Actor,
-    Agent,
     AgentConfig,
     Critic,
     forget,
     relative_to_delta,
     save_actor,
 )
-from service.learn.closed_loop import tune
 from service.learn.env import (
-    CONDITIONS,
-    K_RANGE,
-    RATIO_RANGE,
-    TAU_RANGE,
     EnvConfig,
     TuningEnv,
     sample_conditions,
@@ -66,9 +58,10 @@ from service.learn.oracle import (
     oracle_gains3,
     oracle_table,
     oracle_table3,
-    step_test_mse2,
 )
-from service.units import AGENT_KI0, AGENT_KP0, DEFAULT_FORGETTING, RL_STEP_AGENT_UNITS
+from service.learn.ppo import gae, ppo_policy_loss, unroll
+from service.learn.validation import validate
+from service.units import AGENT_KI0, AGENT_KP0, DEFAULT_FORGETTING
 
 
 @dataclass
@@ -174,187 +167,6 @@ class TrainConfig:
     """Wall time between checkpoints."""
     threads: int = 1
     """Torch intra-op threads."""
-
-
-def unroll(actor: Actor, obs: torch.Tensor, forgetting: torch.Tensor):
-    """Actor over a whole sequence with per-episode forgetting: obs (T, B, 4), forgetting (B,).
-
-    Returns mean (T, B, 2) and deep (T, B, hidden). Without forgetting the GRU runs the
-    sequence in one call; with it, step by step as the rollout did.
-    """
-    h = torch.zeros(actor.cfg.layers, obs.shape[1], actor.cfg.hidden, device=obs.device)
-    if bool((forgetting == 1.0).all()):
-        mean, deep, _ = actor(obs, h)
-        return mean, deep
-    means, deeps = [], []
-    for t in range(obs.shape[0]):
-        mean, deep, h = actor(obs[t : t + 1], forget(h, forgetting))
-        means.append(mean)
-        deeps.append(deep)
-    return torch.cat(means), torch.cat(deeps)
-
-
-def gae(
-    rewards: torch.Tensor, values: torch.Tensor, last_value: torch.Tensor, gamma: float, lam: float
-) -> torch.Tensor:
-    """Generalised advantage estimates (Schulman et al. 2016) of fixed-length episodes.
-
-    rewards, values (T, B); last_value (B,), the critic's value of the state after the
-    last step (the episodes are cut, not ended). Returns advantages (T, B):
-    A_t = sum_l (gamma lam)^l delta_{t+l}, delta_t = r_t + gamma V_{t+1} - V_t.
-    """
-    horizon = rewards.shape[0]
-    adv = torch.zeros_like(rewards)
-    running = torch.zeros_like(last_value)
-    for t in reversed(range(horizon)):
-        nxt = last_value if t == horizon - 1 else values[t + 1]
-        delta = rewards[t] + gamma * nxt - values[t]
-        running = delta + gamma * lam * running
-        adv[t] = running
-    return adv
-
-
-def ppo_policy_loss(
-    logp: torch.Tensor, logp_old: torch.Tensor, adv: torch.Tensor, clip: float
-) -> torch.Tensor:
-    """PPO-clip's policy loss (to minimise), a scalar.
-
-    logp, logp_old: log-probabilities (T, B) of the taken actions under the current and
-    the rollout policy; adv (T, B): advantages (normalised); clip: the ratio's clip range.
-    """
-    ratio = torch.exp(logp - logp_old)
-    clipped = torch.clamp(ratio, 1 - clip, 1 + clip)
-    return -torch.min(ratio * adv, clipped * adv).mean()
-
-
-def validation_set(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Fixed random plants plus the box's corners (not the evaluation grid)."""
-    K, tau, theta = sample_tasks(n, np.random.default_rng(12345))
-    corners = np.array(np.meshgrid(K_RANGE, TAU_RANGE, RATIO_RANGE)).reshape(3, -1)
-    return (
-        np.concatenate([K, corners[0]]),
-        np.concatenate([tau, corners[1]]),
-        np.concatenate([theta, corners[1] * corners[2]]),
-    )
-
-
-# Validation bars: the paper's worst-case goal and the convergence band (10% of the
-# final gains from 140 time units on), so the kept epoch is the one that is both
-# precise and settled, not one that reaches good gains and then drifts away.
-VAL_MSE_BAR = 0.003
-VAL_DRIFT_BAR = 0.1
-VAL_SETTLED_TIME = 140.0
-VAL_SETTLED_STEP = math.ceil(VAL_SETTLED_TIME / RL_STEP_AGENT_UNITS)
-"""The first RL step at or after :data:`VAL_SETTLED_TIME` (agent time units)."""
-
-
-def validate(
-    actor: Actor, n: int, steps: int = 100, sp_jitter: float = 0.0, robust: bool = False
-) -> dict:
-    """The evaluation's closed-loop tuning (:func:`service.learn.closed_loop.tune`) on the
-    validation set for ``steps`` RL steps, then the step test, with setpoint changes on
-    the agent's clock and (if ``sp_jitter``) at arbitrary times.
-
-    ``val_drift`` is the largest relative distance of any gain from its final value
-    after :data:`VAL_SETTLED_STEP`; ``val_score`` is the worse of the two metrics as a
-    fraction of its bar (below 1 meets both), and picks ``best.pt``.
-    """
-    K, tau, theta = validation_set(n)
-    agent = Agent(copy.deepcopy(actor).cpu())
-    worst, medians, drift = 0.0, [], 0.0
-    for jitter in {0.0, sp_jitter}:
-        run = tune(agent, K, tau, theta, steps=steps, sp_jitter=jitter)
-        gains = run["gains"]
-        mse = step_test_mse(K, tau, theta, *gains[-1].T)
-        worst = max(worst, float(mse.max()))
-        medians.append(float(np.median(mse)))
-        settled = gains[min(VAL_SETTLED_STEP, steps) :]
-        drift = max(drift, float(np.max(np.abs(settled / gains[-1] - 1.0))))
-    out = {
-        "val_worst": worst,
-        "val_median": max(medians),
-        "val_drift": drift,
-        "val_score": max(worst / VAL_MSE_BAR, drift / VAL_DRIFT_BAR),
-    }
-    if robust:
-        out.update(validate_robust(agent, (K, tau, theta)))
-        out["val_score"] = max(
-            out["val_score"],
-            out["val_r_worst"] / VAL_ROBUST_WORST_BAR,
-            out["val_r_median"] / VAL_ROBUST_MEDIAN_BAR,
-        )
-    return out
-
-
-VAL_ROBUST_WORST_BAR = 0.029
-VAL_ROBUST_MEDIAN_BAR = 0.003
-VAL_ROBUST_STEPS = 80
-
-
-def robust_cases(K, tau, theta) -> dict[str, dict]:
-    """The v3 robustness conditions of the validation, one at a time on the plants
-    (K, tau, theta): name -> {K, tau, theta, tau2 (the true plant), cond (the
-    :data:`~service.learn.env.CONDITIONS` of :meth:`TuningEnv.reset`)}."""
-    n = K.size
-    full = lambda v: np.full(n, v, dtype=float)  # noqa: E731
-    base = {"K": K, "tau": tau, "theta": theta, "tau2": np.zeros(n), "cond": {}}
-    periodic = {"load_step": full(0.5), "load_every": full(7.0), "load_periodic": np.ones(n, bool)}
-    return {
-        "noise_0.05": base | {"cond": {"noise": full(0.05)}},
-        "noise_0.1": base | {"cond": {"noise": full(0.1)}},
-        "noise_0.05_lp": base | {"cond": {"noise": full(0.05), "noise_tf": full(0.1)}},
-        "load_steps": base | {"cond": periodic},
-        "load_walk": base | {"cond": {"load_walk": full(0.25)}},
-        "sp_amp_0.2": base | {"cond": {"sp_amp": full(0.2)}},
-        "sp_amp_3": base | {"cond": {"sp_amp": full(3.0)}},
-        "sp_hold_22": base | {"cond": {"sp_period": full(22.0)}},
-        "sp_irregular": base | {"cond": {"sp_random": np.ones(n, bool), "sp_hold": full(4.0)}},
-        "tau_x2": base | {"tau": 2 * tau},
-        "tau_x3": base | {"tau": 3 * tau},
-        "tau_/3": base | {"tau": tau / 3},
-        "K_x3": base | {"K": 3 * K},
-        "K_/3": base | {"K": K / 3},
-        "ratio_2": base | {"theta": 2 * tau},
-        "second_order": base | {"tau2": 0.3 * tau},
-    }
-
-
-def validate_robust(agent: Agent, plants, steps: int = VAL_ROBUST_STEPS) -> dict:
-    """The v3 robustness conditions (:func:`robust_cases`) on the validation plants, all
-    in one :class:`TuningEnv` batch from the default gains for ``steps`` RL steps
-    (forgetting 1), the final gains scored by the step test on the true plant
-    (:func:`~service.learn.oracle.step_test_mse2`; unstable loops give inf). Returns the
-    worst and the largest median over the conditions, and the worst condition's name.
-    (The full robustness suite, through the tuning engine, is ``pitune evaluate --robust``.)
-    """
-    cases = robust_cases(*plants)
-    names = list(cases)
-    m = plants[0].size
-    batch = {k: np.concatenate([cases[c][k] for c in names]) for k in ("K", "tau", "theta", "tau2")}
-    cond = {}
-    for key in {k for c in cases.values() for k in c["cond"]}:
-        neutral = CONDITIONS[key][0]
-        cond[key] = np.concatenate(
-            [np.broadcast_to(cases[c]["cond"].get(key, neutral), (m,)) for c in names]
-        )
-    env = TuningEnv(EnvConfig(init_noise=0.0), np.random.default_rng(0))
-    sp0 = cond.get("sp_amp", np.ones(batch["K"].size))
-    obs = env.reset(
-        batch["K"], batch["tau"], batch["theta"], horizon=steps, sp0=sp0, tau2=batch["tau2"],
-        conditions=cond,
-    )  # fmt: skip
-    state = agent.initial_state(batch["K"].size)
-    for _ in range(steps):
-        delta, state = agent.act(obs, state)
-        obs, _, _ = env.step(delta)
-    mse = step_test_mse2(batch["K"], batch["tau"], batch["theta"], *obs[:, :2].T, batch["tau2"])
-    mse = np.where(np.isfinite(mse), mse, math.inf).reshape(len(names), m)
-    worst = mse.max(axis=1)
-    return {
-        "val_r_worst": float(worst.max()),
-        "val_r_median": float(np.median(mse, axis=1).max()),
-        "val_r_which": names[int(np.argmax(worst))],
-    }
 
 
 class Trainer:
