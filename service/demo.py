@@ -23,8 +23,10 @@ import argparse
 import contextlib
 import json
 import shutil
+import signal
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -105,6 +107,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="register the loop without a model hint: the tuner identifies the model from "
         "the closed-loop data first (docs/identification.md)",
     )
+    parser.add_argument(
+        "--keep",
+        action="store_true",
+        help="after the run, leave the tuner and its console up until Ctrl-C or SIGTERM",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -112,9 +119,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         with contextlib.ExitStack() as stack:
             workdir = args.workdir or Path(stack.enter_context(tempfile.TemporaryDirectory()))
-            demo = Demo(args, workdir)
-            view = demo.run()
-            demo.report(view, wall_s=time.monotonic() - started)
+            Demo(args, workdir).run(started)
     except (ProcError, DemoError) as exc:
         print(f"\npitune demo failed: {exc}", file=sys.stderr)
         return 1
@@ -132,21 +137,27 @@ class Demo:
         # stack's --speed: it does not change the simulated trajectory).
         self.sim = Simulation(duration=self.duration_s, noise=args.noise, seed=args.seed)
 
-    def run(self) -> dict:
+    def run(self, started: float) -> None:
+        """Run the stack, follow the loop, write the report (``started``: monotonic time
+        of the command, for the wall time in the report)."""
         with Stack(
             self.workdir, speed=self.args.speed, agent_weights=self.args.agent_weights
         ) as st:
             print(f"starting the tuner (API {st.api}, Zenoh {st.zenoh}) ...", flush=True)
             tuner = st.start_tuner()
+            # Reading the console needs no token; acting does (docs/console.md).
+            print(f"operator console: {st.api}/ui (log in with the token {st.token})", flush=True)
             if self.args.no_hint:  # registered first: the plant's own registration resumes it
                 self.register_without_hint(st.api, st.token)
             plant = st.start_plant(*plant_argv((LOOP,), self.sim))
             print(f"plant simulator started: {self.args.minutes:g} simulated minutes "
                   f"at {self.args.speed:g}x", flush=True)  # fmt: skip
             view = self.follow(st.api, plant, tuner)
+            self.report(view, wall_s=time.monotonic() - started)
+            if self.args.keep:
+                keep_up(st.api, tuner)
             if tuner.stop() != 0:  # the tuner exits 0 after a graceful SIGTERM shutdown
                 raise tuner.failed()
-            return view
 
     def register_without_hint(self, api: str, token: str) -> None:
         body = LOOP.registration(self.sim.scan)
@@ -234,6 +245,20 @@ class Demo:
         print(summary_markdown(summary), end="")
         print(f"wrote {out}/two_tank.png, summary.md, summary.json, {LOOP_ID}.csv")
         return summary
+
+
+def keep_up(api: str, tuner: Proc) -> None:
+    """Leave the tuner (and its console) running until Ctrl-C, SIGTERM or its own exit."""
+    print(f"--keep: the tuner stays up, console at {api}/ui; Ctrl-C stops it", flush=True)
+    stop = threading.Event()
+    previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    try:
+        while tuner.running and not stop.wait(0.5):
+            pass
+    except KeyboardInterrupt:  # Ctrl-C: the tuner, in our process group, got it too
+        pass
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def _identified(view: dict) -> dict | None:

@@ -7,8 +7,10 @@ from __future__ import annotations
 
 import json
 import queue
+import signal
 import subprocess
 import sys
+import threading
 import time
 
 import httpx
@@ -93,16 +95,34 @@ def plant_log(stack: Stack, name: str = LOOP):
 )
 @pytest.mark.slow
 def test_demo_tunes_the_two_tank_loop_at_least_3x_better_than_untuned(tmp_path):
-    """`pitune demo` (tuner + plant subprocesses, REST registration, Zenoh) vs the same seed
-    untuned; the MSE is recomputed here from the plant's own log."""
+    """`pitune demo --keep` (tuner + plant subprocesses, REST registration, Zenoh) vs the
+    same seed untuned; the MSE is recomputed here from the plant's own log. With --keep the
+    console stays up after the report until the demo is interrupted."""
     out = tmp_path / "demo"
     argv = [sys.executable, "-m", "service.cli", "demo", "--out", str(out), "--speed", "150",
-            "--workdir", str(tmp_path / "work")]  # fmt: skip
+            "--workdir", str(tmp_path / "work"), "--keep"]  # fmt: skip
     started = time.monotonic()
-    result = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=200)
+    demo = subprocess.Popen(argv, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)  # fmt: skip
+    lines = queue.Queue()
+    threading.Thread(target=lambda: [lines.put(x) for x in demo.stdout], daemon=True).start()
+    stdout, console = [], None
+    while not any(x.startswith("--keep:") for x in stdout):  # the report is written by now
+        try:
+            stdout.append(lines.get(timeout=max(0.0, started + 200 - time.monotonic())))
+        except queue.Empty:
+            demo.kill()
+            pytest.fail("no --keep line:\n" + "".join(stdout)[-2000:] + demo.stderr.read())
+        if stdout[-1].startswith("operator console: "):
+            console = stdout[-1].split()[2]
     wall = time.monotonic() - started
-    assert result.returncode == 0, result.stdout[-2000:] + result.stderr[-2000:]
-    assert "level-target RMS" in result.stdout  # the progress line
+    page = httpx.get(console, timeout=10)  # the console outlives the run
+    assert page.status_code == 200 and "pitune" in page.text
+    demo.send_signal(signal.SIGINT)
+    assert demo.wait(timeout=30) == 0, "".join(stdout)[-2000:] + demo.stderr.read()
+    with pytest.raises(httpx.TransportError):  # and is gone after the interrupt
+        httpx.get(console, timeout=2)
+    assert "level-target RMS" in "".join(stdout)  # the progress line
     tuned = read_log(out / "tank1.csv")
     untuned = untuned_baseline(DEFAULT_LOOPS, Simulation(duration=3600.0))["tank1"]
     np.testing.assert_array_equal(tuned.sp, untuned.sp)
