@@ -115,3 +115,40 @@ def test_registration_numbers_are_as_strict_as_the_wire(bad):
     with pytest.raises(ValidationError, match="valid number"):
         LoopConfig(**{**loop_body("L0"), **bad})
     assert LoopConfig(**{**loop_body("L0"), "kp": 1}).kp == 1.0
+
+
+def test_a_setpoint_move_of_any_size_looks_like_the_papers_to_the_agent():
+    """Linear plants: moves of 0.6 and 3 agent units give the gains a +-1 square wave
+    gives (the observation is scaled by 2 / move); 0.2 is past the bound (4) and differs."""
+    from service.learn.robust import Condition, grid, run_condition
+
+    plants = tuple(x[::9] for x in grid())  # 3 plants across K, tau, theta/tau
+    agent = load_agent()
+
+    def gains(amplitude: float) -> np.ndarray:
+        run = run_condition(agent, Condition("a", sp_amplitude=amplitude), periods=12,
+                            plants=plants)  # fmt: skip
+        return run.gains
+
+    paper = gains(1.0)
+    assert not np.allclose(paper[-1], paper[0])  # the agent moved the gains
+    np.testing.assert_allclose(gains(3.0), paper, rtol=1e-6)
+    np.testing.assert_allclose(gains(0.3), paper, rtol=1e-6)
+    assert not np.allclose(gains(0.1), paper, rtol=1e-3)
+
+
+def test_the_setpoint_move_scaling_follows_the_last_move_and_survives_a_snapshot():
+    eng = TuningEngine(load_agent())
+    scaling = {"k_hat": 1.0, "tau_hat": 10.0, "pv_scale": 2.0}  # 1 agent unit = 2 PV units
+    eng.register(LoopConfig(id="L", kp=0.5, ki=0.05, sample_period_s=1.0, scaling=scaling))
+    tb = eng.table
+    s = tb.slot("L")
+    assert tb.obs_gain[s] == 1.0  # no move yet
+    for t, sp, want in [(0.0, 10.0, 1.0), (1.0, 13.0, 4 / 3), (2.0, 12.0, 4.0), (3.0, 40.0, 0.25)]:
+        eng.ingest([{"loop_id": "L", "t": t, "sp": sp, "pv": 10.0}], wall=t)
+        assert tb.obs_gain[s] == pytest.approx(want)  # 2 / (move / 2), within [0.25, 4]
+    ((loop_id, hidden, runtime),) = tb.snapshot(["L"])
+    other = TuningEngine(load_agent())
+    config = LoopConfig(id="L", kp=0.5, ki=0.05, sample_period_s=1.0, scaling=scaling)
+    other.restore(config, kp=0.5, ki=0.05, seq=0, hidden=hidden, runtime=runtime)
+    assert other.table.obs_gain[other.table.slot("L")] == 0.25

@@ -55,6 +55,14 @@ from service.wire.decode import Columns
 from service.wire.protocol import RejectReason
 
 MAX_AGENT_ERROR = 100.0
+PAPER_MOVE = 2.0
+"""Size of a setpoint move in the paper's training protocol (a +-1 square wave), agent units.
+The agent sees the error and its integral scaled by PAPER_MOVE / (the last move's size):
+a linear loop answers a move of any size with the same shape, and this makes it the
+shape of the moves the agent was trained on (docs/tuner.md, "Setpoint-move scaling")."""
+OBS_GAIN_RANGE = (0.25, 4.0)
+"""Bounds of that scaling: moves from 0.5 to 8 agent units are scaled exactly; a smaller
+one (e.g. a ramp's 0.2 steps) is not blown up into noise, a larger one not shrunk to 0."""
 """An error beyond this many agent units (training sees about 2) is an absurd sample."""
 CLOCK_RESET_SAMPLES = 10
 """Consecutive, mutually increasing samples older than the loop's last one that are
@@ -167,6 +175,9 @@ def _excite(tb: LoopTable, slots: np.ndarray, cols: dict[str, np.ndarray], last_
             np.abs(sp - ref) >= step,
             ~np.isnan(last_t) & (np.abs(e - tb.last_e[slots]) >= step),
         )
+    # the move's size in agent units scales the agent's observation (PAPER_MOVE)
+    size = np.abs(np.where(has_sp, sp - ref, e - tb.last_e[slots])) * tb.e_scale[slots]
+    tb.obs_gain[slots[moved]] = np.clip(PAPER_MOVE / size[moved], *OBS_GAIN_RANGE)
     tb.sp_ref[slots] = np.where(has_sp & (moved | np.isnan(ref)), sp, ref)
     tb.excited_until[slots[moved]] = cols["t"][moved] + tb.exc_window[slots[moved]]
 

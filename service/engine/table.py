@@ -52,6 +52,8 @@ _F64 = (
     # excitation gate: smallest setpoint step (engineering units), window after one (s;
     # inf: gate off), setpoint at the last step, end of the current window
     "exc_step", "exc_window", "sp_ref", "excited_until",
+    # observation gain: the paper's setpoint move (2 agent units) over the last move's size
+    "obs_gain",
     # run of out-of-order samples that may be a new clock: length and last t
     "back_n", "back_t",
     # identification (service.engine.watch): the reconstructed PI's integral term and the
@@ -285,6 +287,7 @@ class LoopTable:
         self.int_e[s] = self.last_e[s] = 0.0
         self.last_t[s] = self.next_due[s] = self.sp_ref[s] = math.nan
         self.excited_until[s] = -math.inf
+        self.obs_gain[s] = 1.0
         self.back_n[s] = 0.0
         self.last_wall[s] = -math.inf
         self.pending[s] = self.manual[s] = self.saturated[s] = False
@@ -400,6 +403,7 @@ class LoopTable:
                 "next_due": num(self.next_due[s]),
                 "sp_ref": num(self.sp_ref[s]),
                 "excited_until": num(self.excited_until[s]),
+                "obs_gain": float(self.obs_gain[s]),
                 "manual": bool(self.manual[s]),
                 "saturated": bool(self.saturated[s]),
                 "counters": [int(getattr(self, n)[s]) for n in _I64[2:]],
@@ -425,6 +429,7 @@ class LoopTable:
         self.sp_ref[s] = math.nan if sp_ref is None else sp_ref
         until = rt.get("excited_until")
         self.excited_until[s] = -math.inf if until is None else until
+        self.obs_gain[s] = rt.get("obs_gain", 1.0)  # absent before the normalisation
         # snapshots from before a counter was added list fewer: those stay 0
         for name, value in zip(_I64[2:], rt["counters"], strict=False):
             getattr(self, name)[s] = value
