@@ -214,6 +214,10 @@ CHANGES_FROM_PAPER = """\
   (dk = k (exp(a) - 1), at most a factor e per step) and reads log kp, log ki and a
   signed log of int_e. Gains stay positive by construction and one output scale serves
   kp = 0.3 and ki = 8 alike (the paper names this range as a main difficulty).
+- **Setpoint-move scaling (online, in the engine).** The tuning engine shows the agent
+  e and int_e multiplied by 2 / (size of the last setpoint move, agent units), bounded to
+  [0.25, 4]: a linear loop's response to any move then has the shape of the +-1 square
+  wave's the agent was trained on (docs/tuner.md). The paper's protocol is unchanged by it.
 - **Training distribution.** A quarter of the episodes have drifting dynamics (K step or
   tau ramp) and 30% run with the forgetting factor 0.99 used online; warm-start episodes
   are 60-120 RL steps (the paper: 40) so the hidden state stays calibrated over long
