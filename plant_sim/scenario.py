@@ -96,6 +96,8 @@ class LoopSettings:
     load: float = 0.0
     noise: float = 0.0
     gain_range: float = 100.0
+    action: str = "reverse"
+    """The PI's controller action: 'direct' acts on pv - sp (a negative-gain process)."""
 
     def setpoint(self) -> Square:
         return Square(self.sp_low, self.sp_high, self.sp_period, first=self.sp_high)
@@ -177,7 +179,8 @@ class SimulatedLoop:
         pv = self._measure()
         if self.settings.noise:
             pv += float(self.rng.uniform(-self.settings.noise, self.settings.noise))
-        op = float(self.pi.step(np.array([sp - pv]))[0])
+        e = sp - pv if self.settings.action == "reverse" else pv - sp
+        op = float(self.pi.step(np.array([e]))[0])
         target = float(self.target.output()[0])
         kp, ki = self.gains
         self._advance(op, self.load.at(elapsed))
