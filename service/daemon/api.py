@@ -224,6 +224,8 @@ def healthz(tuner: TunerDep) -> Health:
         return _unhealthy("failing", "worker thread not running")
     if tuner.store_failure is not None:
         return _unhealthy("failing", tuner.store_failure)
+    if others := sorted(tuner.bus.other_tuners if tuner.bus else ()):
+        return Health(status="ok", detail=f"another tuner on this key prefix: {', '.join(others)}")
     return Health(status="ok")
 
 
