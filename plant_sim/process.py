@@ -27,9 +27,10 @@ from dataclasses import fields
 from pathlib import Path
 
 from plant_sim.config import DEFAULT_LOOPS, LoopSpec, PlantConfig, Simulation, build_loops
-from plant_sim.registration import RegistrationError, register
+from plant_sim.registration import register
 from plant_sim.runner import simulate
 from plant_sim.trajectory import plot, read_log
+from service.gateways.registration import RegistrationError
 from service.wire.protocol import DEFAULT_PREFIX, is_valid_id
 
 TOKEN_ENV = "PITUNE_API_TOKEN"
