@@ -21,7 +21,8 @@ import pytest
 import zenoh
 
 from plant_sim.config import LoopSpec, Simulation
-from plant_sim.opcua_dcs import AUTO, MAN, SimulatedDcs
+from plant_sim.opcua_block import AUTO, MAN
+from plant_sim.opcua_dcs import SimulatedDcs
 from service.daemon.tuner import Tuner
 from service.engine.config import LoopConfig
 from service.gateways.opcua.bridge import OpcUaGateway
