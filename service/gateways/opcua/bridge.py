@@ -21,6 +21,7 @@ only when all hold at that moment:
 * the loop is in auto (mode node's value among ``auto_values``): else it is dropped;
 * tuning is enabled (the tuning-enable node is true, or the map's flag): else dropped;
 * the values are within the map's hard limits: else dropped (never clipped);
+* the block's gains convert to the parallel form (a negative gain does not): else dropped;
 * the block's gains are still those it had when the update arrived: else an operator
   (or the DCS) changed them meanwhile and the update is stale: dropped;
 * ``min_write_interval_s`` has passed since the loop's last write: else it waits.

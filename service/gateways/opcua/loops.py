@@ -103,6 +103,8 @@ def decide(lr: LoopRuntime, link_up: bool, now: float) -> str | tuple[float, flo
     current = lr.block_gains()
     if current is None:
         return WAIT
+    if lr.in_force() is None:  # e.g. a negative gain (a DCS that signs it by the action):
+        return "invalid_block_gains"  # never overwritten by pitune's positive one
     if close_to(current, target):
         return "applied"
     if lr.pending.base is not None and not close_to(current, lr.pending.base):
