@@ -112,3 +112,24 @@ def test_the_api_refuses_what_cannot_be_tuned_with_a_422_and_registers_nothing(t
         assert client.get("/loops").json()["items"] == []
         r = client.post("/loops", json=loop_body("E", action="direct"))
         assert r.status_code == 201 and r.json()["config"]["action"] == "direct"
+
+
+def test_identification_tells_a_hint_free_loop_registered_with_the_wrong_action():
+    """A cooling loop registered without a hint: with action 'direct' its model is
+    identified with the gain's magnitude and the loop is tuned; registered 'reverse' by
+    mistake, identification finds a negative gain, says so, and the loop is not tuned."""
+    spec = LoopSpec.parse("foptd", DIRECT)
+    engine = TuningEngine(max_rate_hz=1e6)
+    for action in ("reverse", "direct"):
+        loop = spec.build(Simulation(sp_period=150.0), seed=0, t0=0.0)
+        kp, ki = spec.initial_gains()
+        engine.register(LoopConfig(id=action, kp=kp, ki=ki, sample_period_s=1.0, action=action))
+        scans = [loop.scan() for _ in range(2400)]
+        engine.ingest([{"loop_id": action, "t": s.t, "sp": s.sp, "pv": s.pv, "kp": s.kp,
+                        "ki": s.ki, "op": s.op} for s in scans])  # fmt: skip
+    wrong, right = engine.view("reverse"), engine.view("direct")
+    assert wrong.status == "identifying" and wrong.scaling is None
+    assert "wrong sign for the registered controller action" in wrong.identification.why
+    assert wrong.identification.model.k == pytest.approx(-2.0, rel=0.05)
+    assert right.status == "tuning" and right.identification.model.confident
+    assert right.identification.model.k == pytest.approx(2.0, rel=0.05)
