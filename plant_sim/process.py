@@ -85,7 +85,8 @@ def add_loop_arguments(run_p: argparse.ArgumentParser) -> None:
         action="append",
         type=_loop_spec("foptd"),
         metavar="ID:K=..,tau=..,theta=..[,k=v]",
-        help="an FOPTD loop K exp(-theta s)/(tau s + 1), seconds",
+        help="an FOPTD loop K exp(-theta s)/(tau s + 1), seconds (K < 0: a cooling-like "
+        "loop, run and registered direct-acting)",
     )
     sim = run_p.add_argument_group("simulation")
     sim.add_argument(
