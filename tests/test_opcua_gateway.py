@@ -310,10 +310,13 @@ def test_real_tuner_refused_write_adopted_then_server_restart_loses_no_update(tm
                 seqs = written()
                 refusals = [e.seq for e in gw.history if e.kind == "refused"]
                 assert refusals + seqs == list(range(1, seqs[-1] + 1))
-                # an update the tuner made as the scans stopped may still be on its way
+                # an update the tuner made as the scans stopped may still be on its way: the
+                # block's GAIN and RESET (read back by the gateway) come to hold the tuner's
+                # gains (its PI takes them at its next scan, and the scans have stopped)
+                lr = gw.by_id[LOOP]
                 await until(
-                    lambda: close(dcs.gains(LOOP), (view().kp, view().ki)),
-                    what="the DCS's gains equal the tuner's",
+                    lambda: close(lr.in_force(), (view().kp, view().ki)),
+                    what="the block's gains equal the tuner's",
                 )
                 assert gw.stats["links_lost"] == 1 and gw.stats["connects"] == 2
                 assert gw.stats["samples_dropped"] == 0
