@@ -187,7 +187,8 @@ files=(-f "$DEPLOY/docker-compose.yml")
 [ "$ENGINE" = podman ] && files+=(-f "$DEPLOY/docker-compose.podman.yml")
 [ "$PYROUTER" = 1 ] && files+=(-f "$DEPLOY/docker-compose.pyrouter.yml")
 files+=(-f "$DEPLOY/docker-compose.smoke.yml")
-COMPOSE_CMD+=(--project-name "$PROJECT" --env-file "$WORK/.env" "${files[@]}")
+# --profile sim: the simulated plant starts only on request (docker-compose.yml)
+COMPOSE_CMD+=(--project-name "$PROJECT" --env-file "$WORK/.env" "${files[@]}" --profile sim)
 "${COMPOSE_CMD[@]}" config -q || die "compose rejects the configuration"
 "${COMPOSE_CMD[@]}" down -v --remove-orphans >/dev/null 2>&1 || true   # a previous run's leftovers
 COMPOSE=("${COMPOSE_CMD[@]}")

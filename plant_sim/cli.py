@@ -1,5 +1,6 @@
 """``pitune plant``: the sub-commands of :mod:`plant_sim.process` (``run``, ``plot``) plus
-``opcua``, the simulated DCS behind an OPC UA server (:mod:`plant_sim.opcua_dcs`).
+``opcua``, the simulated DCS behind an OPC UA server (:mod:`plant_sim.opcua_dcs`,
+:mod:`plant_sim.opcua_cli`).
 
 Only the chosen action's module is imported when it runs (asyncua loads only for ``opcua``).
 """
@@ -17,14 +18,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     opcua = sub.add_parser(
         "opcua", help="simulated DCS: the loops as PID blocks on an OPC UA server"
     )
-    from plant_sim import opcua_dcs
+    from plant_sim import opcua_cli
 
-    opcua_dcs.add_arguments(opcua)
+    opcua_cli.add_arguments(opcua)
 
 
 def run(args: argparse.Namespace) -> int:
     if args.plant_command == "opcua":
-        from plant_sim import opcua_dcs
+        from plant_sim import opcua_cli
 
-        return opcua_dcs.run(args)
+        return opcua_cli.run(args)
     return process.run(args)

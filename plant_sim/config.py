@@ -9,7 +9,9 @@ Loops are given as ``--tank ID[:key=value,...]`` and ``--foptd ID:K=..,tau=..,th
 (:meth:`LoopSpec.parse`, seconds and engineering units); optional keys: ``kp``, ``ki``
 (initial gains, default the paper's untuned ones for the model hint), ``lo``, ``hi``
 (setpoint steps), ``k_hat``, ``tau_hat``, ``pv_scale`` (model hint for registration;
-an FOPTD loop's default hint is its true model).
+an FOPTD loop's default hint is its true model). A negative ``K`` simulates a process
+whose PV falls as the output rises (cooling, a level drained by the manipulated flow):
+its PI is direct-acting and the loop is registered with ``action: "direct"``.
 """
 
 from __future__ import annotations
@@ -38,11 +40,14 @@ SP_PERIOD_S = 600.0
 
 
 def _in_range(key: str, value: float) -> bool:
-    """Loop parameters: PV limits any finite numbers, dead time >= 0, the rest > 0."""
+    """Loop parameters: PV limits any finite numbers, K nonzero (negative: a direct-acting
+    loop), dead time >= 0, the rest > 0."""
     if not math.isfinite(value):
         return False
     if key in ("lo", "hi"):
         return True
+    if key == "K":
+        return value != 0.0
     return value >= 0.0 if key == "theta" else value > 0.0
 
 
@@ -81,8 +86,8 @@ class LoopSpec:
             bad.append("lo < hi")
         if bad:
             raise ValueError(
-                f"{text!r}: {', '.join(bad)} out of range (K, tau, gains and hints > 0; "
-                "theta >= 0; reverse-acting plants are not simulated)"
+                f"{text!r}: {', '.join(bad)} out of range (K nonzero; tau, gains and hints "
+                "> 0; theta >= 0)"
             )
         spec = cls(kind, loop_id, params)
         try:
@@ -102,13 +107,18 @@ class LoopSpec:
         if self.kind == "two_tank":
             k_hat, tau_hat, pv_scale = (*TANK_HINT, TANK_PV_SCALE)
         else:
-            k_hat, tau_hat = p["K"], p["tau"]
+            k_hat, tau_hat = abs(p["K"]), p["tau"]
             pv_scale = (p.get("hi", 1.0) - p.get("lo", -1.0)) / 2.0
         return ScalingSpec(
             k_hat=p.get("k_hat", k_hat),
             tau_hat=p.get("tau_hat", tau_hat),
             pv_scale=p.get("pv_scale", pv_scale),
         )
+
+    @property
+    def action(self) -> str:
+        """The PI's controller action: 'direct' for a negative-gain process."""
+        return "direct" if self.params.get("K", 1.0) < 0 else "reverse"
 
     def initial_gains(self) -> tuple[float, float]:
         """``kp``/``ki`` if given, else the paper's slow initial tuning through the hint."""
@@ -126,6 +136,8 @@ class LoopSpec:
             "sample_period_s": scan,
             "scaling": self.hint().model_dump(exclude_none=True),
         }
+        if self.action == "direct":
+            body["action"] = self.action
         if gateway is not None:
             body["gateway"] = gateway
         return body
@@ -143,6 +155,7 @@ class LoopSpec:
             load=sim.load,
             noise=sim.noise,
             gain_range=sim.gain_range,
+            action=self.action,
         )
         common = {"dt": sim.scan, "seed": seed, "t0": t0}
         if self.kind == "two_tank":

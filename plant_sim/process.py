@@ -27,9 +27,10 @@ from dataclasses import fields
 from pathlib import Path
 
 from plant_sim.config import DEFAULT_LOOPS, LoopSpec, PlantConfig, Simulation, build_loops
-from plant_sim.registration import RegistrationError, register
+from plant_sim.registration import register
 from plant_sim.runner import simulate
 from plant_sim.trajectory import plot, read_log
+from service.gateways.registration import RegistrationError
 from service.wire.protocol import DEFAULT_PREFIX, is_valid_id
 
 TOKEN_ENV = "PITUNE_API_TOKEN"
@@ -84,7 +85,8 @@ def add_loop_arguments(run_p: argparse.ArgumentParser) -> None:
         action="append",
         type=_loop_spec("foptd"),
         metavar="ID:K=..,tau=..,theta=..[,k=v]",
-        help="an FOPTD loop K exp(-theta s)/(tau s + 1), seconds",
+        help="an FOPTD loop K exp(-theta s)/(tau s + 1), seconds (K < 0: a cooling-like "
+        "loop, run and registered direct-acting)",
     )
     sim = run_p.add_argument_group("simulation")
     sim.add_argument(

@@ -96,6 +96,8 @@ class LoopSettings:
     load: float = 0.0
     noise: float = 0.0
     gain_range: float = 100.0
+    action: str = "reverse"
+    """The PI's controller action: 'direct' acts on pv - sp (a negative-gain process)."""
 
     def setpoint(self) -> Square:
         return Square(self.sp_low, self.sp_high, self.sp_period, first=self.sp_high)
@@ -170,6 +172,10 @@ class SimulatedLoop:
         self.pi.set_gains(min(max(kp, kp_lo), kp_hi), min(max(ki, ki_lo), ki_hi))
         return self.gains
 
+    def error(self, sp: float, pv: float) -> float:
+        """What the PI acts on: sp - pv, or pv - sp for a direct-acting one."""
+        return sp - pv if self.settings.action == "reverse" else pv - sp
+
     def scan(self) -> Scan:
         """Run one scan: measure, control, advance the plant and target by ``dt``."""
         elapsed = self.scans * self.dt
@@ -177,7 +183,7 @@ class SimulatedLoop:
         pv = self._measure()
         if self.settings.noise:
             pv += float(self.rng.uniform(-self.settings.noise, self.settings.noise))
-        op = float(self.pi.step(np.array([sp - pv]))[0])
+        op = float(self.pi.step(np.array([self.error(sp, pv)]))[0])
         target = float(self.target.output()[0])
         kp, ki = self.gains
         self._advance(op, self.load.at(elapsed))

@@ -36,7 +36,15 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    PrivateAttr,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 AGENT_GAIN = 0.5
 """Process gain at which a hinted loop appears to the agent."""
@@ -103,6 +111,17 @@ class ScalingSpec(BaseModel):
             msg = exc.errors()[0]["msg"]
             raise ValueError(f"derived scaling factor out of range: {msg}") from None
         return self
+
+    @field_validator("k_hat", mode="before")
+    @classmethod
+    def _k_magnitude(cls, value: object) -> object:
+        if isinstance(value, int | float) and not isinstance(value, bool) and value < 0:
+            raise ValueError(
+                "k_hat is the magnitude of the process gain: a process whose PV falls as "
+                "the output rises is registered with k_hat > 0 and action 'direct' (the "
+                "DCS block's controller action)"
+            )
+        return value
 
     def resolve(self) -> Scaling:
         """The factors, derived once, when the spec is validated."""

@@ -69,8 +69,9 @@ def compose_config(files: tuple[Path, ...] = (), **env: str) -> dict:
 
 @pytest.fixture(scope="module")
 def compose() -> dict:
-    """The deployment as compose resolves it with deploy/.env.example and a token."""
-    return compose_config(PITUNE_API_TOKEN=TOKEN)
+    """The deployment with its simulated plant (profile sim), as compose resolves it with
+    deploy/.env.example and a token."""
+    return compose_config(PITUNE_API_TOKEN=TOKEN, COMPOSE_PROFILES="sim")
 
 
 def mounts(service: dict) -> dict[str, Path]:
@@ -105,6 +106,7 @@ def test_compose_refuses_to_start_without_an_api_token():
 def test_compose_binds_and_secrets_come_from_the_environment():
     services = compose_config(
         PITUNE_API_TOKEN=TOKEN,
+        COMPOSE_PROFILES="sim",
         PITUNE_API_BIND="0.0.0.0",
         PITUNE_ZENOH_BIND="10.1.2.3",
         PITUNE_ZENOH_SECRETS="/srv/pitune/zenoh",
@@ -118,6 +120,59 @@ def test_compose_binds_and_secrets_come_from_the_environment():
     }
     assert mounts(services["tuner"])["/etc/pitune/zenoh.json5"] == secrets / "tuner.json5"
     assert mounts(services["plant"])["/etc/pitune/zenoh.json5"] == secrets / "gateway.json5"
+
+
+def test_the_simulated_plants_start_only_with_their_profile():
+    """No profile: router and tuner (a site's own gateways connect); ``sim``: the two-tank
+    plant; ``opcua``: the simulated OPC UA DCS and the OPC UA gateway instead."""
+    bare = compose_config(PITUNE_API_TOKEN=TOKEN)["services"]
+    assert set(bare) == {"router", "tuner"}
+    opcua = compose_config(PITUNE_API_TOKEN=TOKEN, COMPOSE_PROFILES="opcua")["services"]
+    assert set(opcua) == {"router", "tuner", "opcua-certs", "dcs-sim", "opcua-gateway"}
+    dcs, gateway = opcua["dcs-sim"], opcua["opcua-gateway"]
+    assert dcs["depends_on"]["opcua-certs"]["condition"] == "service_completed_successfully"
+    assert gateway["depends_on"]["tuner"]["condition"] == "service_healthy"
+    assert gateway["environment"]["PITUNE_API_TOKEN"] == TOKEN
+    assert mounts(gateway)["/etc/pitune/zenoh.json5"].name == "gateway.json5"
+    base = dcs["command"][dcs["command"].index("--map-base") + 1]
+    assert mounts(dcs)[base] == DEPLOY / "opcua" / "site-base.toml"
+    args = build_parser("plant").parse_args(dcs["command"])  # exits on an unknown option
+    assert args.certificate is not None and not args.allow_insecure
+
+
+def test_the_opcua_profile_makes_certificates_and_a_map_the_gateway_loads(tmp_path):
+    """The profile's one-shot certificate job and the simulated DCS's command, as compose
+    resolves them, run here with ``tmp_path`` as the /data volume (the DCS on a free port,
+    one scan): the map they leave is the gateway's, secured, pointing at the compose
+    service names, the bus and the tuner."""
+    from service.gateways.opcua.sitemap import Security, load_map
+
+    services = compose_config(PITUNE_API_TOKEN=TOKEN, COMPOSE_PROFILES="opcua")["services"]
+    certs = services["opcua-certs"]
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}:{os.environ['PATH']}"}
+    for _ in range(2):  # made once: the second run keeps them
+        done = subprocess.run([*certs["entrypoint"], *certs["command"]], cwd=tmp_path, env=env,
+                              capture_output=True, text=True, timeout=120)  # fmt: skip
+        assert done.returncode == 0, done.stderr
+    assert (tmp_path / "certs" / "trusted" / "gateway-cert.der").exists()
+    command = list(services["dcs-sim"]["command"])
+    command[command.index("--port") + 1] = str(free_port())
+    command[command.index("--host") + 1] = "127.0.0.1"
+    command[command.index("--map-base") + 1] = str(DEPLOY / "opcua" / "site-base.toml")
+    command.remove("--wait-for-gateway")
+    done = subprocess.run([sys.executable, "-m", "service.cli", *command, "--duration", "1",
+                           "--speed", "0", "--progress", "0"], cwd=tmp_path, env=env,
+                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    site = load_map(tmp_path / "site.toml")
+    assert site.server.url == "opc.tcp://dcs-sim:4840/pitune/dcs"
+    assert site.server.security is Security.basic256sha256
+    for path in (site.server.certificate, site.server.private_key, site.server.server_certificate):
+        assert path.is_file()
+    assert site.bus.zenoh_config == Path("/etc/pitune/zenoh.json5")
+    assert site.tuner.register_url == "http://tuner:8750"
+    (loop,) = site.loops
+    assert loop.id == "tank1" and loop.registration.scaling.k_hat == 1.2
 
 
 def test_router_image_matches_python_binding_minor(compose):
@@ -509,6 +564,7 @@ def test_tls_compose_override_of_the_docs_mounts_what_the_tls_configs_expect(tmp
     services = compose_config(
         (tmp_path / "docker-compose.tls.yml",),
         PITUNE_API_TOKEN=TOKEN,
+        COMPOSE_PROFILES="sim",
         PITUNE_TLS_DIR="/srv/pitune/tls",
     )["services"]
     router = mounts(services["router"])

@@ -81,6 +81,22 @@ def router(tmp_path) -> Iterator[str]:
         yield endpoint
 
 
+def first_through(put, q: queue.SimpleQueue, timeout: float = 10.0) -> None:
+    """``put()`` every 50 ms until something arrives on ``q`` (the routes through the
+    router are up: declarations and interests propagated), then empty ``q``. A put made
+    before the subscriber's declaration reached the router is dropped, as Zenoh does."""
+    deadline = time.monotonic() + timeout
+    while True:
+        put()
+        try:
+            q.get(timeout=0.05)
+            break
+        except queue.Empty:
+            assert time.monotonic() < deadline, "nothing got through the router"
+    while received(q, 1, timeout=0.2):  # the probes still on their way
+        pass
+
+
 def received(q: queue.SimpleQueue, n: int, timeout: float = 5.0) -> list[str]:
     out, deadline = [], time.monotonic() + timeout
     while len(out) < n and (left := deadline - time.monotonic()) > 0:
@@ -115,13 +131,16 @@ def test_every_protocol_flow_passes_the_shipped_acl(router, flow, declared):
         if declared:
             entities.append(publisher_session.declare_publisher(key))
         entities.append(subscriber_session.declare_subscriber(sub_key, lambda s: got.put(1)))
-        time.sleep(1.0)  # declarations and interests settle (not needed by the fix)
-        for _ in range(5):
+
+        def put() -> None:
             if declared:
                 entities[0].put(b"{}")
             else:
                 publisher_session.put(key, b"{}")
-            time.sleep(0.05)
+
+        first_through(put, got)
+        for _ in range(5):
+            put()
         n = len(received(got, 5))
         assert n == 5, f"{flow}: {n} of 5 puts reached the {sub_user} through the ACL"
     finally:
@@ -150,9 +169,15 @@ def test_state_queries_reach_the_tuners_queryable_through_the_shipped_acl(router
         entities.append(tuner.declare_queryable(served, lambda q: q.reply(q.key_expr, b"{}")))
         if declared:
             entities.append(gateway.declare_querier(asked, timeout=3.0))
-        time.sleep(1.0)
-        replies = entities[1].get() if declared else gateway.get(asked, timeout=3.0)
-        assert len([r for r in replies if r.ok is not None]) == 1, f"{query}: no reply"
+
+        def answered() -> int:  # the queryable's declaration may still be on its way
+            replies = entities[1].get() if declared else gateway.get(asked, timeout=3.0)
+            return len([r for r in replies if r.ok is not None])
+
+        deadline = time.monotonic() + 10.0
+        while not (n := answered()) and time.monotonic() < deadline:
+            pass
+        assert n == 1, f"{query}: {n} replies"
     finally:
         for entity in reversed(entities):
             entity.undeclare()
@@ -167,21 +192,36 @@ def test_the_acl_still_denies_a_gateway_the_samples_and_a_tuner_the_gains(router
     users = ("tuner", "tuner", "gateway", "gateway")
     tuner, rogue_tuner, gateway, rogue = (client(u, router) for u in users)
     entities = []
+
+    def heard(what: str):
+        return lambda s: got.put((what, s.payload.to_bytes()))
+
     try:
         entities = [
-            rogue.declare_subscriber(KEYS.all_samples, lambda s: got.put("rogue heard a sample")),
-            tuner.declare_subscriber(KEYS.all_samples, lambda s: got.put("tuner got a sample")),
-            gateway.declare_subscriber(KEYS.all_gains, lambda s: got.put("gateway got gains")),
+            rogue.declare_subscriber(KEYS.all_samples, heard("rogue heard a sample")),
+            tuner.declare_subscriber(KEYS.all_samples, heard("tuner got a sample")),
+            gateway.declare_subscriber(KEYS.all_gains, heard("gateway got gains")),
         ]
         forged_gains = rogue.declare_publisher(KEYS.gains("tank1"))
         forged_sample = rogue_tuner.declare_publisher(KEYS.sample("tank1"))
         entities += [forged_gains, forged_sample]
-        time.sleep(1.0)
-        forged_gains.put(b"{}")
-        forged_sample.put(b"{}")
-        time.sleep(0.5)
-        gateway.put(KEYS.sample("tank1"), b"{}")  # the control: real traffic flows
-        assert received(got, 5, timeout=2.0) == ["tuner got a sample"]
+        # real traffic flows both ways first (so a forged put could not be lost for lack
+        # of a route), then each forged put is followed by a control put of the same
+        # session: the router takes a session's messages in order, so once both controls
+        # arrived, both forged puts were handled
+        first_through(lambda: gateway.put(KEYS.sample("tank1"), b"probe"), got)
+        first_through(lambda: tuner.put(KEYS.gains("tank1"), b"probe"), got)
+        forged_gains.put(b"forged")
+        rogue.put(KEYS.sample("tank1"), b"control")  # gateway user: samples are allowed
+        forged_sample.put(b"forged")
+        rogue_tuner.put(KEYS.gains("tank1"), b"control")  # tuner user: gains allowed
+        seen = set(received(got, 3, timeout=5.0))
+        seen |= set(received(got, 5, timeout=0.2))  # anything else still on its way
+        assert seen == {
+            ("tuner got a sample", b"control"),
+            ("gateway got gains", b"control"),
+            ("rogue heard a sample", b"control"),  # its own put, delivered locally
+        }
     finally:
         for entity in reversed(entities):
             entity.undeclare()

@@ -109,3 +109,25 @@ def test_defaults_apply_to_every_loop_and_limits_are_checked():
         parse_map({"server": SECURE, "loops": [{**LOOP, "limits": {"p": [5, 1], "i": [1, 2]}}]})
     with pytest.raises(MapError, match="duplicate"):
         parse_map({"server": SECURE, "loops": [LOOP, LOOP]})
+
+
+def test_a_block_gain_pitune_cannot_read_is_never_overwritten():
+    """A negative gain (a DCS that encodes the controller action as the gain's sign) has
+    no parallel form: an update is refused for it, never written over it with pitune's
+    positive gain, which would flip the block's action."""
+    from service.gateways.base import Source, Update
+    from service.gateways.opcua.loops import LoopRuntime, Pending, decide
+    from service.wire.protocol import Mode
+
+    site = parse_map({"server": SECURE, "loops": [{**LOOP, "tuning_enable": True}]})
+    update = Update("LIC-101", kp=0.6, ki=0.01, mode=Mode.auto, seq=1, instance_id="t",
+                    source=Source.gains)  # fmt: skip
+    for p, decision in ((-0.5, "invalid_block_gains"), (0.5, None)):
+        lr = LoopRuntime(0, site.loops[0], values={"p": p, "i": 2.0})
+        lr.pending = Pending(update, 0.0, lr.block_gains())
+        if decision is not None:
+            assert decide(lr, link_up=True, now=100.0) == decision
+    # a readable block: the same update is written
+    assert decide(lr, link_up=True, now=100.0) == pytest.approx(
+        site.loops[0].form.from_parallel(0.6, 0.01)
+    )

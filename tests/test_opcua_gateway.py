@@ -1,7 +1,8 @@
 """The OPC UA gateway against a real asyncua server (the simulated DCS, in-process) and
-real Zenoh on loopback: samples with source timestamps and the gains in force; the
-write policy (auto, tuning enable, hard limits, rate limit, seq rule); a refused write
-reported and adopted by a real tuner; an OPC UA server restart mid-run.
+real Zenoh on loopback: samples with source timestamps, the gains in force and the
+update they follow (applied_seq); the write policy (auto, tuning enable, hard limits,
+rate limit, seq rule); a refused write reported and adopted by a real tuner; an OPC UA
+server restart mid-run; a tuner outage (gains held, bounded buffer of the newest).
 
 Every wait is for a signal (a gateway event, a sample, a tuner view), with a deadline;
 the DCS is scanned by the test (simulated time), so nothing depends on wall-clock pace.
@@ -20,10 +21,12 @@ import pytest
 import zenoh
 
 from plant_sim.config import LoopSpec, Simulation
-from plant_sim.opcua_dcs import AUTO, MAN, SimulatedDcs
+from plant_sim.opcua_block import AUTO, MAN
+from plant_sim.opcua_dcs import SimulatedDcs
 from service.daemon.tuner import Tuner
 from service.engine.config import LoopConfig
-from service.gateways.opcua.bridge import Event, OpcUaGateway
+from service.gateways.opcua.bridge import OpcUaGateway
+from service.gateways.opcua.loops import Event
 from service.gateways.opcua.sitemap import SiteMap, parse_map
 from service.wire.protocol import GainsMessage, Keys, LoopStatus, Mode, StateReply, encode
 from service.wire.session import free_port, session_config
@@ -180,6 +183,7 @@ def test_samples_and_the_write_policy():
                     assert all(close((s["kp"], s["ki"]), (kp0, ki0)) for s in samples)
                     assert samples[2]["sp"] == 60.0 and samples[2]["auto"] is True
                     assert samples[2]["saturated"] is False
+                    assert not any("applied_seq" in s for s in samples)  # no update yet
 
                     async def outcome(seq: int) -> Event:
                         return await gw.wait_event(
@@ -193,6 +197,8 @@ def test_samples_and_the_write_policy():
                     assert close(dcs.gains(LOOP), target)
                     last = lambda: fake.drain()[-1]  # noqa: E731
                     await until(lambda: close((last()["kp"], last()["ki"]), target))
+                    # the gains reported are those after update 1 (protocol revision 2)
+                    assert fake.seen[-1]["applied_seq"] == 1
 
                     lr = gw.by_id[LOOP]
                     await dcs.set_mode(LOOP, MAN)
@@ -202,6 +208,13 @@ def test_samples_and_the_write_policy():
                     assert (await outcome(2)).detail == "manual"
                     await dcs.scan()
                     await until(lambda: fake.drain()[-1]["auto"] is False, what="auto false")
+                    # refused, finished with: the block's gains (not update 2's) are reported
+                    # with applied_seq 2, which the tuner adopts as the operator's choice
+                    after = await until(
+                        lambda: (s := fake.drain()[-1]).get("applied_seq") == 2 and s,
+                        what="a sample after the refusal",
+                    )
+                    assert close((after["kp"], after["ki"]), target)
 
                     await dcs.set_mode(LOOP, AUTO)
                     await dcs.set_tuning_enable(LOOP, False)
@@ -297,10 +310,13 @@ def test_real_tuner_refused_write_adopted_then_server_restart_loses_no_update(tm
                 seqs = written()
                 refusals = [e.seq for e in gw.history if e.kind == "refused"]
                 assert refusals + seqs == list(range(1, seqs[-1] + 1))
-                # an update the tuner made as the scans stopped may still be on its way
+                # an update the tuner made as the scans stopped may still be on its way: the
+                # block's GAIN and RESET (read back by the gateway) come to hold the tuner's
+                # gains (its PI takes them at its next scan, and the scans have stopped)
+                lr = gw.by_id[LOOP]
                 await until(
-                    lambda: close(dcs.gains(LOOP), (view().kp, view().ki)),
-                    what="the DCS's gains equal the tuner's",
+                    lambda: close(lr.in_force(), (view().kp, view().ki)),
+                    what="the block's gains equal the tuner's",
                 )
                 assert gw.stats["links_lost"] == 1 and gw.stats["connects"] == 2
                 assert gw.stats["samples_dropped"] == 0
@@ -355,5 +371,46 @@ def test_zenoh_router_restart_buffers_samples_and_recovers_missed_gains():
             session.close()
             fake.close()
             rtr.close()
+
+    asyncio.run(scenario())
+
+
+def test_a_tuner_outage_holds_the_gains_and_a_bounded_buffer_of_the_newest_samples():
+    """While no tuner is up the DCS controls on with the gains in force (nothing is
+    written; the PV follows its setpoint), and the gateway holds at most
+    ``buffer_max_samples`` samples, the newest: older ones are dropped and counted. When a
+    tuner is back the held samples go out, in order."""
+
+    async def scenario() -> None:
+        fake = FakeTuner()
+        session = open_session(connect=[fake.endpoint])
+        try:
+            async with SimulatedDcs([tank()], port=free_port()) as dcs:
+                site = site_for(dcs, [fake.endpoint])
+                site.bus.buffer_max_samples = 3
+                gw = OpcUaGateway(site, session, record_events=True)
+                async with running(gw):
+                    await until(lambda: gw.bus.tuner_up, what="the tuner's token")
+                    kp0, ki0 = dcs.gains(LOOP)
+                    await until(lambda: fake.drain() and not gw.outbox, what="flushed")
+                    fake._token.undeclare()  # the tuner goes away
+                    await until(lambda: not gw.bus.tuner_up, what="the token gone")
+                    before = gw.stats["samples"]
+                    scans = []
+                    for k in range(40):  # each scan's PV taken before the next
+                        scans += await dcs.scan()
+                        await until(lambda k=k: gw.stats["samples"] == before + k + 1)
+                    assert len(gw.outbox) == 3 and gw.stats["samples_dropped"] == 37
+                    # the loop ran on its own: gains untouched, the level rising to 60 cm
+                    assert dcs.gains(LOOP) == (kp0, ki0) and gw.stats["written"] == 0
+                    assert scans[0].sp == 60.0 and scans[-1].pv > scans[0].pv + 0.1
+                    seen = len(fake.drain())
+                    fake._token = fake.session.liveliness().declare_token(KEYS.tuner("fake"))
+                    await until(lambda: len(fake.drain()) >= seen + 3, what="the held samples")
+                    held = [s["t"] - dcs.epoch for s in fake.seen[seen:]]
+                    assert held == [s.t for s in scans[-3:]]
+        finally:
+            session.close()
+            fake.close()
 
     asyncio.run(scenario())

@@ -11,6 +11,7 @@ import pytest
 from service.daemon import main as daemon
 from service.procs import ROOT, TunerProcess, clean_env, pitune
 from service.wire.session import free_port
+from tests.tuner_support import open_peer, wait_until
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -129,6 +130,12 @@ def test_a_second_tuner_on_the_same_key_prefix_refuses_to_start(tmp_path):
         line = one_line(second, daemon.EXIT_LOCKED, "key prefix 'pitune'", "--prefix")
         assert "pitune/tuners/first" in line
         assert "waiting up to" in second.stderr  # it waited for the token to go first
+        # the first, running, noticed the second's token come and go (its liveliness watch)
+        log = first.log.read_text()
+        assert "another tuner appeared on the bus with key prefix 'pitune': " \
+            "pitune/tuners/second" in log  # fmt: skip
+        wait_until(lambda: "the other tuner pitune/tuners/second left" in first.log.read_text(),
+                   timeout=15.0, what="the second tuner's token gone")  # fmt: skip
         other = TunerProcess(tmp_path / "b" / "pitune.db", "--agent-weights", "untrained",
                              "--connect", first.zenoh, "--prefix", "site2/pitune",
                              log=tmp_path / "other.log")  # fmt: skip
@@ -136,5 +143,36 @@ def test_a_second_tuner_on_the_same_key_prefix_refuses_to_start(tmp_path):
             other.start()
         finally:
             other.stop()
+    finally:
+        first.stop()
+
+
+def test_a_tuner_token_that_appears_later_shows_in_the_running_tuners_health(tmp_path):
+    """A token on the prefix declared after the tuner started (a second tuner started in
+    the same instant passes its own start-up check): warned in the log and in /healthz
+    while it lives, gone with it."""
+    first = TunerProcess(tmp_path / "pitune.db", "--agent-weights", "untrained",
+                         "--instance-id", "first", log=tmp_path / "first.log")  # fmt: skip
+    try:
+        first.start()
+        peer = open_peer([first.zenoh])
+        try:
+            with first.http() as api:
+                assert api.get("/healthz").json() == {"status": "ok", "detail": ""}
+                token = peer.liveliness().declare_token("pitune/tuners/late")
+                health = wait_until(
+                    lambda: (h := api.get("/healthz").json())["detail"] and h, what="warning"
+                )
+                assert health == {
+                    "status": "ok",
+                    "detail": "another tuner on this key prefix: pitune/tuners/late",
+                }
+                token.undeclare()
+                wait_until(lambda: not api.get("/healthz").json()["detail"], what="token gone")
+        finally:
+            peer.close()
+        log = first.log.read_text()
+        assert "another tuner appeared on the bus with key prefix 'pitune'" in log
+        assert "the other tuner pitune/tuners/late left the bus" in log
     finally:
         first.stop()

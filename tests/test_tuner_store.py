@@ -30,7 +30,10 @@ def test_derived_bounds_are_clamped_to_the_largest_gain():
 def test_a_registration_with_an_extreme_scaling_survives_a_restart(tmp_path):
     settings = tuner_settings(tmp_path)
     with TestClient(create_app(settings)) as client:
-        assert client.post("/loops", json=loop_body("TINY", scaling=TINY)).status_code == 201
+        # the paper's initial gains (0.05 agent units) and a sample period within the hinted
+        # tau: a registration the API's sanity rules accept (docs/tuner.md)
+        body = loop_body("TINY", kp=2.5e4, ki=1.25e10, sample_period_s=1e-6, scaling=TINY)
+        assert client.post("/loops", json=body).status_code == 201
     with TestClient(create_app(settings)) as client:
         assert client.get("/loops/TINY").json()["config"]["guard"]["ki_max"] == MAX_MAGNITUDE
 

@@ -57,7 +57,7 @@ from service.daemon.schemas import (
 )
 from service.daemon.settings import Settings
 from service.daemon.tuner import Conflict, StoreUnavailable, Tuner, UnknownLoop
-from service.engine.config import LoopConfig, LoopPatch, LoopView
+from service.engine.config import LoopPatch, LoopView, Registration
 
 log = logging.getLogger("pitune.api")
 _bearer = HTTPBearer(auto_error=False, description="PITUNE_API_TOKEN, when set")
@@ -104,7 +104,7 @@ Limit = Annotated[int, Query(ge=1, le=MAX_PAGE)]
 
 
 @loops.post("", status_code=201, dependencies=mutating, responses={409: {}})
-def register_loop(config: LoopConfig, tuner: TunerDep, request: Request) -> LoopView:
+def register_loop(config: Registration, tuner: TunerDep, request: Request) -> LoopView:
     """Register a loop; it starts at its registered gains with a fresh agent state."""
     view = tuner.register(config)
     _event(tuner, request, "registered", "loop %r registered (%s, kp=%.6g ki=%.6g, seq %d)",
@@ -114,7 +114,7 @@ def register_loop(config: LoopConfig, tuner: TunerDep, request: Request) -> Loop
 
 @loops.post("/bulk", status_code=201, dependencies=mutating, responses={409: {}})
 def register_loops(
-    configs: Annotated[list[LoopConfig], Body(max_length=MAX_BULK)],
+    configs: Annotated[list[Registration], Body(max_length=MAX_BULK)],
     tuner: TunerDep,
     request: Request,
     after: BackgroundTasks,
@@ -224,6 +224,8 @@ def healthz(tuner: TunerDep) -> Health:
         return _unhealthy("failing", "worker thread not running")
     if tuner.store_failure is not None:
         return _unhealthy("failing", tuner.store_failure)
+    if others := sorted(tuner.bus.other_tuners if tuner.bus else ()):
+        return Health(status="ok", detail=f"another tuner on this key prefix: {', '.join(others)}")
     return Health(status="ok")
 
 

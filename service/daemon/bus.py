@@ -11,6 +11,12 @@ before it: a state reply reflects the samples handled before the query was, and 
 gateway that needs one of its samples reflected asks with ``after_t`` (see
 docs/protocol.md, State).
 
+While it runs, the tuner also watches the other tuners' liveliness tokens on its key
+prefix (:attr:`Bus.other_tuners`): the start-up check (``service.daemon.main``) refuses
+to start beside a tuner already there, and this watch notices one that comes later (or
+started in the same instant), logs a warning and shows it in ``/healthz``: two tuners
+on one prefix both tune the same loops.
+
 A callback subscriber still declared when the interpreter exits hangs it (zenoh 1.10),
 so :meth:`Bus.close` undeclares everything and closes the session; the tuner calls it
 on every shutdown path.
@@ -162,6 +168,9 @@ class Bus:
         self.session: zenoh.Session | None = None
         self._entities: list = []
         self._token = None
+        self.other_tuners: set[str] = set()
+        """Liveliness tokens of other tuners on this key prefix that appeared while this
+        tuner ran (those already there at start-up are the start-up check's)."""
 
     def open(self) -> None:
         self.session = zenoh.open(zenoh_config(self.settings))
@@ -174,6 +183,10 @@ class Bus:
                 s.declare_queryable(k.all_gateway_states, self._query_handler(Kind.gateway_query)),
             ]
             self._token = s.liveliness().declare_token(k.tuner(self.settings.instance_id))
+            # no history: tokens already there are the start-up check's (a get after this)
+            self._entities.append(
+                s.liveliness().declare_subscriber(k.all_tuners, self._on_tuner, history=False)
+            )
         except BaseException:
             self.close()
             raise
@@ -209,6 +222,22 @@ class Bus:
         except (zenoh.ZError, ValueError):
             return False
         return endpoints not in ("[]", "null", "{}", "")
+
+    def _on_tuner(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        if key == self.keys.tuner(self.settings.instance_id):
+            return
+        if sample.kind == zenoh.SampleKind.PUT:
+            self.other_tuners.add(key)
+            log.warning(
+                "another tuner appeared on the bus with key prefix %r: %s. Both tune the same "
+                "loops: stop it, or give it its own --prefix (PITUNE_KEY_PREFIX)",
+                self.settings.key_prefix,
+                key,
+            )
+        elif key in self.other_tuners:
+            self.other_tuners.discard(key)
+            log.warning("the other tuner %s left the bus", key)
 
     def _handler(self, kind: Kind) -> Callable[[zenoh.Sample], None]:
         def on_sample(sample: zenoh.Sample) -> None:

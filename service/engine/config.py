@@ -6,17 +6,28 @@ with, with the safety bounds resolved to explicit engineering values.
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from service.units import AGENT_GAIN_RANGE, DEFAULT_FORGETTING, Scaling, ScalingSpec
+from service.units import AGENT_GAIN_RANGE, AGENT_TAU, DEFAULT_FORGETTING, Scaling, ScalingSpec
 from service.wire.protocol import MAX_MAGNITUDE, Gain, GatewayId, LoopId, LoopStatus, Mode
 
 Fraction = Annotated[float, Field(strict=True, gt=0.0, le=10.0, allow_inf_nan=False)]
 ExcitationPeriods = Annotated[float, Field(strict=True, ge=0.0, le=1e6, allow_inf_nan=False)]
 ExcitationStep = Annotated[float, Field(strict=True, gt=0.0, le=100.0, allow_inf_nan=False)]
 Tolerance = Annotated[float, Field(strict=True, gt=1.0, le=100.0, allow_inf_nan=False)]
+Action = Literal["reverse", "direct"]
+ACTION_SIGN = {"reverse": 1.0, "direct": -1.0}
+"""Sign the engine applies to a loop's error and setpoint (docs/tuner.md, Controller
+action): the agent, trained on positive-gain plants, sees a direct-acting loop with its
+PV and SP negated, i.e. a plant of gain +|K|."""
+REGISTRATION_GAIN_MARGIN = 100.0
+"""A hinted registration's gains may lie at most this factor outside the agent's gain
+range (``AGENT_GAIN_RANGE`` in agent units, 1e-4..5000 with the default) under the hint;
+further out the gains or the hint are wrong by orders of magnitude (typically ki per
+minute given as per second, or k_hat in other units), and the registration is refused
+rather than the default guard widened to match."""
 
 
 class Guard(BaseModel):
@@ -105,6 +116,15 @@ class LoopConfig(BaseModel):
         "'identifying' and is tuned once its model is identified from its data.",
     )
     mode: Mode = Mode.auto
+    action: Action = Field(
+        "reverse",
+        description="Controller action, as set in the DCS's PID block: 'reverse' (the "
+        "output falls as the PV rises: a process of positive gain, e.g. heating, a level "
+        "filled by the manipulated flow) or 'direct' (the output rises with the PV: a "
+        "process of negative gain, e.g. cooling, a level drained by the manipulated "
+        "flow). kp, ki and k_hat are magnitudes either way, as in the block; samples "
+        "carry sp and pv (or e = sp - pv) as measured.",
+    )
     forgetting: Annotated[float, Field(strict=True, gt=0.0, le=1.0)] = Field(
         DEFAULT_FORGETTING,
         description="Forgetting factor of the agent's hidden state (the paper's gamma).",
@@ -127,8 +147,67 @@ class LoopConfig(BaseModel):
         return self
 
     @property
+    def action_sign(self) -> float:
+        """+1 reverse, -1 direct: see :data:`ACTION_SIGN`."""
+        return ACTION_SIGN[self.action]
+
+    @property
     def resolved_scaling(self) -> Scaling | None:
         return None if self.scaling is None else self.scaling.resolve()
+
+
+class Registration(LoopConfig):
+    """A new registration (``POST /loops``, ``/loops/bulk``): a :class:`LoopConfig` that
+    also passes the sanity rules below. Configs loaded from the store are not judged
+    again: a rule added later must not stop a tuner from loading the loops it has."""
+
+    @field_validator("kp", "ki", mode="before")
+    @classmethod
+    def _magnitude(cls, value: object, info) -> object:
+        if isinstance(value, int | float) and not isinstance(value, bool):
+            if value < 0:
+                raise ValueError(
+                    f"{info.field_name} is a magnitude, as in the DCS's PID block: a loop "
+                    "whose output must rise with the PV is registered with positive gains "
+                    "and action 'direct'"
+                )
+            if value == 0 and info.field_name == "ki":
+                raise ValueError(
+                    "ki = 0 (a P-only loop) is not tuned: pitune tunes PI loops and a "
+                    "P-only loop keeps an offset the agent was never trained on. Give the "
+                    "DCS block an integral first, e.g. ki = kp / tau_hat (reset time = the "
+                    "process time constant), and register that"
+                )
+        return value
+
+    @model_validator(mode="after")
+    def _sane(self) -> Registration:
+        scaling = self.resolved_scaling
+        if scaling is None:
+            return self
+        tau_s = scaling.time_unit_s * AGENT_TAU
+        if tau_s < self.sample_period_s:
+            raise ValueError(
+                f"the hinted time constant {tau_s:g} s is shorter than the sample period "
+                f"{self.sample_period_s:g} s (RL period {scaling.rl_period_s:g} s): a process "
+                "faster than its sampling shows no dynamics to tune from. Check tau_hat "
+                "(seconds) and sample_period_s"
+            )
+        lo, hi = AGENT_GAIN_RANGE
+        lo, hi = lo / REGISTRATION_GAIN_MARGIN, hi * REGISTRATION_GAIN_MARGIN
+        for name, gain, unit in (
+            ("kp", self.kp, scaling.kp_per_agent),
+            ("ki", self.ki, scaling.ki_per_agent),
+        ):
+            if not lo <= gain / unit <= hi:
+                raise ValueError(
+                    f"{name} = {gain:g} is {gain / unit:.3g} in the agent's units under this "
+                    f"hint, outside {lo:g}..{hi:g} ({REGISTRATION_GAIN_MARGIN:g}x the agent's "
+                    f"range): the gain or the hint is off by orders of magnitude (ki is per "
+                    f"second; k_hat in PV units per output unit). Under this hint {name} "
+                    f"lies within {lo * unit:.3g}..{hi * unit:.3g}"
+                )
+        return self
 
 
 def resolve_bounds(guard: Guard, scaling: Scaling, kp: float, ki: float) -> Guard:

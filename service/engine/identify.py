@@ -420,7 +420,11 @@ def _verdict(m: Model, excited: int, n_events: int) -> str:
     if m.integrating:
         return "integrating: K/s e^(-theta s) fits better than an FOPTD model"
     if not m.k > 0.0:
-        return f"process gain {m.k:.3g} has the wrong sign for this controller"
+        return (
+            f"process gain {m.k:.3g} has the wrong sign for the registered controller "
+            "action (the DCS block's action is probably the other one: register the loop "
+            "again with the other 'action')"
+        )
     if excited < MIN_EVENTS:
         return (
             f"move too small for the noise ({excited} of {n_events} events show a "

@@ -93,6 +93,9 @@ def ingest(
     detail)); a rejected sample changes nothing of its loop but its counters.
     """
     cols = {k: getattr(rows, k) for k in ("t", "e", "sp", "kp", "ki", "auto", "saturated")}
+    # a direct-acting loop is seen with its PV and SP negated: a positive-gain plant
+    sign = tb.sign[slots]
+    cols["e"], cols["sp"] = cols["e"] * sign, cols["sp"] * sign
     cols["op"] = rows.op if rows.op is not None else np.full(len(rows), math.nan)
     seqs = rows.applied_seq
     cols["applied_seq"] = seqs if seqs is not None else np.full(len(rows), -1, np.int64)

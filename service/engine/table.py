@@ -45,6 +45,8 @@ _F64 = (
     "kp", "ki", "reg_kp", "reg_ki", "prev_kp", "prev_ki",
     # unit mapping (engineering per agent) and timing
     "kp_unit", "ki_unit", "e_scale", "int_scale", "period", "stale_gap", "forgetting",
+    # controller action: +1 reverse, -1 direct (rules.ingest negates e and sp by it)
+    "sign",
     # episode state
     "last_t", "last_e", "int_e", "next_due", "last_wall",
     # safety guard and flood limiter
@@ -253,6 +255,7 @@ class LoopTable:
             g = resolve_bounds(g, identified, float(self.reg_kp[s]), float(self.reg_ki[s]))
         self.stale_gap[s] = g.stale_periods * config.sample_period_s
         self.forgetting[s] = config.forgetting
+        self.sign[s] = config.action_sign
         self.max_rel[s] = g.max_rel_change
         self.mode[s] = _CODE[config.mode]
         self.gateways[s] = config.gateway

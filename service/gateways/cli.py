@@ -72,7 +72,8 @@ def run(args: argparse.Namespace) -> int:
 async def serve(site, status_interval: float, report: Path | None = None) -> int:
     import zenoh
 
-    from service.gateways.opcua.bridge import OpcUaGateway, RegistrationError
+    from service.gateways.opcua.bridge import OpcUaGateway
+    from service.gateways.registration import RegistrationError
     from service.wire.session import session_config
 
     stop = asyncio.Event()
@@ -110,8 +111,8 @@ async def serve(site, status_interval: float, report: Path | None = None) -> int
 
 async def check(site) -> int:
     """Connect once and print what the gateway would see."""
-    from service.gateways.opcua.bridge import LoopRuntime
     from service.gateways.opcua.client import Item, OpcUaLink
+    from service.gateways.opcua.loops import LoopRuntime
 
     link = OpcUaLink(site.server)
     loops = [LoopRuntime(k, cfg) for k, cfg in enumerate(site.loops)]

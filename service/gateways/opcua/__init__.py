@@ -4,7 +4,9 @@
 * :mod:`.sitemap`: the map file (TOML): server, security, bus, and one entry per loop;
 * :mod:`.certs`: self-signed client certificates (``pitune gateway certs``);
 * :mod:`.client`: the asyncua side (secure session, monitored items, write and read back);
-* :mod:`.bridge`: the gateway itself (samples out, gains in, write policy, reconnects);
+* :mod:`.loops`: each loop's runtime view (values, pending update) and the write policy;
+* :mod:`.bridge`: the gateway itself (samples out, gains in, writes, reconnects);
+* :mod:`.register`: the bulk registration of the map's loops with the tuner;
 * :mod:`.cli`: ``pitune gateway opcua --map site.toml``.
 
 See ``docs/opcua.md``.

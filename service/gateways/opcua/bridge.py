@@ -21,6 +21,7 @@ only when all hold at that moment:
 * the loop is in auto (mode node's value among ``auto_values``): else it is dropped;
 * tuning is enabled (the tuning-enable node is true, or the map's flag): else dropped;
 * the values are within the map's hard limits: else dropped (never clipped);
+* the block's gains convert to the parallel form (a negative gain does not): else dropped;
 * the block's gains are still those it had when the update arrived: else an operator
   (or the DCS) changed them meanwhile and the update is stale: dropped;
 * ``min_write_interval_s`` has passed since the loop's last write: else it waits.
@@ -29,6 +30,14 @@ A write is one request for all due loops, then a read-back of the same nodes; th
 values read back become the block's gains in force, reported in the next samples.
 A refused write (bad status) or one the block changed (read-back differs) is logged and
 counted; the tuner sees the gains in force in the samples and adopts them.
+
+``applied_seq`` (protocol revision 2): once the gateway is finished with an update --
+written, found already in force, or refused (by the policy above or by the server) --
+the loop's samples carry its seq, so the gains they report are known to be the block's
+after that update: equal to it, the update is confirmed; different, they are an
+operator's or the block's choice and the tuner adopts them. While an update waits (no
+session, rate limit) the samples carry the previous seq, and the tuner, seeing the
+gateway lag, takes nothing for an operator's change.
 """
 
 from __future__ import annotations
@@ -40,104 +49,29 @@ import math
 import time
 from collections import Counter, deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from typing import Any
 
-import httpx
 import orjson
 import zenoh
 
-from service.gateways.base import SAMPLE_CONGESTION, Gateway, Update
+from service.gateways.base import SAMPLE_CONGESTION, Gateway
 from service.gateways.opcua.client import Change, Item, LinkLost, OpcUaLink, now_epoch
-from service.gateways.opcua.forms import FormError
-from service.gateways.opcua.sitemap import LoopMap, SiteMap
+from service.gateways.opcua.loops import (
+    WAIT,
+    Event,
+    LoopRuntime,
+    Pending,
+    close_to,
+    decide,
+    number,
+)
+from service.gateways.opcua.register import register_loops, registration_bodies
+from service.gateways.opcua.sitemap import SiteMap
+from service.gateways.registration import RegistrationError
 from service.wire.protocol import ENCODING, MAX_BATCH, Keys, Mode
 
 log = logging.getLogger("pitune.gateway.opcua")
 TICK_S = 0.02
 """How often gains are taken from the bus and due writes made."""
-REL_TOL = 1e-5
-"""Read-back and comparisons of gains: float32 nodes round to ~6e-8."""
-WAIT = "wait"
-
-
-def close_to(a: tuple[float, float] | None, b: tuple[float, float] | None) -> bool:
-    if a is None or b is None:
-        return False
-    return all(math.isclose(x, y, rel_tol=REL_TOL, abs_tol=0.0) for x, y in zip(a, b, strict=True))
-
-
-def _number(value: Any) -> float | None:
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        return None
-    value = float(value)
-    return value if math.isfinite(value) else None
-
-
-@dataclass
-class Pending:
-    update: Update
-    received: float
-    """time.monotonic() when the update was taken from the bus."""
-    base: tuple[float, float] | None
-    """The block's (P, I) when it arrived: a write goes out only if they still hold."""
-
-
-@dataclass
-class LoopRuntime:
-    index: int
-    cfg: LoopMap
-    values: dict[str, Any] = field(default_factory=dict)
-    types: dict[str, Any] = field(default_factory=dict)
-    last_t: float | None = None
-    pending: Pending | None = None
-    last_write: float = -math.inf
-    last_seq: int = 0
-
-    @property
-    def auto(self) -> bool:
-        if self.cfg.mode is None:
-            return True
-        mode = self.values.get("mode")
-        if isinstance(mode, float) and mode.is_integer():
-            mode = int(mode)
-        return any(mode == v and type(mode) is type(v) for v in self.cfg.auto_values)
-
-    @property
-    def enabled(self) -> bool:
-        te = self.cfg.tuning_enable
-        return te if isinstance(te, bool) else self.values.get("tuning_enable") is True
-
-    @property
-    def saturated(self) -> bool:
-        v = self.values
-        return v.get("at_high_limit") is True or v.get("at_low_limit") is True
-
-    def block_gains(self) -> tuple[float, float] | None:
-        p, i = _number(self.values.get("p")), _number(self.values.get("i"))
-        return None if p is None or i is None else (p, i)
-
-    def in_force(self) -> tuple[float, float] | None:
-        gains = self.block_gains()
-        if gains is None:
-            return None
-        try:
-            return self.cfg.form.to_parallel(*gains)
-        except FormError:
-            return None
-
-
-@dataclass(frozen=True)
-class Event:
-    """What the gateway did (for tests and tools that wait on it instead of sleeping)."""
-
-    kind: str
-    """connected, lost, connect_failed, received, written, refused, applied_already."""
-    loop_id: str | None = None
-    seq: int | None = None
-    detail: str = ""
-    at: float = field(default_factory=time.monotonic)
-    """When it happened (time.monotonic())."""
 
 
 class OpcUaGateway:
@@ -300,7 +234,7 @@ class OpcUaGateway:
         if lr.last_t is not None and t <= lr.last_t:
             self.stats["samples_not_newer"] += 1  # a repeated notification (reconnect)
             return
-        sp, pv = _number(lr.values.get("sp")), _number(lr.values.get("pv"))
+        sp, pv = number(lr.values.get("sp")), number(lr.values.get("pv"))
         if sp is None or pv is None:
             self.stats["samples_incomplete"] += 1
             return
@@ -309,6 +243,9 @@ class OpcUaGateway:
         gains = lr.in_force()
         if gains is not None:
             sample["kp"], sample["ki"] = gains
+        applied = self.bus.applied_seq(lr.cfg.id)
+        if applied is not None:  # the gains above are what the block holds after it
+            sample["applied_seq"] = applied
         lr.last_t = t
         if len(self.outbox) >= self.site.bus.buffer_max_samples:
             self.outbox.popleft()
@@ -362,47 +299,21 @@ class OpcUaGateway:
             self.stats["received"] += 1
             self.emit("received", lr.cfg.id, update.seq, update.source.value)
 
-    def _decide(self, lr: LoopRuntime, now: float) -> str | tuple[float, float]:
-        """WAIT, a refusal reason, "applied" (nothing to write) or the (P, I) to write."""
-        assert lr.pending is not None
-        update = lr.pending.update
-        if self.link is None:
-            return WAIT
-        if not lr.auto:
-            return "manual"
-        if not lr.enabled:
-            return "tuning_disabled"
-        try:
-            target = lr.cfg.form.from_parallel(update.kp, update.ki)
-        except FormError:
-            return "invalid"
-        if not lr.cfg.limits.allows(*target):
-            return "beyond_limits"
-        current = lr.block_gains()
-        if current is None:
-            return WAIT
-        if close_to(current, target):
-            return "applied"
-        if lr.pending.base is not None and not close_to(current, lr.pending.base):
-            return "stale"
-        if now - lr.last_write < lr.cfg.min_write_interval_s:
-            return WAIT
-        return target
-
     async def _write_due(self) -> None:
         now = time.monotonic()
         due: list[tuple[LoopRuntime, Pending, tuple[float, float]]] = []
         for lr in self.loops:
             if lr.pending is None:
                 continue
-            decision = self._decide(lr, now)
+            decision = decide(lr, self.link is not None, now)
             if decision == WAIT:
                 continue
             pending, lr.pending = lr.pending, None
             seq = pending.update.seq
+            if isinstance(decision, str):  # finished with, nothing written
+                self.bus.applied(pending.update)
             if decision == "applied":
                 self.stats["already_in_force"] += 1
-                lr.last_seq = seq
                 self.emit("applied_already", lr.cfg.id, seq)
             elif isinstance(decision, str):
                 self.stats[f"refused_{decision}"] += 1
@@ -439,10 +350,12 @@ class OpcUaGateway:
             for name, dv in (("p", bp), ("i", bi)):
                 good = dv.StatusCode is None or dv.StatusCode.is_good()
                 value = dv.Value.Value if good and dv.Value is not None else None
-                if _number(value) is not None:
+                if number(value) is not None:
                     lr.values[name] = value
-                read_back.append(_number(value))
-            lr.last_seq = seq
+                read_back.append(number(value))
+            # finished with: written, refused or changed by the block; the samples from
+            # now on report the gains read back with applied_seq = seq
+            self.bus.applied(pending.update)
             if not (cp.is_good() and ci.is_good()):
                 bad = cp if not cp.is_good() else ci
                 self.stats["refused_by_server"] += 1
@@ -477,70 +390,7 @@ class OpcUaGateway:
 
     # -- registration ----------------------------------------------------------------
     async def _register(self) -> None:
-        bodies = []
-        for lr in self.loops:
-            reg = lr.cfg.registration
-            gains = lr.in_force()
-            if reg is None:
-                continue
-            if gains is None:
-                log.error("%s: gains unreadable, not registered", lr.cfg.id)
-                continue
-            body = {
-                "id": lr.cfg.id,
-                "kp": gains[0],
-                "ki": gains[1],
-                "sample_period_s": reg.sample_period_s or lr.cfg.sampling_interval_ms / 1000.0,
-                "scaling": reg.scaling.model_dump(exclude_none=True),
-                **reg.extra,
-            }
-            if self.site.bus.gateway_id is not None:
-                body["gateway"] = self.site.bus.gateway_id
-            bodies.append(body)
+        bodies = registration_bodies(self.site, self.loops)
         if bodies:
             await asyncio.to_thread(register_loops, self.site, bodies)
         self._registered = True
-
-
-class RegistrationError(RuntimeError):
-    pass
-
-
-def register_loops(site: SiteMap, bodies: list[dict]) -> int:
-    """``POST /loops/bulk``; if some ids are taken, each loop alone (409: already known).
-    Retries connection failures for ``timeout_s``. Returns how many were new."""
-    import os
-
-    url = site.tuner.register_url
-    token = os.environ.get(site.tuner.token_env)
-    headers = {"Authorization": f"Bearer {token}"} if token else {}
-    deadline = time.monotonic() + site.tuner.timeout_s
-    with httpx.Client(base_url=url, headers=headers, timeout=30.0) as client:
-
-        def call(method: str, path: str, **kw) -> httpx.Response:
-            while True:
-                try:
-                    return client.request(method, path, **kw)
-                except httpx.TransportError as exc:
-                    if time.monotonic() > deadline:
-                        raise RegistrationError(f"tuner API at {url} unreachable: {exc}") from exc
-                    time.sleep(0.5)
-
-        new = 0
-        for start in range(0, len(bodies), 10_000):
-            chunk = bodies[start : start + 10_000]
-            r = call("POST", "/loops/bulk", json=chunk)
-            if r.status_code == 409:
-                for body in chunk:
-                    one = call("POST", "/loops", json=body)
-                    if one.status_code not in (201, 409):
-                        raise RegistrationError(
-                            f"{body['id']}: HTTP {one.status_code} {one.text[:300]}"
-                        )
-                    new += one.status_code == 201
-            elif not r.is_success:
-                raise RegistrationError(f"bulk registration: HTTP {r.status_code} {r.text[:300]}")
-            else:
-                new += len(chunk)
-    log.warning("registered %d new loops with %s (%d known)", new, url, len(bodies) - new)
-    return new
