@@ -45,15 +45,16 @@ import queue
 import sqlite3
 import threading
 import time
-from collections.abc import Callable
 
 import orjson
 import torch
 import zenoh
 
 from service.agent.model import Agent, load_agent, untrained_agent
-from service.daemon.bus import JSON, Bus, Inbox, Item, Kind, reply
+from service.daemon.bus import Bus, Inbox, Item, Kind
+from service.daemon.lanes import LANE_DRAIN_S, Lane
 from service.daemon.metrics import Metrics, RateLimitedLog
+from service.daemon.queries import StateQueries
 from service.daemon.recent import Recent
 from service.daemon.schemas import HistoryPage, LoopsPage
 from service.daemon.settings import Settings
@@ -66,11 +67,7 @@ from service.wire.decode import Rejection, decode_batch, decode_singles
 from service.wire.protocol import (
     MAX_BATCH,
     SCHEMA_VERSION,
-    ErrorReply,
     RejectReason,
-    StateBatch,
-    StateReply,
-    encode,
 )
 
 log = logging.getLogger("pitune.tuner")
@@ -88,96 +85,8 @@ COMMIT_RETRY_S = 1.0
 EXIT_STORE_FAILED = 74
 """Exit status after ``store_failure_exit_s`` of failing commits (EX_IOERR)."""
 _RANGE_ERRORS = {"less_than_equal", "greater_than_equal", "less_than", "greater_than"}
-AFTER_T_WAIT_S = 1.0
-"""Longest a state query with ``after_t`` waits for its loop's sample."""
 PRUNE_CHUNK = 200
 """Loop ids whose audit history is pruned per idle worker iteration."""
-LANE_BOUND = 100_000
-"""Messages a lane holds before it keeps only the newest of each loop."""
-LANE_DRAIN_S = 5.0
-"""Longest :meth:`Tuner.stop` waits for the lanes to publish what they hold."""
-
-
-class Lane:
-    """Committed gains messages waiting for one destination, and the thread publishing
-    them: the per-loop keys (``gateway`` None) or one gateway's GainsBatch key.
-
-    Messages go out in the order submitted. While the destination blocks, messages
-    pile up; past ``bound`` of them, only the newest of each loop is kept (gains are
-    absolute, and gateways drop a seq below one they took), so a lane holds at most
-    ``max(bound, loops)`` messages however long its destination blocks.
-    """
-
-    def __init__(
-        self,
-        gateway: str | None,
-        send: Callable[[str | None, list[dict]], None],
-        bound: int = LANE_BOUND,
-    ):
-        self.gateway = gateway
-        self._send = send
-        self.bound = bound
-        self._pending: list[dict] = []
-        self._cond = threading.Condition()
-        self._busy = False
-        self._closing = False
-        self.superseded = 0
-        """Messages replaced by a newer one of the same loop before they went out."""
-        self.thread = threading.Thread(
-            target=self._run, name=f"pitune-publish-{gateway or 'loops'}", daemon=True
-        )
-        self.thread.start()
-
-    def submit(self, messages: list[dict]) -> None:
-        with self._cond:
-            self._pending.extend(messages)
-            if len(self._pending) > self.bound:
-                newest = {m["loop_id"]: i for i, m in enumerate(self._pending)}
-                kept = [self._pending[i] for i in sorted(newest.values())]
-                self.superseded += len(self._pending) - len(kept)
-                self._pending = kept
-            self._cond.notify_all()
-
-    def _run(self) -> None:
-        while True:
-            with self._cond:
-                while not self._pending and not self._closing:
-                    self._cond.wait()
-                if not self._pending:
-                    return
-                batch, self._pending = self._pending, []
-                self._busy = True
-            try:
-                self._send(self.gateway, batch)
-            except Exception:
-                log.exception("publishing %d gains messages failed", len(batch))
-            finally:
-                with self._cond:
-                    self._busy = False
-                    self._cond.notify_all()
-
-    @property
-    def idle(self) -> bool:
-        return not self._pending and not self._busy
-
-    def drain(self, timeout: float) -> bool:
-        """Wait until everything submitted went out; False on timeout."""
-        deadline = time.monotonic() + timeout
-        with self._cond:
-            while self._pending or self._busy:
-                left = deadline - time.monotonic()
-                if left <= 0.0:
-                    return False
-                self._cond.wait(left)
-            return True
-
-    def close(self, timeout: float) -> None:
-        with self._cond:
-            self._closing = True
-            self._cond.notify_all()
-        self.thread.join(timeout)
-
-
 IDENTIFICATION_OUTCOMES = frozenset(
     {"identified", "rescaled", "mismatch", "out_of_envelope", "in_envelope", "identify"}
 )
@@ -252,7 +161,7 @@ def _group_singles(items: list[Item]):
         yield Kind.sample, "", run
 
 
-class Tuner:
+class Tuner(StateQueries):
     def __init__(self, settings: Settings, agent: Agent | None = None) -> None:
         self.settings = settings
         self.keys = settings.keys
@@ -673,87 +582,6 @@ class Tuner:
         """Gains messages replaced in their lane by a newer one before they went out."""
         return sum(lane.superseded for lane in list(self.lanes.values()))
 
-    def _answer(self, query: zenoh.Query) -> None:
-        key = str(query.key_expr)
-        loop_id = self.keys.loop_id(key)
-        if loop_id is not None and loop_id in self.table.slot_of:
-            after_t = _after_t(query)
-            if after_t is not None and not self._reflects(loop_id, after_t):
-                deadline = time.monotonic() + AFTER_T_WAIT_S
-                self._parked.setdefault(loop_id, []).append((after_t, deadline, query))
-                return
-            reply(query, encode(self._state(loop_id)))
-            return
-        if "*" in key:  # e.g. a reconnecting gateway asking for all its loops at once
-            asked = zenoh.KeyExpr(key)
-            for loop_id in list(self.table.slot_of):
-                state_key = self.keys.state(loop_id)
-                if asked.intersects(zenoh.KeyExpr(state_key)):
-                    query.reply(state_key, encode(self._state(loop_id)), encoding=JSON)
-            query.drop()
-            return
-        reply(query, encode(ErrorReply(loop_id=loop_id or key, error="unknown loop")), error=True)
-
-    def _reflects(self, loop_id: str, after_t: float) -> bool:
-        t = self.table.last_t[self.table.slot(loop_id)]
-        return not math.isnan(t) and t >= after_t
-
-    def _answer_parked(self) -> None:
-        """Answer the parked ``after_t`` queries whose sample came, or whose wait is over
-        (the reply's ``last_t`` then says the sample was not handled: rejected or lost)."""
-        now = time.monotonic()
-        for loop_id in list(self._parked):
-            waiting = self._parked.pop(loop_id)
-            if loop_id not in self.table.slot_of:  # deleted meanwhile
-                for _, _, query in waiting:
-                    error = ErrorReply(loop_id=loop_id, error="unknown loop")
-                    with contextlib.suppress(zenoh.ZError):  # the querier may be gone
-                        reply(query, encode(error), error=True)
-                continue
-            still = []
-            for after_t, deadline, query in waiting:
-                if now >= deadline or self._reflects(loop_id, after_t):
-                    with contextlib.suppress(zenoh.ZError):  # the querier may be gone
-                        reply(query, encode(self._state(loop_id)))
-                else:
-                    still.append((after_t, deadline, query))
-            if still:
-                self._parked[loop_id] = still
-
-    def _answer_gateway(self, query: zenoh.Query) -> None:
-        """One StateBatch with every loop registered with the gateway in the key."""
-        gateway = self.keys.gateway_id(str(query.key_expr))
-        if gateway is None:
-            error = ErrorReply(loop_id=str(query.key_expr), error="not a gateway's state key")
-            reply(query, encode(error), error=True)
-            return
-        tb = self.table
-        states = [
-            self._state(loop_id) for loop_id, s in tb.slot_of.items() if tb.gateways[s] == gateway
-        ]
-        batch = StateBatch(
-            gateway=gateway, instance_id=self.settings.instance_id, epoch=self.epoch, states=states
-        )
-        reply(query, encode(batch))
-
-    def _state(self, loop_id: str) -> StateReply:
-        tb = self.table
-        s = tb.slot(loop_id)
-        return StateReply(
-            loop_id=loop_id,
-            kp=float(tb.kp[s]),
-            ki=float(tb.ki[s]),
-            mode=tb.mode_of(s),
-            status=tb.status(s, time.time()),
-            seq=int(tb.seq[s]),
-            last_t=_finite(tb.last_t[s]),
-            instance_id=self.settings.instance_id,
-            epoch=self.epoch,
-            rl_period_s=_finite(tb.period[s]),
-            next_due_t=_finite(tb.next_due[s]),
-            gateway=tb.gateways[s],
-        )
-
     def _overload(self, item: Item, why: str) -> None:
         """A message the bus callback did not queue (a Zenoh thread: never blocks)."""
         kind, key = item[0], item[1]
@@ -897,25 +725,6 @@ class Tuner:
         if not total and loop_id not in self.table.slot_of:
             raise UnknownLoop(loop_id)
         return HistoryPage(items=items, total=total, offset=offset, limit=limit)
-
-
-def _finite(x: float) -> float | None:
-    return None if math.isnan(x) else float(x)
-
-
-def _after_t(query: zenoh.Query) -> float | None:
-    """The query's ``after_t`` parameter (None: absent or not a finite number)."""
-    try:
-        raw = query.parameters.get("after_t")
-    except Exception:  # noqa: BLE001 - a malformed selector is no parameter
-        return None
-    if raw is None:
-        return None
-    try:
-        value = float(raw)
-    except ValueError:
-        return None
-    return value if math.isfinite(value) else None
 
 
 @contextlib.contextmanager
