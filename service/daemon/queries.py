@@ -1,6 +1,6 @@
 """The tuner's answers to state queries on the bus: per loop (``after_t`` queries wait
 for their loop's sample, at most AFTER_T_WAIT_S), wildcard, and per gateway
-(one StateBatch).
+(one StateBatch). In a cluster, a member answers for the loops it owns only.
 
 :class:`StateQueries` is a part of :class:`~service.daemon.tuner.Tuner` (a mixin): it
 runs on the worker thread with the engine's lock held.
@@ -15,6 +15,7 @@ import time
 import zenoh
 
 from service.daemon.bus import JSON, reply
+from service.daemon.shards import shard_of
 from service.wire.protocol import ErrorReply, StateBatch, StateReply, encode
 
 AFTER_T_WAIT_S = 1.0
@@ -41,6 +42,9 @@ class StateQueries:
                 state_key = self.keys.state(loop_id)
                 if asked.intersects(zenoh.KeyExpr(state_key)):
                     query.reply(state_key, encode(self._state(loop_id)), encoding=JSON)
+            query.drop()
+            return
+        if self._foreign(loop_id):  # another member of the cluster answers
             query.drop()
             return
         reply(query, encode(ErrorReply(loop_id=loop_id or key, error="unknown loop")), error=True)
@@ -77,6 +81,9 @@ class StateQueries:
         if gateway is None:
             error = ErrorReply(loop_id=str(query.key_expr), error="not a gateway's state key")
             reply(query, encode(error), error=True)
+            return
+        if self.cluster is not None and not self.cluster.owns(shard_of("", gateway)):
+            query.drop()  # the gateway's owner answers
             return
         tb = self.table
         states = [

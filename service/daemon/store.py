@@ -209,14 +209,17 @@ class Store:
             self._journal.popleft()
 
     # -- loops ------------------------------------------------------------------------
-    def load(self, shards: list[str] | None = None) -> list[StoredLoop]:
+    def load(
+        self, shards: list[str] | None = None, ids: list[str] | None = None
+    ) -> list[StoredLoop]:
         """Every loop, with the journal applied first (changes published before a crash).
 
         A row whose config no longer validates (written by an older version) is skipped
         with an error in the log and kept in the table: one bad row must not stop the
         daemon from tuning every other loop. Its id stays taken until it is repaired or
-        deleted in the database; :attr:`unloadable` lists them. ``shards``: only the
-        loops of those shards (a member of a cluster loading what it owns), else all.
+        deleted in the database; :attr:`unloadable` lists them. ``shards`` or ``ids``:
+        only the loops of those shards, or with those ids (a member of a cluster loading
+        what it owns), else all.
         """
         self.apply_journal()
         query = (
@@ -224,13 +227,14 @@ class Store:
             "FROM loops l LEFT JOIN snapshots s ON s.id = l.id"
         )
         with self._lock:
-            if shards is None:
+            column, keys = ("l.shard", shards) if ids is None else ("l.id", ids)
+            if keys is None:
                 rows = self._db.execute(f"{query} ORDER BY {self.ORDER}").fetchall()
             else:
                 rows = []
-                for i in range(0, len(shards), 500):
-                    chunk = shards[i : i + 500]
-                    where = f"l.shard IN ({', '.join('?' * len(chunk))})"
+                for i in range(0, len(keys), 500):
+                    chunk = keys[i : i + 500]
+                    where = f"{column} IN ({', '.join('?' * len(chunk))})"
                     rows += self._db.execute(
                         f"{query} WHERE {where} ORDER BY {self.ORDER}", chunk
                     ).fetchall()
@@ -247,7 +251,7 @@ class Store:
                     "(repair or delete it there): %s",
                     loop_id, self.location, exc,
                 )  # fmt: skip
-        if shards is None:
+        if shards is None and ids is None:
             self.unloadable = unloadable
         else:
             self.unloadable = sorted(set(self.unloadable) | set(unloadable))

@@ -42,7 +42,6 @@ import logging
 import math
 import os
 import queue
-import sqlite3
 import threading
 import time
 
@@ -54,11 +53,14 @@ from service.agent.model import Agent, load_agent, untrained_agent
 from service.daemon.bus import Bus, Inbox, Item, Kind
 from service.daemon.lanes import LANE_DRAIN_S, Lane
 from service.daemon.metrics import Metrics, RateLimitedLog
+from service.daemon.ownership import Ownership
 from service.daemon.queries import StateQueries
 from service.daemon.recent import Recent
 from service.daemon.schemas import HistoryPage, LoopsPage
 from service.daemon.settings import Settings
+from service.daemon.shards import shard_of
 from service.daemon.store import Store
+from service.daemon.store_pg import Fenced
 from service.engine.audit import AuditRow, audit_row
 from service.engine.config import LoopConfig, LoopPatch, LoopView
 from service.engine.engine import TuningEngine
@@ -99,6 +101,10 @@ class Conflict(Exception):
 
 class UnknownLoop(LookupError):
     """No loop with this id."""
+
+
+class OwnedElsewhere(LookupError):
+    """Another member of the cluster owns the loop (the API forwards it there)."""
 
 
 class StoreUnavailable(Exception):
@@ -161,7 +167,7 @@ def _group_singles(items: list[Item]):
         yield Kind.sample, "", run
 
 
-class Tuner(StateQueries):
+class Tuner(StateQueries, Ownership):
     def __init__(self, settings: Settings, agent: Agent | None = None) -> None:
         self.settings = settings
         self.keys = settings.keys
@@ -206,6 +212,15 @@ class Tuner(StateQueries):
                     "Audit rows deleted by the retention policy.",
                     lambda: self.pruned,
                 ),
+                "pitune_gains_fenced": (
+                    "Committed gains messages not published: this member's leases may have "
+                    "run out (it was paused); the loops' new owner publishes from the store.",
+                    lambda: self.gains_fenced,
+                ),
+                "pitune_samples_foreign": (
+                    "Samples of loops another member of the cluster owns, left to it.",
+                    lambda: self.foreign_samples,
+                ),
                 "pitune_queue_bytes": (
                     "Payload bytes waiting in the input queue.",
                     lambda: self.inbox.nbytes,
@@ -225,23 +240,25 @@ class Tuner(StateQueries):
 
     # -- lifecycle --------------------------------------------------------------------
     def start(self) -> Tuner:
-        self.store = Store(self.settings.db_path)
+        """Open the store and restore its loops (with a PostgreSQL store: join the
+        cluster, which loads the loops of the shards this tuner wins), then the bus."""
+        if self.settings.postgres:
+            from service.daemon.cluster import Cluster
+            from service.daemon.store_pg import PgStore
+
+            self.store = PgStore(self.settings.db_path)
+            self.cluster = Cluster(self, self.settings.db_path)
+        else:
+            self.store = Store(self.settings.db_path)
         wall = time.time()
         self.epoch = self.store.next_epoch(wall)
-        with self.table.lock:
-            for stored in self.store.load():
-                self.engine.restore(
-                    stored.config,
-                    kp=stored.kp,
-                    ki=stored.ki,
-                    seq=stored.seq,
-                    hidden=stored.hidden,
-                    runtime=stored.runtime,
-                    wall=wall,
-                )
-            self.metrics.set_loop_counts(self.table.mode_counts())
-        self.metrics.loops_unloadable.set(len(self.store.unloadable))
-        log.info("restored %d loops from %s", len(self.table), self.settings.db_path)
+        if self.cluster is None:
+            with self.table.lock:
+                for stored in self.store.load():
+                    self._restore(stored, wall)
+                self.metrics.set_loop_counts(self.table.mode_counts())
+            self.metrics.loops_unloadable.set(len(self.store.unloadable))
+            log.info("restored %d loops from %s", len(self.table), self.store.location)
         # Everything allocated so far (modules, torch, the restored table) lives as long as
         # the process: keep it out of the cyclic GC's full collections (~100 ms each).
         _freeze_survivors()
@@ -253,6 +270,9 @@ class Tuner(StateQueries):
             raise
         self._worker = threading.Thread(target=self._run, name="pitune-worker", daemon=True)
         self._worker.start()
+        if self.cluster is not None:
+            self.cluster.start()
+            self.cluster.ready.wait(timeout=self.cluster.lease_s)
         log.info(
             "tuner %s (epoch %d) up: prefix %r, listen %s, connect %s, inference %s",
             self.settings.instance_id,
@@ -266,7 +286,10 @@ class Tuner(StateQueries):
 
     def stop(self) -> None:
         """Stop receiving, handle what was already received, publish what is committed
-        (at most LANE_DRAIN_S), close the bus, snapshot, close the store."""
+        (at most LANE_DRAIN_S), close the bus, snapshot, leave the cluster (its loops
+        move to the other members at once), close the store."""
+        if self.cluster is not None:
+            self.cluster.halt()
         if self.bus is not None:
             self.bus.stop_receiving()
         if self._worker is not None:
@@ -283,6 +306,8 @@ class Tuner(StateQueries):
             lane.close(timeout=1.0)
         if self.store is not None:
             self.snapshot()
+            if self.cluster is not None:
+                self.cluster.leave()
             self.store.close()
             self.store = None
         log.info("tuner %s stopped", self.settings.instance_id)
@@ -329,7 +354,11 @@ class Tuner(StateQueries):
         # rows and writing them would fail the whole chunk on the foreign key, and a
         # delete and a new registration of the id would give the new loop the old state.
         with self.table.lock:
-            self.store.snapshot(self.table.snapshot(loop_ids))
+            rows = self.table.snapshot(loop_ids)
+            try:
+                self.store.snapshot(rows, self._fence(r[0] for r in rows))
+            except Fenced as exc:  # the leases lost: the loops' state is not ours to save
+                log.warning("snapshot fenced: %s", exc)
 
     # -- worker -----------------------------------------------------------------------
     def _run(self) -> None:
@@ -432,6 +461,7 @@ class Tuner(StateQueries):
                     decoded = decode_singles([(self.keys.loop_id(k), p) for k, p in payload])
                 else:
                     decoded = decode_batch(payload)
+                decoded = self._own_rows(decoded)
                 self._ingest(decoded, wall)
                 # received last: once it reaches N, those N samples are in their counters
                 self.metrics.samples_received.inc(decoded.received)
@@ -506,7 +536,12 @@ class Tuner(StateQueries):
                 self._snapshot_todo.append(row[0])
         if gains or audit:
             try:
-                self.store.record_gains(gains, audit)
+                fence = self._fence({g[3] for g in gains} | {a[0] for a in audit})
+                self.store.record_gains(gains, audit, fence)
+            except Fenced as exc:
+                self._fenced(exc, gains, audit)
+                self._commit(None)
+                return
             except Exception as exc:  # sqlite3.Error, OSError, MemoryError: all the same
                 self.table.requeue(gains, audit)
                 self._store_failed(exc)
@@ -545,10 +580,10 @@ class Tuner(StateQueries):
     def _publish(self, result: StepResult) -> None:
         """Hand a committed step's messages to their lanes (never blocks on the bus)."""
         self.recent.safely(self.recent.add_gains, result)
-        messages = result.messages(self.settings.instance_id)
+        publishable = self._publishable(result.messages(self.settings.instance_id), result.gateways)
+        messages = [message for message, _ in publishable]
         by_gateway: dict[str | None, list[dict]] = collections.defaultdict(list)
-        for message, gateway in zip(messages, result.gateways, strict=True):
-            message["epoch"] = self.epoch
+        for message, gateway in publishable:
             by_gateway[gateway].append(message)
         for gateway, batch in by_gateway.items():
             self._lane(gateway).submit(batch)
@@ -568,7 +603,11 @@ class Tuner(StateQueries):
         return lane
 
     def _send(self, gateway: str | None, messages: list[dict]) -> None:
-        """A lane's blocking part, on its own thread: no lock of the tuner is held."""
+        """A lane's blocking part, on its own thread: no lock of the tuner is held. In a
+        cluster, nothing goes out once the leases may have run out (a paused member)."""
+        if self.cluster is not None and not self.cluster.may_publish():
+            self.gains_fenced += len(messages)
+            return
         if gateway is None:
             for message in messages:
                 self.bus.publish(self.keys.gains(message["loop_id"]), orjson.dumps(message))
@@ -625,7 +664,11 @@ class Tuner(StateQueries):
         return LoopsPage(items=items, total=total, offset=offset, limit=limit)
 
     def register(self, config: LoopConfig) -> LoopView:
+        """OwnedElsewhere in a cluster where another member owns the loop's shard."""
         wall = time.time()
+        self._claim([config])
+        if self.cluster is not None and not self.cluster.owns(shard_of(config.id, config.gateway)):
+            raise OwnedElsewhere(config.id)
         with self.table.lock:
             if config.id in self.table.slot_of:
                 raise Conflict(f"loop {config.id!r} already registered")
@@ -638,6 +681,7 @@ class Tuner(StateQueries):
         ids = [c.id for c in configs]
         if len(set(ids)) != len(ids):
             raise Conflict("duplicate loop ids in the request")
+        self._claim(configs)
         with self.table.lock:
             taken = [i for i in ids if i in self.table.slot_of]
             if taken:
@@ -647,14 +691,20 @@ class Tuner(StateQueries):
         return ids
 
     def _insert(self, configs: list[LoopConfig], wall: float) -> None:
-        """Store and add new loops, each continuing the seq of an earlier loop of its id."""
+        """Store and add new loops, each continuing the seq of an earlier loop of its id.
+        In a cluster, loops of shards another member owns are only stored: their owner
+        loads them when the commit's notification reaches it."""
         last = self.store.last_seqs([c.id for c in configs])
         seqs = [last.get(c.id, 0) for c in configs]
         audit = [_registered(c, wall, seq) for c, seq in zip(configs, seqs, strict=True)]
-        with _taken_in_store():
+        shards = [shard_of(c.id, c.gateway) for c in configs]
+        with _taken_in_store(self.store.integrity_errors):
             self.store.insert_loops(configs, audit, seqs)
-        for config, seq in zip(configs, seqs, strict=True):
-            self.engine.register(config, seq=seq, wall=wall)
+        for config, seq, shard in zip(configs, seqs, shards, strict=True):
+            if self.cluster is None or self.cluster.owns(shard):
+                self.engine.register(config, seq=seq, wall=wall)
+                if self.cluster is not None:
+                    self.cluster.adopted(shard, self.cluster.held[shard], [config.id])
         self.metrics.set_loop_counts(self.table.mode_counts())
 
     def patch(self, loop_id: str, patch: LoopPatch, actor: str = "api") -> LoopView:
@@ -728,12 +778,16 @@ class Tuner(StateQueries):
 
 
 @contextlib.contextmanager
-def _taken_in_store():
-    """An id free in the table but taken in the store is a row that failed to load."""
+def _taken_in_store(errors: tuple[type[Exception], ...]):
+    """An id free in the table but taken in the store is a row that failed to load (or,
+    in a cluster, a loop another member owns)."""
     try:
         yield
-    except sqlite3.IntegrityError:
-        raise Conflict("loop id taken by a stored loop that failed to load (see the log)") from None
+    except errors:
+        raise Conflict(
+            "loop id taken in the store: by a stored loop that failed to load (see the "
+            "log), or, in a cluster, by a loop another member owns"
+        ) from None
 
 
 def _registered(config: LoopConfig, wall: float, seq: int) -> AuditRow:
