@@ -1,103 +1,25 @@
-"""A real PostgreSQL server for the tests: ``initdb`` into a temporary directory and
-``pg_ctl start`` on a free port, with its unix socket in that directory.
+"""The real PostgreSQL server of the tests (:class:`service.bench.pgserver.PgServer`),
+as fixtures (registered by tests/conftest.py): ``pg_server`` for the session and
+``pg_url``, a fresh empty database per test.
 
-The server binaries come from Debian's ``postgresql`` package (``apt-get install
-postgresql``: ``/usr/lib/postgresql/<version>/bin``) or the PATH. ``initdb`` refuses to
-run as root (CI containers), so as root the server runs as the ``postgres`` user (the
-package creates it) or ``nobody``. Missing binaries FAIL the tests that need them with
-what to install: a silently skipped test would hide an untested backend.
-
-tests/conftest.py registers the fixtures;
-``pg_url`` is a fresh, empty database per test.
+Missing server binaries FAIL the tests that need them, saying what to install (Debian's
+``postgresql`` package, as the README's test set-up says): a silently skipped test
+would hide an untested backend.
 """
 
 from __future__ import annotations
 
-import glob
-import itertools
-import os
-import pwd
-import shutil
-import subprocess
-import tempfile
-from pathlib import Path
-
-import psycopg
 import pytest
 
-from service.wire.session import free_port
-
-_names = itertools.count()
-
-
-def pg_bin() -> Path | None:
-    """The directory of ``initdb`` and ``pg_ctl`` (the PATH first, then Debian's)."""
-    found = shutil.which("initdb")
-    if found:
-        return Path(os.path.realpath(found)).parent
-    versions = sorted(glob.glob("/usr/lib/postgresql/*/bin/initdb"), reverse=True)
-    return Path(versions[0]).parent if versions else None
-
-
-def _as_user() -> list[str]:
-    """The command prefix that runs the server as a non-root user, when we are root."""
-    if os.geteuid() != 0:
-        return []
-    for user in ("postgres", "nobody"):
-        try:
-            pwd.getpwnam(user)
-        except KeyError:
-            continue
-        return ["runuser", "-u", user, "--"]
-    pytest.fail("running as root without a 'postgres' or 'nobody' user for initdb")
-
-
-class PgServer:
-    def __init__(self) -> None:
-        bindir = pg_bin()
-        if bindir is None:
-            pytest.fail(
-                "PostgreSQL server binaries not found (initdb, pg_ctl): install Debian's "
-                "'postgresql' package (apt-get install postgresql) as the README's test "
-                "set-up says"
-            )
-        self.dir = Path(tempfile.mkdtemp(prefix="pitune-pg-"))
-        self.port = free_port()
-        prefix = _as_user()
-        if prefix:
-            user = prefix[2]
-            os.chown(self.dir, pwd.getpwnam(user).pw_uid, pwd.getpwnam(user).pw_gid)
-        data = self.dir / "data"
-        subprocess.run(
-            [*prefix, str(bindir / "initdb"), "-D", str(data), "-U", "pitune",
-             "--auth=trust", "-E", "UTF8", "--no-sync", "--locale=C"],
-            check=True, capture_output=True,
-        )  # fmt: skip
-        options = f"-p {self.port} -k {self.dir} -c listen_addresses=127.0.0.1 -c fsync=off"
-        self._ctl = [*prefix, str(bindir / "pg_ctl"), "-D", str(data)]
-        subprocess.run(
-            [*self._ctl, "-o", options, "-l", str(self.dir / "log"), "-w", "start"],
-            check=True, capture_output=True,
-        )  # fmt: skip
-        self.admin = self.url("postgres")
-
-    def url(self, database: str) -> str:
-        return f"postgresql://pitune@127.0.0.1:{self.port}/{database}"
-
-    def create_database(self) -> str:
-        name = f"t{os.getpid()}_{next(_names)}"
-        with psycopg.connect(self.admin, autocommit=True) as conn:
-            conn.execute(f"CREATE DATABASE {name}")
-        return self.url(name)
-
-    def stop(self) -> None:
-        subprocess.run([*self._ctl, "-m", "immediate", "stop"], capture_output=True)
-        shutil.rmtree(self.dir, ignore_errors=True)
+from service.bench.pgserver import PgServer, PgUnavailable
 
 
 @pytest.fixture(scope="session")
 def pg_server():
-    server = PgServer()
+    try:
+        server = PgServer()
+    except PgUnavailable as exc:
+        pytest.fail(str(exc))
     try:
         yield server
     finally:

@@ -118,9 +118,15 @@ class Load:
     stopped."""
 
     def __init__(
-        self, session: zenoh.Session, loop_ids: list[str], interval: float, dt: float
+        self,
+        session: zenoh.Session,
+        loop_ids: list[str],
+        interval: float,
+        dt: float,
+        t0: float = 1000.0,
     ) -> None:
         self.session, self.ids, self.interval, self.dt = session, loop_ids, interval, dt
+        self.t0 = t0
         self.sent = 0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="load", daemon=True)
@@ -130,7 +136,7 @@ class Load:
         return self
 
     def _run(self) -> None:
-        t, k = 1000.0, 0
+        t, k = self.t0, 0
         block = zenoh.CongestionControl.BLOCK
         next_at = time.monotonic()
         while not self._stop.is_set():
