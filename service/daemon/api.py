@@ -46,6 +46,7 @@ from prometheus_client import CONTENT_TYPE_LATEST
 
 from service.agent.model import Agent
 from service.daemon import console, forward
+from service.daemon.admin import Conflict, OwnedElsewhere, StoreUnavailable, UnknownLoop
 from service.daemon.logs import StatusWatch, table_statuses
 from service.daemon.schemas import (
     MAX_BULK,
@@ -56,7 +57,7 @@ from service.daemon.schemas import (
     LoopsPage,
 )
 from service.daemon.settings import Settings
-from service.daemon.tuner import Conflict, OwnedElsewhere, StoreUnavailable, Tuner, UnknownLoop
+from service.daemon.tuner import Tuner
 from service.engine.config import LoopConfig, LoopPatch, LoopView
 
 log = logging.getLogger("pitune.api")

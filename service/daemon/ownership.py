@@ -123,9 +123,9 @@ class Ownership:
             self.cluster.claim({shard_of(c.id, c.gateway) for c in configs})
 
     # -- used by the worker -------------------------------------------------------------
-    def _fence(self, loop_ids) -> tuple[str, dict[str, int]] | None:
-        """The lease tokens a write of these loops needs (None: no cluster)."""
-        return None if self.cluster is None else self.cluster.fence(loop_ids)
+    def _fence(self, loop_ids) -> tuple[str, dict[str, int]]:
+        """The lease tokens a write of these loops needs (in a cluster)."""
+        return self.cluster.fence(loop_ids)
 
     def _fenced(self, exc: Fenced, gains: list, audit: list) -> None:
         """A commit refused for lost leases: drop the lost shards' loops, put the other
