@@ -67,8 +67,9 @@ class Cluster:
         self.lease_s = settings.cluster_lease_s
         self.tick_s = self.lease_s / TICKS_PER_LEASE
         self._lock = threading.Lock()
-        self._claiming = threading.Lock()
-        """Serialises acquisitions (the thread's and the API's claims)."""
+        self._leasing = threading.Lock()
+        """Serialises the lease writes (renewals, releases, acquisitions): a renewal must
+        not extend a lease released meanwhile. Loading loops happens outside it."""
         self.held: dict[str, int] = {}
         """Shard -> lease token, of the shards whose loops are in the engine."""
         self.shard_of: dict[str, str] = {}
@@ -80,23 +81,33 @@ class Cluster:
         """Shards acquired since start (after a failover or a rebalance)."""
         self._stop = threading.Event()
         self._conn: psycopg.Connection | None = None
-        self._thread: threading.Thread | None = None
+        self._beat_conn: psycopg.Connection | None = None
+        self._threads: list[threading.Thread] = []
+        self._lost: set[str] = set()
+        """Shards the renewal found taken, for the tick to drop their loops."""
         self.ready = threading.Event()
         """Set after the first tick (this member holds what it wins, as far as free)."""
 
     # -- lifecycle --------------------------------------------------------------------
     def start(self) -> None:
+        """Join, then two threads: the renewals (never held up by loading loops, which
+        can take seconds for large shards) and the ticks (everything else)."""
         self._conn = connect(self.url)
         self._conn.execute(f"LISTEN {CHANNEL}")
+        self._beat_conn = connect(self.url)
         self._join()
-        self._thread = threading.Thread(target=self._run, name="pitune-cluster", daemon=True)
-        self._thread.start()
+        self._threads = [
+            threading.Thread(target=target, name=name, daemon=True)
+            for target, name in ((self._beat, "pitune-lease"), (self._run, "pitune-cluster"))
+        ]
+        for thread in self._threads:
+            thread.start()
 
     def halt(self) -> None:
-        """Stop the thread (no more acquisitions, renewals or reloads)."""
+        """Stop the threads (no more acquisitions, renewals or reloads)."""
         self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=10.0)
+        for thread in self._threads:
+            thread.join(timeout=10.0)
 
     def leave(self) -> None:
         """Release every lease at once (the others take the loops on their next tick)
@@ -109,14 +120,15 @@ class Cluster:
                 (self.member,),
             )
             conn.execute("DELETE FROM members WHERE instance_id = %s", (self.member,))
-        if self._conn is not None:
-            self._conn.close()
+        for conn in (self._conn, self._beat_conn):
+            if conn is not None:
+                conn.close()
         with self._lock:
             self.held.clear()
             self.valid_until = 0.0
 
     def _join(self) -> None:
-        self._conn.execute(
+        self._beat_conn.execute(
             "INSERT INTO members (instance_id, api_url, started, expires) VALUES "
             "(%s, %s, %s, clock_timestamp() + make_interval(secs => %s)) "
             "ON CONFLICT (instance_id) DO UPDATE SET api_url = excluded.api_url, "
@@ -138,15 +150,30 @@ class Cluster:
 
     def _reconnect(self) -> None:
         with contextlib.suppress(psycopg.Error):
-            if self._conn is None or self._conn.closed or self._conn.broken:
+            if self._conn.closed or self._conn.broken:
                 self._conn = connect(self.url)
                 self._conn.execute(f"LISTEN {CHANNEL}")
-                self._join()
+
+    def _beat(self) -> None:
+        """Renew the member row and the leases every tick, whatever else is going on."""
+        while not self._stop.is_set():
+            started = time.monotonic()
+            try:
+                lost = self._renew(started)
+                if lost:
+                    with self._lock:
+                        self._lost |= lost
+            except Exception:  # the database unreachable: the leases run out meanwhile
+                log.exception("lease renewal failed; retrying")
+                with contextlib.suppress(psycopg.Error):
+                    if self._beat_conn.closed or self._beat_conn.broken:
+                        self._beat_conn = connect(self.url)
+            self._stop.wait(max(0.0, started + self.tick_s - time.monotonic()))
 
     # -- one tick ---------------------------------------------------------------------
     def tick(self) -> None:
-        started = time.monotonic()
-        lost = self._renew(started)
+        with self._lock:
+            lost, self._lost = self._lost, set()
         if lost:
             log.warning("leases lost (taken by another member): %s", ", ".join(sorted(lost)))
             self.tuner.drop_shards(lost, commit=False)
@@ -158,21 +185,25 @@ class Cluster:
         release = held - wins
         if release:
             self._release(release)
-        with self._claiming:
-            self._acquire(wins - set(self.held))
+        self._acquire(wins - set(self.held))
 
     def _renew(self, started: float) -> set[str]:
+        with self._leasing:
+            return self._renew_held(started)
+
+    def _renew_held(self, started: float) -> set[str]:
         with self._lock:
             held = dict(self.held)
-        with self._conn.transaction():
-            renewed = self._conn.execute(
+        conn = self._beat_conn
+        with conn.transaction():
+            renewed = conn.execute(
                 "UPDATE members SET expires = clock_timestamp() + make_interval(secs => %s) "
                 "WHERE instance_id = %s",
                 (self.lease_s, self.member),
             ).rowcount
             kept = {
                 r[0]
-                for r in self._conn.execute(
+                for r in conn.execute(
                     "UPDATE leases l SET expires = clock_timestamp() + make_interval(secs => %s) "
                     "FROM unnest(%s::text[], %s::int8[]) AS h(shard, token) "
                     "WHERE l.shard = h.shard AND l.token = h.token AND l.owner = %s "
@@ -185,7 +216,8 @@ class Cluster:
         lost = set(held) - kept
         with self._lock:
             for shard in lost:
-                self.held.pop(shard, None)
+                if self.held.get(shard) == held[shard]:  # not re-acquired meanwhile
+                    self.held.pop(shard)
             self.valid_until = started + self.lease_s - SAFETY_S
         return lost
 
@@ -206,30 +238,42 @@ class Cluster:
         """Hand shards to the member that now wins them: commit and snapshot their loops
         while the leases are ours, drop them, end the leases."""
         self.tuner.drop_shards(shards, commit=True)
-        with self._lock:
-            tokens = {s: self.held.pop(s) for s in shards if s in self.held}
-        self._conn.execute(
-            "UPDATE leases l SET expires = clock_timestamp() - interval '1 second' "
-            "FROM unnest(%s::text[], %s::int8[]) AS h(shard, token) "
-            "WHERE l.shard = h.shard AND l.token = h.token AND l.owner = %s",
-            (list(tokens), list(tokens.values()), self.member),
-        )
+        with self._leasing:
+            with self._lock:
+                tokens = {s: self.held.pop(s) for s in shards if s in self.held}
+            self._conn.execute(
+                "UPDATE leases l SET expires = clock_timestamp() - interval '1 second' "
+                "FROM unnest(%s::text[], %s::int8[]) AS h(shard, token) "
+                "WHERE l.shard = h.shard AND l.token = h.token AND l.owner = %s",
+                (list(tokens), list(tokens.values()), self.member),
+            )
         log.info("released %d shards to other members", len(tokens))
 
     def claim(self, shards: set[str]) -> None:
         """Acquire now those of ``shards`` no member holds (a registration through this
         member of loops in a new shard); the hashing moves them later if another member
         wins them."""
-        with self._claiming, connect(self.url) as conn:
+        with connect(self.url) as conn:
             self._acquire(shards - set(self.held), conn)
 
     def _acquire(self, shards: set[str], conn: psycopg.Connection | None = None) -> None:
         if not shards:
             return
         token = self.tuner.store.next_epoch(time.time())
+        with self._leasing:
+            taken = self._take(shards, token, conn or self._conn)
+        if not taken:
+            return
+        self.tuner.adopt_shards(taken, token)
+        self.moves += len(taken)
+        log.info("acquired %d shards (token %d)", len(taken), token)
+
+    def _take(self, shards: set[str], token: int, conn: psycopg.Connection) -> list[str]:
+        """The leases of those ``shards`` that are free or expired, now this member's
+        (held, so renewed, from here on; their loops are loaded next)."""
         taken = [
             r[0]
-            for r in (conn or self._conn).execute(
+            for r in conn.execute(
                 "INSERT INTO leases (shard, owner, token, expires) "
                 "SELECT s, %s, %s, clock_timestamp() + make_interval(secs => %s) "
                 "FROM unnest(%s::text[]) AS s "
@@ -239,11 +283,10 @@ class Cluster:
                 (self.member, token, self.lease_s, sorted(shards)),
             )
         ]
-        if not taken:
-            return
-        self.tuner.adopt_shards(taken, token)
-        self.moves += len(taken)
-        log.info("acquired %d shards (token %d)", len(taken), token)
+        with self._lock:
+            for shard in taken:
+                self.held[shard] = token
+        return taken
 
     def _wait_notifies(self, until: float) -> None:
         """Until the next tick: reload the loops other members changed."""

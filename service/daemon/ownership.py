@@ -30,6 +30,8 @@ from service.daemon.store_pg import Fenced
 from service.wire.decode import Decoded
 
 log = logging.getLogger("pitune.tuner")
+ADOPT_CHUNK = 2000
+"""Loops restored per hold of the table's lock when shards are adopted (~10 ms)."""
 
 
 class Ownership:
@@ -45,14 +47,14 @@ class Ownership:
         committed gains and seq and their last snapshot)."""
         stored = self.store.load(shards)
         wall = time.time()
+        for i in range(0, len(stored), ADOPT_CHUNK):  # the worker runs between chunks
+            with self.table.lock:
+                for loop in stored[i : i + ADOPT_CHUNK]:
+                    if loop.config.id not in self.table.slot_of:
+                        self._restore(loop, wall)
+                    shard = shard_of(loop.config.id, loop.config.gateway)
+                    self.cluster.adopted(shard, token, [loop.config.id])
         with self.table.lock:
-            by_shard: dict[str, list[str]] = {s: [] for s in shards}
-            for loop in stored:
-                if loop.config.id not in self.table.slot_of:
-                    self._restore(loop, wall)
-                by_shard[shard_of(loop.config.id, loop.config.gateway)].append(loop.config.id)
-            for shard, ids in by_shard.items():
-                self.cluster.adopted(shard, token, ids)
             self.metrics.set_loop_counts(self.table.mode_counts())
         self.metrics.loops_unloadable.set(len(self.store.unloadable))
 
