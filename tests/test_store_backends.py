@@ -15,6 +15,7 @@ from service.daemon.store import Store
 from service.daemon.store_pg import Fenced, PgStore
 from service.engine.audit import audit_row
 from service.engine.config import LoopConfig
+from service.wire.session import free_port
 from tests.tuner_support import loop_body
 
 pytestmark = pytest.mark.timeout(60)
@@ -148,3 +149,17 @@ def test_a_lost_postgres_connection_is_reopened(pg_url):
         assert store.load() == []
     finally:
         store.close()
+
+
+def test_an_unreachable_postgres_store_is_one_line_without_the_password(tmp_path, pg_server):
+    from service.daemon import main as daemon
+    from tests.test_operability_startup import one_line, start
+
+    dead = f"postgresql://pitune:s3cret@127.0.0.1:{free_port()}/pitune"
+    line = one_line(start(tmp_path, "--db", dead), daemon.EXIT_CANT_CREATE, "cannot open the store")
+    assert "s3cret" not in line and "***" in line
+    newer = pg_server.create_database()
+    PgStore(newer).close()
+    with psycopg.connect(newer, autocommit=True) as conn:
+        conn.execute("INSERT INTO schema_version VALUES (99, 0.0)")
+    line = one_line(start(tmp_path, "--db", newer), daemon.EXIT_CANT_CREATE, "version 99")

@@ -78,7 +78,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--seed", type=int, default=D.seed)
     a("--out", type=Path, default=D.out, help="results directory")
     a("--no-inference-bench", action="store_true", help="skip the in-process inference timing")
-    a("--daemon-log", type=Path, default=None, help="keep the daemon's log here")
+    a("--daemon-log", type=Path, default=None,
+      help="keep the daemon's log here (--instances: a directory, one log per member)")  # fmt: skip
     a("--trace", type=Path, default=None,
       help="write the update latencies of the window to this CSV")  # fmt: skip
 

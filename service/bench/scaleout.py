@@ -58,8 +58,10 @@ def run(config: BenchConfig, workdir: Path) -> dict:
     server = None if config.postgres else PgServer()
     url = config.postgres or server.create_database()
     extra = ("--agent-weights", config.agent_weights) if config.agent_weights else ()
+    logs = config.daemon_log or workdir  # with --instances, the members' log directory
+    logs.mkdir(parents=True, exist_ok=True)
     members = Members(
-        config.instances, url, workdir,
+        config.instances, url, logs,
         "--snapshot-interval", str(config.snapshot_interval),
         "--inference-threads", str(config.inference_threads),
         "--inference-workers", str(config.inference_workers),
