@@ -111,7 +111,9 @@ def table(r: dict) -> str:
                 f"{inf['workers']} worker(s); agent.act {inf['agent_act_ms_median']:.1f} ms",
             )
         )
-    if r.get("failover"):
+    if r.get("failover", {}).get("error"):
+        rows.append(("failover (SIGKILL)", f"not measured: {r['failover']['error']}"))
+    elif r.get("failover"):
         f = r["failover"]
         sizes = ", ".join(f"{m['instance_id']} {m['loops']}" for m in r["cluster"]["members"])
         rows += [
