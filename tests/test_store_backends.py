@@ -163,3 +163,19 @@ def test_an_unreachable_postgres_store_is_one_line_without_the_password(tmp_path
     with psycopg.connect(newer, autocommit=True) as conn:
         conn.execute("INSERT INTO schema_version VALUES (99, 0.0)")
     line = one_line(start(tmp_path, "--db", newer), daemon.EXIT_CANT_CREATE, "version 99")
+
+
+def test_store_export_reads_a_postgres_store(pg_url, tmp_path):
+    import argparse
+
+    from service.daemon import export
+
+    store = PgStore(pg_url)
+    configs = [_config("E1"), _config("E2")]
+    store.insert_loops(configs, [_registered(c) for c in configs], [0, 0])
+    store.close()
+    out = tmp_path / "audit.jsonl"
+    args = argparse.Namespace(db=pg_url, loop="E2", since_id=0, out=out)
+    assert export.run(args) == 0
+    (row,) = [orjson.loads(line) for line in out.read_bytes().splitlines()]
+    assert (row["loop_id"], row["reason"]) == ("E2", "registered")

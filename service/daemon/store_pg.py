@@ -70,7 +70,7 @@ def connect(url: str) -> psycopg.Connection:
     return psycopg.connect(url, autocommit=True, connect_timeout=CONNECT_TIMEOUT_S)
 
 
-class _Adapter:
+class Adapter:
     """A psycopg connection with sqlite3's ``execute``/``executemany`` (``?`` placeholders)."""
 
     def __init__(self, conn: psycopg.Connection) -> None:
@@ -99,18 +99,18 @@ class PgStore(Store):
         self.location = redacted(url)
         self.path = None
         self._lock = threading.RLock()
-        self._adapter = _Adapter(connect(url))
+        self._adapter = Adapter(connect(url))
         self.migrated_from = migrations.migrate("postgresql", self._db.execute, self.transaction)
         self._journal: collections.deque[JournalEntry] = collections.deque()  # stays empty
         self.unloadable: list[str] = []
 
     @property
-    def _db(self) -> _Adapter:
+    def _db(self) -> Adapter:
         """The connection, reopened if it was lost (the statement that found it lost
         failed; the next one runs on a new connection)."""
         conn = self._adapter.conn
         if conn.closed or conn.broken:
-            self._adapter = _Adapter(connect(self.url))
+            self._adapter = Adapter(connect(self.url))
         return self._adapter
 
     def close(self) -> None:
@@ -118,7 +118,7 @@ class PgStore(Store):
             self._adapter.conn.close()
 
     @contextmanager
-    def transaction(self, durable: bool = True) -> Iterator[_Adapter]:
+    def transaction(self, durable: bool = True) -> Iterator[Adapter]:
         with self._lock, self._db.conn.transaction():
             if not durable:
                 self._db.execute("SET LOCAL synchronous_commit = off")
@@ -199,7 +199,7 @@ class PgStore(Store):
             super().snapshot(rows)
 
     @staticmethod
-    def _audit(db: _Adapter, rows: list[AuditRow]) -> None:
+    def _audit(db: Adapter, rows: list[AuditRow]) -> None:
         if not rows:
             return
         with db.conn.cursor().copy(f"COPY audit ({AUDIT_COLUMNS}) FROM STDIN") as copy:
@@ -207,7 +207,7 @@ class PgStore(Store):
                 copy.write_row(row)
 
     @staticmethod
-    def _check_fence(db: _Adapter, member: str, tokens: dict[str, int]) -> None:
+    def _check_fence(db: Adapter, member: str, tokens: dict[str, int]) -> None:
         if not tokens:
             return
         shards = list(tokens)
