@@ -1,1 +1,1 @@
-"""The tuner daemon: the tuning engine behind a Zenoh bus, a SQLite store and a REST API."""
+"""The tuner daemon: the tuning engine behind a Zenoh bus, an SQLite or PostgreSQL store and a REST API."""
