@@ -658,3 +658,33 @@ def test_dockerfile_copies_exist_and_pass_the_dockerignore():
     for src in sources:
         assert (ROOT / src).exists(), f"COPY {src}: not in the repository"
         assert src in allowed, f"COPY {src}: excluded by .dockerignore"
+
+
+HA_FILE = DEPLOY / "docker-compose.ha.yml"
+
+
+def test_ha_compose_runs_two_tuners_on_postgres_with_a_required_password():
+    refused = run_compose("config", "-q", files=(HA_FILE,), PITUNE_API_TOKEN=TOKEN)
+    assert refused.returncode != 0 and "PITUNE_POSTGRES_PASSWORD" in refused.stderr
+    ha = compose_config(files=(HA_FILE,), PITUNE_API_TOKEN=TOKEN, PITUNE_POSTGRES_PASSWORD="pw")
+    from service.daemon.settings import load_settings
+
+    tuners = [ha["services"][name] for name in ("tuner", "tuner2")]
+    settings = []
+    for tuner in tuners:
+        env = tuner["environment"]
+        assert env["PGPASSWORD"] == "pw" and "pw" not in env["PITUNE_DB_PATH"]
+        assert {v for v in env if not v.startswith("PITUNE_")} == {"PGPASSWORD"}
+        assert tuner["depends_on"]["postgres"]["condition"] == "service_healthy"
+        fields = {
+            k.removeprefix("PITUNE_").lower(): v for k, v in env.items() if k.startswith("PITUNE_")
+        }
+        fields.pop("api_token")
+        settings.append(load_settings(**fields))
+    assert all(s.postgres for s in settings)
+    assert len({s.instance_id for s in settings}) == 2
+    assert [s.cluster_url for s in settings] == ["http://tuner:8750", "http://tuner2:8750"]
+    assert published(tuners[0], 8750) == published(tuners[1], 8750) == {"127.0.0.1"}
+    host_ports = {p["published"] for t in tuners for p in t["ports"]}
+    assert host_ports == {"8750", "8751"}
+    assert "ports" not in ha["services"]["postgres"]  # the store stays on the compose network

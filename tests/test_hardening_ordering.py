@@ -14,7 +14,8 @@ import time
 import orjson
 import pytest
 
-from service.daemon.tuner import AFTER_T_WAIT_S, Tuner
+from service.daemon.queries import AFTER_T_WAIT_S
+from service.daemon.tuner import Tuner
 from service.engine.config import LoopConfig
 from tests.tuner_support import connected_gateway, loop_body, open_peer, tuner_settings
 

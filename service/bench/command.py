@@ -13,6 +13,7 @@ from pathlib import Path
 
 import httpx
 
+from service.bench import scaleout
 from service.bench.config import BenchConfig
 from service.bench.fleet import Fleet
 from service.bench.load import drive
@@ -36,6 +37,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--per-loop-gains", action="store_true",
       help="batched samples, but one gains message per loop and update")  # fmt: skip
     a("--batch-size", type=int, default=D.batch_size, help="most samples per batch message")
+    a("--instances", type=int, default=D.instances,
+      help="tuners sharing a PostgreSQL store (default 1: one tuner on SQLite)")  # fmt: skip
+    a("--gateways", type=int, default=D.gateways,
+      help="gateways the loops are spread over (--instances: 4 per instance at least)")  # fmt: skip
+    a("--postgres", default=None, metavar="URL",
+      help="the store of --instances (default: a temporary PostgreSQL server)")  # fmt: skip
     a("--tick", type=float, default=D.tick, help="spacing of the phase groups, seconds")
     a("--tau", type=float, nargs=2, default=D.tau, metavar=("MIN", "MAX"),
       help="range of plant time constants, seconds (RL period = 5.5 tau)")  # fmt: skip
@@ -71,7 +78,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--seed", type=int, default=D.seed)
     a("--out", type=Path, default=D.out, help="results directory")
     a("--no-inference-bench", action="store_true", help="skip the in-process inference timing")
-    a("--daemon-log", type=Path, default=None, help="keep the daemon's log here")
+    a("--daemon-log", type=Path, default=None,
+      help="keep the daemon's log here (--instances: a directory, one log per member)")  # fmt: skip
     a("--trace", type=Path, default=None,
       help="write the update latencies of the window to this CSV")  # fmt: skip
 
@@ -101,8 +109,12 @@ def start_daemon(config: BenchConfig, workdir: Path) -> TunerProcess:
 
 def run(args: argparse.Namespace) -> int:
     config = bench_config(args)
-    if config.loops < 1 or config.rate <= 0 or config.duration <= 0 or config.warmup < 0:
-        print("pitune bench: --loops, --rate, --duration must be positive", file=sys.stderr)
+    if (
+        config.loops < 1 or config.rate <= 0 or config.duration <= 0 or config.warmup < 0
+        or config.instances < 1 or config.gateways < 1
+    ):  # fmt: skip
+        print("pitune bench: --loops, --rate, --duration, --instances, --gateways must be "
+              "positive", file=sys.stderr)  # fmt: skip
         return 2
     machine = machine_info()
     inference = None
@@ -110,15 +122,19 @@ def run(args: argparse.Namespace) -> int:
         from service.bench.inference import inference_bench  # torch only when timing it
 
         inference = inference_bench(config, config.loops)
-    fleet = Fleet(config)
+    if config.instances > 1:
+        config = scaleout.spread(config)
     with tempfile.TemporaryDirectory(prefix="pitune-bench-") as tmp:
-        daemon = start_daemon(config, Path(tmp))
-        try:
-            with httpx.Client(timeout=30) as client:
-                result = drive(config, fleet, daemon, client)
-        finally:
-            code = daemon.stop()
-        result["daemon_exit"] = code
+        if config.instances > 1:
+            result = scaleout.run(config, Path(tmp))
+        else:
+            daemon = start_daemon(config, Path(tmp))
+            try:
+                with httpx.Client(timeout=30) as client:
+                    result = drive(config, Fleet(config), daemon, client)
+            finally:
+                code = daemon.stop()
+            result["daemon_exit"] = code
     result.update(config=config.as_json(), machine=machine, inference=inference)
     result["bar"] = judge(result)
     path = write(config, result)

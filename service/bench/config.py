@@ -31,6 +31,12 @@ class BenchConfig:
     """One message per sample and per gains update instead of batches."""
     per_loop_gains: bool = False
     """Batched samples, but one gains message per loop and update."""
+    gateways: int = 1
+    """Gateways the loops are spread over (a cluster's members own whole gateways)."""
+    instances: int = 1
+    """Tuner processes sharing a PostgreSQL store (1: one tuner on SQLite)."""
+    postgres: str | None = None
+    """The PostgreSQL URL for ``instances`` > 1 (None: a temporary server)."""
     batch_size: int = 2000
     """Most samples per batch message."""
     tick: float = 0.01

@@ -48,7 +48,11 @@ class Fleet:
         n, rng = config.loops, np.random.default_rng(config.seed)
         self.n, self.period = n, 1.0 / config.rate
         self.ids = [f"L{i:05d}" for i in range(n)]
-        gateway = {"gateway": GATEWAY} if config.batched_gains else {}
+        gateways = (
+            [GATEWAY]
+            if config.gateways == 1
+            else [f"{GATEWAY}-{g}" for g in range(config.gateways)]
+        )
         self.where = {}
         lo, hi = config.tau
         if config.aligned:
@@ -73,7 +77,7 @@ class Fleet:
                 },
                 # every due loop is stepped, whatever its setpoint does: the worst case
                 "guard": {"excitation_periods": 0.0},
-                **gateway,
+                **({"gateway": gateways[i % len(gateways)]} if config.batched_gains else {}),
             }
             for i in range(n)
         ]

@@ -69,7 +69,9 @@ def drive(config: BenchConfig, fleet: Fleet, daemon: TunerProcess, client) -> di
     inbox: collections.deque = collections.deque()
     try:
         sub = session.declare_subscriber(
-            keys.gateway_gains(GATEWAY) if config.batched_gains else keys.all_gains,
+            keys.gateway_gains(GATEWAY if config.gateways == 1 else "*")
+            if config.batched_gains
+            else keys.all_gains,
             lambda s: inbox.append((time.monotonic(), s.payload.to_bytes())),
         )
         _wait_for_tuner(session, keys, fleet.ids[0])

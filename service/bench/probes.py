@@ -11,14 +11,17 @@ import httpx
 from prometheus_client.parser import text_string_to_metric_families
 
 
-def scrape(client: httpx.Client, api: str) -> dict[str, float]:
-    """The daemon's metrics as {name{labels}: value}."""
-    text = client.get(f"{api}/metrics").text
-    out = {}
-    for family in text_string_to_metric_families(text):
-        for s in family.samples:
-            labels = ",".join(f"{k}={v}" for k, v in sorted(s.labels.items()))
-            out[f"{s.name}{{{labels}}}" if labels else s.name] = s.value
+def scrape(client: httpx.Client, api: str | list[str]) -> dict[str, float]:
+    """The daemon's metrics as {name{labels}: value}; of several daemons (the members of
+    a cluster), summed."""
+    out: dict[str, float] = {}
+    for one in [api] if isinstance(api, str) else api:
+        text = client.get(f"{one}/metrics").text
+        for family in text_string_to_metric_families(text):
+            for s in family.samples:
+                labels = ",".join(f"{k}={v}" for k, v in sorted(s.labels.items()))
+                name = f"{s.name}{{{labels}}}" if labels else s.name
+                out[name] = out.get(name, 0.0) + s.value
     return out
 
 

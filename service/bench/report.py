@@ -16,6 +16,9 @@ BAR = {
     "daemon_rss_mb": 1024.0,
     "rss_per_loop_kb": 4.0,
     "inference_ms": 20.0,
+    "failover_s": 10.0,
+    "seq_regressions": 0,
+    "messages_without_audit": 0,
 }
 
 
@@ -38,6 +41,20 @@ def judge(r: dict) -> dict:
         "daemon_rss_mb": line("daemon_rss_mb", r["daemon"]["rss_max_mb"]),
         "rss_per_loop_kb": line("rss_per_loop_kb", r["daemon"].get("rss_per_loop_kb")),
         "inference_ms": line("inference_ms", inf.get("fast_policy_ms_median")),
+        **_cluster_lines(r.get("failover"), line),
+    }
+
+
+def _cluster_lines(failover: dict | None, line) -> dict:
+    """The bar lines of a failover (``--instances``): none for one tuner."""
+    if failover is None:
+        return {}
+    return {
+        "failover_s": line("failover_s", failover["failover_s"]),
+        "seq_regressions": line("seq_regressions", failover["seq_regressions"], operator.eq),
+        "messages_without_audit": line(
+            "messages_without_audit", failover["messages_without_audit"], operator.eq
+        ),
     }
 
 
@@ -45,6 +62,7 @@ def write(config: BenchConfig, result: dict) -> Path:
     config.out.mkdir(parents=True, exist_ok=True)
     tag = f"{config.loops}x{config.rate:g}hz{'-aligned' if config.aligned else ''}"
     tag += "-perloop" if config.per_loop else "-perloopgains" if config.per_loop_gains else ""
+    tag += f"-{config.instances}instances" if config.instances > 1 else ""
     path = config.out / f"{time.strftime('%Y%m%d-%H%M%S')}-{tag}.json"
     path.write_text(json.dumps(result, indent=2, default=float) + "\n")
     return path
@@ -93,6 +111,20 @@ def table(r: dict) -> str:
                 f"{inf['workers']} worker(s); agent.act {inf['agent_act_ms_median']:.1f} ms",
             )
         )
+    if r.get("failover", {}).get("error"):
+        rows.append(("failover (SIGKILL)", f"not measured: {r['failover']['error']}"))
+    elif r.get("failover"):
+        f = r["failover"]
+        sizes = ", ".join(f"{m['instance_id']} {m['loops']}" for m in r["cluster"]["members"])
+        rows += [
+            ("instances (loops each)", f"{c['instances']} on PostgreSQL ({sizes}), "
+                                       f"{c['gateways']} gateways"),
+            ("failover (SIGKILL)", f"{f['victim']}'s {f['victim_loops']} loops held by the "
+                                   f"others after {_f(f['failover_s'], '{:.2f}')} s; "
+                                   f"{f['seq_regressions']} seq regressions, "
+                                   f"{f['messages_without_audit']} unaudited of "
+                                   f"{f['messages']} messages"),
+        ]  # fmt: skip
     rows += [
         ("machine", f"{mach['cpu']}, {mach['cpus']} CPUs, {mach['memory_gb']} GB"),
         ("load average start / end", f"{_load(mach['load_average_start'])} / "

@@ -1,1 +1,2 @@
-"""The tuner daemon: the tuning engine behind a Zenoh bus, a SQLite store and a REST API."""
+"""The tuner daemon: the tuning engine behind a Zenoh bus, a store (SQLite, or PostgreSQL
+shared by several tuners) and a REST API."""

@@ -45,7 +45,8 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from prometheus_client import CONTENT_TYPE_LATEST
 
 from service.agent.model import Agent
-from service.daemon import console
+from service.daemon import console, forward
+from service.daemon.admin import Conflict, OwnedElsewhere, StoreUnavailable, UnknownLoop
 from service.daemon.logs import StatusWatch, table_statuses
 from service.daemon.schemas import (
     MAX_BULK,
@@ -56,7 +57,7 @@ from service.daemon.schemas import (
     LoopsPage,
 )
 from service.daemon.settings import Settings
-from service.daemon.tuner import Conflict, StoreUnavailable, Tuner, UnknownLoop
+from service.daemon.tuner import Tuner
 from service.engine.config import LoopPatch, LoopView, Registration
 
 log = logging.getLogger("pitune.api")
@@ -355,6 +356,7 @@ def create_app(
     app.include_router(loops)
     app.include_router(ops)
     app.include_router(console.router)  # the operator console at /ui (docs/console.md)
+    forward.install(app)  # a cluster's members answer for each other's loops
 
     @app.get("/docs", include_in_schema=False, response_class=HTMLResponse)
     def docs() -> HTMLResponse:
@@ -369,6 +371,11 @@ def create_app(
         # Without the offending input: it may be NaN or Infinity, which JSON cannot carry.
         errors = [{k: e[k] for k in ("loc", "msg", "type")} for e in exc.errors()]
         return JSONResponse({"detail": errors}, status_code=422)
+
+    @app.exception_handler(OwnedElsewhere)
+    async def owned_elsewhere(request: Request, exc: OwnedElsewhere) -> JSONResponse:
+        detail = f"loop {exc.args[0]!r} belongs to another member of the cluster; retry"
+        return JSONResponse({"detail": detail}, status_code=503, headers={"Retry-After": "1"})
 
     @app.exception_handler(StoreUnavailable)
     async def store_unavailable(request: Request, exc: StoreUnavailable) -> JSONResponse:

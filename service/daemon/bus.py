@@ -15,7 +15,9 @@ While it runs, the tuner also watches the other tuners' liveliness tokens on its
 prefix (:attr:`Bus.other_tuners`): the start-up check (``service.daemon.main``) refuses
 to start beside a tuner already there, and this watch notices one that comes later (or
 started in the same instant), logs a warning and shows it in ``/healthz``: two tuners
-on one prefix both tune the same loops.
+on one prefix both tune the same loops. Not so for the members of a cluster sharing a
+PostgreSQL store: they share the prefix by design and their leases keep each loop with
+one of them.
 
 A callback subscriber still declared when the interpreter exits hangs it (zenoh 1.10),
 so :meth:`Bus.close` undeclares everything and closes the session; the tuner calls it
@@ -183,10 +185,12 @@ class Bus:
                 s.declare_queryable(k.all_gateway_states, self._query_handler(Kind.gateway_query)),
             ]
             self._token = s.liveliness().declare_token(k.tuner(self.settings.instance_id))
-            # no history: tokens already there are the start-up check's (a get after this)
-            self._entities.append(
-                s.liveliness().declare_subscriber(k.all_tuners, self._on_tuner, history=False)
-            )
+            # no history: tokens already there are the start-up check's (a get after this);
+            # members of a cluster (a PostgreSQL store) share the prefix by design
+            if not self.settings.postgres:
+                self._entities.append(
+                    s.liveliness().declare_subscriber(k.all_tuners, self._on_tuner, history=False)
+                )
         except BaseException:
             self.close()
             raise

@@ -55,7 +55,7 @@ EXIT_CODES = {
     EXIT_UNAVAILABLE: "an address cannot be bound: the API port or a Zenoh listen port "
     "in use, or an address not on this host",
     EXIT_CANT_CREATE: "the store cannot be opened (--db is a directory, no permission, "
-    "not an SQLite database)",
+    "not an SQLite database, PostgreSQL unreachable, a schema of a newer pitune)",
     EXIT_STORE_FAILED: "the store failed to commit for store_failure_exit_s while running "
     "(restart it: it resumes from the store)",
     EXIT_LOCKED: "another tuner owns the store (its <db>.lock is held), or runs on the "
@@ -96,7 +96,8 @@ HELP = {
     "zenoh_listen": "Zenoh endpoint to listen on (repeatable)",
     "zenoh_connect": "Zenoh endpoint (router or peer) to connect to (repeatable)",
     "zenoh_config": "Zenoh JSON5 config file (TLS, user/password); flags override it",
-    "db_path": "SQLite database, owned by one tuner at a time",
+    "db_path": "SQLite database, owned by one tuner at a time; or a PostgreSQL URL "
+    "(postgresql://user@host/db) shared by a cluster of tuners",
     "key_prefix": "key-expression prefix of every topic",
     "instance_id": "this tuner's id on the bus",
     "agent_weights": "agent weights file, or 'untrained' (tests)",
@@ -213,7 +214,7 @@ def check_files(settings: Settings) -> None:
             "Fix --zenoh-config (PITUNE_ZENOH_CONFIG)",
         )
     db = settings.db_path
-    if str(db) != ":memory:" and db.is_dir():
+    if not settings.postgres and str(db) != ":memory:" and db.is_dir():
         raise StartupError(
             EXIT_CANT_CREATE,
             f"--db {db} is a directory: give the database file's path, e.g. {db / 'pitune.db'}",
@@ -316,9 +317,12 @@ def zenoh_failure(exc: Exception, settings: Settings) -> StartupError:
 
 def start_tuner(settings: Settings):
     """The tuner, started (agent loaded, store open, on the bus)."""
+    import psycopg
     import torch  # heavy: only once the cheap checks passed
     import zenoh
 
+    from service.daemon.migrations import SchemaTooNew
+    from service.daemon.store_pg import redacted
     from service.daemon.tuner import Tuner
 
     torch.set_num_threads(settings.inference_threads)
@@ -334,6 +338,14 @@ def start_tuner(settings: Settings):
         tuner.start()
     except zenoh.ZError as exc:
         raise zenoh_failure(exc, settings) from exc
+    except (psycopg.Error, SchemaTooNew) as exc:
+        location = redacted(settings.db_path) if settings.postgres else settings.db_path
+        raise StartupError(
+            EXIT_CANT_CREATE,
+            f"cannot open the store {location}: {_one_line(exc)}. Check --db "
+            "(PITUNE_DB_PATH): a reachable PostgreSQL server and database, a user allowed "
+            "to create tables there, and a pitune at least as new as the one that wrote it",
+        ) from exc
     except (sqlite3.Error, OSError) as exc:
         raise StartupError(
             EXIT_CANT_CREATE,
@@ -404,9 +416,11 @@ def run(args: argparse.Namespace) -> int:
 
 def serve(settings: Settings) -> int:
     check_files(settings)
+    # a PostgreSQL store is shared by a cluster: its leases (service.daemon.cluster) keep
+    # two members off the same loops, where an SQLite file has one owner
     lock = (
         None
-        if str(settings.db_path) == ":memory:"
+        if settings.postgres or str(settings.db_path) == ":memory:"
         else StoreLock(settings.db_path, settings.instance_id)
     )
     sock = bind_api(settings)
@@ -422,7 +436,8 @@ def serve(settings: Settings) -> int:
     tuner = None
     try:
         tuner = start_tuner(settings)
-        check_alone_on_prefix(tuner, settings)
+        if not settings.postgres:  # cluster members share the prefix by design
+            check_alone_on_prefix(tuner, settings)
         from service.daemon.api import create_app
 
         server = uvicorn.Server(

@@ -51,6 +51,7 @@ OTHER_VARIABLES = frozenset(
         "PITUNE_OPCUA_PASSWORD",
     }
 )
+POSTGRES_SCHEMES = ("postgresql://", "postgres://")
 Endpoints = Annotated[list[str], NoDecode]
 """Zenoh endpoints: a list, or in the environment JSON or a comma-separated list."""
 
@@ -84,10 +85,22 @@ class Settings(BaseSettings):
         None, description="Zenoh JSON5 config file (TLS, auth); the options above override it."
     )
     zenoh_multicast_scouting: bool = False
-    db_path: Path = Field(
+    db_path: Path | str = Field(
         Path("pitune.db"),
         description="SQLite database (also PITUNE_DB); one tuner at a time owns it "
-        "(a lock on <db>.lock).",
+        "(a lock on <db>.lock). Or a PostgreSQL URL (postgresql://user@host/db): several "
+        "tuners share it, each owning a part of the loops (docs/deploy.md, High availability).",
+    )
+    cluster_lease_s: Annotated[float, Field(ge=2.0, le=60.0)] = Field(
+        5.0,
+        description="With a PostgreSQL store: seconds a member's leases last without "
+        "renewal (renewed every lease/5); a dead member's loops move after at most this.",
+    )
+    cluster_url: str | None = Field(
+        None,
+        description="With a PostgreSQL store: the admin API's URL as the other members "
+        "reach it (requests for loops this tuner owns are forwarded there). "
+        "Default: http://{api_host}:{api_port}.",
     )
     agent_weights: str | None = Field(
         None,
@@ -154,6 +167,19 @@ class Settings(BaseSettings):
             except json.JSONDecodeError as exc:
                 raise ValueError(f"not a JSON list of endpoints: {exc}") from None
         return [part.strip() for part in text.split(",") if part.strip()]
+
+    @field_validator("db_path", mode="before")
+    @classmethod
+    def _path_or_url(cls, value: object) -> object:
+        """A PostgreSQL URL stays text (a Path would fold its ``//``); else a path."""
+        if isinstance(value, str) and not value.startswith(POSTGRES_SCHEMES):
+            return Path(value)
+        return value
+
+    @property
+    def postgres(self) -> bool:
+        """The store is PostgreSQL (shared by a cluster of tuners), not an SQLite file."""
+        return isinstance(self.db_path, str)
 
     @field_validator("api_token", mode="before")
     @classmethod

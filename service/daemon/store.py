@@ -36,45 +36,12 @@ from pathlib import Path
 import orjson
 from pydantic import ValidationError
 
+from service.daemon import migrations
 from service.daemon.schemas import AuditEntry
+from service.daemon.shards import shard_of
 from service.engine.audit import AUDIT_COLUMNS, AuditRow
 from service.engine.config import LoopConfig
 
-SCHEMA = """
-CREATE TABLE IF NOT EXISTS loops (
-    id TEXT PRIMARY KEY,
-    config TEXT NOT NULL,
-    kp REAL NOT NULL,
-    ki REAL NOT NULL,
-    seq INTEGER NOT NULL
-);
-CREATE TABLE IF NOT EXISTS snapshots (
-    id TEXT PRIMARY KEY REFERENCES loops(id) ON DELETE CASCADE,
-    hidden BLOB NOT NULL,
-    runtime TEXT NOT NULL
-);
-CREATE TABLE IF NOT EXISTS audit (
-    id INTEGER PRIMARY KEY AUTOINCREMENT,
-    loop_id TEXT NOT NULL,
-    wall_time REAL NOT NULL,
-    t REAL,
-    seq INTEGER NOT NULL,
-    mode TEXT NOT NULL,
-    reason TEXT NOT NULL,
-    kp_old REAL, ki_old REAL, kp_new REAL, ki_new REAL,
-    detail TEXT NOT NULL DEFAULT ''
-);
-CREATE INDEX IF NOT EXISTS audit_loop ON audit (loop_id, id);
-CREATE TABLE IF NOT EXISTS meta (
-    key TEXT PRIMARY KEY,
-    value TEXT NOT NULL
-);
-CREATE TABLE IF NOT EXISTS journal (
-    id INTEGER PRIMARY KEY AUTOINCREMENT,
-    rows BLOB NOT NULL,  -- JSON {"gains": [[kp, ki, seq, id], ...], "audit": [[...], ...]}
-    done INTEGER NOT NULL DEFAULT 0  -- rows applied so far: the gains first, then the audit
-);
-"""
 log = logging.getLogger("pitune.store")
 UPDATE_GAINS = "UPDATE loops SET kp = ?, ki = ?, seq = ? WHERE id = ?"
 
@@ -105,10 +72,21 @@ class JournalEntry:
 
 
 class Store:
-    """One SQLite connection shared by the worker and the API threads (serialised by a lock)."""
+    """One SQLite connection shared by the worker and the API threads (serialised by a lock).
+
+    The queries are written for SQLite (``?`` placeholders) and shared with
+    :class:`~service.daemon.store_pg.PgStore`, which translates them.
+    """
+
+    dialect = "sqlite"
+    ORDER = "l.rowid"
+    """The registration order of the loops table."""
+    integrity_errors: tuple[type[Exception], ...] = (sqlite3.IntegrityError,)
 
     def __init__(self, path: Path | str) -> None:
         self.path = Path(path)
+        self.location = str(path)
+        """Where the store is, for messages (a password in a URL left out)."""
         if str(path) != ":memory:":
             self.path.parent.mkdir(parents=True, exist_ok=True)
         self._db = sqlite3.connect(str(path), check_same_thread=False, isolation_level=None)
@@ -117,7 +95,10 @@ class Store:
         self._durable = True
         self._db.execute("PRAGMA synchronous=FULL")
         self._db.execute("PRAGMA foreign_keys=ON")
-        self._db.executescript(SCHEMA)
+        self.migrated_from = migrations.migrate("sqlite", self._db.execute, self.transaction)
+        """The schema version the store had when opened (0: a new store)."""
+        if self.migrated_from < 2:
+            self._fill_shards()
         self._journal: collections.deque[JournalEntry] = collections.deque()
         self.unloadable: list[str] = []
         """Ids of stored loops that :meth:`load` could not parse."""
@@ -125,6 +106,16 @@ class Store:
         for entry_id, rows, done in pending:
             changes = orjson.loads(rows)
             self._journal.append(JournalEntry(entry_id, changes["gains"], changes["audit"], done))
+
+    def _fill_shards(self) -> None:
+        """The ``shard`` of loops registered before schema version 2 (computed in Python:
+        SQLite has no hash function)."""
+        with self.transaction() as db:
+            rows = db.execute("SELECT id, config FROM loops WHERE shard IS NULL").fetchall()
+            db.executemany(
+                "UPDATE loops SET shard = ? WHERE id = ?",
+                [(shard_of(i, orjson.loads(c).get("gateway")), i) for i, c in rows],
+            )
 
     def close(self) -> None:
         self.apply_journal()
@@ -218,33 +209,52 @@ class Store:
             self._journal.popleft()
 
     # -- loops ------------------------------------------------------------------------
-    def load(self) -> list[StoredLoop]:
+    def load(
+        self, shards: list[str] | None = None, ids: list[str] | None = None
+    ) -> list[StoredLoop]:
         """Every loop, with the journal applied first (changes published before a crash).
 
         A row whose config no longer validates (written by an older version) is skipped
         with an error in the log and kept in the table: one bad row must not stop the
         daemon from tuning every other loop. Its id stays taken until it is repaired or
-        deleted in the database; :attr:`unloadable` lists them.
+        deleted in the database; :attr:`unloadable` lists them. ``shards`` or ``ids``:
+        only the loops of those shards, or with those ids (a member of a cluster loading
+        what it owns), else all.
         """
         self.apply_journal()
+        query = (
+            "SELECT l.id, l.config, l.kp, l.ki, l.seq, s.hidden, s.runtime "
+            "FROM loops l LEFT JOIN snapshots s ON s.id = l.id"
+        )
         with self._lock:
-            rows = self._db.execute(
-                "SELECT l.id, l.config, l.kp, l.ki, l.seq, s.hidden, s.runtime "
-                "FROM loops l LEFT JOIN snapshots s ON s.id = l.id ORDER BY l.rowid"
-            ).fetchall()
-        loops, self.unloadable = [], []
+            column, keys = ("l.shard", shards) if ids is None else ("l.id", ids)
+            if keys is None:
+                rows = self._db.execute(f"{query} ORDER BY {self.ORDER}").fetchall()
+            else:
+                rows = []
+                for i in range(0, len(keys), 500):
+                    chunk = keys[i : i + 500]
+                    where = f"{column} IN ({', '.join('?' * len(chunk))})"
+                    rows += self._db.execute(
+                        f"{query} WHERE {where} ORDER BY {self.ORDER}", chunk
+                    ).fetchall()
+        loops, unloadable = [], []
         for loop_id, config, kp, ki, seq, hidden, runtime in rows:
             try:
                 loops.append(
                     StoredLoop(LoopConfig.model_validate_json(config), kp, ki, seq, hidden, runtime)
                 )
             except ValidationError as exc:
-                self.unloadable.append(loop_id)
+                unloadable.append(loop_id)
                 log.error(
                     "LOOP %r NOT LOADED: its stored config is invalid; the row is kept in %s "
                     "(repair or delete it there): %s",
-                    loop_id, self.path, exc,
+                    loop_id, self.location, exc,
                 )  # fmt: skip
+        if shards is None and ids is None:
+            self.unloadable = unloadable
+        else:
+            self.unloadable = sorted(set(self.unloadable) | set(unloadable))
         return loops
 
     def last_seqs(self, ids: list[str]) -> dict[str, int]:
@@ -271,9 +281,9 @@ class Store:
         """Register loops, starting at ``seqs``, in one transaction (all or none)."""
         with self._ordered() as db:
             db.executemany(
-                "INSERT INTO loops (id, config, kp, ki, seq) VALUES (?, ?, ?, ?, ?)",
+                "INSERT INTO loops (id, config, kp, ki, seq, shard) VALUES (?, ?, ?, ?, ?, ?)",
                 [
-                    (c.id, c.model_dump_json(), c.kp, c.ki, seq)
+                    (c.id, c.model_dump_json(), c.kp, c.ki, seq, shard_of(c.id, c.gateway))
                     for c, seq in zip(configs, seqs, strict=True)
                 ],
             )
@@ -282,7 +292,8 @@ class Store:
     def update_config(self, config: LoopConfig, audit: AuditRow) -> None:
         with self._ordered() as db:
             db.execute(
-                "UPDATE loops SET config = ? WHERE id = ?", (config.model_dump_json(), config.id)
+                "UPDATE loops SET config = ?, shard = ? WHERE id = ?",
+                (config.model_dump_json(), shard_of(config.id, config.gateway), config.id),
             )
             self._audit(db, [audit])
 
@@ -291,16 +302,20 @@ class Store:
             db.execute("DELETE FROM loops WHERE id = ?", (loop_id,))
             self._audit(db, [audit])
 
-    def record_gains(self, gains: list[tuple[float, float, int, str]], audit: list) -> None:
+    def record_gains(
+        self, gains: list[tuple[float, float, int, str]], audit: list, fence: object = None
+    ) -> None:
         """New (kp, ki, seq, id) of loops and their audit rows: committed as one journal
-        row, applied to the tables by :meth:`apply_journal`."""
+        row, applied to the tables by :meth:`apply_journal`. ``fence``: see
+        :meth:`PgStore.record_gains <service.daemon.store_pg.PgStore.record_gains>` (an
+        SQLite store has one tuner: nothing to fence)."""
         rows = orjson.dumps({"gains": gains, "audit": audit}, option=orjson.OPT_SERIALIZE_NUMPY)
         with self._lock:
             with self.transaction() as db:
                 entry_id = db.execute("INSERT INTO journal (rows) VALUES (?)", (rows,)).lastrowid
             self._journal.append(JournalEntry(entry_id, gains, audit))
 
-    def snapshot(self, rows: Iterable[tuple[str, bytes, str]]) -> None:
+    def snapshot(self, rows: Iterable[tuple[str, bytes, str]], fence: object = None) -> None:
         """Replace the runtime snapshots of (id, hidden, runtime JSON)."""
         with self.transaction(durable=False) as db:  # a lost snapshot costs a few RL steps
             db.executemany(

@@ -37,40 +37,35 @@ from __future__ import annotations
 
 import collections
 import contextlib
-import gc
 import logging
 import math
 import os
 import queue
-import sqlite3
 import threading
 import time
-from collections.abc import Callable
 
 import orjson
 import torch
 import zenoh
 
 from service.agent.model import Agent, load_agent, untrained_agent
-from service.daemon.bus import JSON, Bus, Inbox, Item, Kind, reply
+from service.daemon.admin import LoopAdmin, freeze_survivors
+from service.daemon.bus import Bus, Inbox, Item, Kind
+from service.daemon.lanes import LANE_DRAIN_S, Lane
 from service.daemon.metrics import Metrics, RateLimitedLog
+from service.daemon.ownership import Ownership
+from service.daemon.queries import StateQueries
 from service.daemon.recent import Recent
-from service.daemon.schemas import HistoryPage, LoopsPage
 from service.daemon.settings import Settings
 from service.daemon.store import Store
-from service.engine.audit import AuditRow, audit_row
-from service.engine.config import LoopConfig, LoopPatch, LoopView
+from service.daemon.store_pg import Fenced
 from service.engine.engine import TuningEngine
 from service.engine.updates import StepResult
 from service.wire.decode import Rejection, decode_batch, decode_singles
 from service.wire.protocol import (
     MAX_BATCH,
     SCHEMA_VERSION,
-    ErrorReply,
     RejectReason,
-    StateBatch,
-    StateReply,
-    encode,
 )
 
 log = logging.getLogger("pitune.tuner")
@@ -88,112 +83,12 @@ COMMIT_RETRY_S = 1.0
 EXIT_STORE_FAILED = 74
 """Exit status after ``store_failure_exit_s`` of failing commits (EX_IOERR)."""
 _RANGE_ERRORS = {"less_than_equal", "greater_than_equal", "less_than", "greater_than"}
-AFTER_T_WAIT_S = 1.0
-"""Longest a state query with ``after_t`` waits for its loop's sample."""
 PRUNE_CHUNK = 200
 """Loop ids whose audit history is pruned per idle worker iteration."""
-LANE_BOUND = 100_000
-"""Messages a lane holds before it keeps only the newest of each loop."""
-LANE_DRAIN_S = 5.0
-"""Longest :meth:`Tuner.stop` waits for the lanes to publish what they hold."""
-
-
-class Lane:
-    """Committed gains messages waiting for one destination, and the thread publishing
-    them: the per-loop keys (``gateway`` None) or one gateway's GainsBatch key.
-
-    Messages go out in the order submitted. While the destination blocks, messages
-    pile up; past ``bound`` of them, only the newest of each loop is kept (gains are
-    absolute, and gateways drop a seq below one they took), so a lane holds at most
-    ``max(bound, loops)`` messages however long its destination blocks.
-    """
-
-    def __init__(
-        self,
-        gateway: str | None,
-        send: Callable[[str | None, list[dict]], None],
-        bound: int = LANE_BOUND,
-    ):
-        self.gateway = gateway
-        self._send = send
-        self.bound = bound
-        self._pending: list[dict] = []
-        self._cond = threading.Condition()
-        self._busy = False
-        self._closing = False
-        self.superseded = 0
-        """Messages replaced by a newer one of the same loop before they went out."""
-        self.thread = threading.Thread(
-            target=self._run, name=f"pitune-publish-{gateway or 'loops'}", daemon=True
-        )
-        self.thread.start()
-
-    def submit(self, messages: list[dict]) -> None:
-        with self._cond:
-            self._pending.extend(messages)
-            if len(self._pending) > self.bound:
-                newest = {m["loop_id"]: i for i, m in enumerate(self._pending)}
-                kept = [self._pending[i] for i in sorted(newest.values())]
-                self.superseded += len(self._pending) - len(kept)
-                self._pending = kept
-            self._cond.notify_all()
-
-    def _run(self) -> None:
-        while True:
-            with self._cond:
-                while not self._pending and not self._closing:
-                    self._cond.wait()
-                if not self._pending:
-                    return
-                batch, self._pending = self._pending, []
-                self._busy = True
-            try:
-                self._send(self.gateway, batch)
-            except Exception:
-                log.exception("publishing %d gains messages failed", len(batch))
-            finally:
-                with self._cond:
-                    self._busy = False
-                    self._cond.notify_all()
-
-    @property
-    def idle(self) -> bool:
-        return not self._pending and not self._busy
-
-    def drain(self, timeout: float) -> bool:
-        """Wait until everything submitted went out; False on timeout."""
-        deadline = time.monotonic() + timeout
-        with self._cond:
-            while self._pending or self._busy:
-                left = deadline - time.monotonic()
-                if left <= 0.0:
-                    return False
-                self._cond.wait(left)
-            return True
-
-    def close(self, timeout: float) -> None:
-        with self._cond:
-            self._closing = True
-            self._cond.notify_all()
-        self.thread.join(timeout)
-
-
 IDENTIFICATION_OUTCOMES = frozenset(
     {"identified", "rescaled", "mismatch", "out_of_envelope", "in_envelope", "identify"}
 )
 """Audit reasons of the engine's identification (counted per outcome)."""
-
-
-class Conflict(Exception):
-    """The loop already exists."""
-
-
-class UnknownLoop(LookupError):
-    """No loop with this id."""
-
-
-class StoreUnavailable(Exception):
-    """The store fails to commit: the change would be neither recorded nor published."""
 
 
 def load_configured_agent(settings: Settings) -> Agent:
@@ -213,22 +108,6 @@ def load_configured_agent(settings: Settings) -> Agent:
             "!" * 78,
         )
         return untrained_agent(0)
-
-
-def _freeze_survivors() -> None:
-    """Move the objects that survived so far out of the cyclic GC's reach.
-
-    Under a stream of 10,000 samples/s the GC runs full collections every few seconds;
-    each scans every long-lived tracked object (modules, caches the HTTP stack builds on
-    its first requests, ...): ~100 ms per collection, a stall of the sample stream. The
-    tuner freezes what exists at start-up, after a bulk registration and after every
-    periodic snapshot, so the full collections the sample stream triggers only see
-    recent objects. Frozen objects are still freed by reference counting, and a full
-    collection runs first (cheap: it scans only what is not frozen yet), so no cyclic
-    garbage is frozen.
-    """
-    gc.collect()
-    gc.freeze()
 
 
 SINGLES_GROUP = 2000
@@ -252,7 +131,7 @@ def _group_singles(items: list[Item]):
         yield Kind.sample, "", run
 
 
-class Tuner:
+class Tuner(StateQueries, Ownership, LoopAdmin):
     def __init__(self, settings: Settings, agent: Agent | None = None) -> None:
         self.settings = settings
         self.keys = settings.keys
@@ -297,6 +176,15 @@ class Tuner:
                     "Audit rows deleted by the retention policy.",
                     lambda: self.pruned,
                 ),
+                "pitune_gains_fenced": (
+                    "Committed gains messages not published: this member's leases may have "
+                    "run out (it was paused); the loops' new owner publishes from the store.",
+                    lambda: self.gains_fenced,
+                ),
+                "pitune_samples_foreign": (
+                    "Samples of loops another member of the cluster owns, left to it.",
+                    lambda: self.foreign_samples,
+                ),
                 "pitune_queue_bytes": (
                     "Payload bytes waiting in the input queue.",
                     lambda: self.inbox.nbytes,
@@ -316,26 +204,28 @@ class Tuner:
 
     # -- lifecycle --------------------------------------------------------------------
     def start(self) -> Tuner:
-        self.store = Store(self.settings.db_path)
+        """Open the store and restore its loops (with a PostgreSQL store: join the
+        cluster, which loads the loops of the shards this tuner wins), then the bus."""
+        if self.settings.postgres:
+            from service.daemon.cluster import Cluster
+            from service.daemon.store_pg import PgStore
+
+            self.store = PgStore(self.settings.db_path)
+            self.cluster = Cluster(self, self.settings.db_path)
+        else:
+            self.store = Store(self.settings.db_path)
         wall = time.time()
         self.epoch = self.store.next_epoch(wall)
-        with self.table.lock:
-            for stored in self.store.load():
-                self.engine.restore(
-                    stored.config,
-                    kp=stored.kp,
-                    ki=stored.ki,
-                    seq=stored.seq,
-                    hidden=stored.hidden,
-                    runtime=stored.runtime,
-                    wall=wall,
-                )
-            self.metrics.set_loop_counts(self.table.mode_counts())
-        self.metrics.loops_unloadable.set(len(self.store.unloadable))
-        log.info("restored %d loops from %s", len(self.table), self.settings.db_path)
+        if self.cluster is None:
+            with self.table.lock:
+                for stored in self.store.load():
+                    self._restore(stored, wall)
+                self.metrics.set_loop_counts(self.table.mode_counts())
+            self.metrics.loops_unloadable.set(len(self.store.unloadable))
+            log.info("restored %d loops from %s", len(self.table), self.store.location)
         # Everything allocated so far (modules, torch, the restored table) lives as long as
         # the process: keep it out of the cyclic GC's full collections (~100 ms each).
-        _freeze_survivors()
+        freeze_survivors()
         self.bus = Bus(self.settings, self.inbox, self._overload)
         try:
             self.bus.open()
@@ -344,6 +234,9 @@ class Tuner:
             raise
         self._worker = threading.Thread(target=self._run, name="pitune-worker", daemon=True)
         self._worker.start()
+        if self.cluster is not None:
+            self.cluster.start()
+            self.cluster.ready.wait(timeout=self.cluster.lease_s)
         log.info(
             "tuner %s (epoch %d) up: prefix %r, listen %s, connect %s, inference %s",
             self.settings.instance_id,
@@ -357,7 +250,10 @@ class Tuner:
 
     def stop(self) -> None:
         """Stop receiving, handle what was already received, publish what is committed
-        (at most LANE_DRAIN_S), close the bus, snapshot, close the store."""
+        (at most LANE_DRAIN_S), close the bus, snapshot, leave the cluster (its loops
+        move to the other members at once), close the store."""
+        if self.cluster is not None:
+            self.cluster.halt()
         if self.bus is not None:
             self.bus.stop_receiving()
         if self._worker is not None:
@@ -374,6 +270,8 @@ class Tuner:
             lane.close(timeout=1.0)
         if self.store is not None:
             self.snapshot()
+            if self.cluster is not None:
+                self.cluster.leave()
             self.store.close()
             self.store = None
         log.info("tuner %s stopped", self.settings.instance_id)
@@ -413,14 +311,21 @@ class Tuner:
         )
         self._write_snapshot(chunk)
         if not self._snapshot_todo:
-            _freeze_survivors()
+            freeze_survivors()
 
     def _write_snapshot(self, loop_ids: list[str] | None) -> None:
         # Written under the table lock (a few ms per chunk): a delete between reading the
         # rows and writing them would fail the whole chunk on the foreign key, and a
         # delete and a new registration of the id would give the new loop the old state.
         with self.table.lock:
-            self.store.snapshot(self.table.snapshot(loop_ids))
+            rows = self.table.snapshot(loop_ids)
+            if self.cluster is None:
+                self.store.snapshot(rows)
+                return
+            try:
+                self.store.snapshot(rows, self._fence(r[0] for r in rows))
+            except Fenced as exc:  # the leases lost: the loops' state is not ours to save
+                log.warning("snapshot fenced: %s", exc)
 
     # -- worker -----------------------------------------------------------------------
     def _run(self) -> None:
@@ -523,6 +428,7 @@ class Tuner:
                     decoded = decode_singles([(self.keys.loop_id(k), p) for k, p in payload])
                 else:
                     decoded = decode_batch(payload)
+                decoded = self._own_rows(decoded)
                 self._ingest(decoded, wall)
                 # received last: once it reaches N, those N samples are in their counters
                 self.metrics.samples_received.inc(decoded.received)
@@ -597,7 +503,15 @@ class Tuner:
                 self._snapshot_todo.append(row[0])
         if gains or audit:
             try:
-                self.store.record_gains(gains, audit)
+                if self.cluster is None:
+                    self.store.record_gains(gains, audit)
+                else:
+                    fence = self._fence({g[3] for g in gains} | {a[0] for a in audit})
+                    self.store.record_gains(gains, audit, fence)
+            except Fenced as exc:
+                self._fenced(exc, gains, audit)
+                self._commit(None)
+                return
             except Exception as exc:  # sqlite3.Error, OSError, MemoryError: all the same
                 self.table.requeue(gains, audit)
                 self._store_failed(exc)
@@ -636,10 +550,10 @@ class Tuner:
     def _publish(self, result: StepResult) -> None:
         """Hand a committed step's messages to their lanes (never blocks on the bus)."""
         self.recent.safely(self.recent.add_gains, result)
-        messages = result.messages(self.settings.instance_id)
+        publishable = self._publishable(result.messages(self.settings.instance_id), result.gateways)
+        messages = [message for message, _ in publishable]
         by_gateway: dict[str | None, list[dict]] = collections.defaultdict(list)
-        for message, gateway in zip(messages, result.gateways, strict=True):
-            message["epoch"] = self.epoch
+        for message, gateway in publishable:
             by_gateway[gateway].append(message)
         for gateway, batch in by_gateway.items():
             self._lane(gateway).submit(batch)
@@ -659,7 +573,11 @@ class Tuner:
         return lane
 
     def _send(self, gateway: str | None, messages: list[dict]) -> None:
-        """A lane's blocking part, on its own thread: no lock of the tuner is held."""
+        """A lane's blocking part, on its own thread: no lock of the tuner is held. In a
+        cluster, nothing goes out once the leases may have run out (a paused member)."""
+        if self.cluster is not None and not self.cluster.may_publish():
+            self.gains_fenced += len(messages)
+            return
         if gateway is None:
             for message in messages:
                 self.bus.publish(self.keys.gains(message["loop_id"]), orjson.dumps(message))
@@ -672,87 +590,6 @@ class Tuner:
     def superseded(self) -> int:
         """Gains messages replaced in their lane by a newer one before they went out."""
         return sum(lane.superseded for lane in list(self.lanes.values()))
-
-    def _answer(self, query: zenoh.Query) -> None:
-        key = str(query.key_expr)
-        loop_id = self.keys.loop_id(key)
-        if loop_id is not None and loop_id in self.table.slot_of:
-            after_t = _after_t(query)
-            if after_t is not None and not self._reflects(loop_id, after_t):
-                deadline = time.monotonic() + AFTER_T_WAIT_S
-                self._parked.setdefault(loop_id, []).append((after_t, deadline, query))
-                return
-            reply(query, encode(self._state(loop_id)))
-            return
-        if "*" in key:  # e.g. a reconnecting gateway asking for all its loops at once
-            asked = zenoh.KeyExpr(key)
-            for loop_id in list(self.table.slot_of):
-                state_key = self.keys.state(loop_id)
-                if asked.intersects(zenoh.KeyExpr(state_key)):
-                    query.reply(state_key, encode(self._state(loop_id)), encoding=JSON)
-            query.drop()
-            return
-        reply(query, encode(ErrorReply(loop_id=loop_id or key, error="unknown loop")), error=True)
-
-    def _reflects(self, loop_id: str, after_t: float) -> bool:
-        t = self.table.last_t[self.table.slot(loop_id)]
-        return not math.isnan(t) and t >= after_t
-
-    def _answer_parked(self) -> None:
-        """Answer the parked ``after_t`` queries whose sample came, or whose wait is over
-        (the reply's ``last_t`` then says the sample was not handled: rejected or lost)."""
-        now = time.monotonic()
-        for loop_id in list(self._parked):
-            waiting = self._parked.pop(loop_id)
-            if loop_id not in self.table.slot_of:  # deleted meanwhile
-                for _, _, query in waiting:
-                    error = ErrorReply(loop_id=loop_id, error="unknown loop")
-                    with contextlib.suppress(zenoh.ZError):  # the querier may be gone
-                        reply(query, encode(error), error=True)
-                continue
-            still = []
-            for after_t, deadline, query in waiting:
-                if now >= deadline or self._reflects(loop_id, after_t):
-                    with contextlib.suppress(zenoh.ZError):  # the querier may be gone
-                        reply(query, encode(self._state(loop_id)))
-                else:
-                    still.append((after_t, deadline, query))
-            if still:
-                self._parked[loop_id] = still
-
-    def _answer_gateway(self, query: zenoh.Query) -> None:
-        """One StateBatch with every loop registered with the gateway in the key."""
-        gateway = self.keys.gateway_id(str(query.key_expr))
-        if gateway is None:
-            error = ErrorReply(loop_id=str(query.key_expr), error="not a gateway's state key")
-            reply(query, encode(error), error=True)
-            return
-        tb = self.table
-        states = [
-            self._state(loop_id) for loop_id, s in tb.slot_of.items() if tb.gateways[s] == gateway
-        ]
-        batch = StateBatch(
-            gateway=gateway, instance_id=self.settings.instance_id, epoch=self.epoch, states=states
-        )
-        reply(query, encode(batch))
-
-    def _state(self, loop_id: str) -> StateReply:
-        tb = self.table
-        s = tb.slot(loop_id)
-        return StateReply(
-            loop_id=loop_id,
-            kp=float(tb.kp[s]),
-            ki=float(tb.ki[s]),
-            mode=tb.mode_of(s),
-            status=tb.status(s, time.time()),
-            seq=int(tb.seq[s]),
-            last_t=_finite(tb.last_t[s]),
-            instance_id=self.settings.instance_id,
-            epoch=self.epoch,
-            rl_period_s=_finite(tb.period[s]),
-            next_due_t=_finite(tb.next_due[s]),
-            gateway=tb.gateways[s],
-        )
 
     def _overload(self, item: Item, why: str) -> None:
         """A message the bus callback did not queue (a Zenoh thread: never blocks)."""
@@ -767,174 +604,3 @@ class Tuner:
         detail = f"{kind.name} message dropped unread ({why})"
         self.metrics.reject(reason, None, detail)
         self.metrics.samples_received.inc()  # after its counter, as in _handle
-
-    # -- admin operations (the REST API) ----------------------------------------------
-    def loop_ids(self) -> list[str]:
-        with self.table.lock:
-            return list(self.table.slot_of)
-
-    def _known(self, loop_id: str) -> None:
-        if loop_id not in self.table.slot_of:
-            raise UnknownLoop(loop_id)
-
-    def refresh_status_counts(self) -> None:
-        """Loops per status into the metrics (statuses change with time: done per scrape)."""
-        with self.table.lock:
-            counts = self.table.status_counts(time.time())
-        self.metrics.set_status_counts(counts)
-
-    def view(self, loop_id: str) -> LoopView:
-        with self.table.lock:
-            self._known(loop_id)
-            return self.table.view(loop_id, time.time())
-
-    def views(self, offset: int, limit: int) -> LoopsPage:
-        """A page of loops in registration order; parsed outside the table lock."""
-        with self.engine.lock:
-            total = len(self.engine)
-            raw = self.engine.raw_views(offset, limit)
-        items = [view.parse() for view in raw]
-        return LoopsPage(items=items, total=total, offset=offset, limit=limit)
-
-    def register(self, config: LoopConfig) -> LoopView:
-        wall = time.time()
-        with self.table.lock:
-            if config.id in self.table.slot_of:
-                raise Conflict(f"loop {config.id!r} already registered")
-            self._insert([config], wall)
-            return self.table.view(config.id, wall)
-
-    def register_many(self, configs: list[LoopConfig]) -> list[str]:
-        """Register several loops at once, all or none (Conflict if any id is taken)."""
-        wall = time.time()
-        ids = [c.id for c in configs]
-        if len(set(ids)) != len(ids):
-            raise Conflict("duplicate loop ids in the request")
-        with self.table.lock:
-            taken = [i for i in ids if i in self.table.slot_of]
-            if taken:
-                raise Conflict(f"loops already registered: {taken[:5]!r}")
-            self._insert(configs, wall)
-        _freeze_survivors()
-        return ids
-
-    def _insert(self, configs: list[LoopConfig], wall: float) -> None:
-        """Store and add new loops, each continuing the seq of an earlier loop of its id."""
-        last = self.store.last_seqs([c.id for c in configs])
-        seqs = [last.get(c.id, 0) for c in configs]
-        audit = [_registered(c, wall, seq) for c, seq in zip(configs, seqs, strict=True)]
-        with _taken_in_store():
-            self.store.insert_loops(configs, audit, seqs)
-        for config, seq in zip(configs, seqs, strict=True):
-            self.engine.register(config, seq=seq, wall=wall)
-        self.metrics.set_loop_counts(self.table.mode_counts())
-
-    def patch(self, loop_id: str, patch: LoopPatch, actor: str = "api") -> LoopView:
-        """ValueError if the patch makes the bounds inconsistent; ``actor`` (the REST API,
-        or ``ui:<name>`` from the console) is recorded in the audit row's detail."""
-        wall = time.time()
-        with self.table.lock:
-            self._known(loop_id)
-            s = self.table.slot(loop_id)
-            config = patch.apply(self.table.configs[loop_id])
-            gains = (float(self.table.kp[s]), float(self.table.ki[s]))
-            self.store.update_config(
-                config,
-                audit_row(
-                    loop_id, wall, None, int(self.table.seq[s]), config.mode.value, "patched",
-                    gains, gains, _with_actor(patch.model_dump_json(exclude_unset=True), actor),
-                ),
-            )  # fmt: skip
-            self.table.reconfigure(config)
-            self.metrics.set_loop_counts(self.table.mode_counts())
-            return self.table.view(loop_id, wall)
-
-    def identify(self, loop_id: str) -> LoopView:
-        """``POST /loops/{id}/identify``: identification from scratch (the identified
-        scaling is dropped; a hint-free loop stops tuning until a new model is confident).
-        StoreUnavailable while commits fail."""
-        wall = time.time()
-        with self.table.lock:
-            self._known(loop_id)
-            if self.store_failure is not None:
-                raise StoreUnavailable(self.store_failure)
-            self.engine.identify(loop_id, wall)
-            self._commit(None)  # its audit row
-            self._write_snapshot([loop_id])  # identification state is in the snapshot
-            return self.table.view(loop_id, wall)
-
-    def reset(self, loop_id: str, actor: str = "api") -> LoopView:
-        """Zero hidden state and integral; the registered gains, published unless the loop
-        is frozen (see :meth:`LoopTable.reset`). StoreUnavailable while commits fail."""
-        wall = time.time()
-        with self.table.lock:
-            self._known(loop_id)
-            if self.store_failure is not None:
-                raise StoreUnavailable(self.store_failure)
-            self._commit(self.engine.reset(loop_id, wall, actor=actor))
-            return self.table.view(loop_id, wall)
-
-    def delete(self, loop_id: str) -> None:
-        wall = time.time()
-        with self.table.lock:
-            self._known(loop_id)
-            s = self.table.slot(loop_id)
-            gains = (float(self.table.kp[s]), float(self.table.ki[s]))
-            mode = self.table.mode_of(s).value
-            self.store.delete_loop(
-                loop_id,
-                audit_row(
-                    loop_id, wall, None, int(self.table.seq[s]), mode, "deleted", gains, None
-                ),
-            )
-            self.engine.remove(loop_id)
-            self.recent.forget(loop_id)
-            self.metrics.set_loop_counts(self.table.mode_counts())
-
-    def history(self, loop_id: str, offset: int, limit: int) -> HistoryPage:
-        """Also for a deleted loop, as long as it has history."""
-        total, items = self.store.history(loop_id, offset, limit)
-        if not total and loop_id not in self.table.slot_of:
-            raise UnknownLoop(loop_id)
-        return HistoryPage(items=items, total=total, offset=offset, limit=limit)
-
-
-def _finite(x: float) -> float | None:
-    return None if math.isnan(x) else float(x)
-
-
-def _after_t(query: zenoh.Query) -> float | None:
-    """The query's ``after_t`` parameter (None: absent or not a finite number)."""
-    try:
-        raw = query.parameters.get("after_t")
-    except Exception:  # noqa: BLE001 - a malformed selector is no parameter
-        return None
-    if raw is None:
-        return None
-    try:
-        value = float(raw)
-    except ValueError:
-        return None
-    return value if math.isfinite(value) else None
-
-
-@contextlib.contextmanager
-def _taken_in_store():
-    """An id free in the table but taken in the store is a row that failed to load."""
-    try:
-        yield
-    except sqlite3.IntegrityError:
-        raise Conflict("loop id taken by a stored loop that failed to load (see the log)") from None
-
-
-def _registered(config: LoopConfig, wall: float, seq: int) -> AuditRow:
-    """The audit entry of a registration: no old gains, the registered ones as new."""
-    return audit_row(
-        config.id, wall, None, seq, config.mode.value, "registered",
-        None, (config.kp, config.ki), config.model_dump_json(),
-    )  # fmt: skip
-
-
-def _with_actor(detail: str, actor: str) -> str:
-    """A JSON object's text with the ``actor`` key added (audit details of changes)."""
-    return orjson.dumps({**orjson.loads(detail), "actor": actor}).decode()

@@ -1,0 +1,178 @@
+"""``pitune bench --instances N``: the load of ``pitune bench`` on N tuners sharing a
+PostgreSQL store (a temporary server unless ``--postgres``), then a failover.
+
+The loops are spread over ``--gateways`` gateways (at least 4 per instance: a member
+owns whole gateways, so fewer gateways than members would leave members idle). The
+measured window is :func:`service.bench.load.play`'s, with the members' metrics, CPU and
+memory summed. Then one member is SIGKILLed under the same load, and the failover time
+is the time until every loop it owned was stepped by another member (the issue's bar:
+10 s), with the checks of :mod:`service.bench.cluster` (no seq regression, every
+published message audited).
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import gc
+import os
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import httpx
+
+from service.bench.cluster import GainsLog, Load, Members, missing_audit, open_session, wait_for
+from service.bench.config import BenchConfig
+from service.bench.fleet import Fleet
+from service.bench.load import _wait_for_tuner, play
+from service.bench.pgserver import PgServer
+from service.bench.probes import scrape
+from service.wire.protocol import Keys
+
+GATEWAYS_PER_INSTANCE = 4
+
+
+class _Summed:
+    """The members as one daemon for :func:`play`: APIs to scrape and CPU summed."""
+
+    def __init__(self, members: Members) -> None:
+        self.api = [p.api for p in members.procs]
+        self._procs = [p.proc for p in members.procs]
+        self.proc = self
+
+    def cpu_seconds(self) -> float:
+        return sum(p.cpu_seconds() for p in self._procs if p.running)
+
+    def rss_mb(self) -> float:
+        """The largest member's (the per-daemon memory line applies to each)."""
+        return max((p.rss_mb() for p in self._procs if p.running), default=0.0)
+
+
+def spread(config: BenchConfig) -> BenchConfig:
+    return replace(config, gateways=max(config.gateways, GATEWAYS_PER_INSTANCE * config.instances))
+
+
+def run(config: BenchConfig, workdir: Path) -> dict:
+    """Start the store and the members, register, play, fail one over; the results."""
+    server = None if config.postgres else PgServer()
+    url = config.postgres or server.create_database()
+    extra = ("--agent-weights", config.agent_weights) if config.agent_weights else ()
+    logs = config.daemon_log or workdir  # with --instances, the members' log directory
+    logs.mkdir(parents=True, exist_ok=True)
+    members = Members(
+        config.instances, url, logs,
+        "--snapshot-interval", str(config.snapshot_interval),
+        "--inference-threads", str(config.inference_threads),
+        "--inference-workers", str(config.inference_workers),
+        "--inference-precision", config.inference_precision, *extra,
+    )  # fmt: skip
+    try:
+        members.start()
+        return _drive(config, Fleet(config), members, url)
+    finally:
+        members.stop()
+        if server is not None:
+            server.stop()
+
+
+def _drive(config: BenchConfig, fleet: Fleet, members: Members, url: str) -> dict:
+    daemon = _Summed(members)
+    memory = {"rss_idle_mb": daemon.rss_mb()}
+    started = time.perf_counter()
+    with httpx.Client(timeout=600) as client:
+        for i in range(0, fleet.n, 5000):
+            member = members.procs[(i // 5000) % len(members.procs)]
+            r = client.post(f"{member.api}/loops/bulk", json=fleet.registrations[i : i + 5000])
+            if r.status_code != 201:
+                raise RuntimeError(f"bulk registration failed: {r.status_code} {r.text[:500]}")
+            if i == 0:  # the first chunk's member claimed every gateway: let them spread
+                n = min(5000, fleet.n)
+                wait_for(lambda n=n: _balanced(members, n), 120.0, "the first loops spread")
+        memory["register_s"] = time.perf_counter() - started
+        wait_for(lambda: _balanced(members, fleet.n), 120.0, "the loops spread over the members")
+        memory[f"rss_{fleet.n}_loops_mb"] = daemon.rss_mb()
+        keys = Keys()
+        session = open_session(members.endpoints)
+        inbox: collections.deque = collections.deque()
+        try:
+            sub = session.declare_subscriber(
+                keys.gateway_gains("*"),
+                lambda s: inbox.append((time.monotonic(), s.payload.to_bytes())),
+            )
+            _wait_for_tuner(session, keys, fleet.ids[0])
+            gc.freeze()
+            try:
+                result = play(config, fleet, daemon, client, session, keys, inbox, memory)
+            finally:
+                sub.undeclare()
+            result["cluster"] = members.cluster()
+            try:
+                result["failover"] = _failover(members, fleet, session, url)
+            except Exception as exc:  # noqa: BLE001 - the window's results still count
+                keys = ("failover_s", "seq_regressions", "messages_without_audit")
+                result["failover"] = {"error": repr(exc), **dict.fromkeys(keys)}
+        finally:
+            session.close()
+    return result
+
+
+def _balanced(members: Members, n: int) -> bool:
+    with contextlib.suppress(httpx.HTTPError):
+        view = members.cluster()
+        loops = [m["loops"] for m in view["members"] if m["live"]]
+        return view["unowned_loops"] == 0 and sum(loops) == n and min(loops) > 0
+    return False
+
+
+def _loops_in_engines(members: Members, alive: list[int]) -> float:
+    """Loops in the engines of the members ``alive`` (0 while one does not answer: an
+    overloaded member answers late)."""
+    try:
+        with httpx.Client(timeout=5.0) as client:
+            metrics = scrape(client, [members.procs[i].api for i in alive])
+    except httpx.HTTPError:
+        return 0.0
+    return sum(v for k, v in metrics.items() if k.startswith("pitune_loops{"))
+
+
+def _failover(members: Members, fleet: Fleet, session, url: str) -> dict:
+    """SIGKILL the member owning the most loops, under the same load (real time); the
+    failover time is until the others have all its loops in their engines again
+    (leases taken, loops loaded from the store). A loop is stepped again when it next
+    falls due (its RL period, 27-165 s at the default ``--tau``): the tests check the
+    first step after a takeover with fast loops. Every message heard is checked."""
+    log = GainsLog(session)
+    load = Load(session, fleet.ids, interval=1.0, dt=1.0, t0=1e7).start()
+    try:
+        time.sleep(3.0)  # a few batches through, so the load is the steady one
+        view = members.cluster()
+        victim = max((m for m in view["members"] if m["live"]), key=lambda m: m["loops"])
+        index = members.ids.index(victim["instance_id"])
+        alive = [i for i in range(len(members.procs)) if i != index]
+        killed_at = time.monotonic()
+        members.procs[index].proc.kill()
+        try:
+            wait_for(
+                lambda: _loops_in_engines(members, alive) >= fleet.n,
+                60.0,
+                "the killed member's loops in the others' engines",
+                poll=0.05,
+            )
+            failover_s = time.monotonic() - killed_at
+        except TimeoutError:
+            failover_s = None
+        time.sleep(5.0)  # the moved loops' first steps, under the checks below
+    finally:
+        load.stop()
+        log.close()
+    heard = log.snapshot()
+    return {
+        "victim": victim["instance_id"],
+        "victim_loops": victim["loops"],
+        "failover_s": failover_s,
+        "seq_regressions": len(log.regressions()),
+        "messages": len(heard),
+        "messages_without_audit": len(missing_audit(url, heard)),
+        "load_average": list(os.getloadavg()),
+    }

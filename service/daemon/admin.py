@@ -1,0 +1,223 @@
+"""The tuner's admin operations, which the REST API calls: list, view, register, patch,
+reset, identify, delete loops, and read their history.
+
+:class:`LoopAdmin` is a part of :class:`~service.daemon.tuner.Tuner` (a mixin). Every
+change is committed to the store (with its audit row) before the engine's table takes
+it, under the table's lock, so the worker never sees a change the store lacks.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import gc
+import time
+
+import orjson
+
+from service.daemon.schemas import HistoryPage, LoopsPage
+from service.daemon.shards import shard_of
+from service.engine.audit import AuditRow, audit_row
+from service.engine.config import LoopConfig, LoopPatch, LoopView
+
+
+class Conflict(Exception):
+    """The loop already exists."""
+
+
+class UnknownLoop(LookupError):
+    """No loop with this id."""
+
+
+class OwnedElsewhere(LookupError):
+    """Another member of the cluster owns the loop (the API forwards it there)."""
+
+
+class StoreUnavailable(Exception):
+    """The store fails to commit: the change would be neither recorded nor published."""
+
+
+def freeze_survivors() -> None:
+    """Move the objects that survived so far out of the cyclic GC's reach.
+
+    Under a stream of 10,000 samples/s the GC runs full collections every few seconds;
+    each scans every long-lived tracked object (modules, caches the HTTP stack builds on
+    its first requests, ...): ~100 ms per collection, a stall of the sample stream. The
+    tuner freezes what exists at start-up, after a bulk registration and after every
+    periodic snapshot, so the full collections the sample stream triggers only see
+    recent objects. Frozen objects are still freed by reference counting, and a full
+    collection runs first (cheap: it scans only what is not frozen yet), so no cyclic
+    garbage is frozen.
+    """
+    gc.collect()
+    gc.freeze()
+
+
+class LoopAdmin:
+    """Admin operations on the engine's table and the store (mixed into the Tuner)."""
+
+    # -- admin operations (the REST API) ----------------------------------------------
+    def loop_ids(self) -> list[str]:
+        with self.table.lock:
+            return list(self.table.slot_of)
+
+    def _known(self, loop_id: str) -> None:
+        if loop_id not in self.table.slot_of:
+            raise UnknownLoop(loop_id)
+
+    def refresh_status_counts(self) -> None:
+        """Loops per status into the metrics (statuses change with time: done per scrape)."""
+        with self.table.lock:
+            counts = self.table.status_counts(time.time())
+        self.metrics.set_status_counts(counts)
+
+    def view(self, loop_id: str) -> LoopView:
+        with self.table.lock:
+            self._known(loop_id)
+            return self.table.view(loop_id, time.time())
+
+    def views(self, offset: int, limit: int) -> LoopsPage:
+        """A page of loops in registration order; parsed outside the table lock."""
+        with self.engine.lock:
+            total = len(self.engine)
+            raw = self.engine.raw_views(offset, limit)
+        items = [view.parse() for view in raw]
+        return LoopsPage(items=items, total=total, offset=offset, limit=limit)
+
+    def register(self, config: LoopConfig) -> LoopView:
+        """OwnedElsewhere in a cluster where another member owns the loop's shard."""
+        wall = time.time()
+        self._claim([config])
+        if self.cluster is not None and not self.cluster.owns(shard_of(config.id, config.gateway)):
+            raise OwnedElsewhere(config.id)
+        with self.table.lock:
+            if config.id in self.table.slot_of:
+                raise Conflict(f"loop {config.id!r} already registered")
+            self._insert([config], wall)
+            return self.table.view(config.id, wall)
+
+    def register_many(self, configs: list[LoopConfig]) -> list[str]:
+        """Register several loops at once, all or none (Conflict if any id is taken)."""
+        wall = time.time()
+        ids = [c.id for c in configs]
+        if len(set(ids)) != len(ids):
+            raise Conflict("duplicate loop ids in the request")
+        self._claim(configs)
+        with self.table.lock:
+            taken = [i for i in ids if i in self.table.slot_of]
+            if taken:
+                raise Conflict(f"loops already registered: {taken[:5]!r}")
+            self._insert(configs, wall)
+        freeze_survivors()
+        return ids
+
+    def _insert(self, configs: list[LoopConfig], wall: float) -> None:
+        """Store and add new loops, each continuing the seq of an earlier loop of its id.
+        In a cluster, loops of shards another member owns are only stored: their owner
+        loads them when the commit's notification reaches it."""
+        last = self.store.last_seqs([c.id for c in configs])
+        seqs = [last.get(c.id, 0) for c in configs]
+        audit = [_registered(c, wall, seq) for c, seq in zip(configs, seqs, strict=True)]
+        shards = [shard_of(c.id, c.gateway) for c in configs]
+        with _taken_in_store(self.store.integrity_errors):
+            self.store.insert_loops(configs, audit, seqs)
+        for config, seq, shard in zip(configs, seqs, shards, strict=True):
+            if self.cluster is None or self.cluster.owns(shard):
+                self.engine.register(config, seq=seq, wall=wall)
+                if self.cluster is not None:
+                    self.cluster.adopted(shard, self.cluster.held[shard], [config.id])
+        self.metrics.set_loop_counts(self.table.mode_counts())
+
+    def patch(self, loop_id: str, patch: LoopPatch, actor: str = "api") -> LoopView:
+        """ValueError if the patch makes the bounds inconsistent; ``actor`` (the REST API,
+        or ``ui:<name>`` from the console) is recorded in the audit row's detail."""
+        wall = time.time()
+        with self.table.lock:
+            self._known(loop_id)
+            s = self.table.slot(loop_id)
+            config = patch.apply(self.table.configs[loop_id])
+            gains = (float(self.table.kp[s]), float(self.table.ki[s]))
+            self.store.update_config(
+                config,
+                audit_row(
+                    loop_id, wall, None, int(self.table.seq[s]), config.mode.value, "patched",
+                    gains, gains, _with_actor(patch.model_dump_json(exclude_unset=True), actor),
+                ),
+            )  # fmt: skip
+            self.table.reconfigure(config)
+            self.metrics.set_loop_counts(self.table.mode_counts())
+            return self.table.view(loop_id, wall)
+
+    def identify(self, loop_id: str) -> LoopView:
+        """``POST /loops/{id}/identify``: identification from scratch (the identified
+        scaling is dropped; a hint-free loop stops tuning until a new model is confident).
+        StoreUnavailable while commits fail."""
+        wall = time.time()
+        with self.table.lock:
+            self._known(loop_id)
+            if self.store_failure is not None:
+                raise StoreUnavailable(self.store_failure)
+            self.engine.identify(loop_id, wall)
+            self._commit(None)  # its audit row
+            self._write_snapshot([loop_id])  # identification state is in the snapshot
+            return self.table.view(loop_id, wall)
+
+    def reset(self, loop_id: str, actor: str = "api") -> LoopView:
+        """Zero hidden state and integral; the registered gains, published unless the loop
+        is frozen (see :meth:`LoopTable.reset`). StoreUnavailable while commits fail."""
+        wall = time.time()
+        with self.table.lock:
+            self._known(loop_id)
+            if self.store_failure is not None:
+                raise StoreUnavailable(self.store_failure)
+            self._commit(self.engine.reset(loop_id, wall, actor=actor))
+            return self.table.view(loop_id, wall)
+
+    def delete(self, loop_id: str) -> None:
+        wall = time.time()
+        with self.table.lock:
+            self._known(loop_id)
+            s = self.table.slot(loop_id)
+            gains = (float(self.table.kp[s]), float(self.table.ki[s]))
+            mode = self.table.mode_of(s).value
+            self.store.delete_loop(
+                loop_id,
+                audit_row(
+                    loop_id, wall, None, int(self.table.seq[s]), mode, "deleted", gains, None
+                ),
+            )
+            self.engine.remove(loop_id)
+            self.recent.forget(loop_id)
+            self.metrics.set_loop_counts(self.table.mode_counts())
+
+    def history(self, loop_id: str, offset: int, limit: int) -> HistoryPage:
+        """Also for a deleted loop, as long as it has history."""
+        total, items = self.store.history(loop_id, offset, limit)
+        if not total and loop_id not in self.table.slot_of:
+            raise UnknownLoop(loop_id)
+        return HistoryPage(items=items, total=total, offset=offset, limit=limit)
+
+
+@contextlib.contextmanager
+def _taken_in_store(errors: tuple[type[Exception], ...]):
+    """An id free in the table but taken in the store is a row that failed to load (or,
+    in a cluster, a loop another member owns)."""
+    try:
+        yield
+    except errors:
+        raise Conflict(
+            "loop id taken in the store: by a stored loop that failed to load (see the "
+            "log), or, in a cluster, by a loop another member owns"
+        ) from None
+
+
+def _registered(config: LoopConfig, wall: float, seq: int) -> AuditRow:
+    """The audit entry of a registration: no old gains, the registered ones as new."""
+    return audit_row(
+        config.id, wall, None, seq, config.mode.value, "registered",
+        None, (config.kp, config.ki), config.model_dump_json(),
+    )  # fmt: skip
+
+
+def _with_actor(detail: str, actor: str) -> str:
+    """A JSON object's text with the ``actor`` key added (audit details of changes)."""
+    return orjson.dumps({**orjson.loads(detail), "actor": actor}).decode()

@@ -1,0 +1,410 @@
+"""Several tuners sharing one PostgreSQL store: membership, shard leases, fencing.
+
+Each member keeps a row in ``members`` (its API URL, live until ``expires``) and holds a
+lease in ``leases`` for every shard it owns (see :mod:`service.daemon.shards`). A
+member's thread, every ``lease_s / 5`` seconds (:data:`TICKS_PER_LEASE`):
+
+1. renews its member row and its leases (one transaction, the database's clock); a
+   lease it no longer finds (another member took it) is lost: its loops are dropped;
+2. reads the live members and the shards of the stored loops, and computes who wins
+   each shard (rendezvous hashing);
+3. releases the shards it holds but no longer wins (a member joined): it commits and
+   snapshots their loops, drops them, and ends their leases at once, so the winner
+   takes them on its next tick (a gap of one tick);
+4. acquires the shards it wins whose lease is free or expired: a new fencing token
+   (the store's epoch counter, so larger than every earlier token and epoch), then the
+   shards' loops are loaded from the store (gains, seq, last snapshot) into the engine;
+5. waits for ``NOTIFY pitune_loops`` (loops registered, patched or deleted through any
+   member) until the next tick, and reloads those loops it owns.
+
+Fencing: every commit carries the tokens of the shards it touches
+(:meth:`Cluster.fence`); the store refuses it unless this member still holds each lease
+unexpired (:class:`~service.daemon.store_pg.Fenced`). Publishing is allowed only while
+the leases are valid by this process's monotonic clock (:meth:`Cluster.may_publish`):
+from the start of the last successful renewal plus ``lease_s`` minus
+:data:`SAFETY_S`. A member paused past its lease (SIGSTOP, a VM freeze) finds on waking
+that it may no longer publish, its commits fail, and its next renewal finds the leases
+gone: it drops those loops and, still a member, gets shards again by the hashing.
+Gains messages carry the shard's token as their ``epoch``, so a gateway orders the new
+owner's messages after any of the old owner's.
+
+A dead member's leases expire after ``lease_s``; the others take them within a tick:
+loops move within ``lease_s + lease_s / 5`` plus the load (6 s by default).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+import time
+from typing import TYPE_CHECKING
+
+import psycopg
+
+from service.daemon import shards as sharding
+from service.daemon.store_pg import CHANNEL, Fenced, connect
+
+if TYPE_CHECKING:
+    from service.daemon.tuner import Tuner
+
+log = logging.getLogger("pitune.cluster")
+TICKS_PER_LEASE = 5
+SAFETY_S = 0.5
+"""Publishing stops this long before the leases run out by the local clock (clock rate
+differences between the hosts, the time a put takes)."""
+
+
+class Cluster:
+    """This tuner's membership of the cluster sharing its PostgreSQL store."""
+
+    def __init__(self, tuner: Tuner, url: str) -> None:
+        settings = tuner.settings
+        self.tuner = tuner
+        self.url = url
+        self.member = settings.instance_id
+        self.api_url = settings.cluster_url or f"http://{settings.api_host}:{settings.api_port}"
+        self.lease_s = settings.cluster_lease_s
+        self.tick_s = self.lease_s / TICKS_PER_LEASE
+        self._lock = threading.Lock()
+        self._leasing = threading.Lock()
+        """Serialises the lease writes (renewals, releases, acquisitions): a renewal must
+        not extend a lease released meanwhile. Loading loops happens outside it."""
+        self.held: dict[str, int] = {}
+        """Shard -> lease token, of the shards whose loops are in the engine."""
+        self.shard_of: dict[str, str] = {}
+        """Loop id -> shard, of the loops in the engine."""
+        self.valid_until = 0.0
+        """Monotonic time until which the held leases are valid (publishing allowed)."""
+        self.members: list[str] = []
+        self.moves = 0
+        """Shards acquired since start (after a failover or a rebalance)."""
+        self._stop = threading.Event()
+        self._conn: psycopg.Connection | None = None
+        self._beat_conn: psycopg.Connection | None = None
+        self._threads: list[threading.Thread] = []
+        self._lost: set[str] = set()
+        """Shards the renewal found taken, for the tick to drop their loops."""
+        self.ready = threading.Event()
+        """Set after the first tick (this member holds what it wins, as far as free)."""
+
+    # -- lifecycle --------------------------------------------------------------------
+    def start(self) -> None:
+        """Join, then two threads: the renewals (never held up by loading loops, which
+        can take seconds for large shards) and the ticks (everything else)."""
+        self._conn = connect(self.url)
+        self._conn.execute(f"LISTEN {CHANNEL}")
+        self._beat_conn = connect(self.url)
+        self._join()
+        self._threads = [
+            threading.Thread(target=target, name=name, daemon=True)
+            for target, name in ((self._beat, "pitune-lease"), (self._run, "pitune-cluster"))
+        ]
+        for thread in self._threads:
+            thread.start()
+
+    def halt(self) -> None:
+        """Stop the threads (no more acquisitions, renewals or reloads)."""
+        self._stop.set()
+        for thread in self._threads:
+            thread.join(timeout=10.0)
+
+    def leave(self) -> None:
+        """Release every lease at once (the others take the loops on their next tick)
+        and delete the member row."""
+        self.halt()
+        with contextlib.suppress(psycopg.Error), connect(self.url) as conn, conn.transaction():
+            conn.execute(
+                "UPDATE leases SET expires = clock_timestamp() - interval '1 second' "
+                "WHERE owner = %s",
+                (self.member,),
+            )
+            conn.execute("DELETE FROM members WHERE instance_id = %s", (self.member,))
+        for conn in (self._conn, self._beat_conn):
+            if conn is not None:
+                conn.close()
+        with self._lock:
+            self.held.clear()
+            self.valid_until = 0.0
+
+    def _join(self) -> None:
+        self._beat_conn.execute(
+            "INSERT INTO members (instance_id, api_url, started, expires) VALUES "
+            "(%s, %s, %s, clock_timestamp() + make_interval(secs => %s)) "
+            "ON CONFLICT (instance_id) DO UPDATE SET api_url = excluded.api_url, "
+            "started = excluded.started, expires = excluded.expires",
+            (self.member, self.api_url, time.time(), self.lease_s),
+        )
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            started = time.monotonic()
+            try:
+                self.tick()
+            except Exception:  # the database unreachable: retried next tick
+                log.exception("cluster tick failed; retrying")
+                self._reconnect()
+            finally:
+                self.ready.set()
+            self._wait_notifies(started + self.tick_s)
+
+    def _reconnect(self) -> None:
+        with contextlib.suppress(psycopg.Error):
+            if self._conn.closed or self._conn.broken:
+                self._conn = connect(self.url)
+                self._conn.execute(f"LISTEN {CHANNEL}")
+
+    def _beat(self) -> None:
+        """Renew the member row and the leases every tick, whatever else is going on."""
+        while not self._stop.is_set():
+            started = time.monotonic()
+            try:
+                lost = self._renew(started)
+                if lost:
+                    with self._lock:
+                        self._lost |= lost
+            except Exception:  # the database unreachable: the leases run out meanwhile
+                log.exception("lease renewal failed; retrying")
+                with contextlib.suppress(psycopg.Error):
+                    if self._beat_conn.closed or self._beat_conn.broken:
+                        self._beat_conn = connect(self.url)
+            self._stop.wait(max(0.0, started + self.tick_s - time.monotonic()))
+
+    # -- one tick ---------------------------------------------------------------------
+    def tick(self) -> None:
+        with self._lock:
+            lost, self._lost = self._lost, set()
+        if lost:
+            log.warning("leases lost (taken by another member): %s", ", ".join(sorted(lost)))
+            self.tuner.drop_shards(lost, commit=False)
+        live, stored = self._survey()
+        self.members = live
+        wins = {s for s, m in sharding.assign(stored, live).items() if m == self.member}
+        with self._lock:
+            held = set(self.held)
+        release = held - wins
+        if release:
+            self._release(release)
+        self._acquire(wins - set(self.held))
+
+    def _renew(self, started: float) -> set[str]:
+        with self._leasing:
+            return self._renew_held(started)
+
+    def _renew_held(self, started: float) -> set[str]:
+        with self._lock:
+            held = dict(self.held)
+        conn = self._beat_conn
+        with conn.transaction():
+            renewed = conn.execute(
+                "UPDATE members SET expires = clock_timestamp() + make_interval(secs => %s) "
+                "WHERE instance_id = %s",
+                (self.lease_s, self.member),
+            ).rowcount
+            kept = {
+                r[0]
+                for r in conn.execute(
+                    "UPDATE leases l SET expires = clock_timestamp() + make_interval(secs => %s) "
+                    "FROM unnest(%s::text[], %s::int8[]) AS h(shard, token) "
+                    "WHERE l.shard = h.shard AND l.token = h.token AND l.owner = %s "
+                    "RETURNING l.shard",
+                    (self.lease_s, list(held), list(held.values()), self.member),
+                )
+            }
+        if not renewed:  # our row was deleted (we were taken for dead): join again
+            self._join()
+        lost = set(held) - kept
+        with self._lock:
+            for shard in lost:
+                if self.held.get(shard) == held[shard]:  # not re-acquired meanwhile
+                    self.held.pop(shard)
+            self.valid_until = started + self.lease_s - SAFETY_S
+        return lost
+
+    def _survey(self) -> tuple[list[str], list[str]]:
+        """(live members, shards with loops)."""
+        live = [
+            r[0]
+            for r in self._conn.execute(
+                "SELECT instance_id FROM members WHERE expires > clock_timestamp()"
+            )
+        ]
+        stored = [
+            r[0] for r in self._conn.execute("SELECT DISTINCT shard FROM loops")
+        ]  # fmt: skip
+        return live, stored
+
+    def _release(self, shards: set[str]) -> None:
+        """Hand shards to the member that now wins them: commit and snapshot their loops
+        while the leases are ours, drop them, end the leases."""
+        self.tuner.drop_shards(shards, commit=True)
+        with self._leasing:
+            with self._lock:
+                tokens = {s: self.held.pop(s) for s in shards if s in self.held}
+            self._conn.execute(
+                "UPDATE leases l SET expires = clock_timestamp() - interval '1 second' "
+                "FROM unnest(%s::text[], %s::int8[]) AS h(shard, token) "
+                "WHERE l.shard = h.shard AND l.token = h.token AND l.owner = %s",
+                (list(tokens), list(tokens.values()), self.member),
+            )
+        log.info("released %d shards to other members", len(tokens))
+
+    def claim(self, shards: set[str]) -> None:
+        """Acquire now those of ``shards`` no member holds (a registration through this
+        member of loops in a new shard); the hashing moves them later if another member
+        wins them."""
+        with connect(self.url) as conn:
+            self._acquire(shards - set(self.held), conn)
+
+    def _acquire(self, shards: set[str], conn: psycopg.Connection | None = None) -> None:
+        if not shards:
+            return
+        token = self.tuner.store.next_epoch(time.time())
+        with self._leasing:
+            taken = self._take(shards, token, conn or self._conn)
+        if not taken:
+            return
+        self.tuner.adopt_shards(taken, token)
+        self.moves += len(taken)
+        log.info("acquired %d shards (token %d)", len(taken), token)
+
+    def _take(self, shards: set[str], token: int, conn: psycopg.Connection) -> list[str]:
+        """The leases of those ``shards`` that are free or expired, now this member's
+        (held, so renewed, from here on; their loops are loaded next)."""
+        taken = [
+            r[0]
+            for r in conn.execute(
+                "INSERT INTO leases (shard, owner, token, expires) "
+                "SELECT s, %s, %s, clock_timestamp() + make_interval(secs => %s) "
+                "FROM unnest(%s::text[]) AS s "
+                "ON CONFLICT (shard) DO UPDATE SET owner = excluded.owner, "
+                "token = excluded.token, expires = excluded.expires "
+                "WHERE leases.expires < clock_timestamp() RETURNING shard",
+                (self.member, token, self.lease_s, sorted(shards)),
+            )
+        ]
+        with self._lock:
+            for shard in taken:
+                self.held[shard] = token
+        return taken
+
+    def _wait_notifies(self, until: float) -> None:
+        """Until the next tick: reload the loops other members changed."""
+        while not self._stop.is_set():
+            left = until - time.monotonic()
+            if left <= 0:
+                return
+            changed: set[str] = set()
+            try:
+                for note in self._conn.notifies(timeout=left, stop_after=1):
+                    changed.update(note.payload.split(","))
+                # take the rest queued meanwhile without waiting
+                for note in self._conn.notifies(timeout=0.0):
+                    changed.update(note.payload.split(","))
+            except psycopg.Error:
+                self._stop.wait(max(0.0, until - time.monotonic()))
+                return
+            if changed:
+                try:
+                    self.tuner.reload_loops(sorted(changed))
+                except Exception:
+                    log.exception("reloading %d changed loops failed", len(changed))
+
+    # -- for the tuner ----------------------------------------------------------------
+    def owns(self, shard: str) -> bool:
+        return shard in self.held
+
+    def lose(self, shards: set[str]) -> None:
+        """Leases the store says are no longer this member's."""
+        with self._lock:
+            for shard in shards:
+                self.held.pop(shard, None)
+
+    def adopted(self, shard: str, token: int, loop_ids: list[str]) -> None:
+        with self._lock:
+            self.held[shard] = token
+            for loop_id in loop_ids:
+                self.shard_of[loop_id] = shard
+
+    def forget(self, loop_ids: list[str]) -> None:
+        with self._lock:
+            for loop_id in loop_ids:
+                self.shard_of.pop(loop_id, None)
+
+    def fence(self, loop_ids) -> tuple[str, dict[str, int]]:
+        """(member, shard -> token) for a commit touching ``loop_ids``: Fenced if one of
+        them is in no shard this member holds."""
+        with self._lock:
+            tokens, missing = {}, set()
+            for loop_id in loop_ids:
+                shard = self.shard_of.get(loop_id)
+                if shard is None or shard not in self.held:
+                    missing.add(shard or f"loop:{loop_id}")
+                else:
+                    tokens[shard] = self.held[shard]
+        if missing:
+            raise Fenced(sorted(missing))
+        return self.member, tokens
+
+    def token(self, loop_id: str) -> int | None:
+        """The lease token (the epoch of messages) of a loop this member owns."""
+        shard = self.shard_of.get(loop_id)
+        return None if shard is None else self.held.get(shard)
+
+    def may_publish(self) -> bool:
+        """The leases are valid by the local clock (see the module doc)."""
+        return time.monotonic() < self.valid_until
+
+    def view(self) -> dict:
+        """``GET /cluster``: members with their URLs and loop counts (from the store)."""
+        with connect(self.url) as conn:
+            rows = conn.execute(
+                "SELECT m.instance_id, m.api_url, m.expires > clock_timestamp(), "
+                "(SELECT count(*) FROM leases l JOIN loops p ON p.shard = l.shard "
+                " WHERE l.owner = m.instance_id AND l.expires > clock_timestamp()), "
+                "(SELECT count(*) FROM leases l WHERE l.owner = m.instance_id "
+                " AND l.expires > clock_timestamp()) "
+                "FROM members m ORDER BY m.instance_id"
+            ).fetchall()
+            (unowned,) = conn.execute(
+                "SELECT count(*) FROM loops p WHERE NOT EXISTS (SELECT 1 FROM leases l "
+                "WHERE l.shard = p.shard AND l.expires > clock_timestamp())"
+            ).fetchone()
+        return {
+            "self": self.member,
+            "lease_s": self.lease_s,
+            "members": [
+                {"instance_id": i, "api_url": u, "live": live, "loops": n, "shards": s}
+                for i, u, live, n, s in rows
+            ],
+            "unowned_loops": unowned,
+        }
+
+    def shard_owner_url(self, shard: str) -> str | None:
+        """The API URL of the live member holding ``shard``'s lease (None: nobody)."""
+        with connect(self.url) as conn:
+            row = conn.execute(
+                "SELECT m.api_url FROM leases l JOIN members m ON m.instance_id = l.owner "
+                "WHERE l.shard = %s AND l.expires > clock_timestamp()",
+                (shard,),
+            ).fetchone()
+        return None if row is None else row[0]
+
+    def stored(self, loop_id: str) -> bool:
+        """Whether the loop is in the store (registered through any member)."""
+        with connect(self.url) as conn:
+            return (
+                conn.execute("SELECT 1 FROM loops WHERE id = %s", (loop_id,)).fetchone() is not None
+            )
+
+    def owner_url(self, loop_id: str) -> str | None:
+        """The API URL of the member owning a stored loop (None: not stored, or no live
+        owner right now)."""
+        with connect(self.url) as conn:
+            row = conn.execute(
+                "SELECT m.api_url FROM loops p JOIN leases l ON l.shard = p.shard "
+                "JOIN members m ON m.instance_id = l.owner "
+                "WHERE p.id = %s AND l.expires > clock_timestamp()",
+                (loop_id,),
+            ).fetchone()
+        return None if row is None else row[0]

@@ -1,0 +1,176 @@
+"""The tuner's side of a cluster (a PostgreSQL store shared by several tuners): which
+loops are in this tuner's engine, and keeping everything else out.
+
+:class:`Ownership` is a part of :class:`~service.daemon.tuner.Tuner` (a mixin). Without
+a cluster (an SQLite store) every method is a no-op or lets everything through, so the
+single tuner behaves as before. With one (see :mod:`service.daemon.cluster`):
+
+- the cluster's thread calls :meth:`adopt_shards` when it acquires shards (their loops
+  are loaded from the store: gains, seq, last snapshot), :meth:`drop_shards` when it
+  releases or loses them, and :meth:`reload_loops` for loops changed through another
+  member;
+- every commit and snapshot carries the lease tokens of its loops' shards
+  (:meth:`_fence`); a commit the store refuses (:class:`Fenced`: a lease lost) drops the
+  lost shards' loops and commits the rest;
+- gains go out only while the leases are valid by the local clock, with the shard's
+  lease token as ``epoch`` (:meth:`_publishable`);
+- samples and state queries of loops another member owns are left to it: not counted
+  as rejected, not answered (:meth:`_foreign`).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+
+from service.daemon.shards import shard_of
+from service.daemon.store_pg import Fenced
+from service.wire.decode import Decoded
+
+log = logging.getLogger("pitune.tuner")
+ADOPT_CHUNK = 2000
+"""Loops restored per hold of the table's lock when shards are adopted (~10 ms)."""
+
+
+class Ownership:
+    cluster = None
+    foreign_samples = 0
+    """Samples of loops another member owns, left to it."""
+    gains_fenced = 0
+    """Committed gains messages not published: the leases may have run out."""
+
+    # -- called by the cluster's thread -------------------------------------------------
+    def adopt_shards(self, shards: list[str], token: int) -> None:
+        """Load the shards' loops from the store into the engine (they resume from their
+        committed gains and seq and their last snapshot)."""
+        stored = self.store.load(shards)
+        wall = time.time()
+        for i in range(0, len(stored), ADOPT_CHUNK):  # the worker runs between chunks
+            with self.table.lock:
+                for loop in stored[i : i + ADOPT_CHUNK]:
+                    if loop.config.id not in self.table.slot_of:
+                        self._restore(loop, wall)
+                    shard = shard_of(loop.config.id, loop.config.gateway)
+                    self.cluster.adopted(shard, token, [loop.config.id])
+        with self.table.lock:
+            self.metrics.set_loop_counts(self.table.mode_counts())
+        self.metrics.loops_unloadable.set(len(self.store.unloadable))
+
+    def drop_shards(self, shards: set[str], *, commit: bool) -> None:
+        """Take the shards' loops out of the engine. ``commit``: their pending changes
+        are committed and their state snapshotted first (a release, leases still held);
+        else (leases lost) the pending changes are discarded: the new owner continues
+        from what was committed."""
+        with self.table.lock:
+            ids = [i for i, s in list(self.cluster.shard_of.items()) if s in shards]
+            if commit:
+                self._commit(None)
+                self._write_snapshot(ids)
+            else:
+                gone = set(ids)
+                gains, audit = self.table.drain_changes()
+                self.table.requeue(
+                    [g for g in gains if g[3] not in gone], [a for a in audit if a[0] not in gone]
+                )
+            for loop_id in ids:
+                if loop_id in self.table.slot_of:
+                    self.engine.remove(loop_id)
+                    self.recent.forget(loop_id)
+            self.cluster.forget(ids)
+            self.metrics.set_loop_counts(self.table.mode_counts())
+
+    def reload_loops(self, loop_ids: list[str]) -> None:
+        """Loops registered, patched or deleted through another member: each as stored
+        now, in the engine if this member owns its shard, out of it otherwise."""
+        stored = {s.config.id: s for s in self.store.load(ids=loop_ids)}
+        wall = time.time()
+        leaving: list[str] = []
+        with self.table.lock:
+            for loop_id in loop_ids:
+                loop = stored.get(loop_id)
+                shard = None if loop is None else shard_of(loop_id, loop.config.gateway)
+                local = loop_id in self.table.slot_of
+                if shard is None or not self.cluster.owns(shard):
+                    if local:
+                        leaving.append(loop_id)
+                    continue
+                if not local:
+                    self._restore(loop, wall)
+                elif self.table.configs[loop_id] != loop.config:
+                    self.table.reconfigure(loop.config)
+                self.cluster.adopted(shard, self.cluster.held[shard], [loop_id])
+            for loop_id in leaving:  # deleted, or moved to another gateway's shard
+                self.engine.remove(loop_id)
+                self.recent.forget(loop_id)
+            self.cluster.forget(leaving)
+            self.metrics.set_loop_counts(self.table.mode_counts())
+
+    def _restore(self, stored, wall: float) -> None:
+        self.engine.restore(
+            stored.config,
+            kp=stored.kp,
+            ki=stored.ki,
+            seq=stored.seq,
+            hidden=stored.hidden,
+            runtime=stored.runtime,
+            wall=wall,
+        )
+
+    def _claim(self, configs) -> None:
+        """Before registering loops: take the leases of their shards no member holds
+        (called without the table's lock: the cluster's thread takes it after its own)."""
+        if self.cluster is not None:
+            self.cluster.claim({shard_of(c.id, c.gateway) for c in configs})
+
+    # -- used by the worker -------------------------------------------------------------
+    def _fence(self, loop_ids) -> tuple[str, dict[str, int]]:
+        """The lease tokens a write of these loops needs (in a cluster)."""
+        return self.cluster.fence(loop_ids)
+
+    def _fenced(self, exc: Fenced, gains: list, audit: list) -> None:
+        """A commit refused for lost leases: drop the lost shards' loops, put the other
+        loops' changes back to be committed."""
+        log.warning("commit fenced: %s; dropping those loops", exc)
+        lost = {s for s in exc.shards if not s.startswith("loop:")}
+        self.cluster.lose(lost)
+        ids = set(self.cluster.shard_of)
+        self.table.requeue([g for g in gains if g[3] in ids], [a for a in audit if a[0] in ids])
+        self.drop_shards(lost, commit=False)
+
+    def _publishable(self, messages: list[dict], gateways: list) -> list[tuple[dict, object]]:
+        """(message, gateway) of the messages this member may publish, with their epoch."""
+        if self.cluster is None:
+            for message in messages:
+                message["epoch"] = self.epoch
+            return list(zip(messages, gateways, strict=True))
+        out = []
+        for message, gateway in zip(messages, gateways, strict=True):
+            token = self.cluster.token(message["loop_id"])
+            if token is not None:
+                message["epoch"] = token
+                out.append((message, gateway))
+        return out
+
+    def _foreign(self, loop_id: str | None) -> bool:
+        """A loop another member answers for: owned there, or (unknown) in a bucket
+        another member owns. False without a cluster."""
+        if self.cluster is None or loop_id is None or loop_id in self.table.slot_of:
+            return False
+        return not self.cluster.owns(shard_of(loop_id, None))
+
+    def _own_rows(self, decoded: Decoded) -> Decoded:
+        """The decoded samples without those of loops another member owns."""
+        if self.cluster is None:
+            return decoded
+        rows = decoded.rows
+        slot_of = self.table.slot_of
+        foreign = np.fromiter(
+            (i not in slot_of and self._foreign(i) for i in rows.loop_ids), bool, len(rows)
+        )
+        n = int(foreign.sum())
+        if not n:
+            return decoded
+        self.foreign_samples += n
+        return Decoded(rows.take(~foreign), decoded.rejected, decoded.received - n)

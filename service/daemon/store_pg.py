@@ -1,0 +1,222 @@
+"""The PostgreSQL store (``--db postgresql://...``): the tables and guarantees of the
+SQLite store, shared by several tuners.
+
+:class:`PgStore` runs :class:`~service.daemon.store.Store`'s queries through an
+adapter that translates SQLite's ``?`` placeholders, and differs where a server
+differs from a file:
+
+- No journal: a step batch's gains and audit rows are written to the ``loops`` and
+  ``audit`` tables in the commit before publishing (one ``UPDATE ... FROM unnest`` and
+  one ``COPY``: ~30 ms for 10,000 loops), so another tuner taking a loop over reads
+  them at once. Commits are durable (``synchronous_commit`` on) except snapshots.
+- Fencing: a member of a cluster passes the lease tokens of the shards a commit
+  touches; the commit locks those lease rows (``FOR SHARE``) and fails with
+  :class:`Fenced` unless each is still this member's, with that token, unexpired by the
+  database's clock. A takeover updates the lease row, so it waits for a commit in
+  flight, and a commit after it fails: a tuner that lost a lease (paused, partitioned)
+  can neither commit nor, since it publishes only what it committed, publish.
+- Changes of loops (registered, patched, deleted) are announced with
+  ``NOTIFY pitune_loops`` in their transaction, so the owning member picks them up
+  when they commit (see :mod:`service.daemon.cluster`).
+- A lost connection (server restart, failover of the database) is reopened at the
+  next transaction; the failed one raises, and the tuner retries it like any failing
+  commit.
+"""
+
+from __future__ import annotations
+
+import collections
+import threading
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
+from urllib.parse import urlsplit, urlunsplit
+
+import psycopg
+
+from service.daemon import migrations
+from service.daemon.store import JournalEntry, Store
+from service.engine.audit import AUDIT_COLUMNS, AuditRow
+from service.engine.config import LoopConfig
+
+CHANNEL = "pitune_loops"
+"""The NOTIFY channel of loop changes; the payload is comma-separated loop ids."""
+NOTIFY_BYTES = 7000
+"""Most payload bytes per NOTIFY (PostgreSQL's limit is 8,000)."""
+CONNECT_TIMEOUT_S = 5
+
+
+class Fenced(Exception):
+    """A commit touched shards whose lease this member no longer holds."""
+
+    def __init__(self, shards: list[str]) -> None:
+        super().__init__(f"lease lost for {len(shards)} shards: {', '.join(shards[:5])}")
+        self.shards = shards
+
+
+def is_url(location: object) -> bool:
+    return isinstance(location, str) and location.startswith(("postgresql://", "postgres://"))
+
+
+def redacted(url: str) -> str:
+    """The URL without its password (for logs and messages)."""
+    parts = urlsplit(url)
+    if parts.password is None:
+        return url
+    netloc = parts.netloc.replace(f":{parts.password}@", ":***@", 1)
+    return urlunsplit(parts._replace(netloc=netloc))
+
+
+def connect(url: str) -> psycopg.Connection:
+    return psycopg.connect(url, autocommit=True, connect_timeout=CONNECT_TIMEOUT_S)
+
+
+class Adapter:
+    """A psycopg connection with sqlite3's ``execute``/``executemany`` (``?`` placeholders)."""
+
+    def __init__(self, conn: psycopg.Connection) -> None:
+        self.conn = conn
+
+    def execute(self, sql: str, params: Iterable = ()) -> psycopg.Cursor:
+        return self.conn.execute(sql.replace("?", "%s"), tuple(params))
+
+    def executemany(self, sql: str, rows: Iterable) -> psycopg.Cursor:
+        cur = self.conn.cursor()
+        rows = list(rows)
+        if rows:
+            cur.executemany(sql.replace("?", "%s"), rows)
+        return cur
+
+
+class PgStore(Store):
+    """A PostgreSQL connection shared by the worker and the API threads (one lock)."""
+
+    dialect = "postgresql"
+    ORDER = "l.ord"
+    integrity_errors = (psycopg.errors.IntegrityError,)
+
+    def __init__(self, url: str) -> None:
+        self.url = url
+        self.location = redacted(url)
+        self.path = None
+        self._lock = threading.RLock()
+        self._adapter = Adapter(connect(url))
+        self.migrated_from = migrations.migrate("postgresql", self._db.execute, self.transaction)
+        self._journal: collections.deque[JournalEntry] = collections.deque()  # stays empty
+        self.unloadable: list[str] = []
+
+    @property
+    def _db(self) -> Adapter:
+        """The connection, reopened if it was lost (the statement that found it lost
+        failed; the next one runs on a new connection)."""
+        conn = self._adapter.conn
+        if conn.closed or conn.broken:
+            self._adapter = Adapter(connect(self.url))
+        return self._adapter
+
+    def close(self) -> None:
+        with self._lock:
+            self._adapter.conn.close()
+
+    @contextmanager
+    def transaction(self, durable: bool = True) -> Iterator[Adapter]:
+        with self._lock, self._db.conn.transaction():
+            if not durable:
+                self._db.execute("SET LOCAL synchronous_commit = off")
+            yield self._db
+
+    def next_epoch(self, wall: float) -> int:
+        """As :meth:`Store.next_epoch`, atomic between members (one row lock)."""
+        with self.transaction() as db:
+            (value,) = db.execute(
+                "INSERT INTO meta (key, value) VALUES ('epoch', ?) ON CONFLICT (key) DO UPDATE "
+                "SET value = GREATEST(meta.value::bigint + 1, ?)::text RETURNING value",
+                (str(int(wall * 1000)), int(wall * 1000)),
+            ).fetchone()
+        return int(value)
+
+    # -- writes -------------------------------------------------------------------------
+    def insert_loops(
+        self, configs: list[LoopConfig], audit: list[AuditRow], seqs: list[int]
+    ) -> None:
+        with self._notifying([c.id for c in configs]):
+            super().insert_loops(configs, audit, seqs)
+
+    def update_config(self, config: LoopConfig, audit: AuditRow) -> None:
+        with self._notifying([config.id]):
+            super().update_config(config, audit)
+
+    def delete_loop(self, loop_id: str, audit: AuditRow) -> None:
+        with self._notifying([loop_id]):
+            super().delete_loop(loop_id, audit)
+
+    @contextmanager
+    def _notifying(self, loop_ids: list[str]) -> Iterator[None]:
+        """One transaction around the write and its NOTIFY (sent when it commits)."""
+        with self.transaction() as db:
+            yield
+            chunk: list[str] = []
+            size = 0
+            for loop_id in loop_ids:
+                if size + len(loop_id) + 1 > NOTIFY_BYTES:
+                    db.execute("SELECT pg_notify(?, ?)", (CHANNEL, ",".join(chunk)))
+                    chunk, size = [], 0
+                chunk.append(loop_id)
+                size += len(loop_id) + 1
+            if chunk:
+                db.execute("SELECT pg_notify(?, ?)", (CHANNEL, ",".join(chunk)))
+
+    def record_gains(
+        self,
+        gains: list[tuple[float, float, int, str]],
+        audit: list,
+        fence: tuple[str, dict[str, int]] | None = None,
+    ) -> None:
+        """New (kp, ki, seq, id) of loops and their audit rows, written to the tables in
+        one durable commit; ``fence`` (member id, shard -> lease token): :class:`Fenced`
+        (nothing written) unless this member holds every one of those leases."""
+        with self.transaction() as db:
+            if fence is not None:
+                self._check_fence(db, *fence)
+            if gains:
+                kp, ki, seq, ids = (list(c) for c in zip(*gains, strict=True))
+                db.conn.execute(
+                    "UPDATE loops l SET kp = u.kp, ki = u.ki, seq = u.seq FROM "
+                    "unnest(%s::float8[], %s::float8[], %s::int8[], %s::text[]) "
+                    "AS u(kp, ki, seq, id) WHERE l.id = u.id",
+                    ([float(x) for x in kp], [float(x) for x in ki], [int(x) for x in seq], ids),
+                )
+            if audit:
+                self._audit(db, audit)
+
+    def snapshot(
+        self,
+        rows: Iterable[tuple[str, bytes, str]],
+        fence: tuple[str, dict[str, int]] | None = None,
+    ) -> None:
+        with self.transaction(durable=False) as db:
+            if fence is not None:
+                self._check_fence(db, *fence)
+            super().snapshot(rows)
+
+    @staticmethod
+    def _audit(db: Adapter, rows: list[AuditRow]) -> None:
+        if not rows:
+            return
+        with db.conn.cursor().copy(f"COPY audit ({AUDIT_COLUMNS}) FROM STDIN") as copy:
+            for row in rows:
+                copy.write_row(row)
+
+    @staticmethod
+    def _check_fence(db: Adapter, member: str, tokens: dict[str, int]) -> None:
+        if not tokens:
+            return
+        shards = list(tokens)
+        held = db.conn.execute(
+            "SELECT l.shard FROM leases l JOIN unnest(%s::text[], %s::int8[]) AS f(shard, token) "
+            "ON l.shard = f.shard AND l.token = f.token "
+            "WHERE l.owner = %s AND l.expires > clock_timestamp() FOR SHARE OF l",
+            (shards, [tokens[s] for s in shards], member),
+        ).fetchall()
+        if len(held) != len(shards):
+            found = {r[0] for r in held}
+            raise Fenced([s for s in shards if s not in found])
