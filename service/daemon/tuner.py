@@ -58,9 +58,12 @@ from service.daemon.recent import Recent
 from service.daemon.schemas import HistoryPage, LoopsPage
 from service.daemon.settings import Settings
 from service.daemon.store import Store
+from service.daemon.verdicts import SCAN, annotate
+from service.engine import views
 from service.engine.audit import AuditRow, audit_row
 from service.engine.config import LoopConfig, LoopPatch, LoopView
 from service.engine.engine import TuningEngine
+from service.engine.figures import Performance
 from service.engine.updates import StepResult
 from service.wire.decode import Rejection, decode_batch, decode_singles
 from service.wire.protocol import (
@@ -595,15 +598,27 @@ class Tuner:
             if row[5] in IDENTIFICATION_OUTCOMES:  # counted, and its state saved promptly
                 self.metrics.identification.labels(row[5]).inc()
                 self._snapshot_todo.append(row[0])
+        dirty = self.table.drain_verify_dirty()
         if gains or audit:
             try:
                 self.store.record_gains(gains, audit)
             except Exception as exc:  # sqlite3.Error, OSError, MemoryError: all the same
                 self.table.requeue(gains, audit)
+                self.table.requeue_verify_dirty(dirty)
                 self._store_failed(exc)
                 return
             # INFO per gain change / adoption, rate-limited (the API logs resets with their caller)
             self.metrics.events.audit(row for row in audit if row[5] != "reset")
+            self.metrics.verdict(audit)
+        if dirty:
+            # last-good gains, verdicts and proposals on disk before what follows from
+            # them goes out: a SIGKILL after this keeps them (they resume on restart)
+            try:
+                self.store.snapshot(self.table.snapshot(dirty))
+            except Exception as exc:  # noqa: BLE001 - as above
+                self.table.requeue_verify_dirty(dirty)
+                self._store_failed(exc)
+                return
         if self._store_failing_since is not None:
             log.warning("store commits work again; publishing %d held steps", len(self._held))
             self._store_failing_since = None
@@ -781,7 +796,9 @@ class Tuner:
         """Loops per status into the metrics (statuses change with time: done per scrape)."""
         with self.table.lock:
             counts = self.table.status_counts(time.time())
+            monitor = views.monitor_summary(self.table)
         self.metrics.set_status_counts(counts)
+        self.metrics.set_monitor(*monitor)
 
     def view(self, loop_id: str) -> LoopView:
         with self.table.lock:
@@ -892,11 +909,54 @@ class Tuner:
             self.metrics.set_loop_counts(self.table.mode_counts())
 
     def history(self, loop_id: str, offset: int, limit: int) -> HistoryPage:
-        """Also for a deleted loop, as long as it has history."""
-        total, items = self.store.history(loop_id, offset, limit)
-        if not total and loop_id not in self.table.slot_of:
+        """Also for a deleted loop, as long as it has history; each change with its
+        verdict (:mod:`service.daemon.verdicts`)."""
+        with self.table.lock:
+            s = self.table.slot_of.get(loop_id)
+            judged = None if s is None else int(self.table.v_seq[s])
+        if offset + limit <= SCAN:  # the newer rows hold the verdicts of the page's
+            total, items = self.store.history(loop_id, 0, offset + limit)
+            annotate(items, judged)
+            items = items[offset:]
+        else:
+            total, items = self.store.history(loop_id, offset, limit)
+            annotate(items, judged)
+        if not total and s is None:
             raise UnknownLoop(loop_id)
         return HistoryPage(items=items, total=total, offset=offset, limit=limit)
+
+    def performance(self, loop_id: str) -> Performance:
+        with self.table.lock:
+            self._known(loop_id)
+            return self.engine.performance(loop_id)
+
+    def rollback(self, loop_id: str, actor: str = "api") -> LoopView:
+        """Restore the last-good gains now (auto: published; advisory: proposed).
+        Conflict when there is nothing to restore or the mode publishes nothing."""
+        return self._decide(loop_id, lambda wall: self.engine.rollback(loop_id, wall, actor))
+
+    def accept(self, loop_id: str, seq: int, actor: str = "api") -> LoopView:
+        """Accept an advisory loop's pending proposal ``seq``: published as an ``auto``
+        message for the gateway to apply. Conflict if ``seq`` is not the pending one."""
+        return self._decide(loop_id, lambda wall: self.engine.accept(loop_id, seq, wall, actor))
+
+    def reject(self, loop_id: str, seq: int, actor: str = "api") -> LoopView:
+        """Reject an advisory loop's pending proposal ``seq`` (recorded, nothing sent)."""
+        return self._decide(loop_id, lambda wall: self.engine.reject(loop_id, seq, wall, actor))
+
+    def _decide(self, loop_id: str, decide: Callable[[float], StepResult | None]) -> LoopView:
+        """An operator's decision: committed (and snapshotted) before it is published."""
+        wall = time.time()
+        with self.table.lock:
+            self._known(loop_id)
+            if self.store_failure is not None:
+                raise StoreUnavailable(self.store_failure)
+            try:
+                result = decide(wall)
+            except ValueError as exc:
+                raise Conflict(str(exc)) from None
+            self._commit(result)
+            return self.table.view(loop_id, wall)
 
 
 def _finite(x: float) -> float | None:

