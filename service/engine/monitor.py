@@ -42,6 +42,10 @@ import numpy as np
 
 from service.units import AGENT_TAU, RL_STEP_AGENT_UNITS
 
+GAIN_RTOL = 1e-6
+"""Relative tolerance of equal gains (the sample rules' ``GAIN_RTOL``; the rules import
+this module, so the constant lives here and they import it)."""
+
 if TYPE_CHECKING:
     from service.engine.table import LoopTable
 
@@ -173,9 +177,8 @@ def _close(tb: LoopTable, slots: np.ndarray, t: np.ndarray, moved: np.ndarray) -
         return slots[:0]
     # a response during which the gains changed judges no gains alone: its figures
     # are kept, but it neither refreshes the last-good figure nor verifies (verify.py)
-    tb.r_mixed[slots[ending]] = (tb.kp[slots[ending]] != tb.r_kp[slots[ending]]) | (
-        tb.ki[slots[ending]] != tb.r_ki[slots[ending]]
-    )
+    end = slots[ending]
+    tb.r_mixed[end] = ~(same_gains(tb.kp[end], tb.r_kp[end]) & same_gains(tb.ki[end], tb.r_ki[end]))
     done = slots[complete]
     if done.size:
         move = np.abs(tb.r_move[done])
@@ -337,6 +340,11 @@ def load(tb: LoopTable, s: int, d: dict) -> None:
     if n:
         tb.f_hist[s, :n] = np.array(hist[:n], dtype=np.float64)
     tb.f_hist_n[s] = n
+
+
+def same_gains(a, b) -> np.ndarray:
+    """Equal gains, as the engine compares them (relative 1e-6: float32 DCS storage)."""
+    return np.abs(a - b) <= GAIN_RTOL * np.maximum(np.abs(a), np.abs(b))  # arrays or floats
 
 
 def _num(x: float) -> float | None:

@@ -60,7 +60,7 @@ CLOCK_RESET_SAMPLES = 10
 """Consecutive, mutually increasing samples older than the loop's last one that are
 taken as a new plant clock (a restarted gateway, or a last sample from the far future)
 rather than rejected forever as out of order."""
-GAIN_RTOL = 1e-6
+GAIN_RTOL = monitor.GAIN_RTOL
 """Relative tolerance when comparing reported gains with the tuner's: a DCS storing gains
 as float32 reports them off by up to 6e-8 relative, which is no operator's change."""
 

@@ -45,6 +45,7 @@ import orjson
 
 from service.engine.audit import audit_row
 from service.engine.modes import ADVISORY, AUTO
+from service.engine.monitor import same_gains
 from service.engine.updates import MODE_VALUES, StepResult
 from service.wire.protocol import UpdateReason
 
@@ -81,13 +82,10 @@ def configure(tb: LoopTable, s: int, on: bool, margin: float, cooldown_periods: 
     tb.v_cool[s] = cooldown_periods * period if math.isfinite(period) else 0.0
 
 
-def changed(tb: LoopTable, s: int) -> bool:
-    """Whether the gains in force differ from the last-good ones (a change is pending)."""
-    return not (_same(tb.kp[s], tb.g_kp[s]) and _same(tb.ki[s], tb.g_ki[s]))
-
-
-def _same(a: float, b: float) -> bool:
-    return abs(a - b) <= 1e-6 * max(abs(a), abs(b))
+def changed(tb: LoopTable, s):
+    """Whether the gains in force differ from the last-good ones (a change is pending);
+    ``s`` a slot or an array of them."""
+    return ~(same_gains(tb.kp[s], tb.g_kp[s]) & same_gains(tb.ki[s], tb.g_ki[s]))
 
 
 def judge(tb: LoopTable, done: np.ndarray, osc: np.ndarray, wall: float) -> list[StepResult]:
@@ -99,7 +97,7 @@ def judge(tb: LoopTable, done: np.ndarray, osc: np.ndarray, wall: float) -> list
             continue
         figure, cand = float(tb.f_iae[s]), (float(tb.r_kp[s]), float(tb.r_ki[s]))
         seq = int(tb.r_seq[s])
-        is_good = _same(cand[0], tb.g_kp[s]) and _same(cand[1], tb.g_ki[s])
+        is_good = bool(same_gains(cand[0], tb.g_kp[s]) & same_gains(cand[1], tb.g_ki[s]))
         if is_good and tb.r_mixed[s]:
             continue  # the last-good gains changed during it: no figure of theirs
         if is_good and math.isfinite(tb.g_iae[s]):

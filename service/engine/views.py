@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from service.engine import monitor
+from service.engine import monitor, verify
 from service.engine.figures import (
     Performance,
     Proposal,
@@ -17,6 +17,7 @@ from service.engine.figures import (
     WindowFigures,
 )  # fmt: skip
 from service.engine.modes import ADVISORY
+from service.engine.monitor import same_gains
 
 if TYPE_CHECKING:
     from service.engine.table import LoopTable
@@ -36,20 +37,16 @@ def verification(tb: LoopTable, s: int) -> Verification:
         last_good_iae=_num(tb.g_iae[s]),
         last_good_seq=int(tb.g_seq[s]),
         judged_seq=int(tb.v_seq[s]),
-        pending=not (_same(tb.kp[s], tb.g_kp[s]) and _same(tb.ki[s], tb.g_ki[s])),
+        pending=bool(verify.changed(tb, s)),
         held_until_t=_num(tb.cool_until[s]) if tb.cool_until[s] > tb.last_t[s] else None,
     )
-
-
-def _same(a: float, b: float) -> bool:
-    return abs(a - b) <= 1e-6 * max(abs(a), abs(b))
 
 
 def proposal(tb: LoopTable, s: int) -> Proposal | None:
     if tb.mode[s] != ADVISORY or math.isnan(tb.adv_seq[s]):
         return None
     kp, ki = float(tb.adv_kp[s]), float(tb.adv_ki[s])
-    back = _same(kp, tb.g_kp[s]) and _same(ki, tb.g_ki[s])
+    back = bool(same_gains(kp, tb.g_kp[s]) & same_gains(ki, tb.g_ki[s]))
     return Proposal(
         seq=int(tb.adv_seq[s]), kp=kp, ki=ki, dkp=kp - float(tb.kp[s]), dki=ki - float(tb.ki[s]),
         kp_in_force=float(tb.kp[s]), ki_in_force=float(tb.ki[s]),
@@ -98,8 +95,7 @@ def monitor_summary(tb: LoopTable) -> tuple[dict[str, int], dict[str, float]]:
     used = np.fromiter(tb.slot_of.values(), np.int64, len(tb.slot_of))
     if not used.size:
         return dict.fromkeys(_STATES, 0), {}
-    kp, ki, gk, gi = tb.kp[used], tb.ki[used], tb.g_kp[used], tb.g_ki[used]
-    pending = ~(np.isclose(kp, gk, rtol=1e-6, atol=0) & np.isclose(ki, gi, rtol=1e-6, atol=0))
+    pending = verify.changed(tb, used)
     counts = {
         "oscillating": int(tb.o_osc[used].sum()),
         "change_pending": int(pending.sum()),
