@@ -53,8 +53,8 @@ class Plant:
             pv = self.plant.output() + 0.02 * self.rng.standard_normal(2)
             kp, ki = self.pi.kp.tolist(), self.pi.ki.tolist()
             for i in range(2):
-                sample = {"t": float(self.k), "sp": sp, "pv": float(pv[i]), "kp": kp[i], "ki": ki[i]}
-                gw.send(IDS[i], sample)
+                sample = {"t": float(self.k), "sp": sp, "pv": float(pv[i])}
+                gw.send(IDS[i], {**sample, "kp": kp[i], "ki": ki[i]})
             self.plant.step(self.pi.step(sp - pv))
             self.k += 1
 
