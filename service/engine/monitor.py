@@ -25,7 +25,9 @@ accepted samples (distinct loops, aligned arrays) and keeps three things per loo
   J. Process Control 13(1)): the intervals between zero crossings of a real oscillation
   are regular, ``r = mean(T) / (3 std(T)) > 1``. A loop oscillates when its last
   :data:`OSC_LOBES` half-periods (between crossings of a hysteresis band of 3 noise
-  sigmas) are regular, each has a mean |e| above the band, and the amplitude does not
+  sigmas) are regular, the newer two have a mean |e| above the band (the oldest above half
+  of it: a growing oscillation's first lobe is still rising out of the noise), and the
+  amplitude does not
   decay by more than :data:`OSC_DECAY` per period: with 3 lobes the verdict comes at the
   4th crossing, 2 periods after a sustained oscillation starts.
 
@@ -305,14 +307,17 @@ def _oscillation(tb, slots, t, e, prev_e, dt, jumped) -> np.ndarray:
     full, step = w[enough], step[enough]
     if not full.size:
         return slots[:0]
-    half, lobe = tb.o_half[full], tb.o_lobe[full]
+    half, lobe, h_full = tb.o_half[full], tb.o_lobe[full], band(tb, full)
     spread = half.std(axis=1)
     r = np.where(spread > 0, half.mean(axis=1) / (3.0 * np.maximum(spread, 1e-300)), 10.0)
     tb.o_index[full] = np.minimum(r, 10.0)
     osc = (
         (r > 1.0)
         & (half.min(axis=1) >= OSC_MIN_SAMPLES * step)
-        & (lobe.min(axis=1) >= band(tb, full))
+        # the newer lobes above the band, the oldest (still rising out of the noise) above
+        # half of it
+        & (lobe[:, :2].min(axis=1) >= h_full)
+        & (lobe[:, 2] >= 0.5 * h_full)
         & (lobe[:, 0] >= OSC_DECAY * lobe[:, 2])
     )
     new = full[osc & ~tb.o_osc[full]]

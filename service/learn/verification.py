@@ -179,17 +179,18 @@ def _verdicts(engine: TuningEngine, ids: list[str], since: np.ndarray, unit: np.
     slot = {loop_id: i for i, loop_id in enumerate(ids)}
     verdict = ["pending"] * len(ids)
     at = [math.nan] * len(ids)
+    details: list[dict | None] = [None] * len(ids)
     for row in audit:
         i = slot[row[0]]
         if row[5] not in ("verified", "rollback", "verdict") or verdict[i] != "pending":
             continue
         if row[2] is None or row[2] < since[i] - 1e-9:
             continue  # the baseline
-        detail = json.loads(row[10])
+        detail = details[i] = json.loads(row[10])
         verdict[i] = detail["verdict"]
         # an oscillation's own period, as the detector measured it
         at[i] = float((row[2] - since[i]) / (detail.get("period_s") or unit[i]))
-    return {"verdict": verdict, "after_periods": at}
+    return {"verdict": verdict, "after_periods": at, "detail": details}
 
 
 def evaluate(n: int, noise: float, seed: int = 0) -> dict:
