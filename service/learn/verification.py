@@ -118,7 +118,9 @@ def ultimate(K, tau, theta) -> tuple[np.ndarray, np.ndarray]:
     return np.sqrt(1.0 + (tau * w) ** 2) / K, 2.0 * np.pi / w
 
 
-def run_scenario(sc: dict, *, noise: float, mode: str = "auto", seed: int = 0) -> dict:
+def run_scenario(
+    sc: dict, *, noise: float, mode: str = "auto", seed: int = 0, margin: float = 0.25
+) -> dict:
     """Drive the engine through one scenario; returns the verdict of each loop's change
     ('verified', 'rolled_back', 'rollback_proposed', 'pending') and when it came."""
     K, tau, theta, old, new = sc["K"], sc["tau"], sc["theta"], sc["old"], sc["new"]
@@ -130,7 +132,7 @@ def run_scenario(sc: dict, *, noise: float, mode: str = "auto", seed: int = 0) -
         engine.register(LoopConfig(
             id=ids[i], kp=float(old[i, 0]), ki=float(old[i, 1]), sample_period_s=DT, mode=mode,
             scaling={"k_hat": float(K[i]), "tau_hat": float(tau[i]), "pv_scale": 1.0},
-            guard={"excitation_periods": 0.0},
+            guard={"excitation_periods": 0.0, "verify_margin": margin},
         ), wall=0.0)  # fmt: skip
     rl = RL_STEP_AGENT_UNITS * 2.0 * tau
     toggle = np.rint(4.0 * rl / DT).astype(np.int64)
@@ -193,12 +195,12 @@ def _verdicts(engine: TuningEngine, ids: list[str], since: np.ndarray, unit: np.
     return {"verdict": verdict, "after_periods": at, "detail": details}
 
 
-def evaluate(n: int, noise: float, seed: int = 0) -> dict:
+def evaluate(n: int, noise: float, seed: int = 0, margin: float = 0.25) -> dict:
     rng = np.random.default_rng(seed)
-    report: dict = {"loops": n, "noise": noise}
+    report: dict = {"loops": n, "noise": noise, "margin": margin}
     for kind in KINDS:
         sc = scenario(kind, n, rng)
-        out = run_scenario(sc, noise=noise, seed=seed)
+        out = run_scenario(sc, noise=noise, seed=seed, margin=margin)
         counts: dict[str, int] = {}
         for v in out["verdict"]:
             counts[v] = counts.get(v, 0) + 1
@@ -219,11 +221,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--loops", type=int, default=1000, help="changes per kind")
     parser.add_argument("--noise", type=float, default=0.02, help="noise sigma, share of the move")
     parser.add_argument("--seed", type=int, default=0, help="random seed")
+    parser.add_argument("--margin", type=float, default=0.25, help="the loops' verify_margin")
     parser.add_argument("--out", type=Path, default=None, help="write the report as JSON here")
 
 
 def run(args: argparse.Namespace) -> int:
-    report = evaluate(args.loops, args.noise, args.seed)
+    report = evaluate(args.loops, args.noise, args.seed, args.margin)
     text = orjson.dumps(report, option=orjson.OPT_INDENT_2).decode()
     print(text)
     if args.out is not None:
