@@ -25,8 +25,8 @@ accepted samples (distinct loops, aligned arrays) and keeps three things per loo
   J. Process Control 13(1)): the intervals between zero crossings of a real oscillation
   are regular, ``r = mean(T) / (3 std(T)) > 1``. A loop oscillates when its last
   :data:`OSC_LOBES` half-periods (between crossings of a hysteresis band of 3 noise
-  sigmas) are regular, the newer two have a mean |e| above the band (the oldest above half
-  of it: a growing oscillation's first lobe is still rising out of the noise), and the
+  sigmas) are regular, the newest has a mean |e| above the band (the older ones above half
+  of it: a growing oscillation's first lobes are still rising out of the noise), and the
   amplitude does not
   decay by more than :data:`OSC_DECAY` per period: with 3 lobes the verdict comes at the
   4th crossing, 2 periods after a sustained oscillation starts.
@@ -314,10 +314,10 @@ def _oscillation(tb, slots, t, e, prev_e, dt, jumped) -> np.ndarray:
     osc = (
         (r > 1.0)
         & (half.min(axis=1) >= OSC_MIN_SAMPLES * step)
-        # the newer lobes above the band, the oldest (still rising out of the noise) above
-        # half of it
-        & (lobe[:, :2].min(axis=1) >= h_full)
-        & (lobe[:, 2] >= 0.5 * h_full)
+        # the newest lobe above the band, the older ones (still rising out of the noise)
+        # above half of it
+        & (lobe[:, 0] >= h_full)
+        & (lobe[:, 1:].min(axis=1) >= 0.5 * h_full)
         & (lobe[:, 0] >= OSC_DECAY * lobe[:, 2])
     )
     new = full[osc & ~tb.o_osc[full]]
