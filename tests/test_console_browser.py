@@ -21,6 +21,17 @@ from tests.tuner_support import loop_body, wait_until
 BEARER = {"Authorization": f"Bearer {TOKEN}"}
 
 
+def logged_in(page, url: str, name: str):
+    """``page`` after logging in to the console at ``url`` as ``name``."""
+    page.goto(f"{url}/ui")
+    page.click("#login-link")
+    page.fill("#token", TOKEN)
+    page.fill("#name", name)
+    page.click("#login-submit")
+    page.wait_for_selector("#logout")
+    return page
+
+
 def points(page) -> int:
     return int(page.locator("#trend-count").get_attribute("data-points") or 0)
 
@@ -30,13 +41,7 @@ def test_operator_session_end_to_end(daemon, new_page):
     samples, switch it to advisory, edit a limit, log out and see actions refused."""
     plant = SimPlant(daemon.settings, [], dt=1.0, speed=10.0).start()
     try:
-        page = new_page()
-        page.goto(f"{daemon.url}/ui")
-        page.click("#login-link")
-        page.fill("#token", TOKEN)
-        page.fill("#name", "tester")
-        page.click("#login-submit")
-        page.wait_for_selector("#logout")
+        page = logged_in(new_page(), daemon.url, "tester")
         assert "pitune_ui" not in page.evaluate("document.cookie")  # HttpOnly
         assert page.locator(".session .who").inner_text() == "ui:tester"
 
@@ -215,13 +220,7 @@ def test_approve_a_proposal_roll_back_and_shadow_from_the_loop_page(daemon, new_
     assert httpx.post(f"{daemon.url}/loops", json=body, headers=BEARER).status_code == 201
     plant = SimPlant(daemon.settings, [loop], dt=1.0, speed=20.0).start()
     try:
-        page = new_page()
-        page.goto(f"{daemon.url}/ui")
-        page.click("#login-link")
-        page.fill("#token", TOKEN)
-        page.fill("#name", "op")
-        page.click("#login-submit")
-        page.wait_for_selector("#logout")
+        page = logged_in(new_page(), daemon.url, "op")
         page.goto(f"{daemon.url}/ui/loops/TIC-3")
         page.wait_for_selector("#proposal-box:not([hidden])")
 
