@@ -148,3 +148,21 @@ def test_the_monitor_state_survives_a_snapshot_and_restore(rng):
     other.restore(config, kp=1.0, ki=0.05, seq=5, hidden=hidden, runtime=runtime, wall=0.0)
     v = other.view("R").verification
     assert (v.last_good_kp, v.last_good_iae, v.judged_seq, v.pending) == (0.8, 12.5, 4, True)
+
+
+def test_an_operator_rollback_restores_the_last_good_gains_and_needs_a_change():
+    engine = TuningEngine(StillAgent())
+    engine.register(LoopConfig(
+        id="O", kp=1.0, ki=0.05, sample_period_s=1.0,
+        scaling={"k_hat": 1.0, "tau_hat": 10.0, "pv_scale": 1.0},
+    ), wall=0.0)  # fmt: skip
+    with pytest.raises(ValueError, match="last-good"):
+        engine.rollback("O")
+    engine.ingest([{"loop_id": "O", "t": 0.0, "e": 0.0, "kp": 3.0, "ki": 0.2}], wall=0.0)
+    assert engine.view("O").verification.pending  # the operator's change, adopted
+    (update,) = engine.rollback("O", actor="api").updates()
+    assert (update.kp, update.ki, update.reason, update.mode) == (1.0, 0.05, "rollback", "auto")
+    assert "why=operator" in update.why
+    rollback = [r for r in engine.drain_changes()[1] if r[5] == "rollback"][0]
+    assert json.loads(rollback[10])["actor"] == "api"
+    assert not engine.view("O").verification.pending
