@@ -99,7 +99,13 @@ def step(tb: LoopTable, slots: np.ndarray, wall: float) -> StepResult:
         why=_why(tb, slots, mode, old, proposed, bounded, new),
     )
     limited = np.flatnonzero(~np.isclose(proposed, new, rtol=GAIN_RTOL, atol=0.0).all(axis=1))
-    details = list(result.why)
+    # the audit row adds the figures the change was made on: the last response's IAE and
+    # the last-good gains' (its verdict row will add the figure after)
+    details = [
+        f"{why} iae={f:.4g} good_iae={g:.4g}"
+        for why, f, g in zip(result.why, tb.f_iae[slots].tolist(), tb.g_iae[slots].tolist(),
+                             strict=True)
+    ]  # fmt: skip
     # formatting Python floats, not numpy scalars: a cold loop is limited in most steps
     for i, (kp, ki) in zip(limited.tolist(), proposed[limited].tolist(), strict=True):
         details[i] = f"{details[i]}; {_guard_detail(kp, ki)}"

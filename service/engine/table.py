@@ -328,7 +328,10 @@ class LoopTable:
         self.pending[s] = self.manual[s] = self.saturated[s] = False
 
     def reconfigure(self, config: LoopConfig) -> None:
-        self._configure(self.slot(config.id), config)
+        s = self.slot(config.id)
+        if _CODE[config.mode] != self.mode[s]:  # a proposal belongs to the mode it was made in
+            self.adv_kp[s] = self.adv_ki[s] = self.adv_seq[s] = math.nan
+        self._configure(s, config)
 
     def remove(self, loop_id: str) -> None:
         s = self.slot_of[loop_id]
