@@ -61,6 +61,9 @@ F64 = [
     "v_margin", "v_cool",
     # the proposal track of advisory and shadow loops (NaN: none) and its seq
     "adv_kp", "adv_ki", "adv_seq",
+    # gains judged worse and kept (advisory: the proposal not taken; shadow, frozen):
+    # not judged again on every response
+    "b_kp", "b_ki",
 ]  # fmt: skip
 """Per-loop float arrays of verification (allocated by the table beside its own)."""
 
@@ -74,6 +77,7 @@ def init(tb: LoopTable, s: int) -> None:
     tb.g_seq[s] = tb.v_seq[s] = tb.seq[s]
     tb.cool_until[s] = -math.inf
     tb.adv_kp[s] = tb.adv_ki[s] = tb.adv_seq[s] = math.nan
+    tb.b_kp[s] = tb.b_ki[s] = math.nan
 
 
 def configure(tb: LoopTable, s: int, on: bool, margin: float, cooldown_periods: float) -> None:
@@ -105,6 +109,8 @@ def judge(tb: LoopTable, done: np.ndarray, osc: np.ndarray, wall: float) -> list
             tb.v_seq[s] = max(tb.v_seq[s], seq)
             continue
         good = float(tb.g_iae[s])
+        if same_gains(cand[0], tb.b_kp[s]) & same_gains(cand[1], tb.b_ki[s]):
+            continue  # judged worse already, and kept by the operator
         if math.isfinite(good) and figure > (1.0 + tb.v_margin[s]) * good:
             result = fail(tb, s, "iae", wall, figure=figure)
             if result is not None:
@@ -152,6 +158,8 @@ def fail(
         detail["actor"] = actor
     tb._verify_dirty.add(s)
     t = float(tb.last_t[s]) if math.isfinite(tb.last_t[s]) else 0.0
+    if mode != AUTO:
+        tb.b_kp[s], tb.b_ki[s] = old
     if mode not in (AUTO, ADVISORY):
         tb.v_seq[s] = tb.seq[s]
         _audit(tb, s, wall, "verdict", old, old, {"verdict": "worse", **detail})

@@ -43,6 +43,7 @@ from fastapi.responses import (
 )
 
 from service.daemon.recent import REASONS
+from service.engine import verify
 from service.engine.config import LoopPatch
 from service.engine.table import STATUSES
 from service.wire.protocol import Mode, RejectReason
@@ -340,6 +341,9 @@ def _columns(tuner) -> dict[str, Any]:
             "updates": tb.n_updates[slots],
             "rejected": tb.n_rejected[slots],
             "quiet": tb.n_quiet[slots],
+            "pending": verify.changed(tb, slots),
+            "oscillating": tb.o_osc[slots],
+            "iae": tb.f_iae[slots],
         }
         gateways = [tb.gateways[s] or "" for s in slots.tolist()]
     cols["ids"] = ids
@@ -433,6 +437,11 @@ def overview_data(
                 else None,
                 "last_change": last_change,
                 "rms_e": _finite(summary["rms_e"][i]) if summary is not None else None,
+                "verification": {
+                    "pending": bool(c["pending"][i]),
+                    "oscillating": bool(c["oscillating"][i]),
+                    "iae": _finite(c["iae"][i]),
+                },
                 "counters": {
                     k: int(c[k][i]) for k in ("samples", "steps", "updates", "rejected", "quiet")
                 },
