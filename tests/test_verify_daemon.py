@@ -1,7 +1,8 @@
 """Verify-or-rollback through the real daemon (a subprocess, SQLite, Zenoh, HTTP).
 
-Two simulated FOPTD loops, one ``auto`` and one ``advisory``, their setpoints toggling;
-after a baseline response an operator cuts both loops' gains so that the IAE more than
+Two simulated FOPTD loops, one ``auto`` and one ``advisory``, their setpoints toggling,
+started on sluggish gains; after a baseline response an operator improves both loops'
+gains (verified on the next response), then cuts them so that the IAE more than
 doubles. The daemon is SIGKILLed while those changes are pending and restarted: the
 last-good gains and the pending verdicts survive, the next response fails the changes,
 the auto loop is rolled back (published, reason ``rollback``) and the advisory loop gets
@@ -66,7 +67,7 @@ class Plant:
 
 def test_a_doubled_iae_is_rolled_back_and_sigkill_keeps_last_good_and_pending(tmp_path):
     good = np.column_stack(simc(K, TAU, THETA, THETA))
-    bad = good * 0.3
+    slow, bad = good * 0.5, good * 0.3
     horizon = 2.0 * RL
     assert (
         true_iae(K, TAU, THETA, bad, horizon) > 2 * true_iae(K, TAU, THETA, good, horizon)
@@ -76,20 +77,23 @@ def test_a_doubled_iae_is_rolled_back_and_sigkill_keeps_last_good_and_pending(tm
         "--snapshot-interval", "3600", log=tmp_path / "daemon.log", token=TOKEN,
         env={"PITUNE_MAX_SAMPLE_RATE_HZ": "1e6"},
     )  # fmt: skip
-    plant = Plant(good)
+    plant = Plant(slow)
     try:
         proc = d.start()
         with d.http() as api:
             for i, mode in enumerate(("auto", "advisory")):
-                r = api.post("/loops", json=body(i, *good[i], mode))
+                r = api.post("/loops", json=body(i, *slow[i], mode))
                 assert r.status_code == 201, r.text
         gw = Gateway(open_peer([d.zenoh]))
         try:
             wait_until(lambda: list(gw.session.liveliness().get("pitune/tuners/proc", timeout=1.0)))
-            plant.run(gw, 2 * TOGGLE)  # the baseline response ends at TOGGLE + 2 RL
-            plant.set(0, *bad[0])  # an operator's bad change on both loops
-            plant.set(1, *bad[1])
-            plant.run(gw, 2 * TOGGLE + 20)
+            plant.run(gw, 2 * TOGGLE + 20)  # the baseline response ends at TOGGLE + 2 RL
+            for i in range(2):  # an operator's improving change on both loops
+                plant.set(i, *good[i])
+            plant.run(gw, 4 * TOGGLE + 20)  # judged (verified) at 3 TOGGLE + 2 RL
+            for i in range(2):  # and a bad one
+                plant.set(i, *bad[i])
+            plant.run(gw, 4 * TOGGLE + 40)
             with d.http() as api:
                 wait_until(
                     lambda: all(
@@ -117,7 +121,7 @@ def test_a_doubled_iae_is_rolled_back_and_sigkill_keeps_last_good_and_pending(tm
         gw = Gateway(open_peer([d.zenoh]))
         try:
             wait_until(lambda: list(gw.session.liveliness().get("pitune/tuners/proc", timeout=1.0)))
-            judged_by = 3 * TOGGLE + int(2 * RL.max()) + 2  # the next complete response
+            judged_by = 5 * TOGGLE + int(2 * RL.max()) + 2  # the next complete response
             plant.run(gw, judged_by)
             seen = {}
             while len(seen) < 2:
@@ -144,9 +148,9 @@ def test_a_doubled_iae_is_rolled_back_and_sigkill_keeps_last_good_and_pending(tm
                     accepted = gw.next_gains(timeout=10.0)
                 assert (accepted.mode, accepted.kp) == ("auto", pytest.approx(good[1, 0]))
                 history = api.get(f"/loops/{IDS[0]}/history").json()["items"]
-                adopted = next(e for e in history if e["reason"] == "adopted")
-                assert adopted["verdict"] == "rolled_back"
-                assert any(e["reason"] == "verified" for e in history)  # the baseline
+                adopted = [e for e in history if e["reason"] == "adopted"]  # newest first
+                assert [e["verdict"] for e in adopted] == ["rolled_back", "verified"]
+                assert adopted[1]["kp_new"] == pytest.approx(good[0, 0])
                 perf = api.get(f"/loops/{IDS[0]}/performance").json()
                 assert perf["last"]["iae"] > 2 * perf["verification"]["last_good_iae"] * 0.75
                 assert perf["history"] and perf["verification"]["pending"] is False
