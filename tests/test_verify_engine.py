@@ -12,7 +12,7 @@ import pytest
 
 from service.engine import LoopConfig, TuningEngine
 from service.engine.identify import Model
-from service.learn.verification import StillAgent, run_scenario, scenario
+from service.learn.verification import MARGIN, StillAgent, run_scenario, scenario
 
 pytestmark = pytest.mark.timeout(120)
 NOISE = 0.02
@@ -32,7 +32,7 @@ def test_a_change_that_doubles_the_iae_is_rolled_back_within_one_window_in_auto(
     # verification window) ends half a period after its move: 1.25 periods at most
     assert max(out["after_periods"]) <= 1.3
     for detail in out["detail"]:
-        assert detail["why"] == "iae" and detail["iae"] > 1.25 * detail["good_iae"]
+        assert detail["why"] == "iae" and detail["iae"] > (1 + MARGIN) * detail["good_iae"]
 
 
 def test_in_advisory_the_same_change_is_proposed_for_rollback(rng):

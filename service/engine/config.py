@@ -82,10 +82,11 @@ class Guard(BaseModel):
         "or made it oscillate (docs/tuner.md, Performance and verification).",
     )
     verify_margin: Margin = Field(
-        0.25,
+        0.4,
         description="A change fails when its response's IAE per unit move exceeds the "
-        "last-good gains' by more than this share (0.25: measured false-rollback rate "
-        "0.0 % over 1,000 good changes with 2 % noise; a doubled IAE fails).",
+        "last-good gains' (same direction of move) by more than this share (0.4: no false "
+        "rollback in 1,000 good changes with 2 % noise, every doubled IAE fails, and room "
+        "for a non-linear plant's operating points: docs/tuner.md).",
     )
     cooldown_periods: Periods = Field(
         8.0,

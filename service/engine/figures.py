@@ -58,7 +58,12 @@ class Verification(BaseModel):
     margin: float | None = Field(description="A change fails past (1 + margin) x last-good IAE.")
     last_good_kp: float
     last_good_ki: float
-    last_good_iae: float | None = Field(description="Their normalised IAE, s (None: not yet).")
+    last_good_iae: float | None = Field(
+        description="Their normalised IAE of upward setpoint moves, s (None: not yet)."
+    )
+    last_good_iae_down: float | None = Field(
+        None, description="Of downward moves (a non-linear plant answers them differently)."
+    )
     last_good_seq: int
     judged_seq: int = Field(description="Changes up to this seq have a verdict.")
     pending: bool = Field(description="The gains in force differ from the last-good gains.")

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.engine import predict
+from service.engine import predict, verify
 from service.engine.audit import audit_row
 from service.engine.modes import ADVISORY, AUTO, SHADOW
 from service.engine.rules import GAIN_RTOL
@@ -103,7 +103,8 @@ def step(tb: LoopTable, slots: np.ndarray, wall: float) -> StepResult:
     # the last-good gains' (its verdict row will add the figure after)
     details = [
         f"{why} iae={f:.4g} good_iae={g:.4g}"
-        for why, f, g in zip(result.why, tb.f_iae[slots].tolist(), tb.g_iae[slots].tolist(),
+        for why, f, g in zip(result.why, tb.f_iae[slots].tolist(),
+                             verify.reference(tb, slots).tolist(),
                              strict=True)
     ]  # fmt: skip
     # formatting Python floats, not numpy scalars: a cold loop is limited in most steps

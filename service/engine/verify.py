@@ -53,8 +53,9 @@ if TYPE_CHECKING:
     from service.engine.table import LoopTable
 
 F64 = [
-    # last-good gains, their figure (normalised IAE, s; NaN: none yet), their seq
-    "g_kp", "g_ki", "g_iae", "g_seq",
+    # last-good gains, their figures (normalised IAE, s, of upward and of downward setpoint
+    # moves: a non-linear plant answers the two differently; NaN: none yet), their seq
+    "g_kp", "g_ki", "g_iae", "g_iae_dn", "g_seq",
     # changes up to this seq are judged; the agent is held until this plant time
     "v_seq", "cool_until",
     # margin (NaN: verification off) and cool-down (s) of the loop's guard
@@ -73,7 +74,8 @@ Verdict = str
 
 def init(tb: LoopTable, s: int) -> None:
     """A new loop: its gains are the last-good ones, not yet measured."""
-    tb.g_kp[s], tb.g_ki[s], tb.g_iae[s] = tb.kp[s], tb.ki[s], math.nan
+    tb.g_kp[s], tb.g_ki[s] = tb.kp[s], tb.ki[s]
+    tb.g_iae[s] = tb.g_iae_dn[s] = math.nan
     tb.g_seq[s] = tb.v_seq[s] = tb.seq[s]
     tb.cool_until[s] = -math.inf
     tb.adv_kp[s] = tb.adv_ki[s] = tb.adv_seq[s] = math.nan
@@ -104,11 +106,11 @@ def judge(tb: LoopTable, done: np.ndarray, osc: np.ndarray, wall: float) -> list
         is_good = bool(same_gains(cand[0], tb.g_kp[s]) & same_gains(cand[1], tb.g_ki[s]))
         if is_good and tb.r_mixed[s]:
             continue  # the last-good gains changed during it: no figure of theirs
-        if is_good and math.isfinite(tb.g_iae[s]):
-            tb.g_iae[s] = 0.5 * (tb.g_iae[s] + figure)
+        good = float(reference(tb, s))
+        if is_good and math.isfinite(good):
+            _set_reference(tb, s, 0.5 * (good + figure))
             tb.v_seq[s] = max(tb.v_seq[s], seq)
             continue
-        good = float(tb.g_iae[s])
         if same_gains(cand[0], tb.b_kp[s]) & same_gains(cand[1], tb.b_ki[s]):
             continue  # judged worse already, and kept by the operator
         if math.isfinite(good) and figure > (1.0 + tb.v_margin[s]) * good:
@@ -133,8 +135,24 @@ def judge(tb: LoopTable, done: np.ndarray, osc: np.ndarray, wall: float) -> list
     return out
 
 
+def reference(tb: LoopTable, s):
+    """The last-good figure a response is judged against: of its own direction (``s``
+    a slot or slots; the direction of the last response opened)."""
+    return np.where(tb.r_move[s] < 0, tb.g_iae_dn[s], tb.g_iae[s])
+
+
+def _set_reference(tb: LoopTable, s: int, value: float) -> None:
+    if tb.r_move[s] < 0:
+        tb.g_iae_dn[s] = value
+    else:
+        tb.g_iae[s] = value
+
+
 def _verified(tb, s: int, cand: tuple[float, float], seq: int, figure: float) -> None:
-    tb.g_kp[s], tb.g_ki[s], tb.g_iae[s], tb.g_seq[s] = cand[0], cand[1], figure, seq
+    # the other direction keeps the last-good gains' figure: the next response that way
+    # is judged against it, like with like
+    tb.g_kp[s], tb.g_ki[s], tb.g_seq[s] = cand[0], cand[1], seq
+    _set_reference(tb, s, figure)
     tb.v_seq[s] = max(tb.v_seq[s], seq)
     tb._verify_dirty.add(s)
 
@@ -149,7 +167,7 @@ def fail(
     judged = [int(tb.v_seq[s]) + 1, int(tb.seq[s])]
     detail = {
         "why": why, "seqs": judged, "iae": figure,
-        "good_iae": None if math.isnan(tb.g_iae[s]) else float(tb.g_iae[s]),
+        "good_iae": _num(reference(tb, s)),
         "oscillation_index": _num(tb.o_index[s]),
     }  # fmt: skip
     if why == "oscillation":

@@ -35,6 +35,7 @@ def verification(tb: LoopTable, s: int) -> Verification:
         last_good_kp=float(tb.g_kp[s]),
         last_good_ki=float(tb.g_ki[s]),
         last_good_iae=_num(tb.g_iae[s]),
+        last_good_iae_down=_num(tb.g_iae_dn[s]),
         last_good_seq=int(tb.g_seq[s]),
         judged_seq=int(tb.v_seq[s]),
         pending=bool(verify.changed(tb, s)),
@@ -102,7 +103,7 @@ def monitor_summary(tb: LoopTable) -> tuple[dict[str, int], dict[str, float]]:
         "held": int((tb.cool_until[used] > tb.last_t[used]).sum()),
         "proposal_pending": int(((tb.mode[used] == ADVISORY) & ~np.isnan(tb.adv_seq[used])).sum()),
     }
-    ratio = tb.f_iae[used] / tb.g_iae[used]
+    ratio = tb.f_iae[used] / verify.reference(tb, used)
     ratio = ratio[np.isfinite(ratio)]
     means = {
         "manual_share": float(tb.w_manual[used].mean()),

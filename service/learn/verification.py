@@ -37,11 +37,14 @@ from plant_sim.foptd import FOPTDBatch
 from plant_sim.loop import step_test
 from plant_sim.pi import PIBatch
 from service.engine import LoopConfig, TuningEngine
+from service.engine.config import Guard
 from service.units import RL_STEP_AGENT_UNITS
 
 DT = 1.0
 """Sample period of every simulated loop, s."""
 KINDS = ("good", "bad", "oscillating")
+MARGIN = Guard.model_fields["verify_margin"].default
+"""The loops' ``verify_margin``: the default unless ``--margin``."""
 U_LIMIT = 10.0
 """Controller output limits (the steady state needs at most 2): an unstable loop's
 oscillation saturates into a limit cycle, as on a plant."""
@@ -119,7 +122,7 @@ def ultimate(K, tau, theta) -> tuple[np.ndarray, np.ndarray]:
 
 
 def run_scenario(
-    sc: dict, *, noise: float, mode: str = "auto", seed: int = 0, margin: float = 0.25
+    sc: dict, *, noise: float, mode: str = "auto", seed: int = 0, margin: float = MARGIN
 ) -> dict:
     """Drive the engine through one scenario; returns the verdict of each loop's change
     ('verified', 'rolled_back', 'rollback_proposed', 'pending') and when it came."""
@@ -195,7 +198,7 @@ def _verdicts(engine: TuningEngine, ids: list[str], since: np.ndarray, unit: np.
     return {"verdict": verdict, "after_periods": at, "detail": details}
 
 
-def evaluate(n: int, noise: float, seed: int = 0, margin: float = 0.25) -> dict:
+def evaluate(n: int, noise: float, seed: int = 0, margin: float = MARGIN) -> dict:
     rng = np.random.default_rng(seed)
     report: dict = {"loops": n, "noise": noise, "margin": margin}
     for kind in KINDS:
@@ -221,7 +224,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--loops", type=int, default=1000, help="changes per kind")
     parser.add_argument("--noise", type=float, default=0.02, help="noise sigma, share of the move")
     parser.add_argument("--seed", type=int, default=0, help="random seed")
-    parser.add_argument("--margin", type=float, default=0.25, help="the loops' verify_margin")
+    parser.add_argument("--margin", type=float, default=MARGIN, help="the loops' verify_margin")
     parser.add_argument("--out", type=Path, default=None, help="write the report as JSON here")
 
 
