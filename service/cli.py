@@ -26,6 +26,10 @@ from service import __version__
 COMMANDS: dict[str, tuple[str, str]] = {
     "train": ("service.learn.train", "train the meta-RL agent offline (recurrent PPO)"),
     "evaluate": ("service.learn.evaluate", "reproduce the paper's experiments, write a report"),
+    "verify-eval": (
+        "service.learn.verification",
+        "measure verify-or-rollback on simulated loops (false-rollback rate)",
+    ),
     "tuner": ("service.daemon.main", "run the tuner daemon (Zenoh bus + admin API)"),
     "plant": ("plant_sim.cli", "run simulated plants behind a DCS-like gateway (or OPC UA)"),
     "demo": ("service.demo", "tuner + two-tank plant end to end, write demo/"),

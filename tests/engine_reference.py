@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 
-from service.engine import rules, watch
+from service.engine import monitor, rules, watch
 from service.engine.audit import audit_row
 from service.engine.modes import AUTO, FROZEN
 from service.engine.rules import GAIN_RTOL, MAX_AGENT_ERROR
@@ -88,6 +88,14 @@ def _ingest(tb: LoopTable, s: int, sample: Sample, wall: float) -> bool:
     fresh = math.isnan(last_t) or t - last_t > tb.stale_gap[s] or resumed
     if tb.watch[s] and sample.sp is not None:
         _record(tb, s, sample, e, last_t, fresh, wall)
+    # performance monitoring is no sample rule: its one implementation, with one sample
+    one = np.array([s])
+    judged = monitor.observe(
+        tb, one, np.array([t]), np.array([e]), tb.last_e[one], np.array([last_t]),
+        np.array([moved]), np.array([fresh]), np.array([sample.auto]), np.array([sample.saturated]),
+    )  # fmt: skip
+    if judged[0].size or judged[1].size:
+        tb.to_judge.append(judged)
     if fresh:
         tb.next_due[s] = t + tb.period[s]  # a new decimation window
     elif not paused:
@@ -102,7 +110,7 @@ def _ingest(tb: LoopTable, s: int, sample: Sample, wall: float) -> bool:
     if tb.gate_closed(s, t):
         tb.n_quiet[s] += 1
         return False
-    return True
+    return t >= tb.cool_until[s]  # held after a rollback (service.engine.verify)
 
 
 def _record(tb: LoopTable, s: int, sample: Sample, e: float, last_t, fresh, wall) -> None:

@@ -21,6 +21,17 @@ from tests.tuner_support import loop_body, wait_until
 BEARER = {"Authorization": f"Bearer {TOKEN}"}
 
 
+def logged_in(page, url: str, name: str):
+    """``page`` after logging in to the console at ``url`` as ``name``."""
+    page.goto(f"{url}/ui")
+    page.click("#login-link")
+    page.fill("#token", TOKEN)
+    page.fill("#name", name)
+    page.click("#login-submit")
+    page.wait_for_selector("#logout")
+    return page
+
+
 def points(page) -> int:
     return int(page.locator("#trend-count").get_attribute("data-points") or 0)
 
@@ -30,13 +41,7 @@ def test_operator_session_end_to_end(daemon, new_page):
     samples, switch it to advisory, edit a limit, log out and see actions refused."""
     plant = SimPlant(daemon.settings, [], dt=1.0, speed=10.0).start()
     try:
-        page = new_page()
-        page.goto(f"{daemon.url}/ui")
-        page.click("#login-link")
-        page.fill("#token", TOKEN)
-        page.fill("#name", "tester")
-        page.click("#login-submit")
-        page.wait_for_selector("#logout")
+        page = logged_in(new_page(), daemon.url, "tester")
         assert "pitune_ui" not in page.evaluate("document.cookie")  # HttpOnly
         assert page.locator(".session .who").inner_text() == "ui:tester"
 
@@ -204,3 +209,61 @@ def test_ten_thousand_loops_render_and_filter_within_two_seconds(daemon, new_pag
     assert first_render < 2.0, timings
     assert search < 2.0, timings
     assert sort < 2.0, timings
+
+
+def test_approve_a_proposal_roll_back_and_shadow_from_the_loop_page(daemon, new_page):
+    """Log in, see an advisory loop's pending proposal, approve it and see the gains
+    change on the plant, roll back (advisory: a rollback proposal, approved too: the
+    last-good gains back on the plant), reject the next proposal, switch to shadow."""
+    loop = SimLoop(id="TIC-3", k=1.0, tau=6.0, theta=1.0, kp=0.3, ki=0.03, sp_period=20.0)
+    body = loop.body(1.0, mode="advisory", guard={"excitation_periods": 0.0})
+    assert httpx.post(f"{daemon.url}/loops", json=body, headers=BEARER).status_code == 201
+    plant = SimPlant(daemon.settings, [loop], dt=1.0, speed=20.0).start()
+    try:
+        page = logged_in(new_page(), daemon.url, "op")
+        page.goto(f"{daemon.url}/ui/loops/TIC-3")
+        page.wait_for_selector("#proposal-box:not([hidden])")
+
+        seq = int(page.locator("#proposal-box").get_attribute("data-seq"))
+        page.click("#approve")
+        applied = plant.applied.get(timeout=20.0)  # the plant applies the accepted gains
+        view = httpx.get(f"{daemon.url}/loops/TIC-3").json()
+        assert applied[0] == "TIC-3" and applied[1] > seq
+        assert (applied[2], applied[3]) == pytest.approx((view["kp"], view["ki"]))
+        assert (view["kp"], view["ki"]) != pytest.approx((0.3, 0.03))
+        history = httpx.get(f"{daemon.url}/loops/TIC-3/history").json()["items"]
+        accepted = next(e for e in history if e["reason"] == "accepted")
+        assert json.loads(accepted["detail"])["actor"] == "ui:op"
+
+        page.once("dialog", lambda d: d.accept())
+        page.click("#rollback")  # advisory: the last-good gains come back as a proposal
+        page.wait_for_function(
+            "document.getElementById('proposal-text').textContent.includes('(rollback)')"
+        )
+        page.click("#approve")
+        wait_until(
+            lambda: any(a[2:] == pytest.approx((0.3, 0.03)) for a in _drain(plant.applied)),
+            timeout=20.0,
+            what="the last-good gains on the plant",
+        )
+        page.wait_for_selector('#history tbody tr[data-reason="rollback"]')
+
+        page.wait_for_function(
+            "!document.getElementById('proposal-text').textContent.includes('(rollback)')"
+            " && !document.getElementById('proposal-box').hidden"
+        )  # the agent's next proposal
+        page.click("#reject")
+        page.wait_for_selector('#history tbody tr[data-reason="rejected"]')
+
+        page.click("#mode-shadow")
+        page.wait_for_selector('#mode[data-mode="shadow"]')
+        assert httpx.get(f"{daemon.url}/loops/TIC-3").json()["mode"] == "shadow"
+    finally:
+        plant.close()
+
+
+def _drain(q) -> list:
+    out = []
+    while not q.empty():
+        out.append(q.get())
+    return out

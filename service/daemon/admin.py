@@ -11,13 +11,18 @@ from __future__ import annotations
 import contextlib
 import gc
 import time
+from collections.abc import Callable
 
 import orjson
 
 from service.daemon.schemas import HistoryPage, LoopsPage
 from service.daemon.shards import shard_of
+from service.daemon.verdicts import SCAN, annotate
+from service.engine import views
 from service.engine.audit import AuditRow, audit_row
 from service.engine.config import LoopConfig, LoopPatch, LoopView
+from service.engine.figures import Performance
+from service.engine.updates import StepResult
 
 
 class Conflict(Exception):
@@ -68,7 +73,9 @@ class LoopAdmin:
         """Loops per status into the metrics (statuses change with time: done per scrape)."""
         with self.table.lock:
             counts = self.table.status_counts(time.time())
+            monitor = views.monitor_summary(self.table)
         self.metrics.set_status_counts(counts)
+        self.metrics.set_monitor(*monitor)
 
     def view(self, loop_id: str) -> LoopView:
         with self.table.lock:
@@ -190,11 +197,54 @@ class LoopAdmin:
             self.metrics.set_loop_counts(self.table.mode_counts())
 
     def history(self, loop_id: str, offset: int, limit: int) -> HistoryPage:
-        """Also for a deleted loop, as long as it has history."""
-        total, items = self.store.history(loop_id, offset, limit)
-        if not total and loop_id not in self.table.slot_of:
+        """Also for a deleted loop, as long as it has history; each change with its
+        verdict (:mod:`service.daemon.verdicts`)."""
+        with self.table.lock:
+            s = self.table.slot_of.get(loop_id)
+            judged = None if s is None else int(self.table.v_seq[s])
+        if offset + limit <= SCAN:  # the newer rows hold the verdicts of the page's
+            total, items = self.store.history(loop_id, 0, offset + limit)
+            annotate(items, judged)
+            items = items[offset:]
+        else:
+            total, items = self.store.history(loop_id, offset, limit)
+            annotate(items, judged)
+        if not total and s is None:
             raise UnknownLoop(loop_id)
         return HistoryPage(items=items, total=total, offset=offset, limit=limit)
+
+    def performance(self, loop_id: str) -> Performance:
+        with self.table.lock:
+            self._known(loop_id)
+            return self.engine.performance(loop_id)
+
+    def rollback(self, loop_id: str, actor: str = "api") -> LoopView:
+        """Restore the last-good gains now (auto: published; advisory: proposed).
+        Conflict when there is nothing to restore or the mode publishes nothing."""
+        return self._decide(loop_id, lambda wall: self.engine.rollback(loop_id, wall, actor))
+
+    def accept(self, loop_id: str, seq: int, actor: str = "api") -> LoopView:
+        """Accept an advisory loop's pending proposal ``seq``: published as an ``auto``
+        message for the gateway to apply. Conflict if ``seq`` is not the pending one."""
+        return self._decide(loop_id, lambda wall: self.engine.accept(loop_id, seq, wall, actor))
+
+    def reject(self, loop_id: str, seq: int, actor: str = "api") -> LoopView:
+        """Reject an advisory loop's pending proposal ``seq`` (recorded, nothing sent)."""
+        return self._decide(loop_id, lambda wall: self.engine.reject(loop_id, seq, wall, actor))
+
+    def _decide(self, loop_id: str, decide: Callable[[float], StepResult | None]) -> LoopView:
+        """An operator's decision: committed (and snapshotted) before it is published."""
+        wall = time.time()
+        with self.table.lock:
+            self._known(loop_id)
+            if self.store_failure is not None:
+                raise StoreUnavailable(self.store_failure)
+            try:
+                result = decide(wall)
+            except ValueError as exc:
+                raise Conflict(str(exc)) from None
+            self._commit(result)
+            return self.table.view(loop_id, wall)
 
 
 @contextlib.contextmanager

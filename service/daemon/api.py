@@ -34,6 +34,7 @@ from fastapi import (
     Depends,
     FastAPI,
     HTTPException,
+    Path,
     Query,
     Request,
     Response,
@@ -59,6 +60,7 @@ from service.daemon.schemas import (
 from service.daemon.settings import Settings
 from service.daemon.tuner import Tuner
 from service.engine.config import LoopPatch, LoopView, Registration
+from service.engine.figures import Performance
 
 log = logging.getLogger("pitune.api")
 _bearer = HTTPBearer(auto_error=False, description="PITUNE_API_TOKEN, when set")
@@ -196,6 +198,53 @@ def identify_loop(loop_id: str, tuner: TunerDep, request: Request) -> LoopView:
     scaling; a loop registered without a hint stops tuning until it is confident)."""
     view = tuner.identify(loop_id)
     _event(tuner, request, "identify", "loop %r: identification restarted", loop_id)
+    return view
+
+
+@loops.get("/{loop_id}/performance", responses={404: {}})
+def loop_performance(loop_id: str, tuner: TunerDep) -> Performance:
+    """Performance figures: the last setpoint response, recent ones (newest first), the
+    window figures (error variance, oscillation, manual, saturated, rejected) and the
+    verification state (last-good gains, pending change)."""
+    return tuner.performance(loop_id)
+
+
+@loops.post("/{loop_id}/rollback", dependencies=mutating, responses={404: {}, 409: {}, 503: {}})
+def rollback_loop(loop_id: str, tuner: TunerDep, request: Request) -> LoopView:
+    """Restore the last-good gains: published in auto, proposed in advisory (409 when the
+    gains in force are the last-good ones, or the loop is shadow or frozen)."""
+    view = tuner.rollback(loop_id)
+    _event(tuner, request, "rollback", "loop %r rolled back (kp=%.6g ki=%.6g, seq %d)",
+           loop_id, view.kp, view.ki, view.seq)  # fmt: skip
+    return view
+
+
+ProposalSeq = Annotated[int, Path(ge=1, le=MAX_OFFSET)]
+
+
+@loops.post(
+    "/{loop_id}/proposals/{seq}/accept", dependencies=mutating,
+    responses={404: {}, 409: {}, 503: {}},
+)  # fmt: skip
+def accept_proposal(loop_id: str, seq: ProposalSeq, tuner: TunerDep, request: Request) -> LoopView:
+    """Accept an advisory loop's pending proposal (its seq in the loop view): sent to the
+    gateway as an ``auto`` gains message (reason ``accepted``) and verified like any
+    change. 409 if it is not the pending proposal."""
+    view = tuner.accept(loop_id, seq)
+    _event(tuner, request, "accepted", "loop %r: proposal %d accepted (kp=%.6g ki=%.6g)",
+           loop_id, seq, view.kp, view.ki)  # fmt: skip
+    return view
+
+
+@loops.post(
+    "/{loop_id}/proposals/{seq}/reject", dependencies=mutating,
+    responses={404: {}, 409: {}, 503: {}},
+)  # fmt: skip
+def reject_proposal(loop_id: str, seq: ProposalSeq, tuner: TunerDep, request: Request) -> LoopView:
+    """Reject an advisory loop's pending proposal: recorded; the agent's proposals start
+    again from the gains in force after the cool-down."""
+    view = tuner.reject(loop_id, seq)
+    _event(tuner, request, "rejected", "loop %r: proposal %d rejected", loop_id, seq)
     return view
 
 

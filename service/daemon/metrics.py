@@ -13,6 +13,7 @@ import logging
 import time
 from collections.abc import Callable
 
+import orjson
 from prometheus_client import (
     CollectorRegistry,
     Counter,
@@ -110,6 +111,29 @@ class Metrics:
             ["outcome"],
             registry=r,
         )
+        self.verdicts = Counter(
+            "pitune_verdicts",
+            "Verdicts of gain changes (verified, rolled_back, rollback_proposed, worse), "
+            "by what judged them (iae, oscillation, operator; '' for verified).",
+            ["verdict", "why"],
+            registry=r,
+        )
+        self.monitor = Gauge(
+            "pitune_loops_monitor",
+            "Loops by monitoring state at scrape time: oscillating, change_pending "
+            "(gains differ from the last-good), held (after a rollback or rejection), "
+            "proposal_pending (advisory). Aggregated: no per-loop series.",
+            ["state"],
+            registry=r,
+        )
+        self.monitor_means = Gauge(
+            "pitune_loops_monitor_mean",
+            "Mean over loops of a window figure at scrape time: manual_share, "
+            "saturated_share, rejected_share, and of the last response's iae_ratio (its "
+            "IAE over the last-good IAE, loops with both).",
+            ["figure"],
+            registry=r,
+        )
         self.events = EventLog()
         """INFO lines of loop changes: call ``events.audit(rows)`` with the audit rows
         committed (see :mod:`service.daemon.logs`)."""
@@ -132,6 +156,22 @@ class Metrics:
     def set_status_counts(self, counts: dict[LoopStatus, int]) -> None:
         for status in LoopStatus:
             self.loops_by_status.labels(status.value).set(counts.get(status, 0))
+
+    def set_monitor(self, counts: dict[str, int], means: dict[str, float]) -> None:
+        for state, n in counts.items():
+            self.monitor.labels(state).set(n)
+        for figure, value in means.items():
+            self.monitor_means.labels(figure).set(value)
+
+    def verdict(self, rows) -> None:
+        """Count the verdicts among committed audit rows."""
+        for row in rows:
+            reason = row[5]
+            if reason == "verified":
+                self.verdicts.labels("verified", "").inc()
+            elif reason in ("rollback", "verdict"):
+                detail = orjson.loads(row[10])
+                self.verdicts.labels(detail["verdict"], detail.get("why", "")).inc()
 
     def set_loop_counts(self, counts: dict[Mode, int]) -> None:
         for mode in Mode:

@@ -23,7 +23,9 @@ class BulkRegistered(BaseModel):
 
 
 AuditReason = Literal[
-    "registered", "agent", "reset", "adopted", "patched", "deleted", "fault"
+    "registered", "agent", "reset", "adopted", "patched", "deleted", "fault",
+    "verified", "rollback", "verdict", "accepted", "rejected",
+    "identify", "identified", "rescaled", "mismatch", "out_of_envelope", "in_envelope",
 ]  # fmt: skip
 
 
@@ -42,6 +44,12 @@ class AuditEntry(BaseModel):
     kp_new: float | None
     ki_new: float | None
     detail: str = ""
+    verdict: str | None = Field(
+        None,
+        description="Of a change of the gains in force: verified, rolled_back, "
+        "rollback_proposed, worse or pending (None: not a change, or judged before the "
+        "rows read; docs/tuner.md, Performance and verification).",
+    )
 
 
 MAX_PAGE = 1000

@@ -501,6 +501,7 @@ class Tuner(StateQueries, Ownership, LoopAdmin):
             if row[5] in IDENTIFICATION_OUTCOMES:  # counted, and its state saved promptly
                 self.metrics.identification.labels(row[5]).inc()
                 self._snapshot_todo.append(row[0])
+        dirty = self.table.drain_verify_dirty()
         if gains or audit:
             try:
                 if self.cluster is None:
@@ -510,14 +511,29 @@ class Tuner(StateQueries, Ownership, LoopAdmin):
                     self.store.record_gains(gains, audit, fence)
             except Fenced as exc:
                 self._fenced(exc, gains, audit)
+                self.table.requeue_verify_dirty(dirty)  # of the loops still ours
                 self._commit(None)
                 return
             except Exception as exc:  # sqlite3.Error, OSError, MemoryError: all the same
                 self.table.requeue(gains, audit)
+                self.table.requeue_verify_dirty(dirty)
                 self._store_failed(exc)
                 return
             # INFO per gain change / adoption, rate-limited (the API logs resets with their caller)
             self.metrics.events.audit(row for row in audit if row[5] != "reset")
+            self.metrics.verdict(audit)
+        if dirty:
+            # last-good gains, verdicts and proposals on disk before what follows from
+            # them goes out: a SIGKILL after this keeps them (they resume on restart)
+            rows = self.table.snapshot(dirty)
+            try:
+                self.store.snapshot(rows, None if self.cluster is None else self._fence(dirty))
+            except Fenced as exc:  # leases lost since the commit: those loops are dropped
+                self._fenced(exc, [], [])
+            except Exception as exc:  # noqa: BLE001 - as above
+                self.table.requeue_verify_dirty(dirty)
+                self._store_failed(exc)
+                return
         if self._store_failing_since is not None:
             log.warning("store commits work again; publishing %d held steps", len(self._held))
             self._store_failing_since = None

@@ -10,6 +10,7 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from service.engine.figures import Proposal, Verification
 from service.units import AGENT_GAIN_RANGE, AGENT_TAU, DEFAULT_FORGETTING, Scaling, ScalingSpec
 from service.wire.protocol import MAX_MAGNITUDE, Gain, GatewayId, LoopId, LoopStatus, Mode
 
@@ -28,6 +29,8 @@ range (``AGENT_GAIN_RANGE`` in agent units, 1e-4..5000 with the default) under t
 further out the gains or the hint are wrong by orders of magnitude (typically ki per
 minute given as per second, or k_hat in other units), and the registration is refused
 rather than the default guard widened to match."""
+Margin = Annotated[float, Field(strict=True, gt=0.0, le=10.0, allow_inf_nan=False)]
+Periods = Annotated[float, Field(strict=True, ge=0.0, le=1e6, allow_inf_nan=False)]
 
 
 class Guard(BaseModel):
@@ -82,6 +85,23 @@ class Guard(BaseModel):
         description="Pause tuning (status out_of_envelope) while the identified dynamics, "
         "in agent units, lie outside the agent's training box by the envelope margin, or "
         "the process looks integrating.",
+    )
+    verify: bool = Field(
+        True,
+        description="Verify every change of the gains on the next setpoint response and "
+        "roll back (auto) or propose rolling back (advisory) one that made the loop worse "
+        "or made it oscillate (docs/tuner.md, Performance and verification).",
+    )
+    verify_margin: Margin = Field(
+        0.4,
+        description="A change fails when its response's IAE per unit move exceeds the "
+        "last-good gains' (same direction of move) by more than this share (0.4: no false "
+        "rollback in 1,000 good changes with 2 % noise, every doubled IAE fails, and room "
+        "for a non-linear plant's operating points: docs/tuner.md).",
+    )
+    cooldown_periods: Periods = Field(
+        8.0,
+        description="RL periods the agent is held after a rollback or a rejected proposal.",
     )
 
 
@@ -268,6 +288,9 @@ class LoopPatch(BaseModel):
     hint_tolerance: Tolerance | None = None
     auto_rescale: bool | None = None
     envelope_guard: bool | None = None
+    verify: bool | None = None
+    verify_margin: Margin | None = None
+    cooldown_periods: Periods | None = None
     gateway: GatewayId | None = Field(
         None, description="Set a gateway (batched gains), or null: one message per loop again."
     )
@@ -383,3 +406,9 @@ class LoopView(BaseModel):
     hidden_norm: float = Field(description="Norm of the agent's hidden state (0 after reset).")
     counters: Counters
     identification: Identification | None = None
+    verification: Verification | None = Field(
+        None, description="Last-good gains and the verification state (verify-or-rollback)."
+    )
+    proposal: Proposal | None = Field(
+        None, description="An advisory loop's pending proposal (accept or reject it by seq)."
+    )

@@ -36,7 +36,7 @@ import numpy as np
 
 from service.agent.fast import Precision
 from service.agent.model import Agent, load_agent
-from service.engine import rules, stepping, watch
+from service.engine import monitor, rules, stepping, verify, views, watch
 from service.engine.audit import AuditRow
 from service.engine.config import LoopConfig, LoopView
 from service.engine.table import LoopTable, RawView
@@ -61,6 +61,7 @@ class TuningEngine:
         inference_workers: int = 1,
         inference_precision: Precision | Literal["reference"] = "float32",
         on_reject: RejectHandler | None = None,
+        verifying: bool = True,
     ) -> None:
         self.agent = agent if agent is not None else load_agent()
         self.table = LoopTable(
@@ -79,6 +80,9 @@ class TuningEngine:
         """False: loops that fall due are not stepped (counted in :attr:`skipped`): the
         daemon's choice while its store cannot record a step."""
         self.skipped = 0
+        self.verifying = verifying
+        """False: no verdicts (the figures are still computed): ``pitune evaluate``
+        measures the agent itself."""
         self._due: dict[int, None] = {}  # ordered set of slots
 
     # -- registration -----------------------------------------------------------------
@@ -129,6 +133,39 @@ class TuningEngine:
             s = self.table.slot(loop_id)
             self._due.pop(s, None)
             watch.restart(self.table, s, _now(wall))
+
+    def rollback(self, loop_id: str, wall: float | None = None, actor: str = "") -> StepResult:
+        """Restore the last-good gains now (``POST /loops/{id}/rollback``): published in
+        ``auto``, proposed in ``advisory``; ValueError when there is nothing to restore
+        (the gains in force are the last-good ones) or the mode publishes nothing."""
+        with self.lock:
+            s = self.table.slot(loop_id)
+            if not verify.changed(self.table, s):
+                raise ValueError("the gains in force are the last-good gains")
+            result = verify.fail(self.table, s, "operator", _now(wall), figure=None, actor=actor)
+            if result is None:
+                raise ValueError(f"a {self.table.mode_of(s).value} loop publishes no gains")
+            self._due.pop(s, None)
+            return result
+
+    def accept(
+        self, loop_id: str, seq: int, wall: float | None = None, actor: str = ""
+    ) -> StepResult:
+        """Accept an advisory loop's pending proposal ``seq`` (see :func:`verify.accept`)."""
+        with self.lock:
+            s = self.table.slot(loop_id)
+            self._due.pop(s, None)
+            return verify.accept(self.table, s, seq, _now(wall), actor)
+
+    def reject(self, loop_id: str, seq: int, wall: float | None = None, actor: str = "") -> None:
+        """Reject an advisory loop's pending proposal ``seq`` (see :func:`verify.reject`)."""
+        with self.lock:
+            verify.reject(self.table, self.table.slot(loop_id), seq, _now(wall), actor)
+
+    def performance(self, loop_id: str):
+        """The loop's figures, their history and its verification state."""
+        with self.lock:
+            return views.performance(self.table, self.table.slot(loop_id))
 
     def __contains__(self, loop_id: object) -> bool:
         return loop_id in self.table.slot_of
@@ -194,6 +231,7 @@ class TuningEngine:
                     self._reject(Rejection(int(part.index[i]), part.loop_ids[i], reason, detail))
                 for s in part_slots[due].tolist():
                     self._due[s] = None
+                results.extend(self._judge(wall))
         return results
 
     def _segments(self, rows: Columns, slots: np.ndarray):
@@ -238,11 +276,27 @@ class TuningEngine:
         """Loops due for an RL step, waiting for :meth:`flush`."""
         return len(self._due)
 
+    def _judge(self, wall: float) -> list[StepResult]:
+        """Verdicts of the responses completed and oscillations started (verify.py)."""
+        tb = self.table
+        if not tb.to_judge:
+            return []
+        done = np.concatenate([d for d, _ in tb.to_judge])
+        osc = np.concatenate([o for _, o in tb.to_judge])
+        tb.to_judge.clear()
+        if not self.verifying:
+            return []
+        failed = verify.judge(tb, done, osc, wall)
+        for result in failed:
+            self._due.pop(tb.slot(result.loop_ids[0]), None)
+        return failed
+
     def _reject(self, rejection: Rejection) -> None:
         self.rejected[rejection.reason] += 1
         slot = self.table.slot_of.get(rejection.loop_id)
         if slot is not None:
             self.table.n_rejected[slot] += 1
+            monitor.rejected(self.table, slot)
         if self.on_reject is not None:
             self.on_reject(rejection)
 

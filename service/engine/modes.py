@@ -5,4 +5,6 @@ from service.wire.protocol import Mode
 
 _MODES = list(Mode)
 _CODE = {m: i for i, m in enumerate(_MODES)}
-AUTO, ADVISORY, FROZEN = (_CODE[m] for m in (Mode.auto, Mode.advisory, Mode.frozen))
+AUTO, ADVISORY, FROZEN, SHADOW = (
+    _CODE[m] for m in (Mode.auto, Mode.advisory, Mode.frozen, Mode.shadow)
+)

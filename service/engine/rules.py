@@ -47,7 +47,7 @@ import math
 
 import numpy as np
 
-from service.engine import watch
+from service.engine import monitor, watch
 from service.engine.audit import audit_row
 from service.engine.modes import _MODES, AUTO, FROZEN
 from service.engine.table import LoopTable
@@ -68,7 +68,7 @@ CLOCK_RESET_SAMPLES = 10
 """Consecutive, mutually increasing samples older than the loop's last one that are
 taken as a new plant clock (a restarted gateway, or a last sample from the far future)
 rather than rejected forever as out of order."""
-GAIN_RTOL = 1e-6
+GAIN_RTOL = monitor.GAIN_RTOL
 """Relative tolerance when comparing reported gains with the tuner's: a DCS storing gains
 as float32 reports them off by up to 6e-8 relative, which is no operator's change."""
 
@@ -136,7 +136,7 @@ def ingest(
         cols = {k: v[ok] for k, v in cols.items()}
     tb.back_n[slots] = 0.0
     _adopt(tb, slots, cols, wall)
-    _excite(tb, slots, cols, last_t)
+    moved = _excite(tb, slots, cols, last_t)
 
     tb.n_samples[slots] += 1
     tb.last_wall[slots] = wall
@@ -148,6 +148,11 @@ def ingest(
     tb.last_t[slots] = t
     fresh = np.isnan(last_t) | (t - last_t > tb.stale_gap[slots]) | resumed
     watch.record(tb, slots, cols, last_t, fresh, wall)
+    judged = monitor.observe(
+        tb, slots, t, e, tb.last_e[slots], last_t, moved, fresh, auto, saturated
+    )
+    if judged[0].size or judged[1].size:
+        tb.to_judge.append(judged)
     period = tb.period[slots]
     next_due = np.where(fresh, t + period, tb.next_due[slots])
     step = np.where(fresh | paused, 0.0, 0.5 * (e + tb.last_e[slots]) * (t - last_t))
@@ -161,14 +166,16 @@ def ingest(
     due_ok = reached & (tb.mode[slots] != FROZEN) & auto & ~saturated & ~tb.out_env[slots]
     gated = due_ok & tb.gate_closed(slots, t)
     tb.n_quiet[slots[gated]] += 1
-    due_ok &= ~gated
+    # held after a rollback or a rejected proposal (verify.py): neither stepped nor quiet
+    due_ok &= ~gated & (t >= tb.cool_until[slots])
     due = np.zeros(ok.size, bool)
     due[np.flatnonzero(ok)[due_ok]] = True
     return due, rejections
 
 
-def _excite(tb: LoopTable, slots: np.ndarray, cols: dict[str, np.ndarray], last_t) -> None:
-    """The excitation gate's part of :meth:`ingest` (before ``last_e`` moves on)."""
+def _excite(tb: LoopTable, slots: np.ndarray, cols: dict[str, np.ndarray], last_t) -> np.ndarray:
+    """The excitation gate's part of :meth:`ingest` (before ``last_e`` moves on); returns
+    where the setpoint moved (the monitor's responses start there too)."""
     sp, e, step = cols["sp"], cols["e"], tb.exc_step[slots]
     ref = tb.sp_ref[slots]
     has_sp = ~np.isnan(sp)
@@ -183,6 +190,7 @@ def _excite(tb: LoopTable, slots: np.ndarray, cols: dict[str, np.ndarray], last_
     tb.obs_gain[slots[moved]] = np.clip(PAPER_MOVE / size[moved], *OBS_GAIN_RANGE)
     tb.sp_ref[slots] = np.where(has_sp & (moved | np.isnan(ref)), sp, ref)
     tb.excited_until[slots[moved]] = cols["t"][moved] + tb.exc_window[slots[moved]]
+    return moved
 
 
 def _adopt(tb: LoopTable, slots: np.ndarray, cols: dict[str, np.ndarray], wall: float) -> None:

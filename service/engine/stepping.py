@@ -5,15 +5,22 @@ most a relative change ``r`` per update ([old / (1 + r), old * (1 + r)], symmetr
 space), so a gain outside its bounds (an operator's choice) is walked back gradually.
 ``auto`` loops take the guarded gains at once (an update in flight until the gateway
 reports them); ``advisory`` loops are stepped and their proposals published, but their
-gains change only when the gateway reports new ones.
+gains change only when the gateway reports new ones; ``shadow`` loops are stepped and
+their proposals recorded in the audit log with a predicted effect, never published.
+Advisory and shadow proposals follow a proposal track (see :mod:`service.engine.verify`):
+the agent's step is added to the previous proposal, and the guard applies from it.
+
+Every step's gains message and audit row carry a short ``key=value`` reason
+(:func:`_why`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from service.engine import predict, verify
 from service.engine.audit import audit_row
-from service.engine.modes import AUTO
+from service.engine.modes import ADVISORY, AUTO, SHADOW
 from service.engine.rules import GAIN_RTOL
 from service.engine.table import LoopTable
 from service.engine.updates import MODE_VALUES, StepResult
@@ -50,13 +57,22 @@ def step(tb: LoopTable, slots: np.ndarray, wall: float) -> StepResult:
         slots, proposed, state = slots[sane], proposed[sane], state[sane]
     tb.hidden[slots] = state
     old = np.column_stack([tb.kp[slots], tb.ki[slots]])
+    mode = tb.mode[slots]
+    # advisory and shadow proposals: the agent's step added to the previous proposal
+    track = (mode == ADVISORY) | (mode == SHADOW)
+    base = old
+    if track.any():
+        prev = np.column_stack([tb.adv_kp[slots], tb.adv_ki[slots]])
+        base = np.where(track[:, None] & np.isfinite(prev), prev, old)
+        proposed = proposed + (base - old)
     grow = 1.0 + tb.max_rel[slots, None]
     lo = np.column_stack([tb.kp_min[slots], tb.ki_min[slots]])
     hi = np.column_stack([tb.kp_max[slots], tb.ki_max[slots]])
-    new = np.clip(np.clip(proposed, lo, hi), old / grow, old * grow)
+    bounded = np.clip(proposed, lo, hi)
+    new = np.clip(bounded, base / grow, base * grow)
 
-    auto = slots[tb.mode[slots] == AUTO]
-    applied = tb.mode[slots] == AUTO
+    applied = mode == AUTO
+    auto = slots[applied]
     tb.prev_kp[auto], tb.prev_ki[auto] = old[applied, 0], old[applied, 1]
     tb.kp[auto], tb.ki[auto] = new[applied, 0], new[applied, 1]
     tb.pending[auto] = True
@@ -64,24 +80,42 @@ def step(tb: LoopTable, slots: np.ndarray, wall: float) -> StepResult:
     tb.n_steps[slots] += 1
     tb.n_updates[slots] += 1
     tb._gains_dirty.update(slots.tolist())
+    if track.any():
+        tracked = slots[track]
+        tb.adv_kp[tracked], tb.adv_ki[tracked] = new[track, 0], new[track, 1]
+        tb.adv_seq[tracked] = tb.seq[tracked]
+        tb._verify_dirty.update(tracked.tolist())
 
     ids, gateways, listed = tb.ids, tb.gateways, slots.tolist()
     result = StepResult(
         [ids[s] for s in listed],
         tb.last_t[slots],
         tb.seq[slots],
-        tb.mode[slots],
+        mode,
         old,
         proposed,
         new,
         [gateways[s] for s in listed],
+        why=_why(tb, slots, mode, old, proposed, bounded, new),
     )
     limited = np.flatnonzero(~np.isclose(proposed, new, rtol=GAIN_RTOL, atol=0.0).all(axis=1))
-    details = [""] * len(slots)
+    # the audit row adds the figures the change was made on: the last response's IAE and
+    # the last-good gains' (its verdict row will add the figure after)
+    details = [
+        f"{why} iae={f:.4g} good_iae={g:.4g}"
+        for why, f, g in zip(result.why, tb.f_iae[slots].tolist(),
+                             verify.reference(tb, slots).tolist(),
+                             strict=True)
+    ]  # fmt: skip
     # formatting Python floats, not numpy scalars: a cold loop is limited in most steps
     for i, (kp, ki) in zip(limited.tolist(), proposed[limited].tolist(), strict=True):
-        details[i] = _guard_detail(kp, ki)
-    mode_names = [MODE_VALUES[c] for c in result.mode.tolist()]
+        details[i] = f"{details[i]}; {_guard_detail(kp, ki)}"
+    shadow = np.flatnonzero(mode == SHADOW)
+    if shadow.size:
+        predicted = predict.predictions(tb, slots[shadow].tolist(), old[shadow], new[shadow])
+        for i, text in zip(shadow.tolist(), predicted, strict=True):
+            details[i] = f"{details[i]} {text}"
+    mode_names = [MODE_VALUES[c] for c in mode.tolist()]
     tb._audit.extend(
         zip(
             result.loop_ids, [wall] * len(slots), result.t.tolist(), result.seq.tolist(),
@@ -89,7 +123,27 @@ def step(tb: LoopTable, slots: np.ndarray, wall: float) -> StepResult:
             new[:, 0].tolist(), new[:, 1].tolist(), details, strict=True,
         )
     )  # fmt: skip
-    return result
+    return result.without(shadow) if shadow.size else result
+
+
+def _why(tb, slots, mode, old, proposed, bounded, new) -> list[str]:
+    """The short ``key=value`` reason of each step (docs/tuner.md, Reasons): the loop's
+    basis (an identified model or the hint), the change, which guard limit bit, and the
+    verdict to come."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        pct = (new / old - 1.0) * 100.0
+    same = np.isclose(proposed, bounded, rtol=GAIN_RTOL, atol=0.0).all(axis=1)
+    free = np.isclose(bounded, new, rtol=GAIN_RTOL, atol=0.0).all(axis=1)
+    guards = np.where(~same, "bounds", np.where(~free, "rate", "none")).tolist()
+    basis = ["model" if tb.ident[s].scaling is not None else "hint" for s in slots.tolist()]
+    verdicts = [_VERDICT.get(c, "none") for c in mode.tolist()]
+    return [
+        f"reason=agent basis={b} dkp={p[0]:+.1f}% dki={p[1]:+.1f}% guard={g} verdict={v}"
+        for b, p, g, v in zip(basis, pct.tolist(), guards, verdicts, strict=True)
+    ]
+
+
+_VERDICT = {AUTO: "pending", ADVISORY: "proposal", SHADOW: "shadow"}
 
 
 def _observe(tb: LoopTable, slots: np.ndarray) -> np.ndarray:

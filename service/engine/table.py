@@ -25,10 +25,18 @@ import orjson
 
 from service.agent.fast import FastPolicy, Precision
 from service.agent.model import Agent
-from service.engine import watch
+from service.engine import monitor, verify, views, watch
 from service.engine.audit import AuditRow, audit_row
-from service.engine.config import Counters, Identification, LoopConfig, LoopView, resolve_bounds
-from service.engine.modes import _CODE, _MODES, AUTO, FROZEN
+from service.engine.config import (
+    Counters,
+    Identification,
+    LoopConfig,
+    LoopView,
+    Proposal,
+    Verification,
+    resolve_bounds,
+)  # fmt: skip
+from service.engine.modes import _CODE, _MODES, AUTO, FROZEN, SHADOW
 from service.engine.updates import MODE_VALUES, StepResult
 from service.units import Scaling
 from service.wire.protocol import LoopStatus, Mode, UpdateReason
@@ -121,6 +129,8 @@ class RawView:
     scaling: Scaling | None = None
     """The scaling in force (the hint's or the identified model's)."""
     identification: Identification | None = None
+    verification: Verification | None = None
+    proposal: Proposal | None = None
 
     def parse(self) -> LoopView:
         config = LoopConfig.model_validate_json(self.config)
@@ -139,6 +149,8 @@ class RawView:
             int_e=self.int_e,
             hidden_norm=self.hidden_norm,
             counters=self.counters,
+            verification=self.verification,
+            proposal=self.proposal,
         )
 
 
@@ -172,7 +184,11 @@ class LoopTable:
         self.gateways: list[str | None] = []
         self._free: list[int] = []
         self._gains_dirty: set[int] = set()
+        self._verify_dirty: set[int] = set()
+        """Loops whose verification state moved: to snapshot before publishing."""
         self._audit: list[AuditRow] = []
+        self.to_judge: list[tuple[np.ndarray, np.ndarray]] = []
+        """(responses completed, oscillations started) awaiting :func:`verify.judge`."""
         self.ident: list[watch.IdState | None] = []
         self.recorder = watch.Recorder()
         self._allocate(capacity)
@@ -187,6 +203,12 @@ class LoopTable:
                 if old:
                     arr[:old] = getattr(self, name)
                 setattr(self, name, arr)
+        monitor.allocate(self, capacity, old)
+        for name in verify.F64:
+            arr = np.zeros(capacity)
+            if old:
+                arr[:old] = getattr(self, name)
+            setattr(self, name, arr)
         h = np.zeros((capacity, layers, hidden), np.float32)
         if old:
             h[:old] = self.hidden
@@ -239,6 +261,8 @@ class LoopTable:
         self.op_int[s] = self.op_kp[s] = 0.0
         self.prev_t[s] = self.prev_sp[s] = self.prev_pv[s] = self.prev_op[s] = math.nan
         self.id_sp[s] = math.nan
+        monitor.clear(self, s)
+        verify.init(self, s)
         self._configure(s, config)
         self._restart(s)
         if hidden is not None and runtime is not None:
@@ -263,6 +287,7 @@ class LoopTable:
         self.watch[s] = config.scaling is None if g.identify is None else g.identify
         self.env_guard[s] = g.envelope_guard
         self.scaled[s] = sc is not None
+        self._configure_monitor(s, sc, g)
         if sc is None:  # identifying: no unit mapping yet, never due
             self.kp_unit[s] = self.ki_unit[s] = self.period[s] = self.exc_step[s] = math.nan
             self.e_scale[s] = self.int_scale[s] = 0.0
@@ -281,6 +306,19 @@ class LoopTable:
         self.exc_step[s] = g.excitation_min_step / sc.e_scale
         self.exc_window[s] = g.excitation_periods * sc.rl_period_s or math.inf
 
+    def _configure_monitor(self, s: int, sc: Scaling | None, g) -> None:
+        """The target trajectory's model (identified, else the hint's tau with no dead
+        time) and the verification settings; after the timing arrays are set."""
+        model = self.ident[s].in_force
+        if model is not None:
+            monitor.configure(self, s, model.tau, model.theta)
+        else:
+            monitor.configure(
+                self, s, None if sc is None else monitor.hinted_tau(sc.rl_period_s), 0.0
+            )
+        self.period[s] = math.nan if sc is None else sc.rl_period_s
+        verify.configure(self, s, g.verify, g.verify_margin, g.cooldown_periods)
+
     def scaling_of(self, s: int) -> Scaling | None:
         """The scaling in force: identified, else the config's hint, else None."""
         return self.ident[s].in_force_scaling
@@ -297,7 +335,10 @@ class LoopTable:
         self.pending[s] = self.manual[s] = self.saturated[s] = False
 
     def reconfigure(self, config: LoopConfig) -> None:
-        self._configure(self.slot(config.id), config)
+        s = self.slot(config.id)
+        if _CODE[config.mode] != self.mode[s]:  # a proposal belongs to the mode it was made in
+            self.adv_kp[s] = self.adv_ki[s] = self.adv_seq[s] = math.nan
+        self._configure(s, config)
 
     def remove(self, loop_id: str) -> None:
         s = self.slot_of[loop_id]
@@ -330,12 +371,14 @@ class LoopTable:
         t = self.last_t[s]
         t = None if math.isnan(t) else float(t)
         self._restart(s)
+        self.cool_until[s] = -math.inf
+        self.adv_kp[s] = self.adv_ki[s] = self.adv_seq[s] = math.nan
         mode = self.mode[s]
-        if mode == FROZEN:
-            detail = "agent state only: a frozen loop's gains are not published"
+        if mode in (FROZEN, SHADOW):
+            detail = f"agent state only: a {MODE_VALUES[mode]} loop's gains are not published"
             detail = f"{detail}; {who}" if who else detail
             self._audit.append(
-                audit_row(loop_id, wall, t, int(self.seq[s]), Mode.frozen.value, "reset", old,
+                audit_row(loop_id, wall, t, int(self.seq[s]), MODE_VALUES[mode], "reset", old,
                           old, detail)
             )  # fmt: skip
             return None
@@ -357,6 +400,7 @@ class LoopTable:
             np.array([new]),
             [self.gateways[s]],
             UpdateReason.reset,
+            why=["reason=reset basis=registered verdict=pending"],
         )
 
     # -- samples ----------------------------------------------------------------------
@@ -379,6 +423,16 @@ class LoopTable:
         audit, self._audit = self._audit, []
         self._gains_dirty.clear()
         return gains, audit
+
+    def drain_verify_dirty(self) -> list[str]:
+        """Ids of the loops whose verification state moved since the last call (the
+        daemon snapshots them before publishing)."""
+        ids = [self.ids[s] for s in sorted(self._verify_dirty) if self.ids[s] is not None]
+        self._verify_dirty.clear()
+        return ids
+
+    def requeue_verify_dirty(self, ids: list[str]) -> None:
+        self._verify_dirty.update(self.slot_of[i] for i in ids if i in self.slot_of)
 
     def requeue(self, gains: list[tuple[float, float, int, str]], audit: list[AuditRow]) -> None:
         """Put back changes :meth:`drain_changes` returned that could not be stored, ahead
@@ -416,6 +470,8 @@ class LoopTable:
                     "mismatch": bool(self.mismatch[s]),
                     "out_env": bool(self.out_env[s]),
                 },
+                "verify": verify.dump(self, s),
+                "figures": monitor.dump(self, s),
             },
             option=orjson.OPT_SERIALIZE_NUMPY,
         ).decode()
@@ -442,6 +498,9 @@ class LoopTable:
             self.ident[s] = watch.IdState.load(ident)
             self.mismatch[s], self.out_env[s] = ident["mismatch"], ident["out_env"]
             self._configure(s, self.configs[self.ids[s]])
+        if "verify" in rt:  # absent in snapshots from before verification
+            verify.load(self, s, rt["verify"])
+            monitor.load(self, s, rt.get("figures") or {})
 
     # -- views ------------------------------------------------------------------------
     def status(self, s: int, wall: float) -> LoopStatus:
@@ -494,6 +553,8 @@ class LoopTable:
             ),
             scaling=self.ident[s].in_force_scaling,
             identification=watch.view(self, s),
+            verification=views.verification(self, s),
+            proposal=views.proposal(self, s),
         )
 
     def status_counts(self, wall: float) -> dict[LoopStatus, int]:

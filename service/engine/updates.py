@@ -28,7 +28,10 @@ class GainUpdate:
     mode: str
     """``auto`` (to be applied) or ``advisory`` (a proposal)."""
     reason: str
-    """``agent`` (an RL step after the safety guard) or ``reset``."""
+    """``agent`` (an RL step after the safety guard), ``reset``, ``rollback`` or
+    ``accepted`` (an advisory proposal an operator accepted)."""
+    why: str = ""
+    """Short machine-readable explanation, ``key=value`` pairs (docs/tuner.md, Reasons)."""
 
 
 @dataclass
@@ -52,6 +55,8 @@ class StepResult:
     reason: UpdateReason = UpdateReason.agent
     inference_s: float = 0.0
     """Seconds the agent's batched step took (0 for a reset)."""
+    why: list[str] | None = None
+    """Per loop, the short machine-readable reason (see :class:`GainUpdate`)."""
 
     def __len__(self) -> int:
         return len(self.loop_ids)
@@ -60,19 +65,33 @@ class StepResult:
         """:class:`~service.wire.protocol.GainsMessage` JSON objects, built directly
         (validating a model per loop would cost more than the whole step)."""
         new, delta = self.new, self.new - self.old
-        why = self.reason.value
+        reason = self.reason.value
         modes = [MODE_VALUES[c] for c in self.mode.tolist()]
+        whys = self.why if self.why is not None else [f"reason={reason}"] * len(self)
         return [
             {
                 "v": SCHEMA_VERSION, "loop_id": loop_id, "seq": seq, "t": t, "dkp": dkp,
-                "dki": dki, "kp": kp, "ki": ki, "mode": mode, "reason": why,
-                "instance_id": instance_id,
+                "dki": dki, "kp": kp, "ki": ki, "mode": mode, "reason": reason,
+                "instance_id": instance_id, "why": why,
             }
-            for loop_id, seq, t, dkp, dki, kp, ki, mode in zip(
+            for loop_id, seq, t, dkp, dki, kp, ki, mode, why in zip(
                 self.loop_ids, self.seq.tolist(), self.t.tolist(), delta[:, 0].tolist(),
-                delta[:, 1].tolist(), new[:, 0].tolist(), new[:, 1].tolist(), modes, strict=True,
+                delta[:, 1].tolist(), new[:, 0].tolist(), new[:, 1].tolist(), modes, whys,
+                strict=True,
             )
         ]  # fmt: skip
+
+    def without(self, rows: np.ndarray) -> StepResult:
+        """The same decision without the given rows (shadow loops: nothing published)."""
+        keep = np.ones(len(self), bool)
+        keep[rows] = False
+        idx = np.flatnonzero(keep).tolist()
+        return StepResult(
+            [self.loop_ids[i] for i in idx], self.t[keep], self.seq[keep], self.mode[keep],
+            self.old[keep], self.proposed[keep], self.new[keep],
+            [self.gateways[i] for i in idx], self.reason, self.inference_s,
+            None if self.why is None else [self.why[i] for i in idx],
+        )  # fmt: skip
 
     def updates(self) -> list[GainUpdate]:
         """The same decisions one by one."""

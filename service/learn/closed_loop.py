@@ -24,10 +24,11 @@ Policy = Agent | FastPolicy
 
 def engine_of(policy: Policy) -> TuningEngine:
     """A tuning engine computing with ``policy``: the tuner's fast path in its precision,
-    or ``agent.act`` (the reference)."""
+    or ``agent.act`` (the reference). Verification is off: the evaluation measures the
+    agent itself (``pitune verify-eval`` measures verification)."""
     if isinstance(policy, FastPolicy):
-        return TuningEngine(policy.agent, inference_precision=policy.precision)
-    return TuningEngine(policy, inference_precision="reference")
+        return TuningEngine(policy.agent, inference_precision=policy.precision, verifying=False)
+    return TuningEngine(policy, inference_precision="reference", verifying=False)
 
 
 def tune(

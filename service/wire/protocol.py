@@ -38,11 +38,12 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 SCHEMA_VERSION = 1
-SCHEMA_REVISION = 2
+SCHEMA_REVISION = 3
 """Additive revisions within :data:`SCHEMA_VERSION` (optional fields only, ``v`` unchanged):
 1 the original; 2 ``Sample.applied_seq``, ``epoch`` in gains and state messages, the
-supervision fields of :class:`StateReply`, :class:`StateBatch` and ``after_t``
-(docs/protocol.md, Versioning)."""
+supervision fields of :class:`StateReply`, :class:`StateBatch` and ``after_t``; 3
+``GainsMessage.why``, the reasons ``rollback`` and ``accepted``, the mode ``shadow`` in
+state replies (docs/protocol.md, Versioning)."""
 DEFAULT_PREFIX = "pitune"
 ENCODING = "application/json"
 MAX_MAGNITUDE = 1e12
@@ -74,6 +75,9 @@ class Mode(StrEnum):
     """Updates are published for a human to consider and never assumed applied."""
     frozen = "frozen"
     """No updates at all."""
+    shadow = "shadow"
+    """The agent steps and its proposals are recorded with a predicted effect; nothing is
+    published (revision 3)."""
 
 
 class LoopStatus(StrEnum):
@@ -108,6 +112,12 @@ class UpdateReason(StrEnum):
     """A step of the RL agent (after the safety guard)."""
     reset = "reset"
     """An operator reset the loop to its registered gains."""
+    rollback = "rollback"
+    """The last-good gains restored (auto) or proposed (advisory): a change made the loop
+    worse, or an operator asked for it (revision 3)."""
+    accepted = "accepted"
+    """An advisory proposal an operator accepted: sent as mode ``auto``, to be applied
+    (revision 3)."""
 
 
 class RejectReason(StrEnum):
@@ -224,6 +234,14 @@ class GainsMessage(BaseModel):
         ge=1,
         description="The store's epoch: larger for every later tuner start (on the same "
         "store, or a fresh one). Order updates of a loop by (epoch, seq) (revision 2).",
+    )
+    why: str | None = Field(
+        None,
+        max_length=512,
+        description="Short machine-readable reason, space-separated key=value pairs: "
+        "reason, basis (model: identified, hint), dkp/dki (relative change, %), guard "
+        "(none, rate, bounds), verdict (pending, rolled_back, rollback_proposed), why "
+        "(of a rollback: iae, oscillation, operator) (revision 3).",
     )
 
 

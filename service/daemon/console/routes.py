@@ -43,6 +43,7 @@ from fastapi.responses import (
 )
 
 from service.daemon.recent import REASONS
+from service.engine import verify
 from service.engine.config import LoopPatch
 from service.engine.table import STATUSES
 from service.wire.protocol import Mode, RejectReason
@@ -340,6 +341,9 @@ def _columns(tuner) -> dict[str, Any]:
             "updates": tb.n_updates[slots],
             "rejected": tb.n_rejected[slots],
             "quiet": tb.n_quiet[slots],
+            "pending": verify.changed(tb, slots),
+            "oscillating": tb.o_osc[slots],
+            "iae": tb.f_iae[slots],
         }
         gateways = [tb.gateways[s] or "" for s in slots.tolist()]
     cols["ids"] = ids
@@ -433,6 +437,11 @@ def overview_data(
                 else None,
                 "last_change": last_change,
                 "rms_e": _finite(summary["rms_e"][i]) if summary is not None else None,
+                "verification": {
+                    "pending": bool(c["pending"][i]),
+                    "oscillating": bool(c["oscillating"][i]),
+                    "iae": _finite(c["iae"][i]),
+                },
                 "counters": {
                     k: int(c[k][i]) for k in ("samples", "steps", "updates", "rejected", "quiet")
                 },
@@ -583,18 +592,43 @@ async def patch_loop(loop_id: str, request: Request) -> JSONResponse:
 
 @router.post("/api/loops/{loop_id}/reset")
 async def reset_loop(loop_id: str, request: Request) -> JSONResponse:
+    return await _act(request, loop_id, "reset", lambda tuner: tuner.reset)
+
+
+@router.post("/api/loops/{loop_id}/rollback")
+async def rollback_loop(loop_id: str, request: Request) -> JSONResponse:
+    """Back to the last-good gains (auto: published; advisory: proposed)."""
+    return await _act(request, loop_id, "rolled back", lambda tuner: tuner.rollback)
+
+
+@router.post("/api/loops/{loop_id}/proposals/{seq}/{decision}")
+async def decide_proposal(loop_id: str, seq: int, decision: str, request: Request) -> JSONResponse:
+    """Approve (``accept``) or ``reject`` an advisory loop's pending proposal ``seq``."""
+    if decision not in ("accept", "reject"):
+        raise HTTPException(404, "accept or reject")
+
+    def method(tuner):
+        decide = tuner.accept if decision == "accept" else tuner.reject
+        return lambda loop_id, **kw: decide(loop_id, seq, **kw)
+
+    return await _act(request, loop_id, f"proposal {seq} {decision}ed", method)
+
+
+async def _act(request: Request, loop_id: str, what: str, method) -> JSONResponse:
+    """Run one of the tuner's actions for a logged-in console, as its actor: 404 unknown
+    loop, 409 a conflict (nothing to roll back, a stale proposal), 503 store failing."""
     session = _acting(request)
     tuner = _tuner(request)
-    kwargs = {"actor": session.actor} if _accepts(tuner.reset, "actor") else {}
     try:
-        view = await asyncio.to_thread(tuner.reset, loop_id, **kwargs)
+        view = await asyncio.to_thread(method(tuner), loop_id, actor=session.actor)
     except LookupError:
         raise HTTPException(404, f"unknown loop {loop_id!r}") from None
-    except Exception as exc:  # StoreUnavailable
-        if type(exc).__name__ == "StoreUnavailable":
-            raise HTTPException(503, str(exc)) from None
+    except Exception as exc:  # StoreUnavailable, Conflict: by name (no import cycle)
+        status = {"StoreUnavailable": 503, "Conflict": 409}.get(type(exc).__name__)
+        if status is not None:
+            raise HTTPException(status, str(exc)) from None
         raise
-    _log_action(tuner, request, session, "reset", loop_id)
+    _log_action(tuner, request, session, what, loop_id)
     return JSONResponse(_jsonable(view))
 
 

@@ -137,6 +137,20 @@
       if (idn.out_of_envelope) pairs.push(["envelope", "<b>outside the training box</b>"]);
     }
     kv($("scaling"), pairs);
+    const vf = v.verification, pr = v.proposal;
+    if (vf) kv($("verify"), [
+      ["verification", vf.enabled ? `on, margin ${pitune.num(vf.margin)}` : "off"],
+      ["last-good kp", pitune.num(vf.last_good_kp, 6)], ["last-good ki", pitune.num(vf.last_good_ki, 6)],
+      ["last-good IAE (s)", pitune.num(vf.last_good_iae)],
+      ["change pending", vf.pending ? "<b>yes</b>" : "no"], ["judged up to seq", vf.judged_seq],
+      ["agent held until t", pitune.num(vf.held_until_t, 7)],
+    ]);
+    $("proposal-box").hidden = !pr;
+    if (pr) {
+      $("proposal-box").dataset.seq = pr.seq;
+      $("proposal-text").innerHTML = `#${pr.seq} (${pitune.esc(pr.reason)}): kp ${pitune.num(pr.kp_in_force, 5)} → <b>${pitune.num(pr.kp, 5)}</b>, ` +
+        `ki ${pitune.num(pr.ki_in_force, 5)} → <b>${pitune.num(pr.ki, 5)}</b>`;
+    }
     const form = $("guard-form");
     if (!form.dataset.dirty) for (const el of form.elements) if (el.name) el.value = g[el.name] ?? "";
   }
@@ -161,6 +175,7 @@
       `<tr data-reason="${pitune.esc(a.reason)}"><td>${pitune.when(a.wall_time)}</td><td class="num">${pitune.num(a.t, 7)}</td><td class="num">${a.seq}</td>` +
       `<td>${pitune.esc(a.reason)}</td><td>${pitune.esc(a.mode)}</td><td class="num">${gains(a.kp_old, a.kp_new)}</td>` +
       `<td class="num">${gains(a.ki_old, a.ki_new)}</td><td>${pitune.esc(actor(a.detail) || (a.reason === "agent" ? "agent" : "–"))}</td>` +
+      `<td class="verdict">${pitune.esc(a.verdict || "")}</td>` +
       `<td class="detail">${pitune.esc(a.detail.length > 120 ? a.detail.slice(0, 120) + "…" : a.detail)}</td></tr>`).join("");
   }
 
@@ -175,6 +190,15 @@
   $("reset").addEventListener("click", () => {
     if (confirm(`Reset ${id} to its registered gains and a fresh agent state?`)) run("reset", `/ui/api/loops/${enc}/reset`);
   });
+  $("rollback").addEventListener("click", () => {
+    if (confirm(`Roll ${id} back to its last-good gains?`)) run("rollback", `/ui/api/loops/${enc}/rollback`);
+  });
+  for (const [button, decision] of [["approve", "accept"], ["reject", "reject"]]) {
+    $(button).addEventListener("click", () => {
+      const seq = $("proposal-box").dataset.seq;
+      run(`proposal ${seq} ${decision}`, `/ui/api/loops/${enc}/proposals/${seq}/${decision}`);
+    });
+  }
   const form = $("guard-form");
   form.addEventListener("input", () => { form.dataset.dirty = "1"; });
   form.addEventListener("submit", (e) => {

@@ -24,10 +24,12 @@
     const lc = l.last_change;
     const change = lc ? `${pitune.ago(lc.wall)} · ${pitune.esc(lc.reason)}` +
       (lc.dkp !== null ? ` <span class="muted">kp ${lc.dkp >= 0 ? "+" : ""}${(lc.dkp * 100).toFixed(1)}%</span>` : "") : "–";
+    const v = l.verification || {};
+    const verdict = v.oscillating ? ` <b class="bad">oscillating</b>` : (lc ? ` <span class="muted verdict">${v.pending ? "change pending" : "last-good"}</span>` : "");
     const href = `/ui/loops/${encodeURIComponent(l.id)}`;
     return `<tr data-id="${pitune.esc(l.id)}"><td><a href="${href}">${pitune.esc(l.id)}</a></td>` +
       `<td><span class="badge s-${l.status}">${l.status}</span></td><td><span class="badge m-${l.mode}">${l.mode}</span></td>` +
-      `<td class="num">${pitune.num(l.kp)}</td><td class="num">${pitune.num(l.ki)}</td><td>${change}</td>` +
+      `<td class="num">${pitune.num(l.kp)}</td><td class="num">${pitune.num(l.ki)}</td><td>${change}${verdict}</td>` +
       `<td class="num">${pitune.num(l.rms_e, 3)}</td><td class="num">${pitune.num(l.last_sample_t, 6)}</td>` +
       `<td class="num">${pitune.int(l.counters.samples)}</td><td class="num">${pitune.int(l.counters.steps)}</td>` +
       `<td class="num">${pitune.int(l.counters.updates)}</td><td class="num">${pitune.int(l.counters.rejected)}</td>` +

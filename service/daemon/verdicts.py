@@ -1,0 +1,42 @@
+"""The verdict of each change in a loop's history (``GET /loops/{id}/history``).
+
+The engine writes a verdict row when it judges changes (reason ``verified``,
+``rollback`` or ``verdict``, with the seqs judged in its JSON detail: see
+:mod:`service.engine.verify`); a change row (an agent step of an ``auto`` loop, a reset,
+an adoption, an accepted proposal) takes the verdict of the newer verdict row whose seqs
+cover its seq, or ``pending`` past the loop's judged seq.
+"""
+
+from __future__ import annotations
+
+import orjson
+
+from service.daemon.schemas import AuditEntry
+
+CHANGES = frozenset({"agent", "reset", "adopted", "accepted"})
+"""Audit reasons of a change of the gains in force (an advisory or shadow 'agent' row is
+a proposal: no verdict)."""
+SCAN = 5000
+"""Newest rows read to find the verdict rows of a page (a page deeper in the history
+shows the verdicts recorded within the rows it reads)."""
+
+
+def annotate(items: list[AuditEntry], judged_seq: int | None) -> None:
+    """Set ``verdict`` on the change rows of ``items`` (newest first, contiguous), given
+    the loop's judged seq (None: the loop is deleted, nothing is pending)."""
+    covers: list[tuple[int, int, str]] = []
+    for item in items:  # newest first: a change's verdict row comes before it
+        if item.reason in ("verified", "rollback", "verdict"):
+            detail = orjson.loads(item.detail)
+            first, last = detail.get("seqs", (0, -1))
+            covers.append((first, last, detail.get("verdict", "verified")))
+            continue
+        if item.reason not in CHANGES or (item.reason == "agent" and item.mode != "auto"):
+            continue
+        if judged_seq is not None and item.seq > judged_seq:
+            item.verdict = "pending"
+            continue
+        for first, last, verdict in covers:
+            if first <= item.seq <= last:
+                item.verdict = verdict
+                break

@@ -1,0 +1,96 @@
+"""What the monitor and verification show: performance figures, verification state and
+an advisory loop's pending proposal (``GET /loops/{id}``, ``/performance``).
+
+Figures are computed by :mod:`service.engine.monitor`; verdicts by
+:mod:`service.engine.verify`. docs/tuner.md (Performance and verification) explains each.
+"""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, Field
+
+
+class ResponseFigures(BaseModel):
+    """Figures of one complete setpoint response (judged over 2 RL periods after the move)."""
+
+    t: float = Field(description="Plant time (s) the response's judging window ended.")
+    iae: float = Field(description="Integral of |e| over the window divided by |move|, s.")
+    iae_tu: float | None = Field(description="The same in the loop's time units (time_unit_s).")
+    overshoot_pct: float = Field(
+        description="Largest excursion past the new setpoint, % of the move."
+    )
+    rise_s: float | None = Field(
+        description="From 10 % to 90 % of the move, s (None: not reached)."
+    )
+    rise_tu: float | None
+    settle_s: float | None = Field(
+        description="Until the error stays within 5 % of the move, s (None: not settled)."
+    )
+    settle_tu: float | None
+    mse: float | None = Field(
+        description="Mean squared deviation from the paper's target trajectory (time "
+        "constant 2 tau, dead time theta of the loop's model), agent units."
+    )
+
+
+class WindowFigures(BaseModel):
+    """Figures of the recent window (exponential forgetting over 5 RL periods)."""
+
+    error_mean: float = Field(description="Mean error, engineering units.")
+    error_var: float = Field(description="Error variance, engineering units squared.")
+    noise_sigma: float = Field(description="Measurement noise estimated from quiet samples.")
+    oscillation_index: float | None = Field(
+        description="Regularity r = mean / (3 std) of the last 3 half-periods between "
+        "zero crossings (Thornhill et al. 2003; r > 1: regular). None: too few crossings."
+    )
+    oscillating: bool = Field(
+        description="The last 3 half-periods regular, above the noise band, not decaying."
+    )
+    manual_share: float = Field(description="Share of recent time in manual.")
+    saturated_share: float = Field(description="Share of recent time saturated.")
+    rejected_share: float = Field(description="Share of the last ~100 samples rejected.")
+
+
+class Verification(BaseModel):
+    """Verify-or-rollback state of a loop."""
+
+    enabled: bool
+    margin: float | None = Field(description="A change fails past (1 + margin) x last-good IAE.")
+    last_good_kp: float
+    last_good_ki: float
+    last_good_iae: float | None = Field(
+        description="Their normalised IAE of upward setpoint moves, s (None: not yet)."
+    )
+    last_good_iae_down: float | None = Field(
+        None, description="Of downward moves (a non-linear plant answers them differently)."
+    )
+    last_good_seq: int
+    judged_seq: int = Field(description="Changes up to this seq have a verdict.")
+    pending: bool = Field(description="The gains in force differ from the last-good gains.")
+    held_until_t: float | None = Field(
+        description="Plant time until which the agent is held after a rollback or a rejection."
+    )
+
+
+class Proposal(BaseModel):
+    """An advisory loop's pending proposal (accept or reject it by its seq)."""
+
+    seq: int
+    kp: float
+    ki: float
+    dkp: float = Field(description="Change from the gains in force.")
+    dki: float
+    kp_in_force: float
+    ki_in_force: float
+    reason: str = Field(description="'agent' or 'rollback' (back to the last-good gains).")
+
+
+class Performance(BaseModel):
+    """``GET /loops/{id}/performance``."""
+
+    loop_id: str
+    time_unit_s: float | None = Field(description="Seconds per the loop's time unit.")
+    last: ResponseFigures | None
+    history: list[ResponseFigures] = Field(description="Recent complete responses, newest first.")
+    window: WindowFigures
+    verification: Verification

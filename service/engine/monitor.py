@@ -1,0 +1,356 @@
+"""Loop performance monitoring, vectorised over loops: figures computed from the samples
+the engine already receives (no extra traffic), and the oscillation detector.
+
+:func:`observe` runs inside :func:`service.engine.rules.ingest` for every batch of
+accepted samples (distinct loops, aligned arrays) and keeps three things per loop:
+
+* **The current setpoint response.** A setpoint move (the excitation gate's move: at
+  least ``excitation_min_step`` pv_scales) opens a response; it is *complete* when the
+  plant time passes ``RESPONSE_PERIODS`` RL periods after the move, *truncated* when
+  another move comes first (truncated responses are not compared: their IAE covers a
+  shorter time). Over the response the engine integrates |e| (IAE, trapezoid on the
+  plant's timestamps), the overshoot past the new setpoint, the 10 % and 90 % times, the
+  last time outside the settling band and the squared deviation from the paper's target
+  trajectory (first order, time constant 2 tau, dead time theta of the loop's model: the
+  identified one, else the hint with theta 0), in agent units. A complete response's
+  figures (IAE normalised by the move, overshoot %, rise and settling times in seconds,
+  tracking MSE) are kept, with the last :data:`HISTORY` of them in a ring.
+* **A window** of about ``WINDOW_PERIODS`` RL periods (exponential forgetting on the
+  plant's time): mean and variance of the error, the shares of time in manual and
+  saturated, and the share of samples rejected.
+* **The oscillation detector** (:func:`_oscillation`): Hägglund's idea (1995, "A
+  control-loop performance monitor", Control Eng. Practice 3(11)) of splitting the error
+  at its zero crossings and judging each half-period's IAE, with the regularity test of
+  Thornhill, Huang and Zhang (2003, "Detection of multiple oscillations in control loops",
+  J. Process Control 13(1)): the intervals between zero crossings of a real oscillation
+  are regular, ``r = mean(T) / (3 std(T)) > 1``. A loop oscillates when its last
+  :data:`OSC_LOBES` half-periods (between crossings of a hysteresis band of 3 noise
+  sigmas) are regular, the newest has a mean |e| above the band (the older ones above half
+  of it: a growing oscillation's first lobes are still rising out of the noise), and the
+  amplitude does not
+  decay by more than :data:`OSC_DECAY` per period: with 3 lobes the verdict comes at the
+  4th crossing, 2 periods after a sustained oscillation starts.
+
+Units: times in plant seconds, errors in engineering units unless stated; arrays (n,)
+indexed by slot unless stated.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from service.units import AGENT_TAU, RL_STEP_AGENT_UNITS
+
+GAIN_RTOL = 1e-6
+"""Relative tolerance of equal gains (the sample rules' ``GAIN_RTOL``; the rules import
+this module, so the constant lives here and they import it)."""
+
+if TYPE_CHECKING:
+    from service.engine.table import LoopTable
+
+RESPONSE_PERIODS = 2.0
+"""A setpoint response is judged over this many RL periods after the move (11 hinted time
+constants: the paper's target trajectory, time constant 2 tau, is within 0.4 % of the
+new setpoint by then; the paper's setpoints move every 4 RL periods)."""
+SETTLE_BAND = 0.05
+"""Settling band, share of the move (5 %: a 2 % band sits inside 2 % noise)."""
+WINDOW_PERIODS = 5.0
+"""Time constant of the window figures, RL periods (the excitation gate's window)."""
+REJECT_FORGET = 0.01
+"""Per-sample forgetting of the rejected share (about the last 100 samples)."""
+HISTORY = 8
+"""Complete responses kept per loop for ``GET /loops/{id}/performance``."""
+HIST_FIELDS = ("t", "iae", "overshoot_pct", "rise_s", "settle_s", "mse")
+"""Columns of the history ring (the ``f_`` arrays: t, iae, over, rise, settle, mse)."""
+_LAST = ("t", "iae", "over", "rise", "settle", "mse")
+OSC_LOBES = 3
+"""Half-periods judged by the oscillation detector."""
+OSC_DECAY = 0.5
+"""A lobe at least this share of the same-sign lobe one period earlier is not decaying
+(a quarter-decay response, 0.25, is not an oscillation; a sustained one is 1)."""
+OSC_NOISE_SIGMAS = 3.0
+"""Hysteresis band of the zero crossings, noise sigmas."""
+OSC_MIN_BAND = 0.01
+"""Smallest band, agent units (1 % of pv_scale): a noiseless loop's rounding is not a lobe."""
+NOISE_FORGET = 0.02
+"""Per-sample forgetting of the noise variance, estimated from second differences of the
+error (sigma^2 = E[d2^2] / 6 for white noise; a running mean over the first 50 samples):
+blind to the loop's own slow motion, so neither a transient nor a growing oscillation
+inflates the band. Not updated across a setpoint move, nor while two lobes of a
+possible oscillation are on record."""
+OSC_MIN_SAMPLES = 2.0
+"""A half-period spans at least this many sample intervals (shorter: noise)."""
+
+F64 = [
+    # current response: start, signed move, end, IAE, squared tracking error (agent
+    # units^2 s), overshoot (share of the move), 10 %/90 % times, last time outside the
+    # settling band, gains and seq at the move (the gains the response judges)
+    "r_t0", "r_move", "r_end", "r_iae", "r_sq", "r_over", "r_t10", "r_t90", "r_settle",
+    "r_kp", "r_ki", "r_seq",
+    # the target trajectory's model: dead time, closed-loop time constant (s)
+    "m_theta", "m_tau_cl",
+    # last complete response
+    "f_t", "f_iae", "f_over", "f_rise", "f_settle", "f_mse",
+    # window: error mean and mean square, shares of time in manual / saturated, share of
+    # samples rejected
+    "w_mean", "w_sq", "w_manual", "w_sat", "w_rej",
+    # oscillation: noise variance, sign of the current lobe, time of the last crossing,
+    # IAE since, the regularity index r of the last lobes
+    "o_var", "o_sign", "o_tc", "o_iae", "o_index",
+    # the last time the error was outside the band; the error two samples back, and
+    # whether the last sample followed a jump (the noise estimate skips both)
+    "o_seen", "o_e2", "o_j",
+]  # fmt: skip
+"""Per-loop float arrays of the monitor (allocated by the table beside its own)."""
+
+
+def allocate(tb: LoopTable, capacity: int, old: int) -> None:
+    """Grow the monitor's arrays to ``capacity`` slots, keeping the first ``old``."""
+    for name, shape, dtype in (
+        *((n, (), np.float64) for n in F64),
+        ("o_half", (OSC_LOBES,), np.float64),
+        ("o_lobe", (OSC_LOBES,), np.float64),
+        ("o_n", (), np.int64),
+        ("o_osc", (), bool),
+        ("r_mixed", (), bool),
+        ("f_hist", (HISTORY, len(HIST_FIELDS)), np.float32),
+        ("f_hist_n", (), np.int64),
+    ):
+        arr = np.zeros((capacity, *shape), dtype)
+        if old:
+            arr[:old] = getattr(tb, name)[:old]
+        setattr(tb, name, arr)
+
+
+def clear(tb: LoopTable, s: int) -> None:
+    """A new loop (or a reset): no response open, figures unknown, windows empty."""
+    for name in ("r_t0", "r_end", "o_tc", "o_index", *(n for n in F64 if n.startswith("f_"))):
+        getattr(tb, name)[s] = math.nan
+    for name in ("w_mean", "w_sq", "w_manual", "w_sat", "w_rej", "o_var", "o_sign", "o_iae"):
+        getattr(tb, name)[s] = 0.0
+    tb.o_n[s], tb.o_osc[s], tb.f_hist_n[s] = 0, False, 0
+
+
+def configure(tb: LoopTable, s: int, tau_s: float | None, theta_s: float) -> None:
+    """The model the target trajectory follows (seconds; None: no model yet)."""
+    tb.m_tau_cl[s] = math.nan if tau_s is None else 2.0 * tau_s
+    tb.m_theta[s] = theta_s
+
+
+def hinted_tau(period_s: float) -> float:
+    """The time constant a scaling's RL period stands for (the hint's tau_hat), s."""
+    return period_s / RL_STEP_AGENT_UNITS * AGENT_TAU
+
+
+def observe(
+    tb: LoopTable,
+    slots: np.ndarray,
+    t: np.ndarray,
+    e: np.ndarray,
+    prev_e: np.ndarray,
+    last_t: np.ndarray,
+    moved: np.ndarray,
+    fresh: np.ndarray,
+    auto: np.ndarray,
+    saturated: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Take accepted samples of distinct loops (aligned arrays; ``prev_e``, ``last_t``:
+    the loop's previous sample, NaN if none; ``moved``: a setpoint move; ``fresh``: no
+    usable previous sample). Returns (slots whose response just completed, slots that
+    just started oscillating)."""
+    dt = np.where(fresh | np.isnan(last_t), 0.0, t - last_t)
+    done = _close(tb, slots, t, moved)
+    _open(tb, slots[moved], t[moved], e[moved] - np.where(fresh[moved], 0.0, prev_e[moved]))
+    _respond(tb, slots, t, e, prev_e, dt, moved)
+    _window(tb, slots, e, dt, auto, saturated)
+    osc = _oscillation(tb, slots, t, e, prev_e, dt, moved | fresh)
+    return done, osc
+
+
+def _close(tb: LoopTable, slots: np.ndarray, t: np.ndarray, moved: np.ndarray) -> np.ndarray:
+    """Close the responses a sample ends; keep the complete ones' figures."""
+    open_ = ~np.isnan(tb.r_t0[slots])
+    complete = open_ & (t > tb.r_end[slots])
+    ending = open_ & (complete | moved)
+    if not ending.any():
+        return slots[:0]
+    # a response during which the gains changed judges no gains alone: its figures
+    # are kept, but it neither refreshes the last-good figure nor verifies (verify.py)
+    end = slots[ending]
+    tb.r_mixed[end] = ~(same_gains(tb.kp[end], tb.r_kp[end]) & same_gains(tb.ki[end], tb.r_ki[end]))
+    done = slots[complete]
+    if done.size:
+        move = np.abs(tb.r_move[done])
+        t0, end = tb.r_t0[done], tb.r_end[done]
+        tb.f_t[done] = end
+        tb.f_iae[done] = tb.r_iae[done] / move
+        tb.f_over[done] = 100.0 * tb.r_over[done]
+        tb.f_rise[done] = tb.r_t90[done] - tb.r_t10[done]
+        settle = tb.r_settle[done] - t0
+        tb.f_settle[done] = np.where(tb.r_settle[done] < tb.r_end[done] - 1e-9, settle, np.nan)
+        tb.f_mse[done] = tb.r_sq[done] / (end - t0)
+        ring = tb.f_hist[done]
+        ring[:, 1:] = ring[:, :-1]
+        ring[:, 0] = np.column_stack(
+            [tb.f_t[done], tb.f_iae[done], tb.f_over[done], tb.f_rise[done],
+             tb.f_settle[done], tb.f_mse[done]]
+        )  # fmt: skip
+        tb.f_hist[done] = ring
+        tb.f_hist_n[done] = np.minimum(tb.f_hist_n[done] + 1, HISTORY)
+    tb.r_t0[slots[ending]] = math.nan
+    return done
+
+
+def _open(tb: LoopTable, slots: np.ndarray, t: np.ndarray, move: np.ndarray) -> None:
+    if not slots.size:
+        return
+    tb.r_t0[slots], tb.r_move[slots] = t, np.where(move == 0.0, np.nan, move)
+    tb.r_end[slots] = t + RESPONSE_PERIODS * tb.period[slots]
+    tb.r_iae[slots] = tb.r_sq[slots] = tb.r_over[slots] = 0.0
+    tb.r_t10[slots] = tb.r_t90[slots] = math.nan
+    tb.r_settle[slots] = t
+    tb.r_kp[slots], tb.r_ki[slots], tb.r_seq[slots] = tb.kp[slots], tb.ki[slots], tb.seq[slots]
+
+
+def _respond(tb, slots, t, e, prev_e, dt, moved) -> None:
+    """Accumulate the open responses' figures (the move's own sample opens, not adds)."""
+    live = ~np.isnan(tb.r_t0[slots]) & ~moved & (dt > 0)
+    if not live.any():
+        return
+    s, t, e, prev_e, dt = slots[live], t[live], e[live], prev_e[live], dt[live]
+    move, t0 = tb.r_move[s], tb.r_t0[s]
+    tb.r_iae[s] += 0.5 * (np.abs(e) + np.abs(prev_e)) * dt
+    left = e / move  # share of the move still to go: 1 at the move, 0 on the setpoint
+    tb.r_over[s] = np.maximum(tb.r_over[s], -left)
+    first10 = np.isnan(tb.r_t10[s]) & (left <= 0.9)
+    tb.r_t10[s[first10]] = t[first10]
+    first90 = np.isnan(tb.r_t90[s]) & (left <= 0.1)
+    tb.r_t90[s[first90]] = t[first90]
+    outside = np.abs(left) > SETTLE_BAND
+    tb.r_settle[s[outside]] = t[outside]
+    with np.errstate(invalid="ignore", over="ignore"):
+        since = t - t0 - tb.m_theta[s]
+        target_e = move * np.where(since > 0, np.exp(-since / tb.m_tau_cl[s]), 1.0)
+        err = (e - target_e) * tb.e_scale[s]
+    tb.r_sq[s] += np.where(np.isfinite(err), err * err, 0.0) * dt
+
+
+def _window(tb, slots, e, dt, auto, saturated) -> None:
+    span = WINDOW_PERIODS * tb.period[slots]
+    a = np.where(np.isfinite(span) & (span > 0), np.minimum(dt / span, 1.0), 0.0)
+    tb.w_mean[slots] += a * (e - tb.w_mean[slots])
+    tb.w_sq[slots] += a * (e * e - tb.w_sq[slots])
+    tb.w_manual[slots] += a * (~auto - tb.w_manual[slots])
+    tb.w_sat[slots] += a * (saturated - tb.w_sat[slots])
+    tb.w_rej[slots] *= 1.0 - REJECT_FORGET
+
+
+def rejected(tb: LoopTable, s: int) -> None:
+    """A sample of loop ``s`` was rejected (the rejected share's other half)."""
+    tb.w_rej[s] = tb.w_rej[s] * (1.0 - REJECT_FORGET) + REJECT_FORGET
+
+
+def band(tb: LoopTable, slots: np.ndarray) -> np.ndarray:
+    """The oscillation detector's hysteresis band, engineering units (inf: no scaling)."""
+    with np.errstate(divide="ignore"):
+        floor = OSC_MIN_BAND / tb.e_scale[slots]
+    return np.maximum(OSC_NOISE_SIGMAS * np.sqrt(tb.o_var[slots]), floor)
+
+
+def _oscillation(tb, slots, t, e, prev_e, dt, jumped) -> np.ndarray:
+    """One sample of the detector per loop; returns the slots that start oscillating."""
+    usable = ~jumped & (tb.o_j[slots] == 0) & (tb.o_n[slots] < 2)
+    d2 = e - 2.0 * prev_e + tb.o_e2[slots]
+    var = np.where(usable, d2 * d2 / 6.0, tb.o_var[slots])
+    forget = np.maximum(NOISE_FORGET, 1.0 / (1.0 + tb.n_samples[slots]))
+    tb.o_var[slots] += forget * (var - tb.o_var[slots])
+    tb.o_e2[slots], tb.o_j[slots] = prev_e, jumped
+    h = band(tb, slots)
+    tb.o_iae[slots] += np.abs(e) * dt
+    sign = np.where(e > h, 1.0, np.where(e < -h, -1.0, 0.0))
+    # a setpoint move (or a gap) starts the count again: a setpoint toggled regularly
+    # makes the error a regular square wave, which is no oscillation of the loop
+    if jumped.any():
+        j = slots[jumped]
+        tb.o_sign[j], tb.o_n[j], tb.o_osc[j], tb.o_tc[j] = 0.0, 0, False, math.nan
+    cur = tb.o_sign[slots]
+    start = (sign != 0) & (cur == 0)
+    crossed = (sign != 0) & (cur != 0) & (sign != cur)
+    outside = sign != 0
+    tb.o_seen[slots[outside]] = t[outside]
+    # inside the band for three half-periods (one RL period before a lobe is known):
+    # the oscillation, if any, is over
+    quiet_for = np.where(tb.o_n[slots] > 0, 3.0 * tb.o_half[slots, 0], tb.period[slots])
+    with np.errstate(invalid="ignore"):
+        gone = (cur != 0) & ~outside & (t - tb.o_seen[slots] > quiet_for)
+    if gone.any():
+        g = slots[gone]
+        tb.o_sign[g], tb.o_n[g], tb.o_osc[g], tb.o_tc[g] = 0.0, 0, False, math.nan
+    if start.any():
+        s0 = slots[start]
+        tb.o_sign[s0], tb.o_tc[s0], tb.o_iae[s0] = sign[start], math.nan, 0.0
+    if not crossed.any():
+        return slots[:0]
+    s, tc = slots[crossed], t[crossed]
+    dur = tc - tb.o_tc[s]
+    whole = np.isfinite(dur) & (dur > 0)  # the first lobe of an excursion is partial
+    w, dur, step = s[whole], dur[whole], dt[crossed][whole]
+    if w.size:
+        tb.o_half[w, 1:], tb.o_lobe[w, 1:] = tb.o_half[w, :-1], tb.o_lobe[w, :-1]
+        tb.o_half[w, 0], tb.o_lobe[w, 0] = dur, tb.o_iae[w] / dur
+        tb.o_n[w] = np.minimum(tb.o_n[w] + 1, OSC_LOBES)
+    tb.o_sign[s], tb.o_tc[s], tb.o_iae[s] = sign[crossed], tc, 0.0
+    enough = tb.o_n[w] >= OSC_LOBES
+    full, step = w[enough], step[enough]
+    if not full.size:
+        return slots[:0]
+    half, lobe, h_full = tb.o_half[full], tb.o_lobe[full], band(tb, full)
+    spread = half.std(axis=1)
+    r = np.where(spread > 0, half.mean(axis=1) / (3.0 * np.maximum(spread, 1e-300)), 10.0)
+    tb.o_index[full] = np.minimum(r, 10.0)
+    osc = (
+        (r > 1.0)
+        & (half.min(axis=1) >= OSC_MIN_SAMPLES * step)
+        # the newest lobe above the band, the older ones (still rising out of the noise)
+        # above half of it
+        & (lobe[:, 0] >= h_full)
+        & (lobe[:, 1:].min(axis=1) >= 0.5 * h_full)
+        & (lobe[:, 0] >= OSC_DECAY * lobe[:, 2])
+    )
+    new = full[osc & ~tb.o_osc[full]]
+    tb.o_osc[full] = osc
+    return new
+
+
+def dump(tb: LoopTable, s: int) -> dict:
+    """The last response's figures and the history ring, for the runtime snapshot (the
+    open response and the windows restart after a restart: a gap ends them anyway)."""
+    n = int(tb.f_hist_n[s])
+    return {
+        "last": [_num(getattr(tb, f"f_{k}")[s]) for k in _LAST],
+        "hist": [[_num(x) for x in row] for row in tb.f_hist[s, :n].tolist()],
+    }
+
+
+def load(tb: LoopTable, s: int, d: dict) -> None:
+    last = d.get("last")
+    if last:
+        for k, v in zip(_LAST, last, strict=True):
+            getattr(tb, f"f_{k}")[s] = math.nan if v is None else v
+    hist = d.get("hist") or []
+    n = min(len(hist), HISTORY)
+    if n:
+        tb.f_hist[s, :n] = np.array(hist[:n], dtype=np.float64)
+    tb.f_hist_n[s] = n
+
+
+def same_gains(a, b) -> np.ndarray:
+    """Equal gains, as the engine compares them (relative 1e-6: float32 DCS storage)."""
+    return np.abs(a - b) <= GAIN_RTOL * np.maximum(np.abs(a), np.abs(b))  # arrays or floats
+
+
+def _num(x: float) -> float | None:
+    return float(x) if math.isfinite(x) else None

@@ -1,0 +1,51 @@
+"""The predicted effect of a proposal (shadow mode): the identified model's step response
+under the gains in force and under the proposal, compared by IAE per unit move.
+
+Only an identified FOPTD model predicts: a hint gives a gain and a time constant but no
+dead time, and a prediction without the dead time would flatter aggressive gains.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from plant_sim.loop import step_test
+from service.engine import monitor
+
+if TYPE_CHECKING:
+    from service.engine.table import LoopTable
+
+STEPS = 400
+"""Simulation steps over the judging window (2 RL periods)."""
+
+
+def predictions(tb: LoopTable, slots: list[int], old: np.ndarray, new: np.ndarray) -> list[str]:
+    """For each slot a ``key=value`` text: ``pred_iae=<old>-><new> pred_change=<%>`` (IAE
+    per unit move, s), or ``prediction=none(no identified model)``."""
+    out = ["prediction=none(no identified model)"] * len(slots)
+    rows = [i for i, s in enumerate(slots) if tb.ident[s].in_force is not None]
+    if not rows:
+        return out
+    models = [tb.ident[slots[i]].in_force for i in rows]
+    K = np.array([m.k for m in models])
+    tau = np.array([m.tau for m in models])
+    theta = np.array([m.theta for m in models])
+    horizon = np.array([monitor.RESPONSE_PERIODS * tb.period[slots[i]] for i in rows])
+    span = float(np.max(horizon))
+    dt = span / STEPS
+    gains = np.concatenate([old[rows], new[rows]])
+    with np.errstate(all="ignore"):
+        trace = step_test(
+            np.tile(K, 2), np.tile(tau, 2), np.tile(theta, 2), gains[:, 0], gains[:, 1],
+            dt=dt, horizon=span,
+        )  # fmt: skip
+        iae = np.abs(trace.e).sum(axis=1) * dt / 2.0  # the step test moves by 2
+    before, after = iae[: len(rows)], iae[len(rows) :]
+    for j, i in enumerate(rows):
+        b, a = float(before[j]), float(after[j])
+        change = (a / b - 1.0) * 100.0 if b > 0 and math.isfinite(a) else math.inf
+        out[i] = f"pred_iae={b:.4g}->{a:.4g} pred_change={change:+.1f}%"
+    return out

@@ -1,0 +1,276 @@
+"""Verify-or-rollback: every change of a loop's gains is judged against its last-good gains.
+
+Per loop the engine keeps the **last-good** gains and their figure (the IAE of a setpoint
+response normalised by the move, s: :mod:`service.engine.monitor`). The gains in force
+differing from them is a change **pending** verification (whoever made it: an agent
+step, a reset, an operator's change the gateway reported, an accepted proposal). Each
+complete setpoint response judges the gains in force at its move (the candidate):
+
+* no figure yet for the last-good gains: the response's figure becomes it (the first
+  response after registration is the baseline), and the candidate is ``verified``;
+* candidate equal to the last-good gains: the figure refreshes theirs (mean of the two);
+* figure worse than ``(1 + verify_margin)`` times the last-good one: the change failed;
+* otherwise the candidate is ``verified`` and becomes the last-good gains with its figure.
+
+An oscillation (:func:`service.engine.monitor._oscillation`) while a change is pending
+fails the change at once. A failed change is acted on by mode: ``auto`` restores the
+last-good gains (published, reason ``rollback``; the agent's hidden state restarts and
+the agent is held for ``cooldown_periods`` RL periods), ``advisory`` proposes them (an
+advisory message, reason ``rollback``: verdict ``rollback_proposed``), ``shadow`` and
+``frozen`` only record verdict ``worse`` (nothing may be published for them).
+
+Verdicts of the changes up to a seq are audit rows (reason ``verified``, ``rollback`` or
+``verdict``) whose JSON detail names the seqs judged; changes after the loop's judged seq
+(:attr:`v_seq`) are ``pending``. All of it is in the loop's runtime snapshot, and the
+daemon snapshots a loop whose verification state moved before it publishes.
+
+Advisory and shadow loops keep a **proposal track** (``adv_kp``/``adv_ki``): the agent
+observes the gains in force (what the plant runs with), and its step is added to the
+previous proposal instead of to the gains in force, with the safety guard applied from
+the previous proposal. Successive proposals thus walk where the agent's steps point, as
+its updates would in ``auto``, and stop where its step vanishes (its target), instead of
+repeating one guard-limited step from gains that never move. An operator accepting one
+(``POST /loops/{id}/proposals/{seq}/accept``) has it published as an ``auto`` message
+(reason ``accepted``); rejecting it restarts the track from the gains in force and holds
+the agent for the cool-down.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+import orjson
+
+from service.engine.audit import audit_row
+from service.engine.modes import ADVISORY, AUTO
+from service.engine.monitor import same_gains
+from service.engine.updates import MODE_VALUES, StepResult
+from service.wire.protocol import UpdateReason
+
+if TYPE_CHECKING:
+    from service.engine.table import LoopTable
+
+F64 = [
+    # last-good gains, their figures (normalised IAE, s, of upward and of downward setpoint
+    # moves: a non-linear plant answers the two differently; NaN: none yet), their seq
+    "g_kp", "g_ki", "g_iae", "g_iae_dn", "g_seq",
+    # changes up to this seq are judged; the agent is held until this plant time
+    "v_seq", "cool_until",
+    # margin (NaN: verification off) and cool-down (s) of the loop's guard
+    "v_margin", "v_cool",
+    # the proposal track of advisory and shadow loops (NaN: none) and its seq
+    "adv_kp", "adv_ki", "adv_seq",
+    # gains judged worse and kept (advisory: the proposal not taken; shadow, frozen):
+    # not judged again on every response
+    "b_kp", "b_ki",
+]  # fmt: skip
+"""Per-loop float arrays of verification (allocated by the table beside its own)."""
+
+Verdict = str
+"""``verified``, ``rolled_back``, ``rollback_proposed``, ``worse`` or ``pending``."""
+
+
+def init(tb: LoopTable, s: int) -> None:
+    """A new loop: its gains are the last-good ones, not yet measured."""
+    tb.g_kp[s], tb.g_ki[s] = tb.kp[s], tb.ki[s]
+    tb.g_iae[s] = tb.g_iae_dn[s] = math.nan
+    tb.g_seq[s] = tb.v_seq[s] = tb.seq[s]
+    tb.cool_until[s] = -math.inf
+    tb.adv_kp[s] = tb.adv_ki[s] = tb.adv_seq[s] = math.nan
+    tb.b_kp[s] = tb.b_ki[s] = math.nan
+
+
+def configure(tb: LoopTable, s: int, on: bool, margin: float, cooldown_periods: float) -> None:
+    tb.v_margin[s] = margin if on else math.nan
+    period = tb.period[s]
+    tb.v_cool[s] = cooldown_periods * period if math.isfinite(period) else 0.0
+
+
+def changed(tb: LoopTable, s):
+    """Whether the gains in force differ from the last-good ones (a change is pending);
+    ``s`` a slot or an array of them."""
+    return ~(same_gains(tb.kp[s], tb.g_kp[s]) & same_gains(tb.ki[s], tb.g_ki[s]))
+
+
+def judge(tb: LoopTable, done: np.ndarray, osc: np.ndarray, wall: float) -> list[StepResult]:
+    """Verdicts of the loops whose response just completed (``done``) or that just
+    started oscillating (``osc``); returns the rollbacks to publish."""
+    out: list[StepResult] = []
+    for s in done.tolist():
+        if math.isnan(tb.v_margin[s]) or not math.isfinite(tb.f_iae[s]):
+            continue
+        figure, cand = float(tb.f_iae[s]), (float(tb.r_kp[s]), float(tb.r_ki[s]))
+        seq = int(tb.r_seq[s])
+        is_good = bool(same_gains(cand[0], tb.g_kp[s]) & same_gains(cand[1], tb.g_ki[s]))
+        if is_good and tb.r_mixed[s]:
+            continue  # the last-good gains changed during it: no figure of theirs
+        good = float(reference(tb, s))
+        if is_good and math.isfinite(good):
+            _set_reference(tb, s, 0.5 * (good + figure))
+            tb.v_seq[s] = max(tb.v_seq[s], seq)
+            continue
+        if same_gains(cand[0], tb.b_kp[s]) & same_gains(cand[1], tb.b_ki[s]):
+            continue  # judged worse already, and kept by the operator
+        if math.isfinite(good) and figure > (1.0 + tb.v_margin[s]) * good:
+            result = fail(tb, s, "iae", wall, figure=figure)
+            if result is not None:
+                out.append(result)
+            continue
+        first = int(tb.v_seq[s]) + 1
+        _verified(tb, s, cand, seq, figure)
+        if first > seq:  # nothing was pending: the baseline of unchanged gains
+            continue
+        _audit(tb, s, wall, "verified", cand, cand, {
+            "verdict": "verified", "seqs": [first, seq], "iae": figure,
+            "good_iae": None if math.isnan(good) else good, "baseline": math.isnan(good),
+        })  # fmt: skip
+    for s in osc.tolist():
+        if math.isnan(tb.v_margin[s]) or not changed(tb, s):
+            continue
+        result = fail(tb, s, "oscillation", wall, figure=None)
+        if result is not None:
+            out.append(result)
+    return out
+
+
+def reference(tb: LoopTable, s):
+    """The last-good figure a response is judged against: of its own direction (``s``
+    a slot or slots; the direction of the last response opened)."""
+    return np.where(tb.r_move[s] < 0, tb.g_iae_dn[s], tb.g_iae[s])
+
+
+def _set_reference(tb: LoopTable, s: int, value: float) -> None:
+    if tb.r_move[s] < 0:
+        tb.g_iae_dn[s] = value
+    else:
+        tb.g_iae[s] = value
+
+
+def _verified(tb, s: int, cand: tuple[float, float], seq: int, figure: float) -> None:
+    # the other direction keeps the last-good gains' figure: the next response that way
+    # is judged against it, like with like
+    tb.g_kp[s], tb.g_ki[s], tb.g_seq[s] = cand[0], cand[1], seq
+    _set_reference(tb, s, figure)
+    tb.v_seq[s] = max(tb.v_seq[s], seq)
+    tb._verify_dirty.add(s)
+
+
+def fail(
+    tb: LoopTable, s: int, why: str, wall: float, *, figure: float | None, actor: str = ""
+) -> StepResult | None:
+    """A change failed (or an operator asked for a rollback): act by mode. Returns the
+    message to publish (auto: the rollback; advisory: the rollback proposal)."""
+    mode = int(tb.mode[s])
+    old, good = (float(tb.kp[s]), float(tb.ki[s])), (float(tb.g_kp[s]), float(tb.g_ki[s]))
+    judged = [int(tb.v_seq[s]) + 1, int(tb.seq[s])]
+    detail = {
+        "why": why, "seqs": judged, "iae": figure,
+        "good_iae": _num(reference(tb, s)),
+        "oscillation_index": _num(tb.o_index[s]),
+    }  # fmt: skip
+    if why == "oscillation":
+        detail["period_s"] = 2.0 * float(tb.o_half[s].mean())
+    if actor:
+        detail["actor"] = actor
+    tb._verify_dirty.add(s)
+    t = float(tb.last_t[s]) if math.isfinite(tb.last_t[s]) else 0.0
+    if mode != AUTO:
+        tb.b_kp[s], tb.b_ki[s] = old
+    if mode not in (AUTO, ADVISORY):
+        tb.v_seq[s] = tb.seq[s]
+        _audit(tb, s, wall, "verdict", old, old, {"verdict": "worse", **detail})
+        return None
+    tb.seq[s] += 1
+    tb.cool_until[s] = t + tb.v_cool[s]
+    seq = int(tb.seq[s])
+    tb._gains_dirty.add(s)
+    if mode == AUTO:
+        tb.prev_kp[s], tb.prev_ki[s] = old
+        tb.kp[s], tb.ki[s] = good
+        tb.pending[s] = True
+        tb.hidden[s] = 0.0  # the agent's memory of the failed gains goes with them
+        tb.adv_kp[s] = tb.adv_ki[s] = tb.adv_seq[s] = math.nan
+        verdict = "rolled_back"
+    else:
+        tb.adv_kp[s], tb.adv_ki[s], tb.adv_seq[s] = good[0], good[1], seq
+        verdict = "rollback_proposed"
+    tb.v_seq[s] = seq
+    _audit(tb, s, wall, "rollback", old, good, {"verdict": verdict, **detail}, t=t)
+    why_text = f"reason=rollback why={why} verdict={verdict}"
+    return single(tb, s, t, old, good, UpdateReason.rollback, why_text, mode)
+
+
+def accept(tb: LoopTable, s: int, seq: int, wall: float, actor: str) -> StepResult:
+    """An operator accepts the advisory proposal ``seq``: published as an ``auto``
+    message (the gateway applies it), in flight until the gateway reports it.
+    ValueError if ``seq`` is not the loop's pending proposal."""
+    _check_proposal(tb, s, seq)
+    old, new = (float(tb.kp[s]), float(tb.ki[s])), (float(tb.adv_kp[s]), float(tb.adv_ki[s]))
+    tb.prev_kp[s], tb.prev_ki[s] = old
+    tb.kp[s], tb.ki[s] = new
+    tb.pending[s] = True
+    tb.adv_kp[s] = tb.adv_ki[s] = tb.adv_seq[s] = math.nan
+    tb.seq[s] += 1
+    tb._gains_dirty.add(s)
+    tb._verify_dirty.add(s)
+    t = float(tb.last_t[s]) if math.isfinite(tb.last_t[s]) else 0.0
+    _audit(tb, s, wall, "accepted", old, new, {"proposal": seq, "actor": actor}, t=t)
+    why = f"reason=accepted proposal={seq} verdict=pending"
+    return single(tb, s, t, old, new, UpdateReason.accepted, why, AUTO)
+
+
+def reject(tb: LoopTable, s: int, seq: int, wall: float, actor: str) -> None:
+    """An operator rejects the advisory proposal ``seq``: the track restarts from the
+    gains in force and the agent is held for the cool-down."""
+    _check_proposal(tb, s, seq)
+    gains, proposed = (float(tb.kp[s]), float(tb.ki[s])), (float(tb.adv_kp[s]), float(tb.adv_ki[s]))
+    tb.adv_kp[s] = tb.adv_ki[s] = tb.adv_seq[s] = math.nan
+    t = float(tb.last_t[s]) if math.isfinite(tb.last_t[s]) else 0.0
+    tb.cool_until[s] = t + tb.v_cool[s]
+    tb._verify_dirty.add(s)
+    _audit(tb, s, wall, "rejected", gains, gains, {
+        "proposal": seq, "kp": proposed[0], "ki": proposed[1], "actor": actor,
+    }, t=t)  # fmt: skip
+
+
+def _check_proposal(tb: LoopTable, s: int, seq: int) -> None:
+    if tb.mode[s] != ADVISORY:
+        raise ValueError("only an advisory loop has proposals to accept or reject")
+    if math.isnan(tb.adv_seq[s]):
+        raise ValueError("no proposal is pending")
+    if int(tb.adv_seq[s]) != seq:
+        raise ValueError(f"proposal {seq} is not the pending one ({int(tb.adv_seq[s])})")
+
+
+def single(tb, s, t, old, new, reason: UpdateReason, why: str, mode: int) -> StepResult:
+    """A one-loop decision to publish (rollback, accepted proposal)."""
+    return StepResult(
+        [tb.ids[s]], np.array([t]), tb.seq[[s]].copy(), np.array([mode]), np.array([old]),
+        np.array([new]), np.array([new]), [tb.gateways[s]], reason, why=[why],
+    )  # fmt: skip
+
+
+def _audit(tb, s, wall, reason, old, new, detail: dict, t: float | None = None) -> None:
+    t = (float(tb.last_t[s]) if math.isfinite(tb.last_t[s]) else None) if t is None else t
+    tb._audit.append(
+        audit_row(tb.ids[s], wall, t, int(tb.seq[s]), MODE_VALUES[tb.mode[s]], reason, old, new,
+                  orjson.dumps(detail).decode())
+    )  # fmt: skip
+
+
+def _num(x: float) -> float | None:
+    return float(x) if math.isfinite(x) else None
+
+
+def dump(tb: LoopTable, s: int) -> dict:
+    """The verification state for the runtime snapshot (JSON: no NaN or inf)."""
+    return {name: _num(getattr(tb, name)[s]) for name in F64 if name not in ("v_margin", "v_cool")}
+
+
+def load(tb: LoopTable, s: int, d: dict) -> None:
+    for name, value in d.items():
+        if name in F64:
+            default = -math.inf if name == "cool_until" else math.nan
+            getattr(tb, name)[s] = default if value is None else value

@@ -1,0 +1,117 @@
+"""Views of the monitor's and verification's arrays as the API shows them
+(:mod:`service.engine.figures`); called with the table's lock held."""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from service.engine import monitor, verify
+from service.engine.figures import (
+    Performance,
+    Proposal,
+    ResponseFigures,
+    Verification,
+    WindowFigures,
+)  # fmt: skip
+from service.engine.modes import ADVISORY
+from service.engine.monitor import same_gains
+
+if TYPE_CHECKING:
+    from service.engine.table import LoopTable
+
+
+def _num(x: float) -> float | None:
+    return float(x) if math.isfinite(x) else None
+
+
+def verification(tb: LoopTable, s: int) -> Verification:
+    margin = _num(tb.v_margin[s])
+    return Verification(
+        enabled=margin is not None,
+        margin=margin,
+        last_good_kp=float(tb.g_kp[s]),
+        last_good_ki=float(tb.g_ki[s]),
+        last_good_iae=_num(tb.g_iae[s]),
+        last_good_iae_down=_num(tb.g_iae_dn[s]),
+        last_good_seq=int(tb.g_seq[s]),
+        judged_seq=int(tb.v_seq[s]),
+        pending=bool(verify.changed(tb, s)),
+        held_until_t=_num(tb.cool_until[s]) if tb.cool_until[s] > tb.last_t[s] else None,
+    )
+
+
+def proposal(tb: LoopTable, s: int) -> Proposal | None:
+    if tb.mode[s] != ADVISORY or math.isnan(tb.adv_seq[s]):
+        return None
+    kp, ki = float(tb.adv_kp[s]), float(tb.adv_ki[s])
+    back = bool(same_gains(kp, tb.g_kp[s]) & same_gains(ki, tb.g_ki[s]))
+    return Proposal(
+        seq=int(tb.adv_seq[s]), kp=kp, ki=ki, dkp=kp - float(tb.kp[s]), dki=ki - float(tb.ki[s]),
+        kp_in_force=float(tb.kp[s]), ki_in_force=float(tb.ki[s]),
+        reason="rollback" if back else "agent",
+    )  # fmt: skip
+
+
+def _response(row, unit: float | None) -> ResponseFigures:
+    t, iae, over, rise, settle, mse = (_num(float(x)) for x in row)
+
+    def tu(x: float | None) -> float | None:
+        return None if x is None or not unit else x / unit
+
+    return ResponseFigures(
+        t=t or 0.0, iae=iae or 0.0, iae_tu=tu(iae), overshoot_pct=over or 0.0, rise_s=rise,
+        rise_tu=tu(rise), settle_s=settle, settle_tu=tu(settle), mse=mse,
+    )  # fmt: skip
+
+
+def performance(tb: LoopTable, s: int) -> Performance:
+    sc = tb.ident[s].in_force_scaling
+    unit = None if sc is None else sc.time_unit_s
+    hist = [_response(row, unit) for row in tb.f_hist[s, : int(tb.f_hist_n[s])].tolist()]
+    var = max(float(tb.w_sq[s] - tb.w_mean[s] ** 2), 0.0)
+    return Performance(
+        loop_id=tb.ids[s],
+        time_unit_s=unit,
+        last=hist[0] if hist else None,
+        history=hist,
+        window=WindowFigures(
+            error_mean=float(tb.w_mean[s]),
+            error_var=var,
+            noise_sigma=math.sqrt(max(float(tb.o_var[s]), 0.0)),
+            oscillation_index=_num(tb.o_index[s]) if tb.o_n[s] >= monitor.OSC_LOBES else None,
+            oscillating=bool(tb.o_osc[s]),
+            manual_share=float(tb.w_manual[s]),
+            saturated_share=float(tb.w_sat[s]),
+            rejected_share=float(tb.w_rej[s]),
+        ),  # fmt: skip
+        verification=verification(tb, s),
+    )
+
+
+def monitor_summary(tb: LoopTable) -> tuple[dict[str, int], dict[str, float]]:
+    """Counts and means over all loops for the metrics (vectorised: no per-loop series)."""
+    used = np.fromiter(tb.slot_of.values(), np.int64, len(tb.slot_of))
+    if not used.size:
+        return dict.fromkeys(_STATES, 0), {}
+    pending = verify.changed(tb, used)
+    counts = {
+        "oscillating": int(tb.o_osc[used].sum()),
+        "change_pending": int(pending.sum()),
+        "held": int((tb.cool_until[used] > tb.last_t[used]).sum()),
+        "proposal_pending": int(((tb.mode[used] == ADVISORY) & ~np.isnan(tb.adv_seq[used])).sum()),
+    }
+    ratio = tb.f_iae[used] / verify.reference(tb, used)
+    ratio = ratio[np.isfinite(ratio)]
+    means = {
+        "manual_share": float(tb.w_manual[used].mean()),
+        "saturated_share": float(tb.w_sat[used].mean()),
+        "rejected_share": float(tb.w_rej[used].mean()),
+        "iae_ratio": float(ratio.mean()) if ratio.size else math.nan,
+    }
+    return counts, means
+
+
+_STATES = ("oscillating", "change_pending", "held", "proposal_pending")

@@ -1,0 +1,168 @@
+"""Performance monitoring and verify-or-rollback through the engine (no bus, no store).
+
+Simulated FOPTD loops under PI control with 2 % measurement noise, driven through
+:class:`TuningEngine` by :mod:`service.learn.verification` (``pitune verify-eval`` runs
+the same with 1,000 changes per kind).
+"""
+
+import json
+
+import numpy as np
+import pytest
+
+from service.engine import LoopConfig, TuningEngine
+from service.engine.identify import Model
+from service.learn.verification import MARGIN, StillAgent, run_scenario, scenario
+
+pytestmark = pytest.mark.timeout(120)
+NOISE = 0.02
+
+
+@pytest.fixture(scope="module")
+def rng():
+    return np.random.default_rng(7)
+
+
+def test_a_change_that_doubles_the_iae_is_rolled_back_within_one_window_in_auto(rng):
+    sc = scenario("bad", 20, rng)
+    assert (sc["ratio"] >= 2.0).all()
+    out = run_scenario(sc, noise=NOISE)
+    assert out["verdict"] == ["rolled_back"] * 20
+    # the change comes a quarter into a setpoint period; the next complete response (the
+    # verification window) ends half a period after its move: 1.25 periods at most
+    assert max(out["after_periods"]) <= 1.3
+    for detail in out["detail"]:
+        assert detail["why"] == "iae" and detail["iae"] > (1 + MARGIN) * detail["good_iae"]
+
+
+def test_in_advisory_the_same_change_is_proposed_for_rollback(rng):
+    out = run_scenario(scenario("bad", 10, rng), noise=NOISE, mode="advisory")
+    assert out["verdict"] == ["rollback_proposed"] * 10
+    assert max(out["after_periods"]) <= 1.3
+
+
+def test_improving_changes_are_verified_and_noise_alone_rolls_nothing_back(rng):
+    sc = scenario("good", 60, rng)
+    assert (sc["ratio"] <= 1.05).all()
+    out = run_scenario(sc, noise=NOISE)
+    assert out["verdict"] == ["verified"] * 60
+
+
+def test_the_iae_figure_matches_the_noise_free_simulation(rng):
+    sc = scenario("bad", 10, rng)
+    out = run_scenario(sc, noise=0.0)
+    measured = np.array([d["iae"] / d["good_iae"] for d in out["detail"]])
+    # within 12 %: the judged response starts from the end of the one before (not quite
+    # settled under sluggish gains); the simulation's step test starts at rest
+    np.testing.assert_allclose(measured, sc["ratio"], rtol=0.12)
+
+
+def test_an_operator_gain_past_the_ultimate_gain_is_detected_within_3_periods(rng):
+    out = run_scenario(scenario("oscillating", 20, rng), noise=NOISE)
+    assert out["verdict"] == ["rolled_back"] * 20
+    assert all(d["why"] == "oscillation" for d in out["detail"])
+    # periods of the oscillation as the detector measured them, from the first time the
+    # noise-free error leaves the detector's band (3 noise sigmas): 3 at most in 99.x % of
+    # the 1,000 cases of `pitune verify-eval` (docs/tuner.md), a little more in the rest
+    after = np.array(out["after_periods"])
+    assert np.mean(after <= 3.0) >= 0.9 and after.max() <= 3.5
+
+
+def _shadow_engine(agent) -> TuningEngine:
+    engine = TuningEngine(agent)
+    engine.register(LoopConfig(
+        id="S", kp=1.0, ki=0.05, sample_period_s=1.0, mode="shadow",
+        scaling={"k_hat": 1.0, "tau_hat": 10.0, "pv_scale": 1.0},
+        guard={"excitation_periods": 0.0},
+    ), wall=0.0)  # fmt: skip
+    return engine
+
+
+class Pushing(StillAgent):
+    """Always proposes kp and ki 0.2 agent units higher."""
+
+    def act(self, obs, state, forgetting):
+        return np.full((len(obs), 2), 0.2), state
+
+
+def test_shadow_publishes_nothing_and_records_each_proposal_with_its_prediction():
+    engine = _shadow_engine(Pushing())
+    samples = [{"loop_id": "S", "t": float(t), "e": 0.1} for t in range(0, 200)]
+    assert engine.ingest(samples, wall=0.0) == []
+    _, audit = engine.drain_changes()
+    steps = [row for row in audit if row[5] == "agent"]
+    assert len(steps) == 3 and all(row[4] == "shadow" for row in steps)
+    assert "prediction=none(no identified model)" in steps[0][10]
+    assert engine.view("S").kp == 1.0  # nothing applied
+    # with an identified model the prediction is the model's step response
+    engine.table.ident[engine.table.slot("S")].in_force = Model(
+        k=1.0, tau=10.0, theta=2.0, noise=0.01, move=1.0, r2=0.99, k_rse=0.01, tau_rse=0.01
+    )
+    engine.ingest([{"loop_id": "S", "t": float(t), "e": 0.1} for t in range(200, 230)], wall=0.0)
+    (row,) = [r for r in engine.drain_changes()[1] if r[5] == "agent"]
+    assert "pred_iae=" in row[10] and "pred_change=" in row[10]
+
+
+def test_advisory_proposals_walk_where_the_agent_points_and_accept_or_reject():
+    engine = TuningEngine(Pushing())
+    engine.register(LoopConfig(
+        id="A", kp=1.0, ki=0.05, sample_period_s=1.0, mode="advisory",
+        scaling={"k_hat": 1.0, "tau_hat": 10.0, "pv_scale": 1.0},
+        guard={"excitation_periods": 0.0, "max_rel_change": 0.5},
+    ), wall=0.0)  # fmt: skip
+    ups = engine.ingest([{"loop_id": "A", "t": float(t), "e": 0.1} for t in range(400)], wall=0.0)
+    kps = [u.kp for u in ups]  # +0.1 per step (agent kp unit 0.5)
+    assert len(kps) == 7 and np.all(np.diff(kps) > 0)  # not one step from gains that never move
+    assert kps[-1] > 1.5 * 1.0  # beyond one guard step from the gains in force
+    assert all(u.mode == "advisory" and "verdict=proposal" in u.why for u in ups)
+    view = engine.view("A")
+    assert view.kp == 1.0 and view.proposal.seq == ups[-1].seq
+    assert view.proposal.kp == pytest.approx(kps[-1]) and view.proposal.reason == "agent"
+    with pytest.raises(ValueError, match="not the pending one"):
+        engine.accept("A", ups[0].seq)
+    (accepted,) = engine.accept("A", ups[-1].seq, actor="ui:alice").updates()
+    assert (accepted.mode, accepted.reason, accepted.kp) == ("auto", "accepted", kps[-1])
+    view = engine.view("A")
+    assert view.kp == pytest.approx(kps[-1]) and view.proposal is None
+    assert view.verification.pending  # an accepted change is verified like any other
+    more = engine.ingest([{"loop_id": "A", "t": 400.0 + t, "e": 0.1} for t in range(60)], wall=0.0)
+    engine.reject("A", more[-1].seq, actor="api")
+    _, audit = engine.drain_changes()
+    rejected = [r for r in audit if r[5] == "rejected"][0]
+    assert json.loads(rejected[10])["actor"] == "api"
+    assert engine.view("A").proposal is None and engine.view("A").verification.held_until_t
+
+
+def test_the_monitor_state_survives_a_snapshot_and_restore(rng):
+    engine = TuningEngine(StillAgent())
+    config = LoopConfig(
+        id="R", kp=1.0, ki=0.05, sample_period_s=1.0,
+        scaling={"k_hat": 1.0, "tau_hat": 10.0, "pv_scale": 1.0},
+    )  # fmt: skip
+    engine.register(config, wall=0.0)
+    tb = engine.table
+    s = tb.slot("R")
+    tb.g_kp[s], tb.g_iae[s], tb.v_seq[s], tb.f_iae[s] = 0.8, 12.5, 4, 13.0
+    ((_, hidden, runtime),) = engine.snapshot(["R"])
+    other = TuningEngine(StillAgent())
+    other.restore(config, kp=1.0, ki=0.05, seq=5, hidden=hidden, runtime=runtime, wall=0.0)
+    v = other.view("R").verification
+    assert (v.last_good_kp, v.last_good_iae, v.judged_seq, v.pending) == (0.8, 12.5, 4, True)
+
+
+def test_an_operator_rollback_restores_the_last_good_gains_and_needs_a_change():
+    engine = TuningEngine(StillAgent())
+    engine.register(LoopConfig(
+        id="O", kp=1.0, ki=0.05, sample_period_s=1.0,
+        scaling={"k_hat": 1.0, "tau_hat": 10.0, "pv_scale": 1.0},
+    ), wall=0.0)  # fmt: skip
+    with pytest.raises(ValueError, match="last-good"):
+        engine.rollback("O")
+    engine.ingest([{"loop_id": "O", "t": 0.0, "e": 0.0, "kp": 3.0, "ki": 0.2}], wall=0.0)
+    assert engine.view("O").verification.pending  # the operator's change, adopted
+    (update,) = engine.rollback("O", actor="api").updates()
+    assert (update.kp, update.ki, update.reason, update.mode) == (1.0, 0.05, "rollback", "auto")
+    assert "why=operator" in update.why
+    rollback = [r for r in engine.drain_changes()[1] if r[5] == "rollback"][0]
+    assert json.loads(rollback[10])["actor"] == "api"
+    assert not engine.view("O").verification.pending
