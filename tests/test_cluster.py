@@ -31,7 +31,8 @@ FAILOVER_BAR_S = 10.0
 
 
 def _bodies() -> list[dict]:
-    fast = {"sample_period_s": 5.0, "scaling": {"k_hat": 1.0, "tau_hat": 2.0, "pv_scale": 1.0}}
+    # RL period 27.5 s of plant time: a step every 5.5 samples (the load sends 5 s each)
+    fast = {"sample_period_s": 5.0, "scaling": {"k_hat": 1.0, "tau_hat": 5.0, "pv_scale": 1.0}}
     solo = [loop_body(f"S{i:03d}", **fast) for i in range(180)]
     batched = [
         loop_body(f"G{g}-{i:02d}", gateway=f"gw{g}", **fast) for g in range(3) for i in range(20)
