@@ -247,18 +247,22 @@ class Demo:
         return summary
 
 
+_STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
 def keep_up(api: str, tuner: Proc) -> None:
     """Leave the tuner (and its console) running until Ctrl-C, SIGTERM or its own exit."""
     print(f"--keep: the tuner stays up, console at {api}/ui; Ctrl-C stops it", flush=True)
     stop = threading.Event()
-    previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    # SIGINT handled explicitly too: a demo started in the background inherits an ignored
+    # SIGINT (shells do that), and Python then raises no KeyboardInterrupt
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in _STOP_SIGNALS}
     try:
         while tuner.running and not stop.wait(0.5):
             pass
-    except KeyboardInterrupt:  # Ctrl-C: the tuner, in our process group, got it too
-        pass
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 def _identified(view: dict) -> dict | None:

@@ -11,48 +11,25 @@ Import the fixtures into a test module with ``from tests.browser import *``.
 
 from __future__ import annotations
 
-import os
-import shutil
-import subprocess
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
 from service.daemon.console.screenshots import CHROMIUM, CHROMIUM_ARGS, Daemon, serve
+from tests.debian import apt_install
 from tests.tuner_support import tuner_settings
 
 __all__ = ["chromium", "browser", "daemon", "new_page", "TOKEN"]
 
 TOKEN = "console-test-token"
-APT_TIMEOUT_S = 600
-
-
-def _install_chromium() -> str | None:
-    """Why Chromium is not there (None: it is, now)."""
-    if Path(CHROMIUM).exists():
-        return None
-    if os.geteuid() != 0 or shutil.which("apt-get") is None:
-        return f"{CHROMIUM} missing and not root with apt-get: apt-get install -y chromium"
-    env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
-    try:
-        done = subprocess.run(
-            ["apt-get", "install", "-y", "--no-install-recommends", "chromium"],
-            env=env, capture_output=True, text=True, timeout=APT_TIMEOUT_S, check=False,
-        )  # fmt: skip
-    except (OSError, subprocess.TimeoutExpired) as exc:
-        return f"apt-get install chromium failed: {exc}"
-    if done.returncode != 0 or not Path(CHROMIUM).exists():
-        tail = (done.stderr or done.stdout).strip().splitlines()[-1:]
-        return f"apt-get install chromium failed ({done.returncode}): {' '.join(tail)}"
-    return None
 
 
 @pytest.fixture(scope="session")
 def chromium() -> str:
     """Path of Debian's Chromium, installed if missing (root); skip if impossible."""
     pytest.importorskip("playwright", reason="Playwright for Python: pip install -e '.[test]'")
-    why = _install_chromium()
+    why = apt_install("chromium", Path(CHROMIUM).exists)
     if why is not None:
         pytest.skip(f"no headless Chromium: {why}")
     return CHROMIUM

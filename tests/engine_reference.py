@@ -70,13 +70,17 @@ def _ingest(tb: LoopTable, s: int, sample: Sample, wall: float) -> bool:
     if sample.kp is not None or sample.ki is not None:
         _adopt(tb, s, sample, wall)
     if sample.sp is None:  # only the error: a setpoint change shows as a jump of it
-        moved = not math.isnan(last_t) and abs(e - tb.last_e[s]) >= tb.exc_step[s]
+        size = abs(e - tb.last_e[s])
+        moved = not math.isnan(last_t) and size >= tb.exc_step[s]
     else:
-        moved = abs(sample.sp - tb.sp_ref[s]) >= tb.exc_step[s]  # False for NaN
+        size = abs(sample.sp - tb.sp_ref[s])
+        moved = size >= tb.exc_step[s]  # False for NaN
         if moved or math.isnan(tb.sp_ref[s]):
             tb.sp_ref[s] = sample.sp
     if moved:
         tb.excited_until[s] = t + tb.exc_window[s]
+        gain = rules.PAPER_MOVE / (size * tb.e_scale[s])
+        tb.obs_gain[s] = min(max(gain, rules.OBS_GAIN_RANGE[0]), rules.OBS_GAIN_RANGE[1])
 
     paused = not sample.auto or sample.saturated
     resumed = (tb.manual[s] or tb.saturated[s]) and not paused

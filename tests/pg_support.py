@@ -2,20 +2,25 @@
 as fixtures (registered by tests/conftest.py): ``pg_server`` for the session and
 ``pg_url``, a fresh empty database per test.
 
-Missing server binaries FAIL the tests that need them, saying what to install (Debian's
-``postgresql`` package, as the README's test set-up says): a silently skipped test
-would hide an untested backend.
+Missing server binaries are installed from Debian's ``postgresql`` package when the
+tests run as root (:func:`tests.debian.apt_install`); otherwise they FAIL the tests that
+need them, saying what to install: a silently skipped test would hide an untested
+backend.
 """
 
 from __future__ import annotations
 
 import pytest
 
-from service.bench.pgserver import PgServer, PgUnavailable
+from service.bench.pgserver import PgServer, PgUnavailable, pg_bin
+from tests.debian import apt_install
 
 
 @pytest.fixture(scope="session")
 def pg_server():
+    why = apt_install("postgresql", lambda: pg_bin() is not None)
+    if why is not None:
+        pytest.fail(f"no PostgreSQL server binaries: {why}")
     try:
         server = PgServer()
     except PgUnavailable as exc:

@@ -6,6 +6,7 @@ run for tens of seconds are marked ``slow`` (``-m "not slow"`` leaves them out).
 from __future__ import annotations
 
 import json
+import os
 import queue
 import signal
 import subprocess
@@ -103,23 +104,17 @@ def test_demo_tunes_the_two_tank_loop_at_least_3x_better_than_untuned(tmp_path):
             "--workdir", str(tmp_path / "work"), "--keep"]  # fmt: skip
     started = time.monotonic()
     demo = subprocess.Popen(argv, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True)  # fmt: skip
-    lines = queue.Queue()
-    threading.Thread(target=lambda: [lines.put(x) for x in demo.stdout], daemon=True).start()
-    stdout, console = [], None
-    while not any(x.startswith("--keep:") for x in stdout):  # the report is written by now
-        try:
-            stdout.append(lines.get(timeout=max(0.0, started + 200 - time.monotonic())))
-        except queue.Empty:
-            demo.kill()
-            pytest.fail("no --keep line:\n" + "".join(stdout)[-2000:] + demo.stderr.read())
-        if stdout[-1].startswith("operator console: "):
-            console = stdout[-1].split()[2]
-    wall = time.monotonic() - started
-    page = httpx.get(console, timeout=10)  # the console outlives the run
-    assert page.status_code == 200 and "pitune" in page.text
-    demo.send_signal(signal.SIGINT)
-    assert demo.wait(timeout=30) == 0, "".join(stdout)[-2000:] + demo.stderr.read()
+                            text=True, start_new_session=True)  # fmt: skip
+    try:
+        stdout, console, wall = _until_kept(demo, started)
+        page = httpx.get(console, timeout=10)  # the console outlives the run
+        assert page.status_code == 200 and "pitune" in page.text
+        demo.send_signal(signal.SIGINT)
+        assert demo.wait(timeout=30) == 0, "".join(stdout)[-2000:] + demo.stderr.read()
+    finally:  # never leave a kept stack behind a failed assertion: its whole group goes
+        if demo.poll() is None:
+            os.killpg(demo.pid, signal.SIGKILL)
+            demo.wait()
     with pytest.raises(httpx.TransportError):  # and is gone after the interrupt
         httpx.get(console, timeout=2)
     assert "level-target RMS" in "".join(stdout)  # the progress line
@@ -134,6 +129,22 @@ def test_demo_tunes_the_two_tank_loop_at_least_3x_better_than_untuned(tmp_path):
     assert summary["gain_updates"] >= 15  # one per 165 s of plant time
     assert (out / "two_tank.png").read_bytes()[:4] == b"\x89PNG"
     assert wall < 180
+
+
+def _until_kept(demo: subprocess.Popen, started: float) -> tuple[list[str], str, float]:
+    """The demo's output up to its --keep line (the report is written by then), the
+    console's address it printed, and the wall time to that line."""
+    lines: queue.Queue[str] = queue.Queue()
+    threading.Thread(target=lambda: [lines.put(x) for x in demo.stdout], daemon=True).start()
+    stdout, console = [], ""
+    while not any(x.startswith("--keep:") for x in stdout):
+        try:
+            stdout.append(lines.get(timeout=max(0.0, started + 200 - time.monotonic())))
+        except queue.Empty:
+            pytest.fail("no --keep line:\n" + "".join(stdout)[-2000:])
+        if stdout[-1].startswith("operator console: "):
+            console = stdout[-1].split()[2]
+    return stdout, console, time.monotonic() - started
 
 
 @pytest.mark.slow

@@ -152,7 +152,10 @@ def test_a_doubled_iae_is_rolled_back_and_sigkill_keeps_last_good_and_pending(tm
                 assert [e["verdict"] for e in adopted] == ["rolled_back", "verified"]
                 assert adopted[1]["kp_new"] == pytest.approx(good[0, 0])
                 perf = api.get(f"/loops/{IDS[0]}/performance").json()
-                assert perf["last"]["iae"] > 2 * perf["verification"]["last_good_iae"] * 0.75
+                # the bad gains' response is among the recent ones (under load the
+                # rolled-back gains may already have answered a newer move)
+                worst = max(r["iae"] for r in [perf["last"], *perf["history"]])
+                assert worst > 2 * perf["verification"]["last_good_iae"] * 0.75
                 assert perf["history"] and perf["verification"]["pending"] is False
                 assert api.post(f"/loops/{IDS[0]}/rollback").status_code == 409  # nothing to undo
                 metrics = api.get("/metrics").text

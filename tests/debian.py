@@ -1,0 +1,34 @@
+"""System packages the tests need, installed from Debian's repositories when missing:
+the one rule of the README's test set-up (``python -m pytest`` installs what it needs
+when it runs as root with apt-get, and otherwise says what to install)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+from collections.abc import Callable
+
+APT_TIMEOUT_S = 600
+
+
+def apt_install(package: str, present: Callable[[], bool]) -> str | None:
+    """Install ``package`` unless ``present()``; None once it is there, else why not."""
+    if present():
+        return None
+    if os.geteuid() != 0 or shutil.which("apt-get") is None:
+        return f"{package} missing and not root with apt-get: apt-get install -y {package}"
+    env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
+    install = ["apt-get", "install", "-y", "--no-install-recommends", package]
+    try:
+        for argv in (install, ["apt-get", "update"], install):  # stale lists: update, again
+            done = subprocess.run(argv, env=env, capture_output=True, text=True,
+                                  timeout=APT_TIMEOUT_S, check=False)  # fmt: skip
+            if argv is install and done.returncode == 0:
+                break
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        return f"apt-get install {package} failed: {exc}"
+    if done.returncode != 0 or not present():
+        tail = (done.stderr or done.stdout).strip().splitlines()[-1:]
+        return f"apt-get install {package} failed ({done.returncode}): {' '.join(tail)}"
+    return None
