@@ -130,8 +130,12 @@ if [ "$BUILD" = 1 ]; then
   args=(--tag "$IMAGE" --file "$ROOT/Dockerfile")
   if [ -n "$WHEELHOUSE" ]; then
     [ -n "$(find "$WHEELHOUSE" -maxdepth 1 -name '*.whl' -print -quit)" ] || die "no wheels in $WHEELHOUSE"
-    find "$WHEELHOUSE" -maxdepth 1 -name '*.whl' -exec sh -c \
-      'for f; do ln -f "$f" "$0/" 2>/dev/null || cp -f "$f" "$0/"; done' "$DEPLOY/wheelhouse" {} +
+    mkdir -p "$DEPLOY/wheelhouse"
+    # the build context's own wheelhouse given (deploy/wheelhouse.sh's default): nothing to link
+    if [ "$(realpath "$WHEELHOUSE")" != "$(realpath "$DEPLOY/wheelhouse")" ]; then
+      find "$WHEELHOUSE" -maxdepth 1 -name '*.whl' -exec sh -c \
+        'for f; do ln -f "$f" "$0/" 2>/dev/null || cp -f "$f" "$0/"; done' "$DEPLOY/wheelhouse" {} +
+    fi
   fi
   [ -n "$INDEX_URL" ] && args+=(--build-arg "INDEX_URL=$INDEX_URL")
   [ -n "$TORCH_INDEX_URL" ] && args+=(--build-arg "TORCH_INDEX_URL=$TORCH_INDEX_URL")
