@@ -34,8 +34,9 @@ plant), the true gain 1.7 appears as 0.71, one agent time unit is 60 s, and the 
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, NamedTuple
 
+import numpy as np
 from pydantic import (
     BaseModel,
     ConfigDict,
@@ -60,6 +61,57 @@ AGENT_GAIN_RANGE = (0.01, 50.0)
 keeps a tuned loop an order of magnitude above the floor."""
 DEFAULT_FORGETTING = 0.99
 """The paper's forgetting factor gamma of the hidden state, used online."""
+
+PAPER_MOVE = 2.0
+"""Size of a setpoint move in the paper's training protocol (a +-1 square wave), agent units.
+The agent sees the error and its integral scaled by PAPER_MOVE / (the last move's size):
+a linear loop answers a move of any size with the same shape, and this makes it the
+shape of the moves the agent was trained on (docs/tuner.md, "Setpoint-move scaling")."""
+OBS_GAIN_RANGE = (0.25, 4.0)
+"""Bounds of that scaling: moves from 0.5 to 8 agent units are scaled exactly; a smaller
+one is not blown up into noise, a larger one not shrunk to 0."""
+MOVE_STEP = 0.2
+"""Smallest setpoint change that counts as a move, agent units (the default of a loop's
+``excitation_min_step``; training uses it too)."""
+
+
+class Moves(NamedTuple):
+    """Per-loop state of the setpoint-move rule after one sample, arrays of shape (n,)."""
+
+    moved: np.ndarray
+    """The setpoint moved at this sample (bool)."""
+    ref: np.ndarray
+    """Setpoint at the last move (the reference the next move is measured from)."""
+    anchor: np.ndarray
+    """Setpoint before the first move of the current run of moves."""
+    last_move: np.ndarray
+    """Time of the last move (the caller's clock)."""
+    gain: np.ndarray
+    """Observation gain PAPER_MOVE / (size of the run of moves), within OBS_GAIN_RANGE."""
+
+
+def track_moves(sp, ref, anchor, last_move, gain, now, step, run, scale=1.0) -> Moves:
+    """One sample of the setpoint-move rule, vectorised over loops (arrays (n,) or scalars).
+
+    A change of the setpoint ``sp`` from ``ref`` by at least ``step`` is a move (a NaN
+    ``ref``, no setpoint seen yet, is none). A move in the same direction within ``run``
+    of the previous one (same clock as ``now`` and ``last_move``) continues it: a ramp or
+    a staircase is one move, measured from the setpoint before its first step
+    (``anchor``), not a series of steps of ``step`` each, which would scale the error up
+    4x. ``scale`` converts
+    ``sp``'s units to agent units (``e_scale``). The engine calls it per sample
+    (service.engine.rules), training per controller sample (service.learn.env)."""
+    with np.errstate(invalid="ignore"):  # NaN references compare False
+        moved = np.abs(sp - ref) >= step
+        # a run continues in the same direction; a reversal starts a new one from its turn
+        run_on = (now - last_move <= run) & (np.sign(sp - ref) == np.sign(ref - anchor))
+    anchor = np.where(moved & ~run_on, ref, anchor)
+    with np.errstate(divide="ignore"):
+        size = np.abs(sp - anchor) * scale
+        gain = np.where(moved, np.clip(PAPER_MOVE / size, *OBS_GAIN_RANGE), gain)
+    ref = np.where(moved | np.isnan(ref), sp, ref)
+    return Moves(moved, ref, anchor, np.where(moved, now, last_move), gain)
+
 
 Factor = Annotated[float, Field(strict=True, ge=1e-9, le=1e9, allow_inf_nan=False)]
 """Every hint and factor lies within 1e-9..1e9, so derived gains stay finite and nonzero."""

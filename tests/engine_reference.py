@@ -15,6 +15,7 @@ from service.engine.audit import audit_row
 from service.engine.modes import AUTO, FROZEN
 from service.engine.rules import GAIN_RTOL, MAX_AGENT_ERROR
 from service.engine.table import LoopTable
+from service.units import OBS_GAIN_RANGE, PAPER_MOVE
 from service.wire.decode import decode_objects
 from service.wire.protocol import RejectReason, Sample
 
@@ -66,21 +67,33 @@ def _ingest(tb: LoopTable, s: int, sample: Sample, wall: float) -> bool:
         raise Rejected(RejectReason.out_of_range, f"|e|={abs(e):g} is absurd for this loop")
     if math.isnan(last_t) and t <= tb.last_t[s]:  # a new clock: the gate's window moves too
         tb.excited_until[s] += t - old_t
+        tb.move_t[s] += t - old_t
     tb.back_n[s] = 0.0
     if sample.kp is not None or sample.ki is not None:
         _adopt(tb, s, sample, wall)
     if sample.sp is None:  # only the error: a setpoint change shows as a jump of it
         size = abs(e - tb.last_e[s])
         moved = not math.isnan(last_t) and size >= tb.exc_step[s]
+        if moved:
+            tb.sp_anchor[s] = tb.last_e[s]
     else:
-        size = abs(sample.sp - tb.sp_ref[s])
+        ref = tb.sp_ref[s]
+        size = abs(sample.sp - ref)
         moved = size >= tb.exc_step[s]  # False for NaN
-        if moved or math.isnan(tb.sp_ref[s]):
+        if moved:
+            anchor = tb.sp_anchor[s]
+            # a run of moves: within one RL period of the last, in the same direction
+            run_on = t - tb.move_t[s] <= tb.period[s] and (sample.sp > ref) == (ref > anchor)
+            if not run_on or ref == anchor:
+                tb.sp_anchor[s] = ref
+            size = abs(sample.sp - tb.sp_anchor[s])
+        if moved or math.isnan(ref):
             tb.sp_ref[s] = sample.sp
     if moved:
         tb.excited_until[s] = t + tb.exc_window[s]
-        gain = rules.PAPER_MOVE / (size * tb.e_scale[s])
-        tb.obs_gain[s] = min(max(gain, rules.OBS_GAIN_RANGE[0]), rules.OBS_GAIN_RANGE[1])
+        tb.move_t[s] = t
+        gain = PAPER_MOVE / (size * tb.e_scale[s])
+        tb.obs_gain[s] = min(max(gain, OBS_GAIN_RANGE[0]), OBS_GAIN_RANGE[1])
 
     paused = not sample.auto or sample.saturated
     resumed = (tb.manual[s] or tb.saturated[s]) and not paused

@@ -144,7 +144,8 @@ def test_the_setpoint_move_scaling_follows_the_last_move_and_survives_a_snapshot
     tb = eng.table
     s = tb.slot("L")
     assert tb.obs_gain[s] == 1.0  # no move yet
-    for t, sp, want in [(0.0, 10.0, 1.0), (1.0, 13.0, 4 / 3), (2.0, 12.0, 4.0), (3.0, 40.0, 0.25)]:
+    # moves further apart than the RL period (55 s here): each is measured on its own
+    for t, sp, want in [(0, 10.0, 1.0), (100, 13.0, 4 / 3), (200, 12.0, 4.0), (300, 40.0, 0.25)]:
         eng.ingest([{"loop_id": "L", "t": t, "sp": sp, "pv": 10.0}], wall=t)
         assert tb.obs_gain[s] == pytest.approx(want)  # 2 / (move / 2), within [0.25, 4]
     ((loop_id, hidden, runtime),) = tb.snapshot(["L"])
@@ -152,3 +153,23 @@ def test_the_setpoint_move_scaling_follows_the_last_move_and_survives_a_snapshot
     config = LoopConfig(id="L", kp=0.5, ki=0.05, sample_period_s=1.0, scaling=scaling)
     other.restore(config, kp=0.5, ki=0.05, seq=0, hidden=hidden, runtime=runtime)
     assert other.table.obs_gain[other.table.slot("L")] == 0.25
+
+
+def test_a_ramp_is_one_move_of_its_whole_size_not_many_small_ones():
+    """A setpoint ramped in steps of the smallest move (0.2 agent units) is measured from
+    where it started while the steps come within one RL period of each other."""
+    eng = TuningEngine(load_agent())
+    scaling = {"k_hat": 1.0, "tau_hat": 10.0, "pv_scale": 2.0}  # RL period 55 s
+    eng.register(LoopConfig(id="L", kp=0.5, ki=0.05, sample_period_s=1.0, scaling=scaling))
+    tb, s = eng.table, eng.table.slot("L")
+
+    def send(t: float, sp: float) -> float:
+        eng.ingest([{"loop_id": "L", "t": t, "sp": sp, "pv": 10.0}], wall=t)
+        return float(tb.obs_gain[s])
+
+    send(0, 10.0)
+    gains = [send(t, 10.0 + 0.4 * t) for t in range(1, 11)]  # 0 -> 2 agent units in 10 s
+    assert gains[0] == pytest.approx(4.0)  # the first step alone: 0.2 units, bound 4
+    assert gains[-1] == pytest.approx(1.0)  # the whole ramp: 2 units, as the paper's move
+    assert send(20, 10.4) == pytest.approx(2 / (3.6 / 2))  # back down within the run
+    assert send(200, 14.4) == pytest.approx(1.0)  # a later move on its own: 4 PV units

@@ -141,3 +141,27 @@ def test_validate_robust_runs_through_the_agent_api():
     # 30 RL steps settle every condition (3 do not: robust.score calls those unstable, inf)
     assert np.isfinite(out["val_r_worst"]) and out["val_r_median"] <= out["val_r_worst"]
     assert out["val_r_which"] in {c.name for c in VAL_ROBUST}
+
+
+def test_the_observation_is_scaled_by_the_last_move_as_the_engine_scales_it():
+    """Toggles of +-1 (moves of 2) leave the observation as it was; +-0.3 toggles are
+    scaled by 2 / 0.6; a ramp counts as one move of its whole size."""
+    n = 3
+    env = TuningEnv(EnvConfig(init_noise=0.0), np.random.default_rng(0))
+    cond = {
+        "sp_amp": np.array([1.0, 0.3, 1.5]),
+        "sp_random": np.array([False, False, True]),
+        "sp_ramp": np.array([0.0, 0.0, 1.0]),
+    }
+    env.reset(np.full(n, 0.5), np.full(n, 0.5), np.full(n, 0.1), horizon=30,
+              sp0=cond["sp_amp"], conditions=cond)  # fmt: skip
+    ramp_sizes = []
+    for _ in range(30):
+        obs, _, _ = env.step(np.zeros((n, 2)))
+        np.testing.assert_allclose(obs[:, 2], env.e * env.obs_gain)
+        ramp_sizes.append(abs(env.sp_ref[2] - env.sp_anchor[2]))
+        assert env.obs_gain[0] == 1.0
+    assert env.obs_gain[1] == pytest.approx(2 / 0.6)
+    # the ramp's gain is that of its whole size (the run so far), not of 0.2 steps
+    assert env.obs_gain[2] == pytest.approx(np.clip(2 / ramp_sizes[-1], 0.25, 4.0))
+    assert max(ramp_sizes) > 0.5

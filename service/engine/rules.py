@@ -51,18 +51,11 @@ from service.engine import monitor, watch
 from service.engine.audit import audit_row
 from service.engine.modes import _MODES, AUTO, FROZEN
 from service.engine.table import LoopTable
+from service.units import track_moves
 from service.wire.decode import Columns
 from service.wire.protocol import RejectReason
 
 MAX_AGENT_ERROR = 100.0
-PAPER_MOVE = 2.0
-"""Size of a setpoint move in the paper's training protocol (a +-1 square wave), agent units.
-The agent sees the error and its integral scaled by PAPER_MOVE / (the last move's size):
-a linear loop answers a move of any size with the same shape, and this makes it the
-shape of the moves the agent was trained on (docs/tuner.md, "Setpoint-move scaling")."""
-OBS_GAIN_RANGE = (0.25, 4.0)
-"""Bounds of that scaling: moves from 0.5 to 8 agent units are scaled exactly; a smaller
-one (e.g. a ramp's 0.2 steps) is not blown up into noise, a larger one not shrunk to 0."""
 """An error beyond this many agent units (training sees about 2) is an absurd sample."""
 CLOCK_RESET_SAMPLES = 10
 """Consecutive, mutually increasing samples older than the loop's last one that are
@@ -120,6 +113,7 @@ def ingest(
     for i, old_t in reclocked:  # every time kept on the plant clock moves with it
         if ok[i]:
             tb.excited_until[slots[i]] += t[i] - old_t
+            tb.move_t[slots[i]] += t[i] - old_t
     rejections: list[tuple[int, RejectReason, str]] = []
     if not ok.all():
         for i in np.flatnonzero(~ok).tolist():
@@ -176,21 +170,25 @@ def ingest(
 def _excite(tb: LoopTable, slots: np.ndarray, cols: dict[str, np.ndarray], last_t) -> np.ndarray:
     """The excitation gate's part of :meth:`ingest` (before ``last_e`` moves on); returns
     where the setpoint moved (the monitor's responses start there too)."""
-    sp, e, step = cols["sp"], cols["e"], tb.exc_step[slots]
-    ref = tb.sp_ref[slots]
+    sp, e, t = cols["sp"], cols["e"], cols["t"]
     has_sp = ~np.isnan(sp)
-    with np.errstate(invalid="ignore"):  # NaN references compare False
-        moved = np.where(
-            has_sp,
-            np.abs(sp - ref) >= step,
-            ~np.isnan(last_t) & (np.abs(e - tb.last_e[slots]) >= step),
-        )
-    # the move's size in agent units scales the agent's observation (PAPER_MOVE)
-    size = np.abs(np.where(has_sp, sp - ref, e - tb.last_e[slots])) * tb.e_scale[slots]
-    tb.obs_gain[slots[moved]] = np.clip(PAPER_MOVE / size[moved], *OBS_GAIN_RANGE)
-    tb.sp_ref[slots] = np.where(has_sp & (moved | np.isnan(ref)), sp, ref)
-    tb.excited_until[slots[moved]] = cols["t"][moved] + tb.exc_window[slots[moved]]
-    return moved
+    # a loop sending only e: a setpoint change shows as a jump of e (and makes no runs)
+    last_e = np.where(np.isnan(last_t), np.nan, tb.last_e[slots])
+    m = track_moves(
+        np.where(has_sp, sp, e),
+        np.where(has_sp, tb.sp_ref[slots], last_e),
+        tb.sp_anchor[slots],
+        tb.move_t[slots],
+        tb.obs_gain[slots],
+        now=t,
+        step=tb.exc_step[slots],
+        run=np.where(has_sp, tb.period[slots], -np.inf),
+        scale=tb.e_scale[slots],
+    )
+    tb.sp_ref[slots] = np.where(has_sp, m.ref, tb.sp_ref[slots])
+    tb.sp_anchor[slots], tb.move_t[slots], tb.obs_gain[slots] = m.anchor, m.last_move, m.gain
+    tb.excited_until[slots[m.moved]] = t[m.moved] + tb.exc_window[slots[m.moved]]
+    return m.moved
 
 
 def _adopt(tb: LoopTable, slots: np.ndarray, cols: dict[str, np.ndarray], wall: float) -> None:

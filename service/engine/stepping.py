@@ -148,7 +148,7 @@ _VERDICT = {AUTO: "pending", ADVISORY: "proposal", SHADOW: "shadow"}
 
 def _observe(tb: LoopTable, slots: np.ndarray) -> np.ndarray:
     """The agent's observation [kp, ki, e, int_e] in its units, (n, 4); e and int_e scaled
-    by the loop's setpoint-move gain (:data:`service.engine.rules.PAPER_MOVE`)."""
+    by the loop's setpoint-move gain (:data:`service.units.PAPER_MOVE`)."""
     with np.errstate(over="ignore", invalid="ignore"):  # absurd loops are caught after
         return np.column_stack(
             [

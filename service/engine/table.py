@@ -62,8 +62,10 @@ _F64 = (
     # excitation gate: smallest setpoint step (engineering units), window after one (s;
     # inf: gate off), setpoint at the last step, end of the current window
     "exc_step", "exc_window", "sp_ref", "excited_until",
-    # observation gain: the paper's setpoint move (2 agent units) over the last move's size
-    "obs_gain",
+    # observation gain: the paper's setpoint move (2 agent units) over the last move's
+    # size, measured from the setpoint before a run of moves (service.units.track_moves)
+    # and the time of the last move
+    "obs_gain", "sp_anchor", "move_t",
     # run of out-of-order samples that may be a new clock: length and last t
     "back_n", "back_t",
     # identification (service.engine.watch): the reconstructed PI's integral term and the
@@ -328,8 +330,9 @@ class LoopTable:
         self.hidden[s] = 0.0
         self.int_e[s] = self.last_e[s] = 0.0
         self.last_t[s] = self.next_due[s] = self.sp_ref[s] = math.nan
-        self.excited_until[s] = -math.inf
+        self.excited_until[s] = self.move_t[s] = -math.inf
         self.obs_gain[s] = 1.0
+        self.sp_anchor[s] = math.nan
         self.back_n[s] = 0.0
         self.last_wall[s] = -math.inf
         self.pending[s] = self.manual[s] = self.saturated[s] = False
@@ -462,6 +465,8 @@ class LoopTable:
                 "sp_ref": num(self.sp_ref[s]),
                 "excited_until": num(self.excited_until[s]),
                 "obs_gain": float(self.obs_gain[s]),
+                "sp_anchor": num(self.sp_anchor[s]),
+                "move_t": num(self.move_t[s]),
                 "manual": bool(self.manual[s]),
                 "saturated": bool(self.saturated[s]),
                 "counters": [int(getattr(self, n)[s]) for n in _I64[2:]],
@@ -490,6 +495,9 @@ class LoopTable:
         until = rt.get("excited_until")
         self.excited_until[s] = -math.inf if until is None else until
         self.obs_gain[s] = rt.get("obs_gain", 1.0)  # absent before the normalisation
+        anchor, move_t = rt.get("sp_anchor"), rt.get("move_t")  # absent before runs of moves
+        self.sp_anchor[s] = math.nan if anchor is None else anchor
+        self.move_t[s] = -math.inf if move_t is None else move_t
         # snapshots from before a counter was added list fewer: those stay 0
         for name, value in zip(_I64[2:], rt["counters"], strict=False):
             getattr(self, name)[s] = value

@@ -26,7 +26,10 @@ a quiet start, and plants outside the paper's box (a second lag, theta/tau up to
 and tau off the scaling hint by up to 3x). :func:`sample_tasks_v3` and
 :func:`sample_conditions` draw them from an :class:`EnvConfig`; ``reset(...,
 conditions=...)`` takes any per-episode arrays (the robustness evaluation sets them
-explicitly). The observation stays [kp, ki, e, int_e], e the *measured* error.
+explicitly). The observation stays [kp, ki, e, int_e], e the *measured* error, with e
+and int_e scaled by 2 / (size of the last setpoint move) exactly as the tuning engine
+scales them (:func:`service.units.track_moves`): the paper's +-1 toggle is a move of 2,
+so its episodes are unchanged; a move of another size looks like the paper's.
 """
 
 from __future__ import annotations
@@ -40,7 +43,14 @@ from plant_sim.loop import target_filter
 from plant_sim.pi import PIBatch
 from service.agent.model import GAIN_FLOOR
 from service.learn.oracle import effective_foptd
-from service.units import AGENT_GAIN_RANGE, AGENT_KI0, AGENT_KP0, RL_STEP_AGENT_UNITS
+from service.units import (
+    AGENT_GAIN_RANGE,
+    AGENT_KI0,
+    AGENT_KP0,
+    MOVE_STEP,
+    RL_STEP_AGENT_UNITS,
+    track_moves,
+)
 
 K_RANGE = (0.25, 1.0)
 TAU_RANGE = (0.25, 1.0)
@@ -269,6 +279,9 @@ class TuningEnv:
         self.k = 0  # controller sample counter
         self.int_e = np.zeros(n)
         self.e = self.sp - self.plant.measure() - self.noise_state
+        # the engine's setpoint-move scaling of the observation (service.units.track_moves)
+        self.sp_ref, self.sp_anchor = self.sp.copy(), self.sp.copy()
+        self.move_k, self.obs_gain = np.full(n, -np.inf), np.ones(n)
         self._plan_drift()
         return self.observe()
 
@@ -317,7 +330,19 @@ class TuningEnv:
         self.target.set_params(tau=2.0 * tau_e, theta=theta_e)
 
     def observe(self) -> np.ndarray:
-        return np.stack([self.pi.kp, self.pi.ki, self.e, self.int_e], axis=1)
+        """[kp, ki, e, int_e] (B, 4), e and int_e scaled as the engine scales them."""
+        g = self.obs_gain
+        return np.stack([self.pi.kp, self.pi.ki, self.e * g, self.int_e * g], axis=1)
+
+    def _track_moves(self, sp: np.ndarray) -> None:
+        """The engine's setpoint-move rule over the (B, inner) setpoints of the coming RL
+        period: run at the samples where some setpoint changes (a move needs a change),
+        with the engine's default smallest move and one RL period as the run window."""
+        prev = np.concatenate([self.sp[:, None], sp[:, :-1]], axis=1)
+        for j in np.flatnonzero((sp != prev).any(axis=0)).tolist():
+            m = track_moves(sp[:, j], self.sp_ref, self.sp_anchor, self.move_k, self.obs_gain,
+                            now=self.k + j, step=MOVE_STEP, run=self.inner)  # fmt: skip
+            self.sp_ref, self.sp_anchor, self.move_k, self.obs_gain = m[1:]
 
     @property
     def privileged(self) -> np.ndarray:
@@ -394,6 +419,7 @@ class TuningEnv:
         plant, target, pi = self.plant, self.target, self.pi
         sq = np.zeros(self.n)
         sp = self._setpoint_window()
+        self._track_moves(sp)
         loads = bool(np.any(c["load_step"] > 0) or np.any(c["load_walk"] > 0))
         load = self._load_window() if loads else None
         noisy = bool(np.any(c["noise"] > 0))
