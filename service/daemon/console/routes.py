@@ -1,11 +1,7 @@
 """The operator console's routes: pages, their JSON, the live stream, login and actions.
 
-Reads are open like the REST GETs. Every action needs a console session: the login form
-checks the API token once and keeps only a session id in an HttpOnly, SameSite=Strict
-cookie (the token itself never reaches the browser's storage or script); each session
-has its own CSRF token, which the pages carry and every state-changing request must
-send back (header ``X-CSRF-Token``, or the ``csrf`` form field of the logout form).
-Requests whose ``Origin`` names another host are refused as well.
+Reads are open like the REST GETs. Every action needs a console session
+(:mod:`service.daemon.console.sessions`: cookie, CSRF token, same origin).
 
 Nothing here holds the engine's lock for long: the overview copies a few numpy columns
 of the loop table under it (a few ms at 10,000 loops) and filters, sorts and pages
@@ -16,7 +12,6 @@ outside it; a loop's page reads the REST views and the ring of recent samples
 from __future__ import annotations
 
 import asyncio
-import collections
 import inspect
 import json
 import logging
@@ -24,10 +19,8 @@ import math
 import re
 import secrets
 import string
-import threading
 import time
 import urllib.parse
-from dataclasses import dataclass, field
 from functools import cache
 from importlib import resources
 from typing import Any
@@ -42,22 +35,32 @@ from fastapi.responses import (
     StreamingResponse,
 )
 
+from service.daemon.console.assets import asset
+from service.daemon.console.sessions import (
+    ACTOR_NAME,
+    COOKIE,
+    LOGIN_PENALTY_S,
+    SESSION_IDLE_S,
+    Session,
+    acting,
+    app_state,
+    safe_next,
+    same_origin,
+    session_of,
+    sessions_of,
+    token_ok,
+)
+from service.daemon.console.tuner_view import Rates, tuner_figures
 from service.daemon.recent import REASONS
 from service.engine import verify
 from service.engine.config import LoopPatch
 from service.engine.table import STATUSES
-from service.wire.protocol import Mode, RejectReason
+from service.wire.protocol import Mode
 
 log = logging.getLogger("pitune.console")
 router = APIRouter(prefix="/ui", include_in_schema=False)
 
-COOKIE = "pitune_ui"
-SESSION_IDLE_S = 8 * 3600.0
-"""A session unused this long is logged out."""
-MAX_SESSIONS = 1000
 PAGE_MAX = 500
-LOGIN_PENALTY_S = 1.0
-"""Seconds a wrong token waits for its answer."""
 STREAM_TICK_S = 0.5
 """How often a loop page's stream looks for new samples."""
 STREAM_MAX_S = 4.0
@@ -70,101 +73,6 @@ _SORTS = {
     "registered", "id", "status", "mode", "kp", "ki", "last_sample", "last_change",
     "samples", "steps", "updates", "rejected", "rms_e", "gateway",
 }  # fmt: skip
-_NAME = re.compile(r"[^A-Za-z0-9_.@-]")
-
-
-# -- sessions ---------------------------------------------------------------------------
-@dataclass
-class Session:
-    csrf: str
-    actor: str
-    created: float
-    seen: float = field(default_factory=time.monotonic)
-
-
-class Sessions:
-    """Console sessions in memory (a restart logs everyone out)."""
-
-    def __init__(self) -> None:
-        self._by_id: dict[str, Session] = {}
-        self._lock = threading.Lock()
-
-    def create(self, actor: str) -> tuple[str, Session]:
-        sid = secrets.token_urlsafe(32)
-        session = Session(csrf=secrets.token_urlsafe(32), actor=actor, created=time.time())
-        with self._lock:
-            self._expire()
-            if len(self._by_id) >= MAX_SESSIONS:  # drop the least recently used
-                oldest = min(self._by_id, key=lambda k: self._by_id[k].seen)
-                del self._by_id[oldest]
-            self._by_id[sid] = session
-        return sid, session
-
-    def get(self, sid: str | None) -> Session | None:
-        if not sid:
-            return None
-        with self._lock:
-            session = self._by_id.get(sid)
-            if session is None:
-                return None
-            now = time.monotonic()
-            if now - session.seen > SESSION_IDLE_S:
-                del self._by_id[sid]
-                return None
-            session.seen = now
-            return session
-
-    def drop(self, sid: str | None) -> None:
-        with self._lock:
-            self._by_id.pop(sid or "", None)
-
-    def _expire(self) -> None:
-        now = time.monotonic()
-        for sid in [k for k, s in self._by_id.items() if now - s.seen > SESSION_IDLE_S]:
-            del self._by_id[sid]
-
-
-def _state(request: Request, name: str, factory):
-    value = getattr(request.app.state, name, None)
-    if value is None:
-        value = factory()
-        setattr(request.app.state, name, value)
-    return value
-
-
-def _sessions(request: Request) -> Sessions:
-    return _state(request, "console_sessions", Sessions)
-
-
-def _session(request: Request) -> Session | None:
-    return _sessions(request).get(request.cookies.get(COOKIE))
-
-
-def _same_origin(request: Request) -> bool:
-    origin = request.headers.get("origin")
-    if not origin or origin == "null":
-        return origin is None
-    return urllib.parse.urlsplit(origin).netloc == request.headers.get("host", "")
-
-
-def _acting(request: Request) -> Session:
-    """The session of a state-changing request: logged in, CSRF token and origin right."""
-    session = _session(request)
-    if session is None:
-        raise HTTPException(401, "log in to the console first (the API token)")
-    given = request.headers.get("x-csrf-token", "")
-    if not secrets.compare_digest(given.encode(), session.csrf.encode()):
-        raise HTTPException(403, "missing or wrong CSRF token")
-    if not _same_origin(request):
-        raise HTTPException(403, "cross-origin request refused")
-    return session
-
-
-def _token_ok(request: Request, given: str) -> bool:
-    token = request.app.state.settings.api_token
-    if token is None:  # an open API: the console is open too (any token logs in)
-        return True
-    return secrets.compare_digest(given.encode(), token.get_secret_value().encode())
 
 
 # -- helpers ----------------------------------------------------------------------------
@@ -189,7 +97,7 @@ def _page(request: Request, title: str, body: str, script: str, **values: str) -
     """A console page: the layout around the template ``body``, values HTML-escaped."""
     import html
 
-    session = _session(request)
+    session = session_of(request)
     settings = request.app.state.settings
     esc = {k: html.escape(str(v), quote=True) for k, v in values.items()}
     content = _template(body).safe_substitute(esc)
@@ -268,33 +176,25 @@ def tuner_page(request: Request) -> HTMLResponse:
 
 @router.get("/login", response_class=HTMLResponse)
 def login_page(request: Request, next: str = "/ui", error: str = "") -> HTMLResponse:
-    return _page(request, "Log in", "login.html", "", next=_safe_next(next), error=error)
-
-
-def _safe_next(target: str) -> str:
-    """Only a path of the console (no scheme, no host: no open redirect)."""
-    parts = urllib.parse.urlsplit(target)
-    if parts.scheme or parts.netloc or not parts.path.startswith("/ui") or "\\" in target:
-        return "/ui"
-    return parts.path
+    return _page(request, "Log in", "login.html", "", next=safe_next(next), error=error)
 
 
 @router.post("/login")
 async def login(request: Request) -> Response:
-    if not _same_origin(request):
+    if not same_origin(request):
         raise HTTPException(403, "cross-origin request refused")
     form = urllib.parse.parse_qs((await request.body()).decode("utf-8", "replace"))
     token = form.get("token", [""])[0]
-    name = _NAME.sub("", form.get("name", [""])[0])[:40]
-    target = _safe_next(form.get("next", ["/ui"])[0])
+    name = ACTOR_NAME.sub("", form.get("name", [""])[0])[:40]
+    target = safe_next(form.get("next", ["/ui"])[0])
     client = request.client.host if request.client else "?"
-    if not _token_ok(request, token):
+    if not token_ok(request, token):
         log.warning("console login refused (wrong token) from %s", client)
         await asyncio.sleep(LOGIN_PENALTY_S)  # slows guessing down
         query = urllib.parse.urlencode({"next": target, "error": "wrong token"})
         return RedirectResponse(f"/ui/login?{query}", status_code=303)
     actor = f"ui:{name}" if name else "ui"
-    sessions = _sessions(request)
+    sessions = sessions_of(request)
     sessions.drop(request.cookies.get(COOKIE))
     sid, _ = sessions.create(actor)
     log.info("console login of %s from %s", actor, client)
@@ -308,13 +208,13 @@ async def login(request: Request) -> Response:
 
 @router.post("/logout")
 async def logout(request: Request) -> Response:
-    session = _session(request)
+    session = session_of(request)
     if session is not None:
         form = urllib.parse.parse_qs((await request.body()).decode("utf-8", "replace"))
         given = form.get("csrf", [""])[0] or request.headers.get("x-csrf-token", "")
         if not secrets.compare_digest(given.encode(), session.csrf.encode()):
             raise HTTPException(403, "missing or wrong CSRF token")
-        _sessions(request).drop(request.cookies.get(COOKIE))
+        sessions_of(request).drop(request.cookies.get(COOKIE))
     response = RedirectResponse("/ui", status_code=303)
     response.delete_cookie(COOKIE, path="/ui", httponly=True, samesite="strict")
     return response
@@ -570,7 +470,7 @@ def _jsonable(view) -> dict:
 @router.post("/api/loops/{loop_id}/patch")
 async def patch_loop(loop_id: str, request: Request) -> JSONResponse:
     """PATCH /loops/{id} for a logged-in console (mode, guard limits, ...)."""
-    session = _acting(request)
+    session = acting(request)
     tuner = _tuner(request)
     try:
         patch = LoopPatch.model_validate_json(await request.body())
@@ -617,7 +517,7 @@ async def decide_proposal(loop_id: str, seq: int, decision: str, request: Reques
 async def _act(request: Request, loop_id: str, what: str, method) -> JSONResponse:
     """Run one of the tuner's actions for a logged-in console, as its actor: 404 unknown
     loop, 409 a conflict (nothing to roll back, a stale proposal), 503 store failing."""
-    session = _acting(request)
+    session = acting(request)
     tuner = _tuner(request)
     try:
         view = await asyncio.to_thread(method(tuner), loop_id, actor=session.actor)
@@ -633,101 +533,10 @@ async def _act(request: Request, loop_id: str, what: str, method) -> JSONRespons
 
 
 # -- the tuner --------------------------------------------------------------------------
-_INFERENCE_BUCKETS = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.25, 1.0)
-
-
-def _quantile(m, name: str, q: float) -> float | None:
-    """Upper bound of the histogram bucket holding the quantile ``q``."""
-    total = m.value(f"{name}_count")
-    if not total:
-        return None
-    for le in _INFERENCE_BUCKETS:
-        if m.value(f"{name}_bucket", le=str(le)) >= q * total:
-            return le
-    return math.inf
-
-
-def _tuner_figures(tuner) -> dict:
-    m = tuner.metrics
-    rejected = {r.value: int(m.value("pitune_samples_rejected_total", reason=r.value))
-                for r in RejectReason}  # fmt: skip
-    updates = {mode.value: int(m.value("pitune_updates_published_total", mode=mode.value))
-               for mode in Mode}  # fmt: skip
-    inf = "pitune_inference_batch_seconds"
-    count = m.value(f"{inf}_count")
-    store = tuner.store
-    recent = _recent(tuner)
-    return {
-        "alive": tuner.alive,
-        "ready": tuner.ready,
-        "bus_ready": tuner.bus_ready,
-        "instance_id": tuner.settings.instance_id,
-        "epoch": tuner.epoch,
-        "key_prefix": tuner.settings.key_prefix,
-        "inference_precision": str(tuner.table.inference_precision),
-        "queue_depth": tuner.inbox.qsize(),
-        "queue_size": tuner.settings.queue_size,
-        "received": int(m.value("pitune_samples_received_total")),
-        "rejected": rejected,
-        "rejected_total": sum(rejected.values()),
-        "updates": updates,
-        "inference": {
-            "batches": int(count),
-            "mean_ms": m.value(f"{inf}_sum") / count * 1000 if count else None,
-            "p50_le_ms": _ms(_quantile(m, inf, 0.5)),
-            "p99_le_ms": _ms(_quantile(m, inf, 0.99)),
-            "loops_per_batch": (
-                m.value("pitune_inference_batch_loops_sum") / count if count else None
-            ),
-        },
-        "store": {
-            "ok": tuner.store_failure is None,
-            "failure": tuner.store_failure,
-            "path": str(tuner.settings.db_path),
-            "journal_rows": store.journal_rows if store is not None else None,
-            "commit_failures": int(m.value("pitune_store_commit_failures_total")),
-            "steps_skipped": int(m.value("pitune_steps_skipped_total")),
-        },
-        "queries_dropped": tuner.queries_dropped,
-        "superseded": tuner.superseded,
-        "process": {
-            "rss_mb": m.value("process_resident_memory_bytes") / 2**20,
-            "cpu_s": m.value("process_cpu_seconds_total"),
-            "open_fds": int(m.value("process_open_fds")),
-        },
-        "trends_mb": recent.nbytes / 2**20 if recent is not None else None,
-    }
-
-
-def _ms(x: float | None) -> float | str | None:
-    if x is None:
-        return None
-    return "> 1000" if math.isinf(x) else x * 1000
-
-
-class _Rates:
-    """Rates from the counters' growth over the last ~10 s of polls."""
-
-    def __init__(self) -> None:
-        self.points: collections.deque = collections.deque()
-        self.lock = threading.Lock()
-
-    def rates(self, now: float, values: dict[str, float]) -> dict[str, float | None]:
-        with self.lock:
-            self.points.append((now, values))
-            while len(self.points) > 2 and now - self.points[1][0] >= 10.0:
-                self.points.popleft()
-            then, old = self.points[0]
-        dt = now - then
-        if dt < 0.5:
-            return {k: None for k in values}
-        return {k: (v - old[k]) / dt for k, v in values.items()}
-
-
 @router.get("/api/tuner")
 def tuner_data(request: Request) -> JSONResponse:
     tuner = _tuner(request)
-    figures = _tuner_figures(tuner)
+    figures = tuner_figures(tuner)
     with tuner.engine.lock:
         wall = time.time()
         statuses = tuner.table.status_counts(wall)
@@ -737,7 +546,7 @@ def tuner_data(request: Request) -> JSONResponse:
         "statuses": {s.value: n for s, n in statuses.items()},
         "modes": {m.value: n for m, n in modes.items()},
     }
-    rates = _state(request, "console_rates", _Rates)
+    rates = app_state(request, "console_rates", Rates)
     figures["rates"] = rates.rates(
         time.monotonic(),
         {
@@ -750,29 +559,10 @@ def tuner_data(request: Request) -> JSONResponse:
     return JSONResponse(json.loads(json.dumps(figures, default=str)))
 
 
-# -- static assets (vendored, no CDN) ----------------------------------------------------
-_TYPES = {".js": "text/javascript", ".css": "text/css", ".txt": "text/plain", "": "text/plain"}
-
-
-@cache
-def _asset(path: str) -> tuple[bytes, str] | None:
-    """A file under static/ (no '..', no hidden files), with its content type."""
-    parts = path.split("/")
-    if any(not p or p.startswith(".") for p in parts):
-        return None
-    node = resources.files(__package__).joinpath("static", *parts)
-    if not node.is_file():
-        return None
-    suffix = "." + parts[-1].rsplit(".", 1)[1] if "." in parts[-1] else ""
-    kind = _TYPES.get(suffix)
-    if kind is None:
-        return None
-    return node.read_bytes(), kind
-
-
+# -- static assets ----------------------------------------------------------------------
 @router.get("/static/{path:path}")
 def static(path: str) -> Response:
-    found = _asset(path)
+    found = asset(path)
     if found is None:
         raise HTTPException(404, "no such asset")
     data, kind = found
