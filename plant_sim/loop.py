@@ -75,6 +75,13 @@ def run_closed_loop(plant: FOPTDBatch, pi: PIBatch, target: FOPTDBatch, sp: Arra
     return LoopTrace(y=ys, target=rs, u=us, sp=np.array(sp))
 
 
+def effective_foptd(tau, theta, tau2=0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Skogestad's half rule: tau + tau2/2, theta + tau2/2 (the FOPTD 'true model' of a
+    second-order plant; its target is exp(-theta_eff s)/(2 tau_eff s + 1))."""
+    tau, theta, tau2 = (np.asarray(v, dtype=np.float64) for v in (tau, theta, tau2))
+    return tau + tau2 / 2, theta + tau2 / 2
+
+
 def step_test(
     K: ArrayLike,
     tau: ArrayLike,
@@ -85,16 +92,22 @@ def step_test(
     dt: float = 0.01,
     horizon: float = STEP_TEST_HORIZON,
     tau_cl: ArrayLike | None = None,
+    tau2: ArrayLike = 0.0,
 ) -> LoopTrace:
-    """The paper's step test: steady state at -1, setpoint step to +1 at t = 0."""
-    K, tau, theta, kp, ki = np.broadcast_arrays(
-        *(np.asarray(v, np.float64) for v in (K, tau, theta, kp, ki))
+    """The paper's step test: steady state at -1, setpoint step to +1 at t = 0.
+
+    ``tau2`` > 0 adds a second lag to the plant (:class:`FOPTDBatch`); the target is then
+    that of its half-rule FOPTD model (:func:`effective_foptd`). ``tau2`` = 0 is the
+    paper's test, bit for bit."""
+    K, tau, theta, kp, ki, tau2 = np.broadcast_arrays(
+        *(np.asarray(v, np.float64) for v in (K, tau, theta, kp, ki, tau2))
     )
-    K, tau, theta, kp, ki = (np.atleast_1d(v) for v in (K, tau, theta, kp, ki))
+    K, tau, theta, kp, ki, tau2 = (np.atleast_1d(v) for v in (K, tau, theta, kp, ki, tau2))
     n = K.size
-    plant = FOPTDBatch(K, tau, theta, dt=dt, n=n)
+    plant = FOPTDBatch(K, tau, theta, dt=dt, n=n, tau2=tau2)
     plant.reset(-1.0)
-    target = target_filter(tau, theta, dt=dt, tau_cl=tau_cl, n=n)
+    tau_e, theta_e = effective_foptd(tau, theta, tau2)
+    target = target_filter(tau_e, theta_e, dt=dt, tau_cl=tau_cl, n=n)
     target.reset(-1.0)
     pi = PIBatch(kp, ki, dt=dt, n=n)
     pi.initialise(-1.0 / K)
@@ -106,7 +119,7 @@ def step_test_mse(
 ) -> np.ndarray:
     """Mean squared deviation of the output from the target over the step test (paper 5.1).
 
-    Arguments and ``options`` (dt, horizon, tau_cl) as for :func:`step_test`.
+    Arguments and ``options`` (dt, horizon, tau_cl, tau2) as for :func:`step_test`.
     Vectorised: all arguments broadcast to N loops; returns shape (N,). Unstable loops
     give large (possibly ``inf``) values, never NaN.
     """

@@ -39,10 +39,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from plant_sim.foptd import FOPTDBatch
-from plant_sim.loop import target_filter
+from plant_sim.loop import effective_foptd, target_filter
 from plant_sim.pi import PIBatch
 from service.agent.model import GAIN_FLOOR
-from service.learn.oracle import effective_foptd
 from service.units import (
     AGENT_GAIN_RANGE,
     AGENT_KI0,

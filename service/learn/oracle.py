@@ -11,6 +11,7 @@ import json
 
 import numpy as np
 
+from plant_sim.loop import effective_foptd, step_test_mse
 from plant_sim.tunings import oracle
 from service.agent.model import MODELS_DIR
 
@@ -57,42 +58,6 @@ ORACLE3_LAG2 = np.array([0.0, 0.1, 0.25, 0.5])
 ORACLE3_TABLE = MODELS_DIR / "oracle_table_v3.json"
 
 
-def effective_foptd(tau, theta, tau2=0.0) -> tuple[np.ndarray, np.ndarray]:
-    """Skogestad's half rule: tau + tau2/2, theta + tau2/2 (the FOPTD 'true model' of a
-    second-order plant; its target is exp(-theta_eff s)/(2 tau_eff s + 1))."""
-    tau, theta, tau2 = (np.asarray(v, dtype=np.float64) for v in (tau, theta, tau2))
-    return tau + tau2 / 2, theta + tau2 / 2
-
-
-def step_test_mse2(K, tau, theta, kp, ki, tau2=0.0, *, dt: float = 0.01) -> np.ndarray:
-    """:func:`plant_sim.loop.step_test_mse` for plants with an optional second lag ``tau2``
-    (target from :func:`effective_foptd`); identical to it where every tau2 is 0."""
-    from plant_sim.foptd import FOPTDBatch
-    from plant_sim.loop import STEP_TEST_HORIZON, run_closed_loop, step_test_mse, target_filter
-    from plant_sim.pi import PIBatch
-
-    K, tau, theta, kp, ki, tau2 = (
-        np.atleast_1d(v)
-        for v in np.broadcast_arrays(
-            *(np.asarray(v, np.float64) for v in (K, tau, theta, kp, ki, tau2))
-        )
-    )
-    if not np.any(tau2 > 0):
-        return step_test_mse(K, tau, theta, kp, ki, dt=dt)
-    n = K.size
-    tau_e, theta_e = effective_foptd(tau, theta, tau2)
-    plant = FOPTDBatch(K, tau, theta, dt=dt, n=n, tau2=tau2)
-    plant.reset(-1.0)
-    target = target_filter(tau_e, theta_e, dt=dt, n=n)
-    target.reset(-1.0)
-    pi = PIBatch(kp, ki, dt=dt, n=n)
-    pi.initialise(-1.0 / K)
-    trace = run_closed_loop(plant, pi, target, np.ones(int(round(STEP_TEST_HORIZON / dt))))
-    with np.errstate(over="ignore", invalid="ignore"):
-        mse = np.mean((trace.y - trace.target) ** 2, axis=1)
-    return np.where(np.isfinite(mse), mse, np.inf)
-
-
 def batch_oracle(K, tau, theta, tau2=0.0, *, tol: float = 0.003, max_iter: int = 80):
     """Best fixed PI by step-test MSE for many plants at once: a compass search in
     (log kp, log ki) from SIMC (half-rule model), 8 directions, the step halved where
@@ -104,7 +69,7 @@ def batch_oracle(K, tau, theta, tau2=0.0, *, tol: float = 0.003, max_iter: int =
     )
     n = K.size
     z = np.log(np.stack(to_parallel(*simc_paper(K, *effective_foptd(tau, theta, tau2))), axis=1))
-    best = step_test_mse2(K, tau, theta, *np.exp(z).T, tau2)
+    best = step_test_mse(K, tau, theta, *np.exp(z).T, tau2=tau2)
     step = np.full(n, 0.4)
     dirs = np.array([[1, 0], [-1, 0], [0, 1], [0, -1], [1, 1], [-1, -1], [1, -1], [-1, 1]], float)
     for _ in range(max_iter):
@@ -114,7 +79,7 @@ def batch_oracle(K, tau, theta, tau2=0.0, *, tol: float = 0.003, max_iter: int =
         cand = z[live, None, :] + step[live, None, None] * dirs[None]  # (m, 8, 2)
         Kr, taur, thetar, tau2r = (np.repeat(a[live], len(dirs)) for a in (K, tau, theta, tau2))
         kp, ki = np.exp(cand.reshape(-1, 2)).T
-        mse = step_test_mse2(Kr, taur, thetar, kp, ki, tau2r).reshape(-1, len(dirs))
+        mse = step_test_mse(Kr, taur, thetar, kp, ki, tau2=tau2r).reshape(-1, len(dirs))
         j = np.argmin(mse, axis=1)
         m = mse[np.arange(live.size), j]
         better = m < best[live]

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from plant_sim.foptd import FOPTDBatch
-from plant_sim.loop import STEP_TEST_HORIZON, run_closed_loop, step_test, target_filter
+from plant_sim.loop import step_test
 from plant_sim.pi import PIBatch
 from plant_sim.tunings import simc_paper, to_parallel
 from service.engine import LoopConfig
@@ -302,44 +302,13 @@ def score(K, tau, theta, lag, kp, ki) -> tuple[np.ndarray, np.ndarray]:
     First-order plants: the paper's step test. Second-order plants: the same test on the
     true plant with the target of its half-rule FOPTD approximation.
     """
-    tau_h, theta_h = tau + lag / 2, theta + lag / 2  # Skogestad's half rule
-    if not np.any(lag):
-        trace = step_test(K, tau, theta, kp, ki)
-    else:
-        dt = 0.01
-        n = K.size
-        plant = _Chain(K, tau, theta, lag, dt)
-        target = target_filter(tau_h, theta_h, dt=dt, n=n)
-        target.reset(-1.0)
-        pi = PIBatch(kp, ki, dt=dt, n=n)
-        pi.initialise(-1.0 / K)
-        trace = run_closed_loop(plant, pi, target, np.ones(int(round(STEP_TEST_HORIZON / dt))))
+    trace = step_test(K, tau, theta, kp, ki, tau2=lag)
     with np.errstate(over="ignore", invalid="ignore"):
         err = trace.y - trace.target
         mse = np.mean(err**2, axis=1)
         tail = np.abs(err[:, -err.shape[1] // 5 :]).max(axis=1)
     unstable = ~np.isfinite(mse) | ~(tail <= 0.5)
     return np.where(np.isfinite(mse), mse, np.inf), unstable
-
-
-class _Chain:
-    """FOPTD followed by a unit-gain lag, with the FOPTDBatch interface the step test uses."""
-
-    def __init__(self, K, tau, theta, lag, dt):
-        self.first = FOPTDBatch(K, tau, theta, dt=dt)
-        self.lag = FOPTDBatch(np.ones(K.size), lag, 0.0, dt=dt)
-        self.n = K.size
-        self.first.reset(-1.0)
-        self.lag.reset(-1.0)
-
-    def output(self):
-        return self.lag.output()
-
-    def measure(self):
-        return self.lag.output()
-
-    def step(self, u):
-        self.lag.step(self.first.step(u))
 
 
 def simc_score(run: Run) -> np.ndarray:
