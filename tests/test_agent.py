@@ -21,7 +21,8 @@ from service.agent import (
 from service.learn.env import EnvConfig, TuningEnv
 from service.learn.oracle import ORACLE_RATIOS, oracle_gains, oracle_table
 from service.learn.ppo import gae, ppo_policy_loss
-from service.learn.train import TrainConfig, Trainer
+from service.learn.train import Trainer
+from service.learn.train_config import TrainConfig
 from service.units import AGENT_KI0, AGENT_KP0, DEFAULT_FORGETTING
 
 

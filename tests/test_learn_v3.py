@@ -24,7 +24,8 @@ from service.learn.oracle import (
     oracle_table,
     oracle_table3,
 )
-from service.learn.train import TrainConfig, Trainer
+from service.learn.train import Trainer
+from service.learn.train_config import TrainConfig
 from service.learn.validation import VAL_ROBUST, validate_robust
 
 
