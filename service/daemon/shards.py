@@ -22,11 +22,25 @@ BUCKETS = 64
 """Hash buckets of the loops registered without a gateway."""
 
 
+GATEWAY_SHARD = "gw:"
+
+
 def shard_of(loop_id: str, gateway: str | None) -> str:
     """The shard a loop belongs to (fixed for the loop's lifetime: its gateway and id)."""
     if gateway:
-        return f"gw:{gateway}"
+        return gateway_shard(gateway)
     return f"b{zlib.crc32(loop_id.encode()) % BUCKETS}"
+
+
+def gateway_shard(gateway: str) -> str:
+    """The shard of a gateway's loops."""
+    return f"{GATEWAY_SHARD}{gateway}"
+
+
+def gateways(shards: Iterable[str]) -> set[str]:
+    """The gateways of the gateway shards among ``shards`` (their samples keys are what
+    the member owning them subscribes to)."""
+    return {s[len(GATEWAY_SHARD) :] for s in shards if s.startswith(GATEWAY_SHARD)}
 
 
 def _weight(member: str, shard: str) -> int:
