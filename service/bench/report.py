@@ -125,6 +125,11 @@ def table(r: dict) -> str:
                                    f"{f['messages_without_audit']} unaudited of "
                                    f"{f['messages']} messages"),
         ]  # fmt: skip
+        if f.get("takeover", {}).get("loops"):
+            t = f["takeover"]
+            rows.append(("failover: lease / load / insert",
+                         f"{t['lease_wait_s']:.2f} s until taken; {t['loops']} loops loaded "
+                         f"in {t['load_s']:.2f} s, inserted in {t['insert_s']:.2f} s"))  # fmt: skip
     rows += [
         ("machine", f"{mach['cpu']}, {mach['cpus']} CPUs, {mach['memory_gb']} GB"),
         ("load average start / end", f"{_load(mach['load_average_start'])} / "

@@ -34,6 +34,7 @@ loops move within ``lease_s + lease_s / 5`` plus the load (6 s by default).
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import logging
 import threading
@@ -50,6 +51,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("pitune.cluster")
 TICKS_PER_LEASE = 5
+ADOPTIONS_KEPT = 16
 SAFETY_S = 0.5
 """Publishing stops this long before the leases run out by the local clock (clock rate
 differences between the hosts, the time a put takes)."""
@@ -79,6 +81,9 @@ class Cluster:
         self.members: list[str] = []
         self.moves = 0
         """Shards acquired since start (after a failover or a rebalance)."""
+        self.adoptions: collections.deque[dict] = collections.deque(maxlen=ADOPTIONS_KEPT)
+        """The last acquisitions: wall time begun, shards, loops, store load and engine
+        insert seconds (``GET /cluster``: where a failover's time goes)."""
         self._stop = threading.Event()
         self._conn: psycopg.Connection | None = None
         self._beat_conn: psycopg.Connection | None = None
@@ -259,14 +264,19 @@ class Cluster:
     def _acquire(self, shards: set[str], conn: psycopg.Connection | None = None) -> None:
         if not shards:
             return
-        token = self.tuner.store.next_epoch(time.time())
+        started = time.time()
+        token = self.tuner.store.next_epoch(started)
         with self._leasing:
             taken = self._take(shards, token, conn or self._conn)
         if not taken:
             return
-        self.tuner.adopt_shards(taken, token)
+        timing = self.tuner.adopt_shards(taken, token)
         self.moves += len(taken)
-        log.info("acquired %d shards (token %d)", len(taken), token)
+        self.adoptions.append({"at": started, "shards": len(taken), **timing})
+        log.info(
+            "acquired %d shards (token %d): %d loops, store load %.2f s, engine insert %.2f s",
+            len(taken), token, timing["loops"], timing["load_s"], timing["insert_s"],
+        )  # fmt: skip
 
     def _take(self, shards: set[str], token: int, conn: psycopg.Connection) -> list[str]:
         """The leases of those ``shards`` that are free or expired, now this member's
@@ -378,6 +388,7 @@ class Cluster:
                 for i, u, live, n, s in rows
             ],
             "unowned_loops": unowned,
+            "adoptions": list(self.adoptions),
         }
 
     def shard_owner_url(self, shard: str) -> str | None:
