@@ -66,11 +66,13 @@ def test_only_the_owner_of_a_gateway_hears_its_samples_and_the_key_follows_the_s
         a.register_many(configs)
         b = member("b", zenoh_connect=a.settings.zenoh_listen)
         session = open_peer([*a.settings.zenoh_listen, *b.settings.zenoh_listen])
-        wait_until(lambda: a.bus.followed and b.bus.followed, timeout=2 * LEASE_S)
-        assert a.bus.followed | b.bus.followed == set(gws)
-        assert not a.bus.followed & b.bus.followed
-        for t in (a, b):  # a member follows exactly the gateways whose loops it has
-            assert {i.split("-")[0] for i in t.loop_ids()} == t.bus.followed
+
+        def settled() -> bool:  # b took its share; a member follows what it owns, only
+            fa, fb = a.bus.followed, b.bus.followed
+            owned = [{i.split("-")[0] for i in t.loop_ids()} for t in (a, b)]
+            return fa and fb and fa | fb == set(gws) and owned == [fa, fb]
+
+        wait_until(settled, timeout=2 * LEASE_S, what="the gateways shared out")
         pubs = {g: _publisher(session, a.settings.keys.gateway_samples(g)) for g in gws}
         for g, pub in pubs.items():
             pub.put(_batch([f"{g}-L{i}" for i in range(3)], 10.0))
@@ -94,3 +96,30 @@ def test_only_the_owner_of_a_gateway_hears_its_samples_and_the_key_follows_the_s
         if b is not None:
             b.stop()
         a.stop()
+
+
+def test_configs_parsed_ahead_of_a_takeover_are_used_only_while_unchanged(pg_url):
+    from service.daemon.store_pg import PgStore
+    from service.engine.audit import audit_row
+
+    store = PgStore(pg_url)
+    try:
+        configs = [LoopConfig(**loop_body(f"P{i}", gateway="gwP")) for i in range(3)]
+        rows = [
+            audit_row(c.id, 1.0, None, 0, "auto", "registered", None, (0.5, 0.01), "{}")
+            for c in configs
+        ]
+        store.insert_loops(configs, rows, [0, 0, 0])
+        assert store.parse_ahead(["gw:gwP"]) == 3
+        ahead = store._ahead["P0"][1]
+        changed = configs[1].model_copy(update={"mode": "advisory"})  # patched meanwhile
+        with store.transaction() as db:
+            db.execute(
+                "UPDATE loops SET config = ? WHERE id = ?", (changed.model_dump_json(), "P1")
+            )
+        loaded = {s.config.id: s.config for s in store.load(["gw:gwP"])}
+        assert loaded["P0"] is ahead  # not parsed again
+        assert loaded["P1"] == changed  # the stored JSON changed: parsed from the row
+        assert store._ahead == {}
+    finally:
+        store.close()
