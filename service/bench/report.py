@@ -116,6 +116,10 @@ def table(r: dict) -> str:
     elif r.get("failover"):
         f = r["failover"]
         sizes = ", ".join(f"{m['instance_id']} {m['loops']}" for m in r["cluster"]["members"])
+        each = " + ".join(f"{x:.0f}" for x in d.get("members_cpu_percent", []))
+        store = r.get("store_cpu_percent")
+        rows.append(("members CPU / PostgreSQL CPU",
+                     f"{each} % / {_f(store, '{:.0f}')} % of one core"))  # fmt: skip
         rows += [
             ("instances (loops each)", f"{c['instances']} on PostgreSQL ({sizes}), "
                                        f"{c['gateways']} gateways"),

@@ -29,7 +29,7 @@ from service.bench.fleet import Fleet
 from service.bench.gateways import Generators, plans
 from service.bench.load import Measured, _wait_for_tuner, summary
 from service.bench.pgserver import PgServer
-from service.bench.probes import scrape, system_busy
+from service.bench.probes import scrape, system_busy, tree_cpu_seconds
 from service.wire.protocol import Keys
 
 GATEWAYS_PER_INSTANCE = 4
@@ -44,7 +44,11 @@ class _Summed:
         self.proc = self
 
     def cpu_seconds(self) -> float:
-        return sum(p.cpu_seconds() for p in self._procs if p.running)
+        return sum(self.each_cpu())
+
+    def each_cpu(self) -> list[float]:
+        """CPU seconds of each member so far (0 once stopped)."""
+        return [p.cpu_seconds() if p.running else 0.0 for p in self._procs]
 
     def rss_mb(self) -> float:
         """The largest member's (the per-daemon memory line applies to each)."""
@@ -71,14 +75,14 @@ def run(config: BenchConfig, workdir: Path) -> dict:
     )  # fmt: skip
     try:
         members.start()
-        return _drive(config, Fleet(config), members, url)
+        return _drive(config, Fleet(config), members, url, None if server is None else server.pid)
     finally:
         members.stop()
         if server is not None:
             server.stop()
 
 
-def _drive(config: BenchConfig, fleet: Fleet, members: Members, url: str) -> dict:
+def _drive(config: BenchConfig, fleet: Fleet, members: Members, url: str, pg: int | None) -> dict:
     daemon = _Summed(members)
     memory = {"rss_idle_mb": daemon.rss_mb()}
     started = time.perf_counter()
@@ -101,7 +105,7 @@ def _drive(config: BenchConfig, fleet: Fleet, members: Members, url: str) -> dic
         try:
             _wait_for_tuner(session, Keys(), fleet.ids[0])
             gc.freeze()
-            result = _measure(config, fleet, gateways, members, daemon, client, memory)
+            result = _measure(config, fleet, gateways, members, daemon, client, memory, pg)
             result["cluster"] = members.cluster()
             try:
                 result["failover"] = _failover(config, fleet, gateways, members, session, url)
@@ -125,9 +129,10 @@ def _plans(config: BenchConfig, fleet: Fleet, gateways: dict, members: Members, 
     )
 
 
-def _measure(config, fleet, gateways, members, daemon: _Summed, client, memory) -> dict:
+def _measure(config, fleet, gateways, members, daemon: _Summed, client, memory, pg) -> dict:
     """The load for ``warmup + duration`` from the generator processes; the members'
-    metrics, CPU and memory over the window."""
+    metrics, CPU (each, and the PostgreSQL server's when it is the bench's own: ``pg``
+    its pid) and memory over the window."""
     window = (config.warmup, config.warmup + config.duration)
     generators = Generators(
         _plans(config, fleet, gateways, members, window=window, end=window[1], t0=1000.0)
@@ -138,19 +143,21 @@ def _measure(config, fleet, gateways, members, daemon: _Summed, client, memory) 
         _until(start + window[0])
         m0, cpu0, sys0, wall0 = (
             scrape(client, daemon.api),
-            daemon.cpu_seconds(),
+            daemon.each_cpu(),
             system_busy(),
             time.monotonic(),
         )
+        pg0 = tree_cpu_seconds(pg) if pg else None
         while time.monotonic() < start + window[1]:
             rss_max = max(rss_max, daemon.rss_mb())
             _until(min(time.monotonic() + 1.0, start + window[1]))
         m1, cpu1, sys1, wall1 = (
             scrape(client, daemon.api),
-            daemon.cpu_seconds(),
+            daemon.each_cpu(),
             system_busy(),
             time.monotonic(),
         )
+        pg1 = tree_cpu_seconds(pg) if pg else None
         heard = generators.results(timeout=60.0)
     finally:
         generators.kill()
@@ -169,15 +176,24 @@ def _measure(config, fleet, gateways, members, daemon: _Summed, client, memory) 
         generator_cpu_s=heard["cpu_s"],
         late_max_s=heard["late_max_s"],
     )
-    return summary(
+    span = wall1 - wall0
+    each = [100.0 * (b - a) / span for a, b in zip(cpu0, cpu1, strict=True)]
+    result = summary(
         config,
         measured,
         (m0, m1, m2),
-        wall1 - wall0,
-        daemon_cpu_s=cpu1 - cpu0,
+        span,
+        daemon_cpu_s=sum(cpu1) - sum(cpu0),
         machine=(sys0, sys1),
-        daemon={"rss_max_mb": rss_max, "rss_end_mb": daemon.rss_mb(), **memory},
+        daemon={
+            "rss_max_mb": rss_max,
+            "rss_end_mb": daemon.rss_mb(),
+            "members_cpu_percent": each,
+            **memory,
+        },
     )
+    result["store_cpu_percent"] = None if pg is None else 100.0 * (pg1 - pg0) / span
+    return result
 
 
 def _until(when: float) -> None:

@@ -222,10 +222,22 @@ class PgStore(Store):
         rows: Iterable[tuple[str, bytes, str]],
         fence: tuple[str, dict[str, int]] | None = None,
     ) -> None:
+        rows = list(rows)
+        if not rows:
+            return
+        ids, hidden, runtime = (list(c) for c in zip(*rows, strict=True))
         with self.transaction(durable=False) as db:
             if fence is not None:
                 self._check_fence(db, *fence)
-            super().snapshot(rows)
+            # one statement for the chunk: executemany's row-by-row round trips took
+            # about half of a member's worker at 150,000 loops (snapshots every 30 s)
+            db.conn.execute(
+                "INSERT INTO snapshots (id, hidden, runtime) "
+                "SELECT * FROM unnest(%s::text[], %s::bytea[], %s::text[]) "
+                "ON CONFLICT (id) DO UPDATE SET hidden = excluded.hidden, "
+                "runtime = excluded.runtime",
+                (ids, hidden, runtime),
+            )
 
     @staticmethod
     def _audit(db: Adapter, rows: list[AuditRow]) -> None:
