@@ -191,6 +191,9 @@ class Cluster:
                 if lost:
                     with self._lock:
                         self._lost |= lost
+                took = time.monotonic() - started
+                if took > self.tick_s:  # the leases survive a delay of lease_s - tick_s only
+                    log.warning("lease renewal took %.1f s (tick %.1f s)", took, self.tick_s)
             except Exception:  # the database unreachable: the leases run out meanwhile
                 log.exception("lease renewal failed; retrying")
                 with contextlib.suppress(psycopg.Error):
