@@ -141,23 +141,11 @@ def _measure(config, fleet, gateways, members, daemon: _Summed, client, memory, 
         start = generators.go()
         rss_max = 0.0
         _until(start + window[0])
-        m0, cpu0, sys0, wall0 = (
-            scrape(client, daemon.api),
-            daemon.each_cpu(),
-            system_busy(),
-            time.monotonic(),
-        )
-        pg0 = tree_cpu_seconds(pg) if pg else None
+        m0, cpu0, sys0, wall0, pg0 = _probe(client, daemon, pg)
         while time.monotonic() < start + window[1]:
             rss_max = max(rss_max, daemon.rss_mb())
             _until(min(time.monotonic() + 1.0, start + window[1]))
-        m1, cpu1, sys1, wall1 = (
-            scrape(client, daemon.api),
-            daemon.each_cpu(),
-            system_busy(),
-            time.monotonic(),
-        )
-        pg1 = tree_cpu_seconds(pg) if pg else None
+        m1, cpu1, sys1, wall1, pg1 = _probe(client, daemon, pg)
         heard = generators.results(timeout=60.0)
     finally:
         generators.kill()
@@ -194,6 +182,17 @@ def _measure(config, fleet, gateways, members, daemon: _Summed, client, memory, 
     )
     result["store_cpu_percent"] = None if pg is None else 100.0 * (pg1 - pg0) / span
     return result
+
+
+def _probe(client, daemon: _Summed, pg: int | None) -> tuple:
+    """(metrics, CPU seconds of each member, machine CPU, monotonic time, PostgreSQL CPU)."""
+    return (
+        scrape(client, daemon.api),
+        daemon.each_cpu(),
+        system_busy(),
+        time.monotonic(),
+        tree_cpu_seconds(pg) if pg else None,
+    )
 
 
 def _until(when: float) -> None:
