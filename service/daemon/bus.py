@@ -292,6 +292,18 @@ class Bus:
                 if sub is not None:
                     _undeclare(sub)
 
+    def live_tuners(self, timeout: float = 0.5) -> set[str]:
+        """Instance ids of the tuners whose liveliness tokens are on the bus now (a
+        process that died lost its token when its connections closed; one that is only
+        slow keeps it)."""
+        if self.session is None:
+            return set()
+        ids = set()
+        for reply in self.session.liveliness().get(self.keys.all_tuners, timeout=timeout):
+            if reply.ok is not None:
+                ids.add(str(reply.ok.key_expr).rsplit("/", 1)[-1])
+        return ids
+
     @property
     def followed(self) -> set[str]:
         return set(self._followed)

@@ -225,13 +225,16 @@ class Cluster:
         return expiry
 
     def _parse_ahead(self, live: dict[str, float], stored: list[str], held: set[str]) -> None:
-        """Members that missed renewals (:data:`SUSPECT_AFTER_TICKS`) are probably dead:
-        parse the configs of the shards this member would win without them while their
-        leases run out (:meth:`PgStore.parse_ahead
-        <service.daemon.store_pg.PgStore.parse_ahead>`). Nothing is taken early: the
-        leases are taken when they have expired, as always."""
+        """Members that missed renewals (:data:`SUSPECT_AFTER_TICKS`) and whose Zenoh
+        liveliness token is gone are probably dead: parse the configs of the shards this
+        member would win without them while their leases run out (:meth:`PgStore.parse_ahead
+        <service.daemon.store_pg.PgStore.parse_ahead>`). An overloaded member renews late
+        but keeps its token: parsing its loops for nothing would load this member too.
+        Nothing is taken early: the leases are taken when they have expired, as always."""
         fresh = self.lease_s - SUSPECT_AFTER_TICKS * self.tick_s
         suspects = {m for m, left in live.items() if left < fresh and m != self.member}
+        if suspects:
+            suspects -= self.tuner.bus.live_tuners()
         ahead = set()
         if suspects:
             rest = [m for m in live if m not in suspects]
