@@ -137,9 +137,10 @@ def run_scans(
                 applied += 1
             else:
                 ignored += 1
+        samples = {}
         for loop in loops:
             scan = loop.scan()
-            gateway.publish(loop.loop_id, to_sample(scan))
+            samples[loop.loop_id] = to_sample(scan)
             if loop.loop_id in writers:
                 writers[loop.loop_id].write(scan)
             if progress_every and k % progress_every == 0:
@@ -148,4 +149,5 @@ def run_scans(
                     f"op={scan.op:.4g} kp={scan.kp:.4g} ki={scan.ki:.4g}",
                     flush=True,
                 )
+        gateway.publish_scan(samples)  # one batch on the gateway's key with a gateway id
     return applied, ignored

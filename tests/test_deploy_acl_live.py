@@ -111,6 +111,12 @@ def received(q: queue.SimpleQueue, n: int, timeout: float = 5.0) -> list[str]:
 FLOWS = {
     "sample": ("gateway", KEYS.sample("tank1"), "tuner", KEYS.all_samples),
     "sample batch": ("gateway", KEYS.batch, "tuner", KEYS.batch),
+    "gateway's batch": (
+        "gateway",
+        KEYS.gateway_samples("gw-1"),
+        "tuner",
+        KEYS.gateway_samples("gw-1"),
+    ),
     "gains": ("tuner", KEYS.gains("tank1"), "gateway", KEYS.all_gains),
     "gains batch": ("tuner", KEYS.gateway_gains("gw-1"), "gateway", KEYS.gateway_gains("gw-1")),
 }

@@ -10,6 +10,7 @@ import queue
 import sys
 import time
 
+import orjson
 import pytest
 import zenoh
 
@@ -208,9 +209,13 @@ def test_the_example_gateway_applies_state_and_batched_gains(tuner, other, tmp_p
     stepped = tuner.view("LIC-101").kp
     assert stepped != 0.5
     samples = queue.SimpleQueue()
-    sub = other.declare_subscriber(
-        KEYS.sample("LIC-101"), lambda s: samples.put(s.payload.to_bytes())
-    )
+
+    # a tuner of revision 4 listens on the gateway's samples key: each scan is one batch there
+    def on_batch(s: zenoh.Sample) -> None:
+        for item in orjson.loads(s.payload.to_bytes())["samples"]:
+            samples.put(orjson.dumps(item))
+
+    sub = other.declare_subscriber(KEYS.gateway_samples("gw-1"), on_batch)
     child = Proc(
         "gateway",
         [sys.executable, str(EXAMPLE), "--connect", tuner.settings.zenoh_listen[0],

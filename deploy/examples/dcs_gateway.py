@@ -12,8 +12,10 @@ It follows docs/protocol.md through :class:`service.gateways.base.Gateway`:
   (re)connected), it asks the tuner for the loops' state and applies the gains it
   missed meanwhile (same rule); it says when no tuner is up;
 * ``--gateway-id ID`` also applies the batched gains (``GainsBatch``) of the loops
-  registered with ``"gateway": "ID"``, and asks their state in one query (one
-  ``StateBatch`` reply);
+  registered with ``"gateway": "ID"``, asks their state in one query (one
+  ``StateBatch`` reply), and publishes each scan as one ``SampleBatch`` on
+  ``{prefix}/gateways/ID/samples`` (protocol revision 4; per loop while no tuner
+  listens there): in a cluster of tuners only the member owning ID's loops receives it;
 * it warns when a loop the tuner says is tuning has had no update for more than two RL
   periods (the "update overdue" watchdog), and asks the state again.
 
@@ -70,9 +72,11 @@ def scan(gateway: Gateway, dcs: Dcs) -> int:
     if overdue:
         log.warning("update overdue for %s: asking the tuner's state", overdue)
         gateway.query_state()
+    samples = {}
     for loop_id in dcs.blocks:
         sp, pv = dcs.read_loop(loop_id)
-        gateway.publish(loop_id, Sample(t=now, sp=sp, pv=pv, **dcs.gains(loop_id)))
+        samples[loop_id] = Sample(t=now, sp=sp, pv=pv, **dcs.gains(loop_id))
+    gateway.publish_scan(samples)  # one batch on the gateway's key with --gateway-id
     return applied
 
 

@@ -115,7 +115,8 @@ def missing_audit(url: str, heard: list[Heard]) -> list[tuple[str, int]]:
 class Load:
     """Batches of samples of ``loop_ids`` every ``interval`` seconds, plant time
     advancing ``dt`` per batch (a gateway scanning faster than real time), until
-    stopped."""
+    stopped. The loops of ``gateways`` (gateway -> its loop ids) go on their gateway's
+    samples key (revision 4), the others on the shared ``{prefix}/samples``."""
 
     def __init__(
         self,
@@ -124,9 +125,14 @@ class Load:
         interval: float,
         dt: float,
         t0: float = 1000.0,
+        gateways: dict[str, list[str]] | None = None,
     ) -> None:
-        self.session, self.ids, self.interval, self.dt = session, loop_ids, interval, dt
+        self.session, self.interval, self.dt = session, interval, dt
         self.t0 = t0
+        gateways = gateways or {}
+        batched = {i for ids in gateways.values() for i in ids}
+        self.keyed = [(KEYS.gateway_samples(g), ids) for g, ids in gateways.items()]
+        self.keyed.append((KEYS.batch, [i for i in loop_ids if i not in batched]))
         self.sent = 0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="load", daemon=True)
@@ -140,11 +146,13 @@ class Load:
         block = zenoh.CongestionControl.BLOCK
         next_at = time.monotonic()
         while not self._stop.is_set():
-            samples = [{"loop_id": i, "t": t, "e": 0.5 if k % 8 < 4 else -0.5} for i in self.ids]
-            for j in range(0, len(samples), 2000):
-                payload = orjson.dumps({"v": 1, "samples": samples[j : j + 2000]})
-                self.session.put(KEYS.batch, payload, congestion_control=block)
-            self.sent += len(samples)
+            e = 0.5 if k % 8 < 4 else -0.5
+            for key, ids in self.keyed:
+                samples = [{"loop_id": i, "t": t, "e": e} for i in ids]
+                for j in range(0, len(samples), 2000):
+                    payload = orjson.dumps({"v": 1, "samples": samples[j : j + 2000]})
+                    self.session.put(key, payload, congestion_control=block)
+                self.sent += len(samples)
             t, k = t + self.dt, k + 1
             next_at += self.interval
             self._stop.wait(max(0.0, next_at - time.monotonic()))

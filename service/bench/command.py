@@ -41,6 +41,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
       help="tuners sharing a PostgreSQL store (default 1: one tuner on SQLite)")  # fmt: skip
     a("--gateways", type=int, default=D.gateways,
       help="gateways the loops are spread over (--instances: 4 per instance at least)")  # fmt: skip
+    a("--generators", type=int, default=D.generators,
+      help="--instances: load generator processes (default: one per instance)")  # fmt: skip
     a("--postgres", default=None, metavar="URL",
       help="the store of --instances (default: a temporary PostgreSQL server)")  # fmt: skip
     a("--tick", type=float, default=D.tick, help="spacing of the phase groups, seconds")

@@ -35,6 +35,8 @@ class BenchConfig:
     """Gateways the loops are spread over (a cluster's members own whole gateways)."""
     instances: int = 1
     """Tuner processes sharing a PostgreSQL store (1: one tuner on SQLite)."""
+    generators: int = 0
+    """Load generator processes of ``instances`` > 1 (0: one per instance)."""
     postgres: str | None = None
     """The PostgreSQL URL for ``instances`` > 1 (None: a temporary server)."""
     batch_size: int = 2000

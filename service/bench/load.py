@@ -179,7 +179,55 @@ def play(
         with open(config.trace, "w") as out:
             out.write("t_s,loop_id,latency_ms\n")
             out.writelines(f"{t:.3f},{i},{1e3 * d:.2f}\n" for t, i, d in stats.trace)
-    lat = np.asarray(latencies) * 1e3
+    return summary(
+        config,
+        Measured(
+            published=stats["published"],
+            published_window=stats["published_window"],
+            latencies_s=np.asarray(latencies),
+            gains=stats["gains"],
+            unmatched=stats["unmatched"],
+            generator_cpu_s=gen1 - gen0,
+            late_max_s=late_max,
+        ),
+        (m0, m1, m2),
+        span,
+        daemon_cpu_s=cpu1 - cpu0,
+        machine=(sys0, sys1),
+        daemon={"rss_max_mb": rss_max, "rss_end_mb": rss_end, **memory},
+    )
+
+
+@dataclass
+class Measured:
+    """What the load generator measured (one process, or several summed)."""
+
+    published: int
+    published_window: int
+    latencies_s: np.ndarray
+    """Update latencies of the samples published in the window, seconds."""
+    gains: int
+    unmatched: int
+    generator_cpu_s: float
+    """CPU seconds of the generator(s) over the window."""
+    late_max_s: float
+
+
+def summary(
+    config: BenchConfig,
+    measured: Measured,
+    metrics: tuple[dict, dict, dict],
+    span: float,
+    *,
+    daemon_cpu_s: float,
+    machine: tuple,
+    daemon: dict,
+) -> dict:
+    """The results of a run: ``metrics`` are the daemon's (the members' summed) at the
+    window's start, its end and after the drain; ``span`` the window's wall seconds."""
+    m0, m1, m2 = metrics
+    sys0, sys1 = machine
+    lat = measured.latencies_s * 1e3
     received = m2["pitune_samples_received_total"]
     n_rejected = rejected(m2)
     accepted_window = (m1["pitune_samples_received_total"] - rejected(m1)) - (
@@ -189,9 +237,10 @@ def play(
         m1["pitune_inference_batch_seconds_count"] - m0["pitune_inference_batch_seconds_count"]
     )
     inf_sum = m1["pitune_inference_batch_seconds_sum"] - m0["pitune_inference_batch_seconds_sum"]
+    gen_cpu = measured.generator_cpu_s
     return {
         "samples": {
-            "published": stats["published"],
+            "published": measured.published,
             "received": received,
             "rejected": n_rejected,
             "rejected_by_reason": {
@@ -199,15 +248,15 @@ def play(
                 for k, v in m2.items()
                 if k.startswith("pitune_samples_rejected_total{") and v
             },
-            "lost": stats["published"] - received,
-            "published_per_s": stats["published_window"] / config.duration,
+            "lost": measured.published - received,
+            "published_per_s": measured.published_window / config.duration,
             "accepted_per_s": accepted_window / span,
         },
         "updates": {
-            "gains_received": stats["gains"],
-            "gains_in_window": len(latencies),
-            "unmatched": stats["unmatched"],
-            "per_s": len(latencies) / config.duration,
+            "gains_received": measured.gains,
+            "gains_in_window": len(lat),
+            "unmatched": measured.unmatched,
+            "per_s": len(lat) / config.duration,
             "latency_ms": _percentiles(lat),
             "inference_calls": inf_count,
             "inference_mean_ms": 1e3 * inf_sum / inf_count if inf_count else None,
@@ -218,21 +267,16 @@ def play(
                 else None
             ),
         },
-        "daemon": {
-            "cpu_percent": 100.0 * (cpu1 - cpu0) / span,
-            "rss_max_mb": rss_max,
-            "rss_end_mb": rss_end,
-            **memory,
-        },
+        "daemon": {"cpu_percent": 100.0 * daemon_cpu_s / span, **daemon},
         "generator": {
-            "cpu_percent": 100.0 * (gen1 - gen0) / span,
-            "late_max_ms": 1e3 * late_max,
+            "cpu_percent": 100.0 * gen_cpu / span,
+            "late_max_ms": 1e3 * measured.late_max_s,
         },
         "load_average": {"end": list(os.getloadavg())},
         "machine_cpu": {
             # all CPUs together, in "% of one core" like the per-process figures
             "busy_percent": 100.0 * (sys1[0] - sys0[0]) / span,
-            "others_percent": 100.0 * ((sys1[0] - sys0[0]) - (cpu1 - cpu0) - (gen1 - gen0)) / span,
+            "others_percent": 100.0 * ((sys1[0] - sys0[0]) - daemon_cpu_s - gen_cpu) / span,
             "capacity_percent": 100.0 * (sys1[1] - sys0[1]) / span,
         },
     }

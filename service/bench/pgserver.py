@@ -82,6 +82,11 @@ class PgServer:
         )  # fmt: skip
         self.admin = self.url("postgres")
 
+    @property
+    def pid(self) -> int:
+        """The postmaster's process id (its backends are its children)."""
+        return int((self.dir / "data" / "postmaster.pid").read_text().split()[0])
+
     def url(self, database: str) -> str:
         return f"postgresql://pitune@127.0.0.1:{self.port}/{database}"
 

@@ -33,6 +33,22 @@ def system_busy() -> tuple[float, float]:
     return (sum(fields[:8]) - idle) / tick, sum(fields[:8]) / tick
 
 
+def tree_cpu_seconds(pid: int) -> float:
+    """CPU seconds of a process and its live children, plus its exited children's
+    (a PostgreSQL server: the postmaster and its backends), from ``/proc``."""
+    tick, total = os.sysconf("SC_CLK_TCK"), 0.0
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:  # gone meanwhile
+            continue
+        if stat.parent.name == str(pid):
+            total += sum(int(f) for f in fields[11:15])
+        elif fields[1] == str(pid):
+            total += int(fields[11]) + int(fields[12])
+    return total / tick
+
+
 def rejected(metrics: dict[str, float]) -> float:
     return sum(v for k, v in metrics.items() if k.startswith("pitune_samples_rejected_total{"))
 

@@ -116,6 +116,10 @@ def table(r: dict) -> str:
     elif r.get("failover"):
         f = r["failover"]
         sizes = ", ".join(f"{m['instance_id']} {m['loops']}" for m in r["cluster"]["members"])
+        each = " + ".join(f"{x:.0f}" for x in d.get("members_cpu_percent", []))
+        store = r.get("store_cpu_percent")
+        rows.append(("members CPU / PostgreSQL CPU",
+                     f"{each} % / {_f(store, '{:.0f}')} % of one core"))  # fmt: skip
         rows += [
             ("instances (loops each)", f"{c['instances']} on PostgreSQL ({sizes}), "
                                        f"{c['gateways']} gateways"),
@@ -125,6 +129,11 @@ def table(r: dict) -> str:
                                    f"{f['messages_without_audit']} unaudited of "
                                    f"{f['messages']} messages"),
         ]  # fmt: skip
+        if f.get("takeover", {}).get("loops"):
+            t = f["takeover"]
+            rows.append(("failover: lease / load / insert",
+                         f"{t['lease_wait_s']:.2f} s until taken; {t['loops']} loops loaded "
+                         f"in {t['load_s']:.2f} s, inserted in {t['insert_s']:.2f} s"))  # fmt: skip
     rows += [
         ("machine", f"{mach['cpu']}, {mach['cpus']} CPUs, {mach['memory_gb']} GB"),
         ("load average start / end", f"{_load(mach['load_average_start'])} / "

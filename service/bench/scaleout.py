@@ -15,6 +15,7 @@ from __future__ import annotations
 import collections
 import contextlib
 import gc
+import math
 import os
 import time
 from dataclasses import replace
@@ -22,12 +23,13 @@ from pathlib import Path
 
 import httpx
 
-from service.bench.cluster import GainsLog, Load, Members, missing_audit, open_session, wait_for
+from service.bench.cluster import GainsLog, Members, missing_audit, open_session, wait_for
 from service.bench.config import BenchConfig
 from service.bench.fleet import Fleet
-from service.bench.load import _wait_for_tuner, play
+from service.bench.gateways import Generators, plans
+from service.bench.load import Measured, _wait_for_tuner, summary
 from service.bench.pgserver import PgServer
-from service.bench.probes import scrape
+from service.bench.probes import scrape, system_busy, tree_cpu_seconds
 from service.wire.protocol import Keys
 
 GATEWAYS_PER_INSTANCE = 4
@@ -42,7 +44,11 @@ class _Summed:
         self.proc = self
 
     def cpu_seconds(self) -> float:
-        return sum(p.cpu_seconds() for p in self._procs if p.running)
+        return sum(self.each_cpu())
+
+    def each_cpu(self) -> list[float]:
+        """CPU seconds of each member so far (0 once stopped)."""
+        return [p.cpu_seconds() if p.running else 0.0 for p in self._procs]
 
     def rss_mb(self) -> float:
         """The largest member's (the per-daemon memory line applies to each)."""
@@ -69,14 +75,14 @@ def run(config: BenchConfig, workdir: Path) -> dict:
     )  # fmt: skip
     try:
         members.start()
-        return _drive(config, Fleet(config), members, url)
+        return _drive(config, Fleet(config), members, url, None if server is None else server.pid)
     finally:
         members.stop()
         if server is not None:
             server.stop()
 
 
-def _drive(config: BenchConfig, fleet: Fleet, members: Members, url: str) -> dict:
+def _drive(config: BenchConfig, fleet: Fleet, members: Members, url: str, pg: int | None) -> dict:
     daemon = _Summed(members)
     memory = {"rss_idle_mb": daemon.rss_mb()}
     started = time.perf_counter()
@@ -92,29 +98,105 @@ def _drive(config: BenchConfig, fleet: Fleet, members: Members, url: str) -> dic
         memory["register_s"] = time.perf_counter() - started
         wait_for(lambda: _balanced(members, fleet.n), 120.0, "the loops spread over the members")
         memory[f"rss_{fleet.n}_loops_mb"] = daemon.rss_mb()
-        keys = Keys()
+        gateways = collections.defaultdict(list)
+        for body in fleet.registrations:
+            gateways[body["gateway"]].append(body["id"])
         session = open_session(members.endpoints)
-        inbox: collections.deque = collections.deque()
         try:
-            sub = session.declare_subscriber(
-                keys.gateway_gains("*"),
-                lambda s: inbox.append((time.monotonic(), s.payload.to_bytes())),
-            )
-            _wait_for_tuner(session, keys, fleet.ids[0])
+            _wait_for_tuner(session, Keys(), fleet.ids[0])
             gc.freeze()
-            try:
-                result = play(config, fleet, daemon, client, session, keys, inbox, memory)
-            finally:
-                sub.undeclare()
+            result = _measure(config, fleet, gateways, members, daemon, client, memory, pg)
             result["cluster"] = members.cluster()
             try:
-                result["failover"] = _failover(members, fleet, session, url)
+                result["failover"] = _failover(config, fleet, gateways, members, session, url)
             except Exception as exc:  # noqa: BLE001 - the window's results still count
                 keys = ("failover_s", "seq_regressions", "messages_without_audit")
                 result["failover"] = {"error": repr(exc), **dict.fromkeys(keys)}
         finally:
             session.close()
     return result
+
+
+def _plans(config: BenchConfig, fleet: Fleet, gateways: dict, members: Members, **timing):
+    return plans(
+        gateways,
+        config.generators or config.instances,
+        endpoints=members.endpoints,
+        period=fleet.period,
+        groups=len(fleet.groups),
+        batch_size=config.batch_size,
+        **timing,
+    )
+
+
+def _measure(config, fleet, gateways, members, daemon: _Summed, client, memory, pg) -> dict:
+    """The load for ``warmup + duration`` from the generator processes; the members'
+    metrics, CPU (each, and the PostgreSQL server's when it is the bench's own: ``pg``
+    its pid) and memory over the window."""
+    window = (config.warmup, config.warmup + config.duration)
+    generators = Generators(
+        _plans(config, fleet, gateways, members, window=window, end=window[1], t0=1000.0)
+    ).start()
+    try:
+        start = generators.go()
+        rss_max = 0.0
+        _until(start + window[0])
+        m0, cpu0, sys0, wall0, pg0 = _probe(client, daemon, pg)
+        while time.monotonic() < start + window[1]:
+            rss_max = max(rss_max, daemon.rss_mb())
+            _until(min(time.monotonic() + 1.0, start + window[1]))
+        m1, cpu1, sys1, wall1, pg1 = _probe(client, daemon, pg)
+        heard = generators.results(timeout=60.0)
+    finally:
+        generators.kill()
+    deadline = time.monotonic() + 10.0  # the members should have received everything
+    while time.monotonic() < deadline:
+        if scrape(client, daemon.api)["pitune_samples_received_total"] >= heard["published"]:
+            break
+        time.sleep(0.1)
+    m2 = scrape(client, daemon.api)
+    measured = Measured(
+        published=heard["published"],
+        published_window=heard["published_window"],
+        latencies_s=heard["latencies"],
+        gains=heard["gains"],
+        unmatched=heard["unmatched"],
+        generator_cpu_s=heard["cpu_s"],
+        late_max_s=heard["late_max_s"],
+    )
+    span = wall1 - wall0
+    each = [100.0 * (b - a) / span for a, b in zip(cpu0, cpu1, strict=True)]
+    result = summary(
+        config,
+        measured,
+        (m0, m1, m2),
+        span,
+        daemon_cpu_s=sum(cpu1) - sum(cpu0),
+        machine=(sys0, sys1),
+        daemon={
+            "rss_max_mb": rss_max,
+            "rss_end_mb": daemon.rss_mb(),
+            "members_cpu_percent": each,
+            **memory,
+        },
+    )
+    result["store_cpu_percent"] = None if pg is None else 100.0 * (pg1 - pg0) / span
+    return result
+
+
+def _probe(client, daemon: _Summed, pg: int | None) -> tuple:
+    """(metrics, CPU seconds of each member, machine CPU, monotonic time, PostgreSQL CPU)."""
+    return (
+        scrape(client, daemon.api),
+        daemon.each_cpu(),
+        system_busy(),
+        time.monotonic(),
+        tree_cpu_seconds(pg) if pg else None,
+    )
+
+
+def _until(when: float) -> None:
+    time.sleep(max(0.0, when - time.monotonic()))
 
 
 def _balanced(members: Members, n: int) -> bool:
@@ -136,21 +218,25 @@ def _loops_in_engines(members: Members, alive: list[int]) -> float:
     return sum(v for k, v in metrics.items() if k.startswith("pitune_loops{"))
 
 
-def _failover(members: Members, fleet: Fleet, session, url: str) -> dict:
+def _failover(config, fleet: Fleet, gateways: dict, members: Members, session, url: str) -> dict:
     """SIGKILL the member owning the most loops, under the same load (real time); the
     failover time is until the others have all its loops in their engines again
     (leases taken, loops loaded from the store). A loop is stepped again when it next
     falls due (its RL period, 27-165 s at the default ``--tau``): the tests check the
     first step after a takeover with fast loops. Every message heard is checked."""
     log = GainsLog(session)
-    load = Load(session, fleet.ids, interval=1.0, dt=1.0, t0=1e7).start()
+    # plant time far past the window's: the samples are in order for every loop
+    generators = Generators(
+        _plans(config, fleet, gateways, members, window=(0.0, 0.0), end=math.inf, t0=1e7)
+    ).start()
     try:
+        generators.go()
         time.sleep(3.0)  # a few batches through, so the load is the steady one
         view = members.cluster()
         victim = max((m for m in view["members"] if m["live"]), key=lambda m: m["loops"])
         index = members.ids.index(victim["instance_id"])
         alive = [i for i in range(len(members.procs)) if i != index]
-        killed_at = time.monotonic()
+        killed_at, killed_wall = time.monotonic(), time.time()
         members.procs[index].proc.kill()
         try:
             wait_for(
@@ -163,16 +249,33 @@ def _failover(members: Members, fleet: Fleet, session, url: str) -> dict:
         except TimeoutError:
             failover_s = None
         time.sleep(5.0)  # the moved loops' first steps, under the checks below
+        adopted = [a for i in alive for a in members.cluster(via=i)["adoptions"]
+                   if a["at"] >= killed_wall]  # fmt: skip
     finally:
-        load.stop()
+        generators.kill()
         log.close()
     heard = log.snapshot()
     return {
         "victim": victim["instance_id"],
         "victim_loops": victim["loops"],
         "failover_s": failover_s,
+        "takeover": _takeover(adopted, killed_wall),
         "seq_regressions": len(log.regressions()),
         "messages": len(heard),
         "messages_without_audit": len(missing_audit(url, heard)),
         "load_average": list(os.getloadavg()),
+    }
+
+
+def _takeover(adopted: list[dict], killed_wall: float) -> dict:
+    """Where the failover's time went: until the first acquisition (the lease running
+    out, then the next tick), loading the loops from the store, inserting them into the
+    engines (summed over the acquisitions of the survivors)."""
+    if not adopted:
+        return {"lease_wait_s": None, "loops": 0, "load_s": None, "insert_s": None}
+    return {
+        "lease_wait_s": min(a["at"] for a in adopted) - killed_wall,
+        "loops": sum(a["loops"] for a in adopted),
+        "load_s": sum(a["load_s"] for a in adopted),
+        "insert_s": sum(a["insert_s"] for a in adopted),
     }

@@ -170,6 +170,9 @@ class Bus:
         self.session: zenoh.Session | None = None
         self._entities: list = []
         self._token = None
+        self._followed: dict[str, object] = {}
+        """Gateway -> subscriber of its samples key (a cluster's member: its own gateways)."""
+        self._follow_lock = threading.Lock()
         self.other_tuners: set[str] = set()
         """Liveliness tokens of other tuners on this key prefix that appeared while this
         tuner ran (those already there at start-up are the start-up check's)."""
@@ -184,6 +187,10 @@ class Bus:
                 s.declare_queryable(k.all_states, self._query_handler(Kind.query)),
                 s.declare_queryable(k.all_gateway_states, self._query_handler(Kind.gateway_query)),
             ]
+            if not self.settings.postgres:  # a cluster's member follows its own gateways
+                self._entities.append(
+                    s.declare_subscriber(k.all_gateway_samples, self._handler(Kind.batch))
+                )
             self._token = s.liveliness().declare_token(k.tuner(self.settings.instance_id))
             # no history: tokens already there are the start-up check's (a get after this);
             # members of a cluster (a PostgreSQL store) share the prefix by design
@@ -264,13 +271,48 @@ class Bus:
 
         return on_query
 
+    def follow(self, gateways: set[str]) -> None:
+        """Subscribe to the samples keys of ``gateways`` (a cluster's member, for the
+        gateway shards it just took): Zenoh then routes those batches to this member
+        only, instead of every batch to every member."""
+        with self._follow_lock:
+            if self.session is None:
+                return
+            for gateway in sorted(gateways - set(self._followed)):
+                key = self.keys.gateway_samples(gateway)
+                self._followed[gateway] = self.session.declare_subscriber(
+                    key, self._handler(Kind.batch)
+                )
+
+    def unfollow(self, gateways: set[str]) -> None:
+        """Stop receiving the samples of ``gateways`` (shards released or lost)."""
+        with self._follow_lock:
+            for gateway in gateways:
+                sub = self._followed.pop(gateway, None)
+                if sub is not None:
+                    _undeclare(sub)
+
+    def live_tuners(self, timeout: float = 0.5) -> set[str]:
+        """Instance ids of the tuners whose liveliness tokens are on the bus now (a
+        process that died lost its token when its connections closed; one that is only
+        slow keeps it)."""
+        if self.session is None:
+            return set()
+        ids = set()
+        for reply in self.session.liveliness().get(self.keys.all_tuners, timeout=timeout):
+            if reply.ok is not None:
+                ids.add(str(reply.ok.key_expr).rsplit("/", 1)[-1])
+        return ids
+
+    @property
+    def followed(self) -> set[str]:
+        return set(self._followed)
+
     def stop_receiving(self) -> None:
         """Undeclare the subscribers and queryables (the session stays open to publish)."""
+        self.unfollow(self.followed)
         for entity in reversed(self._entities):
-            try:
-                entity.undeclare()
-            except zenoh.ZError as exc:  # already gone with a closed session
-                log.debug("undeclare failed: %s", exc)
+            _undeclare(entity)
         self._entities = []
 
     def publish(self, key: str, payload: bytes) -> None:
@@ -297,14 +339,18 @@ class Bus:
         """Undeclare subscribers, queryables and token, then close the session (idempotent)."""
         self.stop_receiving()
         if self._token is not None:
-            try:
-                self._token.undeclare()
-            except zenoh.ZError as exc:
-                log.debug("undeclare failed: %s", exc)
+            _undeclare(self._token)
             self._token = None
         if self.session is not None and not self.session.is_closed():
             self.session.close()
         self.session = None
+
+
+def _undeclare(entity) -> None:
+    try:
+        entity.undeclare()
+    except zenoh.ZError as exc:  # already gone with a closed session
+        log.debug("undeclare failed: %s", exc)
 
 
 def reply(query: zenoh.Query, payload: bytes, *, error: bool = False) -> None:

@@ -28,12 +28,15 @@ gone: it drops those loops and, still a member, gets shards again by the hashing
 Gains messages carry the shard's token as their ``epoch``, so a gateway orders the new
 owner's messages after any of the old owner's.
 
-A dead member's leases expire after ``lease_s``; the others take them within a tick:
-loops move within ``lease_s + lease_s / 5`` plus the load (6 s by default).
+A dead member's leases expire after ``lease_s``; the others time their next tick to
+that expiry (:meth:`Cluster._survey`) and take them then: loops move within
+``lease_s`` plus the load (5 s by default, 4-5 s after the kill as the last renewal
+was up to a tick before it).
 """
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import logging
 import threading
@@ -49,7 +52,24 @@ if TYPE_CHECKING:
     from service.daemon.tuner import Tuner
 
 log = logging.getLogger("pitune.cluster")
+SHARDS_SQL = (
+    "WITH RECURSIVE s AS ("
+    "(SELECT shard FROM loops ORDER BY shard LIMIT 1) UNION ALL "
+    "SELECT (SELECT shard FROM loops WHERE shard > s.shard ORDER BY shard LIMIT 1) "
+    "FROM s WHERE s.shard IS NOT NULL) "
+    "SELECT shard FROM s WHERE shard IS NOT NULL"
+)
+"""The shards with loops, one index probe per shard on ``loops_shard`` (a loose index
+scan): ``SELECT DISTINCT shard`` reads every loop's row, every tick, on every member
+(parallel workers at 300,000 loops)."""
 TICKS_PER_LEASE = 5
+ADOPTIONS_KEPT = 16
+SUSPECT_AFTER_TICKS = 2
+"""A member whose row has less than ``lease_s`` minus this many ticks left missed at
+least one renewal: probably dead (see :meth:`Cluster._parse_ahead`)."""
+EXPIRY_MARGIN_S = 0.05
+"""A tick timed to another member's expiry comes this long after it (a member's leases
+expire a few milliseconds after its row: renewed in the same transaction, later)."""
 SAFETY_S = 0.5
 """Publishing stops this long before the leases run out by the local clock (clock rate
 differences between the hosts, the time a put takes)."""
@@ -79,10 +99,15 @@ class Cluster:
         self.members: list[str] = []
         self.moves = 0
         """Shards acquired since start (after a failover or a rebalance)."""
+        self.adoptions: collections.deque[dict] = collections.deque(maxlen=ADOPTIONS_KEPT)
+        """The last acquisitions: wall time begun, shards, loops, store load and engine
+        insert seconds (``GET /cluster``: where a failover's time goes)."""
         self._stop = threading.Event()
         self._conn: psycopg.Connection | None = None
         self._beat_conn: psycopg.Connection | None = None
         self._threads: list[threading.Thread] = []
+        self._ahead: set[str] = set()
+        """Shards whose configs are parsed ahead (:meth:`_parse_ahead`)."""
         self._lost: set[str] = set()
         """Shards the renewal found taken, for the tick to drop their loops."""
         self.ready = threading.Event()
@@ -139,14 +164,17 @@ class Cluster:
     def _run(self) -> None:
         while not self._stop.is_set():
             started = time.monotonic()
+            until = started + self.tick_s
             try:
-                self.tick()
+                expiry = self.tick()
+                if expiry is not None:  # a member stopped renewing: be there when it ends
+                    until = min(until, time.monotonic() + expiry + EXPIRY_MARGIN_S)
             except Exception:  # the database unreachable: retried next tick
                 log.exception("cluster tick failed; retrying")
                 self._reconnect()
             finally:
                 self.ready.set()
-            self._wait_notifies(started + self.tick_s)
+            self._wait_notifies(until)
 
     def _reconnect(self) -> None:
         with contextlib.suppress(psycopg.Error):
@@ -163,6 +191,9 @@ class Cluster:
                 if lost:
                     with self._lock:
                         self._lost |= lost
+                took = time.monotonic() - started
+                if took > self.tick_s:  # the leases survive a delay of lease_s - tick_s only
+                    log.warning("lease renewal took %.1f s (tick %.1f s)", took, self.tick_s)
             except Exception:  # the database unreachable: the leases run out meanwhile
                 log.exception("lease renewal failed; retrying")
                 with contextlib.suppress(psycopg.Error):
@@ -171,21 +202,52 @@ class Cluster:
             self._stop.wait(max(0.0, started + self.tick_s - time.monotonic()))
 
     # -- one tick ---------------------------------------------------------------------
-    def tick(self) -> None:
+    def tick(self) -> float | None:
+        """One tick (see the module doc); seconds until the next expiry of another
+        member's row or lease (None: none live)."""
         with self._lock:
             lost, self._lost = self._lost, set()
         if lost:
             log.warning("leases lost (taken by another member): %s", ", ".join(sorted(lost)))
             self.tuner.drop_shards(lost, commit=False)
-        live, stored = self._survey()
-        self.members = live
-        wins = {s for s, m in sharding.assign(stored, live).items() if m == self.member}
+        live, stored, expiry = self._survey()
+        self.members = list(live)
+        wins = {s for s, m in sharding.assign(stored, self.members).items() if m == self.member}
         with self._lock:
             held = set(self.held)
         release = held - wins
         if release:
             self._release(release)
         self._acquire(wins - set(self.held))
+        with self._lock:
+            held = set(self.held)
+        self._parse_ahead(live, stored, held)  # after the acquisitions, which use them
+        return expiry
+
+    def _parse_ahead(self, live: dict[str, float], stored: list[str], held: set[str]) -> None:
+        """Members that missed renewals (:data:`SUSPECT_AFTER_TICKS`) and whose Zenoh
+        liveliness token is gone are probably dead: parse the configs of the shards this
+        member would win without them while their leases run out (:meth:`PgStore.parse_ahead
+        <service.daemon.store_pg.PgStore.parse_ahead>`). An overloaded member renews late
+        but keeps its token: parsing its loops for nothing would load this member too.
+        Nothing is taken early: the leases are taken when they have expired, as always."""
+        fresh = self.lease_s - SUSPECT_AFTER_TICKS * self.tick_s
+        suspects = {m for m, left in live.items() if left < fresh and m != self.member}
+        if suspects:
+            suspects -= self.tuner.bus.live_tuners()
+        ahead = set()
+        if suspects:
+            rest = [m for m in live if m not in suspects]
+            ahead = {s for s, m in sharding.assign(stored, rest).items() if m == self.member}
+            ahead -= held
+        if ahead != self._ahead:
+            self._ahead = ahead
+            n = self.tuner.store.parse_ahead(sorted(ahead))
+            if ahead:
+                log.info(
+                    "%s stopped renewing: %d loops of %d shards parsed ahead of a takeover",
+                    ", ".join(sorted(suspects)), n, len(ahead),
+                )  # fmt: skip
 
     def _renew(self, started: float) -> set[str]:
         with self._leasing:
@@ -221,18 +283,27 @@ class Cluster:
             self.valid_until = started + self.lease_s - SAFETY_S
         return lost
 
-    def _survey(self) -> tuple[list[str], list[str]]:
-        """(live members, shards with loops)."""
-        live = [
-            r[0]
-            for r in self._conn.execute(
-                "SELECT instance_id FROM members WHERE expires > clock_timestamp()"
-            )
-        ]
-        stored = [
-            r[0] for r in self._conn.execute("SELECT DISTINCT shard FROM loops")
-        ]  # fmt: skip
-        return live, stored
+    def _survey(self) -> tuple[dict[str, float], list[str], float | None]:
+        """(live members with the seconds left on their rows, shards with loops, seconds
+        until the next expiry of another member's row or lease). A live member renews
+        every tick, so its next expiry is about ``lease_s`` away; a dead one's comes
+        closer, and the tick after it ends is timed to it rather than up to a tick later."""
+        live = dict(
+            self._conn.execute(
+                "SELECT instance_id, extract(epoch FROM expires - clock_timestamp())::float8 "
+                "FROM members WHERE expires > clock_timestamp() ORDER BY instance_id"
+            ).fetchall()
+        )
+        stored = [r[0] for r in self._conn.execute(SHARDS_SQL)]
+        (expiry,) = self._conn.execute(
+            "SELECT extract(epoch FROM least("
+            "(SELECT min(expires) FROM members WHERE instance_id <> %s "
+            " AND expires > clock_timestamp()), "
+            "(SELECT min(expires) FROM leases WHERE owner <> %s "
+            " AND expires > clock_timestamp())) - clock_timestamp())::float8",
+            (self.member, self.member),
+        ).fetchone()
+        return live, stored, expiry
 
     def _release(self, shards: set[str]) -> None:
         """Hand shards to the member that now wins them: commit and snapshot their loops
@@ -259,14 +330,19 @@ class Cluster:
     def _acquire(self, shards: set[str], conn: psycopg.Connection | None = None) -> None:
         if not shards:
             return
-        token = self.tuner.store.next_epoch(time.time())
+        started = time.time()
+        token = self.tuner.store.next_epoch(started)
         with self._leasing:
             taken = self._take(shards, token, conn or self._conn)
         if not taken:
             return
-        self.tuner.adopt_shards(taken, token)
+        timing = self.tuner.adopt_shards(taken, token)
         self.moves += len(taken)
-        log.info("acquired %d shards (token %d)", len(taken), token)
+        self.adoptions.append({"at": started, "shards": len(taken), **timing})
+        log.info(
+            "acquired %d shards (token %d): %d loops, store load %.2f s, engine insert %.2f s",
+            len(taken), token, timing["loops"], timing["load_s"], timing["insert_s"],
+        )  # fmt: skip
 
     def _take(self, shards: set[str], token: int, conn: psycopg.Connection) -> list[str]:
         """The leases of those ``shards`` that are free or expired, now this member's
@@ -378,6 +454,7 @@ class Cluster:
                 for i, u, live, n, s in rows
             ],
             "unowned_loops": unowned,
+            "adoptions": list(self.adoptions),
         }
 
     def shard_owner_url(self, shard: str) -> str | None:

@@ -14,6 +14,10 @@ single tuner behaves as before. With one (see :mod:`service.daemon.cluster`):
   lost shards' loops and commits the rest;
 - gains go out only while the leases are valid by the local clock, with the shard's
   lease token as ``epoch`` (:meth:`_publishable`);
+- the samples keys of the gateways whose shards it owns are followed from the moment
+  their loops are in the engine until they leave it (:meth:`Bus.follow
+  <service.daemon.bus.Bus.follow>`): Zenoh routes each gateway's batches to its owner
+  only (:meth:`_gateway_rows`);
 - samples and state queries of loops another member owns are left to it: not counted
   as rejected, not answered (:meth:`_foreign`).
 """
@@ -25,9 +29,10 @@ import time
 
 import numpy as np
 
-from service.daemon.shards import shard_of
+from service.daemon.shards import gateway_shard, gateways, shard_of
 from service.daemon.store_pg import Fenced
-from service.wire.decode import Decoded
+from service.wire.decode import Decoded, Rejection
+from service.wire.protocol import RejectReason
 
 log = logging.getLogger("pitune.tuner")
 ADOPT_CHUNK = 2000
@@ -42,10 +47,12 @@ class Ownership:
     """Committed gains messages not published: the leases may have run out."""
 
     # -- called by the cluster's thread -------------------------------------------------
-    def adopt_shards(self, shards: list[str], token: int) -> None:
+    def adopt_shards(self, shards: list[str], token: int) -> dict:
         """Load the shards' loops from the store into the engine (they resume from their
-        committed gains and seq and their last snapshot)."""
+        committed gains and seq and their last snapshot); how long each part took."""
+        began = time.perf_counter()
         stored = self.store.load(shards)
+        loaded = time.perf_counter()
         wall = time.time()
         for i in range(0, len(stored), ADOPT_CHUNK):  # the worker runs between chunks
             with self.table.lock:
@@ -57,12 +64,19 @@ class Ownership:
         with self.table.lock:
             self.metrics.set_loop_counts(self.table.mode_counts())
         self.metrics.loops_unloadable.set(len(self.store.unloadable))
+        self.bus.follow(gateways(shards))  # their loops are in: their samples can come
+        return {
+            "loops": len(stored),
+            "load_s": loaded - began,
+            "insert_s": time.perf_counter() - loaded,
+        }
 
     def drop_shards(self, shards: set[str], *, commit: bool) -> None:
         """Take the shards' loops out of the engine. ``commit``: their pending changes
         are committed and their state snapshotted first (a release, leases still held);
         else (leases lost) the pending changes are discarded: the new owner continues
         from what was committed."""
+        self.bus.unfollow(gateways(shards))
         with self.table.lock:
             ids = [i for i, s in list(self.cluster.shard_of.items()) if s in shards]
             if commit:
@@ -159,6 +173,33 @@ class Ownership:
         if self.cluster is None or loop_id is None or loop_id in self.table.slot_of:
             return False
         return not self.cluster.owns(shard_of(loop_id, None))
+
+    def _gateway_rows(self, decoded: Decoded, gateway: str | None) -> Decoded:
+        """The decoded samples of a batch from ``gateway``'s samples key (None: the shared
+        key, :meth:`_own_rows`). A loop registered with another gateway (or none) is
+        rejected ``wrong_gateway``: its owner may be another member, which never hears
+        this key. In a cluster, a batch of a gateway this member no longer owns (queued
+        before it released the shard) is left to the new owner, as foreign samples."""
+        if gateway is None:
+            return self._own_rows(decoded)
+        rows = decoded.rows
+        if self.cluster is not None and not self.cluster.owns(gateway_shard(gateway)):
+            self.foreign_samples += decoded.received
+            return Decoded(rows.take(np.zeros(len(rows), bool)), [], 0)
+        slot_of, of_slot = self.table.slot_of, self.table.gateways
+        wrong = np.fromiter(
+            (s is not None and of_slot[s] != gateway for s in map(slot_of.get, rows.loop_ids)),
+            bool,
+            len(rows),
+        )
+        if not wrong.any():
+            return decoded
+        detail = f"not registered with gateway {gateway!r}"
+        rejected = [
+            Rejection(int(rows.index[j]), rows.loop_ids[j], RejectReason.wrong_gateway, detail)
+            for j in np.flatnonzero(wrong).tolist()
+        ]
+        return Decoded(rows.take(~wrong), decoded.rejected + rejected, decoded.received)
 
     def _own_rows(self, decoded: Decoded) -> Decoded:
         """The decoded samples without those of loops another member owns."""

@@ -242,7 +242,7 @@ class Store:
         for loop_id, config, kp, ki, seq, hidden, runtime in rows:
             try:
                 loops.append(
-                    StoredLoop(LoopConfig.model_validate_json(config), kp, ki, seq, hidden, runtime)
+                    StoredLoop(self._config(loop_id, config), kp, ki, seq, hidden, runtime)
                 )
             except ValidationError as exc:
                 unloadable.append(loop_id)
@@ -256,6 +256,10 @@ class Store:
         else:
             self.unloadable = sorted(set(self.unloadable) | set(unloadable))
         return loops
+
+    def _config(self, loop_id: str, raw: str) -> LoopConfig:
+        """A stored config, parsed (ValidationError if it no longer validates)."""
+        return LoopConfig.model_validate_json(raw)
 
     def last_seqs(self, ids: list[str]) -> dict[str, int]:
         """The highest ``seq`` of each id that ever had one, from the audit log (kept after

@@ -416,7 +416,7 @@ class Tuner(StateQueries, Ownership, LoopAdmin):
         flush_at = math.inf
         with engine.lock:
             engine.stepping = self._store_failing_since is None
-            for kind, _key, payload in _group_singles(items):
+            for kind, key, payload in _group_singles(items):
                 if kind is Kind.query or kind is Kind.gateway_query:
                     self._flush(wall)  # the reply reflects every sample handled before it
                     if kind is Kind.query:
@@ -425,10 +425,11 @@ class Tuner(StateQueries, Ownership, LoopAdmin):
                         self._answer_gateway(payload)
                     continue
                 if kind is Kind.sample:
-                    decoded = decode_singles([(self.keys.loop_id(k), p) for k, p in payload])
-                else:
-                    decoded = decode_batch(payload)
-                decoded = self._own_rows(decoded)
+                    decoded = self._own_rows(
+                        decode_singles([(self.keys.loop_id(k), p) for k, p in payload])
+                    )
+                else:  # the shared samples key, or one gateway's (revision 4)
+                    decoded = self._gateway_rows(decode_batch(payload), self.keys.gateway_id(key))
                 self._ingest(decoded, wall)
                 # received last: once it reaches N, those N samples are in their counters
                 self.metrics.samples_received.inc(decoded.received)

@@ -4,7 +4,11 @@ A gateway (the plant simulator here, a real DCS gateway in
 ``deploy/examples/dcs_gateway.py``) follows ``docs/protocol.md``:
 
 * it publishes one :class:`~service.wire.protocol.Sample` per loop and DCS scan on
-  ``{prefix}/loops/{id}/sample`` with ``CongestionControl.BLOCK`` (never dropped);
+  ``{prefix}/loops/{id}/sample`` with ``CongestionControl.BLOCK`` (never dropped); with a
+  ``gateway_id``, :meth:`Gateway.publish_scan` sends a scan as one
+  :class:`~service.wire.protocol.SampleBatch` on ``{prefix}/gateways/{gateway_id}/samples``
+  while a tuner subscribes to it (revision 4: in a cluster only the member owning this
+  gateway's loops does, so no other member decodes them), per loop otherwise;
 * it receives :class:`~service.wire.protocol.GainsMessage` on ``{prefix}/loops/*/gains``
   and, with a ``gateway_id``, :class:`~service.wire.protocol.GainsBatch` on
   ``{prefix}/gateways/{gateway_id}/gains`` (loops registered with that gateway);
@@ -47,11 +51,14 @@ from pydantic import ValidationError
 
 from service.wire.protocol import (
     ENCODING,
+    MAX_BATCH,
+    BatchedSample,
     GainsBatch,
     GainsMessage,
     Keys,
     Mode,
     Sample,
+    SampleBatch,
     StateBatch,
     StateReply,
     encode,
@@ -212,6 +219,8 @@ class Gateway:
         self._events: queue.SimpleQueue[tuple[zenoh.SampleKind, str]] = queue.SimpleQueue()
         self._publishers = {}
         self._entities: list = []
+        self._batches = None
+        """Publisher of this gateway's samples key (with a ``gateway_id``)."""
         try:
             for loop_id in loop_ids:
                 self._publishers[loop_id] = session.declare_publisher(
@@ -226,6 +235,12 @@ class Gateway:
                         keys.gateway_gains(gateway_id), self._queue(Source.batch)
                     )
                 )
+                self._batches = session.declare_publisher(
+                    keys.gateway_samples(gateway_id),
+                    encoding=ENCODING,
+                    congestion_control=SAMPLE_CONGESTION,
+                )
+                self._entities.append(self._batches)
             # history: the tokens of tuners already up are delivered at once
             self._entities.append(
                 session.liveliness().declare_subscriber(
@@ -311,11 +326,32 @@ class Gateway:
     def publish(self, loop_id: str, sample: Sample) -> None:
         """Publish ``sample``; without an ``applied_seq`` of its own it reports the last
         update :meth:`applied` marked for the loop in the current epoch."""
+        self._publishers[loop_id].put(encode(self._reported(loop_id, sample)))
+
+    def publish_scan(self, samples: dict[str, Sample]) -> None:
+        """Publish one scan's samples (loop id -> sample, ``applied_seq`` as
+        :meth:`publish`). With a ``gateway_id`` and a tuner subscribed to this gateway's
+        samples key (revision 4), as SampleBatch messages there; else (no gateway id, a
+        tuner of an earlier revision, or a cluster between two owners of this gateway)
+        one message per loop, which every tuner hears."""
+        batches = self._batches
+        if batches is None or not batches.matching_status.matching:
+            for loop_id, sample in samples.items():
+                self.publish(loop_id, sample)
+            return
+        items = [
+            BatchedSample(loop_id=loop_id, **self._reported(loop_id, sample).model_dump())
+            for loop_id, sample in samples.items()
+        ]
+        for i in range(0, len(items), MAX_BATCH):
+            batches.put(encode(SampleBatch(samples=items[i : i + MAX_BATCH])))
+
+    def _reported(self, loop_id: str, sample: Sample) -> Sample:
         if sample.applied_seq is None:
             seq = self.applied_seq(loop_id)
             if seq is not None:
-                sample = sample.model_copy(update={"applied_seq": seq})
-        self._publishers[loop_id].put(encode(sample))
+                return sample.model_copy(update={"applied_seq": seq})
+        return sample
 
     def applied(self, update: Update) -> None:
         """Record that the DCS applied ``update`` (reported as ``applied_seq``)."""

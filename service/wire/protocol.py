@@ -8,6 +8,9 @@ Key expressions, under a configurable prefix (default ``pitune``)::
 
     {prefix}/loops/{loop_id}/sample   gateway -> tuner   Sample
     {prefix}/samples                  gateway -> tuner   SampleBatch (many loops, one message)
+    {prefix}/gateways/{gateway}/samples gateway -> tuner SampleBatch of that gateway's loops
+                                                         only (revision 4: in a cluster only
+                                                         their owner receives it)
     {prefix}/loops/{loop_id}/gains    tuner -> gateway   GainsMessage, one per RL step
     {prefix}/gateways/{gateway}/gains tuner -> gateway   GainsBatch (loops registered with
                                                          that gateway, one per step batch)
@@ -38,12 +41,13 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 SCHEMA_VERSION = 1
-SCHEMA_REVISION = 3
+SCHEMA_REVISION = 4
 """Additive revisions within :data:`SCHEMA_VERSION` (optional fields only, ``v`` unchanged):
 1 the original; 2 ``Sample.applied_seq``, ``epoch`` in gains and state messages, the
 supervision fields of :class:`StateReply`, :class:`StateBatch` and ``after_t``; 3
 ``GainsMessage.why``, the reasons ``rollback`` and ``accepted``, the mode ``shadow`` in
-state replies (docs/protocol.md, Versioning)."""
+state replies; 4 the key ``{prefix}/gateways/{gateway}/samples`` and the reason
+``wrong_gateway`` (docs/protocol.md, Versioning)."""
 DEFAULT_PREFIX = "pitune"
 ENCODING = "application/json"
 MAX_MAGNITUDE = 1e12
@@ -143,6 +147,9 @@ class RejectReason(StrEnum):
     unread and counts as one sample, whatever it held."""
     too_large = "too_large"
     """A message over :data:`MAX_MESSAGE_BYTES`, refused unread: counts as one sample."""
+    wrong_gateway = "wrong_gateway"
+    """A sample on a gateway's samples key of a loop registered with another gateway
+    or none (revision 4)."""
     internal = "internal"
     """The tuner failed while handling the sample (a defect: its log says which)."""
 
@@ -351,6 +358,14 @@ class Keys:
 
     def gateway_state(self, gateway: str) -> str:
         return f"{self.prefix}/gateways/{gateway}/state"
+
+    def gateway_samples(self, gateway: str) -> str:
+        """The key of a gateway's SampleBatch messages (revision 4)."""
+        return f"{self.prefix}/gateways/{gateway}/samples"
+
+    @property
+    def all_gateway_samples(self) -> str:
+        return self.gateway_samples("*")
 
     @property
     def all_gateway_states(self) -> str:

@@ -1,0 +1,125 @@
+"""A gateway's own samples key (protocol revision 4): ``{prefix}/gateways/{gw}/samples``.
+
+A single tuner takes it like the shared key, and rejects a loop of another gateway on
+it (``wrong_gateway``); in a cluster only the member owning the gateway's shard
+subscribes to it, so Zenoh routes each batch to one member instead of every batch to
+every member, and the subscription follows the shard when it moves."""
+
+from __future__ import annotations
+
+import orjson
+import pytest
+
+from service.daemon.tuner import Tuner
+from service.engine.config import LoopConfig
+from service.wire.protocol import RejectReason
+from tests.tuner_support import loop_body, open_peer, tuner_settings, wait_until
+
+pytestmark = pytest.mark.timeout(90)
+LEASE_S = 3.0
+
+
+def _batch(ids: list[str], t: float) -> bytes:
+    return orjson.dumps({"v": 1, "samples": [{"loop_id": i, "t": t, "e": 0.5} for i in ids]})
+
+
+def _publisher(session, key: str):
+    """A publisher on ``key`` once a subscriber matches it (the tuner's reached us)."""
+    pub = session.declare_publisher(key)
+    wait_until(lambda: pub.matching_status.matching, timeout=10.0, what=f"a subscriber of {key}")
+    return pub
+
+
+def test_a_single_tuner_takes_a_gateway_s_batches_and_rejects_other_loops(tmp_path):
+    settings = tuner_settings(tmp_path)
+    with Tuner(settings) as tuner:
+        tuner.register_many(
+            [LoopConfig(**loop_body("A1", gateway="gwA")), LoopConfig(**loop_body("B1"))]
+        )
+        session = open_peer(settings.zenoh_listen)
+        try:
+            pub = _publisher(session, settings.keys.gateway_samples("gwA"))
+            pub.put(_batch(["A1", "B1"], 10.0))
+            wait_until(lambda: tuner.engine.received == 2, what="both samples handled")
+            assert tuner.engine.rejected == {RejectReason.wrong_gateway: 1}
+            assert tuner.table.n_samples[tuner.table.slot_of["A1"]] == 1
+            pub.undeclare()
+        finally:
+            session.close()
+
+
+def test_only_the_owner_of_a_gateway_hears_its_samples_and_the_key_follows_the_shard(
+    tmp_path, pg_url
+):
+    gws = [f"gw{g}" for g in range(8)]
+    configs = [LoopConfig(**loop_body(f"{g}-L{i}", gateway=g)) for g in gws for i in range(3)]
+
+    def member(name: str, **extra) -> Tuner:
+        settings = tuner_settings(
+            tmp_path, db_path=pg_url, instance_id=name, cluster_lease_s=LEASE_S, **extra
+        )
+        return Tuner(settings).start()
+
+    a = member("a")
+    b = session = None
+    try:
+        a.register_many(configs)
+        b = member("b", zenoh_connect=a.settings.zenoh_listen)
+        session = open_peer([*a.settings.zenoh_listen, *b.settings.zenoh_listen])
+
+        def settled() -> bool:  # b took its share; a member follows what it owns, only
+            fa, fb = a.bus.followed, b.bus.followed
+            owned = [{i.split("-")[0] for i in t.loop_ids()} for t in (a, b)]
+            return fa and fb and fa | fb == set(gws) and owned == [fa, fb]
+
+        wait_until(settled, timeout=2 * LEASE_S, what="the gateways shared out")
+        pubs = {g: _publisher(session, a.settings.keys.gateway_samples(g)) for g in gws}
+        for g, pub in pubs.items():
+            pub.put(_batch([f"{g}-L{i}" for i in range(3)], 10.0))
+        wait_until(lambda: a.engine.received + b.engine.received == 24, what="24 samples")
+        assert a.engine.received == 3 * len(a.bus.followed)  # each batch heard once
+        assert a.foreign_samples == b.foreign_samples == 0
+        assert not a.engine.rejected and not b.engine.rejected
+        b.stop()
+        # b left: its gateways' keys are a's now, and their samples reach it
+        wait_until(lambda: a.bus.followed == set(gws), timeout=LEASE_S, what="a follows all")
+        before = a.engine.received
+        for g, pub in pubs.items():
+            pub.put(_batch([f"{g}-L{i}" for i in range(3)], 20.0))
+        wait_until(lambda: a.engine.received - before == 24, what="all batches at a")
+        assert not a.engine.rejected
+        for pub in pubs.values():
+            pub.undeclare()
+    finally:
+        if session is not None:
+            session.close()
+        if b is not None:
+            b.stop()
+        a.stop()
+
+
+def test_configs_parsed_ahead_of_a_takeover_are_used_only_while_unchanged(pg_url):
+    from service.daemon.store_pg import PgStore
+    from service.engine.audit import audit_row
+
+    store = PgStore(pg_url)
+    try:
+        configs = [LoopConfig(**loop_body(f"P{i}", gateway="gwP")) for i in range(3)]
+        rows = [
+            audit_row(c.id, 1.0, None, 0, "auto", "registered", None, (0.5, 0.01), "{}")
+            for c in configs
+        ]
+        store.insert_loops(configs, rows, [0, 0, 0])
+        assert store.parse_ahead(["gw:gwP"]) == 3
+        ahead = store._ahead["P0"][1]
+        changed = configs[1].model_copy(update={"mode": "advisory"})  # patched meanwhile
+        with store.transaction() as db:
+            db.execute(
+                "UPDATE loops SET config = ? WHERE id = ?", (changed.model_dump_json(), "P1")
+            )
+        loaded = {s.config.id: s.config for s in store.load(["gw:gwP"])}
+        assert loaded["P0"] is ahead  # not parsed again
+        assert loaded["P1"] == changed  # the stored JSON changed: parsed from the row
+        assert store._ahead == {}
+    finally:
+        store.close()
