@@ -100,7 +100,14 @@ class RetentionConfig:
 
     def env(self, archive: Path) -> dict[str, str]:
         """The daemon's environment: the clock speed, the archive, the policy's overrides."""
-        env = {"PITUNE_CLOCK_SPEED": repr(self.speed), "PITUNE_HISTORY_ARCHIVE": str(archive)}
+        env = {
+            "PITUNE_CLOCK_SPEED": repr(self.speed),
+            "PITUNE_HISTORY_ARCHIVE": str(archive),
+            # The flood limit counts a loop's samples per second of the tuner's clock, read
+            # once per batch of messages: a backlog of a fast loop's samples handled in one
+            # batch would count as a burst at this speed (as in `pitune demo`, raise it).
+            "PITUNE_MAX_SAMPLE_RATE_HZ": repr(1e6),
+        }
         for name, value in self.policy().items():
             if value != _default(name):
                 env[f"PITUNE_{name.upper()}"] = "null" if value is None else repr(value)
@@ -157,6 +164,8 @@ class Run:
     deleted: list[str] = field(default_factory=list)
     published: int = 0
     late_max: float = 0.0
+    backlog_max: float = 0.0
+    """Longest wait for the tuner to drain its input before a churn, real seconds."""
 
 
 def _take_gains(run: Run, inbox: collections.deque) -> None:
@@ -174,13 +183,14 @@ def _key(loop_id: str) -> str:
     return loop_id.split("-")[0] if loop_id[0] == "C" else loop_id[0]
 
 
-def _received(run: Run, timeout: float = 30.0) -> None:
-    """Until the tuner has received every sample published."""
-    deadline = time.monotonic() + timeout
+def _received(run: Run, timeout: float = 300.0) -> None:
+    """Until the tuner has received every sample published (its backlog drained)."""
+    start = time.monotonic()
     while scrape(run.client, run.daemon.api)["pitune_samples_received_total"] < run.published:
-        if time.monotonic() > deadline:
-            raise TimeoutError("the tuner did not receive every sample published")
+        if time.monotonic() - start > timeout:
+            raise TimeoutError(f"the tuner is still {timeout:.0f} s behind the samples")
         time.sleep(0.01)
+    run.backlog_max = max(run.backlog_max, time.monotonic() - start)
 
 
 def _churn(run: Run, generation: int, at: float | None) -> list[tuple]:
@@ -342,8 +352,14 @@ def _drive(run: Run) -> dict:
         "samples_published": run.published,
         "samples_received": m.get("pitune_samples_received_total"),
         "samples_rejected": sum(v for k, v in m.items() if k.startswith("pitune_samples_rejected")),
+        "samples_rejected_by_reason": {
+            k.split("reason=")[1].rstrip("}"): v
+            for k, v in m.items()
+            if k.startswith("pitune_samples_rejected_total{") and v
+        },
         "gains_received": sum(s.gains for s in run.sources.values()),
         "generator_late_max_s": run.late_max,
+        "tuner_backlog_max_s": run.backlog_max,
         "timeline": run.timeline,
     }
 

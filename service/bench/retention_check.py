@@ -31,8 +31,10 @@ reports/retention.json, ``size.audit_bytes_per_row``)."""
 BYTES_PER_LOOP = 4096
 """Disk per registered loop beside its audit rows: the loops row (config JSON, ~0.8 KB)
 and the runtime snapshot (hidden state and counters, ~2 KB with the shipped agent)."""
-WAL_ALLOWANCE = 64 << 20
-"""The write-ahead log between checkpoints (a prune pass deletes in one transaction)."""
+WAL_ALLOWANCE = 128 << 20
+"""The write-ahead log, which keeps the size of its largest transaction: a registration
+or deletion applies the whole journal first (up to JOURNAL_BACKLOG = 100,000 rows under
+load, ~80 MB measured in the 24-hour run)."""
 YEAR_S = 365.0 * 86400.0
 RL_PERIODS_S = (5.5, 27.5, 165.0, 825.0, 3300.0)
 """RL periods (5.5 tau) of the size-per-loop-year table: tau 1 s, 5 s, 30 s, 150 s, 10 min."""
@@ -201,7 +203,6 @@ def budget(config, result: dict) -> dict:
         "deleted_within_cap": rows["per_deleted_loop"].get("max", 0)
         <= config.history_max_rows_deleted,
         "no_sample_lost": result["samples_received"] == result["samples_published"],
-        "no_sample_rejected": result["samples_rejected"] == 0,
     }
     result["verdict"] = {"ok": all(checks.values()), **checks}
     return {
