@@ -32,6 +32,7 @@ from __future__ import annotations
 import argparse
 import collections
 import heapq
+import math
 import os
 import sys
 import tempfile
@@ -85,6 +86,9 @@ class RetentionConfig:
     """Phase groups per fleet (sample instants spread over one sample period)."""
     report_every: float = 3600.0
     """Plant seconds between two size readings."""
+    max_minutes: float | None = None
+    """Stop the load after this many real minutes (then settle and check what was
+    reached); None: run the whole ``hours``."""
     history_max_rows_per_loop: int | None = _default("history_max_rows_per_loop")
     history_max_age_days: float | None = _default("history_max_age_days")
     history_max_rows_deleted: int = _default("history_max_rows_deleted")
@@ -165,6 +169,10 @@ class Run:
     published: int = 0
     late_max: float = 0.0
     backlog_max: float = 0.0
+    reached: float = 0.0
+    """Plant time of the last sample instant played."""
+    generation: int = 1
+    """The next churn generation."""
     """Longest wait for the tuner to drain its input before a churn, real seconds."""
 
 
@@ -235,25 +243,46 @@ def play(run: Run, session, keys: Keys) -> dict:
     """Sample every source on its clock, ``speed`` times real time, for ``hours``."""
     cfg = run.config
     end = cfg.hours * 3600.0
-    t0 = 1000.0  # plant time of the first sample
     heap = []  # (plant time due, source key, group, k)
     for key, src in run.sources.items():
         heap += [(src.t0 + grp.offset, key, g, 0) for g, grp in enumerate(src.fleet.groups)]
     heapq.heapify(heap)
-    next_churn, generation = cfg.churn_every, 1
-    next_reading = 0.0
     start = time.monotonic()
+    deadline = math.inf if cfg.max_minutes is None else start + 60.0 * cfg.max_minutes
+    stopped = "completed"
+    try:
+        due = _play(run, session, keys, heap, start, deadline)
+    except (httpx.HTTPError, TimeoutError) as exc:  # the tuner too slow to answer: stop
+        stopped, due = f"error: {exc!r}", run.reached
+    if due < end:
+        stopped = stopped if stopped != "completed" else "time budget (--max-minutes)"
+    if not stopped.startswith("error"):
+        _churn(run, run.generation, None)  # the last generation goes too
+    _take_gains(run, run.inbox)
+    run.timeline.append(_reading(run, min(due, end), time.monotonic() - start))
+    return {"real_s": time.monotonic() - start, "plant_s": min(due, end), "stopped": stopped}
+
+
+def _play(run: Run, session, keys: Keys, heap: list, start: float, deadline: float) -> float:
+    """The load until the plant time ``end`` or the real ``deadline``; the plant time
+    reached."""
+    cfg = run.config
+    end = cfg.hours * 3600.0
+    t0 = 1000.0  # plant time of the first sample
+    next_churn = cfg.churn_every
+    next_reading = 0.0
     block = zenoh.CongestionControl.BLOCK
     while heap:
         due, key, g, k = heapq.heappop(heap)
-        if due >= end:
-            break
+        run.reached = due
+        if due >= end or time.monotonic() > deadline:
+            return due
         while due >= next_churn:  # plant time passed a churn instant
             at = next_churn if next_churn + cfg.churn_every <= end else None
-            for entry in _churn(run, generation, at):
+            for entry in _churn(run, run.generation, at):
                 heapq.heappush(heap, entry)
             next_churn += cfg.churn_every
-            generation += 1
+            run.generation += 1
         if due >= next_reading:
             run.timeline.append(_reading(run, due, time.monotonic() - start))
             print(f"  {run.timeline[-1]}", flush=True)
@@ -273,10 +302,7 @@ def play(run: Run, session, keys: Keys) -> dict:
                         congestion_control=block)  # fmt: skip
         run.published += len(samples)
         heapq.heappush(heap, (due + src.period, key, g, k + 1))
-    _churn(run, generation, None)  # the last generation goes too
-    _take_gains(run, run.inbox)
-    run.timeline.append(_reading(run, end, time.monotonic() - start))
-    return {"real_s": time.monotonic() - start, "plant_s": end}
+    return end
 
 
 def execute(config: RetentionConfig) -> dict:
@@ -293,7 +319,7 @@ def execute(config: RetentionConfig) -> dict:
         )  # fmt: skip
         daemon.start(timeout=90.0)
         try:
-            with httpx.Client(timeout=60) as client:
+            with httpx.Client(timeout=300) as client:
                 run = Run(config, daemon, client, db)
                 result = _drive(run)
                 wait = _settle_timeout(config)
@@ -392,6 +418,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--churn", type=int, default=d.churn, help="loops deleted and re-registered (default 50)")
     a("--churn-every", type=float, default=d.churn_every,
       help="plant seconds between churns (default 3600)")  # fmt: skip
+    a("--max-minutes", type=float, default=None,
+      help="stop the load after this many real minutes, then check what was reached")  # fmt: skip
     a("--report", type=Path, default=d.out, help="where the JSON goes")
 
 
@@ -400,6 +428,7 @@ def retention_config(args: argparse.Namespace) -> RetentionConfig:
         loops=args.loops, hours=args.hours, speed=args.speed, sample_period=args.sample_period,
         tau=tuple(args.site_tau), fast=args.fast_loops, churn=args.churn,
         churn_every=args.churn_every, seed=args.seed, out=args.report,
+        max_minutes=args.max_minutes,
         daemon_log=args.daemon_log,
     )  # fmt: skip
 

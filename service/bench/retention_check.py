@@ -203,6 +203,7 @@ def budget(config, result: dict) -> dict:
         "deleted_within_cap": rows["per_deleted_loop"].get("max", 0)
         <= config.history_max_rows_deleted,
         "no_sample_lost": result["samples_received"] == result["samples_published"],
+        "ran_the_planned_hours": result.get("stopped") == "completed",
     }
     result["verdict"] = {"ok": all(checks.values()), **checks}
     return {
