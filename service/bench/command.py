@@ -13,7 +13,7 @@ from pathlib import Path
 
 import httpx
 
-from service.bench import scaleout
+from service.bench import retention, scaleout
 from service.bench.config import BenchConfig
 from service.bench.fleet import Fleet
 from service.bench.load import drive
@@ -84,6 +84,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
       help="keep the daemon's log here (--instances: a directory, one log per member)")  # fmt: skip
     a("--trace", type=Path, default=None,
       help="write the update latencies of the window to this CSV")  # fmt: skip
+    retention.add_arguments(parser)
 
 
 def bench_config(args: argparse.Namespace) -> BenchConfig:
@@ -110,6 +111,8 @@ def start_daemon(config: BenchConfig, workdir: Path) -> TunerProcess:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.retention:
+        return retention.main(args)
     config = bench_config(args)
     if (
         config.loops < 1 or config.rate <= 0 or config.duration <= 0 or config.warmup < 0

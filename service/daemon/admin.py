@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import contextlib
 import gc
-import time
 from collections.abc import Callable
 
 import orjson
@@ -72,7 +71,7 @@ class LoopAdmin:
     def refresh_status_counts(self) -> None:
         """Loops per status into the metrics (statuses change with time: done per scrape)."""
         with self.table.lock:
-            counts = self.table.status_counts(time.time())
+            counts = self.table.status_counts(self.clock.wall())
             monitor = views.monitor_summary(self.table)
         self.metrics.set_status_counts(counts)
         self.metrics.set_monitor(*monitor)
@@ -80,7 +79,7 @@ class LoopAdmin:
     def view(self, loop_id: str) -> LoopView:
         with self.table.lock:
             self._known(loop_id)
-            return self.table.view(loop_id, time.time())
+            return self.table.view(loop_id, self.clock.wall())
 
     def views(self, offset: int, limit: int) -> LoopsPage:
         """A page of loops in registration order; parsed outside the table lock."""
@@ -92,7 +91,7 @@ class LoopAdmin:
 
     def register(self, config: LoopConfig) -> LoopView:
         """OwnedElsewhere in a cluster where another member owns the loop's shard."""
-        wall = time.time()
+        wall = self.clock.wall()
         self._claim([config])
         if self.cluster is not None and not self.cluster.owns(shard_of(config.id, config.gateway)):
             raise OwnedElsewhere(config.id)
@@ -104,7 +103,7 @@ class LoopAdmin:
 
     def register_many(self, configs: list[LoopConfig]) -> list[str]:
         """Register several loops at once, all or none (Conflict if any id is taken)."""
-        wall = time.time()
+        wall = self.clock.wall()
         ids = [c.id for c in configs]
         if len(set(ids)) != len(ids):
             raise Conflict("duplicate loop ids in the request")
@@ -137,7 +136,7 @@ class LoopAdmin:
     def patch(self, loop_id: str, patch: LoopPatch, actor: str = "api") -> LoopView:
         """ValueError if the patch makes the bounds inconsistent; ``actor`` (the REST API,
         or ``ui:<name>`` from the console) is recorded in the audit row's detail."""
-        wall = time.time()
+        wall = self.clock.wall()
         with self.table.lock:
             self._known(loop_id)
             s = self.table.slot(loop_id)
@@ -158,7 +157,7 @@ class LoopAdmin:
         """``POST /loops/{id}/identify``: identification from scratch (the identified
         scaling is dropped; a hint-free loop stops tuning until a new model is confident).
         StoreUnavailable while commits fail."""
-        wall = time.time()
+        wall = self.clock.wall()
         with self.table.lock:
             self._known(loop_id)
             if self.store_failure is not None:
@@ -171,7 +170,7 @@ class LoopAdmin:
     def reset(self, loop_id: str, actor: str = "api") -> LoopView:
         """Zero hidden state and integral; the registered gains, published unless the loop
         is frozen (see :meth:`LoopTable.reset`). StoreUnavailable while commits fail."""
-        wall = time.time()
+        wall = self.clock.wall()
         with self.table.lock:
             self._known(loop_id)
             if self.store_failure is not None:
@@ -180,7 +179,7 @@ class LoopAdmin:
             return self.table.view(loop_id, wall)
 
     def delete(self, loop_id: str) -> None:
-        wall = time.time()
+        wall = self.clock.wall()
         with self.table.lock:
             self._known(loop_id)
             s = self.table.slot(loop_id)
@@ -234,7 +233,7 @@ class LoopAdmin:
 
     def _decide(self, loop_id: str, decide: Callable[[float], StepResult | None]) -> LoopView:
         """An operator's decision: committed (and snapshotted) before it is published."""
-        wall = time.time()
+        wall = self.clock.wall()
         with self.table.lock:
             self._known(loop_id)
             if self.store_failure is not None:

@@ -22,7 +22,6 @@ import io
 import ipaddress
 import logging
 import secrets
-import time
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Annotated
@@ -324,7 +323,7 @@ def _is_loopback(host: str) -> bool:
 def _check_statuses(tuner: Tuner, watch: StatusWatch) -> None:
     """Log status changes of the loops and the ends of rejection bursts."""
     with tuner.table.lock:
-        statuses = table_statuses(tuner.table, time.time())
+        statuses = table_statuses(tuner.table, tuner.clock.wall())
     watch.check(statuses)
     tuner.metrics.flush_logs()
 

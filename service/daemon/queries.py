@@ -102,7 +102,7 @@ class StateQueries:
             kp=float(tb.kp[s]),
             ki=float(tb.ki[s]),
             mode=tb.mode_of(s),
-            status=tb.status(s, time.time()),
+            status=tb.status(s, self.clock.wall()),
             seq=int(tb.seq[s]),
             last_t=_finite(tb.last_t[s]),
             instance_id=self.settings.instance_id,

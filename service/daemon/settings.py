@@ -243,6 +243,12 @@ class Settings(BaseSettings):
     history_prune_interval_s: Annotated[float, Field(gt=0.0)] = Field(
         3600.0, description="Seconds between two retention passes over the audit history."
     )
+    clock_speed: Annotated[float, Field(gt=0.0, le=1e5)] = Field(
+        1.0,
+        description="Benchmarks only: the tuner's clock (audit wall_time, retention horizon "
+        "and passes) runs this many times faster than real time (pitune bench retention); "
+        "1: real time.",
+    )
     queue_bytes: Annotated[int, Field(ge=1 << 20)] = Field(
         128 * 1024 * 1024,
         description="Payload bytes the input queue holds at most (beside queue_size messages); "

@@ -395,8 +395,11 @@ class Store:
                             out.write(orjson.dumps(dict(zip(names, row, strict=True))) + b"\n")
                     out.flush()
                     os.fsync(out.fileno())
-            with self.transaction(durable=False) as db:
-                for p in params:
+            # a transaction per loop: a loop's rows are spread over the whole table, so one
+            # transaction for all would write most of its pages to the write-ahead log at
+            # once (the log keeps its largest size: 100+ MB in the retention run)
+            for p in params:
+                with self.transaction(durable=False) as db:
                     deleted += db.execute(f"DELETE FROM audit WHERE {where}", p).rowcount
         return deleted
 

@@ -51,6 +51,7 @@ import zenoh
 from service.agent.model import Agent, load_agent, untrained_agent
 from service.daemon.admin import LoopAdmin, freeze_survivors
 from service.daemon.bus import Bus, Inbox, Item, Kind
+from service.daemon.clock import Clock
 from service.daemon.lanes import LANE_DRAIN_S, Lane
 from service.daemon.metrics import Metrics, RateLimitedLog
 from service.daemon.ownership import Ownership
@@ -134,6 +135,8 @@ def _group_singles(items: list[Item]):
 class Tuner(StateQueries, Ownership, LoopAdmin):
     def __init__(self, settings: Settings, agent: Agent | None = None) -> None:
         self.settings = settings
+        self.clock = Clock(settings.clock_speed)
+        """Every wall time the tuner keeps or acts on (see :mod:`service.daemon.clock`)."""
         self.keys = settings.keys
         self.metrics = Metrics()
         self.agent = agent if agent is not None else load_configured_agent(settings)
@@ -214,7 +217,7 @@ class Tuner(StateQueries, Ownership, LoopAdmin):
             self.cluster = Cluster(self, self.settings.db_path)
         else:
             self.store = Store(self.settings.db_path)
-        wall = time.time()
+        wall = self.clock.wall()
         self.epoch = self.store.next_epoch(wall)
         if self.cluster is None:
             with self.table.lock:
@@ -342,7 +345,7 @@ class Tuner(StateQueries, Ownership, LoopAdmin):
                 elif self._snapshot_todo or self.store.journal_rows or self._prune_todo:
                     wait = 0.0
                 else:
-                    wait = min(next_snapshot, self._next_prune) - time.monotonic()
+                    wait = min(next_snapshot - time.monotonic(), self.clock.until(self._next_prune))
                 if self._parked:  # the earliest after_t query to answer anyway
                     first = min(d for q in self._parked.values() for _, d, _ in q)
                     wait = min(wait, first - time.monotonic())
@@ -381,15 +384,16 @@ class Tuner(StateQueries, Ownership, LoopAdmin):
         every ``history_prune_interval_s`` (see :meth:`Store.prune`)."""
         st = self.settings
         if not self._prune_todo:
-            if time.monotonic() < self._next_prune:
+            now = self.clock.monotonic()
+            if now < self._next_prune:
                 return
-            self._next_prune = time.monotonic() + getattr(st, "history_prune_interval_s", 3600.0)
+            self._next_prune = now + getattr(st, "history_prune_interval_s", 3600.0)
             self._prune_todo = self.store.audit_ids()
         chunk, self._prune_todo = self._prune_todo[:PRUNE_CHUNK], self._prune_todo[PRUNE_CHUNK:]
         max_age_days = getattr(st, "history_max_age_days", None)
         self.pruned += self.store.prune(
             chunk,
-            older_than=None if max_age_days is None else time.time() - max_age_days * 86400.0,
+            older_than=None if max_age_days is None else self.clock.wall() - max_age_days * 86400.0,
             keep_rows=getattr(st, "history_max_rows_per_loop", None),
             keep_rows_deleted=getattr(st, "history_max_rows_deleted", None),
             archive=getattr(st, "history_archive", None),
@@ -411,7 +415,7 @@ class Tuner(StateQueries, Ownership, LoopAdmin):
                 with self.table.lock:
                     self._answer_parked()
             return
-        wall = time.time()
+        wall = self.clock.wall()
         engine = self.engine
         flush_at = math.inf
         with engine.lock:
