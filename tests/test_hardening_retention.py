@@ -8,9 +8,11 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import threading
 
 import pytest
 
+from service.daemon.bus import Kind
 from service.daemon.store import Store
 from service.daemon.tuner import Tuner
 from service.engine.audit import audit_row
@@ -98,3 +100,32 @@ def test_the_tuner_prunes_in_its_idle_time_and_export_writes_json_lines(tmp_path
     assert [r["seq"] for r in rows] == [8, 9, 10, 11, 12]
     pruned = [json.loads(line) for line in (tmp_path / "pruned.jsonl").read_text().splitlines()]
     assert [r["seq"] for r in pruned] == [0, 1, 2, 3, 4, 5, 6, 7]
+
+
+def test_a_worker_that_is_never_idle_still_prunes_once_a_pass_is_late(tmp_path):
+    """The inbox is kept full (garbage samples, each rejected): the worker is never idle,
+    and the pass runs anyway once it is a whole interval late."""
+    settings = tuner_settings(
+        tmp_path, history_max_rows_per_loop=5, history_prune_interval_s=0.5, queue_size=5000
+    )
+    stop = threading.Event()
+    with Tuner(settings) as tuner:
+
+        def flood() -> None:
+            item = (Kind.sample, "pitune/samples/noise", b"{not json")
+            while not stop.is_set():
+                tuner.inbox.offer(item, len(item[2]))
+
+        feeder = threading.Thread(target=flood, daemon=True)
+        feeder.start()
+        try:
+            wait_until(lambda: tuner.inbox.qsize() >= 4000, what="a full inbox")
+            tuner.register(LoopConfig(**loop_body("LIC-101")))
+            for _ in range(12):
+                tuner.reset("LIC-101")
+            wait_until(lambda: tuner.history("LIC-101", 0, 50).total == 5, what="the prune")
+            assert tuner.inbox.qsize() > 0  # still busy
+        finally:
+            stop.set()
+            feeder.join()
+    assert tuner.pruned == 8

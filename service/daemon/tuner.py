@@ -29,7 +29,8 @@ doing the blocking put, in order; past LANE_BOUND waiting messages a lane keeps 
 the newest of each loop (gains are absolute and gateways drop older seqs), so it stays
 bounded, and a stuck gateway delays only its own lane.
 
-Retention: in idle time the worker prunes the audit history by the settings'
+Retention: in idle time (or, when a pass is a whole interval late, on a busy worker
+too) the worker prunes the audit history by the settings'
 ``history_*`` policy (:meth:`Store.prune`), PRUNE_CHUNK loops per iteration.
 """
 
@@ -162,7 +163,7 @@ class Tuner(StateQueries, Ownership, LoopAdmin):
         self.queries_dropped = 0
         """State queries dropped unanswered because the inbox was full."""
         self._prune_todo: list[str] = []
-        self._next_prune = 0.0
+        self._next_prune = self.clock.monotonic()  # a first pass when the worker is idle
         self.pruned = 0
         """Audit rows deleted by the retention policy since start."""
         self.metrics.totals(
@@ -372,12 +373,18 @@ class Tuner(StateQueries, Ownership, LoopAdmin):
                     with self.table.lock:
                         self._snapshot_todo = list(self.table.slot_of)
                     self._snapshot_some()
-                elif self.inbox.empty():
+                elif self.inbox.empty() or self._prune_overdue():
                     self._retain()
             except Exception:
                 log.exception("worker iteration failed; continuing")
             if stop:
                 return
+
+    def _prune_overdue(self) -> bool:
+        """A pass a whole interval late runs on a busy worker too, a chunk per iteration:
+        a tuner that is never idle must still keep the history within its budget."""
+        interval = getattr(self.settings, "history_prune_interval_s", 3600.0)
+        return self.clock.monotonic() >= self._next_prune + interval
 
     def _retain(self) -> None:
         """The retention policy, PRUNE_CHUNK loop ids per idle worker iteration, a pass
