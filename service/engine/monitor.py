@@ -71,6 +71,8 @@ OSC_LOBES = 3
 OSC_DECAY = 0.5
 """A lobe at least this share of the same-sign lobe one period earlier is not decaying
 (a quarter-decay response, 0.25, is not an oscillation; a sustained one is 1)."""
+HALF_DECAY = math.sqrt(OSC_DECAY)
+"""The same over half a period (a lobe against the opposite-sign one before it)."""
 OSC_NOISE_SIGMAS = 3.0
 """Hysteresis band of the zero crossings, noise sigmas."""
 OSC_MIN_BAND = 0.01
@@ -81,6 +83,9 @@ error (sigma^2 = E[d2^2] / 6 for white noise; a running mean over the first 50 s
 blind to the loop's own slow motion, so neither a transient nor a growing oscillation
 inflates the band. Not updated across a setpoint move, nor while two lobes of a
 possible oscillation are on record."""
+NOISE_WARM = round(1.0 / NOISE_FORGET)
+"""Samples the noise estimate takes before the detector may judge (its running mean's
+length; the estimate restarts after a restart)."""
 OSC_MIN_SAMPLES = 2.0
 """A half-period spans at least this many sample intervals (shorter: noise)."""
 
@@ -114,6 +119,7 @@ def allocate(tb: LoopTable, capacity: int, old: int) -> None:
         ("o_half", (OSC_LOBES,), np.float64),
         ("o_lobe", (OSC_LOBES,), np.float64),
         ("o_n", (), np.int64),
+        ("o_k", (), np.int16),
         ("o_osc", (), bool),
         ("r_mixed", (), bool),
         ("f_hist", (HISTORY, len(HIST_FIELDS)), np.float32),
@@ -131,7 +137,7 @@ def clear(tb: LoopTable, s: int) -> None:
         getattr(tb, name)[s] = math.nan
     for name in ("w_mean", "w_sq", "w_manual", "w_sat", "w_rej", "o_var", "o_sign", "o_iae"):
         getattr(tb, name)[s] = 0.0
-    tb.o_n[s], tb.o_osc[s], tb.f_hist_n[s] = 0, False, 0
+    tb.o_n[s], tb.o_k[s], tb.o_osc[s], tb.f_hist_n[s] = 0, 0, False, 0
 
 
 def configure(tb: LoopTable, s: int, tau_s: float | None, theta_s: float) -> None:
@@ -262,11 +268,15 @@ def band(tb: LoopTable, slots: np.ndarray) -> np.ndarray:
 
 def _oscillation(tb, slots, t, e, prev_e, dt, jumped) -> np.ndarray:
     """One sample of the detector per loop; returns the slots that start oscillating."""
-    usable = ~jumped & (tb.o_j[slots] == 0) & (tb.o_n[slots] < 2)
+    # until the estimate has its first samples it is not frozen by lobes either (at
+    # startup the band is the floor, and noise alone crosses it)
+    k = tb.o_k[slots]
+    usable = ~jumped & (tb.o_j[slots] == 0) & ((tb.o_n[slots] < 2) | (k < NOISE_WARM))
     d2 = e - 2.0 * prev_e + tb.o_e2[slots]
     var = np.where(usable, d2 * d2 / 6.0, tb.o_var[slots])
-    forget = np.maximum(NOISE_FORGET, 1.0 / (1.0 + tb.n_samples[slots]))
+    forget = np.maximum(NOISE_FORGET, 1.0 / (1.0 + k))
     tb.o_var[slots] += forget * (var - tb.o_var[slots])
+    tb.o_k[slots] = np.minimum(k + usable, NOISE_WARM)
     tb.o_e2[slots], tb.o_j[slots] = prev_e, jumped
     h = band(tb, slots)
     tb.o_iae[slots] += np.abs(e) * dt
@@ -283,46 +293,74 @@ def _oscillation(tb, slots, t, e, prev_e, dt, jumped) -> np.ndarray:
     tb.o_seen[slots[outside]] = t[outside]
     # inside the band for three half-periods (one RL period before a lobe is known):
     # the oscillation, if any, is over
-    quiet_for = np.where(tb.o_n[slots] > 0, 3.0 * tb.o_half[slots, 0], tb.period[slots])
+    last = tb.o_half[slots, 0]
+    quiet_for = np.where((tb.o_n[slots] > 0) & np.isfinite(last), 3.0 * last, tb.period[slots])
     with np.errstate(invalid="ignore"):
         gone = (cur != 0) & ~outside & (t - tb.o_seen[slots] > quiet_for)
     if gone.any():
         g = slots[gone]
         tb.o_sign[g], tb.o_n[g], tb.o_osc[g], tb.o_tc[g] = 0.0, 0, False, math.nan
     if start.any():
+        # a lobe that leaves the band from inside it is whole (the next crossing ends it
+        # half a period later, as a crossing would have started it); one that starts
+        # outside (a setpoint move, a gap) is partial
+        clean = start & ~jumped & (np.abs(prev_e) <= h)
         s0 = slots[start]
-        tb.o_sign[s0], tb.o_tc[s0], tb.o_iae[s0] = sign[start], math.nan, 0.0
+        tb.o_sign[s0], tb.o_iae[s0] = sign[start], 0.0
+        tb.o_tc[s0] = np.where(clean[start], t[start], math.nan)
     if not crossed.any():
         return slots[:0]
-    s, tc = slots[crossed], t[crossed]
+    s, tc, step = slots[crossed], t[crossed], dt[crossed]
     dur = tc - tb.o_tc[s]
-    whole = np.isfinite(dur) & (dur > 0)  # the first lobe of an excursion is partial
-    w, dur, step = s[whole], dur[whole], dt[crossed][whole]
-    if w.size:
-        tb.o_half[w, 1:], tb.o_lobe[w, 1:] = tb.o_half[w, :-1], tb.o_lobe[w, :-1]
-        tb.o_half[w, 0], tb.o_lobe[w, 0] = dur, tb.o_iae[w] / dur
-        tb.o_n[w] = np.minimum(tb.o_n[w] + 1, OSC_LOBES)
+    # a partial lobe (begun at a move or a gap: o_tc NaN) is on record as one of unknown
+    # length (inf) and mean (NaN): it leads the lobes after it, as a long lobe does
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(np.isnan(dur), math.nan, tb.o_iae[s] / dur)
+    dur = np.where(np.isnan(dur), math.inf, dur)
+    tb.o_half[s, 1:], tb.o_lobe[s, 1:] = tb.o_half[s, :-1], tb.o_lobe[s, :-1]
+    tb.o_half[s, 0], tb.o_lobe[s, 0] = dur, mean
+    tb.o_n[s] = np.minimum(tb.o_n[s] + 1, OSC_LOBES)
     tb.o_sign[s], tb.o_tc[s], tb.o_iae[s] = sign[crossed], tc, 0.0
-    enough = tb.o_n[w] >= OSC_LOBES
-    full, step = w[enough], step[enough]
+    enough = tb.o_n[s] >= OSC_LOBES
+    full, step = s[enough], step[enough]
     if not full.size:
         return slots[:0]
-    half, lobe, h_full = tb.o_half[full], tb.o_lobe[full], band(tb, full)
+    half, lobe, h_full = tb.o_half[full].copy(), tb.o_lobe[full], band(tb, full)
+    # the oldest lobe may have begun before the oscillation did (noise, or a move, carried
+    # the error out of the band first): longer than the newer ones, its length is no
+    # irregularity and its mean |e| is diluted by the time before (not held against the
+    # band)
+    newer = half[:, :-1].mean(axis=1)
+    lead = half[:, -1] > newer
+    half[:, -1] = np.minimum(half[:, -1], newer)
     spread = half.std(axis=1)
     r = np.where(spread > 0, half.mean(axis=1) / (3.0 * np.maximum(spread, 1e-300)), 10.0)
     tb.o_index[full] = np.minimum(r, 10.0)
+    # not decaying: against the same-sign lobe a period earlier, or (its mean unknown)
+    # the opposite-sign one half a period earlier
+    decay = np.where(
+        np.isnan(lobe[:, 2]), lobe[:, 0] >= HALF_DECAY * lobe[:, 1], lobe[:, 0] >= OSC_DECAY * lobe[:, 2]
+    )
     osc = (
         (r > 1.0)
+        & (tb.o_k[full] >= NOISE_WARM)
         & (half.min(axis=1) >= OSC_MIN_SAMPLES * step)
         # the newest lobe above the band, the older ones (still rising out of the noise)
         # above half of it
         & (lobe[:, 0] >= h_full)
-        & (lobe[:, 1:].min(axis=1) >= 0.5 * h_full)
-        & (lobe[:, 0] >= OSC_DECAY * lobe[:, 2])
+        & (lobe[:, 1] >= 0.5 * h_full)
+        & (lead | (lobe[:, 2] >= 0.5 * h_full))
+        & decay
     )
     new = full[osc & ~tb.o_osc[full]]
     tb.o_osc[full] = osc
     return new
+
+
+def period(tb: LoopTable, s: int) -> float:
+    """The oscillation's period as the detector measured it, s: twice the mean of the
+    newer half-periods on record (the oldest may have begun before the oscillation)."""
+    return 2.0 * float(tb.o_half[s, : OSC_LOBES - 1].mean())
 
 
 def dump(tb: LoopTable, s: int) -> dict:

@@ -45,7 +45,7 @@ import orjson
 
 from service.engine.audit import audit_row
 from service.engine.modes import ADVISORY, AUTO
-from service.engine.monitor import same_gains
+from service.engine.monitor import period, same_gains
 from service.engine.updates import MODE_VALUES, StepResult
 from service.wire.protocol import UpdateReason
 
@@ -171,7 +171,7 @@ def fail(
         "oscillation_index": _num(tb.o_index[s]),
     }  # fmt: skip
     if why == "oscillation":
-        detail["period_s"] = 2.0 * float(tb.o_half[s].mean())
+        detail["period_s"] = period(tb, s)
     if actor:
         detail["actor"] = actor
     tb._verify_dirty.add(s)
