@@ -27,9 +27,20 @@ accepted samples (distinct loops, aligned arrays) and keeps three things per loo
   :data:`OSC_LOBES` half-periods (between crossings of a hysteresis band of 3 noise
   sigmas) are regular, the newest has a mean |e| above the band (the older ones above half
   of it: a growing oscillation's first lobes are still rising out of the noise), and the
-  amplitude does not
-  decay by more than :data:`OSC_DECAY` per period: with 3 lobes the verdict comes at the
-  4th crossing, 2 periods after a sustained oscillation starts.
+  amplitude does not decay by more than :data:`OSC_DECAY` per period. Three rules make
+  the verdict come early, 1.5 periods after the oscillation leaves the band (measured:
+  ``pitune verify-eval``, docs/tuner.md):
+
+  - a lobe that leaves the band from inside it is whole (the half-period from that exit
+    to the next crossing is the one from crossing to crossing); only the first lobe after
+    a setpoint move or a gap is partial and not on record;
+  - the oldest lobe judged may have begun before the oscillation did (noise carried the
+    error out of the band first, then the oscillation grew inside the lobe): when it is
+    longer than the newer ones its length is no irregularity and its mean |e|, diluted by
+    the time before, is not held against the band (the decay test still uses it);
+  - the noise estimate is not frozen during its first :data:`NOISE_WARM` samples and the
+    detector does not judge before (at startup the band is its floor, noise alone crosses
+    it, and the lobes it makes would freeze the estimate low).
 
 Units: times in plant seconds, errors in engineering units unless stated; arrays (n,)
 indexed by slot unless stated.
@@ -71,8 +82,6 @@ OSC_LOBES = 3
 OSC_DECAY = 0.5
 """A lobe at least this share of the same-sign lobe one period earlier is not decaying
 (a quarter-decay response, 0.25, is not an oscillation; a sustained one is 1)."""
-HALF_DECAY = math.sqrt(OSC_DECAY)
-"""The same over half a period (a lobe against the opposite-sign one before it)."""
 OSC_NOISE_SIGMAS = 3.0
 """Hysteresis band of the zero crossings, noise sigmas."""
 OSC_MIN_BAND = 0.01
@@ -293,8 +302,7 @@ def _oscillation(tb, slots, t, e, prev_e, dt, jumped) -> np.ndarray:
     tb.o_seen[slots[outside]] = t[outside]
     # inside the band for three half-periods (one RL period before a lobe is known):
     # the oscillation, if any, is over
-    last = tb.o_half[slots, 0]
-    quiet_for = np.where((tb.o_n[slots] > 0) & np.isfinite(last), 3.0 * last, tb.period[slots])
+    quiet_for = np.where(tb.o_n[slots] > 0, 3.0 * tb.o_half[slots, 0], tb.period[slots])
     with np.errstate(invalid="ignore"):
         gone = (cur != 0) & ~outside & (t - tb.o_seen[slots] > quiet_for)
     if gone.any():
@@ -312,22 +320,19 @@ def _oscillation(tb, slots, t, e, prev_e, dt, jumped) -> np.ndarray:
         return slots[:0]
     s, tc, step = slots[crossed], t[crossed], dt[crossed]
     dur = tc - tb.o_tc[s]
-    # a partial lobe (begun at a move or a gap: o_tc NaN) is on record as one of unknown
-    # length (inf) and mean (NaN): it leads the lobes after it, as a long lobe does
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean = np.where(np.isnan(dur), math.nan, tb.o_iae[s] / dur)
-    dur = np.where(np.isnan(dur), math.inf, dur)
-    tb.o_half[s, 1:], tb.o_lobe[s, 1:] = tb.o_half[s, :-1], tb.o_lobe[s, :-1]
-    tb.o_half[s, 0], tb.o_lobe[s, 0] = dur, mean
-    tb.o_n[s] = np.minimum(tb.o_n[s] + 1, OSC_LOBES)
+    # the first lobe after a move or a gap is partial (o_tc NaN): not on record
+    w, dur, step = s[np.isfinite(dur)], dur[np.isfinite(dur)], step[np.isfinite(dur)]
+    tb.o_half[w, 1:], tb.o_lobe[w, 1:] = tb.o_half[w, :-1], tb.o_lobe[w, :-1]
+    tb.o_half[w, 0], tb.o_lobe[w, 0] = dur, tb.o_iae[w] / dur
+    tb.o_n[w] = np.minimum(tb.o_n[w] + 1, OSC_LOBES)
     tb.o_sign[s], tb.o_tc[s], tb.o_iae[s] = sign[crossed], tc, 0.0
-    enough = tb.o_n[s] >= OSC_LOBES
-    full, step = s[enough], step[enough]
+    enough = tb.o_n[w] >= OSC_LOBES
+    full, step = w[enough], step[enough]
     if not full.size:
         return slots[:0]
     half, lobe, h_full = tb.o_half[full].copy(), tb.o_lobe[full], band(tb, full)
-    # the oldest lobe may have begun before the oscillation did (noise, or a move, carried
-    # the error out of the band first): longer than the newer ones, its length is no
+    # the oldest lobe may have begun before the oscillation did (noise carried the error
+    # out of the band first): longer than the newer ones, its length is no
     # irregularity and its mean |e| is diluted by the time before (not held against the
     # band)
     newer = half[:, :-1].mean(axis=1)
@@ -336,11 +341,6 @@ def _oscillation(tb, slots, t, e, prev_e, dt, jumped) -> np.ndarray:
     spread = half.std(axis=1)
     r = np.where(spread > 0, half.mean(axis=1) / (3.0 * np.maximum(spread, 1e-300)), 10.0)
     tb.o_index[full] = np.minimum(r, 10.0)
-    # not decaying: against the same-sign lobe a period earlier, or (its mean unknown)
-    # the opposite-sign one half a period earlier
-    decay = np.where(
-        np.isnan(lobe[:, 2]), lobe[:, 0] >= HALF_DECAY * lobe[:, 1], lobe[:, 0] >= OSC_DECAY * lobe[:, 2]
-    )
     osc = (
         (r > 1.0)
         & (tb.o_k[full] >= NOISE_WARM)
@@ -350,7 +350,7 @@ def _oscillation(tb, slots, t, e, prev_e, dt, jumped) -> np.ndarray:
         & (lobe[:, 0] >= h_full)
         & (lobe[:, 1] >= 0.5 * h_full)
         & (lead | (lobe[:, 2] >= 0.5 * h_full))
-        & decay
+        & (lobe[:, 0] >= OSC_DECAY * lobe[:, 2])
     )
     new = full[osc & ~tb.o_osc[full]]
     tb.o_osc[full] = osc

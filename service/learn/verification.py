@@ -190,9 +190,7 @@ def run_scenario(
     return _verdicts(engine, ids, change_at * DT, toggle * DT)
 
 
-def _verdicts(
-    engine: TuningEngine, ids: list[str], since, unit: np.ndarray, first=None
-) -> dict:
+def _verdicts(engine: TuningEngine, ids: list[str], since, unit: np.ndarray, first=None) -> dict:
     """Each loop's verdict of its change, from the audit rows the engine produced, and
     when it came in ``unit`` from ``since`` (and from ``first``, if given)."""
     _, audit = engine.drain_changes()
