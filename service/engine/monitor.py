@@ -76,7 +76,8 @@ HISTORY = 8
 """Complete responses kept per loop for ``GET /loops/{id}/performance``."""
 HIST_FIELDS = ("t", "iae", "overshoot_pct", "rise_s", "settle_s", "mse")
 """Columns of the history ring (the ``f_`` arrays: t, iae, over, rise, settle, mse)."""
-_LAST = ("t", "iae", "over", "rise", "settle", "mse")
+_FIGURES = ("f_t", "f_iae", "f_over", "f_rise", "f_settle", "f_mse")
+"""The last complete response's figures (the history ring's columns, in order)."""
 OSC_LOBES = 3
 """Half-periods judged by the oscillation detector."""
 OSC_DECAY = 0.5
@@ -99,40 +100,51 @@ OSC_MIN_SAMPLES = 2.0
 """A half-period spans at least this many sample intervals (shorter: noise)."""
 
 F64 = [
-    # current response: start, signed move, end, IAE, squared tracking error (agent
-    # units^2 s), overshoot (share of the move), 10 %/90 % times, last time outside the
-    # settling band, gains and seq at the move (the gains the response judges)
-    "r_t0", "r_move", "r_end", "r_iae", "r_sq", "r_over", "r_t10", "r_t90", "r_settle",
-    "r_kp", "r_ki", "r_seq",
+    # current response: start, end, 10 %/90 % times, last time outside the settling band,
+    # gains and seq at the move (the gains the response judges: exact, a verdict makes
+    # them the last-good gains)
+    "r_t0", "r_end", "r_t10", "r_t90", "r_settle", "r_kp", "r_ki", "r_seq",
+    # end of the last complete response; oscillation: time of the last crossing, the last
+    # time the error was outside the band
+    "f_t", "o_tc", "o_seen",
+]  # fmt: skip
+"""Per-loop float64 arrays of the monitor: plant times (float32 would round a Unix time
+to 2 minutes), gains and seqs."""
+F32 = [
+    # current response: signed move, IAE, squared tracking error (agent units^2 s),
+    # overshoot (share of the move)
+    "r_move", "r_iae", "r_sq", "r_over",
     # the target trajectory's model: dead time, closed-loop time constant (s)
     "m_theta", "m_tau_cl",
     # last complete response
-    "f_t", "f_iae", "f_over", "f_rise", "f_settle", "f_mse",
+    "f_iae", "f_over", "f_rise", "f_settle", "f_mse",
     # window: error mean and mean square, shares of time in manual / saturated, share of
     # samples rejected
     "w_mean", "w_sq", "w_manual", "w_sat", "w_rej",
-    # oscillation: noise variance, sign of the current lobe, time of the last crossing,
-    # IAE since, the regularity index r of the last lobes
-    "o_var", "o_sign", "o_tc", "o_iae", "o_index",
-    # the last time the error was outside the band; the error two samples back, and
-    # whether the last sample followed a jump (the noise estimate skips both)
-    "o_seen", "o_e2", "o_j",
+    # oscillation: noise variance, sign of the current lobe, IAE since the last crossing,
+    # the regularity index r of the last lobes, the error two samples back (the noise
+    # estimate's second difference)
+    "o_var", "o_sign", "o_iae", "o_index", "o_e2",
 ]  # fmt: skip
-"""Per-loop float arrays of the monitor (allocated by the table beside its own)."""
+"""Per-loop float32 arrays of the monitor: figures and running sums (a figure needs 3
+digits; 7 hold a few hundred samples' sum, and a second difference of errors up to 10^4
+times the noise)."""
 
 
 def allocate(tb: LoopTable, capacity: int, old: int) -> None:
     """Grow the monitor's arrays to ``capacity`` slots, keeping the first ``old``."""
     for name, shape, dtype in (
         *((n, (), np.float64) for n in F64),
-        ("o_half", (OSC_LOBES,), np.float64),
-        ("o_lobe", (OSC_LOBES,), np.float64),
-        ("o_n", (), np.int64),
+        *((n, (), np.float32) for n in F32),
+        ("o_half", (OSC_LOBES,), np.float32),
+        ("o_lobe", (OSC_LOBES,), np.float32),
+        ("o_n", (), np.int8),
         ("o_k", (), np.int16),
+        ("o_j", (), bool),
         ("o_osc", (), bool),
         ("r_mixed", (), bool),
         ("f_hist", (HISTORY, len(HIST_FIELDS)), np.float32),
-        ("f_hist_n", (), np.int64),
+        ("f_hist_n", (), np.int8),
     ):
         arr = np.zeros((capacity, *shape), dtype)
         if old:
@@ -142,7 +154,7 @@ def allocate(tb: LoopTable, capacity: int, old: int) -> None:
 
 def clear(tb: LoopTable, s: int) -> None:
     """A new loop (or a reset): no response open, figures unknown, windows empty."""
-    for name in ("r_t0", "r_end", "o_tc", "o_index", *(n for n in F64 if n.startswith("f_"))):
+    for name in ("r_t0", "r_end", "o_tc", "o_index", *_FIGURES):
         getattr(tb, name)[s] = math.nan
     for name in ("w_mean", "w_sq", "w_manual", "w_sat", "w_rej", "o_var", "o_sign", "o_iae"):
         getattr(tb, name)[s] = 0.0
@@ -200,6 +212,10 @@ def _close(tb: LoopTable, slots: np.ndarray, t: np.ndarray, moved: np.ndarray) -
     if done.size:
         move = np.abs(tb.r_move[done])
         t0, end = tb.r_t0[done], tb.r_end[done]
+        # the ring's times are offsets from the newest response's end (float32 holds
+        # them to the millisecond for a day; a Unix time it would round to 2 minutes)
+        ring = tb.f_hist[done]
+        ring[:, :, 0] += (tb.f_t[done] - end)[:, None]
         tb.f_t[done] = end
         tb.f_iae[done] = tb.r_iae[done] / move
         tb.f_over[done] = 100.0 * tb.r_over[done]
@@ -207,10 +223,9 @@ def _close(tb: LoopTable, slots: np.ndarray, t: np.ndarray, moved: np.ndarray) -
         settle = tb.r_settle[done] - t0
         tb.f_settle[done] = np.where(tb.r_settle[done] < tb.r_end[done] - 1e-9, settle, np.nan)
         tb.f_mse[done] = tb.r_sq[done] / (end - t0)
-        ring = tb.f_hist[done]
         ring[:, 1:] = ring[:, :-1]
         ring[:, 0] = np.column_stack(
-            [tb.f_t[done], tb.f_iae[done], tb.f_over[done], tb.f_rise[done],
+            [np.zeros(done.size), tb.f_iae[done], tb.f_over[done], tb.f_rise[done],
              tb.f_settle[done], tb.f_mse[done]]
         )  # fmt: skip
         tb.f_hist[done] = ring
@@ -330,7 +345,7 @@ def _oscillation(tb, slots, t, e, prev_e, dt, jumped) -> np.ndarray:
     full, step = w[enough], step[enough]
     if not full.size:
         return slots[:0]
-    half, lobe, h_full = tb.o_half[full].copy(), tb.o_lobe[full], band(tb, full)
+    half, lobe, h_full = tb.o_half[full].astype(np.float64), tb.o_lobe[full], band(tb, full)
     # the oldest lobe may have begun before the oscillation did (noise carried the error
     # out of the band first): longer than the newer ones, its length is no
     # irregularity and its mean |e| is diluted by the time before (not held against the
@@ -366,22 +381,30 @@ def period(tb: LoopTable, s: int) -> float:
 def dump(tb: LoopTable, s: int) -> dict:
     """The last response's figures and the history ring, for the runtime snapshot (the
     open response and the windows restart after a restart: a gap ends them anyway)."""
-    n = int(tb.f_hist_n[s])
     return {
-        "last": [_num(getattr(tb, f"f_{k}")[s]) for k in _LAST],
-        "hist": [[_num(x) for x in row] for row in tb.f_hist[s, :n].tolist()],
+        "last": [_num(getattr(tb, name)[s]) for name in _FIGURES],
+        "hist": [[_num(x) for x in row] for row in history(tb, s)],
     }
+
+
+def history(tb: LoopTable, s: int) -> list[list[float]]:
+    """Loop ``s``'s complete responses, newest first: rows of :data:`HIST_FIELDS`."""
+    rows = tb.f_hist[s, : int(tb.f_hist_n[s])].astype(np.float64)
+    rows[:, 0] += tb.f_t[s]
+    return rows.tolist()
 
 
 def load(tb: LoopTable, s: int, d: dict) -> None:
     last = d.get("last")
     if last:
-        for k, v in zip(_LAST, last, strict=True):
-            getattr(tb, f"f_{k}")[s] = math.nan if v is None else v
+        for name, v in zip(_FIGURES, last, strict=True):
+            getattr(tb, name)[s] = math.nan if v is None else v
     hist = d.get("hist") or []
     n = min(len(hist), HISTORY)
     if n:
-        tb.f_hist[s, :n] = np.array(hist[:n], dtype=np.float64)
+        rows = np.array(hist[:n], dtype=np.float64)
+        rows[:, 0] -= tb.f_t[s]
+        tb.f_hist[s, :n] = rows
     tb.f_hist_n[s] = n
 
 
