@@ -18,7 +18,10 @@ follow. The engine's verdict of that change is read from its audit log.
   verification window (the next complete setpoint response).
 * ``oscillating`` changes: kp raised to 1.3 times the loop's ultimate gain (the loop
   goes unstable): must be rolled back on the oscillation detector, within 3 periods of
-  the oscillation (``verdict_after_periods``: setpoint periods for the other kinds).
+  the oscillation (``verdict_after_periods``: setpoint periods for the other kinds),
+  counted from its emergence (the noise-free error out of the 3-sigma band at least once
+  a period from then on) and, in ``from_first_exceedance``, from the first time the
+  noise-free error left the band at all (the amplified noise may do that first).
 
 Prints the verdict counts per kind and writes JSON with ``--out``.
 """
