@@ -86,13 +86,6 @@ _BOOL = [
 ]  # fmt: skip
 
 
-def _own(text: str) -> str:
-    """A copy of a string the table keeps for as long as the loop lives. The parsed
-    request's strings sit among the request's garbage: one kept per loop pins its pages
-    after the request is freed (a 5,000-loop ``POST /loops/bulk`` left 1.5 KB a loop)."""
-    return text.encode().decode()
-
-
 class Configs:
     """Loop configs by id, held as compact JSON without the fields at their defaults (a
     parsed :class:`LoopConfig` costs ~2.4 KB per loop; its full JSON ~0.5 KB, this ~0.25
@@ -261,9 +254,8 @@ class LoopTable:
         if not self._free:
             self.reserve(1)
         s = self._free.pop()
-        loop_id = _own(config.id)
-        self.ids[s] = loop_id
-        self.slot_of[loop_id] = s
+        self.ids[s] = config.id
+        self.slot_of[config.id] = s
         self.reg_kp[s], self.reg_ki[s] = config.kp, config.ki
         self.kp[s] = config.kp if kp is None else kp
         self.ki[s] = config.ki if ki is None else ki
@@ -286,7 +278,7 @@ class LoopTable:
         return s
 
     def _configure(self, s: int, config: LoopConfig) -> None:
-        self.configs[self.ids[s]] = config  # keyed by the table's own copy of the id
+        self.configs[config.id] = config
         identified = self.ident[s].scaling
         sc = identified or config.resolved_scaling
         self.ident[s].in_force_scaling = sc
@@ -300,7 +292,7 @@ class LoopTable:
         self.max_rel[s] = g.max_rel_change
         self.mode[s] = _CODE[config.mode]
         # one string per gateway, however many loops it fronts
-        self.gateways[s] = None if config.gateway is None else sys.intern(_own(config.gateway))
+        self.gateways[s] = None if config.gateway is None else sys.intern(config.gateway)
         self.watch[s] = config.scaling is None if g.identify is None else g.identify
         self.env_guard[s] = g.envelope_guard
         self.scaled[s] = sc is not None
