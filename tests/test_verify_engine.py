@@ -166,3 +166,52 @@ def test_an_operator_rollback_restores_the_last_good_gains_and_needs_a_change():
     rollback = [r for r in engine.drain_changes()[1] if r[5] == "rollback"][0]
     assert json.loads(rollback[10])["actor"] == "api"
     assert not engine.view("O").verification.pending
+
+
+def _responses(loop_id: str, t0: float, periods: int, rng) -> list[dict]:
+    """Samples of a first-order response (tau 10 s) to a setpoint toggled every 4 RL
+    periods (RL period 55 s for tau_hat 10), 2 % noise, from plant time ``t0``."""
+    out, y = [], 0.0
+    for k in range(periods * 220):
+        sp = float((k // 220) % 2)
+        y += (sp - y) / 10.0
+        out.append({"loop_id": loop_id, "t": t0 + k, "sp": sp, "pv": y + NOISE * rng.normal()})
+    return out
+
+
+def test_response_history_keeps_unix_plant_times_through_a_restart(rng):
+    engine = TuningEngine(StillAgent())
+    config = LoopConfig(
+        id="U", kp=1.0, ki=0.05, sample_period_s=1.0,
+        scaling={"k_hat": 1.0, "tau_hat": 10.0, "pv_scale": 1.0},
+        guard={"excitation_periods": 0.0},
+    )  # fmt: skip
+    engine.register(config, wall=0.0)
+    t0 = 1.7e9  # float32 would round it to 128 s
+    engine.ingest(_responses("U", t0, 4, rng), wall=0.0)
+    hist = engine.performance("U").history
+    # each response is judged over 2 RL periods (110 s) after its move, every 220 s
+    ends = [t0 + 220.0 * k + 110.0 for k in (3, 2, 1)]
+    assert [h.t for h in hist] == pytest.approx(ends, abs=1.0)
+    ((_, hidden, runtime),) = engine.snapshot(["U"])
+    other = TuningEngine(StillAgent())
+    other.restore(config, kp=1.0, ki=0.05, seq=0, hidden=hidden, runtime=runtime, wall=0.0)
+    assert [h.t for h in other.performance("U").history] == pytest.approx(ends, abs=1.0)
+
+
+def test_noise_and_ordinary_setpoint_responses_raise_no_oscillation_alarm(rng):
+    # from registration on (the detector's noise estimate warms up first), over 8
+    # setpoint responses of a well-damped loop in 2 % noise
+    engine = TuningEngine(StillAgent())
+    engine.register(LoopConfig(
+        id="N", kp=1.0, ki=0.05, sample_period_s=1.0,
+        scaling={"k_hat": 1.0, "tau_hat": 10.0, "pv_scale": 1.0},
+        guard={"excitation_periods": 0.0},
+    ), wall=0.0)  # fmt: skip
+    tb, s = engine.table, engine.table.slot("N")
+    flagged = 0
+    for sample in _responses("N", 0.0, 8, rng):
+        engine.ingest([sample], wall=0.0)
+        flagged += bool(tb.o_osc[s])
+    assert flagged == 0
+    assert engine.performance("N").window.noise_sigma == pytest.approx(NOISE, rel=0.3)

@@ -126,6 +126,7 @@ class LoopAdmin:
         shards = [shard_of(c.id, c.gateway) for c in configs]
         with _taken_in_store(self.store.integrity_errors):
             self.store.insert_loops(configs, audit, seqs)
+        self.engine.reserve(len(configs))
         for config, seq, shard in zip(configs, seqs, shards, strict=True):
             if self.cluster is None or self.cluster.owns(shard):
                 self.engine.register(config, seq=seq, wall=wall)

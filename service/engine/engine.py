@@ -91,6 +91,11 @@ class TuningEngine:
         with self.lock:
             self.table.add(config, seq=seq, wall=_now(wall))
 
+    def reserve(self, n: int) -> None:
+        """Room for ``n`` more loops at once (a bulk registration: no doubling slack)."""
+        with self.lock:
+            self.table.reserve(n)
+
     def restore(
         self,
         config: LoopConfig,

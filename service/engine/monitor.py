@@ -27,9 +27,20 @@ accepted samples (distinct loops, aligned arrays) and keeps three things per loo
   :data:`OSC_LOBES` half-periods (between crossings of a hysteresis band of 3 noise
   sigmas) are regular, the newest has a mean |e| above the band (the older ones above half
   of it: a growing oscillation's first lobes are still rising out of the noise), and the
-  amplitude does not
-  decay by more than :data:`OSC_DECAY` per period: with 3 lobes the verdict comes at the
-  4th crossing, 2 periods after a sustained oscillation starts.
+  amplitude does not decay by more than :data:`OSC_DECAY` per period. Three rules make
+  the verdict come early, 1.5 periods after the oscillation leaves the band (measured:
+  ``pitune verify-eval``, docs/tuner.md):
+
+  - a lobe that leaves the band from inside it is whole (the half-period from that exit
+    to the next crossing is the one from crossing to crossing); only the first lobe after
+    a setpoint move or a gap is partial and not on record;
+  - the oldest lobe judged may have begun before the oscillation did (noise carried the
+    error out of the band first, then the oscillation grew inside the lobe): when it is
+    longer than the newer ones its length is no irregularity and its mean |e|, diluted by
+    the time before, is not held against the band (the decay test still uses it);
+  - the noise estimate is not frozen during its first :data:`NOISE_WARM` samples and the
+    detector does not judge before (at startup the band is its floor, noise alone crosses
+    it, and the lobes it makes would freeze the estimate low).
 
 Units: times in plant seconds, errors in engineering units unless stated; arrays (n,)
 indexed by slot unless stated.
@@ -65,7 +76,8 @@ HISTORY = 8
 """Complete responses kept per loop for ``GET /loops/{id}/performance``."""
 HIST_FIELDS = ("t", "iae", "overshoot_pct", "rise_s", "settle_s", "mse")
 """Columns of the history ring (the ``f_`` arrays: t, iae, over, rise, settle, mse)."""
-_LAST = ("t", "iae", "over", "rise", "settle", "mse")
+_FIGURES = ("f_t", "f_iae", "f_over", "f_rise", "f_settle", "f_mse")
+"""The last complete response's figures (the history ring's columns, in order)."""
 OSC_LOBES = 3
 """Half-periods judged by the oscillation detector."""
 OSC_DECAY = 0.5
@@ -81,43 +93,58 @@ error (sigma^2 = E[d2^2] / 6 for white noise; a running mean over the first 50 s
 blind to the loop's own slow motion, so neither a transient nor a growing oscillation
 inflates the band. Not updated across a setpoint move, nor while two lobes of a
 possible oscillation are on record."""
+NOISE_WARM = round(1.0 / NOISE_FORGET)
+"""Samples the noise estimate takes before the detector may judge (its running mean's
+length; the estimate restarts after a restart)."""
 OSC_MIN_SAMPLES = 2.0
 """A half-period spans at least this many sample intervals (shorter: noise)."""
 
 F64 = [
-    # current response: start, signed move, end, IAE, squared tracking error (agent
-    # units^2 s), overshoot (share of the move), 10 %/90 % times, last time outside the
-    # settling band, gains and seq at the move (the gains the response judges)
-    "r_t0", "r_move", "r_end", "r_iae", "r_sq", "r_over", "r_t10", "r_t90", "r_settle",
-    "r_kp", "r_ki", "r_seq",
+    # current response: start, end, 10 %/90 % times, last time outside the settling band,
+    # gains and seq at the move (the gains the response judges: exact, a verdict makes
+    # them the last-good gains)
+    "r_t0", "r_end", "r_t10", "r_t90", "r_settle", "r_kp", "r_ki", "r_seq",
+    # end of the last complete response; oscillation: time of the last crossing, the last
+    # time the error was outside the band
+    "f_t", "o_tc", "o_seen",
+]  # fmt: skip
+"""Per-loop float64 arrays of the monitor: plant times (float32 would round a Unix time
+to 2 minutes), gains and seqs."""
+F32 = [
+    # current response: signed move, IAE, squared tracking error (agent units^2 s),
+    # overshoot (share of the move)
+    "r_move", "r_iae", "r_sq", "r_over",
     # the target trajectory's model: dead time, closed-loop time constant (s)
     "m_theta", "m_tau_cl",
     # last complete response
-    "f_t", "f_iae", "f_over", "f_rise", "f_settle", "f_mse",
+    "f_iae", "f_over", "f_rise", "f_settle", "f_mse",
     # window: error mean and mean square, shares of time in manual / saturated, share of
     # samples rejected
     "w_mean", "w_sq", "w_manual", "w_sat", "w_rej",
-    # oscillation: noise variance, sign of the current lobe, time of the last crossing,
-    # IAE since, the regularity index r of the last lobes
-    "o_var", "o_sign", "o_tc", "o_iae", "o_index",
-    # the last time the error was outside the band; the error two samples back, and
-    # whether the last sample followed a jump (the noise estimate skips both)
-    "o_seen", "o_e2", "o_j",
+    # oscillation: noise variance, sign of the current lobe, IAE since the last crossing,
+    # the regularity index r of the last lobes, the error two samples back (the noise
+    # estimate's second difference)
+    "o_var", "o_sign", "o_iae", "o_index", "o_e2",
 ]  # fmt: skip
-"""Per-loop float arrays of the monitor (allocated by the table beside its own)."""
+"""Per-loop float32 arrays of the monitor: figures and running sums (a figure needs 3
+digits; 7 hold a few hundred samples' sum, and a second difference of errors up to 10^4
+times the noise)."""
 
 
 def allocate(tb: LoopTable, capacity: int, old: int) -> None:
     """Grow the monitor's arrays to ``capacity`` slots, keeping the first ``old``."""
     for name, shape, dtype in (
         *((n, (), np.float64) for n in F64),
-        ("o_half", (OSC_LOBES,), np.float64),
-        ("o_lobe", (OSC_LOBES,), np.float64),
-        ("o_n", (), np.int64),
+        *((n, (), np.float32) for n in F32),
+        ("o_half", (OSC_LOBES,), np.float32),
+        ("o_lobe", (OSC_LOBES,), np.float32),
+        ("o_n", (), np.int8),
+        ("o_k", (), np.int16),
+        ("o_j", (), bool),
         ("o_osc", (), bool),
         ("r_mixed", (), bool),
         ("f_hist", (HISTORY, len(HIST_FIELDS)), np.float32),
-        ("f_hist_n", (), np.int64),
+        ("f_hist_n", (), np.int8),
     ):
         arr = np.zeros((capacity, *shape), dtype)
         if old:
@@ -127,11 +154,11 @@ def allocate(tb: LoopTable, capacity: int, old: int) -> None:
 
 def clear(tb: LoopTable, s: int) -> None:
     """A new loop (or a reset): no response open, figures unknown, windows empty."""
-    for name in ("r_t0", "r_end", "o_tc", "o_index", *(n for n in F64 if n.startswith("f_"))):
+    for name in ("r_t0", "r_end", "o_tc", "o_index", *_FIGURES):
         getattr(tb, name)[s] = math.nan
     for name in ("w_mean", "w_sq", "w_manual", "w_sat", "w_rej", "o_var", "o_sign", "o_iae"):
         getattr(tb, name)[s] = 0.0
-    tb.o_n[s], tb.o_osc[s], tb.f_hist_n[s] = 0, False, 0
+    tb.o_n[s], tb.o_k[s], tb.o_osc[s], tb.f_hist_n[s] = 0, 0, False, 0
 
 
 def configure(tb: LoopTable, s: int, tau_s: float | None, theta_s: float) -> None:
@@ -185,6 +212,10 @@ def _close(tb: LoopTable, slots: np.ndarray, t: np.ndarray, moved: np.ndarray) -
     if done.size:
         move = np.abs(tb.r_move[done])
         t0, end = tb.r_t0[done], tb.r_end[done]
+        # the ring's times are offsets from the newest response's end (float32 holds
+        # them to the millisecond for a day; a Unix time it would round to 2 minutes)
+        ring = tb.f_hist[done]
+        ring[:, :, 0] += (tb.f_t[done] - end)[:, None]
         tb.f_t[done] = end
         tb.f_iae[done] = tb.r_iae[done] / move
         tb.f_over[done] = 100.0 * tb.r_over[done]
@@ -192,10 +223,9 @@ def _close(tb: LoopTable, slots: np.ndarray, t: np.ndarray, moved: np.ndarray) -
         settle = tb.r_settle[done] - t0
         tb.f_settle[done] = np.where(tb.r_settle[done] < tb.r_end[done] - 1e-9, settle, np.nan)
         tb.f_mse[done] = tb.r_sq[done] / (end - t0)
-        ring = tb.f_hist[done]
         ring[:, 1:] = ring[:, :-1]
         ring[:, 0] = np.column_stack(
-            [tb.f_t[done], tb.f_iae[done], tb.f_over[done], tb.f_rise[done],
+            [np.zeros(done.size), tb.f_iae[done], tb.f_over[done], tb.f_rise[done],
              tb.f_settle[done], tb.f_mse[done]]
         )  # fmt: skip
         tb.f_hist[done] = ring
@@ -262,11 +292,15 @@ def band(tb: LoopTable, slots: np.ndarray) -> np.ndarray:
 
 def _oscillation(tb, slots, t, e, prev_e, dt, jumped) -> np.ndarray:
     """One sample of the detector per loop; returns the slots that start oscillating."""
-    usable = ~jumped & (tb.o_j[slots] == 0) & (tb.o_n[slots] < 2)
+    # until the estimate has its first samples it is not frozen by lobes either (at
+    # startup the band is the floor, and noise alone crosses it)
+    k = tb.o_k[slots]
+    usable = ~jumped & (tb.o_j[slots] == 0) & ((tb.o_n[slots] < 2) | (k < NOISE_WARM))
     d2 = e - 2.0 * prev_e + tb.o_e2[slots]
     var = np.where(usable, d2 * d2 / 6.0, tb.o_var[slots])
-    forget = np.maximum(NOISE_FORGET, 1.0 / (1.0 + tb.n_samples[slots]))
+    forget = np.maximum(NOISE_FORGET, 1.0 / (1.0 + k))
     tb.o_var[slots] += forget * (var - tb.o_var[slots])
+    tb.o_k[slots] = np.minimum(k + usable, NOISE_WARM)
     tb.o_e2[slots], tb.o_j[slots] = prev_e, jumped
     h = band(tb, slots)
     tb.o_iae[slots] += np.abs(e) * dt
@@ -290,34 +324,47 @@ def _oscillation(tb, slots, t, e, prev_e, dt, jumped) -> np.ndarray:
         g = slots[gone]
         tb.o_sign[g], tb.o_n[g], tb.o_osc[g], tb.o_tc[g] = 0.0, 0, False, math.nan
     if start.any():
+        # a lobe that leaves the band from inside it is whole (the next crossing ends it
+        # half a period later, as a crossing would have started it); one that starts
+        # outside (a setpoint move, a gap) is partial
+        clean = start & ~jumped & (np.abs(prev_e) <= h)
         s0 = slots[start]
-        tb.o_sign[s0], tb.o_tc[s0], tb.o_iae[s0] = sign[start], math.nan, 0.0
+        tb.o_sign[s0], tb.o_iae[s0] = sign[start], 0.0
+        tb.o_tc[s0] = np.where(clean[start], t[start], math.nan)
     if not crossed.any():
         return slots[:0]
-    s, tc = slots[crossed], t[crossed]
+    s, tc, step = slots[crossed], t[crossed], dt[crossed]
     dur = tc - tb.o_tc[s]
-    whole = np.isfinite(dur) & (dur > 0)  # the first lobe of an excursion is partial
-    w, dur, step = s[whole], dur[whole], dt[crossed][whole]
-    if w.size:
-        tb.o_half[w, 1:], tb.o_lobe[w, 1:] = tb.o_half[w, :-1], tb.o_lobe[w, :-1]
-        tb.o_half[w, 0], tb.o_lobe[w, 0] = dur, tb.o_iae[w] / dur
-        tb.o_n[w] = np.minimum(tb.o_n[w] + 1, OSC_LOBES)
+    # the first lobe after a move or a gap is partial (o_tc NaN): not on record
+    w, dur, step = s[np.isfinite(dur)], dur[np.isfinite(dur)], step[np.isfinite(dur)]
+    tb.o_half[w, 1:], tb.o_lobe[w, 1:] = tb.o_half[w, :-1], tb.o_lobe[w, :-1]
+    tb.o_half[w, 0], tb.o_lobe[w, 0] = dur, tb.o_iae[w] / dur
+    tb.o_n[w] = np.minimum(tb.o_n[w] + 1, OSC_LOBES)
     tb.o_sign[s], tb.o_tc[s], tb.o_iae[s] = sign[crossed], tc, 0.0
     enough = tb.o_n[w] >= OSC_LOBES
     full, step = w[enough], step[enough]
     if not full.size:
         return slots[:0]
-    half, lobe, h_full = tb.o_half[full], tb.o_lobe[full], band(tb, full)
+    half, lobe, h_full = tb.o_half[full].astype(np.float64), tb.o_lobe[full], band(tb, full)
+    # the oldest lobe may have begun before the oscillation did (noise carried the error
+    # out of the band first): longer than the newer ones, its length is no
+    # irregularity and its mean |e| is diluted by the time before (not held against the
+    # band)
+    newer = half[:, :-1].mean(axis=1)
+    lead = half[:, -1] > newer
+    half[:, -1] = np.minimum(half[:, -1], newer)
     spread = half.std(axis=1)
     r = np.where(spread > 0, half.mean(axis=1) / (3.0 * np.maximum(spread, 1e-300)), 10.0)
     tb.o_index[full] = np.minimum(r, 10.0)
     osc = (
         (r > 1.0)
+        & (tb.o_k[full] >= NOISE_WARM)
         & (half.min(axis=1) >= OSC_MIN_SAMPLES * step)
         # the newest lobe above the band, the older ones (still rising out of the noise)
         # above half of it
         & (lobe[:, 0] >= h_full)
-        & (lobe[:, 1:].min(axis=1) >= 0.5 * h_full)
+        & (lobe[:, 1] >= 0.5 * h_full)
+        & (lead | (lobe[:, 2] >= 0.5 * h_full))
         & (lobe[:, 0] >= OSC_DECAY * lobe[:, 2])
     )
     new = full[osc & ~tb.o_osc[full]]
@@ -325,25 +372,39 @@ def _oscillation(tb, slots, t, e, prev_e, dt, jumped) -> np.ndarray:
     return new
 
 
+def period(tb: LoopTable, s: int) -> float:
+    """The oscillation's period as the detector measured it, s: twice the mean of the
+    newer half-periods on record (the oldest may have begun before the oscillation)."""
+    return 2.0 * float(tb.o_half[s, : OSC_LOBES - 1].mean())
+
+
 def dump(tb: LoopTable, s: int) -> dict:
     """The last response's figures and the history ring, for the runtime snapshot (the
     open response and the windows restart after a restart: a gap ends them anyway)."""
-    n = int(tb.f_hist_n[s])
     return {
-        "last": [_num(getattr(tb, f"f_{k}")[s]) for k in _LAST],
-        "hist": [[_num(x) for x in row] for row in tb.f_hist[s, :n].tolist()],
+        "last": [_num(getattr(tb, name)[s]) for name in _FIGURES],
+        "hist": [[_num(x) for x in row] for row in history(tb, s)],
     }
+
+
+def history(tb: LoopTable, s: int) -> list[list[float]]:
+    """Loop ``s``'s complete responses, newest first: rows of :data:`HIST_FIELDS`."""
+    rows = tb.f_hist[s, : int(tb.f_hist_n[s])].astype(np.float64)
+    rows[:, 0] += tb.f_t[s]
+    return rows.tolist()
 
 
 def load(tb: LoopTable, s: int, d: dict) -> None:
     last = d.get("last")
     if last:
-        for k, v in zip(_LAST, last, strict=True):
-            getattr(tb, f"f_{k}")[s] = math.nan if v is None else v
+        for name, v in zip(_FIGURES, last, strict=True):
+            getattr(tb, name)[s] = math.nan if v is None else v
     hist = d.get("hist") or []
     n = min(len(hist), HISTORY)
     if n:
-        tb.f_hist[s, :n] = np.array(hist[:n], dtype=np.float64)
+        rows = np.array(hist[:n], dtype=np.float64)
+        rows[:, 0] -= tb.f_t[s]
+        tb.f_hist[s, :n] = rows
     tb.f_hist_n[s] = n
 
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 import threading
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -199,18 +200,16 @@ class LoopTable:
     def _allocate(self, capacity: int) -> None:
         old = len(self.ids)
         layers, hidden = self.agent.cfg.layers, self.agent.cfg.hidden
-        for names, dtype in ((_F64, np.float64), (_I64, np.int64), (_REC, np.int64), (_BOOL, bool)):
+        for names, dtype in (
+            (_F64, np.float64), (_I64, np.int64), (_REC, np.int64), (_BOOL, bool),
+            (verify.F64, np.float64), (verify.F32, np.float32),
+        ):  # fmt: skip
             for name in names:
                 arr = np.zeros(capacity, dtype)
                 if old:
                     arr[:old] = getattr(self, name)
                 setattr(self, name, arr)
         monitor.allocate(self, capacity, old)
-        for name in verify.F64:
-            arr = np.zeros(capacity)
-            if old:
-                arr[:old] = getattr(self, name)
-            setattr(self, name, arr)
         h = np.zeros((capacity, layers, hidden), np.float32)
         if old:
             h[:old] = self.hidden
@@ -219,6 +218,15 @@ class LoopTable:
         self.gateways.extend([None] * (capacity - old))
         self.ident.extend([None] * (capacity - old))
         self._free.extend(range(capacity - 1, old - 1, -1))
+
+    def reserve(self, n: int) -> None:
+        """Room for ``n`` more loops. The table grows by a quarter at least (amortised
+        copies), to exactly the room asked for if that is more: a bulk registration gets
+        no slack beyond it (slack of the per-loop arrays, ~2 KB a slot, is resident:
+        the allocator hands out zeroed pages it reuses)."""
+        if n > len(self._free):
+            cap = len(self.ids)
+            self._allocate(max(cap + n - len(self._free), cap + cap // 4 + 1))
 
     def __len__(self) -> int:
         return len(self.slot_of)
@@ -246,7 +254,7 @@ class LoopTable:
         if config.id in self.slot_of:
             raise KeyError(f"loop {config.id!r} already registered")
         if not self._free:
-            self._allocate(2 * len(self.ids))
+            self.reserve(1)
         s = self._free.pop()
         self.ids[s] = config.id
         self.slot_of[config.id] = s
@@ -285,7 +293,8 @@ class LoopTable:
         self.sign[s] = config.action_sign
         self.max_rel[s] = g.max_rel_change
         self.mode[s] = _CODE[config.mode]
-        self.gateways[s] = config.gateway
+        # one string per gateway, however many loops it fronts
+        self.gateways[s] = None if config.gateway is None else sys.intern(config.gateway)
         self.watch[s] = config.scaling is None if g.identify is None else g.identify
         self.env_guard[s] = g.envelope_guard
         self.scaled[s] = sc is not None

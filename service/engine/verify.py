@@ -45,7 +45,7 @@ import orjson
 
 from service.engine.audit import audit_row
 from service.engine.modes import ADVISORY, AUTO
-from service.engine.monitor import same_gains
+from service.engine.monitor import period, same_gains
 from service.engine.updates import MODE_VALUES, StepResult
 from service.wire.protocol import UpdateReason
 
@@ -53,20 +53,27 @@ if TYPE_CHECKING:
     from service.engine.table import LoopTable
 
 F64 = [
-    # last-good gains, their figures (normalised IAE, s, of upward and of downward setpoint
-    # moves: a non-linear plant answers the two differently; NaN: none yet), their seq
-    "g_kp", "g_ki", "g_iae", "g_iae_dn", "g_seq",
+    # last-good gains (restored exactly by a rollback) and their seq
+    "g_kp", "g_ki", "g_seq",
     # changes up to this seq are judged; the agent is held until this plant time
     "v_seq", "cool_until",
-    # margin (NaN: verification off) and cool-down (s) of the loop's guard
-    "v_margin", "v_cool",
     # the proposal track of advisory and shadow loops (NaN: none) and its seq
     "adv_kp", "adv_ki", "adv_seq",
+]  # fmt: skip
+"""Per-loop float64 arrays of verification (allocated by the table beside its own)."""
+F32 = [
+    # the last-good gains' figures (normalised IAE, s, of upward and of downward setpoint
+    # moves: a non-linear plant answers the two differently; NaN: none yet)
+    "g_iae", "g_iae_dn",
+    # margin (NaN: verification off) and cool-down (s) of the loop's guard
+    "v_margin", "v_cool",
     # gains judged worse and kept (advisory: the proposal not taken; shadow, frozen):
-    # not judged again on every response
+    # not judged again on every response (compared within GAIN_RTOL, which float32 holds)
     "b_kp", "b_ki",
 ]  # fmt: skip
-"""Per-loop float arrays of verification (allocated by the table beside its own)."""
+"""Per-loop float32 arrays of verification: figures and settings."""
+_STATE = [n for n in F64 + F32 if n not in ("v_margin", "v_cool")]
+"""What the runtime snapshot keeps (the settings come from the config)."""
 
 Verdict = str
 """``verified``, ``rolled_back``, ``rollback_proposed``, ``worse`` or ``pending``."""
@@ -171,7 +178,7 @@ def fail(
         "oscillation_index": _num(tb.o_index[s]),
     }  # fmt: skip
     if why == "oscillation":
-        detail["period_s"] = 2.0 * float(tb.o_half[s].mean())
+        detail["period_s"] = period(tb, s)
     if actor:
         detail["actor"] = actor
     tb._verify_dirty.add(s)
@@ -266,11 +273,11 @@ def _num(x: float) -> float | None:
 
 def dump(tb: LoopTable, s: int) -> dict:
     """The verification state for the runtime snapshot (JSON: no NaN or inf)."""
-    return {name: _num(getattr(tb, name)[s]) for name in F64 if name not in ("v_margin", "v_cool")}
+    return {name: _num(getattr(tb, name)[s]) for name in _STATE}
 
 
 def load(tb: LoopTable, s: int, d: dict) -> None:
     for name, value in d.items():
-        if name in F64:
+        if name in _STATE:
             default = -math.inf if name == "cool_until" else math.nan
             getattr(tb, name)[s] = default if value is None else value

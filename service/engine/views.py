@@ -70,7 +70,7 @@ def _response(row, unit: float | None) -> ResponseFigures:
 def performance(tb: LoopTable, s: int) -> Performance:
     sc = tb.ident[s].in_force_scaling
     unit = None if sc is None else sc.time_unit_s
-    hist = [_response(row, unit) for row in tb.f_hist[s, : int(tb.f_hist_n[s])].tolist()]
+    hist = [_response(row, unit) for row in monitor.history(tb, s)]
     var = max(float(tb.w_sq[s] - tb.w_mean[s] ** 2), 0.0)
     return Performance(
         loop_id=tb.ids[s],

@@ -18,7 +18,10 @@ follow. The engine's verdict of that change is read from its audit log.
   verification window (the next complete setpoint response).
 * ``oscillating`` changes: kp raised to 1.3 times the loop's ultimate gain (the loop
   goes unstable): must be rolled back on the oscillation detector, within 3 periods of
-  the oscillation (``verdict_after_periods``: setpoint periods for the other kinds).
+  the oscillation (``verdict_after_periods``: setpoint periods for the other kinds),
+  counted from its emergence (the noise-free error out of the 3-sigma band at least once
+  a period from then on) and, in ``from_first_exceedance``, from the first time the
+  noise-free error left the band at all (the amplified noise may do that first).
 
 Prints the verdict counts per kind and writes JSON with ``--out``.
 """
@@ -148,13 +151,22 @@ def run_scenario(
     slot = {loop_id: i for i, loop_id in enumerate(ids)}
     changed = np.zeros(n, bool)
     band = 3.0 * noise  # the detector's band once its noise estimate has settled
-    onset = np.full(n, np.nan)  # first time the noise-free error leaves it after the change
+    # after the change, until the engine answers it: the first time the noise-free error
+    # leaves the band, and the start of the run of such times that leaves no gap of a
+    # whole oscillation period (the oscillation has emerged from the noise for good)
+    onset = np.full(n, np.nan)
+    emerged, last_out = np.full(n, np.nan), np.full(n, -np.inf)
+    period = sc.get("period", np.full(n, np.inf))
+    answered = np.zeros(n, bool)
     for k in range(end):
         t = k * DT
         sp = ((k // toggle) % 2).astype(np.float64)
         y = plant.output()
         pv = y + noise * rng.standard_normal(n)
-        onset = np.where(np.isnan(onset) & changed & (np.abs(sp - y) > band), t, onset)
+        out = changed & ~answered & (np.abs(sp - y) > band)
+        onset = np.where(np.isnan(onset) & out, t, onset)
+        emerged = np.where(out & (t - last_out > period), t, emerged)
+        last_out = np.where(out, t, last_out)
         now = k == change_at
         if now.any():
             pi.set_gains(np.where(now, new[:, 0], pi.kp), np.where(now, new[:, 1], pi.ki))
@@ -165,37 +177,48 @@ def run_scenario(
             for i in range(n)
         ]  # fmt: skip
         for u in engine.ingest(samples, wall=float(t)):
+            i = slot[u.loop_id]
+            answered[i] |= u.reason == "rollback"
             if u.mode == "auto":  # the gateway applies auto updates
-                i = slot[u.loop_id]
                 kp, ki = pi.kp.copy(), pi.ki.copy()
                 kp[i], ki[i] = u.kp, u.ki
                 pi.set_gains(kp, ki)
         plant.step(pi.step(sp - pv))
     if "period" in sc:  # oscillation periods from the oscillation's onset
+        at = change_at * DT
         return _verdicts(
-            engine, ids, np.where(np.isnan(onset), change_at * DT, onset), sc["period"]
-        )
+            engine, ids, np.where(np.isnan(emerged), at, emerged), sc["period"],
+            first=np.where(np.isnan(onset), at, onset),
+        )  # fmt: skip
     return _verdicts(engine, ids, change_at * DT, toggle * DT)
 
 
-def _verdicts(engine: TuningEngine, ids: list[str], since: np.ndarray, unit: np.ndarray) -> dict:
-    """Each loop's verdict of its change, from the audit rows the engine produced."""
+def _verdicts(engine: TuningEngine, ids: list[str], since, unit: np.ndarray, first=None) -> dict:
+    """Each loop's verdict of its change, from the audit rows the engine produced, and
+    when it came in ``unit`` from ``since`` (and from ``first``, if given)."""
     _, audit = engine.drain_changes()
     slot = {loop_id: i for i, loop_id in enumerate(ids)}
     verdict = ["pending"] * len(ids)
-    at = [math.nan] * len(ids)
+    at, at_first = [math.nan] * len(ids), [math.nan] * len(ids)
+    start = since if first is None else first
     details: list[dict | None] = [None] * len(ids)
     for row in audit:
         i = slot[row[0]]
         if row[5] not in ("verified", "rollback", "verdict") or verdict[i] != "pending":
             continue
-        if row[2] is None or row[2] < since[i] - 1e-9:
+        if row[2] is None or row[2] < start[i] - 1e-9:
             continue  # the baseline
         detail = details[i] = json.loads(row[10])
         verdict[i] = detail["verdict"]
         # an oscillation's own period, as the detector measured it
-        at[i] = float((row[2] - since[i]) / (detail.get("period_s") or unit[i]))
-    return {"verdict": verdict, "after_periods": at, "detail": details}
+        per = detail.get("period_s") or unit[i]
+        at[i] = float((row[2] - since[i]) / per)
+        if first is not None:
+            at_first[i] = float((row[2] - first[i]) / per)
+    out = {"verdict": verdict, "after_periods": at, "detail": details}
+    if first is not None:
+        out["after_periods_first"] = at_first
+    return out
 
 
 def evaluate(n: int, noise: float, seed: int = 0, margin: float = MARGIN) -> dict:
@@ -215,6 +238,12 @@ def evaluate(n: int, noise: float, seed: int = 0, margin: float = MARGIN) -> dic
             "verdict_after_periods_max": max(after) if after else None,
             "verdict_within_3_periods": sum(a <= 3.0 for a in after) / max(len(after), 1),
         }
+        if "after_periods_first" in out:  # the stricter clock (noise may start it early)
+            first = [a for a in out["after_periods_first"] if math.isfinite(a)]
+            report[kind]["from_first_exceedance"] = {
+                "verdict_after_periods_max": max(first) if first else None,
+                "verdict_within_3_periods": sum(a <= 3.0 for a in first) / max(len(first), 1),
+            }
     good = report["good"]
     report["false_rollback_rate"] = good["verdicts"].get("rolled_back", 0) / good["changes"]
     return report
