@@ -375,7 +375,10 @@ def assess(
     if len(starts) < MIN_EVENTS:
         out.why = f"waiting for setpoint moves ({len(starts)} of {MIN_EVENTS} seen)"
         return out
-    first = starts[0]
+    # from the sample before the first move (the input at rest before it: the window's
+    # first input is held before the window, so starting at the move would hide the
+    # controller's proportional kick and bias tau up, K up and theta down)
+    first = max(starts[0] - 1, 0)
     t, sp, pv, op = t[first:], sp[first:], pv[first:], op[first:]
     bounds = [b - first for b in bounds]
     out.why = screen(t, pv, op)
