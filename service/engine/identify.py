@@ -41,7 +41,7 @@ MIN_SAMPLES = 12
 """Fewest samples in an event worth fitting."""
 MIN_R2 = 0.75
 """Smallest share of the measurement's variance over the window the model must explain."""
-MIN_SNR = 5.0
+MIN_SNR = 3.0
 """Smallest ratio of the modelled response (peak to peak) to the residual noise (rms)."""
 MAX_REL_SE = 0.1
 """Largest relative standard error of K and of tau of the joint fit of a confident model."""
