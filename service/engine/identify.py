@@ -346,6 +346,24 @@ def screen(t, pv, op) -> str:
     return ""
 
 
+def uniform(t, pv, op, bounds: list[int]):
+    """The data on a uniform time grid at their median interval, where they are not on
+    one already (the recorder's halving keeps each move's samples, leaving a few short
+    intervals; the fit simulates on a uniform grid and would read them as a warped
+    time axis: tau off by 20-40% on finely sampled loops). pv is interpolated linearly,
+    op held (as the DCS holds it); sample indices ``bounds`` map to the first grid time
+    at or after their sample (a move's kick lands up to one interval late)."""
+    dt = np.diff(t)
+    h = float(np.median(dt))
+    if dt.max() - dt.min() <= 1e-6 * h:
+        return t, pv, op, bounds
+    grid = t[0] + h * np.arange(int((t[-1] - t[0]) / h + 1e-9) + 1)
+    held = np.searchsorted(t, grid, side="right") - 1
+    at = [t[b] if b < t.size else math.inf for b in bounds]
+    mapped = np.searchsorted(grid, np.asarray(at) - 1e-6 * h).tolist()
+    return grid, np.interp(grid, t, pv), op[held], mapped
+
+
 def assess(
     t, sp, pv, op, starts: list[int], start: tuple[float, float] | None = None
 ) -> Assessment:
@@ -384,12 +402,13 @@ def assess(
     out.why = screen(t, pv, op)
     if out.why:
         return out
+    t, pv, op, bounds = uniform(t, pv, op, bounds)
     whole = Window.of(t, pv, op)
     joint = fit_windows([whole], start)
     pred = joint.model[0]
     excited = 0
     for ev, a, b in zip(events, bounds[:-1], bounds[1:], strict=True):
-        ev.snr = float(np.ptp(pred[a:b])) / max(joint.noise, 1e-300)
+        ev.snr = float(np.ptp(pred[a:b])) / max(joint.noise, 1e-300) if b > a else 0.0
         ev.excited = bool(ev.snr >= MIN_SNR)
         excited += ev.excited
     out.model = Model(
