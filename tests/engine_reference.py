@@ -134,7 +134,9 @@ def _record(tb: LoopTable, s: int, sample: Sample, e: float, last_t, fresh, wall
     """Identification's sample rule (service.engine.watch.record), one sample."""
     t, sp = sample.t, sample.sp
     pv = sp - e
-    kp, ki = tb.kp[s], tb.ki[s]
+    # the gains the sample reports in force, else the tuner's
+    kp = tb.kp[s] if sample.kp is None else sample.kp
+    ki = tb.ki[s] if sample.ki is None else sample.ki
     if fresh:
         integral = ki * e * 0.0
     else:  # the PI's integral term: bumpless kp change, backward Euler
@@ -164,10 +166,13 @@ def _record(tb: LoopTable, s: int, sample: Sample, e: float, last_t, fresh, wall
         why = why if sample.auto else "manual"
         tb.ident[s].why = f"setpoint move not usable: {why}"
     elif tb.rec[s] >= 0:  # recording, every stride-th sample
-        take = tb.rec_k[s] % tb.rec_stride[s] == 0
+        k = int(tb.rec_k[s])
         tb.rec_k[s] += 1
-        if take:
+        if k % tb.rec_stride[s] == 0:
             watch._append(tb, s, row)
+        # an assessment during the event, 16, 32, 64... samples after the move
+        if k >= watch.CHECK_FIRST and k & (k - 1) == 0 and watch.closely(tb, s):
+            watch._close(tb, s, t, wall)
     tb.prev_t[s], tb.prev_sp[s], tb.prev_pv[s], tb.prev_op[s] = t, sp, pv, op
     tb.prev_ok[s] = not broken
 

@@ -87,6 +87,10 @@ class Run:
     ki: np.ndarray
     done: np.ndarray
     moves_at_identification: np.ndarray
+    """Setpoint moves seen when the model was in force (-1: never)."""
+    moves_in_data: np.ndarray
+    """Setpoint moves made before the model's time (those its data can hold: a model put
+    in force at the fifth move's sample comes from the first four)."""
     identified_model: list = field(default_factory=list)
     statuses: list = field(default_factory=list)
     flagged: np.ndarray | None = None
@@ -130,7 +134,9 @@ def run(
     moves_at_id = np.full(n, -1)
     steps = np.zeros(n, np.int64)
     rescaled_seen = np.zeros(n, np.int64)
-    out = Run(plants.kp0.copy(), plants.ki0.copy(), np.zeros(n, bool), moves_at_id)
+    moves_in_data = np.full(n, -1)
+    move_t: list[list[float]] = [[] for _ in range(n)]
+    out = Run(plants.kp0.copy(), plants.ki0.copy(), np.zeros(n, bool), moves_at_id, moves_in_data)
     limit = np.ceil(max_tau * plants.tau / plants.h)
     ids = [f"L{i}" for i in range(n)]
     started = time.perf_counter()
@@ -148,6 +154,8 @@ def run(
             new = np.where((new < 0.1 * SPAN) | (new > 0.9 * SPAN), sp - size, new)
             sp = np.where(move, new, sp)
             moves += move
+            for i in np.flatnonzero(move).tolist():
+                move_t[i].append(float(k * plants.h[i]))
             next_move = np.where(
                 move, k + np.ceil(rng.uniform(*MOVE_EVERY, n) * plants.tau / plants.h), next_move
             )
@@ -167,8 +175,11 @@ def run(
             # moves seen when the model was put in force
             tb = engine.table
             for i in np.flatnonzero((moves_at_id < 0) & active).tolist():
-                if tb.n_identified[tb.slot(ids[i])] > 0:
+                s = tb.slot(ids[i])
+                if tb.n_identified[s] > 0:
                     moves_at_id[i] = moves[i]
+                    t_model = tb.ident[s].in_force_t
+                    moves_in_data[i] = sum(tm < t_model for tm in move_t[i])
         u = pi.step(sp - y)
         plant.step(u)
         k += 1
@@ -210,8 +221,8 @@ def one(which: str, n: int, seed: int) -> dict:
     """One of the runs, as JSON-able numbers (``python -m tests.identify_bar --run``)."""
     plants = Plants.random(n, seed)
     factors = [(3.0, 1.0), (1 / 3, 1.0), (1.0, 3.0), (1.0, 1 / 3)]
-    if which == "true":
-        r = run(plants, hints=[plants.hint(i) for i in range(n)])
+    if which in ("true", "true2"):  # true2: another noise and move sequence (the scatter)
+        r = run(plants, hints=[plants.hint(i) for i in range(n)], seed=1 if which == "true" else 2)
     elif which == "blind":
         r = run(plants, hints=[None] * n)
     else:
@@ -221,6 +232,7 @@ def one(which: str, n: int, seed: int) -> dict:
     return {
         "kp": r.kp.tolist(), "ki": r.ki.tolist(), "done": r.done.tolist(),
         "moves": r.moves_at_identification.tolist(), "models": models,
+        "moves_in_data": r.moves_in_data.tolist(),
         "statuses": r.statuses, "flagged": r.flagged.tolist(), "seconds": r.seconds,
     }  # fmt: skip
 
@@ -234,6 +246,7 @@ def summary(runs: dict, n: int, seed: int) -> dict:
         b = runs["blind"]
         ident = np.array([m is not None for m in b["models"]])
         moves = np.array(b["moves"])
+        in_data = np.array(b["moves_in_data"])
         k_err = np.array(
             [m[0] / plants.K[i] - 1 if m else np.nan for i, m in enumerate(b["models"])]
         )
@@ -244,6 +257,8 @@ def summary(runs: dict, n: int, seed: int) -> dict:
         out.update(
             identified=int(ident.sum()),
             identified_within_4_moves=int((ident & (moves >= 0) & (moves <= 4)).sum()),
+            identified_from_first_4_moves=int((ident & (in_data >= 0) & (in_data <= 4)).sum()),
+            moves_in_data=b["moves_in_data"],
             moves_at_identification=b["moves"],
             k_within_30=int((np.abs(k_err[ident]) <= 0.3).sum()),
             tau_within_30=int((np.abs(tau_err[ident]) <= 0.3).sum()),
@@ -268,6 +283,13 @@ def summary(runs: dict, n: int, seed: int) -> dict:
             wrong_hint_done=int(np.sum(r["done"])),
             wrong_hint_ratio=np.round(ratio, 2).tolist(),
         )
+    if "true2" in runs:  # the agent's own scatter: the true hint against itself
+        ratio = mse["true2"] / true
+        out.update(
+            true2_ratio_within_1_5=int((ratio <= 1.5).sum()),
+            true2_ratio_median=float(np.median(ratio)),
+            true2_ratio_range=[float(ratio.min()), float(ratio.max())],
+        )
     out.update(
         mse_true_median=float(np.median(true)),
         mse_start_median=float(np.median(plants.agent_mse(plants.kp0, plants.ki0))),
@@ -282,7 +304,7 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--loops", type=int, default=60)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--run", choices=["true", "blind", "rescaled"])
+    parser.add_argument("--run", choices=["true", "true2", "blind", "rescaled"])
     parser.add_argument("--summary", nargs="*", help="JSON files of --run outputs")
     args = parser.parse_args()
     if args.run:

@@ -57,6 +57,13 @@ CHECK_EVERY = 3
 """Once a model is in force and the latest assessment confirmed it (no mismatch, in the
 envelope), the segment is assessed at every third event close only (the fits are the
 engine's main cost); a flagged or paused loop is assessed at every one."""
+DRIFT = 1.25
+"""Factor (K or tau) by which the latest confident model may differ from the one in force
+before the loop is assessed at every chance again (:func:`closely`)."""
+CHECK_FIRST = 16
+"""Samples after a move at which a loop without a confident model is first assessed
+within the event (then at 32, 64, ...: a few fits per event, the response at about
+1, 2, 4... time constants on the finely sampled loops)."""
 COLUMNS = 4  # t, sp, pv, op
 
 
@@ -133,8 +140,10 @@ def record(tb, slots: np.ndarray, cols: dict, last_t: np.ndarray, fresh: np.ndar
     op = np.full(idx.size, np.nan) if op is None else op[idx]
     pv = sp - e
     auto, saturated = cols["auto"][idx], cols["saturated"][idx]
-    # the controller output, reconstructed where the sample has none
-    kp, ki = tb.kp[s], tb.ki[s]
+    # the controller output, reconstructed where the sample has none, with the gains the
+    # sample reports in force (the DCS's; the tuner's may not have reached it yet)
+    kp = np.where(np.isnan(cols["kp"][idx]), tb.kp[s], cols["kp"][idx])
+    ki = np.where(np.isnan(cols["ki"][idx]), tb.ki[s], cols["ki"][idx])
     dt = np.where(fresh, 0.0, t - last_t[idx])
     e_prev = tb.last_e[s]
     integral = np.where(fresh, 0.0, tb.op_int[s] - (kp - tb.op_kp[s]) * e_prev) + ki * e * dt
@@ -181,6 +190,13 @@ def record(tb, slots: np.ndarray, cols: dict, last_t: np.ndarray, fresh: np.ndar
         tb.rec_n[ps[take]] = n + 1
         for si in ps[take][n + 1 >= CAP].tolist():
             _compress(tb, si)
+        # a loop not yet confidently identified is assessed during an event too, at
+        # samples 16, 32, 64... after the move (the response so far: a model can be
+        # confident at the move it comes from, not only at the next one)
+        due = (k >= CHECK_FIRST) & ((k & (k - 1)) == 0)
+        for si, ti in zip(ps[due].tolist(), t[plain[due]].tolist(), strict=True):
+            if closely(tb, si):
+                _close(tb, si, ti, wall)
     tb.prev_t[s], tb.prev_sp[s], tb.prev_pv[s], tb.prev_op[s] = t, sp, pv, op
     tb.prev_ok[s] = ~broken
 
@@ -235,8 +251,7 @@ def _close(tb, s: int, t: float, wall: float, *, final: bool = False, why: str =
     n = int(tb.rec_n[s])
     data = tb.recorder.data[tb.rec[s], :, :n]
     starts = [a for a in st.starts if a < n]
-    settled = st.in_force is not None and st.model is not None and st.model.confident
-    if settled and not final and not tb.mismatch[s] and not tb.out_env[s]:
+    if st.in_force is not None and not final and not closely(tb, s):
         st.skipped += 1  # a model in force the last assessment confirmed: check less often
         if st.skipped < CHECK_EVERY:
             return _trim(tb, s, n)
@@ -258,6 +273,21 @@ def _close(tb, s: int, t: float, wall: float, *, final: bool = False, why: str =
         tb.rec[s] = -1
         st.starts = []
     _trim(tb, s, n)
+
+
+def closely(tb, s: int) -> bool:
+    """Whether a loop is assessed at every chance (each event close and during events)
+    rather than at every :data:`CHECK_EVERY` th close: no confident model yet, flagged,
+    paused, or the latest model drifted from the one in force by more than
+    :data:`DRIFT` in K or tau (a plant on the move is caught before it leaves the box)."""
+    st: IdState = tb.ident[s]
+    m, known = st.model, st.in_force
+    if m is None or not m.confident or tb.mismatch[s] or tb.out_env[s]:
+        return True
+    if known is None:
+        return False
+    off = max(abs(math.log(m.k / known.k)), abs(math.log(m.tau / known.tau)))
+    return off > math.log(DRIFT)
 
 
 def _trim(tb, s: int, n: int) -> None:
