@@ -23,15 +23,15 @@ message dropped unread (the inbox full: ``overload``; over
 :data:`~service.wire.protocol.MAX_MESSAGE_BYTES`: ``too_large``) counts as one received
 and one rejected sample whatever it held: not reading it is the point of dropping it.
 
+Upkeep between messages (snapshots, the journal, retention):
+:class:`service.daemon.upkeep.Upkeep`.
+
 Publishing never holds the worker: committed gains go to a :class:`Lane` per
 destination (one for the per-loop keys, one per gateway), each with its own thread
 doing the blocking put, in order; past LANE_BOUND waiting messages a lane keeps only
 the newest of each loop (gains are absolute and gateways drop older seqs), so it stays
 bounded, and a stuck gateway delays only its own lane.
 
-Retention: in idle time (or, when a pass is a whole interval late, on a busy worker
-too) the worker prunes the audit history by the settings'
-``history_*`` policy (:meth:`Store.prune`), PRUNE_CHUNK loops per iteration.
 """
 
 from __future__ import annotations
@@ -61,6 +61,7 @@ from service.daemon.recent import Recent
 from service.daemon.settings import Settings
 from service.daemon.store import Store
 from service.daemon.store_pg import Fenced
+from service.daemon.upkeep import Upkeep
 from service.engine.engine import TuningEngine
 from service.engine.updates import StepResult
 from service.wire.decode import Rejection, decode_batch, decode_singles
@@ -72,21 +73,13 @@ from service.wire.protocol import (
 
 log = logging.getLogger("pitune.tuner")
 _STOP = (None, "", None)
-SNAPSHOT_CHUNK = 1000
-"""Loops snapshotted per worker iteration by the periodic snapshot."""
 FLUSH_AFTER_S = 0.002
 """Longest a due loop waits for more due loops to join its batch while a backlog drains."""
-JOURNAL_CHUNK = 1000
-"""Journal rows applied to the store's tables per idle worker iteration (~5 ms)."""
-JOURNAL_BACKLOG = 100_000
-"""Journal rows pending above which they are applied even while messages wait."""
 COMMIT_RETRY_S = 1.0
 """Seconds between attempts to commit while the store fails."""
 EXIT_STORE_FAILED = 74
 """Exit status after ``store_failure_exit_s`` of failing commits (EX_IOERR)."""
 _RANGE_ERRORS = {"less_than_equal", "greater_than_equal", "less_than", "greater_than"}
-PRUNE_CHUNK = 200
-"""Loop ids whose audit history is pruned per idle worker iteration."""
 IDENTIFICATION_OUTCOMES = frozenset(
     {"identified", "rescaled", "mismatch", "out_of_envelope", "in_envelope", "identify"}
 )
@@ -133,7 +126,7 @@ def _group_singles(items: list[Item]):
         yield Kind.sample, "", run
 
 
-class Tuner(StateQueries, Ownership, LoopAdmin):
+class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep):
     def __init__(self, settings: Settings, agent: Agent | None = None) -> None:
         self.settings = settings
         self.clock = Clock(settings.clock_speed)
@@ -301,36 +294,6 @@ class Tuner(StateQueries, Ownership, LoopAdmin):
         """The worker runs and the bus is ready (``/readyz``)."""
         return self.alive and self.bus_ready
 
-    def snapshot(self) -> None:
-        """Snapshot every loop now (shutdown, tests)."""
-        self._write_snapshot(None)
-        self._snapshot_todo = []
-
-    def _snapshot_some(self) -> None:
-        """The periodic snapshot, SNAPSHOT_CHUNK loops per worker iteration, so that
-        snapshotting a large site never stalls the samples for long."""
-        chunk, self._snapshot_todo = (
-            self._snapshot_todo[:SNAPSHOT_CHUNK],
-            self._snapshot_todo[SNAPSHOT_CHUNK:],
-        )
-        self._write_snapshot(chunk)
-        if not self._snapshot_todo:
-            freeze_survivors()
-
-    def _write_snapshot(self, loop_ids: list[str] | None) -> None:
-        # Written under the table lock (a few ms per chunk): a delete between reading the
-        # rows and writing them would fail the whole chunk on the foreign key, and a
-        # delete and a new registration of the id would give the new loop the old state.
-        with self.table.lock:
-            rows = self.table.snapshot(loop_ids)
-            if self.cluster is None:
-                self.store.snapshot(rows)
-                return
-            try:
-                self.store.snapshot(rows, self._fence(r[0] for r in rows))
-            except Fenced as exc:  # the leases lost: the loops' state is not ours to save
-                log.warning("snapshot fenced: %s", exc)
-
     # -- worker -----------------------------------------------------------------------
     def _run(self) -> None:
         # Thread counts of OpenMP and MKL (torch's tanh/sigmoid go through MKL VML) are
@@ -379,38 +342,6 @@ class Tuner(StateQueries, Ownership, LoopAdmin):
                 log.exception("worker iteration failed; continuing")
             if stop:
                 return
-
-    def _prune_overdue(self) -> bool:
-        """A pass a whole interval late runs on a busy worker too, a chunk per iteration:
-        a tuner that is never idle must still keep the history within its budget."""
-        interval = getattr(self.settings, "history_prune_interval_s", 3600.0)
-        return self.clock.monotonic() >= self._next_prune + interval
-
-    def _retain(self) -> None:
-        """The retention policy, PRUNE_CHUNK loop ids per idle worker iteration, a pass
-        every ``history_prune_interval_s`` (see :meth:`Store.prune`)."""
-        st = self.settings
-        if not self._prune_todo:
-            now = self.clock.monotonic()
-            if now < self._next_prune:
-                return
-            self._next_prune = now + getattr(st, "history_prune_interval_s", 3600.0)
-            self._prune_todo = self.store.audit_ids()
-        chunk, self._prune_todo = self._prune_todo[:PRUNE_CHUNK], self._prune_todo[PRUNE_CHUNK:]
-        max_age_days = getattr(st, "history_max_age_days", None)
-        self.pruned += self.store.prune(
-            chunk,
-            older_than=None if max_age_days is None else self.clock.wall() - max_age_days * 86400.0,
-            keep_rows=getattr(st, "history_max_rows_per_loop", None),
-            keep_rows_deleted=getattr(st, "history_max_rows_deleted", None),
-            archive=getattr(st, "history_archive", None),
-        )
-
-    def _apply_journal(self) -> None:
-        """A chunk of the journal into the store's tables, when no message waits (or the
-        backlog grew large): off the path from a sample to its gains message."""
-        if self.inbox.empty() or self.store.journal_rows > JOURNAL_BACKLOG:
-            self.store.apply_journal(JOURNAL_CHUNK)
 
     def _handle(self, items: list[Item]) -> None:
         self.metrics.queue_depth.set(self.inbox.qsize())

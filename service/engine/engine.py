@@ -39,8 +39,9 @@ from service.agent.model import Agent, load_agent
 from service.engine import monitor, rules, stepping, verify, views, watch
 from service.engine.audit import AuditRow
 from service.engine.config import LoopConfig, LoopView
-from service.engine.table import LoopTable, RawView
+from service.engine.table import LoopTable
 from service.engine.updates import GainUpdate, StepResult
+from service.engine.views import RawView
 from service.wire.decode import Columns, Decoded, Rejection, decode_values
 from service.wire.protocol import LoopStatus, Mode, RejectReason
 

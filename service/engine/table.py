@@ -18,7 +18,6 @@ import math
 import sys
 import threading
 from collections.abc import Iterable
-from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
@@ -29,12 +28,9 @@ from service.agent.model import Agent
 from service.engine import monitor, verify, views, watch
 from service.engine.audit import AuditRow, audit_row
 from service.engine.config import (
-    Counters,
-    Identification,
+    Configs,
     LoopConfig,
     LoopView,
-    Proposal,
-    Verification,
     resolve_bounds,
 )  # fmt: skip
 from service.engine.modes import _CODE, _MODES, AUTO, FROZEN, SHADOW
@@ -86,75 +82,6 @@ _BOOL = [
     # identification: it runs, a scaling is in force, flagged, paused, last sample usable
     "watch", "scaled", "mismatch", "out_env", "prev_ok", "env_guard",
 ]  # fmt: skip
-
-
-class Configs:
-    """Loop configs by id, held as compact JSON without the fields at their defaults (a
-    parsed :class:`LoopConfig` costs ~2.4 KB per loop; its full JSON ~0.5 KB, this ~0.25
-    KB). Reading one parses it: only the admin API does."""
-
-    def __init__(self) -> None:
-        self._json: dict[str, bytes] = {}
-
-    def __getitem__(self, loop_id: str) -> LoopConfig:
-        return LoopConfig.model_validate_json(self._json[loop_id])
-
-    def raw(self, loop_id: str) -> bytes:
-        """The config's JSON, unparsed (to parse it outside the table's lock)."""
-        return self._json[loop_id]
-
-    def __setitem__(self, loop_id: str, config: LoopConfig) -> None:
-        self._json[loop_id] = config.model_dump_json(exclude_defaults=True).encode()
-
-    def __delitem__(self, loop_id: str) -> None:
-        del self._json[loop_id]
-
-    def __contains__(self, loop_id: object) -> bool:
-        return loop_id in self._json
-
-    def __len__(self) -> int:
-        return len(self._json)
-
-
-@dataclass
-class RawView:
-    """A loop's view with its config still JSON: see :meth:`LoopTable.raw_view`."""
-
-    config: bytes
-    kp: float
-    ki: float
-    status: LoopStatus
-    seq: int
-    last_sample_t: float | None
-    int_e: float
-    hidden_norm: float
-    counters: Counters
-    scaling: Scaling | None = None
-    """The scaling in force (the hint's or the identified model's)."""
-    identification: Identification | None = None
-    verification: Verification | None = None
-    proposal: Proposal | None = None
-
-    def parse(self) -> LoopView:
-        config = LoopConfig.model_validate_json(self.config)
-        scaling = self.scaling
-        return LoopView(
-            config=config,
-            scaling=scaling,
-            rl_period_s=None if scaling is None else scaling.rl_period_s,
-            identification=self.identification,
-            mode=config.mode,
-            kp=self.kp,
-            ki=self.ki,
-            status=self.status,
-            seq=self.seq,
-            last_sample_t=self.last_sample_t,
-            int_e=self.int_e,
-            hidden_norm=self.hidden_norm,
-            counters=self.counters,
-            verification=self.verification,
-            proposal=self.proposal,
-        )
 
 
 class LoopTable:
@@ -544,35 +471,10 @@ class LoopTable:
     def view(self, loop_id: str, wall: float) -> LoopView:
         return self.raw_view(loop_id, wall).parse()
 
-    def raw_view(self, loop_id: str, wall: float) -> RawView:
+    def raw_view(self, loop_id: str, wall: float) -> views.RawView:
         """What :meth:`view` shows, copied but not parsed: the admin API parses it outside
         the lock (parsing 10,000 configs takes most of a second)."""
-        s = self.slot(loop_id)
-        return RawView(
-            self.configs.raw(loop_id),
-            float(self.kp[s]),
-            float(self.ki[s]),
-            self.status(s, wall),
-            int(self.seq[s]),
-            None if math.isnan(self.last_t[s]) else float(self.last_t[s]),
-            float(self.int_e[s]),
-            float(np.linalg.norm(self.hidden[s])),
-            Counters(
-                samples=int(self.n_samples[s]),
-                rejected=int(self.n_rejected[s]),
-                steps=int(self.n_steps[s]),
-                updates=int(self.n_updates[s]),
-                quiet=int(self.n_quiet[s]),
-                faults=int(self.n_faults[s]),
-                identified=int(self.n_identified[s]),
-                mismatches=int(self.n_mismatch[s]),
-                envelope_pauses=int(self.n_envelope[s]),
-            ),
-            scaling=self.ident[s].in_force_scaling,
-            identification=watch.view(self, s),
-            verification=views.verification(self, s),
-            proposal=views.proposal(self, s),
-        )
+        return views.raw_view(self, self.slot(loop_id), self.configs.raw(loop_id), wall)
 
     def status_counts(self, wall: float) -> dict[LoopStatus, int]:
         """How many loops are in each :meth:`status`."""

@@ -1,14 +1,17 @@
-"""Views of the monitor's and verification's arrays as the API shows them
+"""Views of a loop's arrays as the API shows them: the whole loop (:class:`RawView`,
+its config still JSON), the monitor's and verification's figures
 (:mod:`service.engine.figures`); called with the table's lock held."""
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from service.engine import monitor, verify
+from service.engine import monitor, verify, watch
+from service.engine.config import Counters, Identification, LoopConfig, LoopView
 from service.engine.figures import (
     Performance,
     Proposal,
@@ -21,6 +24,78 @@ from service.engine.monitor import same_gains
 
 if TYPE_CHECKING:
     from service.engine.table import LoopTable
+    from service.units import Scaling
+    from service.wire.protocol import LoopStatus
+
+
+@dataclass
+class RawView:
+    """A loop's view with its config still JSON: see :meth:`LoopTable.raw_view`."""
+
+    config: bytes
+    kp: float
+    ki: float
+    status: LoopStatus
+    seq: int
+    last_sample_t: float | None
+    int_e: float
+    hidden_norm: float
+    counters: Counters
+    scaling: Scaling | None = None
+    """The scaling in force (the hint's or the identified model's)."""
+    identification: Identification | None = None
+    verification: Verification | None = None
+    proposal: Proposal | None = None
+
+    def parse(self) -> LoopView:
+        config = LoopConfig.model_validate_json(self.config)
+        scaling = self.scaling
+        return LoopView(
+            config=config,
+            scaling=scaling,
+            rl_period_s=None if scaling is None else scaling.rl_period_s,
+            identification=self.identification,
+            mode=config.mode,
+            kp=self.kp,
+            ki=self.ki,
+            status=self.status,
+            seq=self.seq,
+            last_sample_t=self.last_sample_t,
+            int_e=self.int_e,
+            hidden_norm=self.hidden_norm,
+            counters=self.counters,
+            verification=self.verification,
+            proposal=self.proposal,
+        )
+
+
+def raw_view(tb: LoopTable, s: int, config: bytes, wall: float) -> RawView:
+    """A loop's view with its config still JSON (``config``), copied from the table."""
+    return RawView(
+        config,
+        float(tb.kp[s]),
+        float(tb.ki[s]),
+        tb.status(s, wall),
+        int(tb.seq[s]),
+        None if math.isnan(tb.last_t[s]) else float(tb.last_t[s]),
+        float(tb.int_e[s]),
+        float(np.linalg.norm(tb.hidden[s])),
+        Counters(
+            samples=int(tb.n_samples[s]),
+            rejected=int(tb.n_rejected[s]),
+            steps=int(tb.n_steps[s]),
+            updates=int(tb.n_updates[s]),
+            quiet=int(tb.n_quiet[s]),
+            faults=int(tb.n_faults[s]),
+            identified=int(tb.n_identified[s]),
+            mismatches=int(tb.n_mismatch[s]),
+            envelope_pauses=int(tb.n_envelope[s]),
+        ),
+        scaling=tb.ident[s].in_force_scaling,
+        identification=watch.view(tb, s),
+        verification=verification(tb, s),
+        proposal=proposal(tb, s),
+    )
 
 
 def _num(x: float) -> float | None:

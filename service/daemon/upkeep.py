@@ -1,0 +1,91 @@
+"""The tuner worker's upkeep between messages: the periodic snapshot of every loop's
+state, the journal applied to the store's tables, and the retention policy.
+
+Retention: in idle time (or, when a pass is a whole interval late, on a busy worker
+too) the worker prunes the audit history by the settings'
+``history_*`` policy (:meth:`Store.prune`), PRUNE_CHUNK loops per iteration.
+"""
+
+from __future__ import annotations
+
+import logging
+
+from service.daemon.admin import freeze_survivors
+from service.daemon.store_pg import Fenced
+
+log = logging.getLogger("pitune.tuner")
+SNAPSHOT_CHUNK = 1000
+"""Loops snapshotted per worker iteration by the periodic snapshot."""
+JOURNAL_CHUNK = 1000
+"""Journal rows applied to the store's tables per idle worker iteration (~5 ms)."""
+JOURNAL_BACKLOG = 100_000
+"""Journal rows pending above which they are applied even while messages wait."""
+PRUNE_CHUNK = 200
+"""Loop ids whose audit history is pruned per idle worker iteration."""
+
+
+class Upkeep:
+    """Mixin of :class:`service.daemon.tuner.Tuner` (its worker calls these between
+    batches of messages)."""
+
+    def snapshot(self) -> None:
+        """Snapshot every loop now (shutdown, tests)."""
+        self._write_snapshot(None)
+        self._snapshot_todo = []
+
+    def _snapshot_some(self) -> None:
+        """The periodic snapshot, SNAPSHOT_CHUNK loops per worker iteration, so that
+        snapshotting a large site never stalls the samples for long."""
+        chunk, self._snapshot_todo = (
+            self._snapshot_todo[:SNAPSHOT_CHUNK],
+            self._snapshot_todo[SNAPSHOT_CHUNK:],
+        )
+        self._write_snapshot(chunk)
+        if not self._snapshot_todo:
+            freeze_survivors()
+
+    def _write_snapshot(self, loop_ids: list[str] | None) -> None:
+        # Written under the table lock (a few ms per chunk): a delete between reading the
+        # rows and writing them would fail the whole chunk on the foreign key, and a
+        # delete and a new registration of the id would give the new loop the old state.
+        with self.table.lock:
+            rows = self.table.snapshot(loop_ids)
+            if self.cluster is None:
+                self.store.snapshot(rows)
+                return
+            try:
+                self.store.snapshot(rows, self._fence(r[0] for r in rows))
+            except Fenced as exc:  # the leases lost: the loops' state is not ours to save
+                log.warning("snapshot fenced: %s", exc)
+
+    def _prune_overdue(self) -> bool:
+        """A pass a whole interval late runs on a busy worker too, a chunk per iteration:
+        a tuner that is never idle must still keep the history within its budget."""
+        interval = getattr(self.settings, "history_prune_interval_s", 3600.0)
+        return self.clock.monotonic() >= self._next_prune + interval
+
+    def _retain(self) -> None:
+        """The retention policy, PRUNE_CHUNK loop ids per idle worker iteration, a pass
+        every ``history_prune_interval_s`` (see :meth:`Store.prune`)."""
+        st = self.settings
+        if not self._prune_todo:
+            now = self.clock.monotonic()
+            if now < self._next_prune:
+                return
+            self._next_prune = now + getattr(st, "history_prune_interval_s", 3600.0)
+            self._prune_todo = self.store.audit_ids()
+        chunk, self._prune_todo = self._prune_todo[:PRUNE_CHUNK], self._prune_todo[PRUNE_CHUNK:]
+        max_age_days = getattr(st, "history_max_age_days", None)
+        self.pruned += self.store.prune(
+            chunk,
+            older_than=None if max_age_days is None else self.clock.wall() - max_age_days * 86400.0,
+            keep_rows=getattr(st, "history_max_rows_per_loop", None),
+            keep_rows_deleted=getattr(st, "history_max_rows_deleted", None),
+            archive=getattr(st, "history_archive", None),
+        )
+
+    def _apply_journal(self) -> None:
+        """A chunk of the journal into the store's tables, when no message waits (or the
+        backlog grew large): off the path from a sample to its gains message."""
+        if self.inbox.empty() or self.store.journal_rows > JOURNAL_BACKLOG:
+            self.store.apply_journal(JOURNAL_CHUNK)
