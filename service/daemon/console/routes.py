@@ -1,4 +1,6 @@
-"""The operator console's routes: pages, their JSON, the live stream, login and actions.
+"""The operator console's routes: pages, the overview's and the tuner page's JSON, login,
+static assets; a loop's live data (:mod:`.stream`) and the actions (:mod:`.actions`) are
+included under the same ``/ui`` prefix.
 
 Reads are open like the REST GETs. Every action needs a console session
 (:mod:`service.daemon.console.sessions`: cookie, CSRF token, same origin).
@@ -12,11 +14,9 @@ outside it; a loop's page reads the REST views and the ring of recent samples
 from __future__ import annotations
 
 import asyncio
-import inspect
 import json
 import logging
 import math
-import re
 import secrets
 import string
 import time
@@ -32,17 +32,16 @@ from fastapi.responses import (
     JSONResponse,
     RedirectResponse,
     Response,
-    StreamingResponse,
 )
 
+from service.daemon.console import actions, stream
 from service.daemon.console.assets import asset
+from service.daemon.console.context import MODES, STATUS_NAMES, finite, recent_of, tuner_of
 from service.daemon.console.sessions import (
     ACTOR_NAME,
     COOKIE,
     LOGIN_PENALTY_S,
     SESSION_IDLE_S,
-    Session,
-    acting,
     app_state,
     safe_next,
     same_origin,
@@ -53,7 +52,6 @@ from service.daemon.console.sessions import (
 from service.daemon.console.tuner_view import Rates, tuner_figures
 from service.daemon.recent import REASONS
 from service.engine import verify
-from service.engine.config import LoopPatch
 from service.engine.table import STATUSES
 from service.wire.protocol import Mode
 
@@ -61,14 +59,6 @@ log = logging.getLogger("pitune.console")
 router = APIRouter(prefix="/ui", include_in_schema=False)
 
 PAGE_MAX = 500
-STREAM_TICK_S = 0.5
-"""How often a loop page's stream looks for new samples."""
-STREAM_MAX_S = 4.0
-"""A stream ends after this long (event ``bye``) and the page opens the next one where it
-left off: the server's graceful shutdown, which waits for open responses, is never held
-up longer than this by an open console."""
-_MODES = list(Mode)
-_STATUS_NAMES = [s.value for s in STATUSES]
 _SORTS = {
     "registered", "id", "status", "mode", "kp", "ki", "last_sample", "last_change",
     "samples", "steps", "updates", "rejected", "rms_e", "gateway",
@@ -76,17 +66,6 @@ _SORTS = {
 
 
 # -- helpers ----------------------------------------------------------------------------
-def _tuner(request: Request):
-    tuner = getattr(request.app.state, "tuner", None)
-    if tuner is None:
-        raise HTTPException(503, "the tuner is starting")
-    return tuner
-
-
-def _recent(tuner):
-    return getattr(tuner, "recent", None)
-
-
 @cache
 def _template(name: str) -> string.Template:
     text = resources.files(__package__).joinpath("templates", name).read_text("utf-8")
@@ -142,17 +121,6 @@ _NO_STORE = {
 }
 
 
-def _finite(x: float) -> float | None:
-    return None if x is None or not math.isfinite(x) else float(x)
-
-
-def _accepts(method, name: str) -> bool:
-    try:
-        return name in inspect.signature(method).parameters
-    except (TypeError, ValueError):
-        return False
-
-
 # -- pages ------------------------------------------------------------------------------
 @router.get("", response_class=HTMLResponse)
 @router.get("/", response_class=HTMLResponse)
@@ -162,7 +130,7 @@ def overview_page(request: Request) -> HTMLResponse:
 
 @router.get("/loops/{loop_id}", response_class=HTMLResponse)
 def loop_page(loop_id: str, request: Request) -> HTMLResponse:
-    tuner = _tuner(request)
+    tuner = tuner_of(request)
     if loop_id not in tuner.table.slot_of:
         return _page(request, "Unknown loop", "unknown.html", "", loop_id=loop_id)
     modes = " ".join(m.value for m in Mode)
@@ -266,11 +234,11 @@ def overview_data(
     """A page of loops, filtered (id or gateway containing ``q``, any case; statuses and
     modes comma-separated), sorted, with the counts per status of all loops."""
     started = time.perf_counter()
-    tuner = _tuner(request)
+    tuner = tuner_of(request)
     c = _columns(tuner)
     ids = c["ids"]
     n = len(ids)
-    recent = _recent(tuner)
+    recent = recent_of(tuner)
     summary = recent.summary(ids) if recent is not None and n else None
     keep = np.ones(n, bool)
     if q:
@@ -282,10 +250,10 @@ def overview_data(
             n,
         )
     if status:
-        codes = [_STATUS_NAMES.index(s) for s in status.split(",") if s in _STATUS_NAMES]
+        codes = [STATUS_NAMES.index(s) for s in status.split(",") if s in STATUS_NAMES]
         keep &= np.isin(c["status"], codes)
     if mode:
-        codes = [i for i, m in enumerate(_MODES) if m.value in mode.split(",")]
+        codes = [i for i, m in enumerate(MODES) if m.value in mode.split(",")]
         keep &= np.isin(c["mode"], codes)
     rows = np.flatnonzero(keep)
     sort = sort if sort in _SORTS else "registered"
@@ -302,7 +270,7 @@ def overview_data(
                 else np.zeros(rows.size)
             )
         elif sort == "status":
-            key = np.array(_STATUS_NAMES, dtype=object)[c["status"][rows]]
+            key = np.array(STATUS_NAMES, dtype=object)[c["status"][rows]]
         else:
             key = c[sort][rows]
             if key.dtype.kind == "f":
@@ -319,223 +287,54 @@ def overview_data(
             last_change = {
                 "wall": float(summary["last_wall"][i]),
                 "reason": REASONS[int(summary["reason"][i])],
-                "dkp": _finite(summary["dkp"][i]),
-                "dki": _finite(summary["dki"][i]),
+                "dkp": finite(summary["dkp"][i]),
+                "dki": finite(summary["dki"][i]),
             }
         items.append(
             {
                 "id": ids[i],
-                "status": _STATUS_NAMES[int(c["status"][i])],
-                "mode": _MODES[int(c["mode"][i])].value,
+                "status": STATUS_NAMES[int(c["status"][i])],
+                "mode": MODES[int(c["mode"][i])].value,
                 "kp": float(c["kp"][i]),
                 "ki": float(c["ki"][i]),
                 "seq": int(c["seq"][i]),
                 "gateway": c["gateway"][i] or None,
-                "last_sample_t": _finite(c["last_sample"][i]),
-                "last_sample_age_s": _finite(c["wall"] - c["last_wall"][i])
+                "last_sample_t": finite(c["last_sample"][i]),
+                "last_sample_age_s": finite(c["wall"] - c["last_wall"][i])
                 if c["samples"][i]
                 else None,
                 "last_change": last_change,
-                "rms_e": _finite(summary["rms_e"][i]) if summary is not None else None,
+                "rms_e": finite(summary["rms_e"][i]) if summary is not None else None,
                 "verification": {
                     "pending": bool(c["pending"][i]),
                     "oscillating": bool(c["oscillating"][i]),
-                    "iae": _finite(c["iae"][i]),
+                    "iae": finite(c["iae"][i]),
                 },
                 "counters": {
                     k: int(c[k][i]) for k in ("samples", "steps", "updates", "rejected", "quiet")
                 },
             }
         )
-    counts = np.bincount(c["status"], minlength=len(_STATUS_NAMES)) if n else [0] * len(STATUSES)
-    mode_counts = np.bincount(c["mode"], minlength=len(_MODES)) if n else [0] * len(_MODES)
+    counts = np.bincount(c["status"], minlength=len(STATUS_NAMES)) if n else [0] * len(STATUSES)
+    mode_counts = np.bincount(c["mode"], minlength=len(MODES)) if n else [0] * len(MODES)
     body = {
         "items": items,
         "total": n,
         "matched": int(rows.size),
         "offset": offset,
         "limit": limit,
-        "statuses": {s: int(k) for s, k in zip(_STATUS_NAMES, counts, strict=True)},
-        "modes": {m.value: int(k) for m, k in zip(_MODES, mode_counts, strict=True)},
+        "statuses": {s: int(k) for s, k in zip(STATUS_NAMES, counts, strict=True)},
+        "modes": {m.value: int(k) for m, k in zip(MODES, mode_counts, strict=True)},
         "trends": recent is not None,
         "server_ms": round((time.perf_counter() - started) * 1000, 1),
     }
     return JSONResponse(body, headers={"Cache-Control": "no-store"})
 
 
-# -- a loop -----------------------------------------------------------------------------
-def _known(tuner, loop_id: str) -> None:
-    if loop_id not in tuner.table.slot_of:
-        raise HTTPException(404, f"unknown loop {loop_id!r}")
-
-
-def _live(tuner, loop_id: str) -> dict | None:
-    """The loop's fast-changing figures (no config parsing), None if it is gone."""
-    tb = tuner.table
-    wall = time.time()
-    with tuner.engine.lock:
-        s = tb.slot_of.get(loop_id)
-        if s is None:
-            return None
-        return {
-            "status": _STATUS_NAMES[int(tb.statuses(np.array([s]), wall)[0])],
-            "mode": _MODES[int(tb.mode[s])].value,
-            "kp": float(tb.kp[s]),
-            "ki": float(tb.ki[s]),
-            "seq": int(tb.seq[s]),
-            "last_sample_t": _finite(tb.last_t[s]),
-            "samples": int(tb.n_samples[s]),
-            "steps": int(tb.n_steps[s]),
-            "updates": int(tb.n_updates[s]),
-            "rejected": int(tb.n_rejected[s]),
-            "quiet": int(tb.n_quiet[s]),
-        }
-
-
-@router.get("/api/loops/{loop_id}/recent")
-def loop_recent(loop_id: str, request: Request, n: int = 0, gn: int = 0) -> JSONResponse:
-    """The loop's recent samples and gains from the ring (after ``n`` / ``gn``)."""
-    tuner = _tuner(request)
-    _known(tuner, loop_id)
-    recent = _recent(tuner)
-    data = recent.since(loop_id, n, gn) if recent is not None else None
-    return JSONResponse({"recent": data, "live": _live(tuner, loop_id)})
-
-
-def _tick(tuner, loop_id: str, n: int, gn: int) -> dict | None:
-    live = _live(tuner, loop_id)
-    if live is None:
-        return None
-    recent = _recent(tuner)
-    data = recent.since(loop_id, n, gn) if recent is not None else None
-    return {"live": live, "recent": data}
-
-
-@router.get("/api/loops/{loop_id}/stream")
-async def loop_stream(loop_id: str, request: Request, n: int = 0, gn: int = 0):
-    """Server-sent events: the loop's new samples and gains, and its live figures, at
-    most every STREAM_TICK_S while something changed (a comment every 15 s otherwise)."""
-    tuner = _tuner(request)
-    _known(tuner, loop_id)
-    last_id = request.headers.get("last-event-id", "")
-    if re.fullmatch(r"\d+\.\d+", last_id):  # a reconnect: go on where it left off
-        n, gn = (int(x) for x in last_id.split("."))
-
-    async def events():
-        nonlocal n, gn
-        end = time.monotonic() + STREAM_MAX_S
-        quiet_since = time.monotonic()
-        previous = None
-        yield "retry: 2000\n\n"
-        while True:
-            if time.monotonic() >= end or not tuner.alive:
-                yield f"id: {n}.{gn}\nevent: bye\ndata: {{}}\n\n"
-                return
-            if await request.is_disconnected():
-                return
-            data = await asyncio.to_thread(_tick, tuner, loop_id, n, gn)
-            if data is None:
-                yield "event: gone\ndata: {}\n\n"
-                return
-            rec = data["recent"]
-            fresh = rec is not None and (rec["n"] != n or rec["gn"] != gn)
-            if fresh or data["live"] != previous:
-                if rec is not None:
-                    n, gn = rec["n"], rec["gn"]
-                previous = data["live"]
-                quiet_since = time.monotonic()
-                yield f"id: {n}.{gn}\ndata: {json.dumps(data, allow_nan=False)}\n\n"
-            elif time.monotonic() - quiet_since > 15.0:
-                quiet_since = time.monotonic()
-                yield ": keep-alive\n\n"
-            await asyncio.sleep(STREAM_TICK_S)
-
-    headers = {"Cache-Control": "no-store", "X-Accel-Buffering": "no"}
-    return StreamingResponse(events(), media_type="text/event-stream", headers=headers)
-
-
-# -- actions ----------------------------------------------------------------------------
-def _log_action(tuner, request: Request, session: Session, what: str, loop_id: str) -> None:
-    client = request.client.host if request.client else "?"
-    tuner.metrics.events.limiter.log(
-        logging.INFO, "console", "loop %r %s by %s via the console from %s",
-        loop_id, what, session.actor, client,
-    )  # fmt: skip
-
-
-def _jsonable(view) -> dict:
-    return json.loads(view.model_dump_json())
-
-
-@router.post("/api/loops/{loop_id}/patch")
-async def patch_loop(loop_id: str, request: Request) -> JSONResponse:
-    """PATCH /loops/{id} for a logged-in console (mode, guard limits, ...)."""
-    session = acting(request)
-    tuner = _tuner(request)
-    try:
-        patch = LoopPatch.model_validate_json(await request.body())
-    except ValueError as exc:
-        errors = getattr(exc, "errors", lambda: [])()
-        msg = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in errors)
-        raise HTTPException(422, msg or str(exc)) from None
-    kwargs = {"actor": session.actor} if _accepts(tuner.patch, "actor") else {}
-    try:
-        view = await asyncio.to_thread(tuner.patch, loop_id, patch, **kwargs)
-    except ValueError as exc:
-        raise HTTPException(422, str(exc)) from None
-    except LookupError:
-        raise HTTPException(404, f"unknown loop {loop_id!r}") from None
-    _log_action(tuner, request, session, f"patched {patch.model_dump_json(exclude_unset=True)}",
-                loop_id)  # fmt: skip
-    return JSONResponse(_jsonable(view))
-
-
-@router.post("/api/loops/{loop_id}/reset")
-async def reset_loop(loop_id: str, request: Request) -> JSONResponse:
-    return await _act(request, loop_id, "reset", lambda tuner: tuner.reset)
-
-
-@router.post("/api/loops/{loop_id}/rollback")
-async def rollback_loop(loop_id: str, request: Request) -> JSONResponse:
-    """Back to the last-good gains (auto: published; advisory: proposed)."""
-    return await _act(request, loop_id, "rolled back", lambda tuner: tuner.rollback)
-
-
-@router.post("/api/loops/{loop_id}/proposals/{seq}/{decision}")
-async def decide_proposal(loop_id: str, seq: int, decision: str, request: Request) -> JSONResponse:
-    """Approve (``accept``) or ``reject`` an advisory loop's pending proposal ``seq``."""
-    if decision not in ("accept", "reject"):
-        raise HTTPException(404, "accept or reject")
-
-    def method(tuner):
-        decide = tuner.accept if decision == "accept" else tuner.reject
-        return lambda loop_id, **kw: decide(loop_id, seq, **kw)
-
-    return await _act(request, loop_id, f"proposal {seq} {decision}ed", method)
-
-
-async def _act(request: Request, loop_id: str, what: str, method) -> JSONResponse:
-    """Run one of the tuner's actions for a logged-in console, as its actor: 404 unknown
-    loop, 409 a conflict (nothing to roll back, a stale proposal), 503 store failing."""
-    session = acting(request)
-    tuner = _tuner(request)
-    try:
-        view = await asyncio.to_thread(method(tuner), loop_id, actor=session.actor)
-    except LookupError:
-        raise HTTPException(404, f"unknown loop {loop_id!r}") from None
-    except Exception as exc:  # StoreUnavailable, Conflict: by name (no import cycle)
-        status = {"StoreUnavailable": 503, "Conflict": 409}.get(type(exc).__name__)
-        if status is not None:
-            raise HTTPException(status, str(exc)) from None
-        raise
-    _log_action(tuner, request, session, what, loop_id)
-    return JSONResponse(_jsonable(view))
-
-
 # -- the tuner --------------------------------------------------------------------------
 @router.get("/api/tuner")
 def tuner_data(request: Request) -> JSONResponse:
-    tuner = _tuner(request)
+    tuner = tuner_of(request)
     figures = tuner_figures(tuner)
     with tuner.engine.lock:
         wall = time.time()
@@ -568,3 +367,8 @@ def static(path: str) -> Response:
     data, kind = found
     headers = {"Cache-Control": "public, max-age=3600", "X-Content-Type-Options": "nosniff"}
     return Response(data, media_type=kind, headers=headers)
+
+
+# a loop's live data and the console's actions, under the same /ui prefix
+router.include_router(stream.router)
+router.include_router(actions.router)
