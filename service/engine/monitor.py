@@ -312,6 +312,12 @@ def _oscillation(tb, slots, t, e, prev_e, dt, jumped) -> np.ndarray:
         tb.o_sign[j], tb.o_n[j], tb.o_osc[j], tb.o_tc[j] = 0.0, 0, False, math.nan
     cur = tb.o_sign[slots]
     start = (sign != 0) & (cur == 0)
+    # a partial lobe (after a move or a gap) that came back into the band leaves it again
+    # on the same side: a whole lobe from here (else the first lobe of an oscillation
+    # that grows out of a move's slow tail would be lost as partial)
+    start |= (
+        (sign == cur) & (sign != 0) & np.isnan(tb.o_tc[slots]) & ~jumped & (np.abs(prev_e) <= h)
+    )
     crossed = (sign != 0) & (cur != 0) & (sign != cur)
     outside = sign != 0
     tb.o_seen[slots[outside]] = t[outside]
@@ -353,6 +359,9 @@ def _oscillation(tb, slots, t, e, prev_e, dt, jumped) -> np.ndarray:
     newer = half[:, :-1].mean(axis=1)
     lead = half[:, -1] > newer
     half[:, -1] = np.minimum(half[:, -1], newer)
+    # lobes that grow one after the other: an unstable loop, whose oldest lobe may still
+    # be half inside the band
+    growing = (lobe[:, 0] > lobe[:, 1]) & (lobe[:, 1] > lobe[:, 2])
     spread = half.std(axis=1)
     r = np.where(spread > 0, half.mean(axis=1) / (3.0 * np.maximum(spread, 1e-300)), 10.0)
     tb.o_index[full] = np.minimum(r, 10.0)
@@ -364,7 +373,7 @@ def _oscillation(tb, slots, t, e, prev_e, dt, jumped) -> np.ndarray:
         # above half of it
         & (lobe[:, 0] >= h_full)
         & (lobe[:, 1] >= 0.5 * h_full)
-        & (lead | (lobe[:, 2] >= 0.5 * h_full))
+        & (lead | (lobe[:, 2] >= 0.5 * h_full) | growing)
         & (lobe[:, 0] >= OSC_DECAY * lobe[:, 2])
     )
     new = full[osc & ~tb.o_osc[full]]

@@ -120,6 +120,9 @@ class LoopTable:
         self._verify_dirty: set[int] = set()
         """Loops whose verification state moved: to snapshot before publishing."""
         self._audit: list[AuditRow] = []
+        self.monitoring = True
+        """False: no figures, no oscillation detector, hence no verdicts (benchmarks only:
+        the setting ``monitoring`` measures what they cost)."""
         self.to_judge: list[tuple[np.ndarray, np.ndarray]] = []
         """(responses completed, oscillations started) awaiting :func:`verify.judge`."""
         self.ident: list[watch.IdState | None] = []
@@ -240,7 +243,9 @@ class LoopTable:
             return
         self.kp_unit[s], self.ki_unit[s] = sc.kp_per_agent, sc.ki_per_agent
         self.e_scale[s], self.u_scale[s], self.time_unit[s] = (
-            sc.e_scale, sc.u_scale, sc.time_unit_s
+            sc.e_scale,
+            sc.u_scale,
+            sc.time_unit_s,
         )
         self.int_scale[s] = sc.int_scale
         self.period[s] = sc.rl_period_s
