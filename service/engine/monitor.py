@@ -27,8 +27,8 @@ accepted samples (distinct loops, aligned arrays) and keeps three things per loo
   :data:`OSC_LOBES` half-periods (between crossings of a hysteresis band of 3 noise
   sigmas) are regular, the newest has a mean |e| above the band (the older ones above half
   of it: a growing oscillation's first lobes are still rising out of the noise), and the
-  amplitude does not decay by more than :data:`OSC_DECAY` per period. Three rules make
-  the verdict come early, 1.5 periods after the oscillation leaves the band (measured:
+  amplitude does not decay by more than :data:`OSC_DECAY` per period. Five rules make
+  the verdict come early, 1.4 periods after the oscillation leaves the band (measured:
   ``pitune verify-eval``, docs/tuner.md):
 
   - a lobe that leaves the band from inside it is whole (the half-period from that exit
@@ -40,7 +40,11 @@ accepted samples (distinct loops, aligned arrays) and keeps three things per loo
     the time before, is not held against the band (the decay test still uses it);
   - the noise estimate is not frozen during its first :data:`NOISE_WARM` samples and the
     detector does not judge before (at startup the band is its floor, noise alone crosses
-    it, and the lobes it makes would freeze the estimate low).
+    it, and the lobes it makes would freeze the estimate low);
+  - a move's partial lobe that came back into the band and leaves it again on the same
+    side is whole from there (an oscillation growing out of the move's tail);
+  - lobes that grow one after the other (an unstable loop) need no oldest lobe above
+    half the band.
 
 Units: times in plant seconds, errors in engineering units unless stated; arrays (n,)
 indexed by slot unless stated.

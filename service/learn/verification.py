@@ -147,14 +147,21 @@ def oscillation_period(K, tau, theta, gains: np.ndarray, span: float) -> np.ndar
 
 
 def run_scenario(
-    sc: dict, *, noise: float, mode: str = "auto", seed: int = 0, margin: float = MARGIN
+    sc: dict,
+    *,
+    noise: float,
+    mode: str = "auto",
+    seed: int = 0,
+    margin: float = MARGIN,
+    monitoring: bool = True,
 ) -> dict:
     """Drive the engine through one scenario; returns the verdict of each loop's change
-    ('verified', 'rolled_back', 'rollback_proposed', 'pending') and when it came."""
+    ('verified', 'rolled_back', 'rollback_proposed', 'pending') and when it came
+    (``monitoring``: the engine's switch, see :class:`TuningEngine`)."""
     K, tau, theta, old, new = sc["K"], sc["tau"], sc["theta"], sc["old"], sc["new"]
     n = K.size
     rng = np.random.default_rng(seed)
-    engine = TuningEngine(StillAgent())
+    engine = TuningEngine(StillAgent(), monitoring=monitoring)
     ids = [f"L{i}" for i in range(n)]
     for i in range(n):
         engine.register(LoopConfig(
@@ -250,7 +257,7 @@ def _verdicts(engine: TuningEngine, ids: list[str], since, unit: np.ndarray, fir
 
 
 def _timing(after: list[float]) -> dict:
-    done = [a for a in after if math.isfinite(a)]
+    done = [float(a) for a in after if math.isfinite(a)]
     return {
         "verdict_after_periods_max": max(done) if done else None,
         "verdict_after_periods_median": float(np.median(done)) if done else None,
