@@ -71,3 +71,25 @@ def test_aligned_per_loop_variant(tmp_path):
     # all 8 loops fall due in the same sample: every step is one batch of 8
     assert result["updates"]["gains_in_window"] % 8 == 0
     assert result["inference"] is None
+
+
+def test_monitor_ab_pairs_runs_with_the_monitoring_on_and_off(tmp_path, capsys):
+    parser = argparse.ArgumentParser()
+    load.add_arguments(parser)
+    args = parser.parse_args(
+        [
+            "--loops", "20", "--rate", "10", "--duration", "2", "--warmup", "0.5",
+            "--tau", "0.3", "0.5", "--memory-probe", "0", "--agent-weights", "untrained",
+            "--monitor-ab", "1", "--out", str(tmp_path),
+        ]
+    )  # fmt: skip
+    assert load.run(args) == 0
+    (path,) = tmp_path.glob("*-20-monitor-ab.json")
+    result = json.loads(path.read_text())
+    runs = result["runs"]
+    assert [r["monitoring"] for r in runs] == [True, False]
+    assert all(r["cpu_us_per_sample"] > 0 and r["lost"] == 0 for r in runs)
+    added = 100.0 * (runs[0]["cpu_us_per_sample"] / runs[1]["cpu_us_per_sample"] - 1.0)
+    assert result["added_cpu_pct"]["median"] == pytest.approx(added)
+    assert result["bar"]["met"] == (added < 20.0)
+    assert "monitoring adds" in capsys.readouterr().out

@@ -199,19 +199,64 @@ def test_response_history_keeps_unix_plant_times_through_a_restart(rng):
     assert [h.t for h in other.performance("U").history] == pytest.approx(ends, abs=1.0)
 
 
-def test_noise_and_ordinary_setpoint_responses_raise_no_oscillation_alarm(rng):
-    # from registration on (the detector's noise estimate warms up first), over 8
-    # setpoint responses of a well-damped loop in 2 % noise
+def _still_loop(loop_id: str) -> tuple[TuningEngine, object, int]:
+    """An engine (agent that never moves) with one hinted loop: engine, table, slot."""
     engine = TuningEngine(StillAgent())
     engine.register(LoopConfig(
-        id="N", kp=1.0, ki=0.05, sample_period_s=1.0,
+        id=loop_id, kp=1.0, ki=0.05, sample_period_s=1.0,
         scaling={"k_hat": 1.0, "tau_hat": 10.0, "pv_scale": 1.0},
         guard={"excitation_periods": 0.0},
     ), wall=0.0)  # fmt: skip
-    tb, s = engine.table, engine.table.slot("N")
+    return engine, engine.table, engine.table.slot(loop_id)
+
+
+def test_noise_and_ordinary_setpoint_responses_raise_no_oscillation_alarm(rng):
+    # from registration on (the detector's noise estimate warms up first), over 8
+    # setpoint responses of a well-damped loop in 2 % noise
+    engine, tb, s = _still_loop("N")
     flagged = 0
     for sample in _responses("N", 0.0, 8, rng):
         engine.ingest([sample], wall=0.0)
         flagged += bool(tb.o_osc[s])
     assert flagged == 0
     assert engine.performance("N").window.noise_sigma == pytest.approx(NOISE, rel=0.3)
+
+
+def _first_flag(errors: list[float]) -> int | None:
+    """Feed an e-only loop (noise-free, band at its 1 % floor) these errors, one a
+    second after 60 quiet samples (the noise estimate's warm-up); the index into
+    ``errors`` of the sample at which the detector first flags the loop."""
+    engine, tb, s = _still_loop("O")
+    for k, e in enumerate([0.0] * 60 + errors):
+        engine.ingest([{"loop_id": "O", "t": float(k), "e": e}], wall=0.0)
+        if tb.o_osc[s]:
+            return k - 60
+    return None
+
+
+def test_a_lobe_that_leaves_the_band_again_after_a_moves_tail_is_whole():
+    # a setpoint move (e jumps by 0.5), its tail back inside the band, then an
+    # oscillation of 5-sample half-periods that starts on the same side as the move
+    tail = [0.5, 0.4, 0.3, 0.2, 0.12, 0.06, 0.02, 0.005, 0.002, 0.002]
+    lobes = [0.03 * (-1) ** (k // 5) for k in range(40)]
+    # its first lobe counts: flagged at the third crossing after it (the first sample of
+    # the fourth lobe), not a half-period later
+    assert _first_flag(tail + lobes) == len(tail) + 15
+
+
+def test_lobes_that_grow_one_after_the_other_are_an_oscillation_from_the_third():
+    # regular 10-sample half-periods; the first barely leaves the band (mean |e| under
+    # half of it), the next two grow
+    first = [0.012] + [0.002] * 9
+    second = [-0.011] + [-0.02] * 9
+    third = [0.03] * 10
+    fourth = [-0.04] * 10
+    assert _first_flag(first + second + third + fourth) == 30
+
+
+def test_with_the_monitoring_off_nothing_is_measured_or_judged(rng):
+    # the benchmarks' switch (setting `monitoring`): the bad change stays in force
+    assert TuningEngine(StillAgent(), monitoring=False).table.monitoring is False
+    out = run_scenario(scenario("bad", 5, rng), noise=NOISE, monitoring=False)
+    assert out["verdict"] == ["pending"] * 5 and not any(out["flagged"])
+    assert run_scenario(scenario("bad", 5, rng), noise=NOISE)["verdict"] == ["rolled_back"] * 5

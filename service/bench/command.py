@@ -13,7 +13,7 @@ from pathlib import Path
 
 import httpx
 
-from service.bench import retention, scaleout
+from service.bench import monitor_ab, retention, scaleout
 from service.bench.config import BenchConfig
 from service.bench.fleet import Fleet
 from service.bench.load import drive
@@ -75,6 +75,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     a("--memory-probe", type=int, default=D.memory_probe,
       help="register this many loops first to measure RSS per loop (0: skip)")  # fmt: skip
+    a("--monitor-ab", type=int, default=D.monitor_ab, metavar="PAIRS",
+      help="measure the monitoring's CPU cost: PAIRS interleaved runs with it on and off "
+           "(daemon CPU seconds per accepted sample)")  # fmt: skip
     a("--pin", default=None, metavar="DAEMON:GEN",
       help="pin daemon and generator to CPU lists, e.g. 0:1")  # fmt: skip
     a("--seed", type=int, default=D.seed)
@@ -93,8 +96,11 @@ def bench_config(args: argparse.Namespace) -> BenchConfig:
     return BenchConfig(**{**values, "tau": tuple(values["tau"])})
 
 
-def start_daemon(config: BenchConfig, workdir: Path) -> TunerProcess:
-    """The tuner under test, on a fresh database, without an API token; ready."""
+def start_daemon(
+    config: BenchConfig, workdir: Path, env: dict[str, str] | None = None
+) -> TunerProcess:
+    """The tuner under test, on a fresh database, without an API token, with ``env``
+    added to its environment; ready."""
     log = config.daemon_log or workdir / "daemon.log"
     log.unlink(missing_ok=True)  # this run's log only
     extra = ("--agent-weights", config.agent_weights) if config.agent_weights else ()
@@ -104,7 +110,7 @@ def start_daemon(config: BenchConfig, workdir: Path) -> TunerProcess:
         "--inference-threads", str(config.inference_threads),
         "--inference-workers", str(config.inference_workers),
         "--inference-precision", config.inference_precision, *extra,
-        log=log, cpus=config.cpus(0),
+        log=log, cpus=config.cpus(0), env=env,
     )  # fmt: skip
     daemon.start(timeout=60.0)
     return daemon
@@ -121,6 +127,8 @@ def run(args: argparse.Namespace) -> int:
         print("pitune bench: --loops, --rate, --duration, --instances, --gateways must be "
               "positive", file=sys.stderr)  # fmt: skip
         return 2
+    if config.monitor_ab:
+        return monitor_ab.main(config, config.monitor_ab, start_daemon)
     machine = machine_info()
     inference = None
     if not config.no_inference_bench:

@@ -53,6 +53,9 @@ class BenchConfig:
     snapshot_interval: float = 30.0
     memory_probe: int = 1000
     """Register this many loops first to measure the RSS per loop (0: skip)."""
+    monitor_ab: int = 0
+    """On/off pairs of the monitoring's cost (:mod:`service.bench.monitor_ab`; 0: an
+    ordinary run)."""
     pin: str | None = None
     """``DAEMON:GEN`` CPU lists, e.g. ``0:1``."""
     seed: int = 0

@@ -249,6 +249,12 @@ class Settings(BaseSettings):
         "and passes) runs this many times faster than real time (pitune bench retention); "
         "1: real time.",
     )
+    monitoring: bool = Field(
+        True,
+        description="Benchmarks only: false turns every loop's performance figures, "
+        "oscillation detector and verdicts (verify-or-rollback) off, to measure what they "
+        "cost (pitune bench --monitor-ab); true in production.",
+    )
     queue_bytes: Annotated[int, Field(ge=1 << 20)] = Field(
         128 * 1024 * 1024,
         description="Payload bytes the input queue holds at most (beside queue_size messages); "

@@ -140,6 +140,7 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep):
             inference_workers=settings.inference_workers,
             inference_precision=settings.inference_precision,
             on_reject=self._on_reject,
+            monitoring=settings.monitoring,
         )
         self.table = self.engine.table
         self.recent = Recent(known=self.table.slot_of)

@@ -63,6 +63,7 @@ class TuningEngine:
         inference_precision: Precision | Literal["reference"] = "float32",
         on_reject: RejectHandler | None = None,
         verifying: bool = True,
+        monitoring: bool = True,
     ) -> None:
         self.agent = agent if agent is not None else load_agent()
         self.table = LoopTable(
@@ -72,6 +73,7 @@ class TuningEngine:
             inference_precision=inference_precision,
         )
         self.lock = self.table.lock
+        self.table.monitoring = monitoring
         self.on_reject = on_reject
         self.rejected: collections.Counter[RejectReason] = collections.Counter()
         """Samples rejected so far, by reason."""

@@ -27,8 +27,8 @@ accepted samples (distinct loops, aligned arrays) and keeps three things per loo
   :data:`OSC_LOBES` half-periods (between crossings of a hysteresis band of 3 noise
   sigmas) are regular, the newest has a mean |e| above the band (the older ones above half
   of it: a growing oscillation's first lobes are still rising out of the noise), and the
-  amplitude does not decay by more than :data:`OSC_DECAY` per period. Three rules make
-  the verdict come early, 1.5 periods after the oscillation leaves the band (measured:
+  amplitude does not decay by more than :data:`OSC_DECAY` per period. Five rules make
+  the verdict come early, 1.4 periods after the oscillation leaves the band (measured:
   ``pitune verify-eval``, docs/tuner.md):
 
   - a lobe that leaves the band from inside it is whole (the half-period from that exit
@@ -40,7 +40,11 @@ accepted samples (distinct loops, aligned arrays) and keeps three things per loo
     the time before, is not held against the band (the decay test still uses it);
   - the noise estimate is not frozen during its first :data:`NOISE_WARM` samples and the
     detector does not judge before (at startup the band is its floor, noise alone crosses
-    it, and the lobes it makes would freeze the estimate low).
+    it, and the lobes it makes would freeze the estimate low);
+  - a move's partial lobe that came back into the band and leaves it again on the same
+    side is whole from there (an oscillation growing out of the move's tail);
+  - lobes that grow one after the other (an unstable loop) need no oldest lobe above
+    half the band.
 
 Units: times in plant seconds, errors in engineering units unless stated; arrays (n,)
 indexed by slot unless stated.
@@ -312,6 +316,12 @@ def _oscillation(tb, slots, t, e, prev_e, dt, jumped) -> np.ndarray:
         tb.o_sign[j], tb.o_n[j], tb.o_osc[j], tb.o_tc[j] = 0.0, 0, False, math.nan
     cur = tb.o_sign[slots]
     start = (sign != 0) & (cur == 0)
+    # a partial lobe (after a move or a gap) that came back into the band leaves it again
+    # on the same side: a whole lobe from here (else the first lobe of an oscillation
+    # that grows out of a move's slow tail would be lost as partial)
+    start |= (
+        (sign == cur) & (sign != 0) & np.isnan(tb.o_tc[slots]) & ~jumped & (np.abs(prev_e) <= h)
+    )
     crossed = (sign != 0) & (cur != 0) & (sign != cur)
     outside = sign != 0
     tb.o_seen[slots[outside]] = t[outside]
@@ -353,6 +363,9 @@ def _oscillation(tb, slots, t, e, prev_e, dt, jumped) -> np.ndarray:
     newer = half[:, :-1].mean(axis=1)
     lead = half[:, -1] > newer
     half[:, -1] = np.minimum(half[:, -1], newer)
+    # lobes that grow one after the other: an unstable loop, whose oldest lobe may still
+    # be half inside the band
+    growing = (lobe[:, 0] > lobe[:, 1]) & (lobe[:, 1] > lobe[:, 2])
     spread = half.std(axis=1)
     r = np.where(spread > 0, half.mean(axis=1) / (3.0 * np.maximum(spread, 1e-300)), 10.0)
     tb.o_index[full] = np.minimum(r, 10.0)
@@ -364,7 +377,7 @@ def _oscillation(tb, slots, t, e, prev_e, dt, jumped) -> np.ndarray:
         # above half of it
         & (lobe[:, 0] >= h_full)
         & (lobe[:, 1] >= 0.5 * h_full)
-        & (lead | (lobe[:, 2] >= 0.5 * h_full))
+        & (lead | (lobe[:, 2] >= 0.5 * h_full) | growing)
         & (lobe[:, 0] >= OSC_DECAY * lobe[:, 2])
     )
     new = full[osc & ~tb.o_osc[full]]

@@ -142,11 +142,12 @@ def ingest(
     tb.last_t[slots] = t
     fresh = np.isnan(last_t) | (t - last_t > tb.stale_gap[slots]) | resumed
     watch.record(tb, slots, cols, last_t, fresh, wall)
-    judged = monitor.observe(
-        tb, slots, t, e, tb.last_e[slots], last_t, moved, fresh, auto, saturated
-    )
-    if judged[0].size or judged[1].size:
-        tb.to_judge.append(judged)
+    if tb.monitoring:
+        judged = monitor.observe(
+            tb, slots, t, e, tb.last_e[slots], last_t, moved, fresh, auto, saturated
+        )
+        if judged[0].size or judged[1].size:
+            tb.to_judge.append(judged)
     period = tb.period[slots]
     next_due = np.where(fresh, t + period, tb.next_due[slots])
     step = np.where(fresh | paused, 0.0, 0.5 * (e + tb.last_e[slots]) * (t - last_t))

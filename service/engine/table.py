@@ -50,6 +50,9 @@ _F64 = (
     "kp", "ki", "reg_kp", "reg_ki", "prev_kp", "prev_ki",
     # unit mapping (engineering per agent) and timing
     "kp_unit", "ki_unit", "e_scale", "int_scale", "period", "stale_gap", "forgetting",
+    # the rest of the scaling in force (NaN: none; e_scale is above): three floats
+    # instead of a Scaling object per loop (~0.5 KB of Python objects each)
+    "u_scale", "time_unit",
     # controller action: +1 reverse, -1 direct (rules.ingest negates e and sp by it)
     "sign",
     # episode state
@@ -117,6 +120,9 @@ class LoopTable:
         self._verify_dirty: set[int] = set()
         """Loops whose verification state moved: to snapshot before publishing."""
         self._audit: list[AuditRow] = []
+        self.monitoring = True
+        """False: no figures, no oscillation detector, hence no verdicts (benchmarks only:
+        the setting ``monitoring`` measures what they cost)."""
         self.to_judge: list[tuple[np.ndarray, np.ndarray]] = []
         """(responses completed, oscillations started) awaiting :func:`verify.judge`."""
         self.ident: list[watch.IdState | None] = []
@@ -210,7 +216,6 @@ class LoopTable:
         self.configs[config.id] = config
         identified = self.ident[s].scaling
         sc = identified or config.resolved_scaling
-        self.ident[s].in_force_scaling = sc
         g = config.guard
         if identified is not None and config.scaling is None:
             # bounds the user left unset follow the identified model
@@ -228,6 +233,7 @@ class LoopTable:
         self._configure_monitor(s, sc, g)
         if sc is None:  # identifying: no unit mapping yet, never due
             self.kp_unit[s] = self.ki_unit[s] = self.period[s] = self.exc_step[s] = math.nan
+            self.u_scale[s] = self.time_unit[s] = math.nan
             self.e_scale[s] = self.int_scale[s] = 0.0
             self.exc_window[s] = math.inf
             self.kp_min[s] = g.kp_min or 0.0
@@ -236,7 +242,11 @@ class LoopTable:
             self.ki_max[s] = g.ki_max or math.inf
             return
         self.kp_unit[s], self.ki_unit[s] = sc.kp_per_agent, sc.ki_per_agent
-        self.e_scale[s] = sc.e_scale
+        self.e_scale[s], self.u_scale[s], self.time_unit[s] = (
+            sc.e_scale,
+            sc.u_scale,
+            sc.time_unit_s,
+        )
         self.int_scale[s] = sc.int_scale
         self.period[s] = sc.rl_period_s
         self.kp_min[s], self.kp_max[s] = g.kp_min, g.kp_max
@@ -258,8 +268,15 @@ class LoopTable:
         verify.configure(self, s, g.verify, g.verify_margin, g.cooldown_periods)
 
     def scaling_of(self, s: int) -> Scaling | None:
-        """The scaling in force: identified, else the config's hint, else None."""
-        return self.ident[s].in_force_scaling
+        """The scaling in force: identified, else the config's hint, else None (built
+        from the arrays: its factors were validated when it was put in force)."""
+        if not self.scaled[s]:
+            return None
+        return Scaling.model_construct(
+            e_scale=float(self.e_scale[s]),
+            u_scale=float(self.u_scale[s]),
+            time_unit_s=float(self.time_unit[s]),
+        )
 
     def _restart(self, s: int) -> None:
         """A fresh episode: zero hidden state and integral, no time reference."""

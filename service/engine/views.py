@@ -91,7 +91,7 @@ def raw_view(tb: LoopTable, s: int, config: bytes, wall: float) -> RawView:
             mismatches=int(tb.n_mismatch[s]),
             envelope_pauses=int(tb.n_envelope[s]),
         ),
-        scaling=tb.ident[s].in_force_scaling,
+        scaling=tb.scaling_of(s),
         identification=watch.view(tb, s),
         verification=verification(tb, s),
         proposal=proposal(tb, s),
@@ -143,7 +143,7 @@ def _response(row, unit: float | None) -> ResponseFigures:
 
 
 def performance(tb: LoopTable, s: int) -> Performance:
-    sc = tb.ident[s].in_force_scaling
+    sc = tb.scaling_of(s)
     unit = None if sc is None else sc.time_unit_s
     hist = [_response(row, unit) for row in monitor.history(tb, s)]
     var = max(float(tb.w_sq[s] - tb.w_mean[s] ** 2), 0.0)
