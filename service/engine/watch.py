@@ -188,6 +188,14 @@ def record(tb, slots: np.ndarray, cols: dict, last_t: np.ndarray, fresh: np.ndar
         for c, col in enumerate((t, sp, pv, op)):
             data[rows, c, n] = col[sel]
         tb.rec_n[ps[take]] = n + 1
+        # a sample not kept: its output averaged into the last kept row's (the input the
+        # plant integrates over that row's interval; the held output of one sample in
+        # ``stride`` misrepresents it: tau +20-45% on finely sampled loops)
+        skip = ~take
+        if skip.any():
+            rows, last = tb.rec[ps[skip]], tb.rec_n[ps[skip]] - 1
+            m = (k[skip] % tb.rec_stride[ps[skip]]).astype(np.float64)
+            data[rows, 3, last] += (op[plain[skip]] - data[rows, 3, last]) / (m + 1.0)
         for si in ps[take][n + 1 >= CAP].tolist():
             _compress(tb, si)
         # a loop not yet confidently identified is assessed during an event too, at
@@ -239,7 +247,15 @@ def _compress(tb, s: int) -> None:
     keep[[a for a in st.starts if a < n]] = True
     keep[[a - 1 for a in st.starts if 0 < a <= n]] = True
     kept = np.flatnonzero(keep)
+    # each kept row's output: the time-weighted mean over the rows it now stands for
+    t = data[0, :n]
+    w = np.diff(t, append=t[-1] + float(np.median(np.diff(t))))
+    acc = np.concatenate([[0.0], np.cumsum(data[3, :n] * w)])
+    span = np.concatenate([[0.0], np.cumsum(w)])
+    ends = np.append(kept[1:], n)
+    op = (acc[ends] - acc[kept]) / (span[ends] - span[kept])
     data[:, : kept.size] = data[:, kept]
+    data[3, : kept.size] = op
     tb.rec_n[s] = kept.size
     st.starts = [int(np.searchsorted(kept, a)) for a in st.starts]
     tb.rec_stride[s] *= 2
