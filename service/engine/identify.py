@@ -65,8 +65,7 @@ that slow is an integrator as far as the data tell)."""
 
 _TAU_GRID = 28
 _THETA_GRID = 12
-_FINE_TAU = 13
-_FINE_THETA = 400
+_FINE_TAU = 9
 
 
 @dataclass
@@ -237,11 +236,11 @@ def _grid(windows: list[Window], span: float, dt: float) -> tuple[float, float]:
     i, j = np.unravel_index(
         int(np.argmin(_sse_grid(windows, taus, thetas))), (taus.size, thetas.size)
     )
-    taus = taus[i] * np.geomspace(0.5, 2.0, _FINE_TAU)
-    thetas = np.linspace(0.0, 0.6 * span, min(int(1.2 * span / dt) + 1, _FINE_THETA))
-    i, j = np.unravel_index(
-        int(np.argmin(_sse_grid(windows, taus, thetas))), (taus.size, thetas.size)
-    )
+    step = thetas[1] - thetas[0]
+    taus = taus[i] * np.geomspace(0.6, 1.7, _FINE_TAU)
+    thetas = np.arange(max(thetas[j] - 2.0 * step, 0.0), thetas[j] + 2.0 * step, 0.5 * dt)
+    sse = _sse_grid(windows, taus, thetas)
+    i, j = np.unravel_index(int(np.argmin(sse)), sse.shape)
     return float(taus[i]), float(thetas[j])
 
 
