@@ -87,7 +87,8 @@ class Run:
     ki: np.ndarray
     done: np.ndarray
     moves_at_identification: np.ndarray
-    """Setpoint moves seen when the model was in force (-1: never)."""
+    """Setpoint moves seen when the model was put in force, its own sample included (-1:
+    never)."""
     moves_in_data: np.ndarray
     """Setpoint moves made before the model's time (those its data can hold: a model put
     in force at the fifth move's sample comes from the first four)."""
@@ -130,7 +131,6 @@ def run(
     pi.initialise(y0 / plants.K)
     sp = np.full(n, y0)
     next_move = np.ceil(rng.uniform(1.0, 2.0, n) * plants.tau / plants.h)
-    moves = np.zeros(n, np.int64)
     moves_at_id = np.full(n, -1)
     steps = np.zeros(n, np.int64)
     rescaled_seen = np.zeros(n, np.int64)
@@ -153,7 +153,6 @@ def run(
             new = sp + size
             new = np.where((new < 0.1 * SPAN) | (new > 0.9 * SPAN), sp - size, new)
             sp = np.where(move, new, sp)
-            moves += move
             for i in np.flatnonzero(move).tolist():
                 move_t[i].append(float(k * plants.h[i]))
             next_move = np.where(
@@ -172,13 +171,14 @@ def run(
             updates = engine.ingest(pending, wall=wall)
             pending = []
             _apply(engine, updates, pi, plants, out, steps, rescaled_seen, steps_after_rescale)
-            # moves seen when the model was put in force
+            # moves seen when the model was put in force (at its sample: a move later in
+            # the same batch came after it), and those before it (its data can hold)
             tb = engine.table
             for i in np.flatnonzero((moves_at_id < 0) & active).tolist():
                 s = tb.slot(ids[i])
                 if tb.n_identified[s] > 0:
-                    moves_at_id[i] = moves[i]
                     t_model = tb.ident[s].in_force_t
+                    moves_at_id[i] = sum(tm <= t_model for tm in move_t[i])
                     moves_in_data[i] = sum(tm < t_model for tm in move_t[i])
         u = pi.step(sp - y)
         plant.step(u)
