@@ -63,8 +63,7 @@ DRIFT = 1.25
 before the loop is assessed at every chance again (:func:`closely`)."""
 CHECK_FIRST = 16
 """Samples after a move at which a loop without a confident model is first assessed
-within the event (then at 32, 64, ...: a few fits per event, the response at about
-1, 2, 4... time constants on the finely sampled loops)."""
+within the event (then at 24, 32, 48, 64, 96...: :func:`check_due`)."""
 COLUMNS = 4  # t, sp, pv, op
 
 
@@ -198,15 +197,27 @@ def record(tb, slots: np.ndarray, cols: dict, last_t: np.ndarray, fresh: np.ndar
                 data[rows, c, last] += (col[plain[skip]] - data[rows, c, last]) / (m + 1.0)
         for si in ps[take][n + 1 >= CAP].tolist():
             _compress(tb, si)
-        # a loop not yet confidently identified is assessed during an event too, at
-        # samples 16, 32, 64... after the move (the response so far: a model can be
-        # confident at the move it comes from, not only at the next one)
-        due = (k >= CHECK_FIRST) & ((k & (k - 1)) == 0)
+        # a loop not yet confidently identified is assessed during an event too (the
+        # response so far: a model can be confident at the move it comes from)
+        due = check_due(k)
         for si, ti in zip(ps[due].tolist(), t[plain[due]].tolist(), strict=True):
             if closely(tb, si):
                 _close(tb, si, ti, wall)
     tb.prev_t[s], tb.prev_sp[s], tb.prev_pv[s], tb.prev_op[s] = t, sp, pv, op
     tb.prev_ok[s] = ~broken
+
+
+def check_due(k):
+    """Whether an assessment is due ``k`` samples after a move (int or int array): at
+    :data:`CHECK_FIRST` and then every 1.5x or 1.33x further (16, 24, 32, 48, 64, 96...:
+    two fits per doubling of the event, so that an event's response is used up to at
+    least 2/3 of it before the next move; at powers of two only, 1-3 of the bar's 60
+    loops whose first four moves' data were confident were put in force only at the
+    fifth move: docs/identification.md)."""
+    third = k // 3
+    return (k >= CHECK_FIRST) & (
+        ((k & (k - 1)) == 0) | ((k % 3 == 0) & ((third & (third - 1)) == 0))
+    )
 
 
 def _open(tb, s: int, row: tuple) -> None:
