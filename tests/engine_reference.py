@@ -170,8 +170,12 @@ def _record(tb: LoopTable, s: int, sample: Sample, e: float, last_t, fresh, wall
         tb.rec_k[s] += 1
         if k % tb.rec_stride[s] == 0:
             watch._append(tb, s, row)
-        # an assessment during the event, 16, 32, 64... samples after the move
-        if k >= watch.CHECK_FIRST and k & (k - 1) == 0 and watch.closely(tb, s):
+        else:  # averaged into the last kept row
+            data, last = tb.recorder.data[tb.rec[s]], int(tb.rec_n[s]) - 1
+            data[2, last] += (pv - data[2, last]) / (k % tb.rec_stride[s] + 1)
+            data[3, last] += (op - data[3, last]) / (k % tb.rec_stride[s] + 1)
+        # an assessment during the event, 16, 24, 32, 48, 64... samples after the move
+        if watch.check_due(k) and watch.closely(tb, s):
             watch._close(tb, s, t, wall)
     tb.prev_t[s], tb.prev_sp[s], tb.prev_pv[s], tb.prev_op[s] = t, sp, pv, op
     tb.prev_ok[s] = not broken

@@ -3,10 +3,13 @@ a hint 3x off and auto-rescale, through the engine; the full 60-loop measurement
 ``python -m tests.identify_bar`` (numbers in docs/identification.md).
 
 Asserted: what identification decides (every loop identified, K and tau within 30%, no
-loop unstable, every wrong hint detected and rescaled). The step-test MSE ratios against
-the true hint are printed, not asserted: in this protocol (1% noise, a move every 3-6
-tau) the shipped agent itself leaves most loops worse than their starting gains, and the
-ratios scatter both ways (docs/identification.md)."""
+loop unstable after its 60 agent steps, every wrong hint detected and rescaled). The
+step-test MSE ratios against the true hint are measured by the full run only (the
+ratios scatter both ways with the agent's own run-to-run scatter in this protocol:
+docs/identification.md), so no true-hint run here; and the wrong-hint run stops at
+RESCALE_TAU time constants, by which every loop has had its fifth setpoint move (moves
+start at 1-2 tau and come every 3-6 tau) and been rescaled, instead of tuning on for
+420 tau: the CI cost is about a third of the three full runs'."""
 
 import pytest
 
@@ -19,12 +22,12 @@ pytestmark = [
     pytest.mark.skipif(not DEFAULT_WEIGHTS.exists(), reason="no trained agent"),
 ]
 LOOPS = 12
+RESCALE_TAU = 60.0
 
 
 def test_hint_free_and_wrongly_hinted_loops_are_identified_and_rescaled():
-    runs = {w: one(w, LOOPS, 0) for w in ("true", "blind", "rescaled")}
+    runs = {"blind": one("blind", LOOPS, 0), "rescaled": one("rescaled", LOOPS, 0, RESCALE_TAU)}
     s = summary(runs, LOOPS, 0)
-    print({k: v for k, v in s.items() if "ratio" in k})
     assert s["identified"] == LOOPS
     assert s["k_within_30"] == LOOPS and s["tau_within_30"] >= LOOPS - 1
     assert s["unstable"] == 0

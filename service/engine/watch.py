@@ -10,7 +10,8 @@ accepted sample; stated one sample at a time in ``tests/engine_reference.py``):
   reconstruct_op`: parallel PI ``u = kp e + I``, ``I' = ki e`` at the sample period,
   bumpless gain changes, no feedforward or output tracking).
 * A *segment* opens at a setpoint move (any change of sp) and records every sample
-  (every ``stride``-th once long: the buffer halves its resolution when full) until a
+  (once long, a row per ``stride`` samples, their mean: the buffer halves its resolution
+  when full) until a
   sample in manual, saturated, after a stale gap or on a new plant clock breaks it (the
   data up to there are assessed first). A later move closes the running event and
   opens the next, unless the running event holds fewer than :data:`MIN_EVENT_SAMPLES`
@@ -63,8 +64,7 @@ DRIFT = 1.25
 before the loop is assessed at every chance again (:func:`closely`)."""
 CHECK_FIRST = 16
 """Samples after a move at which a loop without a confident model is first assessed
-within the event (then at 32, 64, ...: a few fits per event, the response at about
-1, 2, 4... time constants on the finely sampled loops)."""
+within the event (then at 24, 32, 48, 64, 96...: :func:`check_due`)."""
 COLUMNS = 4  # t, sp, pv, op
 
 
@@ -188,17 +188,36 @@ def record(tb, slots: np.ndarray, cols: dict, last_t: np.ndarray, fresh: np.ndar
         for c, col in enumerate((t, sp, pv, op)):
             data[rows, c, n] = col[sel]
         tb.rec_n[ps[take]] = n + 1
+        # a sample not kept is averaged into the last kept row (see _compress)
+        skip = ~take
+        if skip.any():
+            rows, last = tb.rec[ps[skip]], tb.rec_n[ps[skip]] - 1
+            m = (k[skip] % tb.rec_stride[ps[skip]]).astype(np.float64)
+            for c, col in ((2, pv), (3, op)):
+                data[rows, c, last] += (col[plain[skip]] - data[rows, c, last]) / (m + 1.0)
         for si in ps[take][n + 1 >= CAP].tolist():
             _compress(tb, si)
-        # a loop not yet confidently identified is assessed during an event too, at
-        # samples 16, 32, 64... after the move (the response so far: a model can be
-        # confident at the move it comes from, not only at the next one)
-        due = (k >= CHECK_FIRST) & ((k & (k - 1)) == 0)
+        # a loop not yet confidently identified is assessed during an event too (the
+        # response so far: a model can be confident at the move it comes from)
+        due = check_due(k)
         for si, ti in zip(ps[due].tolist(), t[plain[due]].tolist(), strict=True):
             if closely(tb, si):
                 _close(tb, si, ti, wall)
     tb.prev_t[s], tb.prev_sp[s], tb.prev_pv[s], tb.prev_op[s] = t, sp, pv, op
     tb.prev_ok[s] = ~broken
+
+
+def check_due(k):
+    """Whether an assessment is due ``k`` samples after a move (int or int array): at
+    :data:`CHECK_FIRST` and then every 1.5x or 1.33x further (16, 24, 32, 48, 64, 96...:
+    two fits per doubling of the event, so that an event's response is used up to at
+    least 2/3 of it before the next move; at powers of two only, 1-3 of the bar's 60
+    loops whose first four moves' data were confident were put in force only at the
+    fifth move: docs/identification.md)."""
+    third = k // 3
+    return (k >= CHECK_FIRST) & (
+        ((k & (k - 1)) == 0) | ((k % 3 == 0) & ((third & (third - 1)) == 0))
+    )
 
 
 def _open(tb, s: int, row: tuple) -> None:
@@ -239,7 +258,21 @@ def _compress(tb, s: int) -> None:
     keep[[a for a in st.starts if a < n]] = True
     keep[[a - 1 for a in st.starts if 0 < a <= n]] = True
     kept = np.flatnonzero(keep)
+    # each kept row's measurement and output: their time-weighted means over the rows it
+    # now stands for (the output is the input the plant integrates over the row's
+    # interval; the mean measurement keeps the information of the samples dropped:
+    # keeping one sample in two instead scattered tau by 1.5-1.8x more, and the held
+    # output misrepresented the input). The mean measurement lags the row's time by
+    # half its interval, which the dead time absorbs.
+    t = data[0, :n]
+    w = np.diff(t, append=t[-1] + float(np.median(np.diff(t))))
+    span = np.concatenate([[0.0], np.cumsum(w)])
+    ends = np.append(kept[1:], n)
+    acc = np.zeros((2, n + 1))
+    acc[:, 1:] = np.cumsum(data[2:4, :n] * w, axis=1)
+    means = (acc[:, ends] - acc[:, kept]) / (span[ends] - span[kept])
     data[:, : kept.size] = data[:, kept]
+    data[2:4, : kept.size] = means
     tb.rec_n[s] = kept.size
     st.starts = [int(np.searchsorted(kept, a)) for a in st.starts]
     tb.rec_stride[s] *= 2
