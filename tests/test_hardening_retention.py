@@ -123,8 +123,10 @@ def test_a_worker_that_is_never_idle_still_prunes_once_a_pass_is_late(tmp_path):
             tuner.register(LoopConfig(**loop_body("LIC-101")))
             for _ in range(12):
                 tuner.reset("LIC-101")
+            # the inbox holds thousands all along (the feeder only tops it up), but the
+            # worker may find it empty for an instant when the feeder loses the GIL: no
+            # assertion on its size at the end (it flaked), the prune is what is asserted
             wait_until(lambda: tuner.history("LIC-101", 0, 50).total == 5, what="the prune")
-            assert tuner.inbox.qsize() > 0  # still busy
         finally:
             stop.set()
             feeder.join()
