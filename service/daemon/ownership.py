@@ -36,8 +36,9 @@ from service.wire.decode import Decoded, Rejection
 from service.wire.protocol import RejectReason
 
 log = logging.getLogger("pitune.tuner")
-ADOPT_CHUNK = 2000
-"""Loops restored per hold of the table's lock when shards are adopted (~10 ms)."""
+ADOPT_CHUNK = 1000
+"""Loops restored per turn at the table's lock when shards are adopted (~0.2 s: the worker
+waits that long)."""
 
 
 def _parsed(stored) -> Saved | None:
@@ -65,7 +66,7 @@ class Ownership:
         for i in range(0, len(stored), ADOPT_CHUNK):  # the worker runs between chunks
             chunk = stored[i : i + ADOPT_CHUNK]
             saved = [_parsed(loop) for loop in chunk]  # the costly part, outside the lock
-            with self.table.lock:
+            with self.handoff.hold():  # at the worker's next message
                 for loop, state in zip(chunk, saved, strict=True):
                     if loop.config.id not in self.table.slot_of:
                         self._restore(loop, wall, state)

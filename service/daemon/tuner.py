@@ -53,6 +53,7 @@ from service.agent.model import Agent, load_agent, untrained_agent
 from service.daemon.admin import LoopAdmin, freeze_survivors
 from service.daemon.bus import Bus, Inbox, Item, Kind
 from service.daemon.clock import Clock
+from service.daemon.handoff import Handoff
 from service.daemon.lanes import LANE_DRAIN_S, Lane
 from service.daemon.metrics import Metrics, RateLimitedLog
 from service.daemon.ownership import Ownership
@@ -142,6 +143,8 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep):
             on_reject=self._on_reject,
         )
         self.table = self.engine.table
+        self.handoff = Handoff(self.table.lock)
+        """Turns at the table's lock for the cluster's thread between the worker's messages."""
         self.recent = Recent(known=self.table.slot_of)
         """Recent samples and published gains of each loop, for the console's trends."""
         self._skipped = 0
@@ -359,6 +362,7 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep):
         with engine.lock:
             engine.stepping = self._store_failing_since is None
             for kind, key, payload in _group_singles(items):
+                self.handoff.let_in()
                 if kind is Kind.query or kind is Kind.gateway_query:
                     self._flush(wall)  # the reply reflects every sample handled before it
                     if kind is Kind.query:
