@@ -309,10 +309,11 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep):
             try:
                 if self._store_failing_since is not None:  # until the next retry
                     wait = self._retry_at - time.monotonic()
-                elif self._snapshot_todo or self.store.journal_rows or self._prune_todo:
+                elif self.store.journal_rows or self._prune_todo:
                     wait = 0.0
-                else:
-                    wait = min(next_snapshot - time.monotonic(), self.clock.until(self._next_prune))
+                else:  # the next snapshot, or its next chunk (paced), or retention pass
+                    at = self._snapshot_at if self._snapshot_todo else next_snapshot
+                    wait = min(at - time.monotonic(), self.clock.until(self._next_prune))
                 if self._parked:  # the earliest after_t query to answer anyway
                     first = min(d for q in self._parked.values() for _, d, _ in q)
                     wait = min(wait, first - time.monotonic())
@@ -332,13 +333,11 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep):
                 self._apply_journal()
                 if stop:
                     self.snapshot()
-                elif self._snapshot_todo:
+                elif self._snapshot_todo and time.monotonic() >= self._snapshot_at:
                     self._snapshot_some()
-                elif time.monotonic() >= next_snapshot:
+                elif not self._snapshot_todo and time.monotonic() >= next_snapshot:
                     next_snapshot = time.monotonic() + interval
-                    with self.table.lock:
-                        self._snapshot_todo = list(self.table.slot_of)
-                    self._snapshot_some()
+                    self._start_snapshot(interval)
                 elif self.inbox.empty() or self._prune_overdue():
                     self._retain()
             except Exception:
