@@ -6,11 +6,11 @@ adapter that translates SQLite's ``?`` placeholders, and differs where a server
 differs from a file:
 
 - No journal: a step batch's gains and audit rows are written to the ``loops`` and
-  ``audit`` tables in the commit before publishing (one ``UPDATE ... FROM unnest`` and
-  one ``COPY``: ~30 ms for 10,000 loops), so another tuner taking a loop over reads
-  them at once. Commits are durable (``synchronous_commit`` on) except snapshots.
+  ``audit`` tables in the commit before publishing (one statement, :data:`RECORD_SQL`:
+  one round trip), so another tuner taking a loop over reads them at once. Commits are
+  durable (``synchronous_commit`` on) except snapshots.
 - Fencing: a member of a cluster passes the lease tokens of the shards a commit
-  touches; the commit locks those lease rows (``FOR SHARE``) and fails with
+  touches; the commit locks those lease rows (``FOR SHARE``), writes nothing and fails with
   :class:`Fenced` unless each is still this member's, with that token, unexpired by the
   database's clock. A takeover updates the lease row, so it waits for a commit in
   flight, and a commit after it fails: a tuner that lost a lease (paused, partitioned)
