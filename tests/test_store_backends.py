@@ -100,7 +100,7 @@ def test_postgres_store_round_trip(pg_url):
         assert total == 2 and items[0].reason == "agent" and items[0].kp_new == 0.6
         buf = io.BytesIO()
         assert store.export(buf) == 6
-        assert orjson.loads(buf.getvalue().splitlines()[-1])["loop_id"] == "L0"
+        assert orjson.loads(buf.getvalue().splitlines()[-1])["loop_id"] == "L2"
         store.delete_loop("L1", audit_row("L1", 3.0, None, 0, "auto", "deleted", (0.5, 0.01), None))
         assert "L1" not in {s.config.id for s in store.load()}
         epochs = [store.next_epoch(1.0), store.next_epoch(1.0)]
