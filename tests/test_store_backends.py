@@ -83,18 +83,24 @@ def test_postgres_store_round_trip(pg_url):
             [(0.6, 0.02, 1, "L0"), (0.7, 0.03, 6, "L2")],
             [audit_row("L0", 2.0, 1.0, 1, "auto", "agent", (0.5, 0.01), (0.6, 0.02))],
         )
+        # one statement with binary arrays: ints among floats and NULLs are typed per column
+        reset = audit_row("L2", 2, None, 6, "auto", "reset", (1, 0.03), (0.7, 0.03), "by op")
+        store.record_gains([(1, 0.03, 6, "L2")], [reset])
+        store.record_gains([], [])  # nothing to write: no statement
         store.snapshot([("L0", b"\x00\x01", '{"last_t": 1.0}')])
         loaded = {s.config.id: s for s in store.load()}
         assert [s.config.id for s in store.load()] == ["L0", "L1", "L2", "G1"]  # order kept
         assert (loaded["L0"].kp, loaded["L0"].seq, loaded["L0"].hidden) == (0.6, 1, b"\x00\x01")
-        assert loaded["L2"].seq == 6 and loaded["L1"].hidden is None
+        assert (loaded["L2"].kp, loaded["L2"].seq, loaded["L1"].hidden) == (1.0, 6, None)
+        (reset,) = store.history("L2", 0, 10)[1][:1]
+        assert (reset.t, reset.kp_old, reset.detail) == (None, 1.0, "by op")
         assert [s.config.id for s in store.load(["gw:gw1"])] == ["G1"]
-        assert store.last_seqs(["L0", "L2", "nope"]) == {"L0": 1, "L2": 0}
+        assert store.last_seqs(["L0", "L2", "nope"]) == {"L0": 1, "L2": 6}
         total, items = store.history("L0", 0, 10)
         assert total == 2 and items[0].reason == "agent" and items[0].kp_new == 0.6
         buf = io.BytesIO()
-        assert store.export(buf) == 5
-        assert orjson.loads(buf.getvalue().splitlines()[-1])["loop_id"] == "L0"
+        assert store.export(buf) == 6
+        assert orjson.loads(buf.getvalue().splitlines()[-1])["loop_id"] == "L2"
         store.delete_loop("L1", audit_row("L1", 3.0, None, 0, "auto", "deleted", (0.5, 0.01), None))
         assert "L1" not in {s.config.id for s in store.load()}
         epochs = [store.next_epoch(1.0), store.next_epoch(1.0)]

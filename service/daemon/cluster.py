@@ -62,6 +62,19 @@ SHARDS_SQL = (
 """The shards with loops, one index probe per shard on ``loops_shard`` (a loose index
 scan): ``SELECT DISTINCT shard`` reads every loop's row, every tick, on every member
 (parallel workers at 300,000 loops)."""
+NEXT_EXPIRY_SQL = (
+    "SELECT extract(epoch FROM min(last) - clock_timestamp())::float8 FROM ("
+    "SELECT owner, max(expires) AS last FROM ("
+    "SELECT instance_id AS owner, expires FROM members WHERE instance_id <> %s "
+    "AND expires > clock_timestamp() UNION ALL "
+    "SELECT owner, expires FROM leases WHERE owner <> %s AND expires > clock_timestamp()"
+    ") AS e GROUP BY owner) AS m"
+)
+"""Seconds until the first other member has nothing unexpired left (its row and every
+lease it holds): a dead member's leases were renewed one by one, each after the
+member's commits in flight on it (``FOR SHARE``), so they expire up to a busy worker's
+commit apart; a tick timed to the first of them took one shard and left the rest to a
+tick after that shard's loading (at 30,000 loops: 8 s later)."""
 TICKS_PER_LEASE = 5
 ADOPTIONS_KEPT = 16
 SUSPECT_AFTER_TICKS = 2
@@ -211,7 +224,12 @@ class Cluster:
             log.warning("leases lost (taken by another member): %s", ", ".join(sorted(lost)))
             self.tuner.drop_shards(lost, commit=False)
         live, stored, expiry = self._survey()
-        self.members = list(live)
+        # this member is alive whatever its row says: a renewal that came late (a starved
+        # process) let the row run out, and releasing every shard it holds only to take
+        # them back a tick later cost a 75,000-loop member 40 s of loading; its leases
+        # still fence it if they ran out too
+        live.setdefault(self.member, 0.0)
+        self.members = sorted(live)
         wins = {s for s, m in sharding.assign(stored, self.members).items() if m == self.member}
         with self._lock:
             held = set(self.held)
@@ -240,7 +258,8 @@ class Cluster:
             rest = [m for m in live if m not in suspects]
             ahead = {s for s, m in sharding.assign(stored, rest).items() if m == self.member}
             ahead -= held
-        if ahead != self._ahead:
+        if ahead != self._ahead and not (ahead and ahead <= self._ahead):
+            # (fewer shards than parsed: those are parsed already, a load takes them)
             self._ahead = ahead
             n = self.tuner.store.parse_ahead(sorted(ahead))
             if ahead:
@@ -295,14 +314,7 @@ class Cluster:
             ).fetchall()
         )
         stored = [r[0] for r in self._conn.execute(SHARDS_SQL)]
-        (expiry,) = self._conn.execute(
-            "SELECT extract(epoch FROM least("
-            "(SELECT min(expires) FROM members WHERE instance_id <> %s "
-            " AND expires > clock_timestamp()), "
-            "(SELECT min(expires) FROM leases WHERE owner <> %s "
-            " AND expires > clock_timestamp())) - clock_timestamp())::float8",
-            (self.member, self.member),
-        ).fetchone()
+        (expiry,) = self._conn.execute(NEXT_EXPIRY_SQL, (self.member, self.member)).fetchone()
         return live, stored, expiry
 
     def _release(self, shards: set[str]) -> None:

@@ -31,12 +31,21 @@ import numpy as np
 
 from service.daemon.shards import gateway_shard, gateways, shard_of
 from service.daemon.store_pg import Fenced
+from service.engine.saved import Saved
 from service.wire.decode import Decoded, Rejection
 from service.wire.protocol import RejectReason
 
 log = logging.getLogger("pitune.tuner")
-ADOPT_CHUNK = 2000
-"""Loops restored per hold of the table's lock when shards are adopted (~10 ms)."""
+ADOPT_CHUNK = 1000
+"""Loops restored per turn at the table's lock when shards are adopted (~0.2 s: the worker
+waits that long)."""
+
+
+def _parsed(stored) -> Saved | None:
+    """A stored loop's snapshot, parsed (None: it has none)."""
+    if stored.hidden is None or stored.runtime is None:
+        return None
+    return Saved.parse(stored.hidden, stored.runtime)
 
 
 class Ownership:
@@ -55,10 +64,12 @@ class Ownership:
         loaded = time.perf_counter()
         wall = time.time()
         for i in range(0, len(stored), ADOPT_CHUNK):  # the worker runs between chunks
-            with self.table.lock:
-                for loop in stored[i : i + ADOPT_CHUNK]:
+            chunk = stored[i : i + ADOPT_CHUNK]
+            saved = [_parsed(loop) for loop in chunk]  # the costly part, outside the lock
+            with self.handoff.hold():  # at the worker's next message
+                for loop, state in zip(chunk, saved, strict=True):
                     if loop.config.id not in self.table.slot_of:
-                        self._restore(loop, wall)
+                        self._restore(loop, wall, state)
                     shard = shard_of(loop.config.id, loop.config.gateway)
                     self.cluster.adopted(shard, token, [loop.config.id])
         with self.table.lock:
@@ -121,7 +132,8 @@ class Ownership:
             self.cluster.forget(leaving)
             self.metrics.set_loop_counts(self.table.mode_counts())
 
-    def _restore(self, stored, wall: float) -> None:
+    def _restore(self, stored, wall: float, saved: Saved | None = None) -> None:
+        """A stored loop into the engine (``saved``: its snapshot, parsed ahead)."""
         self.engine.restore(
             stored.config,
             kp=stored.kp,
@@ -129,6 +141,7 @@ class Ownership:
             seq=stored.seq,
             hidden=stored.hidden,
             runtime=stored.runtime,
+            saved=saved,
             wall=wall,
         )
 

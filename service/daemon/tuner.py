@@ -53,6 +53,7 @@ from service.agent.model import Agent, load_agent, untrained_agent
 from service.daemon.admin import LoopAdmin, freeze_survivors
 from service.daemon.bus import Bus, Inbox, Item, Kind
 from service.daemon.clock import Clock
+from service.daemon.handoff import Handoff
 from service.daemon.lanes import LANE_DRAIN_S, Lane
 from service.daemon.metrics import Metrics, RateLimitedLog
 from service.daemon.ownership import Ownership
@@ -143,6 +144,8 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep):
             monitoring=settings.monitoring,
         )
         self.table = self.engine.table
+        self.handoff = Handoff(self.table.lock)
+        """Turns at the table's lock for the cluster's thread between the worker's messages."""
         self.recent = Recent(known=self.table.slot_of)
         """Recent samples and published gains of each loop, for the console's trends."""
         self._skipped = 0
@@ -307,10 +310,11 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep):
             try:
                 if self._store_failing_since is not None:  # until the next retry
                     wait = self._retry_at - time.monotonic()
-                elif self._snapshot_todo or self.store.journal_rows or self._prune_todo:
+                elif self.store.journal_rows or self._prune_todo:
                     wait = 0.0
-                else:
-                    wait = min(next_snapshot - time.monotonic(), self.clock.until(self._next_prune))
+                else:  # the next snapshot, or its next chunk (paced), or retention pass
+                    at = self._snapshot_at if self._snapshot_todo else next_snapshot
+                    wait = min(at - time.monotonic(), self.clock.until(self._next_prune))
                 if self._parked:  # the earliest after_t query to answer anyway
                     first = min(d for q in self._parked.values() for _, d, _ in q)
                     wait = min(wait, first - time.monotonic())
@@ -330,13 +334,11 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep):
                 self._apply_journal()
                 if stop:
                     self.snapshot()
-                elif self._snapshot_todo:
+                elif self._snapshot_todo and time.monotonic() >= self._snapshot_at:
                     self._snapshot_some()
-                elif time.monotonic() >= next_snapshot:
+                elif not self._snapshot_todo and time.monotonic() >= next_snapshot:
                     next_snapshot = time.monotonic() + interval
-                    with self.table.lock:
-                        self._snapshot_todo = list(self.table.slot_of)
-                    self._snapshot_some()
+                    self._start_snapshot(interval)
                 elif self.inbox.empty() or self._prune_overdue():
                     self._retain()
             except Exception:
@@ -360,6 +362,7 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep):
         with engine.lock:
             engine.stepping = self._store_failing_since is None
             for kind, key, payload in _group_singles(items):
+                self.handoff.let_in()
                 if kind is Kind.query or kind is Kind.gateway_query:
                     self._flush(wall)  # the reply reflects every sample handled before it
                     if kind is Kind.query:

@@ -7,6 +7,8 @@ The engine produces them (agent steps, adoptions, resets), the daemon adds its o
 from __future__ import annotations
 
 AUDIT_COLUMNS = "loop_id, wall_time, t, seq, mode, reason, kp_old, ki_old, kp_new, ki_new, detail"
+AUDIT_TYPES = (str, float, float, int, str, str, float, float, float, float, str)
+"""The Python type of each column (None allowed in those SQL allows NULL in)."""
 
 AuditRow = tuple
 """Values in :data:`AUDIT_COLUMNS` order; build with :func:`audit_row`."""

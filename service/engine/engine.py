@@ -39,6 +39,7 @@ from service.agent.model import Agent, load_agent
 from service.engine import monitor, rules, stepping, verify, views, watch
 from service.engine.audit import AuditRow
 from service.engine.config import LoopConfig, LoopView
+from service.engine.saved import Saved
 from service.engine.table import LoopTable
 from service.engine.updates import GainUpdate, StepResult
 from service.engine.views import RawView
@@ -106,15 +107,18 @@ class TuningEngine:
         kp: float,
         ki: float,
         seq: int,
-        hidden: bytes | None,
-        runtime: str | None,
+        hidden: bytes | None = None,
+        runtime: str | None = None,
+        saved: Saved | None = None,
         wall: float | None = None,
     ) -> None:
-        """Add a loop as it was stored: its gains, seq and state snapshot."""
+        """Add a loop as it was stored: its gains, seq and state snapshot (``hidden`` and
+        ``runtime`` as stored, or ``saved``: parsed ahead, outside the lock)."""
         with self.lock:
             self.table.add(
-                config, kp=kp, ki=ki, seq=seq, hidden=hidden, runtime=runtime, wall=_now(wall)
-            )
+                config, kp=kp, ki=ki, seq=seq, hidden=hidden, runtime=runtime, saved=saved,
+                wall=_now(wall),
+            )  # fmt: skip
 
     def reconfigure(self, config: LoopConfig) -> None:
         with self.lock:

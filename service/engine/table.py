@@ -13,7 +13,6 @@ it); changes to persist (new gains, audit rows) accumulate until
 
 from __future__ import annotations
 
-import json
 import math
 import sys
 import threading
@@ -34,6 +33,7 @@ from service.engine.config import (
     resolve_bounds,
 )  # fmt: skip
 from service.engine.modes import _CODE, _MODES, AUTO, FROZEN, SHADOW
+from service.engine.saved import Saved
 from service.engine.updates import MODE_VALUES, StepResult
 from service.units import Scaling
 from service.wire.protocol import LoopStatus, Mode, UpdateReason
@@ -181,11 +181,15 @@ class LoopTable:
         seq: int = 0,
         hidden: bytes | None = None,
         runtime: str | None = None,
+        saved: Saved | None = None,
         wall: float,
     ) -> int:
-        """Register a loop (new: registered gains; restored: stored gains and snapshot)."""
+        """Register a loop (new: registered gains; restored: stored gains and snapshot,
+        as stored, ``hidden`` and ``runtime``, or parsed ahead, ``saved``)."""
         if config.id in self.slot_of:
             raise KeyError(f"loop {config.id!r} already registered")
+        if saved is None and hidden is not None and runtime is not None:
+            saved = Saved.parse(hidden, runtime)
         if not self._free:
             self.reserve(1)
         s = self._free.pop()
@@ -198,7 +202,9 @@ class LoopTable:
         for name in _I64[2:]:
             getattr(self, name)[s] = 0
         self.tokens[s], self.token_wall[s] = self.burst, wall
-        self.ident[s] = watch.IdState()
+        # a restored identification first: the configuration follows its scaling
+        restored = None if saved is None else saved.ident
+        self.ident[s] = watch.IdState() if restored is None else restored
         self.rec[s], self.rec_n[s], self.rec_k[s], self.rec_stride[s] = -1, 0, 0, 1
         self.mismatch[s] = self.out_env[s] = self.prev_ok[s] = False
         self.op_int[s] = self.op_kp[s] = 0.0
@@ -208,8 +214,8 @@ class LoopTable:
         verify.init(self, s)
         self._configure(s, config)
         self._restart(s)
-        if hidden is not None and runtime is not None:
-            self._restore(s, hidden, runtime)
+        if saved is not None:
+            self._restore(s, saved)
         return s
 
     def _configure(self, s: int, config: LoopConfig) -> None:
@@ -434,11 +440,11 @@ class LoopTable:
             option=orjson.OPT_SERIALIZE_NUMPY,
         ).decode()
 
-    def _restore(self, s: int, hidden: bytes, runtime: str) -> None:
-        h = np.frombuffer(hidden, np.float32)
-        if h.size == self.hidden[s].size:
-            self.hidden[s] = h.reshape(self.hidden[s].shape)
-        rt = json.loads(runtime)
+    def _restore(self, s: int, saved: Saved) -> None:
+        """The snapshot's runtime state (its identification state is in :meth:`add`)."""
+        if saved.hidden.size == self.hidden[s].size:
+            self.hidden[s] = saved.hidden.reshape(self.hidden[s].shape)
+        rt = saved.runtime
         self.last_t[s] = math.nan if rt["last_t"] is None else rt["last_t"]
         self.next_due[s] = math.nan if rt["next_due"] is None else rt["next_due"]
         self.last_e[s], self.int_e[s] = rt["last_e"], rt["int_e"]
@@ -456,9 +462,7 @@ class LoopTable:
             getattr(self, name)[s] = value
         ident = rt.get("ident")  # absent in snapshots from before identification
         if ident is not None:
-            self.ident[s] = watch.IdState.load(ident)
             self.mismatch[s], self.out_env[s] = ident["mismatch"], ident["out_env"]
-            self._configure(s, self.configs[self.ids[s]])
         if "verify" in rt:  # absent in snapshots from before verification
             verify.load(self, s, rt["verify"])
             monitor.load(self, s, rt.get("figures") or {})

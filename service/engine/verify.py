@@ -74,6 +74,7 @@ F32 = [
 """Per-loop float32 arrays of verification: figures and settings."""
 _STATE = [n for n in F64 + F32 if n not in ("v_margin", "v_cool")]
 """What the runtime snapshot keeps (the settings come from the config)."""
+_STATE_SET = frozenset(_STATE)
 
 Verdict = str
 """``verified``, ``rolled_back``, ``rollback_proposed``, ``worse`` or ``pending``."""
@@ -277,7 +278,7 @@ def dump(tb: LoopTable, s: int) -> dict:
 
 
 def load(tb: LoopTable, s: int, d: dict) -> None:
-    for name, value in d.items():
-        if name in _STATE:
-            default = -math.inf if name == "cool_until" else math.nan
-            getattr(tb, name)[s] = default if value is None else value
+    for name in _STATE_SET.intersection(d):  # a set: restoring is per loop (a failover's)
+        value = d[name]
+        default = -math.inf if name == "cool_until" else math.nan
+        getattr(tb, name)[s] = default if value is None else value

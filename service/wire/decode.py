@@ -90,7 +90,7 @@ class Columns:
 
     @classmethod
     def empty(cls) -> Columns:
-        return _columns([], _raw([]), [])
+        return _columns(_fields([]), [])
 
 
 _ARRAYS = ("t", "e", "sp", "kp", "ki", "auto", "saturated", "index", "op", "applied_seq")
@@ -130,9 +130,11 @@ def decode_objects(items: list, *, strict_json: bool = True) -> Decoded:
     Infinity: every item then goes through the model, which rejects them.
     """
     n = len(items)
-    plain = _plain_rows(items) if strict_json else np.zeros(n, bool)
-    if plain.all():
-        return Decoded(_columns(items, _raw(items), range(n)), [], n)
+    if strict_json and items and set(map(type, items)) == {dict}:
+        fields = _fields(items)  # the usual case: every sample plain, one pass per field
+        if _plain_whole(items, fields):
+            return Decoded(_columns(fields, range(n)), [], n)
+    plain = _plain_rows_each(items) if strict_json else np.zeros(n, bool)
     good = np.flatnonzero(plain).tolist()
     kept: list[dict] = [items[i] for i in good]
     kept_index: list[int] = good
@@ -151,7 +153,7 @@ def decode_objects(items: list, *, strict_json: bool = True) -> Decoded:
     order = np.argsort(np.asarray(kept_index, np.int64), kind="stable")
     kept = [kept[j] for j in order.tolist()]
     kept_index = [kept_index[j] for j in order.tolist()]
-    return Decoded(_columns(kept, _raw(kept), kept_index), rejected, n)
+    return Decoded(_columns(_fields(kept), kept_index), rejected, n)
 
 
 def decode_values(items: list) -> Decoded:
@@ -245,12 +247,29 @@ def _renumber(decoded: Decoded, index: list[int], rejected: list[Rejection], n: 
     return Decoded(decoded.rows, rejected, n)
 
 
-def _raw(items: list[dict]) -> dict[str, list]:
-    return {k: [d.get(k) for d in items] for k in FLOAT_FIELDS}
+_FLAGS = {"auto": True, "saturated": False, "v": SCHEMA_VERSION, "applied_seq": None}
+"""The optional non-float fields of a sample and their values when absent."""
 
 
-def _plain_rows(items: list) -> np.ndarray:
-    """Per item: True where the vectorised rules accept it exactly as the model would.
+def _fields(items: list[dict]) -> dict:
+    """Each field of the samples as a list (absent: None, or its :data:`_FLAGS` default),
+    and ``"present"``: the fields any sample has. A field no sample has costs no pass
+    over the samples (a gateway's batch usually carries ``loop_id``, ``t`` and ``e``)."""
+    present = set().union(*items)
+    n = len(items)
+
+    def column(key: str, default=None) -> list:
+        return [d.get(key, default) for d in items] if key in present else [default] * n
+
+    out: dict = {k: column(k) for k in ("loop_id", *FLOAT_FIELDS)}
+    out.update((k, column(k, default)) for k, default in _FLAGS.items())
+    out["present"] = present
+    return out
+
+
+def _plain_whole(items: list[dict], f: dict) -> bool:
+    """True if the vectorised rules accept every item exactly as the model would
+    (``f``: :func:`_fields` of the items), decided with one pass per field present.
 
     Plain: a JSON object with a valid string ``loop_id``, ``t`` a float, ``e``/``sp``/
     ``pv``/``kp``/``ki`` floats or absent (not null), ``e`` or both ``sp`` and ``pv``,
@@ -259,31 +278,30 @@ def _plain_rows(items: list) -> np.ndarray:
     :data:`MAX_MAGNITUDE` and gains positive. Anything else (ints, strings,
     nulls, ...) is for the model to judge.
     """
-    if items and set(map(type, items)) == {dict} and _plain_whole(items):
-        return np.ones(len(items), bool)
-    return _plain_rows_each(items)
-
-
-def _plain_whole(items: list[dict]) -> bool:
-    """The common case, decided with one pass per field over the whole group."""
-    ids = [d.get("loop_id") for d in items]
+    present = f["present"]
+    ids = f["loop_id"]
     if set(map(type, ids)) != {str} or not all(map(_ID_RE.fullmatch, ids)):
         return False
-    raw = _raw(items)
-    defaults = {"auto": True, "saturated": False, "v": SCHEMA_VERSION}
-    flags = {k: [d.get(k, default) for d in items] for k, default in defaults.items()}
+    v = f["v"]
     if (
-        set(map(type, raw["t"])) != _FLOAT
-        or not all(set(map(type, raw[k])) <= _OPT_FLOAT for k in FLOAT_FIELDS[1:])
-        or set(map(type, flags["auto"])) != _BOOL
-        or set(map(type, flags["saturated"])) != _BOOL
-        or set(map(type, flags["v"])) != _INT
-        or set(flags["v"]) != {SCHEMA_VERSION}
+        set(map(type, f["t"])) != _FLOAT
+        or not all(set(map(type, f[k])) <= _OPT_FLOAT for k in FLOAT_FIELDS[1:] if k in present)
+        or ("auto" in present and set(map(type, f["auto"])) != _BOOL)
+        or ("saturated" in present and set(map(type, f["saturated"])) != _BOOL)
+        or ("v" in present and (set(map(type, v)) != _INT or set(v) != {SCHEMA_VERSION}))
         or not all(_seq_ok(d["applied_seq"]) for d in items if "applied_seq" in d)
     ):
         return False
-    cols = {k: np.array(v, dtype=np.float64) for k, v in raw.items()}  # None -> NaN
-    return bool(_numbers_ok(cols).all())
+    return bool(_numbers_ok(_floats(f)).all())
+
+
+def _floats(f: dict) -> dict[str, np.ndarray]:
+    """The float fields of :func:`_fields` as float64 arrays (absent: NaN)."""
+    n = len(f["loop_id"])
+    return {
+        k: np.array(f[k], dtype=np.float64).reshape(n) if k in f["present"] else np.full(n, np.nan)
+        for k in FLOAT_FIELDS
+    }
 
 
 def _seq_ok(v) -> bool:
@@ -292,7 +310,9 @@ def _seq_ok(v) -> bool:
 
 def _plain_rows_each(items: list) -> np.ndarray:
     """:func:`_plain_whole` item by item (only when the group as a whole is not plain)."""
-    return np.fromiter((type(d) is dict and _plain_whole([d]) for d in items), bool, len(items))
+    return np.fromiter(
+        (type(d) is dict and _plain_whole([d], _fields([d])) for d in items), bool, len(items)
+    )
 
 
 def _numbers_ok(cols: dict[str, np.ndarray]) -> np.ndarray:
@@ -306,25 +326,27 @@ def _numbers_ok(cols: dict[str, np.ndarray]) -> np.ndarray:
     return ok
 
 
-def _columns(items: list[dict], raw: dict[str, list], index) -> Columns:
-    n = len(items)
-    cols = {k: np.array(raw[k], dtype=np.float64).reshape(n) for k in FLOAT_FIELDS}
+def _columns(f: dict, index) -> Columns:
+    """Plain samples' :func:`_fields` as columns."""
+    n = len(f["loop_id"])
+    cols = _floats(f)
     e = cols["e"]
     error = np.where(np.isnan(e), cols["sp"] - cols["pv"], e)
+    if "applied_seq" in f["present"]:
+        seqs = (-1 if a is None else min(a, _SEQ_MAX) for a in f["applied_seq"])
+        applied = np.fromiter(seqs, np.int64, n)
+    else:
+        applied = np.full(n, -1, np.int64)
     return Columns(
-        [d["loop_id"] for d in items],
+        f["loop_id"],
         cols["t"],
         error,
         cols["sp"],
         cols["kp"],
         cols["ki"],
-        np.fromiter((d.get("auto", True) for d in items), bool, n),
-        np.fromiter((d.get("saturated", False) for d in items), bool, n),
+        np.fromiter(f["auto"], bool, n),
+        np.fromiter(f["saturated"], bool, n),
         np.asarray(list(index), np.int64).reshape(n),
         cols["op"],
-        np.fromiter(
-            (-1 if (a := d.get("applied_seq")) is None else min(a, _SEQ_MAX) for d in items),
-            np.int64,
-            n,
-        ),
+        applied,
     )
