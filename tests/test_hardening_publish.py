@@ -13,7 +13,8 @@ import time
 
 import pytest
 
-from service.daemon.tuner import Lane, Tuner
+from service.daemon.lanes import Lane
+from service.daemon.tuner import Tuner
 from service.engine.config import LoopConfig
 from tests.tuner_support import connected_gateway, loop_body, tuner_settings, wait_until
 

@@ -43,7 +43,7 @@ EXIT_USAGE = 2
 EXIT_NO_INPUT = 66
 EXIT_UNAVAILABLE = 69
 EXIT_CANT_CREATE = 73
-EXIT_STORE_FAILED = 74  # service.daemon.tuner.EXIT_STORE_FAILED
+EXIT_STORE_FAILED = 74  # service.daemon.delivery.EXIT_STORE_FAILED
 EXIT_LOCKED = 75
 EXIT_CODES = {
     EXIT_OK: "stopped by SIGTERM or SIGINT after a clean shutdown",

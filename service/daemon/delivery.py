@@ -1,0 +1,165 @@
+"""How the tuner worker delivers a step: commit first, then publish.
+
+The table's pending gains and audit rows (and the verification state they change) are
+committed to the store before any gains message goes out; while the store fails,
+steps are held, unpublished, and retried every COMMIT_RETRY_S; failing for
+``store_failure_exit_s`` ends the process for a supervisor to restart it from the store.
+
+Publishing never holds the worker: committed gains go to a :class:`Lane` per
+destination (one for the per-loop keys, one per gateway), each with its own thread
+doing the blocking put, in order; past LANE_BOUND waiting messages a lane keeps only
+the newest of each loop (gains are absolute and gateways drop older seqs), so it stays
+bounded, and a stuck gateway delays only its own lane.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import os
+import time
+
+import orjson
+
+from service.daemon.lanes import Lane
+from service.daemon.store_pg import Fenced
+from service.engine.updates import StepResult
+from service.wire.protocol import MAX_BATCH, SCHEMA_VERSION
+
+log = logging.getLogger("pitune.tuner")
+COMMIT_RETRY_S = 1.0
+"""Seconds between attempts to commit while the store fails."""
+EXIT_STORE_FAILED = 74
+"""Exit status after ``store_failure_exit_s`` of failing commits (EX_IOERR)."""
+IDENTIFICATION_OUTCOMES = frozenset(
+    {"identified", "rescaled", "mismatch", "out_of_envelope", "in_envelope", "identify"}
+)
+"""Audit reasons of the engine's identification (counted per outcome)."""
+
+
+class Delivery:
+    """Mixin of :class:`service.daemon.tuner.Tuner`: its worker commits and publishes each
+    step through these; the lanes call :meth:`_send` on their own threads."""
+
+    def _commit(self, result: StepResult | None) -> None:
+        """Persist the table's pending changes, then publish ``result``'s gains.
+
+        If the store fails (disk full, database locked), the changes go back to the table
+        and ``result`` is held, unpublished: nothing goes out that is not committed. A
+        later call (the worker retries every COMMIT_RETRY_S) commits them all and then
+        publishes what was held, in order.
+        """
+        if result is not None:
+            self._held.append(result)
+        if self._store_failing_since is not None and time.monotonic() < self._retry_at:
+            return
+        gains, audit = self.table.drain_changes()
+        for row in audit:
+            if row[5] in IDENTIFICATION_OUTCOMES:  # counted, and its state saved promptly
+                self.metrics.identification.labels(row[5]).inc()
+                self._snapshot_todo.append(row[0])
+        dirty = self.table.drain_verify_dirty()
+        if gains or audit:
+            try:
+                if self.cluster is None:
+                    self.store.record_gains(gains, audit)
+                else:
+                    fence = self._fence({g[3] for g in gains} | {a[0] for a in audit})
+                    self.store.record_gains(gains, audit, fence)
+            except Fenced as exc:
+                self._fenced(exc, gains, audit)
+                self.table.requeue_verify_dirty(dirty)  # of the loops still ours
+                self._commit(None)
+                return
+            except Exception as exc:  # sqlite3.Error, OSError, MemoryError: all the same
+                self.table.requeue(gains, audit)
+                self.table.requeue_verify_dirty(dirty)
+                self._store_failed(exc)
+                return
+            # INFO per gain change / adoption, rate-limited (the API logs resets with their caller)
+            self.metrics.events.audit(row for row in audit if row[5] != "reset")
+            self.metrics.verdict(audit)
+        if dirty:
+            # last-good gains, verdicts and proposals on disk before what follows from
+            # them goes out: a SIGKILL after this keeps them (they resume on restart)
+            rows = self.table.snapshot(dirty)
+            try:
+                self.store.snapshot(rows, None if self.cluster is None else self._fence(dirty))
+            except Fenced as exc:  # leases lost since the commit: those loops are dropped
+                self._fenced(exc, [], [])
+            except Exception as exc:  # noqa: BLE001 - as above
+                self.table.requeue_verify_dirty(dirty)
+                self._store_failed(exc)
+                return
+        if self._store_failing_since is not None:
+            log.warning("store commits work again; publishing %d held steps", len(self._held))
+            self._store_failing_since = None
+        held, self._held = self._held, []
+        for result in held:
+            self._publish(result)
+
+    def _store_failed(self, exc: Exception) -> None:
+        now = time.monotonic()
+        self.metrics.store_commit_failures.inc()
+        self._retry_at = now + COMMIT_RETRY_S
+        if self._store_failing_since is None:
+            self._store_failing_since = now
+        failing_for = now - self._store_failing_since
+        self._store_error = f"store commits failing for {failing_for:.0f} s: {exc!r}"
+        self._failure_log.warning("store", f"{self._store_error}; no RL steps until it works")
+        if failing_for >= self.settings.store_failure_exit_s:
+            # Unpublished steps live only in memory: restarting from the store brings the
+            # tuner back to exactly what was published (as a SIGKILL would), which a store
+            # that works again after a restart (or on another volume) needs.
+            log.critical("%s: exiting for a supervisor to restart the tuner", self._store_error)
+            logging.shutdown()
+            os._exit(EXIT_STORE_FAILED)
+
+    @property
+    def store_failure(self) -> str | None:
+        """Why the store fails to commit, while it does (None: it works)."""
+        return None if self._store_failing_since is None else self._store_error
+
+    def _publish(self, result: StepResult) -> None:
+        """Hand a committed step's messages to their lanes (never blocks on the bus)."""
+        self.recent.safely(self.recent.add_gains, result)
+        publishable = self._publishable(result.messages(self.settings.instance_id), result.gateways)
+        messages = [message for message, _ in publishable]
+        by_gateway: dict[str | None, list[dict]] = collections.defaultdict(list)
+        for message, gateway in publishable:
+            by_gateway[gateway].append(message)
+        for gateway, batch in by_gateway.items():
+            self._lane(gateway).submit(batch)
+        # counted when handed to the publishers (committed, to go out in order): a reader
+        # of the metrics after a reset or a step sees it; a message a newer one of its
+        # loop replaced in a blocked lane is in `superseded`
+        for mode, count in collections.Counter(m["mode"] for m in messages).items():
+            self.metrics.updates_published.labels(mode).inc(count)
+
+    def _lane(self, gateway: str | None) -> Lane:
+        lane = self.lanes.get(gateway)
+        if lane is None:
+            with self._lanes_lock:
+                lane = self.lanes.get(gateway)
+                if lane is None:
+                    lane = self.lanes[gateway] = Lane(gateway, self._send)
+        return lane
+
+    def _send(self, gateway: str | None, messages: list[dict]) -> None:
+        """A lane's blocking part, on its own thread: no lock of the tuner is held. In a
+        cluster, nothing goes out once the leases may have run out (a paused member)."""
+        if self.cluster is not None and not self.cluster.may_publish():
+            self.gains_fenced += len(messages)
+            return
+        if gateway is None:
+            for message in messages:
+                self.bus.publish(self.keys.gains(message["loop_id"]), orjson.dumps(message))
+            return
+        for i in range(0, len(messages), MAX_BATCH):
+            payload = {"v": SCHEMA_VERSION, "gains": messages[i : i + MAX_BATCH]}
+            self.bus.publish(self.keys.gateway_gains(gateway), orjson.dumps(payload))
+
+    @property
+    def superseded(self) -> int:
+        """Gains messages replaced in their lane by a newer one before they went out."""
+        return sum(lane.superseded for lane in list(self.lanes.values()))
