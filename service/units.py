@@ -73,6 +73,10 @@ one is not blown up into noise, a larger one not shrunk to 0."""
 MOVE_STEP = 0.2
 """Smallest setpoint change that counts as a move, agent units (the default of a loop's
 ``excitation_min_step``; training uses it too)."""
+EXCITATION_PERIODS = 5.0
+"""The excitation gate's window, RL periods: a loop is stepped only in the RL periods that
+end within this many periods of a setpoint move (the default of a loop's
+``excitation_periods``; training with ``excitation_gate`` uses it too)."""
 
 
 class Moves(NamedTuple):

@@ -7,7 +7,7 @@ import pytest
 
 from service.agent import load_agent
 from service.learn.closed_loop import convergence_time
-from service.learn.evaluate import evaluate
+from service.learn.evaluate import evaluate, evaluate_only
 from service.learn.report import FIGURES, write_model_card
 from service.units import RL_STEP_AGENT_UNITS
 
@@ -54,6 +54,19 @@ def test_shipped_agent_tunes_the_grid_and_the_tanks(quick_report):
     tanks = m["two_tank"]
     assert tanks["meta-RL"] < 0.2 * tanks["untuned"]
     assert tanks["meta-RL, noise"] < 0.2 * tanks["untuned, noise"]
+
+
+def test_only_adaptation_gives_the_full_runs_numbers(quick_report, tmp_path):
+    """``--only adaptation`` (the fast check of a training checkpoint) runs the same
+    protocol and seeds as the whole evaluation: the same numbers, and only its section."""
+    _, agent, metrics = quick_report
+    part = evaluate_only(agent, tmp_path, ("adaptation",), quick=True)
+    assert part["adaptation"] == metrics["adaptation"]
+    saved = json.loads((tmp_path / "metrics.json").read_text())
+    assert saved["only"] == ["adaptation"] and "asymptotic" not in saved
+    assert not (tmp_path / "report.md").exists()
+    with pytest.raises(ValueError, match="grid, adaptation"):
+        evaluate_only(agent, tmp_path, ("pca",), quick=True)
 
 
 def test_model_card_lists_training_and_results(quick_report, tmp_path):

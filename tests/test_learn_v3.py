@@ -3,6 +3,7 @@ training features (init_gain_prob, bc_hold_weight, val_robust)."""
 
 import numpy as np
 import pytest
+import torch
 
 from plant_sim.foptd import FOPTDBatch
 from plant_sim.loop import step_test_mse
@@ -137,6 +138,45 @@ def test_real_loop_rollout_weights_hold_steps_and_starts_from_oracle_gains(tmp_p
     assert (batch["weight"] == 0.25).any()  # quiet starts: no setpoint move yet
     assert not np.allclose(batch["obs"][0, :, :2].numpy(), 0.05)  # oracle x log-U[1/3, 3]
     assert batch["forgetting"].shape == (8,)
+
+
+def test_the_excitation_gate_of_training_is_the_engines(tmp_path):
+    """``excitation_gate``: the agent is stepped only within EXCITATION_PERIODS RL periods
+    of a setpoint move (the start counts unless quiet); elsewhere gains, hidden state and
+    label weight stay still, and the BC unroll carries the hidden state the same way."""
+    from service.learn.ppo import unroll
+
+    env = TuningEnv(EnvConfig(init_noise=0.0), np.random.default_rng(0))
+    cond = {"quiet": np.array([0.0, 0.0, 8.5 * env.cfg.rl_period]),
+            "sp_period": np.array([11.0, 55.0, 11.0])}  # fmt: skip
+    env.reset(np.full(3, 0.5), np.full(3, 0.5), np.full(3, 0.1), horizon=20, conditions=cond)
+    opened = [env.gate_open()]
+    for _ in range(19):
+        env.step(np.zeros((3, 2)))
+        opened.append(env.gate_open())
+    opened = np.array(opened)
+    assert opened[:, 0].all()  # toggles every 4 periods: always open
+    # a move at 0 and at 55 time units (20 periods): open for 5 periods after the start
+    assert opened[:6, 1].all() and not opened[6:, 1].any()
+    # quiet until 8.5 periods, then moves every 4: closed before, open from the move on
+    assert not opened[:9, 2].any() and opened[9:, 2].all()
+
+    cfg = TrainConfig(core_share=0.0, sp_long_prob=1.0, quiet_prob=0.5, excitation_gate=True,
+                      epochs=0, episodes=16)  # fmt: skip
+    trainer = Trainer(cfg, tmp_path)
+    batch = trainer.rollout(16, 24, explore=0.1)
+    stepped = batch["stepped"]
+    assert stepped.any() and not stepped.all()
+    assert (batch["weight"][~stepped] == 0).all()
+    gains = batch["obs"][:, :, :2]
+    held = ~stepped[:-1]  # an unstepped period leaves the next observation's gains as they were
+    assert torch.equal(gains[1:][held], gains[:-1][held])
+    gated = unroll(trainer.actor, batch["obs"], batch["forgetting"], stepped)[1]
+    free = unroll(trainer.actor, batch["obs"], batch["forgetting"])[1]
+    assert torch.allclose(gated, batch["deep"], atol=1e-5)  # the rollout's hidden states
+    assert not torch.allclose(free, batch["deep"], atol=1e-3)
+    with pytest.raises(ValueError, match="epochs 0"):
+        Trainer(TrainConfig(excitation_gate=True), tmp_path)
 
 
 def test_validate_robust_runs_through_the_agent_api():

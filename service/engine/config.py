@@ -11,7 +11,14 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from service.engine.figures import Proposal, Verification
-from service.units import AGENT_GAIN_RANGE, AGENT_TAU, DEFAULT_FORGETTING, Scaling, ScalingSpec
+from service.units import (
+    AGENT_GAIN_RANGE,
+    AGENT_TAU,
+    DEFAULT_FORGETTING,
+    EXCITATION_PERIODS,
+    Scaling,
+    ScalingSpec,
+)
 from service.wire.protocol import MAX_MAGNITUDE, Gain, GatewayId, LoopId, LoopStatus, Mode
 
 Fraction = Annotated[float, Field(strict=True, gt=0.0, le=10.0, allow_inf_nan=False)]
@@ -51,7 +58,7 @@ class Guard(BaseModel):
         5.0, description="Tuning pauses after this many sample periods without a sample."
     )
     excitation_periods: ExcitationPeriods = Field(
-        5.0,
+        EXCITATION_PERIODS,
         description="Excitation gate: the agent steps only in the RL periods that end "
         "within this many RL periods of a setpoint change (it learns from setpoint "
         "responses and detunes a loop that nobody moves); 0 turns the gate off.",

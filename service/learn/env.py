@@ -46,6 +46,7 @@ from service.units import (
     AGENT_GAIN_RANGE,
     AGENT_KI0,
     AGENT_KP0,
+    EXCITATION_PERIODS,
     MOVE_STEP,
     RL_STEP_AGENT_UNITS,
     track_moves,
@@ -251,6 +252,11 @@ class TuningEnv:
         quiet = np.rint(c["quiet"] / cfg.dt).astype(np.int64)
         self.sp = np.where(quiet > 0, y0, self.sp)
         self.excited = quiet == 0  # a setpoint move has been seen (the label's gate)
+        # the excitation gate's first move: the episode's start, a setpoint step (plant at
+        # about 0, setpoint at +-A), unless it starts quiet. The engine opens only at the
+        # first change after registration; training keeps the start's periods, which the
+        # paper's protocol (and pitune evaluate's experiments, without a gate) steps.
+        self.start_move_k = np.where(quiet > 0, -np.inf, 0.0)
         # Setpoint changes of a real loop do not line up with the RL steps: with jitter,
         # each episode gets its own period (+-sp_jitter) and phase.
         j = cfg.sp_jitter
@@ -327,6 +333,14 @@ class TuningEnv:
         self.plant.set_params(K=self.K, tau=self.tau, theta=self.theta)
         tau_e, theta_e = effective_foptd(self.tau, self.theta, self.tau2)
         self.target.set_params(tau=2.0 * tau_e, theta=theta_e)
+
+    def gate_open(self, periods: float = EXCITATION_PERIODS) -> np.ndarray:
+        """(B,) bool: where the tuning engine's excitation gate would step the agent now,
+        i.e. the last setpoint move (of at least MOVE_STEP) lies within ``periods`` RL
+        periods (the engine's ``excitation_periods``, service.engine.rules); an episode's
+        start counts as a move unless it starts quiet (see :meth:`reset`)."""
+        last = np.maximum(self.move_k, self.start_move_k)
+        return self.k - last <= periods * self.inner
 
     def observe(self) -> np.ndarray:
         """[kp, ki, e, int_e] (B, 4), e and int_e scaled as the engine scales them."""

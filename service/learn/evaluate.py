@@ -57,6 +57,15 @@ class EvalConfig:
     robust: bool = False
     """Run the robustness suite through the tuning engine (:mod:`service.learn.robust`)
     instead of the paper's experiments."""
+    only: tuple[str, ...] = ()
+    """Run only these experiments (names of :data:`PARTS`) and write their metrics.json,
+    no report or figures: a fast check of a training checkpoint, e.g. the adaptation
+    experiments alone in a few seconds. Empty: everything."""
+
+
+PARTS = ("grid", "adaptation")
+"""Experiments ``--only`` can run alone: the paper grid (asymptotic MSE and convergence
+time, experiments 1-2) and the adaptation runs (tau ramp and K step, experiment 3)."""
 
 
 def evaluate(agent: Policy, out: Path, quick: bool = False) -> dict:
@@ -77,41 +86,14 @@ def evaluate(agent: Policy, out: Path, quick: bool = False) -> dict:
         "untuned, noise": two_tank(None, noise_cm=1.0, minutes=minutes),
         "meta-RL, noise": two_tank(agent, noise_cm=1.0, minutes=minutes),
     }
-    worst, best = int(np.argmax(asym["mse"])), int(np.argmin(asym["mse"]))
-
-    def plant(i):
-        return {
-            "K": float(asym["K"][i]),
-            "tau": float(asym["tau"][i]),
-            "theta": float(asym["theta"][i]),
-        }
-
     metrics = {
         "agent": agent.meta.get("source", "shipped"),
         "inference": getattr(agent, "precision", "reference"),
         "quick": quick,
         "rl_steps": steps,
-        "asymptotic": {
-            "grid_size": int(asym["mse"].size),
-            "worst_mse": float(asym["mse"][worst]),
-            "worst_plant": plant(worst),
-            "median_mse": float(np.median(asym["mse"])),
-            "best_mse": float(asym["mse"][best]),
-            "best_plant": plant(best),
-            "simc_worst_mse": float(asym["simc_mse"].max()),
-            "simc_median_mse": float(np.median(asym["simc_mse"])),
-        },
-        "convergence": {
-            "worst_time": float(asym["conv"].max()),
-            "median_time": float(np.median(asym["conv"])),
-            "best_time": float(asym["conv"].min()),
-        },
+        **grid_metrics(asym),
         "table2": t2,
-        "adaptation": {
-            name: {k: v for k, v in res.items() if k != "gains"}
-            | {"improvement": res["frozen"] / max(res["adaptive"], 1e-12)}
-            for name, res in adapt.items()
-        },
+        "adaptation": adaptation_metrics(adapt),
         "hidden_pca": {"two_component_share": pca["share2"]},
         "robustness": robust,
         "quiet": still,
@@ -136,14 +118,80 @@ def evaluate(agent: Policy, out: Path, quick: bool = False) -> dict:
     return metrics
 
 
+def grid_metrics(asym: dict) -> dict:
+    """The ``asymptotic`` and ``convergence`` sections of metrics.json from
+    :func:`~service.learn.experiments.asymptotic`'s result."""
+    worst, best = int(np.argmax(asym["mse"])), int(np.argmin(asym["mse"]))
+
+    def plant(i):
+        return {k: float(asym[k][i]) for k in ("K", "tau", "theta")}
+
+    return {
+        "asymptotic": {
+            "grid_size": int(asym["mse"].size),
+            "worst_mse": float(asym["mse"][worst]),
+            "worst_plant": plant(worst),
+            "median_mse": float(np.median(asym["mse"])),
+            "best_mse": float(asym["mse"][best]),
+            "best_plant": plant(best),
+            "simc_worst_mse": float(asym["simc_mse"].max()),
+            "simc_median_mse": float(np.median(asym["simc_mse"])),
+        },
+        "convergence": {
+            "worst_time": float(asym["conv"].max()),
+            "median_time": float(np.median(asym["conv"])),
+            "best_time": float(asym["conv"].min()),
+        },
+    }
+
+
+def adaptation_metrics(adapt: dict) -> dict:
+    """The ``adaptation`` section of metrics.json (adaptive and frozen tracking MSE and
+    their ratio per run) from :func:`~service.learn.experiments.adaptation`'s result."""
+    return {
+        name: {k: v for k, v in res.items() if k != "gains"}
+        | {"improvement": res["frozen"] / max(res["adaptive"], 1e-12)}
+        for name, res in adapt.items()
+    }
+
+
+def evaluate_only(agent: Policy, out: Path, parts: tuple[str, ...], quick: bool = False) -> dict:
+    """Only the named experiments of :data:`PARTS`, with the same protocol (and seeds) as
+    :func:`evaluate`; writes ``out/metrics.json`` with their sections, no report."""
+    unknown = set(parts) - set(PARTS)
+    if unknown or not parts:
+        raise ValueError(f"--only takes some of {', '.join(PARTS)}; got {', '.join(parts)}")
+    out.mkdir(parents=True, exist_ok=True)
+    start = time.monotonic()
+    steps = 80 if quick else 100
+    metrics = {
+        "agent": agent.meta.get("source", "shipped"),
+        "inference": getattr(agent, "precision", "reference"),
+        "quick": quick,
+        "only": list(parts),
+    }
+    if "grid" in parts:
+        metrics |= {"rl_steps": steps, **grid_metrics(asymptotic(agent, steps, quick))}
+    if "adaptation" in parts:
+        metrics["adaptation"] = adaptation_metrics(adaptation(agent, quick))
+    metrics["wall_s"] = round(time.monotonic() - start, 1)
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    return metrics
+
+
 def main(cfg: EvalConfig) -> int:
     """Evaluate, print the report, write the card; exit code 1 if a bar is not met (full run)."""
+    if cfg.robust and cfg.only:
+        raise SystemExit("--only selects among the paper's experiments; not with --robust")
     agent = load_agent(cfg.weights)
     policy = agent if cfg.precision == "reference" else FastPolicy(agent, precision=cfg.precision)
     if cfg.robust:
         result = robust_suite(policy, cfg.out, quick=cfg.quick)
         print((cfg.out / "robust.md").read_text())
         return 0 if all(r["meets_bar"] for r in result["conditions"]) or cfg.quick else 1
+    if cfg.only:
+        print(json.dumps(evaluate_only(policy, cfg.out, cfg.only, quick=cfg.quick), indent=2))
+        return 0
     metrics = evaluate(policy, cfg.out, quick=cfg.quick)
     print((cfg.out / "report.md").read_text())
     if cfg.card is not None:
@@ -166,6 +214,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "hint errors, dead time, second-order plants) instead of the paper's section 5",
     )
     p.add_argument("--quick", action="store_true", help="reduced version (CI, < 2 minutes)")
+    p.add_argument(
+        "--only",
+        type=_parts,
+        default=EvalConfig.only,
+        metavar="PART[,PART]",
+        help=f"run only these experiments ({', '.join(PARTS)}) and write their metrics.json "
+        "(no report or figures; not with --robust)",
+    )
     p.add_argument("--card", type=Path, default=None, help="also write a model card here")
     p.add_argument(
         "--precision",
@@ -173,6 +229,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=EvalConfig.precision,
         help="agent.act (reference), or the tuner's FastPolicy in this precision",
     )
+
+
+def _parts(value: str) -> tuple[str, ...]:
+    """``--only``'s comma-separated list, checked against :data:`PARTS`."""
+    parts = tuple(x.strip() for x in value.split(",") if x.strip())
+    if not parts or set(parts) - set(PARTS):
+        raise argparse.ArgumentTypeError(f"choose from {', '.join(PARTS)} (got {value!r})")
+    return parts
 
 
 def run(args: argparse.Namespace) -> int:
@@ -184,5 +248,6 @@ def run(args: argparse.Namespace) -> int:
             precision=args.precision,
             card=args.card,
             robust=args.robust,
+            only=args.only,
         )
     )

@@ -9,19 +9,24 @@ import torch
 from service.agent.model import Actor, forget
 
 
-def unroll(actor: Actor, obs: torch.Tensor, forgetting: torch.Tensor):
+def unroll(
+    actor: Actor, obs: torch.Tensor, forgetting: torch.Tensor, stepped: torch.Tensor | None = None
+):
     """Actor over a whole sequence with per-episode forgetting: obs (T, B, 4), forgetting (B,).
 
-    Returns mean (T, B, 2) and deep (T, B, hidden). Without forgetting the GRU runs the
-    sequence in one call; with it, step by step as the rollout did.
+    ``stepped`` (T, B) bool, if given: where the rollout stepped the agent (the excitation
+    gate); elsewhere the hidden state is carried unchanged, as the rollout (and the tuning
+    engine) did. Returns mean (T, B, 2) and deep (T, B, hidden). Without forgetting or a
+    gate the GRU runs the sequence in one call; with them, step by step as the rollout did.
     """
     h = torch.zeros(actor.cfg.layers, obs.shape[1], actor.cfg.hidden, device=obs.device)
-    if bool((forgetting == 1.0).all()):
+    if stepped is None and bool((forgetting == 1.0).all()):
         mean, deep, _ = actor(obs, h)
         return mean, deep
     means, deeps = [], []
     for t in range(obs.shape[0]):
-        mean, deep, h = actor(obs[t : t + 1], forget(h, forgetting))
+        mean, deep, h_next = actor(obs[t : t + 1], forget(h, forgetting))
+        h = h_next if stepped is None else torch.where(stepped[t][None, :, None], h_next, h)
         means.append(mean)
         deeps.append(deep)
     return torch.cat(means), torch.cat(deeps)

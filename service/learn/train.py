@@ -85,6 +85,8 @@ class Trainer:
         self.env_cfg = EnvConfig(
             drift_prob=cfg.drift_prob, sp_jitter=cfg.sp_jitter, **{k: getattr(cfg, k) for k in v3}
         )
+        if cfg.excitation_gate and cfg.epochs > 0:
+            raise ValueError("excitation_gate applies to the imitation warm start: --epochs 0")
         self.real = cfg.core_share < 1.0  # v3: real-loop conditions and the widened oracle
         self.table = oracle_table3() if self.real else oracle_table()
         self.epoch = 0
@@ -158,20 +160,29 @@ class Trainer:
         dev = self.device
         forgetting = torch.as_tensor(self._episode_forgetting(n), dtype=torch.float32, device=dev)
         h = torch.zeros(self.actor.cfg.layers, n, self.actor.cfg.hidden, device=dev)
-        keys = ("obs", "act", "logp", "cost", "mse", "priv", "deep", "label", "weight")
+        keys = ("obs", "act", "logp", "cost", "mse", "priv", "deep", "label", "weight", "stepped")
         buf = {k: [] for k in keys}
         std = self.actor.log_std.exp()
         with torch.no_grad():
             for _ in range(horizon):
                 o = torch.as_tensor(obs, dtype=torch.float32, device=dev)
-                mean, deep, h = self.actor(o.unsqueeze(0), forget(h, forgetting))
+                mean, deep, h_next = self.actor(o.unsqueeze(0), forget(h, forgetting))
                 mean, deep = mean[0], deep[0]
+                if cfg.excitation_gate:  # where the engine would not step: nothing moves
+                    gate = env.gate_open()
+                    stepped = torch.as_tensor(gate, device=dev)
+                    buf["stepped"].append(stepped)
+                    h = torch.where(stepped[None, :, None], h_next, h)
+                else:
+                    h = h_next
                 if explore is None:
                     dist = Normal(mean, std)
                     a = dist.sample()
                     buf["logp"].append(dist.log_prob(a).sum(-1))
                 else:
                     a = mean + explore * torch.randn_like(mean)
+                if cfg.excitation_gate:
+                    a = torch.where(stepped[:, None], a, torch.zeros_like(a))
                 if self.real:  # hold the gains until a setpoint move has been seen
                     target = oracle_gains3(self.table, env.K, env.tau, env.theta, env.tau2)
                     target = np.where(env.excited[:, None], target, obs[:, :2])
@@ -184,6 +195,8 @@ class Trainer:
                 # hold steps (no setpoint move seen yet): any bias there accumulates over
                 # a long quiet stretch, so they weigh bc_hold_weight in the loss
                 w = np.where(env.excited, 1.0, cfg.bc_hold_weight) if self.real else np.ones(n)
+                if cfg.excitation_gate:
+                    w = w * gate
                 buf["weight"].append(torch.as_tensor(w, dtype=torch.float32, device=dev))
                 buf["obs"].append(o)
                 buf["act"].append(a)
@@ -208,7 +221,10 @@ class Trainer:
         for _ in range(cfg.bc_updates):
             order = torch.randperm(cfg.episodes, device=self.device)
             for idx in order.split(cfg.bc_minibatch):
-                mean, _ = unroll(self.actor, batch["obs"][:, idx], batch["forgetting"][idx])
+                stepped = batch["stepped"][:, idx] if "stepped" in batch else None
+                mean, _ = unroll(
+                    self.actor, batch["obs"][:, idx], batch["forgetting"][idx], stepped
+                )
                 w = batch["weight"][:, idx, None]
                 loss = (w * (mean - batch["label"][:, idx]) ** 2).mean()
                 self.opt_bc.zero_grad()

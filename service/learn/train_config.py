@@ -97,6 +97,11 @@ class TrainConfig:
     """Share of the other episodes with a second-order plant (EnvConfig.lag2_prob)."""
     init_gain_prob: float = 0.0
     """Share of the other episodes starting at the oracle's gains x log-U[1/3, 3]."""
+    excitation_gate: bool = False
+    """Imitation rollouts step the agent only where the tuning engine's excitation gate
+    would (RL periods ending within EXCITATION_PERIODS of a setpoint move): elsewhere the
+    gains and hidden state stay as they are and the step carries no label, so long holds
+    and quiet starts look to the agent as they do online. Imitation only (``epochs 0``)."""
     val_robust: bool = False
     """Validation also scores the v3 robustness conditions (:func:`validate_robust`)."""
     keep_validated: bool = False

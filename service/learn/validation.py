@@ -103,9 +103,11 @@ def validate(
 def validate_robust(agent: Agent, plants, steps: int = VAL_ROBUST_STEPS) -> dict:
     """The conditions of :data:`VAL_ROBUST` on the validation plants (K, tau, theta), all
     in one :class:`TuningEnv` batch from the default gains for ``steps`` RL steps
-    (forgetting 1), the final gains scored as ``pitune evaluate --robust`` scores them
-    (:func:`service.learn.robust.score`; an unstable loop scores inf). Returns the worst
-    and the largest median over the conditions, and the worst condition's name."""
+    (forgetting 1; stepped only where the engine's excitation gate is open,
+    :meth:`TuningEnv.gate_open`, as in ``pitune evaluate --robust``), the final gains
+    scored as ``pitune evaluate --robust`` scores them (:func:`service.learn.robust.score`;
+    an unstable loop scores inf). Returns the worst and the largest median over the
+    conditions, and the worst condition's name."""
     m = plants[0].size
     true = [c.plants(*plants) for c in VAL_ROBUST]
     K, tau, theta, lag = (np.concatenate(parts) for parts in zip(*true, strict=True))
@@ -118,8 +120,11 @@ def validate_robust(agent: Agent, plants, steps: int = VAL_ROBUST_STEPS) -> dict
     obs = env.reset(K, tau, theta, horizon=steps, sp0=cond["sp_amp"], tau2=lag, conditions=cond)
     state = agent.initial_state(K.size)
     for _ in range(steps):
-        delta, state = agent.act(obs, state)
-        obs, _, _ = env.step(delta)
+        # the engine's excitation gate: no step (gains and hidden state still) outside it
+        stepped = env.gate_open()
+        delta, new_state = agent.act(obs, state)
+        state = np.where(stepped[:, None, None], new_state, state)
+        obs, _, _ = env.step(np.where(stepped[:, None], delta, 0.0))
     # one condition at a time: score() takes first- or second-order plants, not a mix
     parts = [np.arange(i * m, (i + 1) * m) for i in range(len(VAL_ROBUST))]
     mse = np.array([score(K[j], tau[j], theta[j], lag[j], *obs[j, :2].T) for j in parts])
