@@ -1,5 +1,6 @@
-"""A loop's stored snapshot, parsed: what :meth:`LoopTable.add
-<service.engine.table.LoopTable.add>` restores.
+"""A loop's stored snapshot: its runtime state written as JSON (:func:`runtime_of`),
+the row parsed (:class:`Saved`) and restored into the table (:func:`restore_runtime`,
+from :meth:`LoopTable.add <service.engine.table.LoopTable.add>`).
 
 Parsing (the runtime JSON, the identification state) is most of a restore's cost and
 needs none of the table's state, so a cluster member taking over shards parses their
@@ -11,11 +12,13 @@ array writes.
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass
 
 import numpy as np
+import orjson
 
-from service.engine import watch
+from service.engine import monitor, verify, watch
 
 
 @dataclass(frozen=True)
@@ -39,3 +42,65 @@ class Saved:
             rt,
             None if ident is None else watch.IdState.load(ident),
         )
+
+
+def runtime_of(tb, s: int, counters: list[str]) -> str:
+    """Loop ``s``'s runtime state as the snapshot's JSON (``counters``: the table's
+    counters a snapshot keeps, in order)."""
+
+    def num(x: float) -> float | None:  # JSON has no NaN or inf
+        return float(x) if math.isfinite(x) else None
+
+    return orjson.dumps(
+        {
+            "last_t": num(tb.last_t[s]),
+            "last_e": float(tb.last_e[s]),
+            "int_e": float(tb.int_e[s]),
+            "next_due": num(tb.next_due[s]),
+            "sp_ref": num(tb.sp_ref[s]),
+            "excited_until": num(tb.excited_until[s]),
+            "obs_gain": float(tb.obs_gain[s]),
+            "sp_anchor": num(tb.sp_anchor[s]),
+            "move_t": num(tb.move_t[s]),
+            "manual": bool(tb.manual[s]),
+            "saturated": bool(tb.saturated[s]),
+            "counters": [int(getattr(tb, n)[s]) for n in counters],
+            "ident": {
+                **tb.ident[s].dump(),
+                "mismatch": bool(tb.mismatch[s]),
+                "out_env": bool(tb.out_env[s]),
+            },
+            "verify": verify.dump(tb, s),
+            "figures": monitor.dump(tb, s),
+        },
+        option=orjson.OPT_SERIALIZE_NUMPY,
+    ).decode()
+
+
+def restore_runtime(tb, s: int, saved: Saved, counters: list[str]) -> None:
+    """The snapshot's runtime state into loop ``s`` of the table ``tb`` (its identification
+    state is restored by :meth:`LoopTable.add <service.engine.table.LoopTable.add>`)."""
+    if saved.hidden.size == tb.hidden[s].size:
+        tb.hidden[s] = saved.hidden.reshape(tb.hidden[s].shape)
+    rt = saved.runtime
+    tb.last_t[s] = math.nan if rt["last_t"] is None else rt["last_t"]
+    tb.next_due[s] = math.nan if rt["next_due"] is None else rt["next_due"]
+    tb.last_e[s], tb.int_e[s] = rt["last_e"], rt["int_e"]
+    tb.manual[s], tb.saturated[s] = rt["manual"], rt["saturated"]
+    sp_ref = rt.get("sp_ref")  # absent in snapshots from before the excitation gate
+    tb.sp_ref[s] = math.nan if sp_ref is None else sp_ref
+    until = rt.get("excited_until")
+    tb.excited_until[s] = -math.inf if until is None else until
+    tb.obs_gain[s] = rt.get("obs_gain", 1.0)  # absent before the normalisation
+    anchor, move_t = rt.get("sp_anchor"), rt.get("move_t")  # absent before runs of moves
+    tb.sp_anchor[s] = math.nan if anchor is None else anchor
+    tb.move_t[s] = -math.inf if move_t is None else move_t
+    # snapshots from before a counter was added list fewer: those stay 0
+    for name, value in zip(counters, rt["counters"], strict=False):
+        getattr(tb, name)[s] = value
+    ident = rt.get("ident")  # absent in snapshots from before identification
+    if ident is not None:
+        tb.mismatch[s], tb.out_env[s] = ident["mismatch"], ident["out_env"]
+    if "verify" in rt:  # absent in snapshots from before verification
+        verify.load(tb, s, rt["verify"])
+        monitor.load(tb, s, rt.get("figures") or {})

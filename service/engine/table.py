@@ -20,7 +20,6 @@ from collections.abc import Iterable
 from typing import Literal
 
 import numpy as np
-import orjson
 
 from service.agent.fast import FastPolicy, Precision
 from service.agent.model import Agent
@@ -33,7 +32,7 @@ from service.engine.config import (
     resolve_bounds,
 )  # fmt: skip
 from service.engine.modes import _CODE, _MODES, AUTO, FROZEN, SHADOW
-from service.engine.saved import Saved
+from service.engine.saved import Saved, restore_runtime, runtime_of
 from service.engine.updates import MODE_VALUES, StepResult
 from service.units import Scaling
 from service.wire.protocol import LoopStatus, Mode, UpdateReason
@@ -78,6 +77,8 @@ _I64 = [
 ]  # fmt: skip
 """Mode, seq, then the counters (persisted in this order: new ones go at the end)."""
 _REC = ["rec", "rec_n", "rec_k", "rec_stride"]
+_COUNTERS = _I64[2:]
+"""The counters a snapshot keeps, in this order (a new one goes at the end)."""
 """Identification recorder: pool row (-1: not recording), samples held, samples seen,
 recording stride."""
 _BOOL = [
@@ -199,7 +200,7 @@ class LoopTable:
         self.kp[s] = config.kp if kp is None else kp
         self.ki[s] = config.ki if ki is None else ki
         self.seq[s] = seq
-        for name in _I64[2:]:
+        for name in _COUNTERS:
             getattr(self, name)[s] = 0
         self.tokens[s], self.token_wall[s] = self.burst, wall
         # a restored identification first: the configuration follows its scaling
@@ -215,7 +216,7 @@ class LoopTable:
         self._configure(s, config)
         self._restart(s)
         if saved is not None:
-            self._restore(s, saved)
+            restore_runtime(self, s, saved, _COUNTERS)
         return s
 
     def _configure(self, s: int, config: LoopConfig) -> None:
@@ -409,63 +410,10 @@ class LoopTable:
             items = self.slot_of.items()
         else:
             items = [(i, self.slot_of[i]) for i in loop_ids if i in self.slot_of]
-        return [(loop_id, self.hidden[s].tobytes(), self._runtime(s)) for loop_id, s in items]
-
-    def _runtime(self, s: int) -> str:
-        def num(x: float) -> float | None:  # JSON has no NaN or inf
-            return float(x) if math.isfinite(x) else None
-
-        return orjson.dumps(
-            {
-                "last_t": num(self.last_t[s]),
-                "last_e": float(self.last_e[s]),
-                "int_e": float(self.int_e[s]),
-                "next_due": num(self.next_due[s]),
-                "sp_ref": num(self.sp_ref[s]),
-                "excited_until": num(self.excited_until[s]),
-                "obs_gain": float(self.obs_gain[s]),
-                "sp_anchor": num(self.sp_anchor[s]),
-                "move_t": num(self.move_t[s]),
-                "manual": bool(self.manual[s]),
-                "saturated": bool(self.saturated[s]),
-                "counters": [int(getattr(self, n)[s]) for n in _I64[2:]],
-                "ident": {
-                    **self.ident[s].dump(),
-                    "mismatch": bool(self.mismatch[s]),
-                    "out_env": bool(self.out_env[s]),
-                },
-                "verify": verify.dump(self, s),
-                "figures": monitor.dump(self, s),
-            },
-            option=orjson.OPT_SERIALIZE_NUMPY,
-        ).decode()
-
-    def _restore(self, s: int, saved: Saved) -> None:
-        """The snapshot's runtime state (its identification state is in :meth:`add`)."""
-        if saved.hidden.size == self.hidden[s].size:
-            self.hidden[s] = saved.hidden.reshape(self.hidden[s].shape)
-        rt = saved.runtime
-        self.last_t[s] = math.nan if rt["last_t"] is None else rt["last_t"]
-        self.next_due[s] = math.nan if rt["next_due"] is None else rt["next_due"]
-        self.last_e[s], self.int_e[s] = rt["last_e"], rt["int_e"]
-        self.manual[s], self.saturated[s] = rt["manual"], rt["saturated"]
-        sp_ref = rt.get("sp_ref")  # absent in snapshots from before the excitation gate
-        self.sp_ref[s] = math.nan if sp_ref is None else sp_ref
-        until = rt.get("excited_until")
-        self.excited_until[s] = -math.inf if until is None else until
-        self.obs_gain[s] = rt.get("obs_gain", 1.0)  # absent before the normalisation
-        anchor, move_t = rt.get("sp_anchor"), rt.get("move_t")  # absent before runs of moves
-        self.sp_anchor[s] = math.nan if anchor is None else anchor
-        self.move_t[s] = -math.inf if move_t is None else move_t
-        # snapshots from before a counter was added list fewer: those stay 0
-        for name, value in zip(_I64[2:], rt["counters"], strict=False):
-            getattr(self, name)[s] = value
-        ident = rt.get("ident")  # absent in snapshots from before identification
-        if ident is not None:
-            self.mismatch[s], self.out_env[s] = ident["mismatch"], ident["out_env"]
-        if "verify" in rt:  # absent in snapshots from before verification
-            verify.load(self, s, rt["verify"])
-            monitor.load(self, s, rt.get("figures") or {})
+        return [
+            (loop_id, self.hidden[s].tobytes(), runtime_of(self, s, _COUNTERS))
+            for loop_id, s in items
+        ]
 
     # -- views ------------------------------------------------------------------------
     def status(self, s: int, wall: float) -> LoopStatus:
