@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import logging
 import time
+from itertools import repeat
 
 import numpy as np
 
@@ -199,12 +200,9 @@ class Ownership:
         if self.cluster is not None and not self.cluster.owns(gateway_shard(gateway)):
             self.foreign_samples += decoded.received
             return Decoded(rows.take(np.zeros(len(rows), bool)), [], 0)
-        slot_of, of_slot = self.table.slot_of, self.table.gateways
-        wrong = np.fromiter(
-            (s is not None and of_slot[s] != gateway for s in map(slot_of.get, rows.loop_ids)),
-            bool,
-            len(rows),
-        )
+        n = len(rows)
+        slots = np.fromiter(map(self.table.slot_of.get, rows.loop_ids, repeat(-1, n)), np.int64, n)
+        wrong = (slots >= 0) & (self.table.gateways[slots] != gateway)
         if not wrong.any():
             return decoded
         detail = f"not registered with gateway {gateway!r}"

@@ -58,7 +58,7 @@ from service.daemon.store import Store
 from service.daemon.upkeep import Upkeep
 from service.engine.engine import TuningEngine
 from service.engine.updates import StepResult
-from service.wire.decode import Rejection, decode_batch, decode_singles
+from service.wire.decode import Rejection, decode_batch, decode_singles, joined
 from service.wire.protocol import (
     RejectReason,
 )
@@ -91,23 +91,31 @@ def load_configured_agent(settings: Settings) -> Agent:
 
 SINGLES_GROUP = 2000
 """Most single-sample messages ingested in one vectorised pass."""
+BATCHES_GROUP_BYTES = 1 << 20
+"""Most payload bytes of batch messages ingested in one pass (~25,000 samples of a
+gateway's batches): a backlog of batches costs the engine's per-pass work once, not once
+a message (at 30,000 loops in batches of 75: ~0.6 ms a pass against ~2 µs a sample)."""
 
 
-def _group_singles(items: list[Item]):
-    """The items, with runs of single-sample messages as (Kind.sample, "", [(key, payload)])."""
+def _group(items: list[Item]):
+    """The items as (kind, payload), with runs of single-sample messages and runs of batch
+    messages as (Kind.sample or Kind.batch, [(key, payload), ...])."""
     run: list[tuple[str, bytes]] = []
+    run_kind, size = None, 0
     for kind, key, payload in items:
-        if kind is Kind.sample:
+        if run and (
+            kind is not run_kind or len(run) >= SINGLES_GROUP or size >= BATCHES_GROUP_BYTES
+        ):
+            yield run_kind, run
+            run, size = [], 0
+        if kind is Kind.sample or kind is Kind.batch:
             run.append((key, payload))
-            if len(run) < SINGLES_GROUP:
-                continue
-        if run:
-            yield Kind.sample, "", run
-            run = []
-        if kind is not Kind.sample:
-            yield kind, key, payload
+            run_kind = kind
+            size += len(payload) if kind is Kind.batch else 0
+        else:
+            yield kind, payload
     if run:
-        yield Kind.sample, "", run
+        yield run_kind, run
 
 
 class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
@@ -344,7 +352,7 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
         flush_at = math.inf
         with engine.lock:
             engine.stepping = self._store_failing_since is None
-            for kind, key, payload in _group_singles(items):
+            for kind, payload in _group(items):
                 self.handoff.let_in()
                 if kind is Kind.query or kind is Kind.gateway_query:
                     self._flush(wall)  # the reply reflects every sample handled before it
@@ -358,7 +366,10 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
                         decode_singles([(self.keys.loop_id(k), p) for k, p in payload])
                     )
                 else:  # the shared samples key, or one gateway's (revision 4)
-                    decoded = self._gateway_rows(decode_batch(payload), self.keys.gateway_id(key))
+                    decoded = joined(
+                        [self._gateway_rows(decode_batch(p), self.keys.gateway_id(k))
+                         for k, p in payload]
+                    )  # fmt: skip
                 self._ingest(decoded, wall)
                 # received last: once it reaches N, those N samples are in their counters
                 self.metrics.samples_received.inc(decoded.received)
