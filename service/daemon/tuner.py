@@ -51,6 +51,7 @@ from service.daemon.handoff import Handoff
 from service.daemon.lanes import LANE_DRAIN_S, Lane
 from service.daemon.metrics import Metrics, RateLimitedLog
 from service.daemon.ownership import Ownership
+from service.daemon.pacing import LINGER_BYTES, LINGER_S, Pacer
 from service.daemon.queries import StateQueries
 from service.daemon.recent import Recent
 from service.daemon.settings import Settings
@@ -141,6 +142,8 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
         """Recent samples and published gains of each loop, for the console's trends."""
         self._skipped = 0
         self.inbox = Inbox(settings.queue_size, settings.queue_bytes)
+        self.pacer = Pacer()
+        """The worker's busy share: a busy worker waits for more batches (pacing.py)."""
         self.epoch: int | None = None
         """The store's epoch of this run (set by :meth:`start`)."""
         self.lanes: dict[str | None, Lane] = {}
@@ -312,12 +315,11 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
                 items = [self.inbox.get(timeout=max(0.0, wait))]
             except queue.Empty:
                 items = []
-            while items and len(items) < self.settings.max_batch:
-                try:
-                    items.append(self.inbox.get_nowait())
-                except queue.Empty:
-                    break
+            if items:
+                linger = LINGER_S if self.pacer.lingering else 0.0
+                self.inbox.more(items, self.settings.max_batch, linger, LINGER_BYTES)
             stop = any(item is _STOP for item in items)
+            began = time.perf_counter()
             try:
                 self._handle([item for item in items if item is not _STOP])
                 if self._store_failing_since is not None and not stop:
@@ -334,6 +336,7 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
                     self._retain()
             except Exception:
                 log.exception("worker iteration failed; continuing")
+            self.pacer.worked(time.perf_counter() - began)
             if stop:
                 return
 
