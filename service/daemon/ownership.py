@@ -204,13 +204,15 @@ class Ownership:
         slots = np.fromiter(map(self.table.slot_of.get, rows.loop_ids, repeat(-1, n)), np.int64, n)
         wrong = (slots >= 0) & (self.table.gateways[slots] != gateway)
         if not wrong.any():
-            return decoded
+            return Decoded(rows, decoded.rejected, decoded.received, slots)
         detail = f"not registered with gateway {gateway!r}"
         rejected = [
             Rejection(int(rows.index[j]), rows.loop_ids[j], RejectReason.wrong_gateway, detail)
             for j in np.flatnonzero(wrong).tolist()
         ]
-        return Decoded(rows.take(~wrong), decoded.rejected + rejected, decoded.received)
+        return Decoded(
+            rows.take(~wrong), decoded.rejected + rejected, decoded.received, slots[~wrong]
+        )
 
     def _own_rows(self, decoded: Decoded) -> Decoded:
         """The decoded samples without those of loops another member owns."""

@@ -220,7 +220,9 @@ class TuningEngine:
                 return results
             slot_of = self.table.slot_of
             n = len(rows)
-            slots = np.fromiter(map(slot_of.get, rows.loop_ids, repeat(-1, n)), np.int64, n)
+            slots = decoded.slots
+            if slots is None:
+                slots = np.fromiter(map(slot_of.get, rows.loop_ids, repeat(-1, n)), np.int64, n)
             unknown = slots < 0
             if unknown.any():
                 for i in np.flatnonzero(unknown).tolist():

@@ -107,6 +107,10 @@ class Decoded:
     rejected: list[Rejection]
     received: int
     """Samples received (accepted + rejected)."""
+    slots: np.ndarray | None = None
+    """int64: each row's slot in the engine's table (-1: not registered), when the caller
+    already looked them up under the engine's lock (the tuner's gateway check), so the
+    engine does not again (a lookup per sample in a dict of every loop)."""
 
 
 def joined(parts: list[Decoded]) -> Decoded:
@@ -132,7 +136,10 @@ def joined(parts: list[Decoded]) -> Decoded:
         for r in p.rejected
     ]
     rows = Columns(ids, **arrays, index=index.astype(np.int64), op=op, applied_seq=seq)
-    return Decoded(rows, rejected, sum(p.received for p in parts))
+    slots = None
+    if all(p.slots is not None for p in parts):
+        slots = np.concatenate([p.slots for p in parts])
+    return Decoded(rows, rejected, sum(p.received for p in parts), slots)
 
 
 def _or(values: np.ndarray | None, n: int, fill, dtype) -> np.ndarray:
