@@ -6,8 +6,9 @@ and a ring of the last :data:`GAINS` gains decisions the tuner published (wall t
 plant time, kp, ki, reason). Nothing here is persisted: after a restart the trends start
 empty (the audit log in the store keeps every change).
 
-Size, fixed per loop and allocated the first time a loop sends a sample (slots grow by
-doubling, like the engine's table):
+Size, fixed per loop and allocated the first time a loop sends a sample (for every
+registered loop at once, then a quarter more at a time; the samples' part in zeroed
+pages the OS maps as they are first written):
 
 * samples: ``t`` float64 + ``sp``, ``e``, ``op``, ``kp``, ``ki`` float32 = 28 bytes a point
   (one record, :data:`POINT`, padded to 32), x :data:`POINTS` (256) = 8 KB per loop;
@@ -57,10 +58,6 @@ POINT = np.dtype(
 """One sample of the ring: its fields together, 28 bytes padded to 32, so that a batch's
 points go into the ring as rows of 4 uint64 (numpy copies a plain row per index; a
 scatter or fill of structured records takes its slow path, field by field: 4x slower)."""
-_EMPTY_POINT = np.zeros(1, POINT)
-_EMPTY_POINT[0] = np.nan  # the fields; the padding stays 0
-_EMPTY_POINT = _EMPTY_POINT.view(np.uint64)
-"""A point of NaNs as the 4 uint64 of its bytes."""
 log = logging.getLogger("pitune.tuner")
 
 
@@ -95,8 +92,10 @@ class Recent:
                 new[:old] = arr
             return new
 
-        bits = np.empty((capacity, p, 4), np.uint64)
-        bits[:] = _EMPTY_POINT  # all NaN, a plain copy (numpy fills records field by field)
+        # zeros: pages the OS maps when first written, no fill (a ring of 150,000 loops is
+        # 1.2 GB, and filling it stalled the worker for seconds); ``n`` says which points
+        # of a slot hold samples
+        bits = np.zeros((capacity, p, 4), np.uint64)
         if old:
             bits[:old] = self._bits[:old]
         self._bits = bits
@@ -144,8 +143,7 @@ class Recent:
         return np.asarray(slots, np.int64)
 
     def _clear(self, s: int) -> None:
-        self._bits[s] = _EMPTY_POINT
-        self.n[s] = 0
+        self.n[s] = 0  # its points are unwritten again
         self.g_wall[s] = self.g_t[s] = self.g_kp[s] = self.g_ki[s] = np.nan
         self.g_n[s] = 0
 
@@ -306,6 +304,7 @@ class Recent:
                 out["dkp"][rows] = self.g_kp[k, last[got]] / pk - 1.0
                 out["dki"][rows] = self.g_ki[k, last[got]] / pi - 1.0
             e = self.ring["e"][s]
+            e = np.where(np.arange(self.points) < self.n[s][:, None], e, np.nan)  # written
             with np.errstate(invalid="ignore"), _quiet():
                 out["rms_e"][has] = np.sqrt(np.nanmean(np.square(e, dtype=np.float64), axis=1))
         return out
