@@ -353,7 +353,10 @@ def _plain_whole(items: list[dict], f: dict) -> bool:
         or ("auto" in present and set(map(type, f["auto"])) != _BOOL)
         or ("saturated" in present and set(map(type, f["saturated"])) != _BOOL)
         or ("v" in present and (set(map(type, v)) != _INT or set(v) != {SCHEMA_VERSION}))
-        or not all(_seq_ok(d["applied_seq"]) for d in items if "applied_seq" in d)
+        or (
+            "applied_seq" in present
+            and not all(_seq_ok(d["applied_seq"]) for d in items if "applied_seq" in d)
+        )
     ):
         return False
     return bool(_numbers_ok(_floats(f)).all())
@@ -390,6 +393,14 @@ def _numbers_ok(cols: dict[str, np.ndarray]) -> np.ndarray:
     return ok
 
 
+def _flags(f: dict, key: str) -> np.ndarray:
+    """A boolean field as an array (absent from every sample: its default, no pass)."""
+    n = len(f["loop_id"])
+    if key not in f["present"]:
+        return np.full(n, _FLAGS[key], bool)
+    return np.fromiter(f[key], bool, n)
+
+
 def _columns(f: dict, index) -> Columns:
     """Plain samples' :func:`_fields` as columns."""
     n = len(f["loop_id"])
@@ -408,9 +419,9 @@ def _columns(f: dict, index) -> Columns:
         cols["sp"],
         cols["kp"],
         cols["ki"],
-        np.fromiter(f["auto"], bool, n),
-        np.fromiter(f["saturated"], bool, n),
-        np.asarray(list(index), np.int64).reshape(n),
+        _flags(f, "auto"),
+        _flags(f, "saturated"),
+        np.arange(n) if isinstance(index, range) else np.asarray(index, np.int64).reshape(n),
         cols["op"],
         applied,
     )
