@@ -80,9 +80,22 @@ def test_size_is_bounded_per_loop_and_forget_frees_the_slot():
     for _ in range(3):
         r.add_samples(columns(ids * 10, np.repeat(np.arange(10.0), 100)))
     per_loop = r.nbytes / r._cap
-    assert per_loop < 8.5 * 1024  # documented: about 8 KB per loop
+    assert per_loop < 9.5 * 1024  # documented: about 9 KB per loop
     r.forget("L5")
     assert r.since("L5")["n"] == 0
     assert r.retain(set(ids[:50])) == 50  # L50..L99
     r.add_samples(columns(["L1"], [99.0]))
     assert r.since("L1")["t"][-1] == 99.0
+
+
+def test_a_reused_slot_shows_nothing_of_its_former_loop():
+    """A forgotten loop's points are not cleared, only uncounted: the loop that gets its
+    slot next shows its own points alone, in its trend and in its rms error."""
+    r = Recent(points=4, capacity=1)
+    r.add_samples(columns(["A"] * 3, [1.0, 2.0, 3.0], e=[5.0, 5.0, 5.0]))
+    r.forget("A")
+    r.add_samples(columns(["B"], [9.0], e=[2.0]))
+    assert r.slot_of["B"] == 0  # A's slot
+    assert r.since("B")["t"] == [9.0]
+    assert r.summary(["B"])["rms_e"][0] == 2.0
+    assert np.isnan(r.summary(["C"])["rms_e"][0])

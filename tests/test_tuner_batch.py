@@ -16,7 +16,7 @@ from service.engine import rules
 from service.engine.config import LoopConfig
 from service.engine.stepping import step
 from service.engine.table import _BOOL, _F64, _I64, _REC, LoopTable
-from service.wire.decode import classify, decode_batch, decode_objects
+from service.wire.decode import classify, decode_batch, decode_objects, joined
 from service.wire.protocol import MAX_BATCH, BatchedSample, Mode, RejectReason, Sample
 from tests.engine_reference import Rejected, reference_ingest
 from tests.tuner_support import loop_body
@@ -152,8 +152,15 @@ _item = st.one_of(
 )
 
 
+_uniform = st.integers(0, 5).flatmap(
+    lambda n: st.lists(st.fixed_dictionaries({"loop_id": st.sampled_from(["L0", "L1", "bad/id"]),
+                                              "t": _value, "e": _value}), min_size=n, max_size=n)
+)  # fmt: skip
+"""A gateway's batch: every sample with the same fields (the decoder's one-pass case)."""
+
+
 @settings(max_examples=400, deadline=None)
-@given(st.lists(_item, max_size=6))
+@given(st.one_of(st.lists(_item, max_size=6), _uniform))
 def test_the_decoder_agrees_with_the_pydantic_models(items):
     """Every item is accepted with the model's values, or rejected with the model's
     reason; accepted + rejected = received; order is kept."""
@@ -180,6 +187,24 @@ def test_the_decoder_agrees_with_the_pydantic_models(items):
         seq = -1 if model.applied_seq is None else min(model.applied_seq, 2**63 - 1)
         assert decoded.rows.applied_seq[row] == seq
     assert decoded.rows.index.tolist() == sorted(accepted)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.one_of(st.lists(_item, max_size=4), _uniform), min_size=1, max_size=4))
+def test_batches_joined_decode_as_their_samples_together(parts):
+    """Batch messages the worker handles in one pass (a backlog) are what their samples
+    received together decode to: the same rows, positions and rejections."""
+    whole = decode_objects([item for part in parts for item in part])
+    one = joined([decode_objects(part) for part in parts])
+    assert one.received == whole.received
+    assert one.rows.loop_ids == whole.rows.loop_ids
+    for name in ("t", "e", "sp", "kp", "ki", "auto", "saturated", "index", "op", "applied_seq"):
+        np.testing.assert_array_equal(getattr(one.rows, name), getattr(whole.rows, name))
+
+    def seen(d):
+        return [(r.index, r.loop_id, r.reason) for r in d.rejected]
+
+    assert seen(one) == seen(whole)
 
 
 def test_one_bad_sample_does_not_take_its_batch_with_it():

@@ -112,6 +112,27 @@ class Inbox:
             self.nbytes -= nbytes
             return item
 
+    def more(self, items: list[Item], most: int, linger_s: float, linger_bytes: int) -> None:
+        """Append what is queued to ``items`` (a worker's pass, at most ``most``), and
+        while every item is a batch message, wait up to ``linger_s`` (0: not at all) for
+        batch payloads of ``linger_bytes`` (:mod:`service.daemon.pacing`)."""
+        deadline = time.monotonic() + linger_s
+        size = sum(len(p) for k, _, p in items if k is Kind.batch)
+        while len(items) < most:
+            try:
+                items.append(self.get_nowait())
+            except queue.Empty:
+                left = deadline - time.monotonic()
+                batches = all(item[0] is Kind.batch for item in items)
+                if left <= 0.0 or size >= linger_bytes or not batches:
+                    return
+                try:
+                    items.append(self.get(timeout=left))
+                except queue.Empty:
+                    return
+            if items[-1][0] is Kind.batch:
+                size += len(items[-1][2])
+
     def get_nowait(self) -> Item:
         with self._cond:
             if not self._items:

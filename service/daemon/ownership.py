@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import logging
 import time
+from itertools import repeat
 
 import numpy as np
 
@@ -199,20 +200,19 @@ class Ownership:
         if self.cluster is not None and not self.cluster.owns(gateway_shard(gateway)):
             self.foreign_samples += decoded.received
             return Decoded(rows.take(np.zeros(len(rows), bool)), [], 0)
-        slot_of, of_slot = self.table.slot_of, self.table.gateways
-        wrong = np.fromiter(
-            (s is not None and of_slot[s] != gateway for s in map(slot_of.get, rows.loop_ids)),
-            bool,
-            len(rows),
-        )
+        n = len(rows)
+        slots = np.fromiter(map(self.table.slot_of.get, rows.loop_ids, repeat(-1, n)), np.int64, n)
+        wrong = (slots >= 0) & (self.table.gateways[slots] != gateway)
         if not wrong.any():
-            return decoded
+            return Decoded(rows, decoded.rejected, decoded.received, slots)
         detail = f"not registered with gateway {gateway!r}"
         rejected = [
             Rejection(int(rows.index[j]), rows.loop_ids[j], RejectReason.wrong_gateway, detail)
             for j in np.flatnonzero(wrong).tolist()
         ]
-        return Decoded(rows.take(~wrong), decoded.rejected + rejected, decoded.received)
+        return Decoded(
+            rows.take(~wrong), decoded.rejected + rejected, decoded.received, slots[~wrong]
+        )
 
     def _own_rows(self, decoded: Decoded) -> Decoded:
         """The decoded samples without those of loops another member owns."""

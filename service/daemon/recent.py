@@ -6,21 +6,24 @@ and a ring of the last :data:`GAINS` gains decisions the tuner published (wall t
 plant time, kp, ki, reason). Nothing here is persisted: after a restart the trends start
 empty (the audit log in the store keeps every change).
 
-Size, fixed per loop and allocated the first time a loop sends a sample (slots grow by
-doubling, like the engine's table):
+Size, fixed per loop and allocated the first time a loop sends a sample (for every
+registered loop at once, then a quarter more at a time; the samples' part in zeroed
+pages the OS maps as they are first written):
 
-* samples: ``t`` float64 + ``sp``, ``e``, ``op``, ``kp``, ``ki`` float32 = 28 bytes a point,
-  x :data:`POINTS` (256) = 7 KB per loop;
+* samples: ``t`` float64 + ``sp``, ``e``, ``op``, ``kp``, ``ki`` float32 = 28 bytes a point
+  (one record, :data:`POINT`, padded to 32), x :data:`POINTS` (256) = 8 KB per loop;
 * gains: ``wall``, ``t``, ``kp``, ``ki`` float64 + reason code = 33 bytes, x :data:`GAINS`
   (32) = 1 KB per loop;
 
-so about 8 KB per loop: 80 MB at 10,000 loops (``Recent(points=..., gains=...)`` to
+so about 9 KB per loop: 90 MB at 10,000 loops (``Recent(points=..., gains=...)`` to
 change it; ``nbytes`` says what is allocated). 256 points are 4 minutes of a loop
 sampled every second: the trend shows recent behaviour, the audit log the long story.
 
-Writes are vectorised (one numpy scatter per field per batch of decoded samples, however
-many loops it holds); they come from the tuner's worker, reads from the API's threads,
-serialised by the ring's own lock (held for microseconds, never the engine's).
+Writes are vectorised (one numpy scatter of records per batch of decoded samples, however
+many loops it holds). A point's fields sit together in one record, so a sample costs one
+random memory access of the ring; a field per array cost six, most of the ring's time
+at 30,000 loops and more. Writes come from the tuner's worker, reads from the API's
+threads, serialised by the ring's own lock (held for microseconds, never the engine's).
 Samples of ids that are not registered are ignored (``known``: the engine's id-to-slot
 mapping, read under the engine lock the worker already holds).
 """
@@ -32,6 +35,7 @@ import math
 import threading
 import time
 from collections.abc import Mapping
+from itertools import repeat
 from typing import Any
 
 import numpy as np
@@ -43,6 +47,17 @@ GAINS = 32
 REASONS = ["agent", "reset", "adopted", "rollback", "approved", "other"]
 """Reason codes of the gains ring (an unknown reason is 'other')."""
 _SAMPLE_F32 = ("sp", "e", "op", "kp", "ki")
+POINT = np.dtype(
+    {
+        "names": ["t", *_SAMPLE_F32],
+        "formats": [np.float64] + [np.float32] * len(_SAMPLE_F32),
+        "offsets": [0, 8, 12, 16, 20, 24],
+        "itemsize": 32,
+    }
+)
+"""One sample of the ring: its fields together, 28 bytes padded to 32, so that a batch's
+points go into the ring as rows of 4 uint64 (numpy copies a plain row per index; a
+scatter or fill of structured records takes its slow path, field by field: 4x slower)."""
 log = logging.getLogger("pitune.tuner")
 
 
@@ -77,9 +92,16 @@ class Recent:
                 new[:old] = arr
             return new
 
-        self.t = grown(getattr(self, "t", None), (capacity, p), np.float64, np.nan)
-        for name in _SAMPLE_F32:
-            setattr(self, name, grown(getattr(self, name, None), (capacity, p), np.float32, np.nan))
+        # zeros: pages the OS maps when first written, no fill (a ring of 150,000 loops is
+        # 1.2 GB, and filling it stalled the worker for seconds); ``n`` says which points
+        # of a slot hold samples
+        bits = np.zeros((capacity, p, 4), np.uint64)
+        if old:
+            bits[:old] = self._bits[:old]
+        self._bits = bits
+        """The ring's memory, a point as 4 uint64 (what writes copy)."""
+        self.ring = bits.view(POINT).reshape(capacity, p)
+        """(slots, points) records; a loop's next sample goes to ``n % points``."""
         self.n = grown(getattr(self, "n", None), (capacity,), np.int64, 0)
         """Samples ever written per slot (the next one goes to ``n % points``)."""
         self.g_wall = grown(getattr(self, "g_wall", None), (capacity, g), np.float64, np.nan)
@@ -91,16 +113,21 @@ class Recent:
         self._free.extend(range(capacity - 1, old - 1, -1))
         self._cap = capacity
 
+    def _room(self) -> int:
+        """The capacity to grow to: every registered loop at once (each allocation copies
+        the ring: at 75,000 loops doubling allocated and copied 1.5 GB, and kept 56,000
+        slots spare), and a quarter more than now at least."""
+        return max(len(self.known or ()), self._cap + self._cap // 4 + 64)
+
     @property
     def nbytes(self) -> int:
         """Bytes held by the rings."""
-        names = ("t", *_SAMPLE_F32, "n", "g_wall", "g_t", "g_kp", "g_ki", "g_reason", "g_n")
+        names = ("ring", "n", "g_wall", "g_t", "g_kp", "g_ki", "g_reason", "g_n")
         return sum(getattr(self, name).nbytes for name in names)
 
     def _slots(self, ids: list[str]) -> np.ndarray:
         """Ring slots of ``ids`` (-1: not a registered loop), allocating new ones."""
-        get = self.slot_of.get
-        slots = [get(i, -1) for i in ids]
+        slots = list(map(self.slot_of.get, ids, repeat(-1, len(ids))))
         if -1 in slots:
             for k, loop_id in enumerate(ids):
                 if slots[k] != -1:
@@ -109,17 +136,14 @@ class Recent:
                     slots[k] = self.slot_of[loop_id]
                 elif self.known is None or loop_id in self.known:
                     if not self._free:
-                        self._grow(2 * self._cap)
+                        self._grow(self._room())
                     s = self._free.pop()
                     self.slot_of[loop_id] = s
                     slots[k] = s
         return np.asarray(slots, np.int64)
 
     def _clear(self, s: int) -> None:
-        self.t[s] = np.nan
-        for name in _SAMPLE_F32:
-            getattr(self, name)[s] = np.nan
-        self.n[s] = 0
+        self.n[s] = 0  # its points are unwritten again
         self.g_wall[s] = self.g_t[s] = self.g_kp[s] = self.g_ki[s] = np.nan
         self.g_n[s] = 0
 
@@ -165,13 +189,12 @@ class Recent:
             rows = keep[order][last]
             s = ordered[last]
             pos = (self.n[s] + rank[last]) % self.points
-            self.t[s, pos] = np.asarray(columns.t)[rows]
+            points = np.empty(rows.size, POINT)
+            points["t"] = np.asarray(columns.t)[rows]
             for name in _SAMPLE_F32:
                 values = getattr(columns, name, None)
-                if values is None:
-                    getattr(self, name)[s, pos] = np.nan
-                else:
-                    getattr(self, name)[s, pos] = np.asarray(values)[rows]
+                points[name] = np.nan if values is None else np.asarray(values)[rows]
+            self._bits[s, pos] = points.view(np.uint64).reshape(-1, 4)
             self.n[ordered[starts]] += counts
 
     def add_gains(self, result: Any, wall: float | None = None) -> None:
@@ -226,12 +249,9 @@ class Recent:
             n, gn = int(self.n[s]), int(self.g_n[s])
             first = max(samples_seen, n - self.points, 0)
             idx = np.arange(first, n) % self.points
-            t = self.t[s, idx].copy()
-            sp = self.sp[s, idx].astype(np.float64)
-            e = self.e[s, idx].astype(np.float64)
-            op = self.op[s, idx].astype(np.float64)
-            kp = self.kp[s, idx].astype(np.float64)
-            ki = self.ki[s, idx].astype(np.float64)
+            points = self.ring[s, idx]
+            t = points["t"].copy()
+            sp, e, op, kp, ki = (points[name].astype(np.float64) for name in _SAMPLE_F32)
             gfirst = max(gains_seen, gn - self.gains_n, 0)
             gidx = np.arange(gfirst, gn) % self.gains_n
             gains = [
@@ -283,7 +303,8 @@ class Recent:
                 pi = np.where(two, self.g_ki[k, prev[got]], np.nan)
                 out["dkp"][rows] = self.g_kp[k, last[got]] / pk - 1.0
                 out["dki"][rows] = self.g_ki[k, last[got]] / pi - 1.0
-            e = self.e[s]
+            e = self.ring["e"][s]
+            e = np.where(np.arange(self.points) < self.n[s][:, None], e, np.nan)  # written
             with np.errstate(invalid="ignore"), _quiet():
                 out["rms_e"][has] = np.sqrt(np.nanmean(np.square(e, dtype=np.float64), axis=1))
         return out

@@ -51,6 +51,7 @@ from service.daemon.handoff import Handoff
 from service.daemon.lanes import LANE_DRAIN_S, Lane
 from service.daemon.metrics import Metrics, RateLimitedLog
 from service.daemon.ownership import Ownership
+from service.daemon.pacing import LINGER_BYTES, LINGER_S, Pacer
 from service.daemon.queries import StateQueries
 from service.daemon.recent import Recent
 from service.daemon.settings import Settings
@@ -58,7 +59,7 @@ from service.daemon.store import Store
 from service.daemon.upkeep import Upkeep
 from service.engine.engine import TuningEngine
 from service.engine.updates import StepResult
-from service.wire.decode import Rejection, decode_batch, decode_singles
+from service.wire.decode import Rejection, decode_batch, decode_singles, joined
 from service.wire.protocol import (
     RejectReason,
 )
@@ -91,23 +92,31 @@ def load_configured_agent(settings: Settings) -> Agent:
 
 SINGLES_GROUP = 2000
 """Most single-sample messages ingested in one vectorised pass."""
+BATCHES_GROUP_BYTES = 1 << 20
+"""Most payload bytes of batch messages ingested in one pass (~25,000 samples of a
+gateway's batches): a backlog of batches costs the engine's per-pass work once, not once
+a message (at 30,000 loops in batches of 75: ~0.6 ms a pass against ~2 µs a sample)."""
 
 
-def _group_singles(items: list[Item]):
-    """The items, with runs of single-sample messages as (Kind.sample, "", [(key, payload)])."""
+def _group(items: list[Item]):
+    """The items as (kind, payload), with runs of single-sample messages and runs of batch
+    messages as (Kind.sample or Kind.batch, [(key, payload), ...])."""
     run: list[tuple[str, bytes]] = []
+    run_kind, size = None, 0
     for kind, key, payload in items:
-        if kind is Kind.sample:
+        if run and (
+            kind is not run_kind or len(run) >= SINGLES_GROUP or size >= BATCHES_GROUP_BYTES
+        ):
+            yield run_kind, run
+            run, size = [], 0
+        if kind is Kind.sample or kind is Kind.batch:
             run.append((key, payload))
-            if len(run) < SINGLES_GROUP:
-                continue
-        if run:
-            yield Kind.sample, "", run
-            run = []
-        if kind is not Kind.sample:
-            yield kind, key, payload
+            run_kind = kind
+            size += len(payload) if kind is Kind.batch else 0
+        else:
+            yield kind, payload
     if run:
-        yield Kind.sample, "", run
+        yield run_kind, run
 
 
 class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
@@ -133,6 +142,8 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
         """Recent samples and published gains of each loop, for the console's trends."""
         self._skipped = 0
         self.inbox = Inbox(settings.queue_size, settings.queue_bytes)
+        self.pacer = Pacer()
+        """The worker's busy share: a busy worker waits for more batches (pacing.py)."""
         self.epoch: int | None = None
         """The store's epoch of this run (set by :meth:`start`)."""
         self.lanes: dict[str | None, Lane] = {}
@@ -304,12 +315,11 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
                 items = [self.inbox.get(timeout=max(0.0, wait))]
             except queue.Empty:
                 items = []
-            while items and len(items) < self.settings.max_batch:
-                try:
-                    items.append(self.inbox.get_nowait())
-                except queue.Empty:
-                    break
+            if items:
+                linger = LINGER_S if self.pacer.lingering else 0.0
+                self.inbox.more(items, self.settings.max_batch, linger, LINGER_BYTES)
             stop = any(item is _STOP for item in items)
+            began = time.perf_counter()
             try:
                 self._handle([item for item in items if item is not _STOP])
                 if self._store_failing_since is not None and not stop:
@@ -326,6 +336,7 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
                     self._retain()
             except Exception:
                 log.exception("worker iteration failed; continuing")
+            self.pacer.worked(time.perf_counter() - began)
             if stop:
                 return
 
@@ -344,7 +355,7 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
         flush_at = math.inf
         with engine.lock:
             engine.stepping = self._store_failing_since is None
-            for kind, key, payload in _group_singles(items):
+            for kind, payload in _group(items):
                 self.handoff.let_in()
                 if kind is Kind.query or kind is Kind.gateway_query:
                     self._flush(wall)  # the reply reflects every sample handled before it
@@ -358,7 +369,10 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
                         decode_singles([(self.keys.loop_id(k), p) for k, p in payload])
                     )
                 else:  # the shared samples key, or one gateway's (revision 4)
-                    decoded = self._gateway_rows(decode_batch(payload), self.keys.gateway_id(key))
+                    decoded = joined(
+                        [self._gateway_rows(decode_batch(p), self.keys.gateway_id(k))
+                         for k, p in payload]
+                    )  # fmt: skip
                 self._ingest(decoded, wall)
                 # received last: once it reaches N, those N samples are in their counters
                 self.metrics.samples_received.inc(decoded.received)

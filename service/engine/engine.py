@@ -30,6 +30,7 @@ from __future__ import annotations
 import collections
 import time
 from collections.abc import Callable, Iterable
+from itertools import repeat
 from typing import Literal
 
 import numpy as np
@@ -218,7 +219,10 @@ class TuningEngine:
             if not len(rows):
                 return results
             slot_of = self.table.slot_of
-            slots = np.fromiter((slot_of.get(i, -1) for i in rows.loop_ids), np.int64, len(rows))
+            n = len(rows)
+            slots = decoded.slots
+            if slots is None:
+                slots = np.fromiter(map(slot_of.get, rows.loop_ids, repeat(-1, n)), np.int64, n)
             unknown = slots < 0
             if unknown.any():
                 for i in np.flatnonzero(unknown).tolist():

@@ -115,7 +115,9 @@ class LoopTable:
         self.configs = Configs()
         self.slot_of: dict[str, int] = {}
         self.ids: list[str | None] = []
-        self.gateways: list[str | None] = []
+        self.gateways = np.empty(0, object)
+        """Each slot's gateway (an interned str) or None: an array, so that a batch's loops
+        are checked against their gateway in one comparison."""
         self._free: list[int] = []
         self._gains_dirty: set[int] = set()
         self._verify_dirty: set[int] = set()
@@ -149,7 +151,9 @@ class LoopTable:
             h[:old] = self.hidden
         self.hidden = h
         self.ids.extend([None] * (capacity - old))
-        self.gateways.extend([None] * (capacity - old))
+        gateways = np.full(capacity, None, object)
+        gateways[:old] = self.gateways
+        self.gateways = gateways
         self.ident.extend([None] * (capacity - old))
         self._free.extend(range(capacity - 1, old - 1, -1))
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass
+from operator import itemgetter
 
 import numpy as np
 import orjson
@@ -106,6 +107,43 @@ class Decoded:
     rejected: list[Rejection]
     received: int
     """Samples received (accepted + rejected)."""
+    slots: np.ndarray | None = None
+    """int64: each row's slot in the engine's table (-1: not registered), when the caller
+    already looked them up under the engine's lock (the tuner's gateway check), so the
+    engine does not again (a lookup per sample in a dict of every loop)."""
+
+
+def joined(parts: list[Decoded]) -> Decoded:
+    """Groups of samples decoded apart, as one group received in that order (positions
+    renumbered among all of them): the tuner's worker hands a backlog of batch messages
+    to the engine in one pass, whose cost is mostly per pass, not per sample."""
+    if len(parts) == 1:
+        return parts[0]
+    offsets = np.cumsum([0] + [p.received for p in parts[:-1]]).tolist()
+    cols = [p.rows for p in parts]
+    n = sum(len(c) for c in cols)
+    ids = [i for c in cols for i in c.loop_ids]
+    arrays = {
+        f: np.concatenate([getattr(c, f) for c in cols]) if n else getattr(cols[0], f)
+        for f in ("t", "e", "sp", "kp", "ki", "auto", "saturated")
+    }
+    index = np.concatenate([c.index + o for c, o in zip(cols, offsets, strict=True)])
+    op = np.concatenate([_or(c.op, len(c), np.nan, np.float64) for c in cols])
+    seq = np.concatenate([_or(c.applied_seq, len(c), -1, np.int64) for c in cols])
+    rejected = [
+        Rejection(r.index + o, r.loop_id, r.reason, r.detail)
+        for p, o in zip(parts, offsets, strict=True)
+        for r in p.rejected
+    ]
+    rows = Columns(ids, **arrays, index=index.astype(np.int64), op=op, applied_seq=seq)
+    slots = None
+    if all(p.slots is not None for p in parts):
+        slots = np.concatenate([p.slots for p in parts])
+    return Decoded(rows, rejected, sum(p.received for p in parts), slots)
+
+
+def _or(values: np.ndarray | None, n: int, fill, dtype) -> np.ndarray:
+    return np.full(n, fill, dtype) if values is None else values
 
 
 def classify(exc: ValidationError) -> RejectReason:
@@ -251,20 +289,46 @@ _FLAGS = {"auto": True, "saturated": False, "v": SCHEMA_VERSION, "applied_seq": 
 """The optional non-float fields of a sample and their values when absent."""
 
 
+_DEFAULTS = {"loop_id": None, **dict.fromkeys(FLOAT_FIELDS), **_FLAGS}
+"""Every field a column is made of, and its value where a sample does not carry it."""
+
+
 def _fields(items: list[dict]) -> dict:
-    """Each field of the samples as a list (absent: None, or its :data:`_FLAGS` default),
-    and ``"present"``: the fields any sample has. A field no sample has costs no pass
-    over the samples (a gateway's batch usually carries ``loop_id``, ``t`` and ``e``)."""
+    """Each field of the samples as a sequence (absent: None, or its :data:`_FLAGS`
+    default), and ``"present"``: the fields any sample has. A field no sample has costs
+    no pass over the samples (a gateway's batch usually carries ``loop_id``, ``t`` and
+    ``e``); when every sample has the same fields (a gateway's batch), the present ones
+    are read in one pass in C (``itemgetter``), 3x faster than a pass per field."""
     present = set().union(*items)
     n = len(items)
-
-    def column(key: str, default=None) -> list:
-        return [d.get(key, default) for d in items] if key in present else [default] * n
-
-    out: dict = {k: column(k) for k in ("loop_id", *FLOAT_FIELDS)}
-    out.update((k, column(k, default)) for k, default in _FLAGS.items())
+    keys = [k for k in _DEFAULTS if k in present]
+    out: dict = {k: [default] * n for k, default in _DEFAULTS.items() if k not in present}
+    if len(keys) > 1 and sum(map(len, items)) == n * len(present):  # each has them all
+        out.update(zip(keys, zip(*map(itemgetter(*keys), items), strict=True), strict=True))
+    else:
+        out.update((k, [d.get(k, _DEFAULTS[k]) for d in items]) for k in keys)
+    out["loop_id"] = list(out["loop_id"])
     out["present"] = present
     return out
+
+
+_VALID_IDS: set[str] = set()
+"""Loop ids already found valid: they come back every sample period, and a set lookup
+costs a tenth of the pattern's match."""
+_VALID_IDS_MAX = 1_000_000
+"""Most ids remembered (~0.1 GB); past it the set starts again."""
+
+
+def _ids_valid(ids: list[str]) -> bool:
+    """Every id (a str) matches the loop id pattern."""
+    if _VALID_IDS.issuperset(ids):
+        return True
+    if not all(map(_ID_RE.fullmatch, ids)):
+        return False
+    if len(_VALID_IDS) > _VALID_IDS_MAX:
+        _VALID_IDS.clear()
+    _VALID_IDS.update(ids)
+    return True
 
 
 def _plain_whole(items: list[dict], f: dict) -> bool:
@@ -280,7 +344,7 @@ def _plain_whole(items: list[dict], f: dict) -> bool:
     """
     present = f["present"]
     ids = f["loop_id"]
-    if set(map(type, ids)) != {str} or not all(map(_ID_RE.fullmatch, ids)):
+    if set(map(type, ids)) != {str} or not _ids_valid(ids):
         return False
     v = f["v"]
     if (
@@ -289,7 +353,10 @@ def _plain_whole(items: list[dict], f: dict) -> bool:
         or ("auto" in present and set(map(type, f["auto"])) != _BOOL)
         or ("saturated" in present and set(map(type, f["saturated"])) != _BOOL)
         or ("v" in present and (set(map(type, v)) != _INT or set(v) != {SCHEMA_VERSION}))
-        or not all(_seq_ok(d["applied_seq"]) for d in items if "applied_seq" in d)
+        or (
+            "applied_seq" in present
+            and not all(_seq_ok(d["applied_seq"]) for d in items if "applied_seq" in d)
+        )
     ):
         return False
     return bool(_numbers_ok(_floats(f)).all())
@@ -326,6 +393,14 @@ def _numbers_ok(cols: dict[str, np.ndarray]) -> np.ndarray:
     return ok
 
 
+def _flags(f: dict, key: str) -> np.ndarray:
+    """A boolean field as an array (absent from every sample: its default, no pass)."""
+    n = len(f["loop_id"])
+    if key not in f["present"]:
+        return np.full(n, _FLAGS[key], bool)
+    return np.fromiter(f[key], bool, n)
+
+
 def _columns(f: dict, index) -> Columns:
     """Plain samples' :func:`_fields` as columns."""
     n = len(f["loop_id"])
@@ -344,9 +419,9 @@ def _columns(f: dict, index) -> Columns:
         cols["sp"],
         cols["kp"],
         cols["ki"],
-        np.fromiter(f["auto"], bool, n),
-        np.fromiter(f["saturated"], bool, n),
-        np.asarray(list(index), np.int64).reshape(n),
+        _flags(f, "auto"),
+        _flags(f, "saturated"),
+        np.arange(n) if isinstance(index, range) else np.asarray(index, np.int64).reshape(n),
         cols["op"],
         applied,
     )
