@@ -63,12 +63,13 @@ class Guard(BaseModel):
         "pv_scale a loop counts as noise-free and is never damped), d this setting; 0 "
         "turns it off.",
     )
-    min_gain_margin: Damping = Field(
-        2.5,
-        description="Dead-time guard: with an identified model (guard.identify), each agent "
-        "step's gains are scaled down together until their gain margin on the model is at "
-        "least this (2.5: the textbook range is 2-5; the best fixed gains of the training "
-        "box have 4.4 or more); 0 turns it off. Without a model it does nothing.",
+    max_sensitivity: Damping = Field(
+        1.6,
+        description="Robustness guard: with an identified model (guard.identify), each "
+        "agent step's gains are scaled down together until the loop's largest sensitivity "
+        "on the model is at most this (and its gain margin at least Ms / (Ms - 1)); 1.6: "
+        "the best fixed gains of the training box reach 1.35, SIMC's 1.27, the textbook "
+        "range is 1.2-2. 0 turns it off. Without a model it does nothing.",
     )
     stale_periods: Annotated[float, Field(strict=True, ge=1.0, le=1e6)] = Field(
         5.0, description="Tuning pauses after this many sample periods without a sample."
@@ -305,7 +306,7 @@ class LoopPatch(BaseModel):
     ki_max: Gain | None = None
     max_rel_change: Fraction | None = None
     noise_damping: Damping | None = None
-    min_gain_margin: Damping | None = None
+    max_sensitivity: Damping | None = None
     stale_periods: Annotated[float, Field(strict=True, ge=1.0, le=1e6)] | None = None
     excitation_periods: ExcitationPeriods | None = None
     excitation_min_step: ExcitationStep | None = None

@@ -73,7 +73,7 @@ def step(tb: LoopTable, slots: np.ndarray, wall: float) -> StepResult:
     hi = np.column_stack([tb.kp_max[slots], tb.ki_max[slots]])
     bounded = np.clip(proposed, lo, hi)
     new = np.clip(bounded, base / grow, base * grow)
-    cut = tb.watch[slots] & (tb.gm_min[slots] > 0)
+    cut = tb.watch[slots] & (tb.ms_max[slots] > 0)
     if cut.any():
         new, cut = _margin(tb, slots, new, cut)
 
@@ -169,9 +169,10 @@ def _observe(tb: LoopTable, slots: np.ndarray) -> np.ndarray:
 
 
 def _margin(tb: LoopTable, slots, new, check) -> tuple[np.ndarray, np.ndarray]:
-    """The dead-time guard: gains whose gain margin on the loop's identified model (the
-    latest confident one, else the one in force) is below ``guard.min_gain_margin`` are
-    scaled down together to it. Returns the gains and where the guard cut them."""
+    """The robustness guard: gains whose largest sensitivity on the loop's identified model
+    (the latest confident one, else the one in force) is above ``guard.max_sensitivity``
+    (or unstable) are scaled down together to it. Returns the gains and where the guard
+    cut them."""
     rows, models = [], []
     for i in np.flatnonzero(check).tolist():
         st = tb.ident[int(slots[i])]
@@ -183,8 +184,7 @@ def _margin(tb: LoopTable, slots, new, check) -> tuple[np.ndarray, np.ndarray]:
     if not rows:
         return new, cut
     K, tau, theta = np.array(models).T
-    gm = margin.gain_margin(new[rows, 0], new[rows, 1], K, tau, theta)
-    scale = np.minimum(1.0, gm / tb.gm_min[slots[rows]])
+    scale = margin.robust_factor(new[rows, 0], new[rows, 1], K, tau, theta, tb.ms_max[slots[rows]])
     new = new.copy()
     new[rows] *= scale[:, None]
     cut[rows] = scale < 1.0
