@@ -56,12 +56,12 @@ class Guard(BaseModel):
         "[old / (1 + r), old * (1 + r)].",
     )
     noise_damping: Damping = Field(
-        0.0,
+        2.0,
         description="Noise damping of the agent's steps: each step's change of the gains "
         "is scaled by e^2 / (e^2 + (d sigma)^2), e the error the agent reads at the end of "
         "the RL period and sigma the measured noise (the monitor's estimate; below 1 % of "
-        "pv_scale a loop counts as noise-free and is never damped), d this setting; 0 "
-        "turns it off.",
+        "pv_scale a loop counts as noise-free and is never damped), d this setting (2: "
+        "docs/tuner.md, Robustness measures); 0 turns it off.",
     )
     max_sensitivity: Damping = Field(
         1.6,
