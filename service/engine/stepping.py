@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.engine import margin, predict, verify
+from service.engine import margin, predict, verify, watch
 from service.engine.audit import audit_row
 from service.engine.modes import ADVISORY, AUTO, SHADOW
 from service.engine.rules import GAIN_RTOL
@@ -169,15 +169,18 @@ def _observe(tb: LoopTable, slots: np.ndarray) -> np.ndarray:
 
 
 def _margin(tb: LoopTable, slots, new, check) -> tuple[np.ndarray, np.ndarray]:
-    """The robustness guard: gains whose largest sensitivity on the loop's identified model
-    (the latest confident one, else the one in force) is above ``guard.max_sensitivity``
-    (or unstable) are scaled down together to it. Returns the gains and where the guard
-    cut them."""
+    """The robustness guard: where the loop's identified model (the latest confident one,
+    else the one in force), seen through the scaling in force, lies outside the agent's
+    training box (:func:`service.engine.watch.in_box`: where the agent extrapolates; inside
+    it the best gains reach Ms 1.35 and the check would only cost time), gains whose
+    largest sensitivity on the model is above ``guard.max_sensitivity`` (or unstable) are
+    scaled down together to it. Returns the gains and where the guard cut them."""
     rows, models = [], []
     for i in np.flatnonzero(check).tolist():
-        st = tb.ident[int(slots[i])]
+        s = int(slots[i])
+        st = tb.ident[s]
         m = st.model if st.model is not None and st.model.confident else st.in_force
-        if m is not None and not m.integrating:
+        if m is not None and not m.integrating and not watch.in_box(tb.scaling_of(s), m):
             rows.append(i)
             models.append((m.k, m.tau, m.theta))
     cut = np.zeros(len(slots), bool)
