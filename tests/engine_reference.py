@@ -72,7 +72,9 @@ def _ingest(tb: LoopTable, s: int, sample: Sample, wall: float) -> bool:
     if sample.kp is not None or sample.ki is not None:
         _adopt(tb, s, sample, wall)
     # a move must stand out of the measured noise too (rules.EXCITATION_NOISE_SIGMAS)
-    noise = rules.EXCITATION_NOISE_SIGMAS * math.sqrt(max(float(tb.o_var[s]), 0.0))
+    warm = tb.o_k[s] >= monitor.NOISE_WARM or sample.sp is None  # e only: from the start
+    sigma = math.sqrt(max(float(tb.o_var[s]), 0.0)) if warm else 0.0
+    noise = rules.EXCITATION_NOISE_SIGMAS * sigma
     if sample.sp is None:  # only the error: a setpoint change shows as a jump of it
         size = abs(e - tb.last_e[s])
         step = max(tb.exc_step[s], math.sqrt(2.0) * noise)
