@@ -71,15 +71,20 @@ def _ingest(tb: LoopTable, s: int, sample: Sample, wall: float) -> bool:
     tb.back_n[s] = 0.0
     if sample.kp is not None or sample.ki is not None:
         _adopt(tb, s, sample, wall)
+    # a move must stand out of the measured noise too (rules.EXCITATION_NOISE_SIGMAS)
+    warm = tb.o_k[s] >= monitor.NOISE_WARM or sample.sp is None  # e only: from the start
+    sigma = math.sqrt(max(float(tb.o_var[s]), 0.0)) if warm else 0.0
+    noise = rules.EXCITATION_NOISE_SIGMAS * sigma
     if sample.sp is None:  # only the error: a setpoint change shows as a jump of it
         size = abs(e - tb.last_e[s])
-        moved = not math.isnan(last_t) and size >= tb.exc_step[s]
+        step = max(tb.exc_step[s], math.sqrt(2.0) * noise)
+        moved = not math.isnan(last_t) and size >= step
         if moved:
             tb.sp_anchor[s] = tb.last_e[s]
     else:
         ref = tb.sp_ref[s]
         size = abs(sample.sp - ref)
-        moved = size >= tb.exc_step[s]  # False for NaN
+        moved = size >= max(tb.exc_step[s], noise)  # False for NaN
         if moved:
             anchor = tb.sp_anchor[s]
             # a run of moves: within one RL period of the last, in the same direction

@@ -36,6 +36,7 @@ range (``AGENT_GAIN_RANGE`` in agent units, 1e-4..5000 with the default) under t
 further out the gains or the hint are wrong by orders of magnitude (typically ki per
 minute given as per second, or k_hat in other units), and the registration is refused
 rather than the default guard widened to match."""
+Damping = Annotated[float, Field(strict=True, ge=0.0, le=100.0, allow_inf_nan=False)]
 Margin = Annotated[float, Field(strict=True, gt=0.0, le=10.0, allow_inf_nan=False)]
 Periods = Annotated[float, Field(strict=True, ge=0.0, le=1e6, allow_inf_nan=False)]
 
@@ -53,6 +54,22 @@ class Guard(BaseModel):
         0.5,
         description="Largest relative change per update: each gain stays within "
         "[old / (1 + r), old * (1 + r)].",
+    )
+    noise_damping: Damping = Field(
+        2.0,
+        description="Noise damping of the agent's steps: each step's change of the gains "
+        "is scaled by e^2 / (e^2 + (d sigma)^2), e the error the agent reads at the end of "
+        "the RL period and sigma the measured noise (the monitor's estimate; below 1 % of "
+        "pv_scale a loop counts as noise-free and is never damped), d this setting (2: "
+        "docs/tuner.md, Robustness measures); 0 turns it off.",
+    )
+    max_sensitivity: Damping = Field(
+        1.6,
+        description="Robustness guard: with an identified model (guard.identify), each "
+        "agent step's gains are scaled down together until the loop's largest sensitivity "
+        "on the model is at most this (and its gain margin at least Ms / (Ms - 1)); 1.6: "
+        "the best fixed gains of the training box reach 1.35, SIMC's 1.27, the textbook "
+        "range is 1.2-2. 0 turns it off. Without a model it does nothing.",
     )
     stale_periods: Annotated[float, Field(strict=True, ge=1.0, le=1e6)] = Field(
         5.0, description="Tuning pauses after this many sample periods without a sample."
@@ -288,6 +305,8 @@ class LoopPatch(BaseModel):
     ki_min: Gain | None = None
     ki_max: Gain | None = None
     max_rel_change: Fraction | None = None
+    noise_damping: Damping | None = None
+    max_sensitivity: Damping | None = None
     stale_periods: Annotated[float, Field(strict=True, ge=1.0, le=1e6)] | None = None
     excitation_periods: ExcitationPeriods | None = None
     excitation_min_step: ExcitationStep | None = None

@@ -287,6 +287,15 @@ def rejected(tb: LoopTable, s: int) -> None:
     tb.w_rej[s] = tb.w_rej[s] * (1.0 - REJECT_FORGET) + REJECT_FORGET
 
 
+def noise_sigma(tb: LoopTable, slots, cold: bool | np.ndarray = False) -> np.ndarray:
+    """The noise estimate's sigma (engineering units); 0 until it has its first
+    :data:`NOISE_WARM` samples unless ``cold`` (per loop). The excitation gate's noise
+    rule and the noise damping use it: a cold estimate is the loop's own motion as much as
+    its noise, except for a loop sending only e, whose gate it keeps shut from the start."""
+    sigma = np.sqrt(np.maximum(tb.o_var[slots], 0.0))
+    return np.where(cold | (tb.o_k[slots] >= NOISE_WARM), sigma, 0.0)
+
+
 def band(tb: LoopTable, slots: np.ndarray) -> np.ndarray:
     """The oscillation detector's hysteresis band, engineering units (inf: no scaling)."""
     with np.errstate(divide="ignore"):

@@ -61,6 +61,15 @@ CLOCK_RESET_SAMPLES = 10
 """Consecutive, mutually increasing samples older than the loop's last one that are
 taken as a new plant clock (a restarted gateway, or a last sample from the far future)
 rather than rejected forever as out of order."""
+EXCITATION_NOISE_SIGMAS = 5.0
+"""A setpoint move opens the excitation gate only when it is at least this many measured
+noise sigmas (the monitor's estimate), as well as ``excitation_min_step``; a jump of the
+error of a loop sending only e, this many sigmas of the difference of two noisy samples
+(sqrt 2 sigma). A response to a move buried in the noise teaches the agent nothing, and
+its observation, scaled up by 2 / move, would be mostly noise; for e-only loops noise
+alone otherwise opens the gate (sigma 0.05 agent units: in half of all RL periods). The
+estimate counts once warm, for e-only loops from the start
+(:func:`service.engine.monitor.noise_sigma`)."""
 GAIN_RTOL = monitor.GAIN_RTOL
 """Relative tolerance when comparing reported gains with the tuner's: a DCS storing gains
 as float32 reports them off by up to 6e-8 relative, which is no operator's change."""
@@ -175,6 +184,7 @@ def _excite(tb: LoopTable, slots: np.ndarray, cols: dict[str, np.ndarray], last_
     has_sp = ~np.isnan(sp)
     # a loop sending only e: a setpoint change shows as a jump of e (and makes no runs)
     last_e = np.where(np.isnan(last_t), np.nan, tb.last_e[slots])
+    sigma = EXCITATION_NOISE_SIGMAS * monitor.noise_sigma(tb, slots, cold=~has_sp)
     m = track_moves(
         np.where(has_sp, sp, e),
         np.where(has_sp, tb.sp_ref[slots], last_e),
@@ -182,7 +192,7 @@ def _excite(tb: LoopTable, slots: np.ndarray, cols: dict[str, np.ndarray], last_
         tb.move_t[slots],
         tb.obs_gain[slots],
         now=t,
-        step=tb.exc_step[slots],
+        step=np.maximum(tb.exc_step[slots], np.where(has_sp, sigma, np.sqrt(2.0) * sigma)),
         run=np.where(has_sp, tb.period[slots], -np.inf),
         scale=tb.e_scale[slots],
     )

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.engine import predict, verify
+from service.engine import margin, monitor, predict, verify, watch
 from service.engine.audit import audit_row
 from service.engine.modes import ADVISORY, AUTO, SHADOW
 from service.engine.rules import GAIN_RTOL
@@ -51,6 +51,9 @@ def step(tb: LoopTable, slots: np.ndarray, wall: float) -> StepResult:
     proposed = np.column_stack(
         [(obs[:, 0] + delta[:, 0]) * kp_unit, (obs[:, 1] + delta[:, 1]) * ki_unit]
     )
+    damped = tb.damp[slots] > 0
+    if damped.any():
+        proposed = _damp(tb, slots, obs, proposed, damped)
     sane = np.isfinite(proposed).all(axis=1) & np.isfinite(state).all(axis=(1, 2))
     if not sane.all():
         _faults(tb, slots[~sane], wall, "non-finite agent output")
@@ -70,6 +73,9 @@ def step(tb: LoopTable, slots: np.ndarray, wall: float) -> StepResult:
     hi = np.column_stack([tb.kp_max[slots], tb.ki_max[slots]])
     bounded = np.clip(proposed, lo, hi)
     new = np.clip(bounded, base / grow, base * grow)
+    cut = tb.watch[slots] & (tb.ms_max[slots] > 0)
+    if cut.any():
+        new, cut = _margin(tb, slots, new, cut)
 
     applied = mode == AUTO
     auto = slots[applied]
@@ -96,7 +102,7 @@ def step(tb: LoopTable, slots: np.ndarray, wall: float) -> StepResult:
         proposed,
         new,
         [gateways[s] for s in listed],
-        why=_why(tb, slots, mode, old, proposed, bounded, new),
+        why=_why(tb, slots, mode, old, proposed, bounded, new, cut),
     )
     limited = np.flatnonzero(~np.isclose(proposed, new, rtol=GAIN_RTOL, atol=0.0).all(axis=1))
     # the audit row adds the figures the change was made on: the last response's IAE and
@@ -126,7 +132,7 @@ def step(tb: LoopTable, slots: np.ndarray, wall: float) -> StepResult:
     return result.without(shadow) if shadow.size else result
 
 
-def _why(tb, slots, mode, old, proposed, bounded, new) -> list[str]:
+def _why(tb, slots, mode, old, proposed, bounded, new, cut) -> list[str]:
     """The short ``key=value`` reason of each step (docs/tuner.md, Reasons): the loop's
     basis (an identified model or the hint), the change, which guard limit bit, and the
     verdict to come."""
@@ -134,7 +140,9 @@ def _why(tb, slots, mode, old, proposed, bounded, new) -> list[str]:
         pct = (new / old - 1.0) * 100.0
     same = np.isclose(proposed, bounded, rtol=GAIN_RTOL, atol=0.0).all(axis=1)
     free = np.isclose(bounded, new, rtol=GAIN_RTOL, atol=0.0).all(axis=1)
-    guards = np.where(~same, "bounds", np.where(~free, "rate", "none")).tolist()
+    guards = np.where(
+        cut, "margin", np.where(~same, "bounds", np.where(~free, "rate", "none"))
+    ).tolist()
     basis = ["model" if tb.ident[s].scaling is not None else "hint" for s in slots.tolist()]
     verdicts = [_VERDICT.get(c, "none") for c in mode.tolist()]
     return [
@@ -158,6 +166,53 @@ def _observe(tb: LoopTable, slots: np.ndarray) -> np.ndarray:
                 tb.int_e[slots] * tb.obs_gain[slots],
             ]
         )
+
+
+def _margin(tb: LoopTable, slots, new, check) -> tuple[np.ndarray, np.ndarray]:
+    """The robustness guard: where the loop's identified model (the latest confident one,
+    else the one in force), seen through the scaling in force, lies outside the agent's
+    training box (:func:`service.engine.watch.in_box`: where the agent extrapolates; inside
+    it the best gains reach Ms 1.35 and the check would only cost time), gains whose
+    largest sensitivity on the model is above ``guard.max_sensitivity`` (or unstable) are
+    scaled down together to it. Returns the gains and where the guard cut them."""
+    rows, models = [], []
+    for i in np.flatnonzero(check).tolist():
+        s = int(slots[i])
+        st = tb.ident[s]
+        m = st.model if st.model is not None and st.model.confident else st.in_force
+        if m is not None and not m.integrating and not watch.in_box(tb.scaling_of(s), m):
+            rows.append(i)
+            models.append((m.k, m.tau, m.theta))
+    cut = np.zeros(len(slots), bool)
+    if not rows:
+        return new, cut
+    K, tau, theta = np.array(models).T
+    scale = margin.robust_factor(new[rows, 0], new[rows, 1], K, tau, theta, tb.ms_max[slots[rows]])
+    new = new.copy()
+    new[rows] *= scale[:, None]
+    cut[rows] = scale < 1.0
+    return new, cut
+
+
+NOISE_FLOOR = 0.01
+"""Noise sigma (agent units, 1 % of pv_scale) below which a loop counts as noise-free for
+the noise damping: the monitor's second-difference estimate on a smooth noise-free
+response stays well under it."""
+
+
+def _damp(tb: LoopTable, slots, obs, proposed, damped) -> np.ndarray:
+    """The agent's change of the gains scaled by e^2 / (e^2 + (d sigma)^2): a step read
+    from an error the size of the noise moves the gains little (docs/tuner.md, Noise
+    damping). ``obs[:, 2]`` is the error as the agent read it (agent units, times the
+    setpoint-move gain), sigma the monitor's noise estimate in the same units."""
+    sigma = monitor.noise_sigma(tb, slots) * tb.e_scale[slots]
+    sigma = np.where(sigma > NOISE_FLOOR, sigma * tb.obs_gain[slots], 0.0)
+    noise = (tb.damp[slots] * sigma) ** 2
+    e2 = obs[:, 2] ** 2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        w = np.where(damped & (noise > 0), e2 / (e2 + noise), 1.0)
+    old = np.column_stack([tb.kp[slots], tb.ki[slots]])
+    return old + w[:, None] * (proposed - old)
 
 
 def _faults(tb: LoopTable, slots: np.ndarray, wall: float, why: str) -> None:

@@ -56,8 +56,10 @@ _F64 = (
     "sign",
     # episode state
     "last_t", "last_e", "int_e", "next_due", "last_wall",
-    # safety guard and flood limiter
-    "kp_min", "kp_max", "ki_min", "ki_max", "max_rel", "tokens", "token_wall",
+    # safety guard and flood limiter; noise damping of the agent's steps (sigmas, 0: off)
+    # and the robustness guard's largest sensitivity (0: off)
+    "kp_min", "kp_max", "ki_min", "ki_max", "max_rel", "tokens", "token_wall", "damp",
+    "ms_max",
     # excitation gate: smallest setpoint step (engineering units), window after one (s;
     # inf: gate off), setpoint at the last step, end of the current window
     "exc_step", "exc_window", "sp_ref", "excited_until",
@@ -235,6 +237,8 @@ class LoopTable:
         self.forgetting[s] = config.forgetting
         self.sign[s] = config.action_sign
         self.max_rel[s] = g.max_rel_change
+        self.damp[s] = g.noise_damping
+        self.ms_max[s] = g.max_sensitivity
         self.mode[s] = _CODE[config.mode]
         # one string per gateway, however many loops it fronts
         self.gateways[s] = None if config.gateway is None else sys.intern(config.gateway)

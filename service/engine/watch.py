@@ -421,6 +421,17 @@ def _toward_box(app: dict[str, float], k_margin: float, tau_margin: float) -> di
     return {**app, "gain": shrink(app["gain"], k_margin), "tau": shrink(app["tau"], tau_margin)}
 
 
+def in_box(scaling: Scaling, m: identify.Model) -> bool:
+    """Whether a model, seen through ``scaling``, lies inside the training box itself (no
+    margin): the robustness guard checks the loops outside it (service.engine.stepping)."""
+    app = apparent(scaling, m)
+    return (
+        TRAINING_BOX["gain"][0] <= app["gain"] <= TRAINING_BOX["gain"][1]
+        and TRAINING_BOX["tau"][0] <= app["tau"] <= TRAINING_BOX["tau"][1]
+        and app["theta_ratio"] <= TRAINING_BOX["theta_ratio"][1]
+    )
+
+
 def in_envelope(app: dict[str, float]) -> bool:
     g_lo, g_hi = TRAINING_BOX["gain"]
     t_lo, t_hi = TRAINING_BOX["tau"]

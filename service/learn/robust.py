@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -166,12 +167,20 @@ def run_condition(
     gains0: np.ndarray | None = None,
     excitation: bool = True,
     plants: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    guard: dict | None = None,
+    schedule: Callable[[int], tuple[np.ndarray, np.ndarray, np.ndarray] | None] | None = None,
+    send_sp: bool = True,
 ) -> Run:
     """Tune the grid's plants under ``cond`` through the engine for ``periods`` RL periods.
 
     ``gains0`` (N, 2) agent-unit start gains (default the paper's 0.05); ``excitation``
     False registers the loops with the excitation gate off; ``forgetting`` None keeps the
-    registration default.
+    registration default; ``guard`` overrides fields of the loops' guard (engine-side
+    measures, e.g. ``{"identify": True, "auto_rescale": True}``). ``schedule(p)``, called
+    at the start of each RL period ``p``, may return new true plants (K, tau, theta; agent
+    units) for a plant changing mid-run (the adaptation experiments through the engine);
+    the returned :class:`Run` then holds the last ones. ``send_sp`` False: the samples
+    carry only the error, as from a gateway that has no setpoint.
     """
     rng = np.random.default_rng(seed)
     K0, tau0, r = grid() if plants is None else plants
@@ -190,7 +199,7 @@ def run_condition(
 
     engine = engine_of(policy)
     ids = [f"P{i}" for i in range(n)]
-    guard = {} if excitation else {"excitation_periods": 0.0}
+    guard = dict(guard or {}) | ({} if excitation else {"excitation_periods": 0.0})
     extra = {} if forgetting is None else {"forgetting": forgetting}
     for i in range(n):
         engine.register(
@@ -221,11 +230,18 @@ def run_condition(
     next_boundary = period_s
     for k in range(samples):
         t = k * SAMPLE_S
+        if schedule is not None and k % round(period_s / SAMPLE_S) == 0:
+            change = schedule(k // round(period_s / SAMPLE_S))
+            if change is not None:
+                K, tau, theta = change
+                k_eng = K * sc.u_scale / sc.e_scale
+                plant.set_params(K=k_eng, tau=tau * unit, theta=theta * unit)
         y = second.output() if cond.second_lag else plant.output()
         pv = y + noise[:, k]
         pv_trace[:, k] = pv
         e = sp[:, k] - pv
-        rows = Columns(ids, np.full(n, t), e, sp[:, k], pi.kp.copy(), pi.ki.copy(),
+        sp_col = sp[:, k] if send_sp else np.full(n, np.nan)
+        rows = Columns(ids, np.full(n, t), e, sp_col, pi.kp.copy(), pi.ki.copy(),
                        np.ones(n, bool), np.zeros(n, bool), index)  # fmt: skip
         results = engine.ingest_decoded(Decoded(rows, [], n), wall=t)
         last = engine.flush(t)
