@@ -12,10 +12,12 @@ sigmas):
   mean |e| above the band (the older ones above half of it: a growing oscillation's
   first lobes are still rising out of the noise), and the amplitude does not decay by
   more than :data:`OSC_DECAY` per period;
-* **growing**: its last two half-periods are regular and the newer lobe's mean |e| is
-  above the band and at least :data:`OSC_GROWTH` times the older one's (an unstable
-  loop's lobes grow; a stable loop's free response decays from lobe to lobe, so two
-  lobes suffice where three are needed for a sustained one).
+* **growing**: its last two half-periods are regular and span at least
+  :data:`OSC_GROWTH_SAMPLES` samples each, the newer lobe's mean |e| is above the band
+  and at least :data:`OSC_GROWTH` times the older one's, the older one's above half the
+  band, and with a third lobe on record the newest is not smaller than the one a period
+  before (an unstable loop's lobes grow; a stable loop's free response decays, so two
+  lobes suffice where three are needed for a sustained oscillation).
 
 Rules that make the verdict come early (measured: ``pitune verify-eval``,
 docs/tuner.md):
@@ -23,11 +25,14 @@ docs/tuner.md):
 - a lobe that leaves the band from inside it is whole (the half-period from that exit
   to the next crossing is the one from crossing to crossing); only the first lobe after
   a setpoint move or a gap is partial and not on record;
+- a lobe whose error came back into the band and across zero, and leaves the band again
+  on the same side, starts again there: the half-cycle between stayed inside the band
+  (an oscillation riding on an offset, whose one side rises out of the noise first), and
+  the lobe from the first exit would be long and its mean |e| diluted;
 - the oldest lobe judged may have begun before the oscillation did (noise carried the
   error out of the band first, then the oscillation grew inside the lobe): when it is
   longer than the newer ones its length is no irregularity and its mean |e|, diluted by
-  the time before, is not held against the band (the decay test still uses it; in the
-  growing test it is the older of the two lobes);
+  the time before, is not held against the band (the decay test still uses it);
 - the noise estimate is not frozen during its first :data:`NOISE_WARM` samples and the
   detector does not judge before (at startup the band is its floor, noise alone crosses
   it, and the lobes it makes would freeze the estimate low);
@@ -37,9 +42,10 @@ docs/tuner.md):
   half the band.
 
 The period reported with a verdict (:func:`period`) is measured between the error's
-zero crossings (the last one before each band crossing, interpolated), not between the
-band crossings, which a growing oscillation's rising amplitude makes short by up to a
-quarter period.
+zero crossings (the last one before each lobe left the band, interpolated), not between
+the band crossings, which a growing oscillation's rising amplitude makes short by up to
+a quarter period (the regularity tests keep the band crossings: the zero crossings'
+more regular intervals flagged more stable loops).
 
 Units: times in plant seconds, errors in engineering units; arrays (n,) indexed by slot
 unless stated.
@@ -60,11 +66,15 @@ OSC_LOBES = 3
 OSC_DECAY = 0.5
 """A lobe at least this share of the same-sign lobe one period earlier is not decaying
 (a quarter-decay response, 0.25, is not an oscillation; a sustained one is 1)."""
-OSC_GROWTH = 1.5
+OSC_GROWTH = 1.4
 """The growing test: the newer of two lobes has at least this times the older one's mean
-|e|. A stable loop's next lobe is smaller than the last; noise adds or takes a share of
-either (measured: at 1 the stable loops tuned hard were flagged far more often, at 1.5
-about as often as without the test; docs/tuner.md)."""
+|e|. A stable loop's next lobe is smaller than the last, but noise adds to or takes from
+either: at 1.25 the stable loops tuned hard (kp 0.6 Ku) were flagged 14 more times in
+300 (``pitune verify-eval --aggressive``), at 1.4 not once more (docs/tuner.md)."""
+OSC_GROWTH_SAMPLES = 4.0
+"""The growing test's lobes span at least this many sample intervals: two lobes of 2-3
+samples are as often noise (one alarm on a stable loop in the evaluation), and the
+fastest oscillations the sustained test catches in time anyway."""
 OSC_NOISE_SIGMAS = 3.0
 """Hysteresis band of the zero crossings, noise sigmas."""
 OSC_MIN_BAND = 0.01
@@ -188,6 +198,14 @@ def detect(tb: LoopTable, slots, t, e, prev_e, dt, jumped) -> np.ndarray:
     z = tb.o_z[slots]
     began = np.where(np.isnan(z), t, z)
     tb.o_zs[slots[again]] = began[again]
+    # the error came back across zero since its lobe began: that lobe is over (the other
+    # half of the cycle stayed inside the band: an oscillation riding on an offset), a
+    # new one on the same side begins here
+    with np.errstate(invalid="ignore"):
+        anew = again & (z > tb.o_tc[slots])
+    if anew.any():
+        a = slots[anew]
+        tb.o_tc[a], tb.o_iae[a] = t[anew], 0.0
     if start.any():
         # a lobe that leaves the band from inside it is whole (the next crossing ends it
         # half a period later, as a crossing would have started it); one that starts
@@ -223,15 +241,18 @@ def _crossed(tb: LoopTable, s, tc, step, sign, began) -> np.ndarray:
     zh = tb.o_zh[full].astype(np.float64)
     warm = (tb.o_k[full] >= NOISE_WARM) & (half[:, :2].min(axis=1) >= OSC_MIN_SAMPLES * step)
     sustained, r3 = _sustained(tb.o_n[full] >= OSC_LOBES, half, lobe, h, step)
-    # the growing test: the older of two lobes may be a lead lobe (longer than the newer
-    # one: noise carried the error out of the band before the oscillation grew)
-    lead = half[:, 1] > half[:, 0]
-    r2 = _regularity(np.column_stack([half[:, 0], np.where(lead, half[:, 0], half[:, 1])]))
+    # the growing test: two lobes (at least OSC_GROWTH_SAMPLES each), regular, the newer
+    # above the band and OSC_GROWTH times the older, the older above half the band; with
+    # a third on record, growing over the period as well (a decaying response whose
+    # small lobe follows a large one is not growing)
+    r2 = _regularity(half[:, :2])
     growing = (
         (r2 > 1.0)
+        & (half[:, :2].min(axis=1) >= OSC_GROWTH_SAMPLES * step)
         & (lobe[:, 0] >= h)
         & (lobe[:, 0] >= OSC_GROWTH * lobe[:, 1])
-        & (lead | (lobe[:, 1] >= 0.5 * h))
+        & (lobe[:, 1] >= 0.5 * h)
+        & ((tb.o_n[full] < OSC_LOBES) | (lobe[:, 0] >= lobe[:, 2]))
     )
     osc = warm & (sustained | growing)
     tb.o_index[full] = np.where(sustained | ~growing, r3, r2)
