@@ -63,7 +63,7 @@ def test_an_operator_gain_past_the_ultimate_gain_is_detected_within_3_periods(rn
     assert all(d["why"] == "oscillation" for d in out["detail"])
     # periods of the oscillation as the detector measured them, from the first time the
     # noise-free error leaves the detector's band (3 noise sigmas): 3 at most in the
-    # 1,000 cases of `pitune verify-eval` (in 99.8 % on one draw of four, docs/tuner.md)
+    # 1,000 cases of `pitune verify-eval` (99.8 % on some other draws, docs/tuner.md)
     after = np.array(out["after_periods"])
     assert np.mean(after <= 3.0) >= 0.9 and after.max() <= 3.5
 
