@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 
-from service.engine import monitor, rules, watch
+from service.engine import monitor, oscillation, rules, watch
 from service.engine.audit import audit_row
 from service.engine.modes import AUTO, FROZEN
 from service.engine.rules import GAIN_RTOL, MAX_AGENT_ERROR
@@ -72,7 +72,7 @@ def _ingest(tb: LoopTable, s: int, sample: Sample, wall: float) -> bool:
     if sample.kp is not None or sample.ki is not None:
         _adopt(tb, s, sample, wall)
     # a move must stand out of the measured noise too (rules.EXCITATION_NOISE_SIGMAS)
-    warm = tb.o_k[s] >= monitor.NOISE_WARM or sample.sp is None  # e only: from the start
+    warm = tb.o_k[s] >= oscillation.NOISE_WARM or sample.sp is None  # e only: from the start
     sigma = math.sqrt(max(float(tb.o_var[s]), 0.0)) if warm else 0.0
     noise = rules.EXCITATION_NOISE_SIGMAS * sigma
     if sample.sp is None:  # only the error: a setpoint change shows as a jump of it

@@ -41,10 +41,13 @@ class WindowFigures(BaseModel):
     noise_sigma: float = Field(description="Measurement noise estimated from quiet samples.")
     oscillation_index: float | None = Field(
         description="Regularity r = mean / (3 std) of the last 3 half-periods between "
-        "zero crossings (Thornhill et al. 2003; r > 1: regular). None: too few crossings."
+        "zero crossings (the last 2 when the growing test flagged the loop; Thornhill "
+        "et al. 2003; r > 1: regular). None: too few crossings."
     )
     oscillating: bool = Field(
-        description="The last 3 half-periods regular, above the noise band, not decaying."
+        description="The last 3 half-periods regular, above the noise band, not decaying; "
+        "or the last 2 regular, the newer lobe above the band and growing (1.5 times the "
+        "older)."
     )
     manual_share: float = Field(description="Share of recent time in manual.")
     saturated_share: float = Field(description="Share of recent time saturated.")

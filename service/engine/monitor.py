@@ -18,33 +18,7 @@ accepted samples (distinct loops, aligned arrays) and keeps three things per loo
 * **A window** of about ``WINDOW_PERIODS`` RL periods (exponential forgetting on the
   plant's time): mean and variance of the error, the shares of time in manual and
   saturated, and the share of samples rejected.
-* **The oscillation detector** (:func:`_oscillation`): Hägglund's idea (1995, "A
-  control-loop performance monitor", Control Eng. Practice 3(11)) of splitting the error
-  at its zero crossings and judging each half-period's IAE, with the regularity test of
-  Thornhill, Huang and Zhang (2003, "Detection of multiple oscillations in control loops",
-  J. Process Control 13(1)): the intervals between zero crossings of a real oscillation
-  are regular, ``r = mean(T) / (3 std(T)) > 1``. A loop oscillates when its last
-  :data:`OSC_LOBES` half-periods (between crossings of a hysteresis band of 3 noise
-  sigmas) are regular, the newest has a mean |e| above the band (the older ones above half
-  of it: a growing oscillation's first lobes are still rising out of the noise), and the
-  amplitude does not decay by more than :data:`OSC_DECAY` per period. Five rules make
-  the verdict come early, 1.4 periods after the oscillation leaves the band (measured:
-  ``pitune verify-eval``, docs/tuner.md):
-
-  - a lobe that leaves the band from inside it is whole (the half-period from that exit
-    to the next crossing is the one from crossing to crossing); only the first lobe after
-    a setpoint move or a gap is partial and not on record;
-  - the oldest lobe judged may have begun before the oscillation did (noise carried the
-    error out of the band first, then the oscillation grew inside the lobe): when it is
-    longer than the newer ones its length is no irregularity and its mean |e|, diluted by
-    the time before, is not held against the band (the decay test still uses it);
-  - the noise estimate is not frozen during its first :data:`NOISE_WARM` samples and the
-    detector does not judge before (at startup the band is its floor, noise alone crosses
-    it, and the lobes it makes would freeze the estimate low);
-  - a move's partial lobe that came back into the band and leaves it again on the same
-    side is whole from there (an oscillation growing out of the move's tail);
-  - lobes that grow one after the other (an unstable loop) need no oldest lobe above
-    half the band.
+* **The oscillation detector** (:mod:`service.engine.oscillation`).
 
 Units: times in plant seconds, errors in engineering units unless stated; arrays (n,)
 indexed by slot unless stated.
@@ -57,6 +31,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from service.engine import oscillation
 from service.units import AGENT_TAU, RL_STEP_AGENT_UNITS
 
 GAIN_RTOL = 1e-6
@@ -82,35 +57,13 @@ HIST_FIELDS = ("t", "iae", "overshoot_pct", "rise_s", "settle_s", "mse")
 """Columns of the history ring (the ``f_`` arrays: t, iae, over, rise, settle, mse)."""
 _FIGURES = ("f_t", "f_iae", "f_over", "f_rise", "f_settle", "f_mse")
 """The last complete response's figures (the history ring's columns, in order)."""
-OSC_LOBES = 3
-"""Half-periods judged by the oscillation detector."""
-OSC_DECAY = 0.5
-"""A lobe at least this share of the same-sign lobe one period earlier is not decaying
-(a quarter-decay response, 0.25, is not an oscillation; a sustained one is 1)."""
-OSC_NOISE_SIGMAS = 3.0
-"""Hysteresis band of the zero crossings, noise sigmas."""
-OSC_MIN_BAND = 0.01
-"""Smallest band, agent units (1 % of pv_scale): a noiseless loop's rounding is not a lobe."""
-NOISE_FORGET = 0.02
-"""Per-sample forgetting of the noise variance, estimated from second differences of the
-error (sigma^2 = E[d2^2] / 6 for white noise; a running mean over the first 50 samples):
-blind to the loop's own slow motion, so neither a transient nor a growing oscillation
-inflates the band. Not updated across a setpoint move, nor while two lobes of a
-possible oscillation are on record."""
-NOISE_WARM = round(1.0 / NOISE_FORGET)
-"""Samples the noise estimate takes before the detector may judge (its running mean's
-length; the estimate restarts after a restart)."""
-OSC_MIN_SAMPLES = 2.0
-"""A half-period spans at least this many sample intervals (shorter: noise)."""
-
 F64 = [
     # current response: start, end, 10 %/90 % times, last time outside the settling band,
     # gains and seq at the move (the gains the response judges: exact, a verdict makes
     # them the last-good gains)
     "r_t0", "r_end", "r_t10", "r_t90", "r_settle", "r_kp", "r_ki", "r_seq",
-    # end of the last complete response; oscillation: time of the last crossing, the last
-    # time the error was outside the band
-    "f_t", "o_tc", "o_seen",
+    # end of the last complete response
+    "f_t",
 ]  # fmt: skip
 """Per-loop float64 arrays of the monitor: plant times (float32 would round a Unix time
 to 2 minutes), gains and seqs."""
@@ -125,30 +78,21 @@ F32 = [
     # window: error mean and mean square, shares of time in manual / saturated, share of
     # samples rejected
     "w_mean", "w_sq", "w_manual", "w_sat", "w_rej",
-    # oscillation: noise variance, sign of the current lobe, IAE since the last crossing,
-    # the regularity index r of the last lobes, the error two samples back (the noise
-    # estimate's second difference)
-    "o_var", "o_sign", "o_iae", "o_index", "o_e2",
 ]  # fmt: skip
 """Per-loop float32 arrays of the monitor: figures and running sums (a figure needs 3
-digits; 7 hold a few hundred samples' sum, and a second difference of errors up to 10^4
-times the noise)."""
+digits; 7 hold a few hundred samples' sum)."""
 
 
 def allocate(tb: LoopTable, capacity: int, old: int) -> None:
-    """Grow the monitor's arrays to ``capacity`` slots, keeping the first ``old``."""
+    """Grow the monitor's arrays (and the oscillation detector's) to ``capacity`` slots,
+    keeping the first ``old``."""
     for name, shape, dtype in (
         *((n, (), np.float64) for n in F64),
         *((n, (), np.float32) for n in F32),
-        ("o_half", (OSC_LOBES,), np.float32),
-        ("o_lobe", (OSC_LOBES,), np.float32),
-        ("o_n", (), np.int8),
-        ("o_k", (), np.int16),
-        ("o_j", (), bool),
-        ("o_osc", (), bool),
         ("r_mixed", (), bool),
         ("f_hist", (HISTORY, len(HIST_FIELDS)), np.float32),
         ("f_hist_n", (), np.int8),
+        *oscillation.ARRAYS,
     ):
         arr = np.zeros((capacity, *shape), dtype)
         if old:
@@ -158,11 +102,12 @@ def allocate(tb: LoopTable, capacity: int, old: int) -> None:
 
 def clear(tb: LoopTable, s: int) -> None:
     """A new loop (or a reset): no response open, figures unknown, windows empty."""
-    for name in ("r_t0", "r_end", "o_tc", "o_index", *_FIGURES):
+    for name in ("r_t0", "r_end", *_FIGURES):
         getattr(tb, name)[s] = math.nan
-    for name in ("w_mean", "w_sq", "w_manual", "w_sat", "w_rej", "o_var", "o_sign", "o_iae"):
+    for name in ("w_mean", "w_sq", "w_manual", "w_sat", "w_rej"):
         getattr(tb, name)[s] = 0.0
-    tb.o_n[s], tb.o_k[s], tb.o_osc[s], tb.f_hist_n[s] = 0, 0, False, 0
+    tb.f_hist_n[s] = 0
+    oscillation.clear(tb, s)
 
 
 def configure(tb: LoopTable, s: int, tau_s: float | None, theta_s: float) -> None:
@@ -197,7 +142,7 @@ def observe(
     _open(tb, slots[moved], t[moved], e[moved] - np.where(fresh[moved], 0.0, prev_e[moved]))
     _respond(tb, slots, t, e, prev_e, dt, moved)
     _window(tb, slots, e, dt, auto, saturated)
-    osc = _oscillation(tb, slots, t, e, prev_e, dt, moved | fresh)
+    osc = oscillation.detect(tb, slots, t, e, prev_e, dt, moved | fresh)
     return done, osc
 
 
@@ -285,119 +230,6 @@ def _window(tb, slots, e, dt, auto, saturated) -> None:
 def rejected(tb: LoopTable, s: int) -> None:
     """A sample of loop ``s`` was rejected (the rejected share's other half)."""
     tb.w_rej[s] = tb.w_rej[s] * (1.0 - REJECT_FORGET) + REJECT_FORGET
-
-
-def noise_sigma(tb: LoopTable, slots, cold: bool | np.ndarray = False) -> np.ndarray:
-    """The noise estimate's sigma (engineering units); 0 until it has its first
-    :data:`NOISE_WARM` samples unless ``cold`` (per loop). The excitation gate's noise
-    rule and the noise damping use it: a cold estimate is the loop's own motion as much as
-    its noise, except for a loop sending only e, whose gate it keeps shut from the start."""
-    sigma = np.sqrt(np.maximum(tb.o_var[slots], 0.0))
-    return np.where(cold | (tb.o_k[slots] >= NOISE_WARM), sigma, 0.0)
-
-
-def band(tb: LoopTable, slots: np.ndarray) -> np.ndarray:
-    """The oscillation detector's hysteresis band, engineering units (inf: no scaling)."""
-    with np.errstate(divide="ignore"):
-        floor = OSC_MIN_BAND / tb.e_scale[slots]
-    return np.maximum(OSC_NOISE_SIGMAS * np.sqrt(tb.o_var[slots]), floor)
-
-
-def _oscillation(tb, slots, t, e, prev_e, dt, jumped) -> np.ndarray:
-    """One sample of the detector per loop; returns the slots that start oscillating."""
-    # until the estimate has its first samples it is not frozen by lobes either (at
-    # startup the band is the floor, and noise alone crosses it)
-    k = tb.o_k[slots]
-    usable = ~jumped & (tb.o_j[slots] == 0) & ((tb.o_n[slots] < 2) | (k < NOISE_WARM))
-    d2 = e - 2.0 * prev_e + tb.o_e2[slots]
-    var = np.where(usable, d2 * d2 / 6.0, tb.o_var[slots])
-    forget = np.maximum(NOISE_FORGET, 1.0 / (1.0 + k))
-    tb.o_var[slots] += forget * (var - tb.o_var[slots])
-    tb.o_k[slots] = np.minimum(k + usable, NOISE_WARM)
-    tb.o_e2[slots], tb.o_j[slots] = prev_e, jumped
-    h = band(tb, slots)
-    tb.o_iae[slots] += np.abs(e) * dt
-    sign = np.where(e > h, 1.0, np.where(e < -h, -1.0, 0.0))
-    # a setpoint move (or a gap) starts the count again: a setpoint toggled regularly
-    # makes the error a regular square wave, which is no oscillation of the loop
-    if jumped.any():
-        j = slots[jumped]
-        tb.o_sign[j], tb.o_n[j], tb.o_osc[j], tb.o_tc[j] = 0.0, 0, False, math.nan
-    cur = tb.o_sign[slots]
-    start = (sign != 0) & (cur == 0)
-    # a partial lobe (after a move or a gap) that came back into the band leaves it again
-    # on the same side: a whole lobe from here (else the first lobe of an oscillation
-    # that grows out of a move's slow tail would be lost as partial)
-    start |= (
-        (sign == cur) & (sign != 0) & np.isnan(tb.o_tc[slots]) & ~jumped & (np.abs(prev_e) <= h)
-    )
-    crossed = (sign != 0) & (cur != 0) & (sign != cur)
-    outside = sign != 0
-    tb.o_seen[slots[outside]] = t[outside]
-    # inside the band for three half-periods (one RL period before a lobe is known):
-    # the oscillation, if any, is over
-    quiet_for = np.where(tb.o_n[slots] > 0, 3.0 * tb.o_half[slots, 0], tb.period[slots])
-    with np.errstate(invalid="ignore"):
-        gone = (cur != 0) & ~outside & (t - tb.o_seen[slots] > quiet_for)
-    if gone.any():
-        g = slots[gone]
-        tb.o_sign[g], tb.o_n[g], tb.o_osc[g], tb.o_tc[g] = 0.0, 0, False, math.nan
-    if start.any():
-        # a lobe that leaves the band from inside it is whole (the next crossing ends it
-        # half a period later, as a crossing would have started it); one that starts
-        # outside (a setpoint move, a gap) is partial
-        clean = start & ~jumped & (np.abs(prev_e) <= h)
-        s0 = slots[start]
-        tb.o_sign[s0], tb.o_iae[s0] = sign[start], 0.0
-        tb.o_tc[s0] = np.where(clean[start], t[start], math.nan)
-    if not crossed.any():
-        return slots[:0]
-    s, tc, step = slots[crossed], t[crossed], dt[crossed]
-    dur = tc - tb.o_tc[s]
-    # the first lobe after a move or a gap is partial (o_tc NaN): not on record
-    w, dur, step = s[np.isfinite(dur)], dur[np.isfinite(dur)], step[np.isfinite(dur)]
-    tb.o_half[w, 1:], tb.o_lobe[w, 1:] = tb.o_half[w, :-1], tb.o_lobe[w, :-1]
-    tb.o_half[w, 0], tb.o_lobe[w, 0] = dur, tb.o_iae[w] / dur
-    tb.o_n[w] = np.minimum(tb.o_n[w] + 1, OSC_LOBES)
-    tb.o_sign[s], tb.o_tc[s], tb.o_iae[s] = sign[crossed], tc, 0.0
-    enough = tb.o_n[w] >= OSC_LOBES
-    full, step = w[enough], step[enough]
-    if not full.size:
-        return slots[:0]
-    half, lobe, h_full = tb.o_half[full].astype(np.float64), tb.o_lobe[full], band(tb, full)
-    # the oldest lobe may have begun before the oscillation did (noise carried the error
-    # out of the band first): longer than the newer ones, its length is no
-    # irregularity and its mean |e| is diluted by the time before (not held against the
-    # band)
-    newer = half[:, :-1].mean(axis=1)
-    lead = half[:, -1] > newer
-    half[:, -1] = np.minimum(half[:, -1], newer)
-    # lobes that grow one after the other: an unstable loop, whose oldest lobe may still
-    # be half inside the band
-    growing = (lobe[:, 0] > lobe[:, 1]) & (lobe[:, 1] > lobe[:, 2])
-    spread = half.std(axis=1)
-    r = np.where(spread > 0, half.mean(axis=1) / (3.0 * np.maximum(spread, 1e-300)), 10.0)
-    tb.o_index[full] = np.minimum(r, 10.0)
-    osc = (
-        (r > 1.0)
-        & (tb.o_k[full] >= NOISE_WARM)
-        & (half.min(axis=1) >= OSC_MIN_SAMPLES * step)
-        # the newest lobe above the band, the older ones (still rising out of the noise)
-        # above half of it
-        & (lobe[:, 0] >= h_full)
-        & (lobe[:, 1] >= 0.5 * h_full)
-        & (lead | (lobe[:, 2] >= 0.5 * h_full) | growing)
-        & (lobe[:, 0] >= OSC_DECAY * lobe[:, 2])
-    )
-    new = full[osc & ~tb.o_osc[full]]
-    tb.o_osc[full] = osc
-    return new
-
-
-def period(tb: LoopTable, s: int) -> float:
-    """The oscillation's period as the detector measured it, s: twice the mean of the
-    newer half-periods on record (the oldest may have begun before the oscillation)."""
-    return 2.0 * float(tb.o_half[s, : OSC_LOBES - 1].mean())
 
 
 def dump(tb: LoopTable, s: int) -> dict:

@@ -47,7 +47,7 @@ import math
 
 import numpy as np
 
-from service.engine import monitor, watch
+from service.engine import monitor, oscillation, watch
 from service.engine.audit import audit_row
 from service.engine.modes import _MODES, AUTO, FROZEN
 from service.engine.table import LoopTable
@@ -69,7 +69,7 @@ error of a loop sending only e, this many sigmas of the difference of two noisy 
 its observation, scaled up by 2 / move, would be mostly noise; for e-only loops noise
 alone otherwise opens the gate (sigma 0.05 agent units: in half of all RL periods). The
 estimate counts once warm, for e-only loops from the start
-(:func:`service.engine.monitor.noise_sigma`)."""
+(:func:`service.engine.oscillation.noise_sigma`)."""
 GAIN_RTOL = monitor.GAIN_RTOL
 """Relative tolerance when comparing reported gains with the tuner's: a DCS storing gains
 as float32 reports them off by up to 6e-8 relative, which is no operator's change."""
@@ -184,7 +184,7 @@ def _excite(tb: LoopTable, slots: np.ndarray, cols: dict[str, np.ndarray], last_
     has_sp = ~np.isnan(sp)
     # a loop sending only e: a setpoint change shows as a jump of e (and makes no runs)
     last_e = np.where(np.isnan(last_t), np.nan, tb.last_e[slots])
-    sigma = EXCITATION_NOISE_SIGMAS * monitor.noise_sigma(tb, slots, cold=~has_sp)
+    sigma = EXCITATION_NOISE_SIGMAS * oscillation.noise_sigma(tb, slots, cold=~has_sp)
     m = track_moves(
         np.where(has_sp, sp, e),
         np.where(has_sp, tb.sp_ref[slots], last_e),

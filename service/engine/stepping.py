@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.engine import margin, monitor, predict, verify, watch
+from service.engine import margin, oscillation, predict, verify, watch
 from service.engine.audit import audit_row
 from service.engine.modes import ADVISORY, AUTO, SHADOW
 from service.engine.rules import GAIN_RTOL
@@ -205,7 +205,7 @@ def _damp(tb: LoopTable, slots, obs, proposed, damped) -> np.ndarray:
     from an error the size of the noise moves the gains little (docs/tuner.md, Noise
     damping). ``obs[:, 2]`` is the error as the agent read it (agent units, times the
     setpoint-move gain), sigma the monitor's noise estimate in the same units."""
-    sigma = monitor.noise_sigma(tb, slots) * tb.e_scale[slots]
+    sigma = oscillation.noise_sigma(tb, slots) * tb.e_scale[slots]
     sigma = np.where(sigma > NOISE_FLOOR, sigma * tb.obs_gain[slots], 0.0)
     noise = (tb.damp[slots] * sigma) ** 2
     e2 = obs[:, 2] ** 2

@@ -12,7 +12,7 @@ complete setpoint response judges the gains in force at its move (the candidate)
 * figure worse than ``(1 + verify_margin)`` times the last-good one: the change failed;
 * otherwise the candidate is ``verified`` and becomes the last-good gains with its figure.
 
-An oscillation (:func:`service.engine.monitor._oscillation`) while a change is pending
+An oscillation (:func:`service.engine.oscillation.detect`) while a change is pending
 fails the change at once. A failed change is acted on by mode: ``auto`` restores the
 last-good gains (published, reason ``rollback``; the agent's hidden state restarts and
 the agent is held for ``cooldown_periods`` RL periods), ``advisory`` proposes them (an
@@ -45,7 +45,8 @@ import orjson
 
 from service.engine.audit import audit_row
 from service.engine.modes import ADVISORY, AUTO
-from service.engine.monitor import period, same_gains
+from service.engine.monitor import same_gains
+from service.engine.oscillation import period
 from service.engine.updates import MODE_VALUES, StepResult
 from service.wire.protocol import UpdateReason
 

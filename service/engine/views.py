@@ -156,7 +156,7 @@ def performance(tb: LoopTable, s: int) -> Performance:
             error_mean=float(tb.w_mean[s]),
             error_var=var,
             noise_sigma=math.sqrt(max(float(tb.o_var[s]), 0.0)),
-            oscillation_index=_num(tb.o_index[s]) if tb.o_n[s] >= monitor.OSC_LOBES else None,
+            oscillation_index=_num(tb.o_index[s]) if tb.o_n[s] >= 2 else None,
             oscillating=bool(tb.o_osc[s]),
             manual_share=float(tb.w_manual[s]),
             saturated_share=float(tb.w_sat[s]),

@@ -24,7 +24,7 @@ follow. The engine's verdict of that change is read from its audit log.
   noise-free error left the band at all (the amplified noise may do that first). The
   period is the oscillation's own (``true_period``: :func:`oscillation_period`, the
   noise-free loop with the new gains) and, as first reported, the detector's estimate
-  (two half-periods in whole samples, often short of the true one).
+  (its last two half-periods between zero crossings).
 * ``aggressive`` changes (``--aggressive``, 300 loops of the oscillating kind's plants
   and old ki, kp 0.5, 0.6 and 0.7 Ku): stable loops tuned hard; the loops the
   oscillation detector flags at any time are false alarms, or lightly damped loops at
