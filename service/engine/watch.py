@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.engine import identify
+from service.engine import first_tuning, identify
 from service.engine.audit import audit_row
 from service.engine.config import Identification
 from service.units import AGENT_GAIN, AGENT_TAU, Scaling
@@ -84,6 +84,9 @@ class IdState:
     """Event starts (indices into the loop's recorder row; a list while recording)."""
     skipped: int = 0
     """Event closes since the last assessment (see :data:`CHECK_EVERY`)."""
+    tuned_seq: int = -1
+    """The seq of a first tuning from a model that holds the agent until it is verified
+    (:mod:`service.engine.first_tuning`; -1: none)."""
 
     def dump(self) -> dict:
         return {
@@ -444,6 +447,7 @@ def _put_in_force(tb, s, m, scaling: Scaling, t, wall, reason: str, detail: str)
     tb.out_env[s] = False
     tb.n_identified[s] += 1
     _audit(tb, s, t, wall, reason, detail)
+    first_tuning.apply(tb, s, m, wall, reason)
 
 
 def _audit(tb, s: int, t: float, wall: float, reason: str, detail: str) -> None:
