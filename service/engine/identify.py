@@ -48,10 +48,8 @@ MAX_REL_SE = 0.1
 MAX_TAU_SE = 0.17
 """Largest relative standard error of tau: looser than K's, whose error is 2-10x smaller
 on the same data (closed-loop data pin the gain down first; tau trades off against the
-dead time). Measured on the bar's random loops (docs/identification.md), seeds 0-2, with
-the consistency test on an event that has shown its response: 0.15 identifies 55-57 of
-60 from their first 4 moves (tau within 30% for 60, 60, 58); 0.17 identifies 57, 57, 57
-(60, 60, 59); 0.20 identifies 58 each (58, 59, 57)."""
+dead time). Measured on the bar's loops, seeds 0-2 (docs/identification.md): 0.15, 0.17,
+0.20 identify 55-57, 57 and 58 of 60 from their first 4 moves."""
 MAX_PREDICTION = 1.5
 """Consistency: the model of the earlier events must predict the last event's PV within
 this many times the noise (rms)."""
@@ -450,12 +448,9 @@ def assess(
         r2=joint.r2, k_rse=joint.k_rse, tau_rse=joint.tau_rse,
         integrating=joint.integrating, events=excited,
     )  # fmt: skip
-    # consistency: the model of the data before the last excited event predicts it (and
-    # what follows: a short or quiet last event would test nothing). The event tested has
-    # run at least the model's theta + tau (else the one before it is tested): checked
-    # a fraction of a time constant after its move, a just-excited event's first samples
-    # test next to nothing, and finely sampled loops whose earlier events disagreed then
-    # passed on it with tau 30-33% off (docs/identification.md)
+    # consistency: the model of the data before the last excited event that has run the
+    # model's theta + tau predicts it and what follows (a quiet event, or the first
+    # samples of a new one, test next to nothing: docs/identification.md)
     shown = joint.theta + joint.tau
     last = max(
         (i for i, ev in enumerate(events) if ev.excited and t[-1] - t[bounds[i]] >= shown),

@@ -96,6 +96,7 @@ class IdState:
             "in_force": None if self.in_force is None else self.in_force.as_dict(),
             "in_force_t": self.in_force_t,
             "scaling": None if self.scaling is None else self.scaling.model_dump(),
+            "tuned_seq": self.tuned_seq,
         }
 
     @classmethod
@@ -107,6 +108,7 @@ class IdState:
             in_force=None if d.get("in_force") is None else identify.Model.from_dict(d["in_force"]),
             in_force_t=d.get("in_force_t"),
             scaling=None if d.get("scaling") is None else Scaling(**d["scaling"]),
+            tuned_seq=d.get("tuned_seq", -1),
         )
 
 
