@@ -57,6 +57,8 @@ MIN_EVENTS = 2
 """Excited events needed for a confident model."""
 IMPRECISE = "K or tau not pinned down"
 """The verdict of a model that passes every check but precision."""
+DISAGREE = "events disagree"
+"""The verdict of a precise model that fails only the consistency test (a drifting plant)."""
 INTEGRATING_RATIO = 0.8
 """The integrating model wins when its residual sum of squares is below this share of
 the FOPTD fit's, or within 10% of it while the FOPTD's tau runs beyond the window (a lag
@@ -496,7 +498,7 @@ def _verdict(m: Model, excited: int, n_events: int) -> str:
         return f"{IMPRECISE} (rel. s.e. {m.k_rse:.2f}, {m.tau_rse:.2f})"
     if not m.prediction <= MAX_PREDICTION:
         return (
-            f"events disagree (the earlier events' model predicts the last with "
+            f"{DISAGREE} (the earlier events' model predicts the last with "
             f"{m.prediction:.2f}x the noise)"
         )
     return ""

@@ -302,7 +302,7 @@ def _close(tb, s: int, t: float, wall: float, *, final: bool = False, why: str =
         st.model, st.why = result.model, result.why
         if result.model is not None and result.model.confident:
             use(tb, s, result.model, t, wall)
-        elif result.why.startswith(identify.IMPRECISE) and tb.scaled[s]:
+        elif tb.scaled[s] and result.why.startswith((identify.IMPRECISE, identify.DISAGREE)):
             _envelope(tb, s, result.model, t, wall, sure=False)
     elif final:
         st.why = why
@@ -394,9 +394,12 @@ def use(tb, s: int, m: identify.Model, t: float, wall: float) -> None:
 
 def _envelope(tb, s: int, m: identify.Model, t: float, wall: float, *, sure: bool) -> None:
     """The envelope guard. A confident model (``sure``) decides both ways; one that passes
-    every check but precision only pauses, and only when even K and tau two standard
-    errors toward the box leave it (a drifting plant is never pinned down by data that mix
-    its old and new dynamics). A model that fails any other check is not used at all."""
+    every check but precision, or but consistency, only pauses, and only when even K and
+    tau two standard errors toward the box leave it (a drifting plant is never pinned
+    down, nor consistent, on data that mix its old and new dynamics: with the consistency
+    test on an event that has shown its response, the bar's ramp was paused at 4.5 tau0
+    instead of 4.0 until such models could pause). A model that fails any other check is
+    not used at all."""
     if not tb.env_guard[s]:
         return
     app = apparent(tb.scaling_of(s), m)
