@@ -135,12 +135,12 @@ def test_a_hint_free_loop_is_identified_then_tuned_and_survives_a_restart():
     updates = drive(engine, moves=3)
     view = engine.view("L", wall=0.0)
     if view.counters.identified:  # gains only once identified
-        assert all(u.t > view.identification.in_force_t for u in updates)
+        assert all(u.t >= view.identification.in_force_t for u in updates)
     else:
         assert updates == []
     later = drive(engine, moves=3, seed=1)  # a new plant clock: t from 0 again
     if not view.counters.identified:
-        assert all(u.t > engine.view("L", wall=0.0).identification.in_force_t for u in later)
+        assert all(u.t >= engine.view("L", wall=0.0).identification.in_force_t for u in later)
     updates += later
     view = engine.view("L", wall=1e9)
     ident = view.identification
@@ -148,7 +148,8 @@ def test_a_hint_free_loop_is_identified_then_tuned_and_survives_a_restart():
     assert ident.in_force.k == pytest.approx(K, rel=0.3)
     assert ident.in_force.tau == pytest.approx(TAU, rel=0.3)
     assert view.scaling.time_unit_s == pytest.approx(ident.in_force.tau / 0.5)
-    assert updates and all(u.reason == "agent" for u in updates)
+    # the model's first tuning (first_tuning.py), then the agent's steps
+    assert updates and all(u.reason == "agent" for u in updates if u.reason != "model")
     _, audit = engine.drain_changes()
     assert [r[5] for r in audit].count("identified") == 1
     # the runtime snapshot carries it over a restart

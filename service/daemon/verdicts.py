@@ -3,8 +3,8 @@
 The engine writes a verdict row when it judges changes (reason ``verified``,
 ``rollback`` or ``verdict``, with the seqs judged in its JSON detail: see
 :mod:`service.engine.verify`); a change row (an agent step of an ``auto`` loop, a reset,
-an adoption, an accepted proposal) takes the verdict of the newer verdict row whose seqs
-cover its seq, or ``pending`` past the loop's judged seq.
+an adoption, an accepted proposal, a model's first tuning) takes the verdict of the newer
+verdict row whose seqs cover its seq, or ``pending`` past the loop's judged seq.
 """
 
 from __future__ import annotations
@@ -13,9 +13,12 @@ import orjson
 
 from service.daemon.schemas import AuditEntry
 
-CHANGES = frozenset({"agent", "reset", "adopted", "accepted"})
-"""Audit reasons of a change of the gains in force (an advisory or shadow 'agent' row is
-a proposal: no verdict)."""
+CHANGES = frozenset({"agent", "reset", "adopted", "accepted", "model"})
+"""Audit reasons of a change of the gains in force (an advisory or shadow 'agent' or
+'model' row is a proposal: no verdict; 'model': the first tuning from an identified
+model, service/engine/first_tuning.py)."""
+PROPOSALS = frozenset({"agent", "model"})
+"""Change reasons that are proposals outside ``auto``."""
 SCAN = 5000
 """Newest rows read to find the verdict rows of a page (a page deeper in the history
 shows the verdicts recorded within the rows it reads)."""
@@ -31,7 +34,7 @@ def annotate(items: list[AuditEntry], judged_seq: int | None) -> None:
             first, last = detail.get("seqs", (0, -1))
             covers.append((first, last, detail.get("verdict", "verified")))
             continue
-        if item.reason not in CHANGES or (item.reason == "agent" and item.mode != "auto"):
+        if item.reason not in CHANGES or (item.reason in PROPOSALS and item.mode != "auto"):
             continue
         if judged_seq is not None and item.seq > judged_seq:
             item.verdict = "pending"

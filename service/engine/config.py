@@ -104,6 +104,13 @@ class Guard(BaseModel):
         description="On a mismatch, rescale the loop to the identified model (audit "
         "'rescaled') and restart its episode, instead of only flagging it.",
     )
+    model_tuning: bool = Field(
+        True,
+        description="When identification puts a model in force (no hint, or a wrong hint "
+        "rescaled), raise gains well below the model's SIMC tuning (tau_c = 2 tau) to it in "
+        "one change (reason 'model', verified like any change) instead of letting the "
+        "agent walk them up by max_rel_change per update (docs/identification.md).",
+    )
     envelope_guard: bool = Field(
         True,
         description="Pause tuning (status out_of_envelope) while the identified dynamics, "

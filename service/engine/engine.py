@@ -247,6 +247,9 @@ class TuningEngine:
                     self._reject(Rejection(int(part.index[i]), part.loop_ids[i], reason, detail))
                 for s in part_slots[due].tolist():
                     self._due[s] = None
+                if self.table.decided:  # first tunings from models put in force
+                    results.extend(self.table.decided)
+                    self.table.decided.clear()
                 results.extend(self._judge(wall))
         return results
 

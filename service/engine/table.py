@@ -130,6 +130,9 @@ class LoopTable:
         the setting ``monitoring`` measures what they cost)."""
         self.to_judge: list[tuple[np.ndarray, np.ndarray]] = []
         """(responses completed, oscillations started) awaiting :func:`verify.judge`."""
+        self.decided: list[StepResult] = []
+        """Decisions made while taking samples (the first tuning from an identified
+        model: :mod:`service.engine.first_tuning`), to publish."""
         self.ident: list[watch.IdState | None] = []
         self.recorder = watch.Recorder()
         self._allocate(capacity)

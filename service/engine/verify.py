@@ -131,6 +131,10 @@ def judge(tb: LoopTable, done: np.ndarray, osc: np.ndarray, wall: float) -> list
         _verified(tb, s, cand, seq, figure)
         if first > seq:  # nothing was pending: the baseline of unchanged gains
             continue
+        ident = tb.ident[s]
+        if ident is not None and first <= ident.tuned_seq <= seq:  # a model's tuning held
+            ident.tuned_seq = -1  # the agent until its verdict (first_tuning.py)
+            tb.cool_until[s] = min(tb.cool_until[s], float(tb.last_t[s]))
         _audit(tb, s, wall, "verified", cand, cand, {
             "verdict": "verified", "seqs": [first, seq], "iae": figure,
             "good_iae": None if math.isnan(good) else good, "baseline": math.isnan(good),

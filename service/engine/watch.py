@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.engine import identify
+from service.engine import first_tuning, identify
 from service.engine.audit import audit_row
 from service.engine.config import Identification
 from service.units import AGENT_GAIN, AGENT_TAU, Scaling
@@ -84,6 +84,9 @@ class IdState:
     """Event starts (indices into the loop's recorder row; a list while recording)."""
     skipped: int = 0
     """Event closes since the last assessment (see :data:`CHECK_EVERY`)."""
+    tuned_seq: int = -1
+    """The seq of a first tuning from a model that holds the agent until it is verified
+    (:mod:`service.engine.first_tuning`; -1: none)."""
 
     def dump(self) -> dict:
         return {
@@ -93,6 +96,7 @@ class IdState:
             "in_force": None if self.in_force is None else self.in_force.as_dict(),
             "in_force_t": self.in_force_t,
             "scaling": None if self.scaling is None else self.scaling.model_dump(),
+            "tuned_seq": self.tuned_seq,
         }
 
     @classmethod
@@ -104,6 +108,7 @@ class IdState:
             in_force=None if d.get("in_force") is None else identify.Model.from_dict(d["in_force"]),
             in_force_t=d.get("in_force_t"),
             scaling=None if d.get("scaling") is None else Scaling(**d["scaling"]),
+            tuned_seq=d.get("tuned_seq", -1),
         )
 
 
@@ -297,7 +302,7 @@ def _close(tb, s: int, t: float, wall: float, *, final: bool = False, why: str =
         st.model, st.why = result.model, result.why
         if result.model is not None and result.model.confident:
             use(tb, s, result.model, t, wall)
-        elif result.why.startswith(identify.IMPRECISE) and tb.scaled[s]:
+        elif tb.scaled[s] and result.why.startswith((identify.IMPRECISE, identify.DISAGREE)):
             _envelope(tb, s, result.model, t, wall, sure=False)
     elif final:
         st.why = why
@@ -389,9 +394,12 @@ def use(tb, s: int, m: identify.Model, t: float, wall: float) -> None:
 
 def _envelope(tb, s: int, m: identify.Model, t: float, wall: float, *, sure: bool) -> None:
     """The envelope guard. A confident model (``sure``) decides both ways; one that passes
-    every check but precision only pauses, and only when even K and tau two standard
-    errors toward the box leave it (a drifting plant is never pinned down by data that mix
-    its old and new dynamics). A model that fails any other check is not used at all."""
+    every check but precision, or but consistency, only pauses, and only when even K and
+    tau two standard errors toward the box leave it (a drifting plant is never pinned
+    down, nor consistent, on data that mix its old and new dynamics: with the consistency
+    test on an event that has shown its response, the bar's ramp was paused at 4.5 tau0
+    instead of 4.0 until such models could pause). A model that fails any other check is
+    not used at all."""
     if not tb.env_guard[s]:
         return
     app = apparent(tb.scaling_of(s), m)
@@ -455,6 +463,7 @@ def _put_in_force(tb, s, m, scaling: Scaling, t, wall, reason: str, detail: str)
     tb.out_env[s] = False
     tb.n_identified[s] += 1
     _audit(tb, s, t, wall, reason, detail)
+    first_tuning.apply(tb, s, m, wall, reason)
 
 
 def _audit(tb, s: int, t: float, wall: float, reason: str, detail: str) -> None:

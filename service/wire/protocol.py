@@ -41,13 +41,13 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 SCHEMA_VERSION = 1
-SCHEMA_REVISION = 4
+SCHEMA_REVISION = 5
 """Additive revisions within :data:`SCHEMA_VERSION` (optional fields only, ``v`` unchanged):
 1 the original; 2 ``Sample.applied_seq``, ``epoch`` in gains and state messages, the
 supervision fields of :class:`StateReply`, :class:`StateBatch` and ``after_t``; 3
 ``GainsMessage.why``, the reasons ``rollback`` and ``accepted``, the mode ``shadow`` in
 state replies; 4 the key ``{prefix}/gateways/{gateway}/samples`` and the reason
-``wrong_gateway`` (docs/protocol.md, Versioning)."""
+``wrong_gateway``; 5 the update reason ``model`` (docs/protocol.md, Versioning)."""
 DEFAULT_PREFIX = "pitune"
 ENCODING = "application/json"
 MAX_MAGNITUDE = 1e12
@@ -122,6 +122,10 @@ class UpdateReason(StrEnum):
     accepted = "accepted"
     """An advisory proposal an operator accepted: sent as mode ``auto``, to be applied
     (revision 3)."""
+    model = "model"
+    """The first tuning from an identified model (a loop without a hint identified, or a
+    wrong hint rescaled): gains well below the model's SIMC tuning raised to it, to be
+    verified like any change (revision 5)."""
 
 
 class RejectReason(StrEnum):

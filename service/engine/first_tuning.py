@@ -1,0 +1,103 @@
+"""The first tuning from an identified model: when identification puts a model in force
+(a loop registered without a hint, or a wrong hint rescaled), gains below the model's
+textbook tuning are raised to it in one guarded, audited change, instead of the agent
+walking them up by ``max_rel_change`` per update.
+
+The tuning is the improved SIMC rule (Grimholt & Skogestad 2012,
+:func:`plant_sim.tunings.simc_improved`: ``Kc = (tau + theta/3) / (K (tau_c + theta))``,
+``tau_I = min(tau + theta/3, 4 (tau_c + theta))``) detuned to ``tau_c = 2 tau`` (a closed
+loop twice as slow as the plant: the paper's target trajectory, and the reference tuning
+``pitune demo`` reports). In the agent's units (gain and tau 0.5, theta/tau 0..1) it lands
+within 0-14% of the best fixed PI for the step-test metric the agent was trained on
+(``plant_sim.tunings.oracle``): where the agent would take the loop. With the model's tau
+30% off either way (theta off the other way, their sum kept: the error closed-loop data
+leave) its step-test MSE stays below 0.007 (the paper's SIMC variant, ``tau_c = 2 tau``
+with the original rule's gain: up to 0.03). Each gain is raised to the model's, never
+lowered (a loop already tuned faster keeps its gains, and the agent starts from them),
+and only when one is more than one guard step (``1 + max_rel_change``) below (the
+agent's own next step reaches the rest). The guard's bounds apply.
+
+The change is a decision like any other: published (``auto``: reason ``model``, pending
+verification) or proposed (``advisory``), recorded in the audit log (reason ``model``,
+the model and the rule in its detail), and judged by verify-or-rollback on the next
+setpoint response against the last-good gains (a model-based tuning that makes the loop
+worse is rolled back, and one that makes it oscillate at once). The agent is held until
+that verdict, at most ``cooldown_periods`` RL periods (the hold after a rollback). A loop
+registered without a hint has no measured figure for its old gains (the monitor's target
+needs a model): its first response after the change becomes the baseline, and the
+model's predicted IAE before and after (:mod:`service.engine.predict`) is in the audit
+row. Shadow and frozen loops get none (nothing may be published for them); their agent
+starts from the gains in force.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from plant_sim.tunings import simc_improved, to_parallel
+from service.engine import predict, verify
+from service.engine.modes import ADVISORY, AUTO
+from service.wire.protocol import UpdateReason
+
+RULE = "simc_improved tau_c=2tau"
+"""The rule's name in the audit row."""
+TAU_C = 2.0
+"""The closed-loop time constant, in plant time constants (detuned: SIMC's own choice is
+``tau_c = theta``)."""
+
+
+def model_gains(k: float, tau: float, theta: float) -> tuple[float, float]:
+    """The model's tuning (kp, ki per second) in engineering units."""
+    kp, ki = to_parallel(*simc_improved(k, tau, theta, TAU_C * tau))
+    return float(kp), float(ki)
+
+
+def apply(tb, s: int, m, wall: float, why: str) -> None:
+    """Raise the gains of slot ``s`` to model ``m``'s tuning if they are well below it
+    (after the model's scaling and bounds are configured); queues the decision to
+    publish in ``tb.decided``. ``why``: ``identified`` or ``rescaled``."""
+    mode = int(tb.mode[s])
+    if mode not in (AUTO, ADVISORY) or not tb.configs[tb.ids[s]].guard.model_tuning:
+        return
+    old = (float(tb.kp[s]), float(tb.ki[s]))
+    target = model_gains(m.k, m.tau, m.theta)
+    lo, hi = (tb.kp_min[s], tb.ki_min[s]), (tb.kp_max[s], tb.ki_max[s])
+    raised = np.maximum(old, target)
+    new = tuple(np.clip(raised, lo, hi).tolist())
+    if not (np.asarray(new) > np.asarray(old) * (1.0 + float(tb.max_rel[s]))).any():
+        return
+    t = float(tb.last_t[s]) if math.isfinite(tb.last_t[s]) else 0.0
+    tb.seq[s] += 1
+    seq = int(tb.seq[s])
+    tb._gains_dirty.add(s)
+    tb._verify_dirty.add(s)
+    # the agent is held until the change is verified (at most the cool-down after a
+    # rollback): one change judged at a time, and the model's tuning is near the agent's
+    # target already (stepped at once from a fresh hidden state, it wandered off it: the
+    # two-tank demo's MSE 0.025-0.13 cm^2 against 0.014 hinted)
+    tb.cool_until[s] = t + tb.v_cool[s]
+    tb.ident[s].tuned_seq = seq
+    if mode == AUTO:
+        tb.prev_kp[s], tb.prev_ki[s] = old
+        tb.kp[s], tb.ki[s] = new
+        tb.pending[s] = True
+        tb.adv_kp[s] = tb.adv_ki[s] = tb.adv_seq[s] = math.nan
+    else:  # a proposal: the track goes on from it
+        tb.adv_kp[s], tb.adv_ki[s], tb.adv_seq[s] = new[0], new[1], seq
+    (predicted,) = predict.predictions(tb, [s], np.array([old]), np.array([new]))
+    detail = {
+        "rule": RULE, "after": why, "k": m.k, "tau": m.tau, "theta": m.theta,
+        "model_kp": target[0], "model_ki": target[1], "predicted": predicted,
+    }  # fmt: skip
+    verify._audit(tb, s, wall, "model", old, new, detail, t=t)
+    verdict = "pending" if mode == AUTO else "proposal"
+    with np.errstate(divide="ignore", invalid="ignore"):
+        pct = (np.divide(new, old) - 1.0) * 100.0
+    guard = "bounds" if not np.allclose(new, raised, rtol=1e-12, atol=0.0) else "none"
+    text = (
+        f"reason=model basis=model rule=simc dkp={pct[0]:+.1f}% dki={pct[1]:+.1f}% "
+        f"guard={guard} verdict={verdict}"
+    )
+    tb.decided.append(verify.single(tb, s, t, old, new, UpdateReason.model, text, mode))

@@ -1,0 +1,74 @@
+"""The first tuning from an identified model (service/engine/first_tuning.py): when a
+hint-free loop's model comes into force, gains well below the model's SIMC tuning are
+raised to it in one published, audited change that verify-or-rollback judges; gains
+already near or above it are left to the agent; the guard's switch turns it off."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from service.agent import untrained_agent
+from service.engine import LoopConfig, TuningEngine
+from service.engine.first_tuning import model_gains
+from tests.test_identify import H, drive, gains
+
+pytestmark = pytest.mark.timeout(120)
+
+
+def engine_with(share: float, mode: str = "auto", **guard) -> TuningEngine:
+    """A hint-free loop whose registered gains are ``share`` of the true SIMC tuning."""
+    engine = TuningEngine(untrained_agent(0))
+    kp, ki = gains(share=share)
+    engine.register(
+        LoopConfig(id="L", kp=kp, ki=ki, sample_period_s=H, mode=mode, guard=guard), wall=0.0
+    )
+    return engine
+
+
+def test_a_sluggish_loop_gets_the_models_tuning_in_one_verified_change():
+    engine = engine_with(0.25)
+    updates = drive(engine, moves=6, every=12.0)  # responses complete: 2 RL periods, 11 tau
+    view = engine.view("L", wall=1e9)
+    model = view.identification.in_force
+    assert view.counters.identified == 1
+    first = updates[0]
+    assert first.reason == "model" and first.mode == "auto"
+    assert first.t == pytest.approx(view.identification.in_force_t)
+    assert (first.kp, first.ki) == pytest.approx(model_gains(model.k, model.tau, model.theta))
+    kp0, ki0 = gains(share=0.25)
+    assert first.kp > 3 * kp0 and first.ki > 3 * ki0  # a jump, not a guard step of 1.5x
+    assert "reason=model" in first.why and "rule=simc" in first.why
+    _, audit = engine.drain_changes()
+    rows = [r for r in audit if r[5] == "model"]
+    detail = json.loads(rows[0][10])
+    assert (
+        len(rows) == 1 and detail["rule"].startswith("simc") and "pred_iae" in detail["predicted"]
+    )
+    # judged like any change: a verdict row covers its seq
+    judged = [json.loads(r[10]) for r in audit if r[5] in ("verified", "rollback")]
+    assert any(d["seqs"][0] <= first.seq <= d["seqs"][1] for d in judged), judged
+    # and the agent waits for that verdict (one change judged at a time)
+    verdict_t = min(r[2] for r in audit if r[5] in ("verified", "rollback") and r[2] > first.t)
+    agent = [u for u in updates if u.reason == "agent"]
+    assert agent and min(u.t for u in agent) >= verdict_t
+
+
+def test_gains_near_or_above_the_models_tuning_are_left_to_the_agent():
+    engine = engine_with(0.8)  # within one guard step (1.5x) of the model's tuning
+    updates = drive(engine, moves=4)
+    assert engine.view("L", wall=1e9).counters.identified == 1
+    assert updates and all(u.reason == "agent" for u in updates)
+
+
+def test_the_guard_switch_turns_it_off_and_advisory_loops_get_a_proposal():
+    off = engine_with(0.25, model_tuning=False)
+    assert all(u.reason == "agent" for u in drive(off, moves=4))
+    assert off.view("L", wall=1e9).counters.identified == 1
+    advisory = engine_with(0.25, mode="advisory")
+    updates = drive(advisory, moves=4)
+    first = updates[0]
+    assert first.reason == "model" and first.mode == "advisory"
+    # a proposal: the tuner kept the registered gains until the gateway reported them
+    assert (first.kp - first.dkp) == pytest.approx(gains(share=0.25)[0])
