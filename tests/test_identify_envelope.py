@@ -23,7 +23,7 @@ from plant_sim.loop import step_test_mse
 from plant_sim.pi import PIBatch
 from service.agent import DEFAULT_WEIGHTS, load_agent
 from service.engine import LoopConfig, TuningEngine
-from service.engine.watch import ENVELOPE_MARGIN, TRAINING_BOX
+from service.engine.box import ENVELOPE_MARGIN, TRAINING_BOX
 from tests.test_identify import gains
 
 pytestmark = [

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.engine import margin, oscillation, predict, verify, watch
+from service.engine import box, margin, oscillation, predict, verify
 from service.engine.audit import audit_row
 from service.engine.modes import ADVISORY, AUTO, SHADOW
 from service.engine.rules import GAIN_RTOL
@@ -171,7 +171,7 @@ def _observe(tb: LoopTable, slots: np.ndarray) -> np.ndarray:
 def _margin(tb: LoopTable, slots, new, check) -> tuple[np.ndarray, np.ndarray]:
     """The robustness guard: where the loop's identified model (the latest confident one,
     else the one in force), seen through the scaling in force, lies outside the agent's
-    training box (:func:`service.engine.watch.in_box`: where the agent extrapolates; inside
+    training box (:func:`service.engine.box.in_box`: where the agent extrapolates; inside
     it the best gains reach Ms 1.35 and the check would only cost time), gains whose
     largest sensitivity on the model is above ``guard.max_sensitivity`` (or unstable) are
     scaled down together to it. Returns the gains and where the guard cut them."""
@@ -180,7 +180,7 @@ def _margin(tb: LoopTable, slots, new, check) -> tuple[np.ndarray, np.ndarray]:
         s = int(slots[i])
         st = tb.ident[s]
         m = st.model if st.model is not None and st.model.confident else st.in_force
-        if m is not None and not m.integrating and not watch.in_box(tb.scaling_of(s), m):
+        if m is not None and not m.integrating and not box.in_box(tb.scaling_of(s), m):
             rows.append(i)
             models.append((m.k, m.tau, m.theta))
     cut = np.zeros(len(slots), bool)

@@ -21,7 +21,7 @@ accepted sample; stated one sample at a time in ``tests/engine_reference.py``):
   'identified'); with one in force it is compared: a disagreement beyond
   ``guard.hint_tolerance`` flags the loop (audit 'mismatch') and, with
   ``guard.auto_rescale``, rescales it (audit 'rescaled'); outside the training box by
-  :data:`ENVELOPE_MARGIN` (or integrating) pauses it (audit 'out_of_envelope').
+  :data:`service.engine.box.ENVELOPE_MARGIN` (or integrating) pauses it (audit 'out_of_envelope').
 
 The recorder buffers are shared by all loops of a table (a pool of rows, one per open
 segment), so memory goes only to loops that are recording.
@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.engine import first_tuning, identify
+from service.engine import box, first_tuning, identify
 from service.engine.audit import audit_row
 from service.engine.config import Identification
 from service.units import AGENT_GAIN, AGENT_TAU, Scaling
@@ -47,11 +47,6 @@ MIN_EVENT_SAMPLES = 8
 """Recorded samples an event needs before a new setpoint move closes it."""
 MAX_EVENTS = 6
 """Events a segment keeps (older ones are dropped: the plant may drift)."""
-TRAINING_BOX = {"gain": (0.25, 1.0), "tau": (0.25, 1.0), "theta_ratio": (0.0, 1.0)}
-"""The agent's training box (service/learn/env.py), agent units."""
-ENVELOPE_MARGIN = 1.5
-"""Factor beyond the training box (gain and tau; theta/tau up to 1.5) at which a loop is
-out of the agent's envelope."""
 NOISE_SCALE = 10.0
 """A hint-free loop's pv_scale is the typical setpoint move, at least this many times
 the measurement noise (the agent sees errors of order 1 and noise well below)."""
@@ -348,14 +343,6 @@ def stop(tb, s: int) -> None:
 
 
 # -- using a model ---------------------------------------------------------------------
-def apparent(scaling: Scaling, m: identify.Model) -> dict[str, float]:
-    return {
-        "gain": scaling.apparent_gain(m.k),
-        "tau": scaling.apparent_tau(m.tau),
-        "theta_ratio": m.theta / m.tau,
-    }
-
-
 def model_scaling(m: identify.Model, pv_scale: float | None = None) -> Scaling:
     """The section 5.4 scaling of a model: it appears with gain 0.5 and tau 0.5."""
     if pv_scale is None:
@@ -376,7 +363,7 @@ def use(tb, s: int, m: identify.Model, t: float, wall: float) -> None:
         _put_in_force(tb, s, m, model_scaling(m), t, wall, "identified", detail)
         return
     scaling = tb.scaling_of(s)
-    app = apparent(scaling, m)
+    app = box.apparent(scaling, m)
     off = max(abs(math.log(app["gain"] / AGENT_GAIN)), abs(math.log(app["tau"] / AGENT_TAU)))
     if off > math.log(guard.hint_tolerance):
         if not tb.mismatch[s]:  # flagged (and, with auto-rescale, rescaled right after)
@@ -402,13 +389,13 @@ def _envelope(tb, s: int, m: identify.Model, t: float, wall: float, *, sure: boo
     not used at all."""
     if not tb.env_guard[s]:
         return
-    app = apparent(tb.scaling_of(s), m)
+    app = box.apparent(tb.scaling_of(s), m)
     if sure:
-        out = m.integrating or not in_envelope(app)
+        out = m.integrating or not box.in_envelope(app)
     else:
         if not (m.r2 >= identify.MIN_R2 and m.events >= identify.MIN_EVENTS and m.k > 0):
             return
-        out = not in_envelope(_toward_box(app, 2.0 * m.k_rse, 2.0 * m.tau_rse))
+        out = not box.in_envelope(box.toward_box(app, 2.0 * m.k_rse, 2.0 * m.tau_rse))
         if not out:
             return
     if out and not tb.out_env[s]:
@@ -417,37 +404,6 @@ def _envelope(tb, s: int, m: identify.Model, t: float, wall: float, *, sure: boo
     elif not out and tb.out_env[s]:
         _audit(tb, s, t, wall, "in_envelope", json.dumps(app, separators=(",", ":")))
     tb.out_env[s] = out
-
-
-def _toward_box(app: dict[str, float], k_margin: float, tau_margin: float) -> dict:
-    """Apparent gain and tau moved toward the box's centre by the given relative margins."""
-    mid = AGENT_GAIN
-
-    def shrink(x: float, r: float) -> float:
-        return x / (1 + r) if x > mid else x * (1 + r)
-
-    return {**app, "gain": shrink(app["gain"], k_margin), "tau": shrink(app["tau"], tau_margin)}
-
-
-def in_box(scaling: Scaling, m: identify.Model) -> bool:
-    """Whether a model, seen through ``scaling``, lies inside the training box itself (no
-    margin): the robustness guard checks the loops outside it (service.engine.stepping)."""
-    app = apparent(scaling, m)
-    return (
-        TRAINING_BOX["gain"][0] <= app["gain"] <= TRAINING_BOX["gain"][1]
-        and TRAINING_BOX["tau"][0] <= app["tau"] <= TRAINING_BOX["tau"][1]
-        and app["theta_ratio"] <= TRAINING_BOX["theta_ratio"][1]
-    )
-
-
-def in_envelope(app: dict[str, float]) -> bool:
-    g_lo, g_hi = TRAINING_BOX["gain"]
-    t_lo, t_hi = TRAINING_BOX["tau"]
-    return (
-        g_lo / ENVELOPE_MARGIN <= app["gain"] <= g_hi * ENVELOPE_MARGIN
-        and t_lo / ENVELOPE_MARGIN <= app["tau"] <= t_hi * ENVELOPE_MARGIN
-        and app["theta_ratio"] <= TRAINING_BOX["theta_ratio"][1] * ENVELOPE_MARGIN
-    )
 
 
 def _put_in_force(tb, s, m, scaling: Scaling, t, wall, reason: str, detail: str) -> None:
@@ -503,7 +459,7 @@ def view(tb, s: int) -> Identification | None:
         model=None if model is None else model.as_dict(),
         in_force=None if st.in_force is None else st.in_force.as_dict(),
         in_force_t=st.in_force_t,
-        apparent=None if model is None or scaling is None else apparent(scaling, model),
+        apparent=None if model is None or scaling is None else box.apparent(scaling, model),
         events=[ev.as_dict() for ev in st.events],
         mismatch=bool(tb.mismatch[s]),
         out_of_envelope=bool(tb.out_env[s]),

@@ -1,0 +1,56 @@
+"""The agent's training box, and a model seen through a loop's scaling against it.
+
+The envelope guard (:mod:`service.engine.watch`) pauses a loop whose identified model lies
+beyond the box by :data:`ENVELOPE_MARGIN`; the robustness guard
+(:mod:`service.engine.stepping`) acts on loops whose model lies outside the box itself.
+"""
+
+from __future__ import annotations
+
+from service.engine import identify
+from service.units import AGENT_GAIN, Scaling
+
+TRAINING_BOX = {"gain": (0.25, 1.0), "tau": (0.25, 1.0), "theta_ratio": (0.0, 1.0)}
+"""The agent's training box (service/learn/env.py), agent units."""
+ENVELOPE_MARGIN = 1.5
+"""Factor beyond the training box (gain and tau; theta/tau up to 1.5) at which a loop is
+out of the agent's envelope."""
+
+
+def apparent(scaling: Scaling, m: identify.Model) -> dict[str, float]:
+    return {
+        "gain": scaling.apparent_gain(m.k),
+        "tau": scaling.apparent_tau(m.tau),
+        "theta_ratio": m.theta / m.tau,
+    }
+
+
+def toward_box(app: dict[str, float], k_margin: float, tau_margin: float) -> dict:
+    """Apparent gain and tau moved toward the box's centre by the given relative margins."""
+    mid = AGENT_GAIN
+
+    def shrink(x: float, r: float) -> float:
+        return x / (1 + r) if x > mid else x * (1 + r)
+
+    return {**app, "gain": shrink(app["gain"], k_margin), "tau": shrink(app["tau"], tau_margin)}
+
+
+def in_box(scaling: Scaling, m: identify.Model) -> bool:
+    """Whether a model, seen through ``scaling``, lies inside the training box itself (no
+    margin): the robustness guard checks the loops outside it (service.engine.stepping)."""
+    app = apparent(scaling, m)
+    return (
+        TRAINING_BOX["gain"][0] <= app["gain"] <= TRAINING_BOX["gain"][1]
+        and TRAINING_BOX["tau"][0] <= app["tau"] <= TRAINING_BOX["tau"][1]
+        and app["theta_ratio"] <= TRAINING_BOX["theta_ratio"][1]
+    )
+
+
+def in_envelope(app: dict[str, float]) -> bool:
+    g_lo, g_hi = TRAINING_BOX["gain"]
+    t_lo, t_hi = TRAINING_BOX["tau"]
+    return (
+        g_lo / ENVELOPE_MARGIN <= app["gain"] <= g_hi * ENVELOPE_MARGIN
+        and t_lo / ENVELOPE_MARGIN <= app["tau"] <= t_hi * ENVELOPE_MARGIN
+        and app["theta_ratio"] <= TRAINING_BOX["theta_ratio"][1] * ENVELOPE_MARGIN
+    )
