@@ -12,7 +12,7 @@ import pytest
 from service.agent import untrained_agent
 from service.engine import LoopConfig, TuningEngine
 from service.engine.first_tuning import model_gains
-from tests.test_identify import H, drive, gains
+from tests.test_identify import TAU, H, K, drive, gains
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -72,3 +72,50 @@ def test_the_guard_switch_turns_it_off_and_advisory_loops_get_a_proposal():
     assert first.reason == "model" and first.mode == "advisory"
     # a proposal: the tuner kept the registered gains until the gateway reported them
     assert (first.kp - first.dkp) == pytest.approx(gains(share=0.25)[0])
+
+
+def test_a_rescale_sets_the_models_tuning_even_below_the_gains_in_force():
+    """A tau hint 3x too fast: the agent's gains (here 3x the textbook's) were tuned for
+    a faster plant; the rescale replaces them by the model's tuning, lowering both."""
+    engine = TuningEngine(untrained_agent(0))
+    kp, ki = gains(share=3.0)
+    scaling = {"k_hat": K, "tau_hat": TAU / 3, "pv_scale": 20.0}
+    guard = {"identify": True, "auto_rescale": True}
+    engine.register(
+        LoopConfig(id="L", kp=kp, ki=ki, sample_period_s=H, scaling=scaling, guard=guard),
+        wall=0.0,
+    )
+    updates = drive(engine, moves=6, every=12.0)
+    view = engine.view("L", wall=1e9)
+    assert view.counters.mismatches == 1 and view.counters.identified >= 1
+    model = [u for u in updates if u.reason == "model"]
+    assert model, [u.reason for u in updates]
+    m = view.identification.in_force
+    assert (model[0].kp, model[0].ki) == pytest.approx(model_gains(m.k, m.tau, m.theta))
+    assert model[0].dkp < 0 and model[0].dki < 0
+    _, audit = engine.drain_changes()
+    row = next(r for r in audit if r[5] == "model")
+    assert json.loads(row[10])["after"] == "rescaled"
+
+
+def test_a_loop_paused_out_of_the_envelope_is_paused_on_the_models_tuning():
+    """Right K and tau, but dead time 3 tau (beyond the box's 1.5): paused, and its gains
+    set to the model's tuning rather than left where they were (here a quarter of it)."""
+    engine = TuningEngine(untrained_agent(0))
+    kp, ki = gains(theta=3 * TAU, share=0.25)
+    scaling = {"k_hat": K, "tau_hat": TAU, "pv_scale": 20.0}
+    engine.register(
+        LoopConfig(id="L", kp=kp, ki=ki, sample_period_s=H, scaling=scaling,
+                   guard={"identify": True}),
+        wall=0.0,
+    )  # fmt: skip
+    updates = drive(engine, theta=3 * TAU, moves=6, every=12.0)
+    view = engine.view("L", wall=1e9)
+    assert view.identification.out_of_envelope and view.counters.envelope_pauses == 1
+    model = [u for u in updates if u.reason == "model"]
+    assert len(model) == 1, [u.reason for u in updates]
+    m = view.identification.model
+    assert (view.kp, view.ki) == pytest.approx(model_gains(m.k, m.tau, m.theta), rel=0.3)
+    _, audit = engine.drain_changes()
+    row = next(r for r in audit if r[5] == "model")
+    assert json.loads(row[10])["after"] == "out_of_envelope"

@@ -106,10 +106,11 @@ class Guard(BaseModel):
     )
     model_tuning: bool = Field(
         True,
-        description="When identification puts a model in force (no hint, or a wrong hint "
-        "rescaled), raise gains well below the model's SIMC tuning (tau_c = 2 tau) to it in "
-        "one change (reason 'model', verified like any change) instead of letting the "
-        "agent walk them up by max_rel_change per update (docs/identification.md).",
+        description="When identification puts a model in force for a loop without a hint, "
+        "raise gains well below the model's SIMC tuning (tau_c = 2 tau) to it in one "
+        "change (reason 'model', verified like any change) instead of letting the agent "
+        "walk them up by max_rel_change per update; after a rescale or an envelope pause, "
+        "set gains well off it either way to it (docs/identification.md).",
     )
     envelope_guard: bool = Field(
         True,

@@ -1,7 +1,8 @@
 """The first tuning from an identified model: when identification puts a model in force
 (a loop registered without a hint, or a wrong hint rescaled), gains below the model's
 textbook tuning are raised to it in one guarded, audited change, instead of the agent
-walking them up by ``max_rel_change`` per update.
+walking them up by ``max_rel_change`` per update; after a rescale, and when the envelope
+guard pauses a loop, gains off it either way are set to it (:data:`REPLACE_AFTER`).
 
 The tuning is the improved SIMC rule (Grimholt & Skogestad 2012,
 :func:`plant_sim.tunings.simc_improved`: ``Kc = (tau + theta/3) / (K (tau_c + theta))``,
@@ -12,10 +13,13 @@ within 0-14% of the best fixed PI for the step-test metric the agent was trained
 (``plant_sim.tunings.oracle``): where the agent would take the loop. With the model's tau
 30% off either way (theta off the other way, their sum kept: the error closed-loop data
 leave) its step-test MSE stays below 0.007 (the paper's SIMC variant, ``tau_c = 2 tau``
-with the original rule's gain: up to 0.03). Each gain is raised to the model's, never
-lowered (a loop already tuned faster keeps its gains, and the agent starts from them),
-and only when one is more than one guard step (``1 + max_rel_change``) below (the
-agent's own next step reaches the rest). The guard's bounds apply.
+with the original rule's gain: up to 0.03). For a newly identified loop each gain is
+raised to the model's, never lowered (a loop already tuned faster keeps its gains, and
+the agent starts from them), and only when one is more than one guard step
+(``1 + max_rel_change``) below (the agent's own next step reaches the rest). After a
+rescale or an envelope pause the gains in force are the agent's, tuned for the wrong
+plant, and both are set to the model's when either is more than a guard step off it.
+The guard's bounds apply.
 
 The change is a decision like any other: published (``auto``: reason ``model``, pending
 verification) or proposed (``advisory``), recorded in the audit log (reason ``model``,
@@ -46,6 +50,17 @@ RULE = "simc_improved tau_c=2tau"
 TAU_C = 2.0
 """The closed-loop time constant, in plant time constants (detuned: SIMC's own choice is
 ``tau_c = theta``)."""
+REPLACE_AFTER = ("rescaled", "out_of_envelope")
+"""Decisions after which the model's tuning replaces the gains both ways, not only raises
+them: the gains in force were the agent's, tuned for the plant a wrong scaling described
+(or one outside its box), so a faster tuning among them is no choice to keep (an integral
+time of 0.4-0.6 of the true tau after a tau hint 2-3x off: docs/identification.md)."""
+FOLLOW = 1.15
+"""Factor off the latest confident model's tuning beyond which a loop paused out of the
+envelope (no agent step moves it) is set to it again: the first confident model of a
+dead-time dominant plant is often off by 20-40 % in tau and its tuning, whose step-test
+MSE at theta/tau 2 is 4x that of the true model's (0.037 against 0.0045 on the worst loop
+of ``pitune evaluate --robust``), is refined as later models come."""
 
 
 def model_gains(k: float, tau: float, theta: float) -> tuple[float, float]:
@@ -55,18 +70,25 @@ def model_gains(k: float, tau: float, theta: float) -> tuple[float, float]:
 
 
 def apply(tb, s: int, m, wall: float, why: str) -> None:
-    """Raise the gains of slot ``s`` to model ``m``'s tuning if they are well below it
-    (after the model's scaling and bounds are configured); queues the decision to
-    publish in ``tb.decided``. ``why``: ``identified`` or ``rescaled``."""
+    """Raise the gains of slot ``s`` to model ``m``'s tuning if they are well below it, or
+    after a decision in :data:`REPLACE_AFTER` set them to it if they are well off it
+    either way (after the model's scaling and bounds are configured); queues the decision
+    to publish in ``tb.decided``. ``why``: ``identified``, ``rescaled`` or
+    ``out_of_envelope``."""
     mode = int(tb.mode[s])
     if mode not in (AUTO, ADVISORY) or not tb.configs[tb.ids[s]].guard.model_tuning:
+        return
+    if m.integrating or not m.k > 0:
         return
     old = (float(tb.kp[s]), float(tb.ki[s]))
     target = model_gains(m.k, m.tau, m.theta)
     lo, hi = (tb.kp_min[s], tb.ki_min[s]), (tb.kp_max[s], tb.ki_max[s])
-    raised = np.maximum(old, target)
+    raised = target if why in REPLACE_AFTER else np.maximum(old, target)
     new = tuple(np.clip(raised, lo, hi).tolist())
-    if not (np.asarray(new) > np.asarray(old) * (1.0 + float(tb.max_rel[s]))).any():
+    step = FOLLOW if why == "out_of_envelope" else 1.0 + float(tb.max_rel[s])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.asarray(new) / np.asarray(old)
+    if not ((ratio > step) | (ratio < 1.0 / step)).any():
         return
     t = float(tb.last_t[s]) if math.isfinite(tb.last_t[s]) else 0.0
     tb.seq[s] += 1

@@ -21,7 +21,9 @@ accepted sample; stated one sample at a time in ``tests/engine_reference.py``):
   'identified'); with one in force it is compared: a disagreement beyond
   ``guard.hint_tolerance`` flags the loop (audit 'mismatch') and, with
   ``guard.auto_rescale``, rescales it (audit 'rescaled'); outside the training box by
-  :data:`service.engine.box.ENVELOPE_MARGIN` (or integrating) pauses it (audit 'out_of_envelope').
+  :data:`service.engine.box.ENVELOPE_MARGIN` (or integrating) pauses it (audit
+  'out_of_envelope'). Both set the gains to the model's tuning
+  (:mod:`service.engine.first_tuning`).
 
 The recorder buffers are shared by all loops of a table (a pool of rows, one per open
 segment), so memory goes only to loops that are recording.
@@ -404,6 +406,8 @@ def _envelope(tb, s: int, m: identify.Model, t: float, wall: float, *, sure: boo
     elif not out and tb.out_env[s]:
         _audit(tb, s, t, wall, "in_envelope", json.dumps(app, separators=(",", ":")))
     tb.out_env[s] = out
+    if out and sure:  # paused on the model's tuning (a no-op once the gains are at it)
+        first_tuning.apply(tb, s, m, wall, "out_of_envelope")
 
 
 def _put_in_force(tb, s, m, scaling: Scaling, t, wall, reason: str, detail: str) -> None:

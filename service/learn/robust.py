@@ -21,6 +21,14 @@ plant with the target and SIMC of their FOPTD approximation by Skogestad's half 
 
 A loop counts as unstable when its step test with the final gains does not settle
 (non-finite, or the output still more than 0.5 from the target in the last fifth).
+
+"80 RL periods" is plant time, not a count of agent steps: every condition runs 80 RL
+periods of the hint's scaling (13,200 s), as a user's loop would. A loop whose scaling
+identification replaces (``guard.auto_rescale``) gets the RL period of its model from
+then on, 5.5 model time constants: on ``true tau = 3 x hint`` 1.5-6x the hint's, so it
+takes that many times fewer steps in the time left; a loop paused (excitation gate,
+envelope guard, a hold) takes none. The issue's first table drove the agent directly for
+80 steps.
 """
 
 from __future__ import annotations
