@@ -546,7 +546,7 @@ def test_one_absurd_loop_never_breaks_the_step_of_the_others(reference):
         ingest_one(t, s, sample(2.0, e=e, **gains), WALL)
     # and numbers no sample can bring, however they came about
     absurd = extreme[:3]
-    t.ki[absurd[0]], t.int_e[absurd[1]], t.last_e[absurd[2]] = 1e300, np.inf, np.nan
+    t.ki[absurd[0]], t.int_e[absurd[1]], t.obs_e[absurd[2]] = 1e300, np.inf, np.nan
     result = step(t, np.array(normal + extreme), WALL)
     stepped = {t.slot_of[i] for i in result.loop_ids}
     assert set(normal) <= stepped
