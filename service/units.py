@@ -105,14 +105,20 @@ def error_window(e, t, due, period, total, count, window_due):
     return total, np.where(ours, count, 0.0) + inside
 
 
-def window_error(total, count, e):
-    """The agent's error observation at the end of an RL period: the mean over the window
-    (:func:`error_window`), or the error ``e`` of the sample at the period's end where the
-    window holds no sample (samples sparser than OBS_WINDOW of the period). With white
-    noise of sigma per sample the mean's noise is sigma / sqrt(count): 50 samples at the
-    engine's usual 1 s for a 165 s RL period, 7x less noise than one sample."""
+def window_error(total, count, e, due, period, last_move):
+    """The agent's error observation at the end of an RL period (``due``): the mean over
+    the window (:func:`error_window`), or the error ``e`` of the sample at the period's
+    end where the window holds no sample (samples sparser than OBS_WINDOW of the period)
+    or the setpoint moved inside it (``last_move``, the time of the last move, same
+    clock): a mean across a move mixes the error before it with the response after it,
+    a number the agent never saw in training; such a period's error is the response,
+    not noise. With white noise of sigma per sample the mean's noise is sigma /
+    sqrt(count): 50 samples at the engine's usual 1 s for a 165 s RL period, 7x less
+    noise than one sample."""
+    start = due - OBS_WINDOW * period
+    mixed = (last_move >= start) & (last_move < due)
     with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(count > 0, total / count, e)
+        return np.where((count > 0) & ~mixed, total / count, e)
 
 
 class Moves(NamedTuple):

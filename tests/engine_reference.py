@@ -133,7 +133,8 @@ def _ingest(tb: LoopTable, s: int, sample: Sample, wall: float) -> bool:
         tb.win_n[s] += 1.0
     if not t >= due:  # NaN (no scaling yet: identifying): never due
         return False
-    tb.obs_e[s] = tb.win_sum[s] / tb.win_n[s] if tb.win_n[s] else e_agent
+    mixed = due - OBS_WINDOW * tb.period[s] <= tb.move_t[s] < due  # a move in the window
+    tb.obs_e[s] = tb.win_sum[s] / tb.win_n[s] if tb.win_n[s] and not mixed else e_agent
     period = tb.period[s]
     tb.next_due[s] += period * (math.floor((t - tb.next_due[s]) / period) + 1.0)
     if tb.mode[s] == FROZEN or not sample.auto or sample.saturated or tb.out_env[s]:

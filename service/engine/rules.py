@@ -169,7 +169,8 @@ def ingest(
     tb.win_sum[slots], tb.win_n[slots], tb.win_due[slots] = total, count, next_due
     reached = t >= next_due
     # the agent's error at the period's end, agent units
-    tb.obs_e[slots[reached]] = window_error(total, count, e * tb.e_scale[slots])[reached]
+    obs_e = window_error(total, count, e * tb.e_scale[slots], next_due, period, tb.move_t[slots])
+    tb.obs_e[slots[reached]] = obs_e[reached]
     next_due[reached] += period[reached] * (
         np.floor((t[reached] - next_due[reached]) / period[reached]) + 1.0
     )

@@ -481,7 +481,7 @@ class TuningEnv:
             step = c["noise"] * np.sqrt(1 - a_n**2) * self.rng.standard_normal(self.n)
             self.noise_state = a_n * self.noise_state + step
             y = y + self.noise_state
-        self.e = window_error(total, count, self.sp - y)
+        self.e = window_error(total, count, self.sp - y, due, self.inner, self.move_k)
         mse = sq / self.inner
         cost = mse + cfg.beta_kp * np.abs(applied[:, 0]) + cfg.beta_ki * np.abs(applied[:, 1])
         self.t += 1
