@@ -113,7 +113,7 @@ def window_error(total, count, e, due, period, last_move):
     clock): a mean across a move mixes the error before it with the response after it,
     a number the agent never saw in training; such a period's error is the response,
     not noise. With white noise of sigma per sample the mean's noise is sigma /
-    sqrt(count): 50 samples at the engine's usual 1 s for a 165 s RL period, 7x less
+    sqrt(count): 49 samples at 1 s for a 165 s RL period (the two-tank scaling), 7x less
     noise than one sample."""
     start = due - OBS_WINDOW * period
     mixed = (last_move >= start) & (last_move < due)
