@@ -79,7 +79,7 @@ end within this many periods of a setpoint move (the default of a loop's
 ``excitation_periods``; training with ``excitation_gate`` uses it too)."""
 
 
-OBS_WINDOW = 0.3
+OBS_WINDOW = 0.2
 """Share of the RL period whose samples the agent's error observation averages: e is the
 mean of the measured error over the samples at times due - OBS_WINDOW * period <= t <
 due, ``due`` the end of the RL period (:func:`error_window`)."""
@@ -113,8 +113,8 @@ def window_error(total, count, e, due, period, last_move):
     clock): a mean across a move mixes the error before it with the response after it,
     a number the agent never saw in training; such a period's error is the response,
     not noise. With white noise of sigma per sample the mean's noise is sigma /
-    sqrt(count): 49 samples at 1 s for a 165 s RL period (the two-tank scaling), 7x less
-    noise than one sample."""
+    sqrt(count): 33 samples at 1 s for a 165 s RL period (the two-tank scaling), 5.7x
+    less noise than one sample."""
     start = due - OBS_WINDOW * period
     mixed = (last_move >= start) & (last_move < due)
     with np.errstate(invalid="ignore", divide="ignore"):

@@ -6,7 +6,7 @@ toggling between +1 and -1 every 11 time units. One RL step is 2.75 time units
 (275 controller samples at dt = 0.01).
 
 State ``s_t = [kp, ki, e_t, int_e]``: the gains in force, the mean measured error over
-the last :data:`~service.units.OBS_WINDOW` of the RL period (the samples from 0.7 of the
+the last :data:`~service.units.OBS_WINDOW` of the RL period (the samples from 0.8 of the
 period to its end, :func:`service.units.error_window`, as the tuning engine computes it)
 and the integral of the measured error since the episode start.
 Action: additive ``[dkp, dki]``; gains are clipped to [GAIN_FLOOR, gain_max].
