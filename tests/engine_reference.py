@@ -15,7 +15,7 @@ from service.engine.audit import audit_row
 from service.engine.modes import AUTO, FROZEN
 from service.engine.rules import GAIN_RTOL, MAX_AGENT_ERROR
 from service.engine.table import LoopTable
-from service.units import OBS_GAIN_RANGE, PAPER_MOVE
+from service.units import OBS_GAIN_RANGE, OBS_WINDOW, PAPER_MOVE
 from service.wire.decode import decode_objects
 from service.wire.protocol import RejectReason, Sample
 
@@ -123,8 +123,18 @@ def _ingest(tb: LoopTable, s: int, sample: Sample, wall: float) -> bool:
     elif not paused:
         tb.int_e[s] += 0.5 * (e + tb.last_e[s]) * (t - last_t) * tb.int_scale[s]
     tb.last_e[s] = e
-    if not t >= tb.next_due[s]:  # NaN (no scaling yet: identifying): never due
+    # the agent's error observation: the mean over the window before the period's end
+    due, e_agent = tb.next_due[s], e * tb.e_scale[s]
+    if tb.win_due[s] != due:  # another period's sums (NaN: none yet)
+        tb.win_sum[s] = tb.win_n[s] = 0.0
+    tb.win_due[s] = due
+    if due - OBS_WINDOW * tb.period[s] <= t < due:
+        tb.win_sum[s] += e_agent
+        tb.win_n[s] += 1.0
+    if not t >= due:  # NaN (no scaling yet: identifying): never due
         return False
+    mixed = due - OBS_WINDOW * tb.period[s] <= tb.move_t[s] < due  # a move in the window
+    tb.obs_e[s] = tb.win_sum[s] / tb.win_n[s] if tb.win_n[s] and not mixed else e_agent
     period = tb.period[s]
     tb.next_due[s] += period * (math.floor((t - tb.next_due[s]) / period) + 1.0)
     if tb.mode[s] == FROZEN or not sample.auto or sample.saturated or tb.out_env[s]:

@@ -37,8 +37,10 @@ def test_the_robust_factor_brings_a_loop_to_the_sensitivity_bound():
 def test_the_robustness_guard_keeps_a_dead_time_dominant_loop_stable():
     """Through the engine (shipped agent, identification on): a plant of theta/tau = 2,
     outside the agent's training box, whose hint is right on K and tau. Without the guard
-    the agent's gains after 80 RL periods leave the step test unsettled (gain margin 1.3;
-    MSE 0.86); with it (Ms <= 1.6 on the identified model) MSE 0.007."""
+    the agent's gains after 80 RL periods left the step test unsettled (gain margin 1.3;
+    MSE 0.86) while the agent read one error sample per period; with the window-mean
+    observation (docs/tuner.md, Robustness measures 5) they settle without it too. With
+    the guard (Ms <= 1.6 on the identified model) MSE 0.007."""
     from service.agent.model import load_agent
     from service.learn.robust import Condition, run_condition, score
 
@@ -49,7 +51,7 @@ def test_the_robustness_guard_keeps_a_dead_time_dominant_loop_stable():
         guard = {"identify": True, "envelope_guard": False, "max_sensitivity": ms}
         run = run_condition(agent, cond, plants=plants, guard=guard)
         out[ms] = score(run.K, run.tau, run.theta, run.lag, *run.gains[-1].T)
-    assert out[0.0][1][0] and out[0.0][0][0] > 0.3
+    assert not out[0.0][1][0]
     assert not out[1.6][1][0] and out[1.6][0][0] < 0.029
 
 

@@ -106,7 +106,10 @@ def test_conditions_noise_load_quiet_and_random_moves():
     sps, es = np.array(sps), np.array(es)
     assert np.all(sps[:, 2] == 0.0) and not env.excited[2]  # quiet: no setpoint move
     assert abs(env.plant.output()[2]) > 0.01  # but the load moves the plant
-    assert np.std(es[:, 1]) == pytest.approx(0.1, rel=0.5) and np.allclose(es[:, 0], 0.0)
+    # e is the mean of the window's 55 samples: one sample's noise / sqrt(55); noise-free,
+    # the mean of a slowly settling error lies near its end sample
+    assert np.std(es[:, 1] - es[:, 0]) == pytest.approx(0.1 / np.sqrt(55), rel=0.5)
+    assert np.abs(es[:, 0]).max() < 0.02
     assert len(np.unique(sps[:, 3])) > 2 and np.all(np.abs(sps[:, 3]) <= 2.0)
 
 

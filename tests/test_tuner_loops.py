@@ -546,7 +546,7 @@ def test_one_absurd_loop_never_breaks_the_step_of_the_others(reference):
         ingest_one(t, s, sample(2.0, e=e, **gains), WALL)
     # and numbers no sample can bring, however they came about
     absurd = extreme[:3]
-    t.ki[absurd[0]], t.int_e[absurd[1]], t.last_e[absurd[2]] = 1e300, np.inf, np.nan
+    t.ki[absurd[0]], t.int_e[absurd[1]], t.obs_e[absurd[2]] = 1e300, np.inf, np.nan
     result = step(t, np.array(normal + extreme), WALL)
     stepped = {t.slot_of[i] for i in result.loop_ids}
     assert set(normal) <= stepped
@@ -556,3 +556,22 @@ def test_one_absurd_loop_never_breaks_the_step_of_the_others(reference):
     assert all(t.n_faults[s] == 1 and t.n_steps[s] == 0 for s in faulted)
     assert all(t.n_faults[s] == 0 for s in stepped)
     assert np.isfinite(t.hidden[list(stepped)]).all()
+
+
+@pytest.mark.parametrize("batched", [False, True])
+def test_the_agents_error_is_the_mean_over_the_end_of_the_period(batched):
+    """docs/tuner.md, Robustness measures 5: e = the mean error of the samples at
+    due - 0.2 period <= t < due, or the sample at due where the setpoint moved inside."""
+    t, s = table(sample_period_s=1.0)
+    ingest = ingest_one if batched else reference_ingest
+    assert t.period[s] == 165.0 and t.e_scale[s] == 0.1  # the two-tank scaling
+    errors = np.random.default_rng(0).normal(scale=0.1, size=331)
+    sps = np.where(np.arange(331) < 300, 0.0, 5.0)  # a move at 300 s, in the second window
+    obs = {}
+    for k in range(331):
+        if ingest(t, s, sample(float(k), e=float(errors[k]), sp=float(sps[k])), WALL):
+            obs[k] = float(t.obs_e[s])
+    assert sorted(obs) == [165, 330]
+    # 165 - 33 <= t < 165: the 33 samples 132..164, in agent units
+    assert obs[165] == pytest.approx(0.1 * errors[132:165].mean(), rel=1e-12)
+    assert obs[330] == pytest.approx(0.1 * errors[330], rel=1e-12)  # moved at 300 s

@@ -51,7 +51,7 @@ from service.engine import monitor, oscillation, watch
 from service.engine.audit import audit_row
 from service.engine.modes import _MODES, AUTO, FROZEN
 from service.engine.table import LoopTable
-from service.units import track_moves
+from service.units import error_window, track_moves, window_error
 from service.wire.decode import Columns
 from service.wire.protocol import RejectReason
 
@@ -162,7 +162,15 @@ def ingest(
     step = np.where(fresh | paused, 0.0, 0.5 * (e + tb.last_e[slots]) * (t - last_t))
     tb.int_e[slots] += step * tb.int_scale[slots]
     tb.last_e[slots] = e
+    total, count = error_window(
+        e * tb.e_scale[slots], t, next_due, period,
+        tb.win_sum[slots], tb.win_n[slots], tb.win_due[slots],
+    )  # fmt: skip
+    tb.win_sum[slots], tb.win_n[slots], tb.win_due[slots] = total, count, next_due
     reached = t >= next_due
+    # the agent's error at the period's end, agent units
+    obs_e = window_error(total, count, e * tb.e_scale[slots], next_due, period, tb.move_t[slots])
+    tb.obs_e[slots[reached]] = obs_e[reached]
     next_due[reached] += period[reached] * (
         np.floor((t[reached] - next_due[reached]) / period[reached]) + 1.0
     )

@@ -155,14 +155,15 @@ _VERDICT = {AUTO: "pending", ADVISORY: "proposal", SHADOW: "shadow"}
 
 
 def _observe(tb: LoopTable, slots: np.ndarray) -> np.ndarray:
-    """The agent's observation [kp, ki, e, int_e] in its units, (n, 4); e and int_e scaled
+    """The agent's observation [kp, ki, e, int_e] in its units, (n, 4): e the mean error
+    over the end of the RL period (:func:`service.units.error_window`); e and int_e scaled
     by the loop's setpoint-move gain (:data:`service.units.PAPER_MOVE`)."""
     with np.errstate(over="ignore", invalid="ignore"):  # absurd loops are caught after
         return np.column_stack(
             [
                 tb.kp[slots] / tb.kp_unit[slots],
                 tb.ki[slots] / tb.ki_unit[slots],
-                tb.last_e[slots] * tb.e_scale[slots] * tb.obs_gain[slots],
+                tb.obs_e[slots] * tb.obs_gain[slots],
                 tb.int_e[slots] * tb.obs_gain[slots],
             ]
         )

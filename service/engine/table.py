@@ -56,6 +56,9 @@ _F64 = (
     "sign",
     # episode state
     "last_t", "last_e", "int_e", "next_due", "last_wall",
+    # the agent's error observation (service.units.error_window): the window's running
+    # sum and count, the end of the RL period they belong to, the mean at its end
+    "win_sum", "win_n", "win_due", "obs_e",
     # safety guard and flood limiter; noise damping of the agent's steps (sigmas, 0: off)
     # and the robustness guard's largest sensitivity (0: off)
     "kp_min", "kp_max", "ki_min", "ki_max", "max_rel", "tokens", "token_wall", "damp",
@@ -299,8 +302,8 @@ class LoopTable:
     def _restart(self, s: int) -> None:
         """A fresh episode: zero hidden state and integral, no time reference."""
         self.hidden[s] = 0.0
-        self.int_e[s] = self.last_e[s] = 0.0
-        self.last_t[s] = self.next_due[s] = self.sp_ref[s] = math.nan
+        self.int_e[s] = self.last_e[s] = self.obs_e[s] = 0.0
+        self.last_t[s] = self.next_due[s] = self.sp_ref[s] = self.win_due[s] = math.nan
         self.excited_until[s] = self.move_t[s] = -math.inf
         self.obs_gain[s] = 1.0
         self.sp_anchor[s] = math.nan

@@ -5,8 +5,10 @@ the PI at kp = ki = 0.05 (Kc = 0.05, tau_I = 1), the plant near zero, and a setp
 toggling between +1 and -1 every 11 time units. One RL step is 2.75 time units
 (275 controller samples at dt = 0.01).
 
-State ``s_t = [kp, ki, e_t, int_e]``: the gains in force, the measured error at the
-step boundary and the integral of the measured error since the episode start.
+State ``s_t = [kp, ki, e_t, int_e]``: the gains in force, the mean measured error over
+the last :data:`~service.units.OBS_WINDOW` of the RL period (the samples from 0.8 of the
+period to its end, :func:`service.units.error_window`, as the tuning engine computes it)
+and the integral of the measured error since the episode start.
 Action: additive ``[dkp, dki]``; gains are clipped to [GAIN_FLOOR, gain_max].
 Cost: ``c_t = mean_k (y_desired[k] - y[k])^2 + beta_1 |dkp| + beta_2 |dki|`` where
 the mean runs over the 275 samples that follow the action (so the squared-error part
@@ -49,7 +51,9 @@ from service.units import (
     EXCITATION_PERIODS,
     MOVE_STEP,
     RL_STEP_AGENT_UNITS,
+    error_window,
     track_moves,
+    window_error,
 )
 
 K_RANGE = (0.25, 1.0)
@@ -450,6 +454,8 @@ class TuningEnv:
                 self.rng.standard_normal((self.n, self.inner))
                 * (c["load_walk"] * np.sqrt(1 - a_w**2))[:, None]
             )
+        due = self.k + self.inner
+        total = count = np.zeros(self.n)
         for j in range(self.inner):
             self.sp = sp[:, j]
             err = target.x - plant.x
@@ -459,6 +465,7 @@ class TuningEnv:
                 self.noise_state = a_n * self.noise_state + w_n[:, j]
                 y = y + self.noise_state
             e = self.sp - y
+            total, count = error_window(e, self.k, due, self.inner, total, count, due)
             self.int_e += e * cfg.dt
             u = pi.step(e)
             if loads:
@@ -474,7 +481,7 @@ class TuningEnv:
             step = c["noise"] * np.sqrt(1 - a_n**2) * self.rng.standard_normal(self.n)
             self.noise_state = a_n * self.noise_state + step
             y = y + self.noise_state
-        self.e = self.sp - y
+        self.e = window_error(total, count, self.sp - y, due, self.inner, self.move_k)
         mse = sq / self.inner
         cost = mse + cfg.beta_kp * np.abs(applied[:, 0]) + cfg.beta_ki * np.abs(applied[:, 1])
         self.t += 1
