@@ -42,13 +42,6 @@ ADOPT_CHUNK = 1000
 waits that long)."""
 
 
-def _parsed(stored) -> Saved | None:
-    """A stored loop's snapshot, parsed (None: it has none)."""
-    if stored.hidden is None or stored.runtime is None:
-        return None
-    return Saved.parse(stored.hidden, stored.runtime)
-
-
 class Ownership:
     cluster = None
     foreign_samples = 0
@@ -66,7 +59,7 @@ class Ownership:
         wall = time.time()
         for i in range(0, len(stored), ADOPT_CHUNK):  # the worker runs between chunks
             chunk = stored[i : i + ADOPT_CHUNK]
-            saved = [_parsed(loop) for loop in chunk]  # the costly part, outside the lock
+            saved = [self.store.saved(loop) for loop in chunk]  # outside the lock (or ahead)
             with self.handoff.hold():  # at the worker's next message
                 for loop, state in zip(chunk, saved, strict=True):
                     if loop.config.id not in self.table.slot_of:

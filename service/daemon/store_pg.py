@@ -36,9 +36,10 @@ import psycopg
 from pydantic import ValidationError
 
 from service.daemon import migrations
-from service.daemon.store import JournalEntry, Store
+from service.daemon.store import JournalEntry, Store, StoredLoop
 from service.engine.audit import AUDIT_COLUMNS, AUDIT_TYPES, AuditRow
 from service.engine.config import LoopConfig
+from service.engine.saved import Saved
 
 CHANNEL = "pitune_loops"
 """The NOTIFY channel of loop changes; the payload is comma-separated loop ids."""
@@ -134,31 +135,51 @@ class PgStore(Store):
         self.unloadable: list[str] = []
         self._ahead: dict[str, tuple[str, LoopConfig]] = {}
         """Loop id -> (stored JSON, parsed config), parsed ahead of a load (:meth:`parse_ahead`)."""
+        self._saved_ahead: dict[str, tuple[bytes, str, Saved]] = {}
+        """Loop id -> (stored hidden state, runtime JSON, parsed snapshot), the same way."""
 
-    def parse_ahead(self, shards: list[str]) -> int:
-        """Parse the stored configs of ``shards``' loops now, on a connection of its own
-        (the worker's commits go on), for a :meth:`load` to come: a cluster member whose
-        peer stopped renewing its leases does so while the leases run out, so that taking
-        them over costs the query and the engine insert only (validating a config costs
-        ~0.1-0.2 ms, most of a load). :meth:`load` uses a parsed config only while the
-        stored JSON is still the same; ``[]`` forgets them. Returns how many were parsed."""
-        ahead = {}
-        if shards:
-            with connect(self.url) as conn:
-                rows = conn.execute(
-                    "SELECT id, config FROM loops WHERE shard = ANY(%s)", (shards,)
-                ).fetchall()
-            for loop_id, raw in rows:
-                with contextlib.suppress(ValidationError):  # load() logs it
-                    ahead[loop_id] = (raw, LoopConfig.model_validate_json(raw))
-        self._ahead = ahead
-        return len(ahead)
+    def parse_ahead(self, shards: list[str], stop: threading.Event | None = None) -> int:
+        """Parse the stored configs and snapshots of ``shards``' loops now, on a connection
+        of its own (the worker's commits go on), for a :meth:`load` to come: a cluster
+        member whose peer stopped renewing its leases does so while the leases run out,
+        so that taking them over costs the query and the engine's array writes only
+        (validating a config and parsing a snapshot cost ~0.05-0.1 ms each, most of a
+        takeover). Parsed entries are used one by one as they come, and only while the
+        stored row is still the same (:meth:`_config`, :meth:`saved`); ``stop`` set: no
+        more (the takeover has begun and parses the rest itself); ``[]`` forgets them.
+        Returns how many configs were parsed."""
+        configs: dict[str, tuple[str, LoopConfig]] = {}
+        snapshots: dict[str, tuple[bytes, str, Saved]] = {}
+        self._ahead, self._saved_ahead = configs, snapshots  # filled in place
+        if not shards:
+            return 0
+        with connect(self.url) as conn:
+            rows = conn.execute(
+                "SELECT l.id, l.config, s.hidden, s.runtime FROM loops l "
+                "LEFT JOIN snapshots s ON s.id = l.id WHERE l.shard = ANY(%s)",
+                (shards,),
+            ).fetchall()
+        for loop_id, raw, hidden, runtime in rows:
+            if stop is not None and stop.is_set():
+                break
+            with contextlib.suppress(ValidationError):  # load() logs it
+                configs[loop_id] = (raw, LoopConfig.model_validate_json(raw))
+            if hidden is not None and runtime is not None:
+                with contextlib.suppress(ValueError):  # the takeover raises it
+                    snapshots[loop_id] = (hidden, runtime, Saved.parse(hidden, runtime))
+        return len(configs)
 
     def _config(self, loop_id: str, raw: str) -> LoopConfig:
         ahead = self._ahead.pop(loop_id, None)
         if ahead is not None and ahead[0] == raw:
             return ahead[1]
         return LoopConfig.model_validate_json(raw)
+
+    def saved(self, stored: StoredLoop) -> Saved | None:
+        ahead = self._saved_ahead.pop(stored.config.id, None)
+        if ahead is not None and (ahead[0], ahead[1]) == (stored.hidden, stored.runtime):
+            return ahead[2]
+        return super().saved(stored)
 
     @property
     def _db(self) -> Adapter:
