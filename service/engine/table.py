@@ -32,7 +32,7 @@ from service.engine.config import (
     resolve_bounds,
 )  # fmt: skip
 from service.engine.modes import _CODE, _MODES, AUTO, FROZEN, SHADOW
-from service.engine.saved import Saved, restore_runtime, runtime_of
+from service.engine.saved import Saved, restore_runtime, runtimes_of
 from service.engine.updates import MODE_VALUES, StepResult
 from service.units import Scaling
 from service.wire.protocol import LoopStatus, Mode, UpdateReason
@@ -418,12 +418,15 @@ class LoopTable:
         """(id, hidden state bytes, runtime JSON) of every loop (or of the given, if still
         registered)."""
         if loop_ids is None:
-            items = self.slot_of.items()
+            items = list(self.slot_of.items())
         else:
             items = [(i, self.slot_of[i]) for i in loop_ids if i in self.slot_of]
+        slots = np.fromiter((s for _, s in items), np.int64, len(items))
+        hidden = self.hidden[slots]
+        runtimes = runtimes_of(self, slots, _COUNTERS)
         return [
-            (loop_id, self.hidden[s].tobytes(), runtime_of(self, s, _COUNTERS))
-            for loop_id, s in items
+            (loop_id, row.tobytes(), runtime)
+            for (loop_id, _), row, runtime in zip(items, hidden, runtimes, strict=True)
         ]
 
     # -- views ------------------------------------------------------------------------
