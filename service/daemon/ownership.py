@@ -24,6 +24,7 @@ single tuner behaves as before. With one (see :mod:`service.daemon.cluster`):
 
 from __future__ import annotations
 
+import collections
 import logging
 import time
 from itertools import repeat
@@ -60,12 +61,15 @@ class Ownership:
         for i in range(0, len(stored), ADOPT_CHUNK):  # the worker runs between chunks
             chunk = stored[i : i + ADOPT_CHUNK]
             saved = [self.store.saved(loop) for loop in chunk]  # outside the lock (or ahead)
+            by_shard = collections.defaultdict(list)
+            for loop in chunk:
+                by_shard[shard_of(loop.config.id, loop.config.gateway)].append(loop.config.id)
             with self.handoff.hold():  # at the worker's next message
                 for loop, state in zip(chunk, saved, strict=True):
                     if loop.config.id not in self.table.slot_of:
                         self._restore(loop, wall, state)
-                    shard = shard_of(loop.config.id, loop.config.gateway)
-                    self.cluster.adopted(shard, token, [loop.config.id])
+                for shard, ids in by_shard.items():
+                    self.cluster.adopted(shard, token, ids)
         with self.table.lock:
             self.metrics.set_loop_counts(self.table.mode_counts())
         self.metrics.loops_unloadable.set(len(self.store.unloadable))
