@@ -61,6 +61,8 @@ def test_members_joining_and_leaving_move_shards_within_a_tick(tmp_path, pg_url)
         wait_until(lambda: _split(a) == [50], timeout=LEASE_S)
         assert time.monotonic() - left < LEASE_S  # handed over at once
         assert view(a.cluster)["unowned_loops"] == 0
+        a.delete("G0")
+        wait_until(lambda: view(a.cluster)["members"][0]["loops"] == 49, timeout=LEASE_S)
     finally:
         a.stop()
 
