@@ -27,7 +27,6 @@ from __future__ import annotations
 import collections
 import logging
 import time
-from itertools import repeat
 
 import numpy as np
 
@@ -197,8 +196,7 @@ class Ownership:
         if self.cluster is not None and not self.cluster.owns(gateway_shard(gateway)):
             self.foreign_samples += decoded.received
             return Decoded(rows.take(np.zeros(len(rows), bool)), [], 0)
-        n = len(rows)
-        slots = np.fromiter(map(self.table.slot_of.get, rows.loop_ids, repeat(-1, n)), np.int64, n)
+        slots = self.slot_memo.slots(rows.loop_ids)
         wrong = (slots >= 0) & (self.table.gateways[slots] != gateway)
         if not wrong.any():
             return Decoded(rows, decoded.rejected, decoded.received, slots)

@@ -55,6 +55,7 @@ from service.daemon.pacing import LINGER_BYTES, LINGER_S, Pacer
 from service.daemon.queries import StateQueries
 from service.daemon.recent import Recent
 from service.daemon.settings import Settings
+from service.daemon.slotmemo import SlotMemo
 from service.daemon.store import Store
 from service.daemon.upkeep import Upkeep
 from service.engine.engine import TuningEngine
@@ -138,6 +139,8 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
         self.table = self.engine.table
         self.handoff = Handoff(self.table.lock)
         """Turns at the table's lock for the cluster's thread between the worker's messages."""
+        self.slot_memo = SlotMemo(self.table)
+        """The slots of a gateway's batches (:meth:`_gateway_rows`)."""
         self.recent = Recent(known=self.table.slot_of)
         """Recent samples and published gains of each loop, for the console's trends."""
         self._skipped = 0

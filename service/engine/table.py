@@ -117,6 +117,9 @@ class LoopTable:
         self.configs = Configs()
         self.slot_of: dict[str, int] = {}
         self.ids: list[str | None] = []
+        self.version = 0
+        """Bumped whenever a loop is added or removed (slots remembered elsewhere, as the
+        daemon's :class:`~service.daemon.slotmemo.SlotMemo`, are stale after it)."""
         self.gateways = np.empty(0, object)
         """Each slot's gateway (an interned str) or None: an array, so that a batch's loops
         are checked against their gateway in one comparison."""
@@ -205,6 +208,7 @@ class LoopTable:
         s = self._free.pop()
         self.ids[s] = config.id
         self.slot_of[config.id] = s
+        self.version += 1
         self.reg_kp[s], self.reg_ki[s] = config.kp, config.ki
         self.kp[s] = config.kp if kp is None else kp
         self.ki[s] = config.ki if ki is None else ki
@@ -321,6 +325,7 @@ class LoopTable:
         del self.slot_of[loop_id]
         del self.configs[loop_id]
         self.ids[s] = None
+        self.version += 1
         self._gains_dirty.discard(s)
         self._free.append(s)
 
