@@ -141,7 +141,7 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
         """Turns at the table's lock for the cluster's thread between the worker's messages."""
         self.slot_memo = SlotMemo(self.table)
         """The slots of a gateway's batches (:meth:`_gateway_rows`)."""
-        self.recent = Recent(known=self.table.slot_of)
+        self.recent = Recent(table=self.table)
         """Recent samples and published gains of each loop, for the console's trends."""
         self._skipped = 0
         self.inbox = Inbox(settings.queue_size, settings.queue_bytes)
@@ -397,7 +397,7 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
         not judged yet are counted as rejected ``internal`` and the worker goes on with
         the next message: one bad message never takes the others with it."""
         engine, tb = self.engine, self.table
-        self.recent.safely(self.recent.add_samples, decoded.rows)  # the console's trends
+        self.recent.safely(self.recent.add_samples, decoded)  # the console's trends
         before = sum(engine.rejected.values()) + int(tb.n_samples.sum())
         try:
             for result in engine.ingest_decoded(decoded, wall=wall):
