@@ -123,6 +123,7 @@ def test_table_slots_find_each_loops_own_ring_also_after_a_slot_is_reused():
     engine.remove("A")
     r.forget("A")
     engine.register(LoopConfig(**loop_body("C")))  # takes A's table slot
-    add(["C", "B"], [3, 3])
-    assert r.since("C")["t"] == [3.0] and r.since("A")["n"] == 0
-    assert r.since("B")["t"] == [1.0, 2.0, 3.0]
+    add(["C", "B"], [3, 3])  # by id while loops come and go, then a new map
+    add(["B", "C"], [4, 4])
+    assert r.since("C")["t"] == [3.0, 4.0] and r.since("A")["n"] == 0
+    assert r.since("B")["t"] == [1.0, 2.0, 3.0, 4.0]

@@ -79,6 +79,8 @@ class Recent:
         """Ring slot of each table slot (-1: not yet looked up), valid while the table's
         ``version`` is :attr:`_by_version` (no loop added or removed)."""
         self._by_version = -1
+        self._seen = -1
+        """The table's version at the last batch (the map is rebuilt once it holds)."""
         self.points = int(points)
         self.gains_n = int(gains)
         self.lock = threading.Lock()
@@ -157,6 +159,9 @@ class Recent:
         if table_slots is None or tb is None:
             return self._slots(ids)
         if self._by_version != tb.version or len(self._by_table) < len(tb.ids):
+            if self._seen != tb.version:  # loops coming or going (a takeover's chunks):
+                self._seen = tb.version  # look up by id until they stop, not a new
+                return self._slots(ids)  # map of every slot at each batch
             self._by_table = np.full(len(tb.ids), -1, np.int64)
             self._by_version = tb.version
         known = table_slots >= 0
