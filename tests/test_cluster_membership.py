@@ -9,6 +9,7 @@ import time
 
 import pytest
 
+from service.daemon.directory import view
 from service.daemon.tuner import Tuner
 from service.engine.config import LoopConfig
 from tests.tuner_support import loop_body, tuner_settings, wait_until
@@ -46,17 +47,22 @@ def test_members_joining_and_leaving_move_shards_within_a_tick(tmp_path, pg_url)
             assert gw == {True, False}
             owner = a if "G0" in a.loop_ids() else b
             assert {f"G{i}" for i in range(10)} <= set(owner.loop_ids())  # a gateway stays whole
-            view = a.cluster.view()
-            assert sorted((m["instance_id"], m["loops"]) for m in view["members"]) == [
-                ("a", len(a.loop_ids())),
-                ("b", len(b.loop_ids())),
-            ]
+            # each member's count as of its last renewal (a tick at most behind)
+            wait_until(
+                lambda: (
+                    sorted((m["instance_id"], m["loops"]) for m in view(a.cluster)["members"])
+                    == [("a", len(a.loop_ids())), ("b", len(b.loop_ids()))]
+                ),
+                timeout=LEASE_S,
+            )
         finally:
             left = time.monotonic()
             b.stop()
         wait_until(lambda: _split(a) == [50], timeout=LEASE_S)
         assert time.monotonic() - left < LEASE_S  # handed over at once
-        assert a.cluster.view()["unowned_loops"] == 0
+        assert view(a.cluster)["unowned_loops"] == 0
+        a.delete("G0")
+        wait_until(lambda: view(a.cluster)["members"][0]["loops"] == 49, timeout=LEASE_S)
     finally:
         a.stop()
 

@@ -99,8 +99,11 @@ def test_only_the_owner_of_a_gateway_hears_its_samples_and_the_key_follows_the_s
 
 
 def test_configs_parsed_ahead_of_a_takeover_are_used_only_while_unchanged(pg_url):
+    import threading
+
     from service.daemon.store_pg import PgStore
     from service.engine.audit import audit_row
+    from service.engine.engine import TuningEngine
 
     store = PgStore(pg_url)
     try:
@@ -110,16 +113,30 @@ def test_configs_parsed_ahead_of_a_takeover_are_used_only_while_unchanged(pg_url
             for c in configs
         ]
         store.insert_loops(configs, rows, [0, 0, 0])
+        engine = TuningEngine()
+        for c in configs:
+            engine.register(c)
+        store.snapshot(engine.snapshot())
         assert store.parse_ahead(["gw:gwP"]) == 3
         ahead = store._ahead["P0"][1]
+        saved = store._saved_ahead["P0"][2]
         changed = configs[1].model_copy(update={"mode": "advisory"})  # patched meanwhile
         with store.transaction() as db:
             db.execute(
                 "UPDATE loops SET config = ? WHERE id = ?", (changed.model_dump_json(), "P1")
             )
-        loaded = {s.config.id: s.config for s in store.load(["gw:gwP"])}
-        assert loaded["P0"] is ahead  # not parsed again
-        assert loaded["P1"] == changed  # the stored JSON changed: parsed from the row
+            db.execute("UPDATE snapshots SET runtime = ? WHERE id = ?", ('{"x": 1}', "P2"))
+        loaded = {s.config.id: s for s in store.load(["gw:gwP"])}
+        assert loaded["P0"].config is ahead  # not parsed again
+        assert loaded["P1"].config == changed  # the stored JSON changed: parsed from the row
         assert store._ahead == {}
+        assert store.saved(loaded["P0"]) is saved  # the snapshot too
+        assert store.saved(loaded["P2"]).runtime == {"x": 1}  # changed: parsed from the row
+        store.saved(loaded["P1"])
+        assert store._saved_ahead == {}
+        stopped = threading.Event()
+        stopped.set()  # a takeover began: nothing more is parsed
+        assert store.parse_ahead(["gw:gwP"], stopped) == 0
+        assert store.parse_ahead([]) == 0 and store._saved_ahead == {}
     finally:
         store.close()

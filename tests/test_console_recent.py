@@ -99,3 +99,31 @@ def test_a_reused_slot_shows_nothing_of_its_former_loop():
     assert r.since("B")["t"] == [9.0]
     assert r.summary(["B"])["rms_e"][0] == 2.0
     assert np.isnan(r.summary(["C"])["rms_e"][0])
+
+
+def test_table_slots_find_each_loops_own_ring_also_after_a_slot_is_reused():
+    from service.engine.config import LoopConfig
+    from service.engine.engine import TuningEngine
+    from tests.tuner_support import loop_body
+
+    engine = TuningEngine()
+    for loop_id in ("A", "B"):
+        engine.register(LoopConfig(**loop_body(loop_id)))
+    table = engine.table
+    r = Recent(points=8, table=table)
+
+    def add(ids, t):
+        slots = np.array([table.slot_of.get(i, -1) for i in ids], np.int64)
+        r.add_samples(Decoded(columns(ids, t), [], len(ids), slots))
+
+    add(["A", "B", "X"], [1, 1, 1])
+    add(["B", "A"], [2, 2])  # through the map now
+    assert r.since("A")["t"] == [1.0, 2.0] and r.since("B")["t"] == [1.0, 2.0]
+    assert "X" not in r.slot_of  # not registered: ignored, as by id
+    engine.remove("A")
+    r.forget("A")
+    engine.register(LoopConfig(**loop_body("C")))  # takes A's table slot
+    add(["C", "B"], [3, 3])  # by id while loops come and go, then a new map
+    add(["B", "C"], [4, 4])
+    assert r.since("C")["t"] == [3.0, 4.0] and r.since("A")["n"] == 0
+    assert r.since("B")["t"] == [1.0, 2.0, 3.0, 4.0]

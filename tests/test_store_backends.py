@@ -55,7 +55,9 @@ def test_an_sqlite_store_of_the_unversioned_schema_upgrades_in_place(tmp_path):
     finally:
         store.close()
     with sqlite3.connect(path) as db:
-        assert db.execute("SELECT MAX(version) FROM schema_version").fetchone() == (2,)
+        assert db.execute("SELECT MAX(version) FROM schema_version").fetchone() == (
+            migrations.LATEST,
+        )
         assert db.execute("SELECT shard FROM loops").fetchone() == ("gw:gw1",)
     again = Store(path)  # opening an up-to-date store changes nothing
     assert again.migrated_from == migrations.LATEST
@@ -128,15 +130,19 @@ def test_a_postgres_commit_without_its_lease_is_fenced_and_writes_nothing(pg_url
             )
         row = [audit_row("F1", 2.0, 1.0, 1, "auto", "agent", (0.5, 0.01), (0.6, 0.02))]
         store.record_gains([(0.6, 0.02, 1, "F1")], row, fence=("a", {shard: 7}))
+        store.snapshot([("F1", b"\x00" * 4, '{"n": 1}')], fence=("a", {shard: 7}))
         for fence in (("a", {shard: 6}), ("b", {shard: 7})):  # an old token, another member
             with pytest.raises(Fenced):
                 store.record_gains([(0.9, 0.09, 2, "F1")], row, fence=fence)
+            with pytest.raises(Fenced):
+                store.snapshot([("F1", b"\x01" * 4, '{"n": 2}')], fence=fence)
         with store.transaction() as db:  # the lease runs out
             db.execute("UPDATE leases SET expires = clock_timestamp() - interval '1 second'")
         with pytest.raises(Fenced):
             store.record_gains([(0.9, 0.09, 2, "F1")], row, fence=("a", {shard: 7}))
         (loop,) = store.load()
         assert (loop.kp, loop.seq) == (0.6, 1)
+        assert (loop.hidden, loop.runtime) == (b"\x00" * 4, '{"n": 1}')  # the fenced-in one
         assert store.history("F1", 0, 10)[0] == 2  # registered + the one fenced-in step
     finally:
         store.close()

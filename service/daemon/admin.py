@@ -194,6 +194,8 @@ class LoopAdmin:
             )
             self.engine.remove(loop_id)
             self.recent.forget(loop_id)
+            if self.cluster is not None:  # (its count in GET /cluster)
+                self.cluster.forget([loop_id])
             self.metrics.set_loop_counts(self.table.mode_counts())
 
     def history(self, loop_id: str, offset: int, limit: int) -> HistoryPage:

@@ -120,7 +120,9 @@ class Cluster:
         self._beat_conn: psycopg.Connection | None = None
         self._threads: list[threading.Thread] = []
         self._ahead: set[str] = set()
-        """Shards whose configs are parsed ahead (:meth:`_parse_ahead`)."""
+        """Shards whose configs and snapshots are parsed ahead (:meth:`_parse_ahead`)."""
+        self._parsing: tuple[threading.Thread, threading.Event] | None = None
+        """The thread parsing them, and the event that stops it."""
         self._lost: set[str] = set()
         """Shards the renewal found taken, for the tick to drop their loops."""
         self.ready = threading.Event()
@@ -144,6 +146,7 @@ class Cluster:
     def halt(self) -> None:
         """Stop the threads (no more acquisitions, renewals or reloads)."""
         self._stop.set()
+        self._stop_parsing()
         for thread in self._threads:
             thread.join(timeout=10.0)
 
@@ -244,9 +247,10 @@ class Cluster:
 
     def _parse_ahead(self, live: dict[str, float], stored: list[str], held: set[str]) -> None:
         """Members that missed renewals (:data:`SUSPECT_AFTER_TICKS`) and whose Zenoh
-        liveliness token is gone are probably dead: parse the configs of the shards this
-        member would win without them while their leases run out (:meth:`PgStore.parse_ahead
-        <service.daemon.store_pg.PgStore.parse_ahead>`). An overloaded member renews late
+        liveliness token is gone are probably dead: parse the configs and snapshots of the
+        shards this member would win without them while their leases run out, on a thread
+        of its own (:meth:`PgStore.parse_ahead <service.daemon.store_pg.PgStore.parse_ahead>`;
+        the takeover stops it and parses what is left). An overloaded member renews late
         but keeps its token: parsing its loops for nothing would load this member too.
         Nothing is taken early: the leases are taken when they have expired, as always."""
         fresh = self.lease_s - SUSPECT_AFTER_TICKS * self.tick_s
@@ -261,12 +265,38 @@ class Cluster:
         if ahead != self._ahead and not (ahead and ahead <= self._ahead):
             # (fewer shards than parsed: those are parsed already, a load takes them)
             self._ahead = ahead
-            n = self.tuner.store.parse_ahead(sorted(ahead))
-            if ahead:
-                log.info(
-                    "%s stopped renewing: %d loops of %d shards parsed ahead of a takeover",
-                    ", ".join(sorted(suspects)), n, len(ahead),
-                )  # fmt: skip
+            self._stop_parsing()
+            if not ahead:
+                self.tuner.store.parse_ahead([])
+                return
+            log.info("%s stopped renewing: parsing the loops of %d shards ahead of a takeover",
+                     ", ".join(sorted(suspects)), len(ahead))  # fmt: skip
+            stop = threading.Event()
+            thread = threading.Thread(
+                target=self._parse,
+                args=(sorted(ahead), stop),
+                name="pitune-parse-ahead",
+                daemon=True,
+            )
+            self._parsing = (thread, stop)
+            thread.start()
+
+    def _stop_parsing(self) -> None:
+        """Stop the parsing ahead (what it parsed stays for the load): a takeover
+        begins, or the suspects changed. It ran on a thread of its own, as parsing
+        150,000 loops takes the seconds the tick must be there when the leases end."""
+        parsing, self._parsing = self._parsing, None
+        if parsing is not None:
+            parsing[1].set()
+            parsing[0].join()
+
+    def _parse(self, shards: list[str], stop: threading.Event) -> None:
+        try:
+            n = self.tuner.store.parse_ahead(shards, stop)
+        except psycopg.Error:  # the takeover parses them itself
+            log.exception("parsing ahead of a takeover failed")
+            return
+        log.info("%d loops parsed ahead of a takeover%s", n, " (stopped)" * stop.is_set())
 
     def _renew(self, started: float) -> set[str]:
         with self._leasing:
@@ -275,12 +305,13 @@ class Cluster:
     def _renew_held(self, started: float) -> set[str]:
         with self._lock:
             held = dict(self.held)
+            loops = len(self.shard_of)  # for GET /cluster (service.daemon.directory)
         conn = self._beat_conn
         with conn.transaction():
             renewed = conn.execute(
-                "UPDATE members SET expires = clock_timestamp() + make_interval(secs => %s) "
-                "WHERE instance_id = %s",
-                (self.lease_s, self.member),
+                "UPDATE members SET expires = clock_timestamp() + make_interval(secs => %s), "
+                "loops = %s WHERE instance_id = %s",
+                (self.lease_s, loops, self.member),
             ).rowcount
             kept = {
                 r[0]
@@ -348,6 +379,8 @@ class Cluster:
             taken = self._take(shards, token, conn or self._conn)
         if not taken:
             return
+        if conn is None:  # (the cluster's thread: the parsing ahead's owner)
+            self._stop_parsing()
         timing = self.tuner.adopt_shards(taken, token)
         self.moves += len(taken)
         self.adoptions.append({"at": started, "shards": len(taken), **timing})
@@ -442,58 +475,3 @@ class Cluster:
     def may_publish(self) -> bool:
         """The leases are valid by the local clock (see the module doc)."""
         return time.monotonic() < self.valid_until
-
-    def view(self) -> dict:
-        """``GET /cluster``: members with their URLs and loop counts (from the store)."""
-        with connect(self.url) as conn:
-            rows = conn.execute(
-                "SELECT m.instance_id, m.api_url, m.expires > clock_timestamp(), "
-                "(SELECT count(*) FROM leases l JOIN loops p ON p.shard = l.shard "
-                " WHERE l.owner = m.instance_id AND l.expires > clock_timestamp()), "
-                "(SELECT count(*) FROM leases l WHERE l.owner = m.instance_id "
-                " AND l.expires > clock_timestamp()) "
-                "FROM members m ORDER BY m.instance_id"
-            ).fetchall()
-            (unowned,) = conn.execute(
-                "SELECT count(*) FROM loops p WHERE NOT EXISTS (SELECT 1 FROM leases l "
-                "WHERE l.shard = p.shard AND l.expires > clock_timestamp())"
-            ).fetchone()
-        return {
-            "self": self.member,
-            "lease_s": self.lease_s,
-            "members": [
-                {"instance_id": i, "api_url": u, "live": live, "loops": n, "shards": s}
-                for i, u, live, n, s in rows
-            ],
-            "unowned_loops": unowned,
-            "adoptions": list(self.adoptions),
-        }
-
-    def shard_owner_url(self, shard: str) -> str | None:
-        """The API URL of the live member holding ``shard``'s lease (None: nobody)."""
-        with connect(self.url) as conn:
-            row = conn.execute(
-                "SELECT m.api_url FROM leases l JOIN members m ON m.instance_id = l.owner "
-                "WHERE l.shard = %s AND l.expires > clock_timestamp()",
-                (shard,),
-            ).fetchone()
-        return None if row is None else row[0]
-
-    def stored(self, loop_id: str) -> bool:
-        """Whether the loop is in the store (registered through any member)."""
-        with connect(self.url) as conn:
-            return (
-                conn.execute("SELECT 1 FROM loops WHERE id = %s", (loop_id,)).fetchone() is not None
-            )
-
-    def owner_url(self, loop_id: str) -> str | None:
-        """The API URL of the member owning a stored loop (None: not stored, or no live
-        owner right now)."""
-        with connect(self.url) as conn:
-            row = conn.execute(
-                "SELECT m.api_url FROM loops p JOIN leases l ON l.shard = p.shard "
-                "JOIN members m ON m.instance_id = l.owner "
-                "WHERE p.id = %s AND l.expires > clock_timestamp()",
-                (loop_id,),
-            ).fetchone()
-        return None if row is None else row[0]

@@ -21,6 +21,7 @@ from fastapi import APIRouter, FastAPI, Request, Response
 from fastapi.responses import JSONResponse
 from starlette.concurrency import run_in_threadpool
 
+from service.daemon import directory
 from service.daemon.shards import shard_of
 
 FORWARDED = "x-pitune-forwarded-by"
@@ -39,7 +40,7 @@ def cluster_view(request: Request) -> dict:
     cluster = request.app.state.tuner.cluster
     if cluster is None:
         return {"self": request.app.state.settings.instance_id, "members": [], "store": "sqlite"}
-    return cluster.view()
+    return directory.view(cluster)
 
 
 async def _target(request: Request, cluster) -> tuple[str | None, bool]:
@@ -49,7 +50,7 @@ async def _target(request: Request, cluster) -> tuple[str | None, bool]:
     if match and match["id"] != "bulk":
         if match["rest"] in _FROM_STORE or match["id"] in tuner.table.slot_of:
             return None, False
-        return await run_in_threadpool(cluster.owner_url, match["id"]), True
+        return await run_in_threadpool(directory.owner_url, cluster.url, match["id"]), True
     if path == "/loops" and request.method == "POST":
         try:
             body = orjson.loads(await request.body())
@@ -58,7 +59,7 @@ async def _target(request: Request, cluster) -> tuple[str | None, bool]:
             return None, False  # the route answers 422
         if cluster.owns(shard):
             return None, False
-        return await run_in_threadpool(cluster.shard_owner_url, shard), False
+        return await run_in_threadpool(directory.shard_owner_url, cluster.url, shard), False
     return None, False
 
 
@@ -76,7 +77,9 @@ def install(app: FastAPI) -> None:
             if (
                 about_loop
                 and url is None
-                and await run_in_threadpool(cluster.stored, request.url.path.split("/")[2])
+                and await run_in_threadpool(
+                    directory.stored, cluster.url, request.url.path.split("/")[2]
+                )
             ):
                 return JSONResponse(
                     {"detail": "the loop's owner is changing (failover); retry shortly"},

@@ -24,9 +24,9 @@ single tuner behaves as before. With one (see :mod:`service.daemon.cluster`):
 
 from __future__ import annotations
 
+import collections
 import logging
 import time
-from itertools import repeat
 
 import numpy as np
 
@@ -40,13 +40,6 @@ log = logging.getLogger("pitune.tuner")
 ADOPT_CHUNK = 1000
 """Loops restored per turn at the table's lock when shards are adopted (~0.2 s: the worker
 waits that long)."""
-
-
-def _parsed(stored) -> Saved | None:
-    """A stored loop's snapshot, parsed (None: it has none)."""
-    if stored.hidden is None or stored.runtime is None:
-        return None
-    return Saved.parse(stored.hidden, stored.runtime)
 
 
 class Ownership:
@@ -66,13 +59,16 @@ class Ownership:
         wall = time.time()
         for i in range(0, len(stored), ADOPT_CHUNK):  # the worker runs between chunks
             chunk = stored[i : i + ADOPT_CHUNK]
-            saved = [_parsed(loop) for loop in chunk]  # the costly part, outside the lock
+            saved = [self.store.saved(loop) for loop in chunk]  # outside the lock (or ahead)
+            by_shard = collections.defaultdict(list)
+            for loop in chunk:
+                by_shard[shard_of(loop.config.id, loop.config.gateway)].append(loop.config.id)
             with self.handoff.hold():  # at the worker's next message
                 for loop, state in zip(chunk, saved, strict=True):
                     if loop.config.id not in self.table.slot_of:
                         self._restore(loop, wall, state)
-                    shard = shard_of(loop.config.id, loop.config.gateway)
-                    self.cluster.adopted(shard, token, [loop.config.id])
+                for shard, ids in by_shard.items():
+                    self.cluster.adopted(shard, token, ids)
         with self.table.lock:
             self.metrics.set_loop_counts(self.table.mode_counts())
         self.metrics.loops_unloadable.set(len(self.store.unloadable))
@@ -200,8 +196,7 @@ class Ownership:
         if self.cluster is not None and not self.cluster.owns(gateway_shard(gateway)):
             self.foreign_samples += decoded.received
             return Decoded(rows.take(np.zeros(len(rows), bool)), [], 0)
-        n = len(rows)
-        slots = np.fromiter(map(self.table.slot_of.get, rows.loop_ids, repeat(-1, n)), np.int64, n)
+        slots = self.slot_memo.slots(rows.loop_ids)
         wrong = (slots >= 0) & (self.table.gateways[slots] != gateway)
         if not wrong.any():
             return Decoded(rows, decoded.rejected, decoded.received, slots)

@@ -70,8 +70,17 @@ class Recent:
         points: int = POINTS,
         gains: int = GAINS,
         capacity: int = 64,
+        table: Any = None,
     ) -> None:
-        self.known = known
+        self.table = table
+        """The engine's table, whose slots (the gateway check's) index :attr:`_by_table`."""
+        self.known = table.slot_of if known is None and table is not None else known
+        self._by_table = np.empty(0, np.int64)
+        """Ring slot of each table slot (-1: not yet looked up), valid while the table's
+        ``version`` is :attr:`_by_version` (no loop added or removed)."""
+        self._by_version = -1
+        self._seen = -1
+        """The table's version at the last batch (the map is rebuilt once it holds)."""
         self.points = int(points)
         self.gains_n = int(gains)
         self.lock = threading.Lock()
@@ -95,13 +104,17 @@ class Recent:
         # zeros: pages the OS maps when first written, no fill (a ring of 150,000 loops is
         # 1.2 GB, and filling it stalled the worker for seconds); ``n`` says which points
         # of a slot hold samples
-        bits = np.zeros((capacity, p, 4), np.uint64)
+        bits = np.zeros((p, capacity, 4), np.uint64)
         if old:
-            bits[:old] = self._bits[:old]
+            bits[:, :old] = self._bits
         self._bits = bits
-        """The ring's memory, a point as 4 uint64 (what writes copy)."""
-        self.ring = bits.view(POINT).reshape(capacity, p)
-        """(slots, points) records; a loop's next sample goes to ``n % points``."""
+        """The ring's memory, a point as 4 uint64 (what writes copy), point-major: the
+        loops of one gateway batch have neighbouring slots (allocated as they first came)
+        and the same point index (as many samples each), so a batch writes one contiguous
+        run where slot-major rows took a page (and a TLB miss) per sample: the ring's
+        write was a fifth of a cluster member's CPU at 150,000 loops."""
+        self.ring = bits.view(POINT).reshape(p, capacity).T
+        """(slots, points) records (a view); a loop's next sample goes to ``n % points``."""
         self.n = grown(getattr(self, "n", None), (capacity,), np.int64, 0)
         """Samples ever written per slot (the next one goes to ``n % points``)."""
         self.g_wall = grown(getattr(self, "g_wall", None), (capacity, g), np.float64, np.nan)
@@ -142,6 +155,28 @@ class Recent:
                     slots[k] = s
         return np.asarray(slots, np.int64)
 
+    def _slots_of(self, ids: list[str], table_slots: np.ndarray | None) -> np.ndarray:
+        """Ring slots of ``ids``, through their table slots where given: an id looked up
+        in a dict of every loop is a cache miss or two per sample (6-7 % of a cluster
+        member's CPU at 150,000 loops), an index into :attr:`_by_table` one read."""
+        tb = self.table
+        if table_slots is None or tb is None:
+            return self._slots(ids)
+        if self._by_version != tb.version or len(self._by_table) < len(tb.ids):
+            if self._seen != tb.version:  # loops coming or going (a takeover's chunks):
+                self._seen = tb.version  # look up by id until they stop, not a new
+                return self._slots(ids)  # map of every slot at each batch
+            self._by_table = np.full(len(tb.ids), -1, np.int64)
+            self._by_version = tb.version
+        known = table_slots >= 0
+        ring = np.where(known, self._by_table[np.where(known, table_slots, 0)], -1)
+        miss = np.flatnonzero(known & (ring < 0))
+        if miss.size:
+            found = self._slots([ids[i] for i in miss.tolist()])
+            ring[miss] = found
+            self._by_table[table_slots[miss]] = found
+        return ring
+
     def _clear(self, s: int) -> None:
         self.n[s] = 0  # its points are unwritten again
         self.g_wall[s] = self.g_t[s] = self.g_kp[s] = self.g_ki[s] = np.nan
@@ -154,6 +189,7 @@ class Recent:
             if s is not None:
                 self._clear(s)
                 self._free.append(s)
+                self._by_version = -1  # its ring slot may serve another loop next
 
     def retain(self, loop_ids: Mapping[str, Any] | set[str]) -> int:
         """Drop the rings of loops not in ``loop_ids`` (deleted meanwhile); how many."""
@@ -168,13 +204,15 @@ class Recent:
         """Accepted or not yet judged samples as decoded columns
         (:class:`service.wire.decode.Columns`: ``loop_ids``, ``t``, ``sp``, ``e``, ``kp``,
         ``ki``, optional ``op``) or what holds them (``Decoded.rows``), in order; rows of
-        unknown loops are skipped."""
+        unknown loops are skipped; a ``Decoded`` with the table slots of its rows
+        (``slots``) saves the id lookups."""
+        table_slots = getattr(columns, "slots", None)
         columns = getattr(columns, "rows", columns)
         ids = columns.loop_ids
         if not len(ids):
             return
         with self.lock:
-            slots = self._slots(ids)
+            slots = self._slots_of(ids, table_slots)
             keep = np.flatnonzero(slots >= 0)
             if not keep.size:
                 return
@@ -194,7 +232,7 @@ class Recent:
             for name in _SAMPLE_F32:
                 values = getattr(columns, name, None)
                 points[name] = np.nan if values is None else np.asarray(values)[rows]
-            self._bits[s, pos] = points.view(np.uint64).reshape(-1, 4)
+            self._bits[pos, s] = points.view(np.uint64).reshape(-1, 4)
             self.n[ordered[starts]] += counts
 
     def add_gains(self, result: Any, wall: float | None = None) -> None:
@@ -339,7 +377,7 @@ def attach(tuner: Any, points: int = POINTS, gains: int = GAINS) -> Recent:
     existing = getattr(tuner, "recent", None)
     if isinstance(existing, Recent):
         return existing
-    recent = Recent(known=tuner.table.slot_of, points=points, gains=gains)
+    recent = Recent(points=points, gains=gains, table=tuner.table)
     engine = tuner.engine
     ingest = engine.ingest_decoded
     publish = tuner._publish

@@ -41,6 +41,7 @@ from service.daemon.schemas import AuditEntry
 from service.daemon.shards import shard_of
 from service.engine.audit import AUDIT_COLUMNS, AuditRow
 from service.engine.config import LoopConfig
+from service.engine.saved import Saved
 
 log = logging.getLogger("pitune.store")
 UPDATE_GAINS = "UPDATE loops SET kp = ?, ki = ?, seq = ? WHERE id = ?"
@@ -260,6 +261,12 @@ class Store:
     def _config(self, loop_id: str, raw: str) -> LoopConfig:
         """A stored config, parsed (ValidationError if it no longer validates)."""
         return LoopConfig.model_validate_json(raw)
+
+    def saved(self, stored: StoredLoop) -> Saved | None:
+        """A loaded loop's snapshot, parsed (None: it has none)."""
+        if stored.hidden is None or stored.runtime is None:
+            return None
+        return Saved.parse(stored.hidden, stored.runtime)
 
     def last_seqs(self, ids: list[str]) -> dict[str, int]:
         """The highest ``seq`` of each id that ever had one, from the audit log (kept after

@@ -36,15 +36,18 @@ import psycopg
 from pydantic import ValidationError
 
 from service.daemon import migrations
-from service.daemon.store import JournalEntry, Store
+from service.daemon.store import JournalEntry, Store, StoredLoop
 from service.engine.audit import AUDIT_COLUMNS, AUDIT_TYPES, AuditRow
 from service.engine.config import LoopConfig
+from service.engine.saved import Saved
 
 CHANNEL = "pitune_loops"
 """The NOTIFY channel of loop changes; the payload is comma-separated loop ids."""
 NOTIFY_BYTES = 7000
 """Most payload bytes per NOTIFY (PostgreSQL's limit is 8,000)."""
 CONNECT_TIMEOUT_S = 5
+AHEAD_ROWS = 1000
+"""Rows fetched at a time when parsing ahead of a takeover (~1.5 MB)."""
 
 
 class Fenced(Exception):
@@ -89,13 +92,18 @@ class Adapter:
         return cur
 
 
-RECORD_SQL = (
+FENCE_CTE = (
     "WITH f AS (SELECT l.shard FROM leases l "
     "JOIN unnest(%b::text[], %b::int8[]) AS f(shard, token) "
     "ON l.shard = f.shard AND l.token = f.token "
     "WHERE l.owner = %s AND l.expires > clock_timestamp() FOR SHARE OF l), "
     "ok AS (SELECT count(*) = %s AS ok FROM f), "
-    "u AS (UPDATE loops l SET kp = u.kp, ki = u.ki, seq = u.seq FROM "
+)
+"""The fence of a one-statement write (parameters: shards, tokens, member, how many):
+the lease rows locked ``FOR SHARE`` (a takeover waits for it), ``ok`` true only if
+every one is still the member's with that token, unexpired."""
+RECORD_SQL = (
+    FENCE_CTE + "u AS (UPDATE loops l SET kp = u.kp, ki = u.ki, seq = u.seq FROM "
     "unnest(%b::float8[], %b::float8[], %b::int8[], %b::text[]) AS u(kp, ki, seq, id), ok "
     "WHERE l.id = u.id AND ok.ok RETURNING 1), "
     f"a AS (INSERT INTO audit ({AUDIT_COLUMNS}) SELECT a.* FROM unnest("
@@ -105,9 +113,18 @@ RECORD_SQL = (
     "SELECT array_agg(shard) FROM f"
 )
 """A step batch's commit as one statement (its own transaction: the connection is in
-autocommit): the fence's lease rows locked ``FOR SHARE`` (a takeover waits for it), and
-the gains and audit rows written only if every lease is held (the data-modifying parts
-run whether or not the result reads them); returns the leases found held."""
+autocommit): the gains and audit rows written only if every lease is held (the
+data-modifying parts run whether or not the result reads them); returns the leases
+found held."""
+SNAPSHOT_SQL = (
+    FENCE_CTE + "w AS (INSERT INTO snapshots (id, hidden, runtime) "
+    "SELECT u.* FROM unnest(%b::text[], %b::bytea[], %b::text[]) AS u(id, hidden, runtime), "
+    "ok WHERE ok.ok ON CONFLICT (id) DO UPDATE SET hidden = excluded.hidden, "
+    "runtime = excluded.runtime RETURNING 1) "
+    "SELECT array_agg(shard) FROM f"
+)
+"""A chunk of snapshots as one fenced statement, as :data:`RECORD_SQL` (binary
+parameters: the text form's escaping of the JSON cost 4 times as much)."""
 
 
 def _typed(values, kind: type) -> list:
@@ -131,34 +148,61 @@ class PgStore(Store):
         self._adapter = Adapter(connect(url))
         self.migrated_from = migrations.migrate("postgresql", self._db.execute, self.transaction)
         self._journal: collections.deque[JournalEntry] = collections.deque()  # stays empty
+        self._snap_lock = threading.Lock()
+        self._snap_conn: psycopg.Connection | None = None
+        """The snapshots' connection (:meth:`snapshot`), opened at the first."""
         self.unloadable: list[str] = []
         self._ahead: dict[str, tuple[str, LoopConfig]] = {}
         """Loop id -> (stored JSON, parsed config), parsed ahead of a load (:meth:`parse_ahead`)."""
+        self._saved_ahead: dict[str, tuple[bytes, str, Saved]] = {}
+        """Loop id -> (stored hidden state, runtime JSON, parsed snapshot), the same way."""
 
-    def parse_ahead(self, shards: list[str]) -> int:
-        """Parse the stored configs of ``shards``' loops now, on a connection of its own
-        (the worker's commits go on), for a :meth:`load` to come: a cluster member whose
-        peer stopped renewing its leases does so while the leases run out, so that taking
-        them over costs the query and the engine insert only (validating a config costs
-        ~0.1-0.2 ms, most of a load). :meth:`load` uses a parsed config only while the
-        stored JSON is still the same; ``[]`` forgets them. Returns how many were parsed."""
-        ahead = {}
-        if shards:
-            with connect(self.url) as conn:
-                rows = conn.execute(
-                    "SELECT id, config FROM loops WHERE shard = ANY(%s)", (shards,)
-                ).fetchall()
-            for loop_id, raw in rows:
+    def parse_ahead(self, shards: list[str], stop: threading.Event | None = None) -> int:
+        """Parse the stored configs and snapshots of ``shards``' loops now, on a connection
+        of its own (the worker's commits go on), for a :meth:`load` to come: a cluster
+        member whose peer stopped renewing its leases does so while the leases run out,
+        so that taking them over costs the query and the engine's array writes only
+        (validating a config and parsing a snapshot cost ~0.05-0.1 ms each, most of a
+        takeover). Parsed entries are used one by one as they come, and only while the
+        stored row is still the same (:meth:`_config`, :meth:`saved`); ``stop`` set: no
+        more (the takeover has begun and parses the rest itself); ``[]`` forgets them.
+        Returns how many configs were parsed."""
+        configs: dict[str, tuple[str, LoopConfig]] = {}
+        snapshots: dict[str, tuple[bytes, str, Saved]] = {}
+        self._ahead, self._saved_ahead = configs, snapshots  # filled in place
+        if not shards:
+            return 0
+        # a server-side cursor: rows parsed as they come (75,000 loops' rows are ~110 MB,
+        # and fetching them all first took the seconds the leases had left)
+        with connect(self.url) as conn, conn.transaction():
+            rows = conn.cursor(name="parse_ahead")
+            rows.itersize = AHEAD_ROWS
+            rows.execute(
+                "SELECT l.id, l.config, s.hidden, s.runtime FROM loops l "
+                "LEFT JOIN snapshots s ON s.id = l.id WHERE l.shard = ANY(%s)",
+                (shards,),
+            )
+            for loop_id, raw, hidden, runtime in rows:
+                if stop is not None and stop.is_set():
+                    break
                 with contextlib.suppress(ValidationError):  # load() logs it
-                    ahead[loop_id] = (raw, LoopConfig.model_validate_json(raw))
-        self._ahead = ahead
-        return len(ahead)
+                    configs[loop_id] = (raw, LoopConfig.model_validate_json(raw))
+                if hidden is not None and runtime is not None:
+                    with contextlib.suppress(ValueError):  # the takeover raises it
+                        snapshots[loop_id] = (hidden, runtime, Saved.parse(hidden, runtime))
+        return len(configs)
 
     def _config(self, loop_id: str, raw: str) -> LoopConfig:
         ahead = self._ahead.pop(loop_id, None)
         if ahead is not None and ahead[0] == raw:
             return ahead[1]
         return LoopConfig.model_validate_json(raw)
+
+    def saved(self, stored: StoredLoop) -> Saved | None:
+        ahead = self._saved_ahead.pop(stored.config.id, None)
+        if ahead is not None and (ahead[0], ahead[1]) == (stored.hidden, stored.runtime):
+            return ahead[2]
+        return super().saved(stored)
 
     @property
     def _db(self) -> Adapter:
@@ -172,6 +216,9 @@ class PgStore(Store):
     def close(self) -> None:
         with self._lock:
             self._adapter.conn.close()
+        with self._snap_lock:
+            if self._snap_conn is not None:
+                self._snap_conn.close()
 
     @contextmanager
     def transaction(self, durable: bool = True) -> Iterator[Adapter]:
@@ -262,24 +309,28 @@ class PgStore(Store):
         rows: Iterable[tuple[str, bytes, str]],
         fence: tuple[str, dict[str, int]] | None = None,
     ) -> None:
+        """A chunk of snapshots (:data:`SNAPSHOT_SQL`): one round trip on a connection of
+        their own, not durable (``synchronous_commit`` off for the session: a snapshot
+        lost in a crash costs the state since the one before, as with SQLite); it was a
+        transaction of five round trips on the commits' connection, each waiting for a
+        busy box to schedule the server and then the worker, a periodic snapshot chunk
+        every 0.1 s on a 150,000-loop member."""
         rows = list(rows)
         if not rows:
             return
         ids, hidden, runtime = (list(c) for c in zip(*rows, strict=True))
-        with self.transaction(durable=False) as db:
-            if fence is not None:
-                self._check_fence(db, *fence)
-            # one statement for the chunk: executemany's row-by-row round trips took
-            # about half of a member's worker at 150,000 loops (snapshots every 30 s);
-            # binary parameters (%b): the text form's escaping of the JSON cost 4 times
-            # as much (80 vs 20 ms per 1,000 loops)
-            db.conn.execute(
-                "INSERT INTO snapshots (id, hidden, runtime) "
-                "SELECT * FROM unnest(%b::text[], %b::bytea[], %b::text[]) "
-                "ON CONFLICT (id) DO UPDATE SET hidden = excluded.hidden, "
-                "runtime = excluded.runtime",
-                (ids, hidden, runtime),
-            )
+        member, tokens = fence if fence is not None else ("", {})
+        with self._snap_lock:
+            conn = self._snap_conn
+            if conn is None or conn.closed or conn.broken:
+                conn = self._snap_conn = connect(self.url)
+                conn.execute("SET synchronous_commit = off")
+            (held,) = conn.execute(
+                SNAPSHOT_SQL,
+                (list(tokens), list(tokens.values()), member, len(tokens), ids, hidden, runtime),
+            ).fetchone()
+        if len(held or ()) != len(tokens):
+            raise Fenced(sorted(set(tokens) - set(held or ())))
 
     @staticmethod
     def _audit(db: Adapter, rows: list[AuditRow]) -> None:
@@ -288,18 +339,3 @@ class PgStore(Store):
         with db.conn.cursor().copy(f"COPY audit ({AUDIT_COLUMNS}) FROM STDIN") as copy:
             for row in rows:
                 copy.write_row(row)
-
-    @staticmethod
-    def _check_fence(db: Adapter, member: str, tokens: dict[str, int]) -> None:
-        if not tokens:
-            return
-        shards = list(tokens)
-        held = db.conn.execute(
-            "SELECT l.shard FROM leases l JOIN unnest(%s::text[], %s::int8[]) AS f(shard, token) "
-            "ON l.shard = f.shard AND l.token = f.token "
-            "WHERE l.owner = %s AND l.expires > clock_timestamp() FOR SHARE OF l",
-            (shards, [tokens[s] for s in shards], member),
-        ).fetchall()
-        if len(held) != len(shards):
-            found = {r[0] for r in held}
-            raise Fenced([s for s in shards if s not in found])

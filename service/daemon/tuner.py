@@ -55,6 +55,7 @@ from service.daemon.pacing import LINGER_BYTES, LINGER_S, Pacer
 from service.daemon.queries import StateQueries
 from service.daemon.recent import Recent
 from service.daemon.settings import Settings
+from service.daemon.slotmemo import SlotMemo
 from service.daemon.store import Store
 from service.daemon.upkeep import Upkeep
 from service.engine.engine import TuningEngine
@@ -138,7 +139,9 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
         self.table = self.engine.table
         self.handoff = Handoff(self.table.lock)
         """Turns at the table's lock for the cluster's thread between the worker's messages."""
-        self.recent = Recent(known=self.table.slot_of)
+        self.slot_memo = SlotMemo(self.table)
+        """The slots of a gateway's batches (:meth:`_gateway_rows`)."""
+        self.recent = Recent(table=self.table)
         """Recent samples and published gains of each loop, for the console's trends."""
         self._skipped = 0
         self.inbox = Inbox(settings.queue_size, settings.queue_bytes)
@@ -394,7 +397,7 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
         not judged yet are counted as rejected ``internal`` and the worker goes on with
         the next message: one bad message never takes the others with it."""
         engine, tb = self.engine, self.table
-        self.recent.safely(self.recent.add_samples, decoded.rows)  # the console's trends
+        self.recent.safely(self.recent.add_samples, decoded)  # the console's trends
         before = sum(engine.rejected.values()) + int(tb.n_samples.sum())
         try:
             for result in engine.ingest_decoded(decoded, wall=wall):

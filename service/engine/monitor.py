@@ -232,13 +232,17 @@ def rejected(tb: LoopTable, s: int) -> None:
     tb.w_rej[s] = tb.w_rej[s] * (1.0 - REJECT_FORGET) + REJECT_FORGET
 
 
-def dump(tb: LoopTable, s: int) -> dict:
-    """The last response's figures and the history ring, for the runtime snapshot (the
-    open response and the windows restart after a restart: a gap ends them anyway)."""
-    return {
-        "last": [_num(getattr(tb, name)[s]) for name in _FIGURES],
-        "hist": [[_num(x) for x in row] for row in history(tb, s)],
-    }
+def dumps(tb: LoopTable, slots: np.ndarray) -> list[dict]:
+    """The last response's figures and the history ring of the loops at ``slots``, for
+    the runtime snapshot (the open response and the windows restart after a restart: a
+    gap ends them anyway), one dict each (NaN stays: the snapshot's orjson writes null);
+    each array read once for all of them, the history only of loops that have one."""
+    last = np.stack([getattr(tb, name)[slots] for name in _FIGURES], axis=1).tolist()
+    kept = (tb.f_hist_n[slots] > 0).tolist()
+    return [
+        {"last": row, "hist": history(tb, s) if has else []}
+        for row, s, has in zip(last, slots.tolist(), kept, strict=True)
+    ]
 
 
 def history(tb: LoopTable, s: int) -> list[list[float]]:
@@ -265,7 +269,3 @@ def load(tb: LoopTable, s: int, d: dict) -> None:
 def same_gains(a, b) -> np.ndarray:
     """Equal gains, as the engine compares them (relative 1e-6: float32 DCS storage)."""
     return np.abs(a - b) <= GAIN_RTOL * np.maximum(np.abs(a), np.abs(b))  # arrays or floats
-
-
-def _num(x: float) -> float | None:
-    return float(x) if math.isfinite(x) else None

@@ -1,4 +1,4 @@
-"""A loop's stored snapshot: its runtime state written as JSON (:func:`runtime_of`),
+"""A loop's stored snapshot: its runtime state written as JSON (:func:`runtimes_of`),
 the row parsed (:class:`Saved`) and restored into the table (:func:`restore_runtime`,
 from :meth:`LoopTable.add <service.engine.table.LoopTable.add>`).
 
@@ -44,37 +44,46 @@ class Saved:
         )
 
 
-def runtime_of(tb, s: int, counters: list[str]) -> str:
-    """Loop ``s``'s runtime state as the snapshot's JSON (``counters``: the table's
-    counters a snapshot keeps, in order)."""
+_SCALARS = (
+    "last_t", "last_e", "int_e", "next_due", "sp_ref", "excited_until", "obs_gain",
+    "sp_anchor", "move_t", "manual", "saturated",
+)  # fmt: skip
+"""The runtime snapshot's per-loop scalars (arrays of the table of the same names)."""
 
-    def num(x: float) -> float | None:  # JSON has no NaN or inf
-        return float(x) if math.isfinite(x) else None
 
-    return orjson.dumps(
-        {
-            "last_t": num(tb.last_t[s]),
-            "last_e": float(tb.last_e[s]),
-            "int_e": float(tb.int_e[s]),
-            "next_due": num(tb.next_due[s]),
-            "sp_ref": num(tb.sp_ref[s]),
-            "excited_until": num(tb.excited_until[s]),
-            "obs_gain": float(tb.obs_gain[s]),
-            "sp_anchor": num(tb.sp_anchor[s]),
-            "move_t": num(tb.move_t[s]),
-            "manual": bool(tb.manual[s]),
-            "saturated": bool(tb.saturated[s]),
-            "counters": [int(getattr(tb, n)[s]) for n in counters],
-            "ident": {
-                **tb.ident[s].dump(),
-                "mismatch": bool(tb.mismatch[s]),
-                "out_env": bool(tb.out_env[s]),
+def runtimes_of(tb, slots: np.ndarray, counters: list[str]) -> list[str]:
+    """The runtime state of the loops at ``slots`` as the snapshot's JSON, one string
+    each (``counters``: the table's counters a snapshot keeps, in order).
+
+    Each of the table's arrays is read once for all the loops (``tolist``: Python
+    numbers), and orjson writes NaN and inf as null (JSON has neither): reading each
+    value of each loop with numpy's scalar indexing was a third to half of the periodic
+    snapshot's cost (~40 µs a loop with the store's write, ~20 % of a core for a
+    150,000-loop member at the default interval)."""
+    scalars = [getattr(tb, name)[slots].tolist() for name in _SCALARS]
+    counts = zip(*(getattr(tb, n)[slots].tolist() for n in counters), strict=True)
+    flags = zip(tb.mismatch[slots].tolist(), tb.out_env[slots].tolist(), strict=True)
+    return [
+        orjson.dumps(
+            {
+                **dict(zip(_SCALARS, values, strict=True)),
+                "counters": list(count),
+                "ident": {**tb.ident[s].dump(), "mismatch": mismatch, "out_env": out_env},
+                "verify": ver,
+                "figures": figures,
             },
-            "verify": verify.dump(tb, s),
-            "figures": monitor.dump(tb, s),
-        },
-        option=orjson.OPT_SERIALIZE_NUMPY,
-    ).decode()
+            option=orjson.OPT_SERIALIZE_NUMPY,
+        ).decode()
+        for s, values, count, (mismatch, out_env), ver, figures in zip(
+            slots.tolist(),
+            zip(*scalars, strict=True),
+            counts,
+            flags,
+            verify.dumps(tb, slots),
+            monitor.dumps(tb, slots),
+            strict=True,
+        )
+    ]
 
 
 def restore_runtime(tb, s: int, saved: Saved, counters: list[str]) -> None:

@@ -32,7 +32,7 @@ from service.engine.config import (
     resolve_bounds,
 )  # fmt: skip
 from service.engine.modes import _CODE, _MODES, AUTO, FROZEN, SHADOW
-from service.engine.saved import Saved, restore_runtime, runtime_of
+from service.engine.saved import Saved, restore_runtime, runtimes_of
 from service.engine.updates import MODE_VALUES, StepResult
 from service.units import Scaling
 from service.wire.protocol import LoopStatus, Mode, UpdateReason
@@ -120,6 +120,9 @@ class LoopTable:
         self.configs = Configs()
         self.slot_of: dict[str, int] = {}
         self.ids: list[str | None] = []
+        self.version = 0
+        """Bumped whenever a loop is added or removed (slots remembered elsewhere, as the
+        daemon's :class:`~service.daemon.slotmemo.SlotMemo`, are stale after it)."""
         self.gateways = np.empty(0, object)
         """Each slot's gateway (an interned str) or None: an array, so that a batch's loops
         are checked against their gateway in one comparison."""
@@ -208,6 +211,7 @@ class LoopTable:
         s = self._free.pop()
         self.ids[s] = config.id
         self.slot_of[config.id] = s
+        self.version += 1
         self.reg_kp[s], self.reg_ki[s] = config.kp, config.ki
         self.kp[s] = config.kp if kp is None else kp
         self.ki[s] = config.ki if ki is None else ki
@@ -324,6 +328,7 @@ class LoopTable:
         del self.slot_of[loop_id]
         del self.configs[loop_id]
         self.ids[s] = None
+        self.version += 1
         self._gains_dirty.discard(s)
         self._free.append(s)
 
@@ -421,12 +426,15 @@ class LoopTable:
         """(id, hidden state bytes, runtime JSON) of every loop (or of the given, if still
         registered)."""
         if loop_ids is None:
-            items = self.slot_of.items()
+            items = list(self.slot_of.items())
         else:
             items = [(i, self.slot_of[i]) for i in loop_ids if i in self.slot_of]
+        slots = np.fromiter((s for _, s in items), np.int64, len(items))
+        hidden = self.hidden[slots]
+        runtimes = runtimes_of(self, slots, _COUNTERS)
         return [
-            (loop_id, self.hidden[s].tobytes(), runtime_of(self, s, _COUNTERS))
-            for loop_id, s in items
+            (loop_id, row.tobytes(), runtime)
+            for (loop_id, _), row, runtime in zip(items, hidden, runtimes, strict=True)
         ]
 
     # -- views ------------------------------------------------------------------------

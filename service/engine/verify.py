@@ -277,9 +277,12 @@ def _num(x: float) -> float | None:
     return float(x) if math.isfinite(x) else None
 
 
-def dump(tb: LoopTable, s: int) -> dict:
-    """The verification state for the runtime snapshot (JSON: no NaN or inf)."""
-    return {name: _num(getattr(tb, name)[s]) for name in _STATE}
+def dumps(tb: LoopTable, slots: np.ndarray) -> list[dict]:
+    """The verification state of the loops at ``slots`` for the runtime snapshot, one
+    dict each (NaN and inf stay: the snapshot's orjson writes them as null); each array
+    read once for all of them."""
+    columns = [getattr(tb, name)[slots].tolist() for name in _STATE]
+    return [dict(zip(_STATE, values, strict=True)) for values in zip(*columns, strict=True)]
 
 
 def load(tb: LoopTable, s: int, d: dict) -> None:
