@@ -172,6 +172,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     reg.add_argument(
         "--register-timeout", type=float, default=60.0, help="wait this long for the API, s"
     )
+    reg.add_argument(
+        "--tuner-lag",
+        type=_at_least(0.0),
+        default=0.0,
+        metavar="S",
+        help="wait for the tuner when it has not accepted the samples of S simulated s "
+        "ago (0 = never: a real plant's pace; pitune demo sets it so that a busy machine "
+        "slows the run instead of delaying the gains in simulated time)",
+    )
     out = run_p.add_argument_group("output")
     out.add_argument("--log-dir", type=Path, default=None, help="write DIR/<loop id>.csv")
     out.add_argument(
@@ -205,6 +214,7 @@ def plant_config(args: argparse.Namespace) -> PlantConfig:
             register_timeout=args.register_timeout,
             log_dir=args.log_dir,
             progress=args.progress,
+            tuner_lag=args.tuner_lag,
         )
     except ValueError as exc:
         raise SystemExit(f"pitune plant: {exc}") from None

@@ -128,15 +128,21 @@ def run_scans(
     applied = ignored = 0
     progress_every = round(config.progress / sim.scan) if config.progress > 0 else 0
     last = round(sim.duration / sim.scan) if sim.duration is not None else None
-    for k in paced(sim.scan, sim.speed, stop):
-        if last is not None and k >= last:
-            break
+
+    def take_gains() -> None:
+        nonlocal applied, ignored
         for msg in gateway.gains():  # seq rule applied, state replies included
             if msg.mode == Mode.auto:
                 by_id[msg.loop_id].apply_gains(msg.kp, msg.ki)
                 applied += 1
             else:
                 ignored += 1
+
+    waiting = config.tuner_lag > 0.0
+    for k in paced(sim.scan, sim.speed, stop):
+        if last is not None and k >= last:
+            break
+        take_gains()
         samples = {}
         for loop in loops:
             scan = loop.scan()
@@ -150,4 +156,51 @@ def run_scans(
                     flush=True,
                 )
         gateway.publish_scan(samples)  # one batch on the gateway's key with a gateway id
+        if waiting and samples:
+            t = min(sample.t for sample in samples.values())
+            waiting = wait_for_tuner(gateway, list(by_id), t - config.tuner_lag, take_gains, stop)
     return applied, ignored
+
+
+TUNER_WAIT_S = 10.0
+"""Wall seconds the plant waits for a tuner that does not catch up before it stops
+waiting for the rest of the run (a tuner down must not stall the plant)."""
+POLL_S = 0.01
+"""Wall seconds between two state queries while waiting."""
+
+
+def wait_for_tuner(
+    gateway: Gateway, loop_ids: list[str], t: float, take_gains: Callable[[], None],
+    stop: Callable[[], bool],
+) -> bool:  # fmt: skip
+    """Hold the scan loop until the tuner has accepted every loop's samples up to plant
+    time ``t`` (the ``last_t`` of its state replies), asking for its state and applying
+    the gains that arrive meanwhile. The pace in simulated time is then the slower of
+    ``speed`` and the tuner's: on a machine too busy for the speed, the tuner's reaction
+    stays a few scans in simulated time (at 120x and a tuner 4 s of wall time behind,
+    the two-tank demo's first tuning from its identified model landed 8 simulated
+    minutes late, next to a setpoint change). Returns False when it gave up
+    (:data:`TUNER_WAIT_S`: no tuner, or one that does not catch up)."""
+
+    def caught_up() -> bool:
+        states = gateway.inbox.supervision
+        seen = [states[i].last_t if i in states else None for i in loop_ids]
+        return all(s is not None and s >= t for s in seen)
+
+    if caught_up():
+        return True
+    deadline = time.monotonic() + TUNER_WAIT_S
+    while not stop():
+        gateway.query_state()
+        time.sleep(POLL_S)
+        take_gains()
+        if caught_up():
+            return True
+        if time.monotonic() > deadline:
+            print(
+                f"plant: the tuner has not accepted the samples of t={t:g} s after "
+                f"{TUNER_WAIT_S:g} s: running on without waiting for it",
+                file=sys.stderr, flush=True,
+            )  # fmt: skip
+            return False
+    return True

@@ -45,6 +45,11 @@ LOOP_ID = LOOP.loop_id
 MSE_CHANGES = 2
 """The tracking MSE covers the last two setpoint changes, when tuning has settled."""
 
+TUNER_LAG_S = 5.0
+"""Simulated seconds the plant may run ahead of the tuner (``pitune plant run
+--tuner-lag``): the demo's result then does not depend on whether the machine keeps up
+with ``--speed`` (a tenth of the tank's time constant, a fiftieth of an RL period)."""
+
 
 class DemoError(RuntimeError):
     """The run went wrong although its processes did not fail; the message says how."""
@@ -149,7 +154,8 @@ class Demo:
             print(f"operator console: {st.api}/ui (log in with the token {st.token})", flush=True)
             if self.args.no_hint:  # registered first: the plant's own registration resumes it
                 self.register_without_hint(st.api, st.token)
-            plant = st.start_plant(*plant_argv((LOOP,), self.sim))
+            lag = ("--tuner-lag", f"{TUNER_LAG_S:g}")
+            plant = st.start_plant(*plant_argv((LOOP,), self.sim), *lag)
             print(f"plant simulator started: {self.args.minutes:g} simulated minutes "
                   f"at {self.args.speed:g}x", flush=True)  # fmt: skip
             view = self.follow(st.api, plant, tuner)

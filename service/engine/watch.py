@@ -294,7 +294,9 @@ def _close(tb, s: int, t: float, wall: float, *, final: bool = False, why: str =
     if len(starts) >= identify.MIN_EVENTS and n >= identify.MIN_SAMPLES:
         known = st.in_force  # a warm start (the grid search otherwise)
         start = None if known is None else (known.tau, known.theta)
-        result = identify.assess(data[0], data[1], data[2], data[3], starts, start)
+        # the samples the last row holds so far (a row per stride samples: record())
+        last = int((tb.rec_k[s] - 1) % tb.rec_stride[s] + 1)
+        result = identify.assess(data[0], data[1], data[2], data[3], starts, start, last)
         st.events = result.events[-MAX_EVENTS:]
         st.model, st.why = result.model, result.why
         if result.model is not None and result.model.confident:
