@@ -12,7 +12,7 @@ import pytest
 
 from service.daemon.tuner import Tuner
 from service.engine.config import LoopConfig
-from service.wire.protocol import RejectReason
+from service.wire.protocol import Mode, RejectReason
 from tests.tuner_support import loop_body, open_peer, tuner_settings, wait_until
 
 pytestmark = pytest.mark.timeout(90)
@@ -120,7 +120,7 @@ def test_configs_parsed_ahead_of_a_takeover_are_used_only_while_unchanged(pg_url
         assert store.parse_ahead(["gw:gwP"]) == 3
         ahead = store._ahead["P0"][1]
         saved = store._saved_ahead["P0"][2]
-        changed = configs[1].model_copy(update={"mode": "advisory"})  # patched meanwhile
+        changed = configs[1].model_copy(update={"mode": Mode.advisory})  # patched meanwhile
         with store.transaction() as db:
             db.execute(
                 "UPDATE loops SET config = ? WHERE id = ?", (changed.model_dump_json(), "P1")
