@@ -118,10 +118,13 @@ def test_a_killed_member_s_loops_move_within_10_s_with_seq_continuing(cluster):
         "m1",
         "m2",
     }
-    view = cluster.cluster(via=1)
-    assert view["unowned_loops"] == 0 and sum(
-        m["loops"] for m in view["members"] if m["live"]
-    ) == len(ids)
+
+    def counted():  # each member writes its loop count with its next lease renewal
+        view = cluster.cluster(via=1)
+        live = sum(m["loops"] for m in view["members"] if m["live"])
+        return view["unowned_loops"] == 0 and live == len(ids)
+
+    wait_until(counted, timeout=FAILOVER_BAR_S, what="GET /cluster counting every loop")
 
 
 def test_a_paused_member_publishes_nothing_after_its_lease_and_rejoins(cluster):
