@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from service.engine import monitor, verify, watch
+from service.engine import monitor, oscillation, verify, watch
 from service.engine.config import Counters, Identification, LoopConfig, LoopView
 from service.engine.figures import (
     Performance,
@@ -155,7 +155,7 @@ def performance(tb: LoopTable, s: int) -> Performance:
         window=WindowFigures(
             error_mean=float(tb.w_mean[s]),
             error_var=var,
-            noise_sigma=math.sqrt(max(float(tb.o_var[s]), 0.0)),
+            noise_sigma=float(oscillation.noise_sigma(tb, s, cold=True)),
             oscillation_index=_num(tb.o_index[s]) if tb.o_n[s] >= 2 else None,
             oscillating=bool(tb.o_osc[s]),
             manual_share=float(tb.w_manual[s]),
