@@ -91,11 +91,32 @@ def test_a_rescale_sets_the_models_tuning_even_below_the_gains_in_force():
     model = [u for u in updates if u.reason == "model"]
     assert model, [u.reason for u in updates]
     m = view.identification.in_force
-    assert (model[0].kp, model[0].ki) == pytest.approx(model_gains(m.k, m.tau, m.theta))
+    kp_m, ki_m = model_gains(m.k, m.tau, m.theta)
+    assert (model[0].kp, model[0].ki) == pytest.approx((kp_m, ki_m))
     assert model[0].dkp < 0 and model[0].dki < 0
+    # the guard's bounds are now the model band (guard.model_band, 1.5x either way)
+    tb, s = engine.table, engine.table.slot("L")
+    bounds = (tb.kp_min[s], tb.kp_max[s], tb.ki_min[s], tb.ki_max[s])
+    assert bounds == pytest.approx((kp_m / 1.5, kp_m * 1.5, ki_m / 1.5, ki_m * 1.5))
     _, audit = engine.drain_changes()
     row = next(r for r in audit if r[5] == "model")
     assert json.loads(row[10])["after"] == "rescaled"
+
+
+def test_the_model_band_can_be_turned_off_and_never_widens_the_users_bounds():
+    kp, ki = gains(share=0.25)
+    off = engine_with(0.25, model_band=None)
+    narrow = engine_with(0.25, kp_max=kp * 4.5)  # below the band's top (~6x kp here)
+    for engine in (off, narrow):
+        drive(engine, moves=4)
+        assert engine.view("L", wall=1e9).counters.identified == 1
+    tb, s = off.table, off.table.slot("L")
+    assert tb.kp_max[s] > 10 * kp and tb.ki_max[s] > 10 * ki  # the agent's range: no band
+    tb, s = narrow.table, narrow.table.slot("L")
+    m = narrow.view("L", wall=1e9).identification.in_force
+    kp_m, ki_m = model_gains(m.k, m.tau, m.theta)
+    assert tb.kp_max[s] == pytest.approx(kp * 4.5) and tb.kp_min[s] == pytest.approx(kp_m / 1.5)
+    assert tb.ki_max[s] == pytest.approx(ki_m * 1.5)
 
 
 def test_a_loop_paused_out_of_the_envelope_is_paused_on_the_models_tuning():

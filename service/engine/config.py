@@ -112,6 +112,13 @@ class Guard(BaseModel):
         "walk them up by max_rel_change per update; after a rescale or an envelope pause, "
         "set gains well off it either way to it (docs/identification.md).",
     )
+    model_band: Tolerance | None = Field(
+        1.5,
+        description="While an identified model is in force (a loop registered without a "
+        "hint, or rescaled), keep the agent's gains within this factor either way of the "
+        "model's SIMC tuning (tau_c = 2 tau), inside the bounds: on a noisy loop the agent "
+        "walks them far below it (docs/identification.md, Model band). null: off.",
+    )
     envelope_guard: bool = Field(
         True,
         description="Pause tuning (status out_of_envelope) while the identified dynamics, "

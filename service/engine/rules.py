@@ -47,7 +47,7 @@ import math
 
 import numpy as np
 
-from service.engine import monitor, oscillation, watch
+from service.engine import first_tuning, monitor, oscillation, watch
 from service.engine.audit import audit_row
 from service.engine.modes import _MODES, AUTO, FROZEN
 from service.engine.table import LoopTable
@@ -151,6 +151,7 @@ def ingest(
     tb.last_t[slots] = t
     fresh = np.isnan(last_t) | (t - last_t > tb.stale_gap[slots]) | resumed
     watch.record(tb, slots, cols, last_t, fresh, wall)
+    first_tuning.flush(tb)  # the models put in force: one batched warm run
     if tb.monitoring:
         judged = monitor.observe(
             tb, slots, t, e, tb.last_e[slots], last_t, moved, fresh, auto, saturated

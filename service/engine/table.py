@@ -23,7 +23,7 @@ import numpy as np
 
 from service.agent.fast import FastPolicy, Precision
 from service.agent.model import Agent
-from service.engine import monitor, verify, views, watch
+from service.engine import first_tuning, monitor, verify, views, watch
 from service.engine.audit import AuditRow, audit_row
 from service.engine.config import (
     Configs,
@@ -139,6 +139,9 @@ class LoopTable:
         self.decided: list[StepResult] = []
         """Decisions made while taking samples (the first tuning from an identified
         model: :mod:`service.engine.first_tuning`), to publish."""
+        self.warming: list = []
+        """Model tunings waiting for their loop's warm run, done in one batch at the end of
+        the pass (:func:`service.engine.first_tuning.flush`)."""
         self.ident: list[watch.IdState | None] = []
         self.recorder = watch.Recorder()
         self._allocate(capacity)
@@ -278,6 +281,8 @@ class LoopTable:
         self.ki_min[s], self.ki_max[s] = g.ki_min, g.ki_max
         self.exc_step[s] = g.excitation_min_step / sc.e_scale
         self.exc_window[s] = g.excitation_periods * sc.rl_period_s or math.inf
+        if self.ident[s].in_force is not None and g.model_band is not None:
+            first_tuning.band(self, s, self.ident[s].in_force, g.model_band)
 
     def _configure_monitor(self, s: int, sc: Scaling | None, g) -> None:
         """The target trajectory's model (identified, else the hint's tau with no dead

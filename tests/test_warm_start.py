@@ -1,0 +1,67 @@
+"""The agent's warm start on an identified model (service/engine/warm.py, first_tuning.py):
+the warm run is training's protocol as the engine observes it, and after a model tuning
+the shipped agent continues from where it ends instead of from a zero state."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from plant_sim.loop import step_test_mse
+from service.agent import DEFAULT_WEIGHTS, load_agent, untrained_agent
+from service.engine import LoopConfig, TuningEngine, warm
+from service.engine.first_tuning import model_gains
+from service.learn.env import EnvConfig, TuningEnv
+from tests.test_identify import TAU, THETA, H, K, drive, gains
+
+pytestmark = pytest.mark.timeout(300)
+trained = pytest.mark.skipif(not DEFAULT_WEIGHTS.exists(), reason="no trained agent")
+
+
+def test_the_warm_run_is_trainings_protocol_observed_as_the_engine_observes():
+    """Same agent, same plants, same start: training's environment (the paper's toggle,
+    the error window, the integral) and the warm run give the same observations, hence
+    the same hidden states (the gains are in the observation) and integral."""
+    agent = untrained_agent(3)
+    engine = TuningEngine(agent, inference_precision="reference")
+    n, steps = 4, 12
+    K_, tau = np.full(n, 0.5), np.array([0.3, 0.5, 0.5, 0.9])
+    theta = tau * np.array([0.05, 0.2, 0.6, 1.0])
+    kp, ki = np.array([1.0, 2.0, 0.5, 1.2]), np.array([2.0, 3.0, 1.0, 1.5])
+    state, int_e = warm.run(engine.table, K_, tau, theta, kp, ki, 0.99, steps=steps)
+    env = TuningEnv(EnvConfig(dt=warm.DT, init_noise=0.0), np.random.default_rng(0))
+    obs = env.reset(K_, tau, theta, horizon=steps, sp0=1.0, kp0=kp, ki0=ki)
+    ref = agent.initial_state(n)
+    for _ in range(steps):
+        delta, ref = agent.act(obs, ref, forgetting=0.99)
+        obs, _, _ = env.step(delta)
+    np.testing.assert_allclose(state, ref, rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(int_e, obs[:, 3], rtol=1e-9)
+    assert np.abs(int_e).max() > 0.1  # the integral is carried, not zero
+
+
+@trained
+def test_after_a_model_tuning_a_noisy_loop_keeps_the_gains_near_the_models_tuning():
+    """A hint-free loop with setpoint moves every 6 tau and noise: the agent, warmed or
+    not and hinted or not, walks the gains far below the model's tuning here (ki to 0.27x
+    of it, step-test MSE 0.3 against 8e-5); the model band keeps each agent step within
+    1.5x either way of the model's tuning, and the warm start gave it a hidden state."""
+    engine = TuningEngine(load_agent())
+    kp, ki = gains(share=0.25)
+    engine.register(LoopConfig(id="L", kp=kp, ki=ki, sample_period_s=H), wall=0.0)
+    updates = drive(engine, moves=16, every=6.0, noise=0.5, size=20.0)
+    first = next(i for i, u in enumerate(updates) if u.reason == "model")
+    model, agent = updates[first], [u for u in updates[first + 1 :] if u.reason == "agent"]
+    assert "rule=simc" in model.why and len(agent) >= 5
+    view = engine.view("L", wall=1e9)
+    m = view.identification.in_force
+    assert abs(m.k / K - 1) < 0.3 and abs(m.tau / TAU - 1) < 0.3
+    kp_m, ki_m = model_gains(m.k, m.tau, m.theta)
+    for u in [model, *agent]:
+        assert 1 / 1.5 - 1e-9 <= u.kp / kp_m <= 1.5 + 1e-9
+        assert 1 / 1.5 - 1e-9 <= u.ki / ki_m <= 1.5 + 1e-9
+    assert view.hidden_norm > 0
+    # the step-test MSE of the end gains, in the true plant's agent units (K, tau as 0.5)
+    end = agent[-1]
+    kp_a, ki_a = end.kp * K / 0.5, end.ki * K / 0.5 * TAU / 0.5
+    assert step_test_mse(0.5, 0.5, 0.5 * THETA / TAU, kp_a, ki_a)[0] < 0.04
