@@ -9,8 +9,9 @@ import pytest
 
 from plant_sim.loop import step_test_mse
 from service.agent import DEFAULT_WEIGHTS, load_agent, untrained_agent
-from service.engine import LoopConfig, TuningEngine, warm
-from service.engine.first_tuning import model_gains
+from service.engine import LoopConfig, TuningEngine, first_tuning, warm
+from service.engine.first_tuning import WARM_PER_PASS, model_gains
+from service.engine.identify import Model
 from service.learn.env import EnvConfig, TuningEnv
 from tests.test_identify import TAU, THETA, H, K, drive, gains
 
@@ -65,3 +66,26 @@ def test_after_a_model_tuning_a_noisy_loop_keeps_the_gains_near_the_models_tunin
     end = agent[-1]
     kp_a, ki_a = end.kp * K / 0.5, end.ki * K / 0.5 * TAU / 0.5
     assert step_test_mse(0.5, 0.5, 0.5 * THETA / TAU, kp_a, ki_a)[0] < 0.04
+
+
+def test_a_pass_warms_at_most_warm_per_pass_loops_and_the_next_pass_the_rest():
+    """Thousands of models put in force in one pass must not stall the worker for
+    seconds: one flush warms :data:`WARM_PER_PASS` loops, in queue order, the next the
+    rest."""
+    engine = TuningEngine(untrained_agent(3), inference_precision="reference")
+    tb, n = engine.table, WARM_PER_PASS + 6
+    scaling = {"k_hat": K, "tau_hat": TAU, "pv_scale": 20.0}
+    for i in range(n):
+        engine.register(
+            LoopConfig(id=f"L{i}", kp=0.1, ki=0.01, sample_period_s=H, scaling=scaling),
+            wall=0.0,
+        )
+    m = Model(k=K, tau=TAU, theta=THETA, noise=0.1, move=5.0, r2=0.99, k_rse=0.01, tau_rse=0.01)
+    slots = [tb.slot(f"L{i}") for i in range(n)]
+    tb.warming.extend((s, tb.ids[s], m) for s in slots)
+    warmed = lambda: np.abs(tb.hidden[slots]).sum(axis=(1, 2)) > 0  # noqa: E731
+    first_tuning.flush(tb)
+    assert warmed().tolist() == [True] * WARM_PER_PASS + [False] * 6
+    assert len(tb.warming) == 6
+    first_tuning.flush(tb)
+    assert warmed().all() and not tb.warming

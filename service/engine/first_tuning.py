@@ -150,14 +150,22 @@ def apply(tb, s: int, m, wall: float, why: str) -> None:
     tb.decided.append(verify.single(tb, s, t, old, new, UpdateReason.model, text, mode))
 
 
+WARM_PER_PASS = 64
+"""Loops warmed in one pass of the worker: a warm run costs 7-10 ms a loop on this box
+(docs/identification.md), so a pass that puts thousands of models in force at once
+(a plant-wide move after a restart) stalls the other loops' samples at most ~0.6 s."""
+
+
 def flush(tb) -> None:
     """Warm the agent of every loop waiting in ``tb.warming`` in one batched run on its
     model from the gains in force (:func:`service.engine.warm.run`, the model as the
     loop's new scaling shows it), and give each the run's hidden state and error
     integral (the observation's, so divided by the loop's setpoint-move gain). A run
-    that goes non-finite leaves its loop's fresh state."""
-    items = [(s, m) for s, i, m in tb.warming if s < len(tb.ids) and tb.ids[s] == i]
-    tb.warming.clear()
+    that goes non-finite leaves its loop's fresh state. At most :data:`WARM_PER_PASS`
+    loops a call: the rest wait for the next pass (they are held until their model
+    tuning's verdict, several RL periods, so none is stepped cold meanwhile)."""
+    items = [(s, m) for s, i, m in tb.warming[:WARM_PER_PASS] if s < len(tb.ids) and tb.ids[s] == i]
+    del tb.warming[:WARM_PER_PASS]
     if not items:
         return
     slots = np.array([s for s, _ in items])
