@@ -382,12 +382,24 @@ class Cluster:
         if conn is None:  # (the cluster's thread: the parsing ahead's owner)
             self._stop_parsing()
         timing = self.tuner.adopt_shards(taken, token)
+        self._count_loops(conn or self._conn)
         self.moves += len(taken)
         self.adoptions.append({"at": started, "shards": len(taken), **timing})
         log.info(
             "acquired %d shards (token %d): %d loops, store load %.2f s, engine insert %.2f s",
             len(taken), token, timing["loops"], timing["load_s"], timing["insert_s"],
         )  # fmt: skip
+
+    def _count_loops(self, conn: psycopg.Connection) -> None:
+        """This member's loop count in its row now (``GET /cluster`` right after a
+        takeover; the renewals keep it up to date), between two renewals: one that read
+        the count before the takeover cannot overwrite it after."""
+        with self._leasing:
+            with self._lock:
+                loops = len(self.shard_of)
+            conn.execute(
+                "UPDATE members SET loops = %s WHERE instance_id = %s", (loops, self.member)
+            )
 
     def _take(self, shards: set[str], token: int, conn: psycopg.Connection) -> list[str]:
         """The leases of those ``shards`` that are free or expired, now this member's

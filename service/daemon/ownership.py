@@ -52,27 +52,37 @@ class Ownership:
     # -- called by the cluster's thread -------------------------------------------------
     def adopt_shards(self, shards: list[str], token: int) -> dict:
         """Load the shards' loops from the store into the engine (they resume from their
-        committed gains and seq and their last snapshot); how long each part took."""
+        committed gains and seq and their last snapshot); how long each part took.
+
+        The loops go in shard by shard, a chunk at a time under the table's lock (the
+        worker runs between chunks), and each gateway's samples are followed as soon as
+        its shard's loops are all in: the first loops resume while the rest load."""
         began = time.perf_counter()
         stored = self.store.load(shards)
         loaded = time.perf_counter()
         wall = time.time()
-        for i in range(0, len(stored), ADOPT_CHUNK):  # the worker runs between chunks
-            chunk = stored[i : i + ADOPT_CHUNK]
-            saved = [self.store.saved(loop) for loop in chunk]  # outside the lock (or ahead)
+        of = [shard_of(loop.config.id, loop.config.gateway) for loop in stored]
+        order = sorted(range(len(stored)), key=of.__getitem__)
+        last = {of[i]: k for k, i in enumerate(order)}  # a shard's last loop in that order
+        for start in range(0, len(order), ADOPT_CHUNK):
+            part = order[start : start + ADOPT_CHUNK]
+            chunk = [stored[i] for i in part]
+            saved = self.store.saved_many(chunk)  # outside the lock (or parsed ahead)
             by_shard = collections.defaultdict(list)
-            for loop in chunk:
-                by_shard[shard_of(loop.config.id, loop.config.gateway)].append(loop.config.id)
+            for i in part:
+                by_shard[of[i]].append(stored[i].config.id)
             with self.handoff.hold():  # at the worker's next message
-                for loop, state in zip(chunk, saved, strict=True):
-                    if loop.config.id not in self.table.slot_of:
-                        self._restore(loop, wall, state)
+                fresh = [
+                    k for k, loop in enumerate(chunk) if loop.config.id not in self.table.slot_of
+                ]
+                self._restore_many([chunk[k] for k in fresh], wall, [saved[k] for k in fresh])
                 for shard, ids in by_shard.items():
                     self.cluster.adopted(shard, token, ids)
-        with self.table.lock:
-            self.metrics.set_loop_counts(self.table.mode_counts())
+                self.metrics.set_loop_counts(self.table.mode_counts())
+            done = {shard for shard in by_shard if last[shard] < start + len(part)}
+            self.bus.follow(gateways(done))  # their loops are in: their samples can come
         self.metrics.loops_unloadable.set(len(self.store.unloadable))
-        self.bus.follow(gateways(shards))  # their loops are in: their samples can come
+        self.bus.follow(gateways(shards))  # (a shard without loops)
         return {
             "loops": len(stored),
             "load_s": loaded - began,
@@ -129,16 +139,19 @@ class Ownership:
             self.cluster.forget(leaving)
             self.metrics.set_loop_counts(self.table.mode_counts())
 
-    def _restore(self, stored, wall: float, saved: Saved | None = None) -> None:
-        """A stored loop into the engine (``saved``: its snapshot, parsed ahead)."""
-        self.engine.restore(
-            stored.config,
-            kp=stored.kp,
-            ki=stored.ki,
-            seq=stored.seq,
-            hidden=stored.hidden,
-            runtime=stored.runtime,
-            saved=saved,
+    def _restore(self, stored, wall: float) -> None:
+        """A stored loop into the engine."""
+        self._restore_many([stored], wall)
+
+    def _restore_many(self, stored: list, wall: float, saved: list[Saved | None] | None = None):
+        """Stored loops into the engine at once (``saved``: their snapshots, parsed ahead;
+        None: parsed here)."""
+        self.engine.add_many(
+            [loop.config for loop in stored],
+            kp=[loop.kp for loop in stored],
+            ki=[loop.ki for loop in stored],
+            seq=[loop.seq for loop in stored],
+            saved=self.store.saved_many(stored) if saved is None else saved,
             wall=wall,
         )
 

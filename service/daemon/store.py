@@ -268,6 +268,10 @@ class Store:
             return None
         return Saved.parse(stored.hidden, stored.runtime)
 
+    def saved_many(self, stored: list[StoredLoop]) -> list[Saved | None]:
+        """:meth:`saved` of each loaded loop."""
+        return [self.saved(loop) for loop in stored]
+
     def last_seqs(self, ids: list[str]) -> dict[str, int]:
         """The highest ``seq`` of each id that ever had one, from the audit log (kept after
         a delete): a loop registered again continues from it, since gateways drop a gains
