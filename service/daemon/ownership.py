@@ -78,9 +78,12 @@ class Ownership:
                 self._restore_many([chunk[k] for k in fresh], wall, [saved[k] for k in fresh])
                 for shard, ids in by_shard.items():
                     self.cluster.adopted(shard, token, ids)
-                self.metrics.set_loop_counts(self.table.mode_counts())
-            done = {shard for shard in by_shard if last[shard] < start + len(part)}
+                done = {shard for shard in by_shard if last[shard] < start + len(part)}
+                if done:
+                    self.metrics.set_loop_counts(self.table.mode_counts())
             self.bus.follow(gateways(done))  # their loops are in: their samples can come
+        with self.table.lock:
+            self.metrics.set_loop_counts(self.table.mode_counts())
         self.metrics.loops_unloadable.set(len(self.store.unloadable))
         self.bus.follow(gateways(shards))  # (a shard without loops)
         return {

@@ -230,15 +230,13 @@ class Store:
         with self._lock:
             column, keys = ("l.shard", shards) if ids is None else ("l.id", ids)
             if keys is None:
-                rows = self._db.execute(f"{query} ORDER BY {self.ORDER}").fetchall()
+                rows = self._fetch(f"{query} ORDER BY {self.ORDER}", ())
             else:
                 rows = []
                 for i in range(0, len(keys), 500):
                     chunk = keys[i : i + 500]
                     where = f"{column} IN ({', '.join('?' * len(chunk))})"
-                    rows += self._db.execute(
-                        f"{query} WHERE {where} ORDER BY {self.ORDER}", chunk
-                    ).fetchall()
+                    rows += self._fetch(f"{query} WHERE {where} ORDER BY {self.ORDER}", chunk)
         loops, unloadable = [], []
         for loop_id, config, kp, ki, seq, hidden, runtime in rows:
             try:
@@ -257,6 +255,10 @@ class Store:
         else:
             self.unloadable = sorted(set(self.unloadable) | set(unloadable))
         return loops
+
+    def _fetch(self, sql: str, params) -> list[tuple]:
+        """The rows of a query of :meth:`load`."""
+        return self._db.execute(sql, params).fetchall()
 
     def _config(self, loop_id: str, raw: str) -> LoopConfig:
         """A stored config, parsed (ValidationError if it no longer validates)."""
