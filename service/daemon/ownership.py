@@ -24,7 +24,6 @@ single tuner behaves as before. With one (see :mod:`service.daemon.cluster`):
 
 from __future__ import annotations
 
-import collections
 import logging
 import time
 
@@ -54,42 +53,34 @@ class Ownership:
         """Load the shards' loops from the store into the engine (they resume from their
         committed gains and seq and their last snapshot); how long each part took.
 
-        The loops go in shard by shard, a chunk at a time under the table's lock (the
-        worker runs between chunks), and each gateway's samples are followed as soon as
-        its shard's loops are all in: the first loops resume while the rest load."""
+        Shard by shard: its loops loaded, then inserted a chunk at a time under the
+        table's lock (the worker runs between chunks), then its gateway's samples
+        followed, so the first gateways' loops resume while the others' load."""
         began = time.perf_counter()
-        stored = self.store.load(shards)
-        loaded = time.perf_counter()
+        loops, load_s = 0, 0.0
         wall = time.time()
-        of = [shard_of(loop.config.id, loop.config.gateway) for loop in stored]
-        order = sorted(range(len(stored)), key=of.__getitem__)
-        last = {of[i]: k for k, i in enumerate(order)}  # a shard's last loop in that order
-        for start in range(0, len(order), ADOPT_CHUNK):
-            part = order[start : start + ADOPT_CHUNK]
-            chunk = [stored[i] for i in part]
-            saved = self.store.saved_many(chunk)  # outside the lock (or parsed ahead)
-            by_shard = collections.defaultdict(list)
-            for i in part:
-                by_shard[of[i]].append(stored[i].config.id)
-            with self.handoff.hold():  # at the worker's next message
-                fresh = [
-                    k for k, loop in enumerate(chunk) if loop.config.id not in self.table.slot_of
-                ]
-                self._restore_many([chunk[k] for k in fresh], wall, [saved[k] for k in fresh])
-                for shard, ids in by_shard.items():
-                    self.cluster.adopted(shard, token, ids)
-                done = {shard for shard in by_shard if last[shard] < start + len(part)}
-                if done:
+        for shard in sorted(shards):
+            loading = time.perf_counter()
+            stored = self.store.load([shard])
+            load_s += time.perf_counter() - loading
+            loops += len(stored)
+            for start in range(0, len(stored), ADOPT_CHUNK):
+                chunk = stored[start : start + ADOPT_CHUNK]
+                saved = self.store.saved_many(chunk)  # outside the lock (or parsed ahead)
+                with self.handoff.hold():  # at the worker's next message
+                    slot_of = self.table.slot_of
+                    fresh = [k for k, loop in enumerate(chunk) if loop.config.id not in slot_of]
+                    self._restore_many([chunk[k] for k in fresh], wall, [saved[k] for k in fresh])
+                    self.cluster.adopted(shard, token, [loop.config.id for loop in chunk])
+            if stored:
+                with self.table.lock:
                     self.metrics.set_loop_counts(self.table.mode_counts())
-            self.bus.follow(gateways(done))  # their loops are in: their samples can come
-        with self.table.lock:
-            self.metrics.set_loop_counts(self.table.mode_counts())
+            self.bus.follow(gateways([shard]))  # its loops are in: their samples can come
         self.metrics.loops_unloadable.set(len(self.store.unloadable))
-        self.bus.follow(gateways(shards))  # (a shard without loops)
         return {
-            "loops": len(stored),
-            "load_s": loaded - began,
-            "insert_s": time.perf_counter() - loaded,
+            "loops": loops,
+            "load_s": load_s,
+            "insert_s": time.perf_counter() - began - load_s,
         }
 
     def drop_shards(self, shards: set[str], *, commit: bool) -> None:
