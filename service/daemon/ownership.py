@@ -113,6 +113,7 @@ class Ownership:
         stored = {s.config.id: s for s in self.store.load(ids=loop_ids)}
         wall = time.time()
         leaving: list[str] = []
+        arriving = []  # (added at once: a bulk registration through another member)
         with self.table.lock:
             for loop_id in loop_ids:
                 loop = stored.get(loop_id)
@@ -123,19 +124,16 @@ class Ownership:
                         leaving.append(loop_id)
                     continue
                 if not local:
-                    self._restore(loop, wall)
+                    arriving.append(loop)
                 elif self.table.configs[loop_id] != loop.config:
                     self.table.reconfigure(loop.config)
                 self.cluster.adopted(shard, self.cluster.held[shard], [loop_id])
+            self._restore_many(arriving, wall)
             for loop_id in leaving:  # deleted, or moved to another gateway's shard
                 self.engine.remove(loop_id)
                 self.recent.forget(loop_id)
             self.cluster.forget(leaving)
             self.metrics.set_loop_counts(self.table.mode_counts())
-
-    def _restore(self, stored, wall: float) -> None:
-        """A stored loop into the engine."""
-        self._restore_many([stored], wall)
 
     def _restore_many(self, stored: list, wall: float, saved: list[Saved | None] | None = None):
         """Stored loops into the engine at once (``saved``: their snapshots, parsed ahead;
