@@ -60,7 +60,7 @@ class Ownership:
         table's lock (the worker runs between chunks), then its gateway's samples
         followed, so the first gateways' loops resume while the others' load."""
         began = time.perf_counter()
-        loops, load_s = 0, 0.0
+        loops, load_s, wait_s = 0, 0.0, 0.0
         wall = time.time()
         for shard in sorted(shards):
             loading = time.perf_counter()
@@ -70,7 +70,9 @@ class Ownership:
             for start in range(0, len(stored), ADOPT_CHUNK):
                 chunk = stored[start : start + ADOPT_CHUNK]
                 saved = self.store.saved_many(chunk)  # outside the lock (or parsed ahead)
+                waiting = time.perf_counter()
                 with self.handoff.hold():  # at the worker's next message
+                    wait_s += time.perf_counter() - waiting
                     slot_of = self.table.slot_of
                     fresh = [k for k, loop in enumerate(chunk) if loop.config.id not in slot_of]
                     self._restore_many([chunk[k] for k in fresh], wall, [saved[k] for k in fresh])
@@ -84,6 +86,7 @@ class Ownership:
             "loops": loops,
             "load_s": load_s,
             "insert_s": time.perf_counter() - began - load_s,
+            "lock_wait_s": wait_s,  # (of insert_s: the turns at the table's lock awaited)
         }
 
     def drop_shards(self, shards: set[str], *, commit: bool) -> None:
