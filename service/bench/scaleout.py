@@ -272,10 +272,12 @@ def _takeover(adopted: list[dict], killed_wall: float) -> dict:
     out, then the next tick), loading the loops from the store, inserting them into the
     engines (summed over the acquisitions of the survivors)."""
     if not adopted:
-        return {"lease_wait_s": None, "loops": 0, "load_s": None, "insert_s": None}
+        return {"lease_wait_s": None, "loops": 0, "load_s": None, "insert_s": None,
+                "lock_wait_s": None}  # fmt: skip
     return {
         "lease_wait_s": min(a["at"] for a in adopted) - killed_wall,
         "loops": sum(a["loops"] for a in adopted),
         "load_s": sum(a["load_s"] for a in adopted),
         "insert_s": sum(a["insert_s"] for a in adopted),
+        "lock_wait_s": sum(a.get("lock_wait_s", 0.0) for a in adopted),
     }

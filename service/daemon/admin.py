@@ -126,12 +126,13 @@ class LoopAdmin:
         shards = [shard_of(c.id, c.gateway) for c in configs]
         with _taken_in_store(self.store.integrity_errors):
             self.store.insert_loops(configs, audit, seqs)
-        self.engine.reserve(len(configs))
-        for config, seq, shard in zip(configs, seqs, shards, strict=True):
-            if self.cluster is None or self.cluster.owns(shard):
-                self.engine.register(config, seq=seq, wall=wall)
-                if self.cluster is not None:
-                    self.cluster.adopted(shard, self.cluster.held[shard], [config.id])
+        owned = [
+            i for i, shard in enumerate(shards) if self.cluster is None or self.cluster.owns(shard)
+        ]
+        self.engine.add_many([configs[i] for i in owned], seq=[seqs[i] for i in owned], wall=wall)
+        if self.cluster is not None:
+            for i in owned:
+                self.cluster.adopted(shards[i], self.cluster.held[shards[i]], [configs[i].id])
         self.metrics.set_loop_counts(self.table.mode_counts())
 
     def patch(self, loop_id: str, patch: LoopPatch, actor: str = "api") -> LoopView:

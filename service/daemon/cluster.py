@@ -114,7 +114,8 @@ class Cluster:
         """Shards acquired since start (after a failover or a rebalance)."""
         self.adoptions: collections.deque[dict] = collections.deque(maxlen=ADOPTIONS_KEPT)
         """The last acquisitions: wall time begun, shards, loops, store load and engine
-        insert seconds (``GET /cluster``: where a failover's time goes)."""
+        insert seconds, and of those the turns at the table's lock awaited (``GET /cluster``:
+        where a failover's time goes)."""
         self._stop = threading.Event()
         self._conn: psycopg.Connection | None = None
         self._beat_conn: psycopg.Connection | None = None
@@ -382,12 +383,26 @@ class Cluster:
         if conn is None:  # (the cluster's thread: the parsing ahead's owner)
             self._stop_parsing()
         timing = self.tuner.adopt_shards(taken, token)
+        self._count_loops(conn or self._conn)
         self.moves += len(taken)
         self.adoptions.append({"at": started, "shards": len(taken), **timing})
         log.info(
-            "acquired %d shards (token %d): %d loops, store load %.2f s, engine insert %.2f s",
+            "acquired %d shards (token %d): %d loops, store load %.2f s, engine insert %.2f s "
+            "(%.2f s of it waiting for the table's lock)",
             len(taken), token, timing["loops"], timing["load_s"], timing["insert_s"],
+            timing["lock_wait_s"],
         )  # fmt: skip
+
+    def _count_loops(self, conn: psycopg.Connection) -> None:
+        """This member's loop count in its row now (``GET /cluster`` right after a
+        takeover; the renewals keep it up to date), between two renewals: one that read
+        the count before the takeover cannot overwrite it after."""
+        with self._leasing:
+            with self._lock:
+                loops = len(self.shard_of)
+            conn.execute(
+                "UPDATE members SET loops = %s WHERE instance_id = %s", (loops, self.member)
+            )
 
     def _take(self, shards: set[str], token: int, conn: psycopg.Connection) -> list[str]:
         """The leases of those ``shards`` that are free or expired, now this member's

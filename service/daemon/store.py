@@ -230,15 +230,13 @@ class Store:
         with self._lock:
             column, keys = ("l.shard", shards) if ids is None else ("l.id", ids)
             if keys is None:
-                rows = self._db.execute(f"{query} ORDER BY {self.ORDER}").fetchall()
+                rows = self._fetch(f"{query} ORDER BY {self.ORDER}", ())
             else:
                 rows = []
                 for i in range(0, len(keys), 500):
                     chunk = keys[i : i + 500]
                     where = f"{column} IN ({', '.join('?' * len(chunk))})"
-                    rows += self._db.execute(
-                        f"{query} WHERE {where} ORDER BY {self.ORDER}", chunk
-                    ).fetchall()
+                    rows += self._fetch(f"{query} WHERE {where} ORDER BY {self.ORDER}", chunk)
         loops, unloadable = [], []
         for loop_id, config, kp, ki, seq, hidden, runtime in rows:
             try:
@@ -258,6 +256,10 @@ class Store:
             self.unloadable = sorted(set(self.unloadable) | set(unloadable))
         return loops
 
+    def _fetch(self, sql: str, params) -> list[tuple]:
+        """The rows of a query of :meth:`load`."""
+        return self._db.execute(sql, params).fetchall()
+
     def _config(self, loop_id: str, raw: str) -> LoopConfig:
         """A stored config, parsed (ValidationError if it no longer validates)."""
         return LoopConfig.model_validate_json(raw)
@@ -267,6 +269,10 @@ class Store:
         if stored.hidden is None or stored.runtime is None:
             return None
         return Saved.parse(stored.hidden, stored.runtime)
+
+    def saved_many(self, stored: list[StoredLoop]) -> list[Saved | None]:
+        """:meth:`saved` of each loaded loop."""
+        return [self.saved(loop) for loop in stored]
 
     def last_seqs(self, ids: list[str]) -> dict[str, int]:
         """The highest ``seq`` of each id that ever had one, from the audit log (kept after

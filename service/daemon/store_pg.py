@@ -181,6 +181,7 @@ class PgStore(Store):
                 "SELECT l.id, l.config, s.hidden, s.runtime FROM loops l "
                 "LEFT JOIN snapshots s ON s.id = l.id WHERE l.shard = ANY(%s)",
                 (shards,),
+                binary=True,
             )
             for loop_id, raw, hidden, runtime in rows:
                 if stop is not None and stop.is_set():
@@ -191,6 +192,11 @@ class PgStore(Store):
                     with contextlib.suppress(ValueError):  # the takeover raises it
                         snapshots[loop_id] = (hidden, runtime, Saved.parse(hidden, runtime))
         return len(configs)
+
+    def _fetch(self, sql: str, params) -> list[tuple]:
+        """In binary: the text format sends a snapshot's hidden state (bytea) as hex, twice
+        its size, decoded in Python."""
+        return self._db.conn.execute(sql.replace("?", "%s"), tuple(params), binary=True).fetchall()
 
     def _config(self, loop_id: str, raw: str) -> LoopConfig:
         ahead = self._ahead.pop(loop_id, None)

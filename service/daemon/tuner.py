@@ -216,8 +216,7 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
         self.epoch = self.store.next_epoch(wall)
         if self.cluster is None:
             with self.table.lock:
-                for stored in self.store.load():
-                    self._restore(stored, wall)
+                self._restore_many(self.store.load(), wall)
                 self.metrics.set_loop_counts(self.table.mode_counts())
             self.metrics.loops_unloadable.set(len(self.store.unloadable))
             log.info("restored %d loops from %s", len(self.table), self.store.location)

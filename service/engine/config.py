@@ -276,6 +276,8 @@ def resolve_bounds(guard: Guard, scaling: Scaling, kp: float, ki: float) -> Guar
     tau_hat of 1e-6 put ki_max at 1.25e13): the upper bounds are clamped to it, and the
     result validated, so that the stored config always loads again.
     """
+    if None not in (guard.kp_min, guard.kp_max, guard.ki_min, guard.ki_max):
+        return guard  # (a stored config's: validating it again was a fifth of its load)
     lo, hi = AGENT_GAIN_RANGE
     defaults = {
         "kp_min": min(lo * scaling.kp_per_agent, kp),

@@ -96,11 +96,6 @@ class TuningEngine:
         with self.lock:
             self.table.add(config, seq=seq, wall=_now(wall))
 
-    def reserve(self, n: int) -> None:
-        """Room for ``n`` more loops at once (a bulk registration: no doubling slack)."""
-        with self.lock:
-            self.table.reserve(n)
-
     def restore(
         self,
         config: LoopConfig,
@@ -120,6 +115,23 @@ class TuningEngine:
                 config, kp=kp, ki=ki, seq=seq, hidden=hidden, runtime=runtime, saved=saved,
                 wall=_now(wall),
             )  # fmt: skip
+
+    def add_many(
+        self,
+        configs: list[LoopConfig],
+        *,
+        kp: list[float] | None = None,
+        ki: list[float] | None = None,
+        seq: list[int] | None = None,
+        saved: list[Saved | None] | None = None,
+        wall: float | None = None,
+    ) -> None:
+        """Add loops at once, new (registered gains; ``seq``: continuing earlier loops')
+        or as stored (``kp``, ``ki``, ``seq`` and their snapshots parsed, ``saved``): as
+        :meth:`register` and :meth:`restore` one by one would (see :meth:`LoopTable.add_many
+        <service.engine.table.LoopTable.add_many>`), in a fraction of the time."""
+        with self.lock:
+            self.table.add_many(configs, kp=kp, ki=ki, seq=seq, saved=saved, wall=_now(wall))
 
     def reconfigure(self, config: LoopConfig) -> None:
         with self.lock:

@@ -110,9 +110,10 @@ def clear(tb: LoopTable, s: int) -> None:
     oscillation.clear(tb, s)
 
 
-def configure(tb: LoopTable, s: int, tau_s: float | None, theta_s: float) -> None:
-    """The model the target trajectory follows (seconds; None: no model yet)."""
-    tb.m_tau_cl[s] = math.nan if tau_s is None else 2.0 * tau_s
+def configure(tb: LoopTable, s, tau_s, theta_s) -> None:
+    """The model the target trajectory follows (seconds; NaN tau: no model yet); ``s``,
+    ``tau_s`` and ``theta_s``: one slot and floats, or aligned arrays."""
+    tb.m_tau_cl[s] = 2.0 * tau_s
     tb.m_theta[s] = theta_s
 
 
@@ -252,20 +253,39 @@ def history(tb: LoopTable, s: int) -> list[list[float]]:
     return rows.tolist()
 
 
-def load(tb: LoopTable, s: int, d: dict) -> None:
-    last = d.get("last")
-    if last:
-        for name, v in zip(_FIGURES, last, strict=True):
-            getattr(tb, name)[s] = math.nan if v is None else v
-    hist = d.get("hist") or []
-    n = min(len(hist), HISTORY)
-    if n:
-        rows = np.array(hist[:n], dtype=np.float64)
-        rows[:, 0] -= tb.f_t[s]
-        tb.f_hist[s, :n] = rows
-    tb.f_hist_n[s] = n
+def load(tb: LoopTable, slots: np.ndarray, dicts: list[dict]) -> None:
+    """The figures of snapshots (:func:`dumps`' dicts) into the loops at ``slots``: the
+    last response's with one assignment per array, the history of those that have one."""
+    lasts = [d.get("last") for d in dicts]
+    has = [i for i, last in enumerate(lasts) if last]
+    if has:
+        columns = zip(*(lasts[i] for i in has), strict=True)
+        for name, values in zip(_FIGURES, columns, strict=True):
+            put(getattr(tb, name), slots[has], list(values), math.nan)
+    tb.f_hist_n[slots] = 0
+    for s, d in zip(slots.tolist(), dicts, strict=True):
+        hist = d.get("hist")
+        if hist:
+            n = min(len(hist), HISTORY)
+            rows = np.array(hist[:n], dtype=np.float64)
+            rows[:, 0] -= tb.f_t[s]
+            tb.f_hist[s, :n] = rows
+            tb.f_hist_n[s] = n
 
 
 def same_gains(a, b) -> np.ndarray:
     """Equal gains, as the engine compares them (relative 1e-6: float32 DCS storage)."""
     return np.abs(a - b) <= GAIN_RTOL * np.maximum(np.abs(a), np.abs(b))  # arrays or floats
+
+
+ABSENT = object()
+"""A value a snapshot does not hold (see :func:`put`)."""
+
+
+def put(arr: np.ndarray, slots: np.ndarray, values: list, default: float) -> None:
+    """``values`` (aligned with ``slots``; None: ``default``, :data:`ABSENT`: left as it
+    is) into ``arr`` at ``slots`` in one assignment."""
+    if ABSENT in values:
+        kept = [i for i, v in enumerate(values) if v is not ABSENT]
+        slots, values = slots[kept], [values[i] for i in kept]
+    arr[slots] = [default if v is None else v for v in values]

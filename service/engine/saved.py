@@ -19,6 +19,7 @@ import numpy as np
 import orjson
 
 from service.engine import monitor, verify, watch
+from service.engine.monitor import ABSENT, put
 
 
 @dataclass(frozen=True)
@@ -35,7 +36,10 @@ class Saved:
 
     @classmethod
     def parse(cls, hidden: bytes, runtime: str) -> Saved:
-        rt = json.loads(runtime)
+        try:
+            rt = orjson.loads(runtime)
+        except orjson.JSONDecodeError:  # NaN or Infinity: a snapshot written by json.dumps
+            rt = json.loads(runtime)
         ident = rt.get("ident")
         return cls(
             np.frombuffer(hidden, np.float32),
@@ -86,30 +90,45 @@ def runtimes_of(tb, slots: np.ndarray, counters: list[str]) -> list[str]:
     ]
 
 
-def restore_runtime(tb, s: int, saved: Saved, counters: list[str]) -> None:
-    """The snapshot's runtime state into loop ``s`` of the table ``tb`` (its identification
-    state is restored by :meth:`LoopTable.add <service.engine.table.LoopTable.add>`)."""
-    if saved.hidden.size == tb.hidden[s].size:
-        tb.hidden[s] = saved.hidden.reshape(tb.hidden[s].shape)
-    rt = saved.runtime
-    tb.last_t[s] = math.nan if rt["last_t"] is None else rt["last_t"]
-    tb.next_due[s] = math.nan if rt["next_due"] is None else rt["next_due"]
-    tb.last_e[s], tb.int_e[s] = rt["last_e"], rt["int_e"]
-    tb.manual[s], tb.saturated[s] = rt["manual"], rt["saturated"]
-    sp_ref = rt.get("sp_ref")  # absent in snapshots from before the excitation gate
-    tb.sp_ref[s] = math.nan if sp_ref is None else sp_ref
-    until = rt.get("excited_until")
-    tb.excited_until[s] = -math.inf if until is None else until
-    tb.obs_gain[s] = rt.get("obs_gain", 1.0)  # absent before the normalisation
-    anchor, move_t = rt.get("sp_anchor"), rt.get("move_t")  # absent before runs of moves
-    tb.sp_anchor[s] = math.nan if anchor is None else anchor
-    tb.move_t[s] = -math.inf if move_t is None else move_t
+def restore_runtimes(tb, slots: np.ndarray, saved: list[Saved], counters: list[str]) -> None:
+    """The snapshots' runtime state into the loops at ``slots`` of the table ``tb``
+    (aligned; their identification state is restored by :meth:`LoopTable.add_many
+    <service.engine.table.LoopTable.add_many>`), one assignment per array. A value a
+    snapshot from an older version lacks keeps what the loop was registered with."""
+    if not saved:
+        return
+    size = tb.hidden[0].size
+    fits = [i for i, x in enumerate(saved) if x.hidden.size == size]
+    if fits:
+        hidden = np.stack([saved[i].hidden for i in fits]).reshape(-1, *tb.hidden.shape[1:])
+        tb.hidden[slots[fits]] = hidden
+    rts = [x.runtime for x in saved]
+    for name, default in _RESTORED:
+        put(getattr(tb, name), slots, [rt.get(name, ABSENT) for rt in rts], default)
     # snapshots from before a counter was added list fewer: those stay 0
-    for name, value in zip(counters, rt["counters"], strict=False):
-        getattr(tb, name)[s] = value
-    ident = rt.get("ident")  # absent in snapshots from before identification
-    if ident is not None:
-        tb.mismatch[s], tb.out_env[s] = ident["mismatch"], ident["out_env"]
-    if "verify" in rt:  # absent in snapshots from before verification
-        verify.load(tb, s, rt["verify"])
-        monitor.load(tb, s, rt.get("figures") or {})
+    for k, name in enumerate(counters):
+        put(getattr(tb, name), slots, [_at(rt["counters"], k) for rt in rts], 0)
+    # absent in snapshots from before identification
+    idents = [rt.get("ident") or {} for rt in rts]
+    for name in ("mismatch", "out_env"):
+        put(getattr(tb, name), slots, [d.get(name, ABSENT) for d in idents], False)
+    # absent in snapshots from before verification
+    checked = [i for i, rt in enumerate(rts) if "verify" in rt]
+    if checked:
+        verify.load(tb, slots[checked], [rts[i]["verify"] for i in checked])
+        monitor.load(tb, slots[checked], [rts[i].get("figures") or {} for i in checked])
+
+
+_RESTORED = (
+    ("last_t", math.nan), ("next_due", math.nan), ("last_e", math.nan), ("int_e", math.nan),
+    ("manual", False), ("saturated", False), ("sp_ref", math.nan),
+    ("excited_until", -math.inf), ("obs_gain", math.nan), ("sp_anchor", math.nan),
+    ("move_t", -math.inf),
+)  # fmt: skip
+"""The runtime snapshot's scalars restored, with the value of a null (the ones absent in
+older snapshots: sp_ref before the excitation gate, excited_until, sp_anchor and move_t
+before runs of moves, obs_gain before the normalisation, keep the registration's)."""
+
+
+def _at(values: list, k: int):
+    return values[k] if k < len(values) else ABSENT

@@ -45,7 +45,7 @@ import orjson
 
 from service.engine.audit import audit_row
 from service.engine.modes import ADVISORY, AUTO
-from service.engine.monitor import same_gains
+from service.engine.monitor import ABSENT, put, same_gains
 from service.engine.oscillation import period
 from service.engine.updates import MODE_VALUES, StepResult
 from service.wire.protocol import UpdateReason
@@ -75,7 +75,6 @@ F32 = [
 """Per-loop float32 arrays of verification: figures and settings."""
 _STATE = [n for n in F64 + F32 if n not in ("v_margin", "v_cool")]
 """What the runtime snapshot keeps (the settings come from the config)."""
-_STATE_SET = frozenset(_STATE)
 
 Verdict = str
 """``verified``, ``rolled_back``, ``rollback_proposed``, ``worse`` or ``pending``."""
@@ -91,10 +90,13 @@ def init(tb: LoopTable, s: int) -> None:
     tb.b_kp[s] = tb.b_ki[s] = math.nan
 
 
-def configure(tb: LoopTable, s: int, on: bool, margin: float, cooldown_periods: float) -> None:
-    tb.v_margin[s] = margin if on else math.nan
+def configure(tb: LoopTable, s: np.ndarray, on, margin, cooldown_periods) -> None:
+    """The guard's verification settings of the loops at slots ``s`` (aligned arrays of
+    the settings; after their RL periods are set)."""
+    tb.v_margin[s] = np.where(on, margin, math.nan)
     period = tb.period[s]
-    tb.v_cool[s] = cooldown_periods * period if math.isfinite(period) else 0.0
+    finite = np.isfinite(period)
+    tb.v_cool[s] = np.where(finite, cooldown_periods * np.where(finite, period, 0.0), 0.0)
 
 
 def changed(tb: LoopTable, s):
@@ -285,8 +287,9 @@ def dumps(tb: LoopTable, slots: np.ndarray) -> list[dict]:
     return [dict(zip(_STATE, values, strict=True)) for values in zip(*columns, strict=True)]
 
 
-def load(tb: LoopTable, s: int, d: dict) -> None:
-    for name in _STATE_SET.intersection(d):  # a set: restoring is per loop (a failover's)
-        value = d[name]
+def load(tb: LoopTable, slots: np.ndarray, dicts: list[dict]) -> None:
+    """The verification state of snapshots (:func:`dumps`' dicts) into the loops at
+    ``slots``, one assignment per array (a name a snapshot lacks stays as it is)."""
+    for name in _STATE:
         default = -math.inf if name == "cool_until" else math.nan
-        getattr(tb, name)[s] = default if value is None else value
+        put(getattr(tb, name), slots, [d.get(name, ABSENT) for d in dicts], default)
