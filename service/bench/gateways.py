@@ -109,6 +109,8 @@ class _Latencies:
         self.sent_k = np.full((plan.groups, RING), -1, np.int64)
         self.inbox: collections.deque = collections.deque()
         self.values: list[float] = []
+        self.trace: list[tuple[float, str]] = []
+        """(publish time after the window's start, loop id) of each of :attr:`values`."""
         self.gains = self.unmatched = 0
 
     def on_gains(self, sample: zenoh.Sample) -> None:
@@ -135,6 +137,7 @@ class _Latencies:
                 sent = self.sent[g, k % RING]
                 if lo <= sent < hi:
                     self.values.append(received - sent)
+                    self.trace.append((sent - lo, msg["loop_id"]))
 
 
 def _play(plan: Plan, pipe, stop) -> None:
@@ -202,6 +205,7 @@ def _play(plan: Plan, pipe, stop) -> None:
             "published": published,
             "published_window": published_window,
             "latencies": np.asarray(latencies.values, np.float64).tobytes(),
+            "trace": latencies.trace,
             "gains": latencies.gains,
             "unmatched": latencies.unmatched,
             "cpu_s": span_cpu,
@@ -254,6 +258,11 @@ class Generators:
         total["latencies"] = np.concatenate(
             [np.frombuffer(p["latencies"], np.float64) for p in parts] or [np.zeros(0)]
         )
+        total["trace"] = [
+            (t, loop_id, d)
+            for p in parts
+            for (t, loop_id), d in zip(p["trace"], np.frombuffer(p["latencies"]), strict=True)
+        ]
         return total
 
     def halt(self) -> None:

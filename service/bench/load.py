@@ -95,6 +95,14 @@ def _wait_for_tuner(session, keys, loop_id: str, timeout: float = 10.0) -> None:
     raise RuntimeError("the tuner does not answer state queries on the bus")
 
 
+def write_trace(path, rows) -> None:
+    """The update latencies of the window as CSV: (publish time of the sample after the
+    window's start, s; loop id; latency, s) a row, written in ms."""
+    with open(path, "w") as out:
+        out.write("t_s,loop_id,latency_ms\n")
+        out.writelines(f"{t:.3f},{i},{1e3 * d:.2f}\n" for t, i, d in rows)
+
+
 def play(
     config: BenchConfig, fleet: Fleet, daemon: TunerProcess, client, session, keys, inbox, memory
 ) -> dict:
@@ -176,9 +184,7 @@ def play(
 
     span = wall1 - wall0
     if config.trace:
-        with open(config.trace, "w") as out:
-            out.write("t_s,loop_id,latency_ms\n")
-            out.writelines(f"{t:.3f},{i},{1e3 * d:.2f}\n" for t, i, d in stats.trace)
+        write_trace(config.trace, stats.trace)
     return summary(
         config,
         Measured(

@@ -27,7 +27,7 @@ from service.bench.cluster import GainsLog, Members, missing_audit, open_session
 from service.bench.config import BenchConfig
 from service.bench.fleet import Fleet
 from service.bench.gateways import Generators, plans
-from service.bench.load import Measured, _wait_for_tuner, summary
+from service.bench.load import Measured, _wait_for_tuner, summary, write_trace
 from service.bench.pgserver import PgServer
 from service.bench.probes import scrape, system_busy, tree_cpu_seconds
 from service.wire.protocol import Keys
@@ -155,6 +155,8 @@ def _measure(config, fleet, gateways, members, daemon: _Summed, client, memory, 
             break
         time.sleep(0.1)
     m2 = scrape(client, daemon.api)
+    if config.trace:
+        write_trace(config.trace, heard["trace"])
     measured = Measured(
         published=heard["published"],
         published_window=heard["published_window"],

@@ -187,6 +187,8 @@ class LoopAdmin:
             s = self.table.slot(loop_id)
             gains = (float(self.table.kp[s]), float(self.table.ki[s]))
             mode = self.table.mode_of(s).value
+            if self.snapshot_writer is not None:  # no snapshot of it lands after the delete
+                self.snapshot_writer.discard([loop_id])
             self.store.delete_loop(
                 loop_id,
                 audit_row(

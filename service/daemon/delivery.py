@@ -83,6 +83,8 @@ class Delivery:
         if dirty:
             # last-good gains, verdicts and proposals on disk before what follows from
             # them goes out: a SIGKILL after this keeps them (they resume on restart)
+            if self.snapshot_writer is not None:  # their queued periodic rows are older
+                self.snapshot_writer.discard(dirty)
             rows = self.table.snapshot(dirty)
             try:
                 self.store.snapshot(rows, None if self.cluster is None else self._fence(dirty))

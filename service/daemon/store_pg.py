@@ -96,12 +96,18 @@ FENCE_CTE = (
     "WITH f AS (SELECT l.shard FROM leases l "
     "JOIN unnest(%b::text[], %b::int8[]) AS f(shard, token) "
     "ON l.shard = f.shard AND l.token = f.token "
-    "WHERE l.owner = %s AND l.expires > clock_timestamp() FOR SHARE OF l), "
+    "WHERE l.owner = %s AND l.expires > clock_timestamp() ORDER BY l.shard FOR SHARE OF l), "
     "ok AS (SELECT count(*) = %s AS ok FROM f), "
 )
 """The fence of a one-statement write (parameters: shards, tokens, member, how many):
 the lease rows locked ``FOR SHARE`` (a takeover waits for it), ``ok`` true only if
-every one is still the member's with that token, unexpired."""
+every one is still the member's with that token, unexpired. Locked in shard order (the
+sort comes before the locking), the order in which another member's claim of free
+shards locks them (:meth:`service.daemon.cluster.Cluster._take`): in any other order a
+commit or snapshot and a concurrent claim could each hold a row the other waits for
+(PostgreSQL aborts one: a registration failed with ``deadlock detected`` once the
+periodic snapshot was written concurrently with the claims, see
+:mod:`service.daemon.snapwriter`)."""
 RECORD_SQL = (
     FENCE_CTE + "u AS (UPDATE loops l SET kp = u.kp, ki = u.ki, seq = u.seq FROM "
     "unnest(%b::float8[], %b::float8[], %b::int8[], %b::text[]) AS u(kp, ki, seq, id), ok "

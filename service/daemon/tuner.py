@@ -56,6 +56,7 @@ from service.daemon.queries import StateQueries
 from service.daemon.recent import Recent
 from service.daemon.settings import Settings
 from service.daemon.slotmemo import SlotMemo
+from service.daemon.snapwriter import SnapshotWriter
 from service.daemon.store import Store
 from service.daemon.upkeep import Upkeep
 from service.engine.engine import TuningEngine
@@ -210,6 +211,7 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
 
             self.store = PgStore(self.settings.db_path)
             self.cluster = Cluster(self, self.settings.db_path)
+            self.snapshot_writer = SnapshotWriter(self.store.snapshot)
         else:
             self.store = Store(self.settings.db_path)
         wall = self.clock.wall()
@@ -227,6 +229,8 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
         try:
             self.bus.open()
         except BaseException:
+            if self.snapshot_writer is not None:
+                self.snapshot_writer.close()
             self.store.close()
             raise
         self._worker = threading.Thread(target=self._run, name="pitune-worker", daemon=True)
@@ -266,7 +270,9 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
         for lane in list(self.lanes.values()):
             lane.close(timeout=1.0)
         if self.store is not None:
-            self.snapshot()
+            self.snapshot()  # every loop: what the snapshot writer had queued is older
+            if self.snapshot_writer is not None:
+                self.snapshot_writer.close()
             if self.cluster is not None:
                 self.cluster.leave()
             self.store.close()
