@@ -81,7 +81,7 @@ def test_model_card_lists_training_and_results(quick_report, tmp_path):
 def test_robust_suite_runs_through_the_engine_and_reports(tmp_path):
     """The quick robustness suite: every condition row has its numbers, the report and
     the figure are written, and the paper protocol through the engine tunes."""
-    from service.learn.robust import robust_suite
+    from service.learn.robust_suite import robust_suite
 
     result = robust_suite(load_agent(), tmp_path, quick=True)
     rows = {r["condition"]: r for r in result["conditions"]}

@@ -33,7 +33,7 @@ from service.learn.experiments import (
     two_tank,
 )
 from service.learn.report import render_report, write_figures, write_model_card
-from service.learn.robust import robust_suite
+from service.learn.robust_suite import robust_suite
 
 Inference = Literal["reference", "auto", "float32", "bfloat16"]
 """``agent.act`` (reference), or the tuner's FastPolicy in this precision."""

@@ -19,6 +19,9 @@ at irregular times (exponential holds); the hint off by 3x in K or tau; dead-tim
 dominant plants; second-order plants. Second-order plants are scored on the true
 plant with the target and SIMC of their FOPTD approximation by Skogestad's half rule.
 
+The suite that runs them all and writes the report is :mod:`service.learn.robust_suite`;
+loops without setpoint moves are in :mod:`service.learn.regulatory`.
+
 A loop counts as unstable when its step test with the final gains does not settle
 (non-finite, or the output still more than 0.5 from the target in the last fifth).
 
@@ -33,11 +36,8 @@ envelope guard, a hold) takes none. The issue's first table drove the agent dire
 
 from __future__ import annotations
 
-import json
-import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
-from pathlib import Path
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -47,7 +47,6 @@ from plant_sim.pi import PIBatch
 from plant_sim.tunings import simc_paper, to_parallel
 from service.engine import LoopConfig
 from service.learn.closed_loop import Policy, engine_of
-from service.learn.oracle import oracle_gains, oracle_table
 from service.units import AGENT_KI0, AGENT_KP0, RL_STEP_AGENT_UNITS, ScalingSpec
 from service.wire.decode import Columns, Decoded
 
@@ -359,7 +358,7 @@ def summarise(cond: Condition, run: Run) -> dict:
     }
 
 
-# -- the long run and the quiet loop --------------------------------------------------------
+# -- the long run --------------------------------------------------------
 def long_run(policy: Policy, periods: int = 400) -> dict:
     """400 RL periods, forgetting 0.99, noise 0.05, irregular setpoints: how far the gains
     wander after convergence (largest deviation from their median over the second half)."""
@@ -375,124 +374,3 @@ def long_run(policy: Policy, periods: int = 400) -> dict:
         "worst_mse": float(mse.max()),
         "unstable": int(unstable.sum()),
     }
-
-
-def quiet_loop(policy: Policy, periods: int = 100) -> dict:
-    """No setpoint move for ``periods`` RL periods, noise 0.05 and a random-walk load,
-    from the oracle's gains: how far the gains move, with the daemon's excitation gate
-    and with the agent alone (gate off)."""
-    K, tau, r = grid()
-    g0 = oracle_gains(oracle_table(), K, tau, r * tau)
-    cond = Condition("quiet", noise=0.05, load_walk=0.5, sp_hold=1e9)
-    out = {}
-    for name, gate in (("gate on", True), ("gate off", False)):
-        run = run_condition(policy, cond, periods=periods, gains0=g0, excitation=gate, seed=2)
-        ratio = run.gains[-1] / g0
-        out[name] = {
-            "gain_ratio_min": float(ratio.min()),
-            "gain_ratio_max": float(ratio.max()),
-            "within_10pct": bool(np.all(np.abs(ratio - 1.0) <= 0.1)),
-        }
-    return out
-
-
-# -- the suite ----------------------------------------------------------------------------
-def robust_suite(policy: Policy, out: Path, quick: bool = False) -> dict:
-    """Every condition, the long run and the quiet loop; writes robust.json, robust.md
-    and a figure into ``out``."""
-    out.mkdir(parents=True, exist_ok=True)
-    start = time.monotonic()
-    periods = 40 if quick else 80
-    conditions = CONDITIONS[:2] if quick else CONDITIONS
-    rows, runs = [], {}
-    for cond in conditions:
-        run = run_condition(policy, cond, periods=periods)
-        runs[cond.name] = run
-        rows.append(summarise(cond, run))
-    result = {
-        "agent": getattr(policy, "meta", {}).get("source", "shipped"),
-        "periods": periods,
-        "quick": quick,
-        "conditions": rows,
-        "conditions_config": [asdict(c) for c in conditions],
-    }
-    if not quick:
-        result["long_run"] = long_run(policy)
-        result["quiet_loop"] = quiet_loop(policy)
-    result["wall_s"] = round(time.monotonic() - start, 1)
-    (out / "robust.json").write_text(json.dumps(result, indent=2))
-    (out / "robust.md").write_text(render(result))
-    _figure(out / "fig10_robust_noise_load.png", runs)
-    return result
-
-
-def render(result: dict) -> str:
-    lines = [
-        "# pitune robustness (through the tuning engine)",
-        "",
-        f"27 plants, {result['periods']} RL periods from kp = ki = 0.05, samples every"
-        " second in engineering units through the engine (default guard and excitation"
-        " gate), final gains scored by the step test on the true plant."
-        + (" Quick run." if result["quick"] else "")
-        + f" Wall time {result['wall_s']} s.",
-        "",
-        "| condition | worst MSE | median MSE | beats SIMC (true model) | unstable | bar |",
-        "|---|---|---|---|---|---|",
-    ]
-    for r in result["conditions"]:
-        lines.append(
-            f"| {r['condition']} | {r['worst_mse']:.3g} | {r['median_mse']:.3g} |"
-            f" {100 * r['beats_simc']:.0f}% | {r['unstable']} |"
-            f" {'met' if r['meets_bar'] else 'NOT met'} |"
-        )
-    lines += [
-        "",
-        f"Bar per condition: worst <= {BAR_WORST}, median <= {BAR_MEDIAN}, none unstable.",
-    ]
-    if "long_run" in result:
-        lr = result["long_run"]
-        lines += [
-            "",
-            f"Long run ({lr['periods']} RL periods, forgetting 0.99, noise 0.05, irregular"
-            f" setpoints): gains wander up to {100 * lr['wander_worst']:.0f}% (median"
-            f" {100 * lr['wander_median']:.0f}%) from their median over the second half"
-            f" (bar 15%); final worst MSE {lr['worst_mse']:.3g}, unstable {lr['unstable']}.",
-        ]
-    if "quiet_loop" in result:
-        q = result["quiet_loop"]
-        lines += ["", "Quiet loop (no setpoint move for 100 RL periods, noise 0.05, load walk),"
-                  " final / initial gains (bar: within 10%):"]  # fmt: skip
-        for name, v in q.items():
-            lines.append(
-                f"- {name}: {v['gain_ratio_min']:.2f} to {v['gain_ratio_max']:.2f}"
-                f" ({'met' if v['within_10pct'] else 'NOT met'})"
-            )
-    return "\n".join(lines) + "\n"
-
-
-def _figure(path: Path, runs: dict[str, Run]) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    shown = [name for name in ("noise 0.05", "load steps 0.5 every 7") if name in runs]
-    if not shown:
-        return
-    i = 13  # K = 0.5, tau = 0.5, theta/tau = 0.5
-    fig, axes = plt.subplots(2, len(shown), figsize=(6 * len(shown), 6), squeeze=False)
-    for col, name in enumerate(shown):
-        run = runs[name]
-        minutes = run.t / 60
-        axes[0, col].plot(minutes, run.pv[i], lw=0.5, label="PV")
-        axes[0, col].plot(minutes, run.sp[i], "k--", lw=0.8, label="setpoint")
-        axes[0, col].set(title=f"{name}: K=0.5, tau=0.5, theta/tau=0.5", ylabel="PV")
-        steps = np.arange(run.gains.shape[0]) * RL_STEP_AGENT_UNITS
-        axes[1, col].plot(steps, run.gains[:, i, 0], label="kp (agent units)")
-        axes[1, col].plot(steps, run.gains[:, i, 1], label="ki (agent units)")
-        axes[1, col].set(xlabel="time units", ylabel="gain")
-        for ax in axes[:, col]:
-            ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)

@@ -1,0 +1,120 @@
+"""The robustness suite, ``pitune evaluate --robust``: every condition of
+:mod:`service.learn.robust`, its long run, and the loops without setpoint moves of
+:mod:`service.learn.regulatory`, written as robust.json, robust.md and a figure."""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+
+from service.learn.closed_loop import Policy
+from service.learn.regulatory import regulatory
+from service.learn.regulatory import render as render_regulatory
+from service.learn.robust import (
+    BAR_MEDIAN,
+    BAR_WORST,
+    CONDITIONS,
+    Run,
+    long_run,
+    run_condition,
+    summarise,
+)
+from service.units import RL_STEP_AGENT_UNITS
+
+
+def robust_suite(policy: Policy, out: Path, quick: bool = False) -> dict:
+    """Every condition, the long run and the loops without setpoint moves; writes
+    robust.json, robust.md and a figure into ``out``."""
+    out.mkdir(parents=True, exist_ok=True)
+    start = time.monotonic()
+    periods = 40 if quick else 80
+    conditions = CONDITIONS[:2] if quick else CONDITIONS
+    rows, runs = [], {}
+    for cond in conditions:
+        run = run_condition(policy, cond, periods=periods)
+        runs[cond.name] = run
+        rows.append(summarise(cond, run))
+    result = {
+        "agent": getattr(policy, "meta", {}).get("source", "shipped"),
+        "periods": periods,
+        "quick": quick,
+        "conditions": rows,
+        "conditions_config": [asdict(c) for c in conditions],
+    }
+    if not quick:
+        result["long_run"] = long_run(policy)
+        result |= regulatory(policy)
+    result["wall_s"] = round(time.monotonic() - start, 1)
+    (out / "robust.json").write_text(json.dumps(result, indent=2))
+    (out / "robust.md").write_text(render(result))
+    _figure(out / "fig10_robust_noise_load.png", runs)
+    return result
+
+
+def render(result: dict) -> str:
+    lines = [
+        "# pitune robustness (through the tuning engine)",
+        "",
+        f"27 plants, {result['periods']} RL periods from kp = ki = 0.05, samples every"
+        " second in engineering units through the engine (default guard and excitation"
+        " gate), final gains scored by the step test on the true plant."
+        + (" Quick run." if result["quick"] else "")
+        + f" Wall time {result['wall_s']} s.",
+        "",
+        "| condition | worst MSE | median MSE | beats SIMC (true model) | unstable | bar |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in result["conditions"]:
+        lines.append(
+            f"| {r['condition']} | {r['worst_mse']:.3g} | {r['median_mse']:.3g} |"
+            f" {100 * r['beats_simc']:.0f}% | {r['unstable']} |"
+            f" {'met' if r['meets_bar'] else 'NOT met'} |"
+        )
+    lines += [
+        "",
+        f"Bar per condition: worst <= {BAR_WORST}, median <= {BAR_MEDIAN}, none unstable.",
+    ]
+    if "long_run" in result:
+        lr = result["long_run"]
+        lines += [
+            "",
+            f"Long run ({lr['periods']} RL periods, forgetting 0.99, noise 0.05, irregular"
+            f" setpoints): gains wander up to {100 * lr['wander_worst']:.0f}% (median"
+            f" {100 * lr['wander_median']:.0f}%) from their median over the second half"
+            f" (bar 15%); final worst MSE {lr['worst_mse']:.3g}, unstable {lr['unstable']}.",
+        ]
+    if "quiet_loop" in result:
+        lines += render_regulatory(result)
+    return "\n".join(lines) + "\n"
+
+
+def _figure(path: Path, runs: dict[str, Run]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    shown = [name for name in ("noise 0.05", "load steps 0.5 every 7") if name in runs]
+    if not shown:
+        return
+    i = 13  # K = 0.5, tau = 0.5, theta/tau = 0.5
+    fig, axes = plt.subplots(2, len(shown), figsize=(6 * len(shown), 6), squeeze=False)
+    for col, name in enumerate(shown):
+        run = runs[name]
+        minutes = run.t / 60
+        axes[0, col].plot(minutes, run.pv[i], lw=0.5, label="PV")
+        axes[0, col].plot(minutes, run.sp[i], "k--", lw=0.8, label="setpoint")
+        axes[0, col].set(title=f"{name}: K=0.5, tau=0.5, theta/tau=0.5", ylabel="PV")
+        steps = np.arange(run.gains.shape[0]) * RL_STEP_AGENT_UNITS
+        axes[1, col].plot(steps, run.gains[:, i, 0], label="kp (agent units)")
+        axes[1, col].plot(steps, run.gains[:, i, 1], label="ki (agent units)")
+        axes[1, col].set(xlabel="time units", ylabel="gain")
+        for ax in axes[:, col]:
+            ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
