@@ -62,24 +62,30 @@ SHARDS_SQL = (
 """The shards with loops, one index probe per shard on ``loops_shard`` (a loose index
 scan): ``SELECT DISTINCT shard`` reads every loop's row, every tick, on every member
 (parallel workers at 300,000 loops)."""
-NEXT_EXPIRY_SQL = (
-    "SELECT extract(epoch FROM min(last) - clock_timestamp())::float8 FROM ("
-    "SELECT owner, max(expires) AS last FROM ("
+LAST_EXPIRY_SQL = (
+    "SELECT owner, extract(epoch FROM max(expires) - clock_timestamp())::float8 FROM ("
     "SELECT instance_id AS owner, expires FROM members WHERE instance_id <> %s "
     "AND expires > clock_timestamp() UNION ALL "
     "SELECT owner, expires FROM leases WHERE owner <> %s AND expires > clock_timestamp()"
-    ") AS e GROUP BY owner) AS m"
+    ") AS e GROUP BY owner"
 )
-"""Seconds until the first other member has nothing unexpired left (its row and every
+"""Each other member's seconds until it has nothing unexpired left (its row and every
 lease it holds): a dead member's leases were renewed one by one, each after the
 member's commits in flight on it (``FOR SHARE``), so they expire up to a busy worker's
 commit apart; a tick timed to the first of them took one shard and left the rest to a
 tick after that shard's loading (at 30,000 loops: 8 s later)."""
 TICKS_PER_LEASE = 5
 ADOPTIONS_KEPT = 16
-SUSPECT_AFTER_TICKS = 2
-"""A member whose row has less than ``lease_s`` minus this many ticks left missed at
-least one renewal: probably dead (see :meth:`Cluster._parse_ahead`)."""
+SUSPECT_AFTER_TICKS = 1.5
+"""A member whose row has less than ``lease_s`` minus this many ticks left missed a
+renewal; if its Zenoh liveliness token is gone too, it is *gone* (probably dead: see
+:meth:`Cluster._gone`), and the shards this member would win without it are parsed
+ahead (:meth:`Cluster._parse_ahead`)."""
+DEAD_AFTER_TICKS = 3
+"""A gone member whose leases have not been renewed for this many ticks (two renewals
+missed, by the database's clock) is dead: its leases are taken then, ``lease_s`` minus
+this many ticks before they run out (:meth:`Cluster._take`; docs/deploy.md, Failover,
+for why fencing still holds)."""
 EXPIRY_MARGIN_S = 0.05
 """A tick timed to another member's expiry comes this long after it (a member's leases
 expire a few milliseconds after its row: renewed in the same transaction, later)."""
@@ -183,9 +189,9 @@ class Cluster:
             started = time.monotonic()
             until = started + self.tick_s
             try:
-                expiry = self.tick()
-                if expiry is not None:  # a member stopped renewing: be there when it ends
-                    until = min(until, time.monotonic() + expiry + EXPIRY_MARGIN_S)
+                due = self.tick()
+                if due is not None:  # a member stopped renewing: be there when it ends
+                    until = min(until, time.monotonic() + due + EXPIRY_MARGIN_S)
             except Exception:  # the database unreachable: retried next tick
                 log.exception("cluster tick failed; retrying")
                 self._reconnect()
@@ -227,37 +233,54 @@ class Cluster:
         if lost:
             log.warning("leases lost (taken by another member): %s", ", ".join(sorted(lost)))
             self.tuner.drop_shards(lost, commit=False)
-        live, stored, expiry = self._survey()
+        live, stored, lasts = self._survey()
         # this member is alive whatever its row says: a renewal that came late (a starved
         # process) let the row run out, and releasing every shard it holds only to take
         # them back a tick later cost a 75,000-loop member 40 s of loading; its leases
         # still fence it if they ran out too
         live.setdefault(self.member, 0.0)
-        self.members = sorted(live)
+        gone = self._gone(live)
+        dead = {m for m in gone if live[m] < self.lease_s - DEAD_AFTER_TICKS * self.tick_s}
+        self.members = sorted(set(live) - dead)
         wins = {s for s, m in sharding.assign(stored, self.members).items() if m == self.member}
         with self._lock:
             held = set(self.held)
         release = held - wins
         if release:
             self._release(release)
-        self._acquire(wins - set(self.held))
+        self._acquire(wins - set(self.held), dead=dead)
         with self._lock:
             held = set(self.held)
-        self._parse_ahead(live, stored, held)  # after the acquisitions, which use them
-        return expiry
+        self._parse_ahead(live, stored, held, gone)  # after the acquisitions, which use them
+        return self._next_due(lasts, gone)
 
-    def _parse_ahead(self, live: dict[str, float], stored: list[str], held: set[str]) -> None:
-        """Members that missed renewals (:data:`SUSPECT_AFTER_TICKS`) and whose Zenoh
-        liveliness token is gone are probably dead: parse the configs and snapshots of the
-        shards this member would win without them while their leases run out, on a thread
-        of its own (:meth:`PgStore.parse_ahead <service.daemon.store_pg.PgStore.parse_ahead>`;
-        the takeover stops it and parses what is left). An overloaded member renews late
-        but keeps its token: parsing its loops for nothing would load this member too.
-        Nothing is taken early: the leases are taken when they have expired, as always."""
+    def _gone(self, live: dict[str, float]) -> set[str]:
+        """The other members that missed a renewal (:data:`SUSPECT_AFTER_TICKS`) and whose
+        Zenoh liveliness token is gone: a process that died lost its token when its
+        connections closed; one that is only slow renews late but keeps its token, and
+        one cut off from the bus keeps renewing its row."""
         fresh = self.lease_s - SUSPECT_AFTER_TICKS * self.tick_s
-        suspects = {m for m, left in live.items() if left < fresh and m != self.member}
-        if suspects:
-            suspects -= self.tuner.bus.live_tuners()
+        late = {m for m, left in live.items() if left < fresh and m != self.member}
+        return late - self.tuner.bus.live_tuners() if late else set()
+
+    def _next_due(self, lasts: dict[str, float], gone: set[str]) -> float | None:
+        """Seconds until the next tick that may take leases: another member's last expiry,
+        or for a gone member the moment it counts as dead (:data:`DEAD_AFTER_TICKS`) if
+        that is still to come (None: no other member live)."""
+        early = self.lease_s - DEAD_AFTER_TICKS * self.tick_s
+        dues = [last for last in lasts.values()]
+        dues += [lasts[m] - early for m in gone if m in lasts and lasts[m] - early > 0]
+        return min(dues, default=None)
+
+    def _parse_ahead(
+        self, live: dict[str, float], stored: list[str], held: set[str], suspects: set[str]
+    ) -> None:
+        """``suspects``, the gone members (:meth:`_gone`), are probably dead: parse the
+        configs and snapshots of the shards this member would win without them until
+        their leases are taken, on a thread of its own (:meth:`PgStore.parse_ahead
+        <service.daemon.store_pg.PgStore.parse_ahead>`; the takeover stops it and parses
+        what is left). An overloaded member renews late but keeps its token: parsing its
+        loops for nothing would load this member too."""
         ahead = set()
         if suspects:
             rest = [m for m in live if m not in suspects]
@@ -334,11 +357,12 @@ class Cluster:
             self.valid_until = started + self.lease_s - SAFETY_S
         return lost
 
-    def _survey(self) -> tuple[dict[str, float], list[str], float | None]:
-        """(live members with the seconds left on their rows, shards with loops, seconds
-        until the next expiry of another member's row or lease). A live member renews
-        every tick, so its next expiry is about ``lease_s`` away; a dead one's comes
-        closer, and the tick after it ends is timed to it rather than up to a tick later."""
+    def _survey(self) -> tuple[dict[str, float], list[str], dict[str, float]]:
+        """(live members with the seconds left on their rows, shards with loops, each
+        other member's seconds until its row and leases have all expired). A live member
+        renews every tick, so its expiry is about ``lease_s`` away; a dead one's comes
+        closer, and the tick that takes its leases is timed to it (:meth:`_next_due`)
+        rather than up to a tick later."""
         live = dict(
             self._conn.execute(
                 "SELECT instance_id, extract(epoch FROM expires - clock_timestamp())::float8 "
@@ -346,8 +370,8 @@ class Cluster:
             ).fetchall()
         )
         stored = [r[0] for r in self._conn.execute(SHARDS_SQL)]
-        (expiry,) = self._conn.execute(NEXT_EXPIRY_SQL, (self.member, self.member)).fetchone()
-        return live, stored, expiry
+        lasts = dict(self._conn.execute(LAST_EXPIRY_SQL, (self.member, self.member)).fetchall())
+        return live, stored, lasts
 
     def _release(self, shards: set[str]) -> None:
         """Hand shards to the member that now wins them: commit and snapshot their loops
@@ -371,13 +395,15 @@ class Cluster:
         with connect(self.url) as conn:
             self._acquire(shards - set(self.held), conn)
 
-    def _acquire(self, shards: set[str], conn: psycopg.Connection | None = None) -> None:
+    def _acquire(
+        self, shards: set[str], conn: psycopg.Connection | None = None, dead: set[str] = frozenset()
+    ) -> None:
         if not shards:
             return
         started = time.time()
         token = self.tuner.store.next_epoch(started)
         with self._leasing:
-            taken = self._take(shards, token, conn or self._conn)
+            taken = self._take(shards, token, conn or self._conn, dead)
         if not taken:
             return
         if conn is None:  # (the cluster's thread: the parsing ahead's owner)
@@ -404,9 +430,14 @@ class Cluster:
                 "UPDATE members SET loops = %s WHERE instance_id = %s", (loops, self.member)
             )
 
-    def _take(self, shards: set[str], token: int, conn: psycopg.Connection) -> list[str]:
-        """The leases of those ``shards`` that are free or expired, now this member's
-        (held, so renewed, from here on; their loops are loaded next)."""
+    def _take(
+        self, shards: set[str], token: int, conn: psycopg.Connection, dead: set[str] = frozenset()
+    ) -> list[str]:
+        """The leases of those ``shards`` that are free or expired, or held by a ``dead``
+        member (:meth:`_gone`) and not renewed for :data:`DEAD_AFTER_TICKS` by the
+        database's clock, now this member's (held, so renewed, from here on; their loops
+        are loaded next). A member that renews keeps its leases whatever this member
+        believes: the database decides, in the statement that takes them."""
         taken = [
             r[0]
             for r in conn.execute(
@@ -415,9 +446,18 @@ class Cluster:
                 "FROM unnest(%s::text[]) AS s "
                 "ON CONFLICT (shard) DO UPDATE SET owner = excluded.owner, "
                 "token = excluded.token, expires = excluded.expires "
-                "WHERE leases.expires < clock_timestamp() RETURNING shard",
-                (self.member, token, self.lease_s, sorted(shards)),
-            )
+                "WHERE leases.expires < clock_timestamp() OR (leases.owner = ANY(%s::text[]) "
+                "AND leases.expires < clock_timestamp() + make_interval(secs => %s)) "
+                "RETURNING shard",
+                (
+                    self.member,
+                    token,
+                    self.lease_s,
+                    sorted(shards),
+                    sorted(dead),
+                    self.lease_s - DEAD_AFTER_TICKS * self.tick_s,
+                ),
+            )  # fmt: skip
         ]
         with self._lock:
             for shard in taken:
