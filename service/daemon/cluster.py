@@ -11,9 +11,10 @@ member's thread, every ``lease_s / 5`` seconds (:data:`TICKS_PER_LEASE`):
 3. releases the shards it holds but no longer wins (a member joined): it commits and
    snapshots their loops, drops them, and ends their leases at once, so the winner
    takes them on its next tick (a gap of one tick);
-4. acquires the shards it wins whose lease is free or expired: a new fencing token
-   (the store's epoch counter, so larger than every earlier token and epoch), then the
-   shards' loops are loaded from the store (gains, seq, last snapshot) into the engine;
+4. acquires the shards it wins whose lease is free, expired or a dead member's (see
+   below): a new fencing token (the store's epoch counter, so larger than every earlier
+   token and epoch), then the shards' loops are loaded from the store (gains, seq, last
+   snapshot) into the engine;
 5. waits for ``NOTIFY pitune_loops`` (loops registered, patched or deleted through any
    member) until the next tick, and reloads those loops it owns.
 
@@ -28,10 +29,17 @@ gone: it drops those loops and, still a member, gets shards again by the hashing
 Gains messages carry the shard's token as their ``epoch``, so a gateway orders the new
 owner's messages after any of the old owner's.
 
-A dead member's leases expire after ``lease_s``; the others time their next tick to
-that expiry (:meth:`Cluster._survey`) and take them then: loops move within
-``lease_s`` plus the load (5 s by default, 4-5 s after the kill as the last renewal
-was up to a tick before it).
+A dead member's leases are taken before they expire when the database and the bus
+agree that it is dead: its Zenoh liveliness token is gone (a crashed process's
+connections close at once; a paused or starved one keeps its token) and its leases
+have not been renewed for :data:`DEAD_AFTER_TICKS` ticks, by the database's clock, in
+the statement that takes them (:meth:`Cluster._take`), so a member that still renews
+is never overrun, whatever the others believe. The others time their tick to that
+moment (:meth:`Cluster._next_due`): loops move about 2-3 s after a crash plus the load
+(the last renewal was up to a tick before it). Otherwise (a token still there: a host
+that lost power or its network keeps it at the peers until Zenoh's transport lease, 10
+s by default, runs out) they take the leases when they expire, ``lease_s`` after the
+last renewal.
 """
 
 from __future__ import annotations
