@@ -42,7 +42,6 @@ from service.daemon.shards import shard_of
 from service.engine.audit import AUDIT_COLUMNS, AuditRow
 from service.engine.config import LoopConfig
 from service.engine.saved import Saved
-from service.engine.trusted import stored_config
 
 log = logging.getLogger("pitune.store")
 UPDATE_GAINS = "UPDATE loops SET kp = ?, ki = ?, seq = ? WHERE id = ?"
@@ -262,10 +261,8 @@ class Store:
         return self._db.execute(sql, params).fetchall()
 
     def _config(self, loop_id: str, raw: str) -> LoopConfig:
-        """A stored config, parsed (ValidationError if it no longer validates): checked
-        by the models' rules without pydantic's pipeline (:mod:`service.engine.trusted`,
-        a fifth of the cost)."""
-        return stored_config(raw)
+        """A stored config, parsed (ValidationError if it no longer validates)."""
+        return LoopConfig.model_validate_json(raw)
 
     def saved(self, stored: StoredLoop) -> Saved | None:
         """A loaded loop's snapshot, parsed (None: it has none)."""

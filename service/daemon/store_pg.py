@@ -40,7 +40,6 @@ from service.daemon.store import JournalEntry, Store, StoredLoop
 from service.engine.audit import AUDIT_COLUMNS, AUDIT_TYPES, AuditRow
 from service.engine.config import LoopConfig
 from service.engine.saved import Saved
-from service.engine.trusted import stored_config
 
 CHANNEL = "pitune_loops"
 """The NOTIFY channel of loop changes; the payload is comma-separated loop ids."""
@@ -194,7 +193,7 @@ class PgStore(Store):
                 if stop is not None and stop.is_set():
                     break
                 with contextlib.suppress(ValidationError):  # load() logs it
-                    configs[loop_id] = (raw, stored_config(raw))
+                    configs[loop_id] = (raw, LoopConfig.model_validate_json(raw))
                 if hidden is not None and runtime is not None:
                     with contextlib.suppress(ValueError):  # the takeover raises it
                         snapshots[loop_id] = (hidden, runtime, Saved.parse(hidden, runtime))
@@ -209,7 +208,7 @@ class PgStore(Store):
         ahead = self._ahead.pop(loop_id, None)
         if ahead is not None and ahead[0] == raw:
             return ahead[1]
-        return super()._config(loop_id, raw)
+        return LoopConfig.model_validate_json(raw)
 
     def saved(self, stored: StoredLoop) -> Saved | None:
         ahead = self._saved_ahead.pop(stored.config.id, None)
