@@ -467,6 +467,14 @@ class Cluster:
                 ),
             )  # fmt: skip
         ]
+        if dead and taken:
+            # its row too, on the same condition (GET /cluster: not live, its loops 0);
+            # a member that comes back renews it
+            conn.execute(
+                "UPDATE members SET expires = clock_timestamp() WHERE instance_id = ANY(%s) "
+                "AND expires < clock_timestamp() + make_interval(secs => %s)",
+                (sorted(dead), self.lease_s - DEAD_AFTER_TICKS * self.tick_s),
+            )
         with self._lock:
             for shard in taken:
                 self.held[shard] = token
