@@ -276,7 +276,7 @@ class Cluster:
         or for a gone member the moment it counts as dead (:data:`DEAD_AFTER_TICKS`) if
         that is still to come (None: no other member live)."""
         early = self.lease_s - DEAD_AFTER_TICKS * self.tick_s
-        dues = [last for last in lasts.values()]
+        dues = list(lasts.values())
         dues += [lasts[m] - early for m in gone if m in lasts and lasts[m] - early > 0]
         return min(dues, default=None)
 
@@ -465,7 +465,7 @@ class Cluster:
                     sorted(dead),
                     self.lease_s - DEAD_AFTER_TICKS * self.tick_s,
                 ),
-            )  # fmt: skip
+            )
         ]
         if dead and taken:
             # its row too, on the same condition (GET /cluster: not live, its loops 0);
