@@ -1,8 +1,9 @@
 """A member that crashed (its connections closed, so its Zenoh liveliness token gone)
 loses its leases before they run out, and only then (real PostgreSQL, real Zenoh
 sessions, in-process members): a member whose token is gone but which still renews
-its leases (cut off from the bus only) keeps them, whatever the others believe, and one
-that stops renewing but keeps its token (slow, paused) keeps them until they expire."""
+its leases (cut off from the bus only) keeps them, whatever the others believe (they
+parse its loops ahead, then let them go), and one that stops renewing but keeps its
+token (slow, paused) keeps them until they expire."""
 
 from __future__ import annotations
 
@@ -99,11 +100,16 @@ def test_a_member_cut_off_from_the_bus_keeps_its_leases(tmp_path, pg_url):
     a, b = _pair(tmp_path, pg_url)
     try:
         theirs = set(a.cluster.held)
+        mine = set(b.loop_ids())
         a.bus.close()  # its token gone, its renewals go on
-        wait_until(lambda: "a" not in b.bus.live_tuners(), timeout=LEASE_S)
+        # b saw the token go: it parses a's shards ahead of a takeover, at once
+        wait_until(lambda: b.cluster._ahead == theirs, timeout=LEASE_S, what="parsing ahead")
         # whatever b believes, the database refuses: a renewed within the last ticks
         assert _take(b, theirs, {"a"}) == []
-        assert set(a.cluster.held) == theirs
+        assert set(a.cluster.held) == theirs and set(b.loop_ids()) == mine
+        # a lease later a still renews: no longer suspect, the parsed loops let go
+        wait_until(lambda: not b.cluster._ahead, timeout=3 * LEASE_S, what="parsing let go")
+        assert set(a.cluster.held) == theirs and set(b.loop_ids()) == mine
     finally:
         b.stop()
         a.stop()

@@ -94,6 +94,9 @@ DEAD_AFTER_TICKS = 3
 missed, by the database's clock) is dead: its leases are taken then, ``lease_s`` minus
 this many ticks before they run out (:meth:`Cluster._take`; docs/deploy.md, Failover,
 for why fencing still holds)."""
+WAKE_POLL_S = 0.1
+"""The longest a tick waits, once a member's token has gone, before it comes (the
+wait for notifications is cut in slices this long to look)."""
 EXPIRY_MARGIN_S = 0.05
 """A tick timed to another member's expiry comes this long after it (a member's leases
 expire a few milliseconds after its row: renewed in the same transaction, later)."""
@@ -142,6 +145,10 @@ class Cluster:
         """Shards the renewal found taken, for the tick to drop their loops."""
         self.ready = threading.Event()
         """Set after the first tick (this member holds what it wins, as far as free)."""
+        self._left: dict[str, float] = {}
+        """Member -> monotonic time its liveliness token went (events of the bus)."""
+        self._wake = threading.Event()
+        """Set when a member's token goes: the tick comes at once, not up to a tick later."""
 
     # -- lifecycle --------------------------------------------------------------------
     def start(self) -> None:
@@ -151,6 +158,7 @@ class Cluster:
         self._conn.execute(f"LISTEN {CHANNEL}")
         self._beat_conn = connect(self.url)
         self._join()
+        self.tuner.bus.on_member = self.token_changed
         self._threads = [
             threading.Thread(target=target, name=name, daemon=True)
             for target, name in ((self._beat, "pitune-lease"), (self._run, "pitune-cluster"))
@@ -262,14 +270,32 @@ class Cluster:
         self._parse_ahead(live, stored, held, gone)  # after the acquisitions, which use them
         return self._next_due(lasts, gone)
 
+    def token_changed(self, member: str, there: bool) -> None:
+        """The bus saw ``member``'s liveliness token come (``there``) or go: a crashed
+        member's goes at once, and the tick comes now to parse its shards ahead."""
+        with self._lock:
+            if there:
+                self._left.pop(member, None)
+            else:
+                self._left[member] = time.monotonic()
+        if not there:
+            self._wake.set()
+
     def _gone(self, live: dict[str, float]) -> set[str]:
-        """The other members that missed a renewal (:data:`SUSPECT_AFTER_TICKS`) and whose
-        Zenoh liveliness token is gone: a process that died lost its token when its
-        connections closed; one that is only slow renews late but keeps its token, and
-        one cut off from the bus keeps renewing its row."""
+        """The other members whose Zenoh liveliness token is gone: seen going (a process
+        that died lost its token when its connections closed), or not found when asked
+        after a missed renewal (:data:`SUSPECT_AFTER_TICKS`; a token that went before
+        this member joined). One that is only slow renews late but keeps its token; one
+        cut off from the bus is gone, but keeps renewing its row (so never dead), and is
+        no longer gone ``lease_s`` after its token went (a dead one's leases are taken
+        by then): the loops parsed ahead for it are let go."""
+        recent = time.monotonic() - self.lease_s
+        with self._lock:
+            self._left = {m: t for m, t in self._left.items() if m in live and t > recent}
+            gone = set(self._left) - {self.member}
         fresh = self.lease_s - SUSPECT_AFTER_TICKS * self.tick_s
-        late = {m for m, left in live.items() if left < fresh and m != self.member}
-        return late - self.tuner.bus.live_tuners() if late else set()
+        late = {m for m, left in live.items() if left < fresh and m != self.member} - gone
+        return gone | (late - self.tuner.bus.live_tuners() if late else set())
 
     def _next_due(self, lasts: dict[str, float], gone: set[str]) -> float | None:
         """Seconds until the next tick that may take leases: another member's last expiry,
@@ -481,14 +507,17 @@ class Cluster:
         return taken
 
     def _wait_notifies(self, until: float) -> None:
-        """Until the next tick: reload the loops other members changed."""
+        """Until the next tick (or a member's token going, :meth:`token_changed`): reload
+        the loops other members changed."""
         while not self._stop.is_set():
             left = until - time.monotonic()
-            if left <= 0:
+            if left <= 0 or self._wake.is_set():
+                self._wake.clear()
                 return
             changed: set[str] = set()
             try:
-                for note in self._conn.notifies(timeout=left, stop_after=1):
+                wait = min(left, WAKE_POLL_S)
+                for note in self._conn.notifies(timeout=wait, stop_after=1):
                     changed.update(note.payload.split(","))
                 # take the rest queued meanwhile without waiting
                 for note in self._conn.notifies(timeout=0.0):
