@@ -197,8 +197,8 @@ class Bus:
         self.other_tuners: set[str] = set()
         self.on_member: Callable[[str, bool], None] | None = None
         """A cluster member's: called with (instance id, token there) as another member's
-        liveliness token comes or goes (:meth:`Cluster.token_changed
-        <service.daemon.cluster.Cluster.token_changed>`)."""
+        liveliness token comes or goes (:meth:`Suspects.token_changed
+        <service.daemon.suspects.Suspects.token_changed>`)."""
         """Liveliness tokens of other tuners on this key prefix that appeared while this
         tuner ran (those already there at start-up are the start-up check's)."""
 

@@ -34,8 +34,8 @@ agree that it is dead: its Zenoh liveliness token is gone (a crashed process's
 connections close at once; a paused or starved one keeps its token) and its leases
 have not been renewed for :data:`DEAD_AFTER_TICKS` ticks, by the database's clock, in
 the statement that takes them (:meth:`Cluster._take`), so a member that still renews
-is never overrun, whatever the others believe. The others time their tick to that
-moment (:meth:`Cluster._next_due`): loops move about 2-3 s after a crash plus the load
+is never overrun, whatever the others believe (:mod:`service.daemon.suspects`). The
+others time their tick to that moment: loops move about 2-3 s after a crash plus the load
 (the last renewal was up to a tick before it). Otherwise (a token still there: a host
 that lost power or its network keeps it at the peers until Zenoh's transport lease, 10
 s by default, runs out) they take the leases when they expire, ``lease_s`` after the
@@ -55,6 +55,7 @@ import psycopg
 
 from service.daemon import shards as sharding
 from service.daemon.store_pg import CHANNEL, Fenced, connect
+from service.daemon.suspects import DEAD_AFTER_TICKS, Suspects
 
 if TYPE_CHECKING:
     from service.daemon.tuner import Tuner
@@ -84,16 +85,6 @@ commit apart; a tick timed to the first of them took one shard and left the rest
 tick after that shard's loading (at 30,000 loops: 8 s later)."""
 TICKS_PER_LEASE = 5
 ADOPTIONS_KEPT = 16
-SUSPECT_AFTER_TICKS = 1.5
-"""A member whose row has less than ``lease_s`` minus this many ticks left missed a
-renewal; if its Zenoh liveliness token is gone too, it is *gone* (probably dead: see
-:meth:`Cluster._gone`), and the shards this member would win without it are parsed
-ahead (:meth:`Cluster._parse_ahead`)."""
-DEAD_AFTER_TICKS = 3
-"""A gone member whose leases have not been renewed for this many ticks (two renewals
-missed, by the database's clock) is dead: its leases are taken then, ``lease_s`` minus
-this many ticks before they run out (:meth:`Cluster._take`; docs/deploy.md, Failover,
-for why fencing still holds)."""
 WAKE_POLL_S = 0.1
 """The longest a tick waits, once a member's token has gone, before it comes (the
 wait for notifications is cut in slices this long to look)."""
@@ -105,7 +96,7 @@ SAFETY_S = 0.5
 differences between the hosts, the time a put takes)."""
 
 
-class Cluster:
+class Cluster(Suspects):
     """This tuner's membership of the cluster sharing its PostgreSQL store."""
 
     def __init__(self, tuner: Tuner, url: str) -> None:
@@ -269,92 +260,6 @@ class Cluster:
             held = set(self.held)
         self._parse_ahead(live, stored, held, gone)  # after the acquisitions, which use them
         return self._next_due(lasts, gone)
-
-    def token_changed(self, member: str, there: bool) -> None:
-        """The bus saw ``member``'s liveliness token come (``there``) or go: a crashed
-        member's goes at once, and the tick comes now to parse its shards ahead."""
-        with self._lock:
-            if there:
-                self._left.pop(member, None)
-            else:
-                self._left[member] = time.monotonic()
-        if not there:
-            self._wake.set()
-
-    def _gone(self, live: dict[str, float]) -> set[str]:
-        """The other members whose Zenoh liveliness token is gone: seen going (a process
-        that died lost its token when its connections closed), or not found when asked
-        after a missed renewal (:data:`SUSPECT_AFTER_TICKS`; a token that went before
-        this member joined). One that is only slow renews late but keeps its token; one
-        cut off from the bus is gone, but keeps renewing its row (so never dead), and is
-        no longer gone ``lease_s`` after its token went (a dead one's leases are taken
-        by then): the loops parsed ahead for it are let go."""
-        recent = time.monotonic() - self.lease_s
-        with self._lock:
-            self._left = {m: t for m, t in self._left.items() if m in live and t > recent}
-            gone = set(self._left) - {self.member}
-        fresh = self.lease_s - SUSPECT_AFTER_TICKS * self.tick_s
-        late = {m for m, left in live.items() if left < fresh and m != self.member} - gone
-        return gone | (late - self.tuner.bus.live_tuners() if late else set())
-
-    def _next_due(self, lasts: dict[str, float], gone: set[str]) -> float | None:
-        """Seconds until the next tick that may take leases: another member's last expiry,
-        or for a gone member the moment it counts as dead (:data:`DEAD_AFTER_TICKS`) if
-        that is still to come (None: no other member live)."""
-        early = self.lease_s - DEAD_AFTER_TICKS * self.tick_s
-        dues = list(lasts.values())
-        dues += [lasts[m] - early for m in gone if m in lasts and lasts[m] - early > 0]
-        return min(dues, default=None)
-
-    def _parse_ahead(
-        self, live: dict[str, float], stored: list[str], held: set[str], suspects: set[str]
-    ) -> None:
-        """``suspects``, the gone members (:meth:`_gone`), are probably dead: parse the
-        configs and snapshots of the shards this member would win without them until
-        their leases are taken, on a thread of its own (:meth:`PgStore.parse_ahead
-        <service.daemon.store_pg.PgStore.parse_ahead>`; the takeover stops it and parses
-        what is left). An overloaded member renews late but keeps its token: parsing its
-        loops for nothing would load this member too."""
-        ahead = set()
-        if suspects:
-            rest = [m for m in live if m not in suspects]
-            ahead = {s for s, m in sharding.assign(stored, rest).items() if m == self.member}
-            ahead -= held
-        if ahead != self._ahead and not (ahead and ahead <= self._ahead):
-            # (fewer shards than parsed: those are parsed already, a load takes them)
-            self._ahead = ahead
-            self._stop_parsing()
-            if not ahead:
-                self.tuner.store.parse_ahead([])
-                return
-            log.info("%s stopped renewing: parsing the loops of %d shards ahead of a takeover",
-                     ", ".join(sorted(suspects)), len(ahead))  # fmt: skip
-            stop = threading.Event()
-            thread = threading.Thread(
-                target=self._parse,
-                args=(sorted(ahead), stop),
-                name="pitune-parse-ahead",
-                daemon=True,
-            )
-            self._parsing = (thread, stop)
-            thread.start()
-
-    def _stop_parsing(self) -> None:
-        """Stop the parsing ahead (what it parsed stays for the load): a takeover
-        begins, or the suspects changed. It ran on a thread of its own, as parsing
-        150,000 loops takes the seconds the tick must be there when the leases end."""
-        parsing, self._parsing = self._parsing, None
-        if parsing is not None:
-            parsing[1].set()
-            parsing[0].join()
-
-    def _parse(self, shards: list[str], stop: threading.Event) -> None:
-        try:
-            n = self.tuner.store.parse_ahead(shards, stop)
-        except psycopg.Error:  # the takeover parses them itself
-            log.exception("parsing ahead of a takeover failed")
-            return
-        log.info("%d loops parsed ahead of a takeover%s", n, " (stopped)" * stop.is_set())
 
     def _renew(self, started: float) -> set[str]:
         with self._leasing:
