@@ -195,6 +195,10 @@ class Bus:
         """Gateway -> subscriber of its samples key (a cluster's member: its own gateways)."""
         self._follow_lock = threading.Lock()
         self.other_tuners: set[str] = set()
+        self.on_member: Callable[[str, bool], None] | None = None
+        """A cluster member's: called with (instance id, token there) as another member's
+        liveliness token comes or goes (:meth:`Suspects.token_changed
+        <service.daemon.suspects.Suspects.token_changed>`)."""
         """Liveliness tokens of other tuners on this key prefix that appeared while this
         tuner ran (those already there at start-up are the start-up check's)."""
 
@@ -215,10 +219,10 @@ class Bus:
             self._token = s.liveliness().declare_token(k.tuner(self.settings.instance_id))
             # no history: tokens already there are the start-up check's (a get after this);
             # members of a cluster (a PostgreSQL store) share the prefix by design
-            if not self.settings.postgres:
-                self._entities.append(
-                    s.liveliness().declare_subscriber(k.all_tuners, self._on_tuner, history=False)
-                )
+            on_tuner = self._on_member if self.settings.postgres else self._on_tuner
+            self._entities.append(
+                s.liveliness().declare_subscriber(k.all_tuners, on_tuner, history=False)
+            )
         except BaseException:
             self.close()
             raise
@@ -254,6 +258,12 @@ class Bus:
         except (zenoh.ZError, ValueError):
             return False
         return endpoints not in ("[]", "null", "{}", "")
+
+    def _on_member(self, sample: zenoh.Sample) -> None:
+        """Another member's token came or went (a crashed member's goes at once)."""
+        member = str(sample.key_expr).rsplit("/", 1)[-1]
+        if member != self.settings.instance_id and self.on_member is not None:
+            self.on_member(member, sample.kind == zenoh.SampleKind.PUT)
 
     def _on_tuner(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)

@@ -11,9 +11,10 @@ member's thread, every ``lease_s / 5`` seconds (:data:`TICKS_PER_LEASE`):
 3. releases the shards it holds but no longer wins (a member joined): it commits and
    snapshots their loops, drops them, and ends their leases at once, so the winner
    takes them on its next tick (a gap of one tick);
-4. acquires the shards it wins whose lease is free or expired: a new fencing token
-   (the store's epoch counter, so larger than every earlier token and epoch), then the
-   shards' loops are loaded from the store (gains, seq, last snapshot) into the engine;
+4. acquires the shards it wins whose lease is free, expired or a dead member's (see
+   below): a new fencing token (the store's epoch counter, so larger than every earlier
+   token and epoch), then the shards' loops are loaded from the store (gains, seq, last
+   snapshot) into the engine;
 5. waits for ``NOTIFY pitune_loops`` (loops registered, patched or deleted through any
    member) until the next tick, and reloads those loops it owns.
 
@@ -28,10 +29,17 @@ gone: it drops those loops and, still a member, gets shards again by the hashing
 Gains messages carry the shard's token as their ``epoch``, so a gateway orders the new
 owner's messages after any of the old owner's.
 
-A dead member's leases expire after ``lease_s``; the others time their next tick to
-that expiry (:meth:`Cluster._survey`) and take them then: loops move within
-``lease_s`` plus the load (5 s by default, 4-5 s after the kill as the last renewal
-was up to a tick before it).
+A dead member's leases are taken before they expire when the database and the bus
+agree that it is dead: its Zenoh liveliness token is gone (a crashed process's
+connections close at once; a paused or starved one keeps its token) and its leases
+have not been renewed for :data:`DEAD_AFTER_TICKS` ticks, by the database's clock, in
+the statement that takes them (:meth:`Cluster._take`), so a member that still renews
+is never overrun, whatever the others believe (:mod:`service.daemon.suspects`). The
+others time their tick to that moment: loops move about 2-3 s after a crash plus the load
+(the last renewal was up to a tick before it). Otherwise (a token still there: a host
+that lost power or its network keeps it at the peers until Zenoh's transport lease, 10
+s by default, runs out) they take the leases when they expire, ``lease_s`` after the
+last renewal.
 """
 
 from __future__ import annotations
@@ -47,6 +55,7 @@ import psycopg
 
 from service.daemon import shards as sharding
 from service.daemon.store_pg import CHANNEL, Fenced, connect
+from service.daemon.suspects import DEAD_AFTER_TICKS, Suspects
 
 if TYPE_CHECKING:
     from service.daemon.tuner import Tuner
@@ -62,24 +71,23 @@ SHARDS_SQL = (
 """The shards with loops, one index probe per shard on ``loops_shard`` (a loose index
 scan): ``SELECT DISTINCT shard`` reads every loop's row, every tick, on every member
 (parallel workers at 300,000 loops)."""
-NEXT_EXPIRY_SQL = (
-    "SELECT extract(epoch FROM min(last) - clock_timestamp())::float8 FROM ("
-    "SELECT owner, max(expires) AS last FROM ("
+LAST_EXPIRY_SQL = (
+    "SELECT owner, extract(epoch FROM max(expires) - clock_timestamp())::float8 FROM ("
     "SELECT instance_id AS owner, expires FROM members WHERE instance_id <> %s "
     "AND expires > clock_timestamp() UNION ALL "
     "SELECT owner, expires FROM leases WHERE owner <> %s AND expires > clock_timestamp()"
-    ") AS e GROUP BY owner) AS m"
+    ") AS e GROUP BY owner"
 )
-"""Seconds until the first other member has nothing unexpired left (its row and every
+"""Each other member's seconds until it has nothing unexpired left (its row and every
 lease it holds): a dead member's leases were renewed one by one, each after the
 member's commits in flight on it (``FOR SHARE``), so they expire up to a busy worker's
 commit apart; a tick timed to the first of them took one shard and left the rest to a
 tick after that shard's loading (at 30,000 loops: 8 s later)."""
 TICKS_PER_LEASE = 5
 ADOPTIONS_KEPT = 16
-SUSPECT_AFTER_TICKS = 2
-"""A member whose row has less than ``lease_s`` minus this many ticks left missed at
-least one renewal: probably dead (see :meth:`Cluster._parse_ahead`)."""
+WAKE_POLL_S = 0.1
+"""The longest a tick waits, once a member's token has gone, before it comes (the
+wait for notifications is cut in slices this long to look)."""
 EXPIRY_MARGIN_S = 0.05
 """A tick timed to another member's expiry comes this long after it (a member's leases
 expire a few milliseconds after its row: renewed in the same transaction, later)."""
@@ -88,7 +96,7 @@ SAFETY_S = 0.5
 differences between the hosts, the time a put takes)."""
 
 
-class Cluster:
+class Cluster(Suspects):
     """This tuner's membership of the cluster sharing its PostgreSQL store."""
 
     def __init__(self, tuner: Tuner, url: str) -> None:
@@ -128,6 +136,10 @@ class Cluster:
         """Shards the renewal found taken, for the tick to drop their loops."""
         self.ready = threading.Event()
         """Set after the first tick (this member holds what it wins, as far as free)."""
+        self._left: dict[str, float] = {}
+        """Member -> monotonic time its liveliness token went (events of the bus)."""
+        self._wake = threading.Event()
+        """Set when a member's token goes: the tick comes at once, not up to a tick later."""
 
     # -- lifecycle --------------------------------------------------------------------
     def start(self) -> None:
@@ -137,6 +149,7 @@ class Cluster:
         self._conn.execute(f"LISTEN {CHANNEL}")
         self._beat_conn = connect(self.url)
         self._join()
+        self.tuner.bus.on_member = self.token_changed
         self._threads = [
             threading.Thread(target=target, name=name, daemon=True)
             for target, name in ((self._beat, "pitune-lease"), (self._run, "pitune-cluster"))
@@ -183,9 +196,9 @@ class Cluster:
             started = time.monotonic()
             until = started + self.tick_s
             try:
-                expiry = self.tick()
-                if expiry is not None:  # a member stopped renewing: be there when it ends
-                    until = min(until, time.monotonic() + expiry + EXPIRY_MARGIN_S)
+                due = self.tick()
+                if due is not None:  # a member stopped renewing: be there when it ends
+                    until = min(until, time.monotonic() + due + EXPIRY_MARGIN_S)
             except Exception:  # the database unreachable: retried next tick
                 log.exception("cluster tick failed; retrying")
                 self._reconnect()
@@ -227,77 +240,26 @@ class Cluster:
         if lost:
             log.warning("leases lost (taken by another member): %s", ", ".join(sorted(lost)))
             self.tuner.drop_shards(lost, commit=False)
-        live, stored, expiry = self._survey()
+        live, stored, lasts = self._survey()
         # this member is alive whatever its row says: a renewal that came late (a starved
         # process) let the row run out, and releasing every shard it holds only to take
         # them back a tick later cost a 75,000-loop member 40 s of loading; its leases
         # still fence it if they ran out too
         live.setdefault(self.member, 0.0)
-        self.members = sorted(live)
+        gone = self._gone(live)
+        dead = {m for m in gone if live[m] < self.lease_s - DEAD_AFTER_TICKS * self.tick_s}
+        self.members = sorted(set(live) - dead)
         wins = {s for s, m in sharding.assign(stored, self.members).items() if m == self.member}
         with self._lock:
             held = set(self.held)
         release = held - wins
         if release:
             self._release(release)
-        self._acquire(wins - set(self.held))
+        self._acquire(wins - set(self.held), dead=dead)
         with self._lock:
             held = set(self.held)
-        self._parse_ahead(live, stored, held)  # after the acquisitions, which use them
-        return expiry
-
-    def _parse_ahead(self, live: dict[str, float], stored: list[str], held: set[str]) -> None:
-        """Members that missed renewals (:data:`SUSPECT_AFTER_TICKS`) and whose Zenoh
-        liveliness token is gone are probably dead: parse the configs and snapshots of the
-        shards this member would win without them while their leases run out, on a thread
-        of its own (:meth:`PgStore.parse_ahead <service.daemon.store_pg.PgStore.parse_ahead>`;
-        the takeover stops it and parses what is left). An overloaded member renews late
-        but keeps its token: parsing its loops for nothing would load this member too.
-        Nothing is taken early: the leases are taken when they have expired, as always."""
-        fresh = self.lease_s - SUSPECT_AFTER_TICKS * self.tick_s
-        suspects = {m for m, left in live.items() if left < fresh and m != self.member}
-        if suspects:
-            suspects -= self.tuner.bus.live_tuners()
-        ahead = set()
-        if suspects:
-            rest = [m for m in live if m not in suspects]
-            ahead = {s for s, m in sharding.assign(stored, rest).items() if m == self.member}
-            ahead -= held
-        if ahead != self._ahead and not (ahead and ahead <= self._ahead):
-            # (fewer shards than parsed: those are parsed already, a load takes them)
-            self._ahead = ahead
-            self._stop_parsing()
-            if not ahead:
-                self.tuner.store.parse_ahead([])
-                return
-            log.info("%s stopped renewing: parsing the loops of %d shards ahead of a takeover",
-                     ", ".join(sorted(suspects)), len(ahead))  # fmt: skip
-            stop = threading.Event()
-            thread = threading.Thread(
-                target=self._parse,
-                args=(sorted(ahead), stop),
-                name="pitune-parse-ahead",
-                daemon=True,
-            )
-            self._parsing = (thread, stop)
-            thread.start()
-
-    def _stop_parsing(self) -> None:
-        """Stop the parsing ahead (what it parsed stays for the load): a takeover
-        begins, or the suspects changed. It ran on a thread of its own, as parsing
-        150,000 loops takes the seconds the tick must be there when the leases end."""
-        parsing, self._parsing = self._parsing, None
-        if parsing is not None:
-            parsing[1].set()
-            parsing[0].join()
-
-    def _parse(self, shards: list[str], stop: threading.Event) -> None:
-        try:
-            n = self.tuner.store.parse_ahead(shards, stop)
-        except psycopg.Error:  # the takeover parses them itself
-            log.exception("parsing ahead of a takeover failed")
-            return
-        log.info("%d loops parsed ahead of a takeover%s", n, " (stopped)" * stop.is_set())
+        self._parse_ahead(live, stored, held, gone)  # after the acquisitions, which use them
+        return self._next_due(lasts, gone)
 
     def _renew(self, started: float) -> set[str]:
         with self._leasing:
@@ -334,11 +296,12 @@ class Cluster:
             self.valid_until = started + self.lease_s - SAFETY_S
         return lost
 
-    def _survey(self) -> tuple[dict[str, float], list[str], float | None]:
-        """(live members with the seconds left on their rows, shards with loops, seconds
-        until the next expiry of another member's row or lease). A live member renews
-        every tick, so its next expiry is about ``lease_s`` away; a dead one's comes
-        closer, and the tick after it ends is timed to it rather than up to a tick later."""
+    def _survey(self) -> tuple[dict[str, float], list[str], dict[str, float]]:
+        """(live members with the seconds left on their rows, shards with loops, each
+        other member's seconds until its row and leases have all expired). A live member
+        renews every tick, so its expiry is about ``lease_s`` away; a dead one's comes
+        closer, and the tick that takes its leases is timed to it (:meth:`_next_due`)
+        rather than up to a tick later."""
         live = dict(
             self._conn.execute(
                 "SELECT instance_id, extract(epoch FROM expires - clock_timestamp())::float8 "
@@ -346,8 +309,8 @@ class Cluster:
             ).fetchall()
         )
         stored = [r[0] for r in self._conn.execute(SHARDS_SQL)]
-        (expiry,) = self._conn.execute(NEXT_EXPIRY_SQL, (self.member, self.member)).fetchone()
-        return live, stored, expiry
+        lasts = dict(self._conn.execute(LAST_EXPIRY_SQL, (self.member, self.member)).fetchall())
+        return live, stored, lasts
 
     def _release(self, shards: set[str]) -> None:
         """Hand shards to the member that now wins them: commit and snapshot their loops
@@ -371,13 +334,15 @@ class Cluster:
         with connect(self.url) as conn:
             self._acquire(shards - set(self.held), conn)
 
-    def _acquire(self, shards: set[str], conn: psycopg.Connection | None = None) -> None:
+    def _acquire(
+        self, shards: set[str], conn: psycopg.Connection | None = None, dead: set[str] = frozenset()
+    ) -> None:
         if not shards:
             return
         started = time.time()
         token = self.tuner.store.next_epoch(started)
         with self._leasing:
-            taken = self._take(shards, token, conn or self._conn)
+            taken = self._take(shards, token, conn or self._conn, dead)
         if not taken:
             return
         if conn is None:  # (the cluster's thread: the parsing ahead's owner)
@@ -404,9 +369,14 @@ class Cluster:
                 "UPDATE members SET loops = %s WHERE instance_id = %s", (loops, self.member)
             )
 
-    def _take(self, shards: set[str], token: int, conn: psycopg.Connection) -> list[str]:
-        """The leases of those ``shards`` that are free or expired, now this member's
-        (held, so renewed, from here on; their loops are loaded next)."""
+    def _take(
+        self, shards: set[str], token: int, conn: psycopg.Connection, dead: set[str] = frozenset()
+    ) -> list[str]:
+        """The leases of those ``shards`` that are free or expired, or held by a ``dead``
+        member (:meth:`_gone`) and not renewed for :data:`DEAD_AFTER_TICKS` by the
+        database's clock, now this member's (held, so renewed, from here on; their loops
+        are loaded next). A member that renews keeps its leases whatever this member
+        believes: the database decides, in the statement that takes them."""
         taken = [
             r[0]
             for r in conn.execute(
@@ -415,24 +385,44 @@ class Cluster:
                 "FROM unnest(%s::text[]) AS s "
                 "ON CONFLICT (shard) DO UPDATE SET owner = excluded.owner, "
                 "token = excluded.token, expires = excluded.expires "
-                "WHERE leases.expires < clock_timestamp() RETURNING shard",
-                (self.member, token, self.lease_s, sorted(shards)),
+                "WHERE leases.expires < clock_timestamp() OR (leases.owner = ANY(%s::text[]) "
+                "AND leases.expires < clock_timestamp() + make_interval(secs => %s)) "
+                "RETURNING shard",
+                (
+                    self.member,
+                    token,
+                    self.lease_s,
+                    sorted(shards),
+                    sorted(dead),
+                    self.lease_s - DEAD_AFTER_TICKS * self.tick_s,
+                ),
             )
         ]
+        if dead and taken:
+            # its row too, on the same condition (GET /cluster: not live, its loops 0);
+            # a member that comes back renews it
+            conn.execute(
+                "UPDATE members SET expires = clock_timestamp() WHERE instance_id = ANY(%s) "
+                "AND expires < clock_timestamp() + make_interval(secs => %s)",
+                (sorted(dead), self.lease_s - DEAD_AFTER_TICKS * self.tick_s),
+            )
         with self._lock:
             for shard in taken:
                 self.held[shard] = token
         return taken
 
     def _wait_notifies(self, until: float) -> None:
-        """Until the next tick: reload the loops other members changed."""
+        """Until the next tick (or a member's token going, :meth:`token_changed`): reload
+        the loops other members changed."""
         while not self._stop.is_set():
             left = until - time.monotonic()
-            if left <= 0:
+            if left <= 0 or self._wake.is_set():
+                self._wake.clear()
                 return
             changed: set[str] = set()
             try:
-                for note in self._conn.notifies(timeout=left, stop_after=1):
+                wait = min(left, WAKE_POLL_S)
+                for note in self._conn.notifies(timeout=wait, stop_after=1):
                     changed.update(note.payload.split(","))
                 # take the rest queued meanwhile without waiting
                 for note in self._conn.notifies(timeout=0.0):
