@@ -199,6 +199,7 @@ class LoopAdmin:
             self.recent.forget(loop_id)
             if self.cluster is not None:  # (its count in GET /cluster)
                 self.cluster.forget([loop_id])
+                self.deleted_here.add(loop_id)  # (a NOTIFY's older read must not restore it)
             self.metrics.set_loop_counts(self.table.mode_counts())
 
     def history(self, loop_id: str, offset: int, limit: int) -> HistoryPage:

@@ -50,6 +50,9 @@ class Ownership:
     """Samples of loops another member owns, left to it."""
     gains_fenced = 0
     """Committed gains messages not published: the leases may have run out."""
+    deleted_here: set[str]
+    """Loops deleted through this member since :meth:`reload_loops` began its store read
+    (in a cluster; under the table's lock)."""
 
     # -- called by the cluster's thread -------------------------------------------------
     def adopt_shards(self, shards: list[str], token: int) -> dict:
@@ -115,7 +118,13 @@ class Ownership:
 
     def reload_loops(self, loop_ids: list[str]) -> None:
         """Loops registered, patched or deleted through another member: each as stored
-        now, in the engine if this member owns its shard, out of it otherwise."""
+        now, in the engine if this member owns its shard, out of it otherwise.
+
+        The store is read outside the table's lock (the worker runs meanwhile), so a loop
+        deleted through this member during the read may come back in it: it is not
+        restored (it was, until the delete's own NOTIFY took it out again)."""
+        with self.table.lock:
+            self.deleted_here.clear()  # deletes from here on may postdate the read
         stored = {s.config.id: s for s in self.store.load(ids=loop_ids)}
         wall = time.time()
         leaving: list[str] = []
@@ -130,6 +139,8 @@ class Ownership:
                         leaving.append(loop_id)
                     continue
                 if not local:
+                    if loop_id in self.deleted_here:
+                        continue
                     arriving.append(loop)
                 elif self.table.configs[loop_id] != loop.config:
                     self.table.reconfigure(loop.config)

@@ -211,6 +211,7 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
 
             self.store = PgStore(self.settings.db_path)
             self.cluster = Cluster(self, self.settings.db_path)
+            self.deleted_here = set()
             self.snapshot_writer = SnapshotWriter(self.store.snapshot)
         else:
             self.store = Store(self.settings.db_path)
