@@ -93,3 +93,19 @@ def test_the_check_can_be_turned_off():
     assert engine.view("L", wall=1e9).counters.model_holds == 0
     tb, s = engine.table, engine.table.slot("L")
     assert tb.mc_factor[s] == 0.0
+
+
+def test_beyond_per_pass_loops_are_deferred_in_rotation(monkeypatch):
+    engine = identified()
+    tb, s = engine.table, engine.table.slot("L")
+    ref, _ = reference(engine)
+    monkeypatch.setattr(model_check, "PER_PASS", 2)
+    slots = np.full(5, s)
+    base, new = np.tile(ref, (5, 1)), np.tile(ref * 1.01, (5, 1))
+    checked = []
+    for _ in range(3):
+        hold, texts = model_check.held(tb, slots, base, new)
+        deferred = [i for i, t in enumerate(texts) if t.startswith("model check deferred")]
+        assert len(deferred) == 3 and hold[deferred].all()
+        checked.append(sorted(set(range(5)) - set(deferred)))
+    assert checked == [[0, 1], [2, 3], [0, 4]]  # each loop checked in turn

@@ -28,7 +28,8 @@ The prediction is :func:`plant_sim.loop.step_test_mse` itself, the paper's step 
 its own time step (:data:`DT`): near the model's tuning the MSE is 1e-5-1e-3 and changes
 5-30x for a 10 % change of ki, so a coarser step (0.05: 0.35-32x off the 0.01 result) or
 the continuous-time integral (0.003-1.2x off near the tuning) would decide on
-discretisation error. Vectorised over the loops checked in one pass (three rows each).
+discretisation error. Vectorised over the loops checked in one pass (three rows each), at
+most :data:`PER_PASS` of them.
 """
 
 from __future__ import annotations
@@ -42,6 +43,12 @@ from service.engine.rules import GAIN_RTOL
 
 DT = 0.01
 """Time step of the predicted step test (agent units): the paper's, the bar's metric."""
+PER_PASS = 256
+"""Loops checked in one pass at most: a check costs ~50 ms a pass plus ~0.55 ms a loop
+(three simulated step tests) at load average 8-10 on this box, so a pass in which
+thousands of identified loops fall due at once would stall the worker for seconds. The
+others' steps in that pass are held unchecked (deferred, counted as holds); which loops
+are checked rotates from pass to pass (``tb.mc_turn``), so none is starved."""
 
 
 def agent_model(tb, s: int) -> tuple[float, float, float] | None:
@@ -75,6 +82,13 @@ def held(tb, slots: np.ndarray, base: np.ndarray, new: np.ndarray) -> tuple[np.n
             models.append((*app, *model_gains(*app)))
     if not rows:
         return hold, texts
+    if len(rows) > PER_PASS:
+        order = np.roll(np.arange(len(rows)), -(tb.mc_turn % len(rows))).tolist()
+        tb.mc_turn += PER_PASS
+        for j in order[PER_PASS:]:
+            hold[rows[j]] = True
+            texts[rows[j]] = f"model check deferred (over {PER_PASS} loops in one pass)"
+        rows, models = [rows[j] for j in order[:PER_PASS]], [models[j] for j in order[:PER_PASS]]
     K, tau, theta, kp_ref, ki_ref = np.array(models).T
     units = np.column_stack([tb.kp_unit[slots[rows]], tb.ki_unit[slots[rows]]])
     gains = np.concatenate(

@@ -142,6 +142,9 @@ class LoopTable:
         self.warming: list = []
         """Model tunings waiting for their loop's warm run, done in one batch at the end of
         the pass (:func:`service.engine.first_tuning.flush`)."""
+        self.mc_turn = 0
+        """Where the model check's rotation over the loops to check starts
+        (:data:`service.engine.model_check.PER_PASS`)."""
         self.ident: list[watch.IdState | None] = []
         self.recorder = watch.Recorder()
         self._allocate(capacity)
