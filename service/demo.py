@@ -290,10 +290,10 @@ def _model_lines(s: dict) -> str:
         "| model of the tank | K (cm per L/min) | tau (s) | theta (s) |",
         "|---|---|---|---|",
     ]
-    if s.get("hint"):
-        lines.append(
-            f"| the paper's crude hint | {s['hint']['k']:g} | {s['hint']['tau_s']:g} | - |"
-        )
+    # the crude model is shown either way: a hint-free run's identification is read beside it
+    hint = s.get("hint") or {"k": TANK_HINT[0], "tau_s": TANK_HINT[1]}
+    what = "the paper's crude hint" + ("" if s.get("hint") else " (not given to the tuner)")
+    lines.append(f"| {what} | {hint['k']:g} | {hint['tau_s']:g} | - |")
     lin = s["linearisation"]
     lines.append(
         f"| linearisation around 55 cm | {lin['k']:g} | {lin['tau_s']:g} | {lin['theta_s']:g} |"

@@ -64,6 +64,7 @@ def _configure(tb: LoopTable, s: int, config: LoopConfig) -> None:
     tb.max_rel[s] = g.max_rel_change
     tb.damp[s] = g.noise_damping
     tb.ms_max[s] = g.max_sensitivity
+    tb.mc_factor[s] = g.model_check or 0.0
     tb.mode[s] = _CODE[config.mode]
     tb.gateways[s] = None if config.gateway is None else sys.intern(config.gateway)
     tb.watch[s] = config.scaling is None if g.identify is None else g.identify

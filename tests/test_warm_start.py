@@ -46,10 +46,12 @@ def test_after_a_model_tuning_a_noisy_loop_keeps_the_gains_near_the_models_tunin
     """A hint-free loop with setpoint moves every 6 tau and noise: the agent, warmed or
     not and hinted or not, walks the gains far below the model's tuning here (ki to 0.27x
     of it, step-test MSE 0.3 against 8e-5); the model band keeps each agent step within
-    1.5x either way of the model's tuning, and the warm start gave it a hidden state."""
+    1.5x either way of the model's tuning, and the warm start gave it a hidden state (the
+    model check, which holds most of these steps, off: tests/test_model_check.py)."""
     engine = TuningEngine(load_agent())
     kp, ki = gains(share=0.25)
-    engine.register(LoopConfig(id="L", kp=kp, ki=ki, sample_period_s=H), wall=0.0)
+    guard = {"model_check": None}
+    engine.register(LoopConfig(id="L", kp=kp, ki=ki, sample_period_s=H, guard=guard), wall=0.0)
     updates = drive(engine, moves=16, every=6.0, noise=0.5, size=20.0)
     first = next(i for i, u in enumerate(updates) if u.reason == "model")
     model, agent = updates[first], [u for u in updates[first + 1 :] if u.reason == "agent"]

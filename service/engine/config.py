@@ -119,6 +119,14 @@ class Guard(BaseModel):
         "model's SIMC tuning (tau_c = 2 tau), inside the bounds: on a noisy loop the agent "
         "walks them far below it (docs/identification.md, Model band). null: off.",
     )
+    model_check: Tolerance | None = Field(
+        1.5,
+        description="While an identified model is in force, hold (do not publish) an agent "
+        "step whose gains the model predicts to track the paper's step test worse than "
+        "this factor times the model's SIMC tuning (step-test MSE) and worse than the "
+        "gains in force (counter model_holds, guard=model in the step's reason; "
+        "docs/identification.md, Model check). null: off.",
+    )
     envelope_guard: bool = Field(
         True,
         description="Pause tuning (status out_of_envelope) while the identified dynamics, "
@@ -373,6 +381,11 @@ class Counters(BaseModel):
         0, description="Times the identified model was found to disagree with the scaling."
     )
     envelope_pauses: int = Field(0, description="Times tuning paused as out_of_envelope.")
+    model_holds: int = Field(
+        0,
+        description="Agent steps held by the model check (guard.model_check): gains the "
+        "identified model predicted to track much worse than its own tuning.",
+    )
 
 
 class IdentifiedModel(BaseModel):

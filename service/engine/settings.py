@@ -28,7 +28,7 @@ _NAN, _INF = math.nan, math.inf
 _FLOATS = (
     "stale_gap", "forgetting", "sign", "max_rel", "damp", "ms_max",
     "kp_unit", "ki_unit", "e_scale", "u_scale", "time_unit", "int_scale", "period",
-    "kp_min", "kp_max", "ki_min", "ki_max", "exc_step", "exc_window",
+    "kp_min", "kp_max", "ki_min", "ki_max", "exc_step", "exc_window", "mc_factor",
 )  # fmt: skip
 """The table's float64 arrays a config sets, in the order :func:`_row` returns them."""
 _FLAGS = ("watch", "env_guard", "scaled")
@@ -93,6 +93,7 @@ def _row(tb: LoopTable, s: int, config: LoopConfig) -> tuple:
     return (
         g.stale_periods * config.sample_period_s, config.forgetting, config.action_sign,
         g.max_rel_change, g.noise_damping, g.max_sensitivity, *units, *bounds, *excitation,
+        g.model_check or 0.0,
         config.scaling is None if g.identify is None else g.identify, g.envelope_guard,
         sc is not None,
         _CODE[config.mode],

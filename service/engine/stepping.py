@@ -10,6 +10,10 @@ their proposals recorded in the audit log with a predicted effect, never publish
 Advisory and shadow proposals follow a proposal track (see :mod:`service.engine.verify`):
 the agent's step is added to the previous proposal, and the guard applies from it.
 
+With an identified model in force, a step the model predicts to track much worse than
+the model's tuning is held (:mod:`service.engine.model_check`): gains unchanged, nothing
+published, ``guard=model``.
+
 Every step's gains message and audit row carry a short ``key=value`` reason
 (:func:`_why`).
 """
@@ -18,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.engine import box, margin, oscillation, predict, verify
+from service.engine import box, margin, model_check, oscillation, predict, verify
 from service.engine.audit import audit_row
 from service.engine.modes import ADVISORY, AUTO, SHADOW
 from service.engine.rules import GAIN_RTOL
@@ -76,16 +80,25 @@ def step(tb: LoopTable, slots: np.ndarray, wall: float) -> StepResult:
     cut = tb.watch[slots] & (tb.ms_max[slots] > 0)
     if cut.any():
         new, cut = _margin(tb, slots, new, cut)
+    # the model check: a step the identified model predicts much worse is held (no change,
+    # nothing published; the agent's state moves on)
+    hold, held_text = model_check.held(tb, slots, base, new)
+    if hold.any():
+        new = np.where(hold[:, None], base, new)
+        tb.n_model_holds[slots[hold]] += 1
+    go = ~hold
 
-    applied = mode == AUTO
+    applied = (mode == AUTO) & go
     auto = slots[applied]
     tb.prev_kp[auto], tb.prev_ki[auto] = old[applied, 0], old[applied, 1]
     tb.kp[auto], tb.ki[auto] = new[applied, 0], new[applied, 1]
     tb.pending[auto] = True
-    tb.seq[slots] += 1
+    moved = slots[go]
+    tb.seq[moved] += 1
     tb.n_steps[slots] += 1
-    tb.n_updates[slots] += 1
-    tb._gains_dirty.update(slots.tolist())
+    tb.n_updates[moved] += 1
+    tb._gains_dirty.update(moved.tolist())
+    track &= go
     if track.any():
         tracked = slots[track]
         tb.adv_kp[tracked], tb.adv_ki[tracked] = new[track, 0], new[track, 1]
@@ -102,7 +115,7 @@ def step(tb: LoopTable, slots: np.ndarray, wall: float) -> StepResult:
         proposed,
         new,
         [gateways[s] for s in listed],
-        why=_why(tb, slots, mode, old, proposed, bounded, new, cut),
+        why=_why(tb, slots, mode, old, proposed, bounded, new, cut, hold),
     )
     limited = np.flatnonzero(~np.isclose(proposed, new, rtol=GAIN_RTOL, atol=0.0).all(axis=1))
     # the audit row adds the figures the change was made on: the last response's IAE and
@@ -116,6 +129,8 @@ def step(tb: LoopTable, slots: np.ndarray, wall: float) -> StepResult:
     # formatting Python floats, not numpy scalars: a cold loop is limited in most steps
     for i, (kp, ki) in zip(limited.tolist(), proposed[limited].tolist(), strict=True):
         details[i] = f"{details[i]}; {_guard_detail(kp, ki)}"
+    for i in np.flatnonzero(hold).tolist():
+        details[i] = f"{details[i]}; {held_text[i]}"
     shadow = np.flatnonzero(mode == SHADOW)
     if shadow.size:
         predicted = predict.predictions(tb, slots[shadow].tolist(), old[shadow], new[shadow])
@@ -129,10 +144,11 @@ def step(tb: LoopTable, slots: np.ndarray, wall: float) -> StepResult:
             new[:, 0].tolist(), new[:, 1].tolist(), details, strict=True,
         )
     )  # fmt: skip
-    return result.without(shadow) if shadow.size else result
+    unpublished = np.flatnonzero((mode == SHADOW) | hold)
+    return result.without(unpublished) if unpublished.size else result
 
 
-def _why(tb, slots, mode, old, proposed, bounded, new, cut) -> list[str]:
+def _why(tb, slots, mode, old, proposed, bounded, new, cut, hold) -> list[str]:
     """The short ``key=value`` reason of each step (docs/tuner.md, Reasons): the loop's
     basis (an identified model or the hint), the change, which guard limit bit, and the
     verdict to come."""
@@ -141,13 +157,15 @@ def _why(tb, slots, mode, old, proposed, bounded, new, cut) -> list[str]:
     same = np.isclose(proposed, bounded, rtol=GAIN_RTOL, atol=0.0).all(axis=1)
     free = np.isclose(bounded, new, rtol=GAIN_RTOL, atol=0.0).all(axis=1)
     guards = np.where(
-        cut, "margin", np.where(~same, "bounds", np.where(~free, "rate", "none"))
+        hold,
+        "model",
+        np.where(cut, "margin", np.where(~same, "bounds", np.where(~free, "rate", "none"))),
     ).tolist()
     basis = ["model" if tb.ident[s].scaling is not None else "hint" for s in slots.tolist()]
-    verdicts = [_VERDICT.get(c, "none") for c in mode.tolist()]
+    verdicts = np.where(hold, "none", [_VERDICT.get(c, "none") for c in mode.tolist()])
     return [
         f"reason=agent basis={b} dkp={p[0]:+.1f}% dki={p[1]:+.1f}% guard={g} verdict={v}"
-        for b, p, g, v in zip(basis, pct.tolist(), guards, verdicts, strict=True)
+        for b, p, g, v in zip(basis, pct.tolist(), guards, verdicts.tolist(), strict=True)
     ]
 
 

@@ -61,6 +61,8 @@ _F64 = (
     # and the robustness guard's largest sensitivity (0: off)
     "kp_min", "kp_max", "ki_min", "ki_max", "max_rel", "tokens", "token_wall", "damp",
     "ms_max",
+    # the model check's factor (service.engine.model_check; 0: off)
+    "mc_factor",
     # excitation gate: smallest setpoint step (engineering units), window after one (s;
     # inf: gate off), setpoint at the last step, end of the current window
     "exc_step", "exc_window", "sp_ref", "excited_until",
@@ -76,7 +78,7 @@ _F64 = (
 )  # fmt: skip
 _I64 = [
     "mode", "seq", "n_samples", "n_rejected", "n_steps", "n_updates", "n_quiet", "n_faults",
-    "n_identified", "n_mismatch", "n_envelope",
+    "n_identified", "n_mismatch", "n_envelope", "n_model_holds",
 ]  # fmt: skip
 """Mode, seq, then the counters (persisted in this order: new ones go at the end)."""
 _REC = ["rec", "rec_n", "rec_k", "rec_stride"]
@@ -140,6 +142,9 @@ class LoopTable:
         self.warming: list = []
         """Model tunings waiting for their loop's warm run, done in one batch at the end of
         the pass (:func:`service.engine.first_tuning.flush`)."""
+        self.mc_turn = 0
+        """Where the model check's rotation over the loops to check starts
+        (:data:`service.engine.model_check.PER_PASS`)."""
         self.ident: list[watch.IdState | None] = []
         self.recorder = watch.Recorder()
         self._allocate(capacity)

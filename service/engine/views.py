@@ -90,6 +90,7 @@ def raw_view(tb: LoopTable, s: int, config: bytes, wall: float) -> RawView:
             identified=int(tb.n_identified[s]),
             mismatches=int(tb.n_mismatch[s]),
             envelope_pauses=int(tb.n_envelope[s]),
+            model_holds=int(tb.n_model_holds[s]),
         ),
         scaling=tb.scaling_of(s),
         identification=watch.view(tb, s),
