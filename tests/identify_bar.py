@@ -98,6 +98,9 @@ class Run:
     """Setpoint moves made before the model's time (those its data can hold: a model put
     in force at the fifth move's sample comes from the first four)."""
     identified_model: list = field(default_factory=list)
+    """The model in force at the run's end (identification goes on with forgetting)."""
+    first_model: list = field(default_factory=list)
+    """The model first put in force (the identification the bar's first line counts)."""
     statuses: list = field(default_factory=list)
     flagged: np.ndarray | None = None
     seconds: float = 0.0
@@ -137,13 +140,15 @@ def run(
     sp = np.full(n, y0)
     next_move = np.ceil(rng.uniform(1.0, 2.0, n) * plants.tau / plants.h)
     moves_at_id = np.full(n, -1)
-    steps = np.zeros(n, np.int64)
+    first_step = np.zeros(n, np.int64)
     rescaled_seen = np.zeros(n, np.int64)
     moves_in_data = np.full(n, -1)
     move_t: list[list[float]] = [[] for _ in range(n)]
     out = Run(plants.kp0.copy(), plants.ki0.copy(), np.zeros(n, bool), moves_at_id, moves_in_data)
+    out.first_model = [None] * n
     limit = np.ceil(max_tau * plants.tau / plants.h)
     ids = [f"L{i}" for i in range(n)]
+    slots = np.array([engine.table.slot(i) for i in ids])
     started = time.perf_counter()
     k = 0
     wall = 0.0
@@ -175,7 +180,8 @@ def run(
             wall += 1.0
             updates = engine.ingest(pending, wall=wall)
             pending = []
-            _apply(engine, updates, pi, plants, out, steps, rescaled_seen, steps_after_rescale)
+            _apply(engine, updates, pi, plants, out, slots, first_step, rescaled_seen,
+                   steps_after_rescale)  # fmt: skip
             # moves seen when the model was put in force (at its sample: a move later in
             # the same batch came after it), and those before it (its data can hold)
             tb = engine.table
@@ -185,6 +191,7 @@ def run(
                     t_model = tb.ident[s].in_force_t
                     moves_at_id[i] = sum(tm <= t_model for tm in move_t[i])
                     moves_in_data[i] = sum(tm < t_model for tm in move_t[i])
+                    out.first_model[i] = tb.ident[s].in_force
         u = pi.step(sp - y)
         plant.step(u)
         k += 1
@@ -200,26 +207,25 @@ def run(
     return out
 
 
-def _apply(engine, updates, pi, plants, out, steps, rescaled_seen, after_rescale) -> None:
-    if not updates:
-        return
-    kp, ki = pi.kp.copy(), pi.ki.copy()
-    for u in updates:
-        i = int(u.loop_id[1:])
-        kp[i], ki[i] = u.kp, u.ki * plants.h[i]
-        if u.reason == "agent" and not out.done[i]:
-            steps[i] += 1
-    pi.set_gains(kp, ki)
+def _apply(engine, updates, pi, plants, out, slots, first_step, rescaled_seen, after_rescale):
+    """The pass's gains into the controllers; a loop is done, with the gains then in
+    force, once it has taken STEPS agent steps by the engine's count (``n_steps``: an RL
+    step is the agent's whether or not a guard, e.g. the model check, published its
+    gains), from its last rescale with ``after_rescale``."""
+    if updates:
+        kp, ki = pi.kp.copy(), pi.ki.copy()
+        for u in updates:
+            i = int(u.loop_id[1:])
+            kp[i], ki[i] = u.kp, u.ki * plants.h[i]
+        pi.set_gains(kp, ki)
     tb = engine.table
-    for u in updates:
-        i = int(u.loop_id[1:])
-        s = tb.slot(u.loop_id)
-        if after_rescale and tb.n_identified[s] > rescaled_seen[i]:
-            rescaled_seen[i] = tb.n_identified[s]
-            steps[i] = 1
-        if steps[i] >= STEPS and not out.done[i]:
-            out.done[i] = True
-            out.kp[i], out.ki[i] = u.kp, u.ki
+    if after_rescale:
+        new = tb.n_identified[slots] > rescaled_seen
+        rescaled_seen[new] = tb.n_identified[slots[new]]
+        first_step[new] = tb.n_steps[slots[new]]
+    now = ~out.done & (tb.n_steps[slots] - first_step >= STEPS)
+    out.done |= now
+    out.kp[now], out.ki[now] = tb.kp[slots[now]], tb.ki[slots[now]]
 
 
 def one(which: str, n: int, seed: int, max_tau: float = 420.0) -> dict:
@@ -237,9 +243,10 @@ def one(which: str, n: int, seed: int, max_tau: float = 420.0) -> dict:
         wrong = [plants.hint(i, *factors[i % 4]) for i in range(n)]
         r = run(plants, hints=wrong, auto_rescale=True, steps_after_rescale=True, max_tau=max_tau)
     models = [None if m is None else [m.k, m.tau, m.theta] for m in r.identified_model]
+    first = [None if m is None else [m.k, m.tau, m.theta] for m in r.first_model]
     return {
         "kp": r.kp.tolist(), "ki": r.ki.tolist(), "done": r.done.tolist(),
-        "moves": r.moves_at_identification.tolist(), "models": models,
+        "moves": r.moves_at_identification.tolist(), "models": models, "first_models": first,
         "moves_in_data": r.moves_in_data.tolist(),
         "statuses": r.statuses, "flagged": r.flagged.tolist(), "seconds": r.seconds,
     }  # fmt: skip
@@ -255,10 +262,14 @@ def summary(runs: dict, n: int, seed: int) -> dict:
         ident = np.array([m is not None for m in b["models"]])
         moves = np.array(b["moves"])
         in_data = np.array(b["moves_in_data"])
-        k_err = np.array(
-            [m[0] / plants.K[i] - 1 if m else np.nan for i, m in enumerate(b["models"])]
+        # the bar's line counts the identification: the model first put in force (runs
+        # written before it was recorded have only the model at the end)
+        first = b.get("first_models", b["models"])
+        k_err, tau_err = (
+            np.array([m[j] / truth[i] - 1 if m else np.nan for i, m in enumerate(first)])
+            for j, truth in ((0, plants.K), (1, plants.tau))
         )
-        tau_err = np.array(
+        tau_err_end = np.array(
             [m[1] / plants.tau[i] - 1 if m else np.nan for i, m in enumerate(b["models"])]
         )
         ratio = mse["blind"] / true
@@ -272,6 +283,8 @@ def summary(runs: dict, n: int, seed: int) -> dict:
             tau_within_30=int((np.abs(tau_err[ident]) <= 0.3).sum()),
             k_err_worst=float(np.nanmax(np.abs(k_err))),
             tau_err_worst=float(np.nanmax(np.abs(tau_err))),
+            tau_within_30_at_end=int((np.abs(tau_err_end[ident]) <= 0.3).sum()),
+            tau_err_worst_at_end=float(np.nanmax(np.abs(tau_err_end))),
             mse_ratio_within_1_5=int((ratio <= 1.5).sum()),
             mse_ratio_median=float(np.median(ratio)),
             mse_ratio_worst=float(np.max(ratio)),
