@@ -15,6 +15,7 @@ from service.learn.env import (
     sample_tasks,
     sample_tasks_v3,
 )
+from service.learn.experiments import adaptation
 from service.learn.oracle import (
     ORACLE3_LAG2,
     ORACLE3_RATIOS,
@@ -27,7 +28,7 @@ from service.learn.oracle import (
 )
 from service.learn.train import Trainer
 from service.learn.train_config import TrainConfig
-from service.learn.validation import VAL_ROBUST, validate_robust
+from service.learn.validation import VAL_ADAPT_BAR, VAL_ROBUST, validate, validate_robust
 
 
 def test_second_lag_is_off_by_default_and_follows_the_analytic_response():
@@ -189,6 +190,23 @@ def test_validate_robust_runs_through_the_agent_api():
     # 30 RL steps settle every condition (3 do not: robust.score calls those unstable, inf)
     assert np.isfinite(out["val_r_worst"]) and out["val_r_median"] <= out["val_r_worst"]
     assert out["val_r_which"] in {c.name for c in VAL_ROBUST}
+
+
+def test_validation_scores_the_evaluations_adaptation_against_v2():
+    """``--val-adapt``: the selection score takes in ``pitune evaluate``'s own tau ramp and
+    K step (the same runs, the same numbers) as fractions of v2's, so an epoch that has
+    lost the adaptation cannot score best."""
+    agent = load_agent()  # v2, the bar itself
+    plain = validate(agent.actor, 2, steps=12)
+    scored = validate(agent.actor, 2, steps=12, adapt=True)
+    assert "val_k_step" not in plain
+    runs = adaptation(agent, quick=False, frozen=False)
+    ratios = []
+    for name, bar in VAL_ADAPT_BAR.items():
+        assert scored[f"val_{name}"] == pytest.approx(runs[name]["adaptive"], rel=1e-6)
+        ratios.append(scored[f"val_{name}"] / bar)
+    assert ratios == pytest.approx([1.0, 1.0], abs=0.05)  # v2 scores its own bar
+    assert scored["val_score"] == max(plain["val_score"], *ratios)
 
 
 def test_the_observation_is_scaled_by_the_last_move_as_the_engine_scales_it():

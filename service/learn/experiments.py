@@ -150,43 +150,38 @@ def table2(agent: Policy, steps: int) -> dict:
     return rows
 
 
-def adaptation(agent: Policy, quick: bool) -> dict:
-    """Experiment 3: tracking MSE after a tau ramp and a K step, adaptive vs frozen gains."""
+def adaptation(agent: Policy, quick: bool, frozen: bool = True) -> dict:
+    """Experiment 3: tracking MSE after a tau ramp and a K step, adaptive vs frozen gains
+    (``frozen`` False: the adaptive runs alone, as training's validation scores them).
+    Both plants run in one batch (they share the protocol's clock)."""
     settle, change, total = 60, 40, 140
     window = 16  # last 44 time units: 4 setpoint changes
     if quick:
         settle, change, total, window = 40, 20, 80, 8
+    names = ("tau_ramp", "k_step")  # columns: K = 0.5 both, tau 0.4 (ramped) and 0.5
 
-    def ramp(t, env):
+    def schedule(t, env):
         frac = np.clip((t - settle) / change, 0.0, 1.0)
-        env.set_task(tau=0.4 + 0.6 * frac)
+        env.set_task(tau=[0.4 + 0.6 * frac, 0.5], K=[0.5, 1.0 if t >= settle else 0.5])
 
-    def step(t, env):
-        if t == settle:
-            env.set_task(K=1.0)
-
-    out = {}
-    for name, sched, (K, tau, theta) in (
-        ("tau_ramp", ramp, (0.5, 0.4, 0.1)),
-        ("k_step", step, (0.5, 0.5, 0.1)),
-    ):
-        runs = {
-            mode: tune(
-                agent,
-                K,
-                tau,
-                theta,
-                steps=total,
-                forgetting=DEFAULT_FORGETTING,
-                schedule=sched,
-                freeze_after=settle if mode == "frozen" else None,
-            )  # fmt: skip
-            for mode in ("adaptive", "frozen")
-        }
-        out[name] = {mode: float(r["mse"][-window:, 0].mean()) for mode, r in runs.items()} | {
-            "gains": {mode: r["gains"][:, 0].tolist() for mode, r in runs.items()}
-        }
-    return out
+    runs = {
+        mode: tune(
+            agent,
+            [0.5, 0.5],
+            [0.4, 0.5],
+            [0.1, 0.1],
+            steps=total,
+            forgetting=DEFAULT_FORGETTING,
+            schedule=schedule,
+            freeze_after=settle if mode == "frozen" else None,
+        )  # fmt: skip
+        for mode in ("adaptive", "frozen")[: 2 if frozen else 1]
+    }
+    return {
+        name: {mode: float(r["mse"][-window:, i].mean()) for mode, r in runs.items()}
+        | {"gains": {mode: r["gains"][:, i].tolist() for mode, r in runs.items()}}
+        for i, name in enumerate(names)
+    }
 
 
 def hidden_pca(agent: Policy, steps: int, quick: bool) -> dict:

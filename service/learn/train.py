@@ -293,9 +293,12 @@ class Trainer:
         columns = [
             "epoch", "phase", "wall_s", "mean_cost", "final_mse", "bc_loss", "kl",
             "pi_iters", "pi_loss", "v_loss", "val_worst", "val_median", "val_drift",
-            "val_r_worst", "val_r_median", "val_r_which", "val_score",
+            "val_r_worst", "val_r_median", "val_r_which", "val_tau_ramp", "val_k_step",
+            "val_score",
         ]  # fmt: skip
         new_log = not log_path.exists()
+        if not new_log:  # a run's log keeps the columns it was started with
+            columns = log_path.open().readline().strip().split(",")
         last_ckpt = time.monotonic()
         bar = tqdm(total=total, initial=self.epoch, desc="train", dynamic_ncols=True)
         with log_path.open("a", newline="") as fh:
@@ -321,6 +324,7 @@ class Trainer:
                             cfg.eval_steps,
                             cfg.sp_jitter,
                             cfg.val_robust,
+                            cfg.val_adapt,
                         )
                     )
                     if cfg.keep_validated:  # every validated actor, for a final pick

@@ -104,6 +104,9 @@ class TrainConfig:
     and quiet starts look to the agent as they do online. Imitation only (``epochs 0``)."""
     val_robust: bool = False
     """Validation also scores the v3 robustness conditions (:func:`validate_robust`)."""
+    val_adapt: bool = False
+    """Validation also scores the evaluation's tau ramp and K step against v2's
+    (:func:`validate_adaptation`), so the kept epoch cannot be one that lost the adaptation."""
     keep_validated: bool = False
     """Save every validated actor as OUT/val_EPOCH.pt (for a final pick)."""
     # bookkeeping

@@ -27,6 +27,7 @@ from service.learn.env import (
     TuningEnv,
     sample_tasks,
 )
+from service.learn.experiments import adaptation
 from service.learn.robust import BAR_MEDIAN, BAR_WORST, score
 from service.learn.robust import CONDITIONS as ROBUST_CONDITIONS
 from service.units import RL_STEP_AGENT_UNITS
@@ -60,18 +61,29 @@ VAL_ROBUST = tuple(
     if c.name != "paper protocol" and (c.ratio is None or c.ratio <= 2.0)
 )
 """The robustness conditions scored by :func:`validate_robust`."""
+VAL_ADAPT_BAR = {"tau_ramp": 0.00047, "k_step": 0.00011}
+"""The shipped v2's adaptive tracking MSE in ``pitune evaluate``'s adaptation experiment
+(window-mean observation, session 9): a v3 ships only if it is no worse on both
+(TRAINING.md, the shipping rule), so :func:`validate_adaptation` scores against them."""
 
 
 def validate(
-    actor: Actor, n: int, steps: int = 100, sp_jitter: float = 0.0, robust: bool = False
+    actor: Actor,
+    n: int,
+    steps: int = 100,
+    sp_jitter: float = 0.0,
+    robust: bool = False,
+    adapt: bool = False,
 ) -> dict:
     """The evaluation's closed-loop tuning (:func:`service.learn.closed_loop.tune`) on the
     validation set for ``steps`` RL steps, then the step test, with setpoint changes on
     the agent's clock and (if ``sp_jitter``) at arbitrary times.
 
     ``val_drift`` is the largest relative distance of any gain from its final value
-    after :data:`VAL_SETTLED_STEP`; ``val_score`` is the worse of the two metrics as a
-    fraction of its bar (below 1 meets both), and picks ``best.pt``.
+    after :data:`VAL_SETTLED_STEP`; ``val_score`` is the worse of the metrics as a
+    fraction of its bar (below 1 meets all), and picks ``best.pt``. ``robust`` adds the
+    robustness conditions (:func:`validate_robust`), ``adapt`` the evaluation's tau ramp
+    and K step (:func:`validate_adaptation`).
     """
     K, tau, theta = validation_set(n)
     agent = Agent(copy.deepcopy(actor).cpu())
@@ -97,7 +109,23 @@ def validate(
             out["val_r_worst"] / BAR_WORST,
             out["val_r_median"] / BAR_MEDIAN,
         )
+    if adapt:
+        out.update(validate_adaptation(agent))
+        out["val_score"] = max(
+            out["val_score"], *(out[f"val_{k}"] / bar for k, bar in VAL_ADAPT_BAR.items())
+        )
     return out
+
+
+def validate_adaptation(agent: Agent) -> dict:
+    """The adaptive runs of ``pitune evaluate``'s adaptation experiment
+    (:func:`service.learn.experiments.adaptation`, full protocol: tau ramp 0.4 -> 1 and K
+    step 0.5 -> 1 after 60 RL steps, forgetting 0.99, tracking MSE over the last 44 time
+    units), the same numbers as ``pitune evaluate --only adaptation``; two one-plant
+    runs of 140 steps. The paper grid and the robust conditions hold no drifting plant,
+    so without these the kept epoch may be one that has lost the adaptation."""
+    runs = adaptation(agent, quick=False, frozen=False)
+    return {f"val_{name}": runs[name]["adaptive"] for name in VAL_ADAPT_BAR}
 
 
 def validate_robust(agent: Agent, plants, steps: int = VAL_ROBUST_STEPS) -> dict:
