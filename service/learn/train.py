@@ -298,7 +298,8 @@ class Trainer:
         ]  # fmt: skip
         new_log = not log_path.exists()
         if not new_log:  # a run's log keeps the columns it was started with
-            columns = log_path.open().readline().strip().split(",")
+            with log_path.open() as head:
+                columns = head.readline().strip().split(",")
         last_ckpt = time.monotonic()
         bar = tqdm(total=total, initial=self.epoch, desc="train", dynamic_ncols=True)
         with log_path.open("a", newline="") as fh:
