@@ -3,14 +3,15 @@
 
 One hint-free loop, identified and tuned by the shipped agent for 14 setpoint moves, then
 its time constant ramps continuously (every sample) from tau0 toward 5 tau0 at
-:data:`DRIFT_RATE`. Every sample the step-test MSE of the gains in force is taken on the
-plant as it is then (the paper's step test, in the agent units of the initial plant: K
-and tau0 appear as 0.5); "its best" is the lowest so far.
+:data:`DRIFT_RATE`. At every change of the gains and every fifth sample, the step-test
+MSE of the gains in force is taken on the plant as it is then (the paper's step test, in
+the agent units of the initial plant: K and tau0 appear as 0.5); "its best" is the
+lowest so far.
 
 Measured (docs/identification.md, The envelope guard, with the table of rates): the loop
 is paused at 3.4 tau0 (the envelope's edge is 3 tau0), its MSE before the ramp stays at
 1.0x its best, and on the ramp the gains follow the drifting plant's models
-(``model_check.follow``: 74x at most before the pause, 27x at it; 1,800x at most with the
+(``model_check.follow``: 74x at most before the pause, 22x at it; 1,760x at most with the
 gains held on the first model's tuning). The 3x line is **missed** on every ramp
 measured: near its optimum the step test is so sharp that the best gains pass 3x their
 MSE after a 5 % rise of tau (asserted below), which is within identification's error."""
@@ -162,8 +163,8 @@ def test_the_model_check_keeps_the_unchanged_plant_within_3x_of_its_best(ramp):
 def test_the_gains_follow_the_drifting_plant(ramp):
     """On the ramp each confident model that shows the plant moved, and predicts the gains
     in force worse than 1.5x its tuning, puts its tuning in force: the MSE stays within
-    74x its best up to the pause (27x at it), where gains held on the first model's tuning
-    reached 1,800x."""
+    74x its best up to the pause (22x at it), where gains held on the first model's tuning
+    reached 1,760x (main before session 12)."""
     assert ramp["followed"] >= 10
     assert ramp["on_ramp"] < 150.0 and ramp["at_pause"] < 50.0
 
