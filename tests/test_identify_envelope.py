@@ -112,7 +112,9 @@ def drift(rate: float, *, after_pause: int = 50) -> dict:
         j += 1
     out = {"wall_s": time.perf_counter() - started, "samples": j}
     out["view"] = engine.view("L", wall=float(j))
-    out["followed"] = sum(r[5] == "model" and '"after":"followed"' in r[10] for r in audit)
+    follows = [r[2] for r in audit if r[5] == "model" and '"after":"followed"' in r[10]]
+    out["followed"] = len(follows)
+    out["followed_before_ramp"] = sum(t < ramp_j * H for t in follows)
     out["rollbacks"] = sum(r[5] == "rollback" for r in audit)
     a = np.array(rows)
     # the MSE wherever the gains changed and every 5th sample (tau moves every sample)
@@ -158,6 +160,7 @@ def test_the_model_check_keeps_the_unchanged_plant_within_3x_of_its_best(ramp):
     worse are held (without the check: 134-1,200x), and re-estimates of the same plant do
     not move the gains (``model_check.MOVED``)."""
     assert ramp["view"].counters.model_holds > 0
+    assert ramp["followed_before_ramp"] == 0
     assert ramp["before_ramp"] <= 3.0
 
 
