@@ -124,8 +124,11 @@ class Guard(BaseModel):
         description="While an identified model is in force, hold (do not publish) an agent "
         "step whose gains the model predicts to track the paper's step test worse than "
         "this factor times the model's SIMC tuning (step-test MSE) and worse than the "
-        "gains in force (counter model_holds, guard=model in the step's reason; "
-        "docs/identification.md, Model check). null: off.",
+        "gains in force (counter model_holds, guard=model in the step's reason); and when "
+        "a newer confident model shows the plant moved (K or tau beyond three standard "
+        "errors) and predicts the gains in force worse than this factor times its tuning, "
+        "put that tuning in force (reason 'model'; docs/identification.md, Model check and "
+        "The envelope guard). null: off.",
     )
     envelope_guard: bool = Field(
         True,

@@ -60,11 +60,13 @@ hidden state and error integral then come from a run on the model
 TAU_C = 2.0
 """The closed-loop time constant, in plant time constants (detuned: SIMC's own choice is
 ``tau_c = theta``)."""
-REPLACE_AFTER = ("rescaled", "out_of_envelope")
+REPLACE_AFTER = ("rescaled", "out_of_envelope", "followed")
 """Decisions after which the model's tuning replaces the gains both ways, not only raises
 them: the gains in force were the agent's, tuned for the plant a wrong scaling described
-(or one outside its box), so a faster tuning among them is no choice to keep (an integral
-time of 0.4-0.6 of the true tau after a tau hint 2-3x off: docs/identification.md)."""
+(or one outside its box, or an earlier model of a plant that has since moved:
+``followed``, :func:`service.engine.model_check.follow`), so a faster tuning among them
+is no choice to keep (an integral time of 0.4-0.6 of the true tau after a tau hint 2-3x
+off: docs/identification.md)."""
 FOLLOW = 1.15
 """Factor off the latest confident model's tuning beyond which a loop paused out of the
 envelope (no agent step moves it) is set to it again: the first confident model of a
@@ -97,8 +99,8 @@ def apply(tb, s: int, m, wall: float, why: str) -> None:
     """Raise the gains of slot ``s`` to model ``m``'s tuning if they are well below it, or
     after a decision in :data:`REPLACE_AFTER` set them to it if they are well off it
     either way (after the model's scaling and bounds are configured); queues the decision
-    to publish in ``tb.decided``. ``why``: ``identified``, ``rescaled`` or
-    ``out_of_envelope``; the first two also queue the loop's warm start
+    to publish in ``tb.decided``. ``why``: ``identified``, ``rescaled``,
+    ``out_of_envelope`` or ``followed``; the first two also queue the loop's warm start
     (:func:`flush`), shadow loops included (their agent steps too)."""
     mode = int(tb.mode[s])
     if mode == FROZEN or m.integrating or not m.k > 0:
@@ -112,7 +114,9 @@ def apply(tb, s: int, m, wall: float, why: str) -> None:
     lo, hi = (tb.kp_min[s], tb.ki_min[s]), (tb.kp_max[s], tb.ki_max[s])
     raised = target if why in REPLACE_AFTER else np.maximum(old, target)
     new = tuple(np.clip(raised, lo, hi).tolist())
-    step = FOLLOW if why == "out_of_envelope" else 1.0 + float(tb.max_rel[s])
+    # a followed model's trigger was the predicted step test (model_check.follow): any
+    # change of the gains then counts
+    step = {"out_of_envelope": FOLLOW, "followed": 1.0}.get(why, 1.0 + float(tb.max_rel[s]))
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = np.asarray(new) / np.asarray(old)
     if not ((ratio > step) | (ratio < 1.0 / step)).any():

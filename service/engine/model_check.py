@@ -1,5 +1,7 @@
 """The model check: while an identified model is in force, an agent step whose gains the
-model predicts to track much worse than the model's own tuning is held.
+model predicts to track much worse than the model's own tuning is held; and when a newer
+confident model shows the plant moved, gains in force it predicts that much worse are
+replaced by its tuning (:func:`follow`: a plant drifting inside the envelope).
 
 Why: with a confident model the engine knows, to within the model's error, how any
 gains will do on the paper's step test, and the model's tuning (:func:`first_tuning.
@@ -34,12 +36,14 @@ most :data:`PER_PASS` of them.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from plant_sim.loop import step_test_mse
-from service.engine import box
+from service.engine import box, first_tuning
 from service.engine.first_tuning import model_gains
-from service.engine.rules import GAIN_RTOL
+from service.engine.monitor import GAIN_RTOL
 
 DT = 0.01
 """Time step of the predicted step test (agent units): the paper's, the bar's metric."""
@@ -105,3 +109,45 @@ def held(tb, slots: np.ndarray, base: np.ndarray, new: np.ndarray) -> tuple[np.n
             f"{proposed[j]:.3g}, the model tuning's {reference[j]:.3g})"
         )
     return hold, texts
+
+
+MOVED = 3.0
+"""Standard errors (of the difference of two models' K or tau) beyond which a confident
+model shows a plant that moved, not a re-estimate of the same plant (:func:`follow`)."""
+
+
+def moved(m, known) -> bool:
+    """Whether confident model ``m`` differs from ``known`` in K or tau by more than
+    :data:`MOVED` standard errors of the difference (their relative standard errors)."""
+    pairs = ((m.k, known.k, m.k_rse, known.k_rse), (m.tau, known.tau, m.tau_rse, known.tau_rse))
+    return any(abs(math.log(a / b)) > MOVED * math.hypot(ra, rb) for a, b, ra, rb in pairs)
+
+
+def follow(tb, s: int, m, t: float, wall: float) -> None:
+    """A plant that drifts inside the envelope: when a new confident model ``m`` shows the
+    plant moved (:func:`moved`) and predicts the gains in force to track the step test
+    worse than ``guard.model_check`` times its own tuning (the rule that holds an agent
+    step, applied to the gains the plant moved under), ``m`` becomes the model in force
+    (its band, the monitor's target and the check's fallback follow; the scaling stays,
+    so the envelope is still measured from the agent's units) and its tuning is put in
+    force (:func:`first_tuning.apply`, ``followed``: published, audited and verified like
+    the first tuning). Without it the gains stayed on the first model's tuning while the
+    agent's steps were held: on ``tests/test_identify_envelope.py``'s ramps the step-test
+    MSE reached 1,760-13,538x its best before the pause (38-320x with it at 5 %/move and
+    slower: docs/identification.md, The envelope guard)."""
+    st = tb.ident[s]
+    known = st.in_force
+    if known is None or not tb.mc_factor[s] > 0 or m.integrating or not m.k > 0:
+        return  # (a hinted loop has no model in force: the check leaves it to the agent)
+    if not moved(m, known):
+        return
+    app = box.apparent(tb.scaling_of(s), m)
+    k, tau, theta = app["gain"], app["tau"], app["theta_ratio"] * app["tau"]
+    kp, ki = float(tb.kp[s] / tb.kp_unit[s]), float(tb.ki[s] / tb.ki_unit[s])
+    ref_kp, ref_ki = model_gains(k, tau, theta)
+    now, tuned = step_test_mse(k, tau, theta, [kp, ref_kp], [ki, ref_ki], dt=DT)
+    if not now > tb.mc_factor[s] * tuned:
+        return
+    st.in_force, st.in_force_t = m, t
+    tb.reconfigure(tb.configs[tb.ids[s]])
+    first_tuning.apply(tb, s, m, wall, "followed")

@@ -38,7 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.engine import box, first_tuning, identify
+from service.engine import box, first_tuning, identify, model_check
 from service.engine.audit import audit_row
 from service.engine.config import Identification
 from service.units import AGENT_GAIN, AGENT_TAU, Scaling
@@ -381,6 +381,8 @@ def use(tb, s: int, m: identify.Model, t: float, wall: float) -> None:
     else:
         tb.mismatch[s] = False
     _envelope(tb, s, m, t, wall, sure=True)
+    if not tb.out_env[s]:  # the gains follow a plant drifting inside the envelope
+        model_check.follow(tb, s, m, t, wall)
 
 
 def _envelope(tb, s: int, m: identify.Model, t: float, wall: float, *, sure: bool) -> None:
