@@ -53,10 +53,9 @@ FULL_EVENTS = 4
 :data:`MAX_TAU_SE`; from fewer, tau must be pinned down as tightly as K
 (:data:`MAX_REL_SE`). A model from two or three responses is checked for consistency on
 one or two events and its standard error is itself a noisy estimate: at the single
-limit 0.17, the bar's models off by 30-54% were all confident at 0.11-0.16 from their
-2nd-4th move, and most loops were put in force at their 2nd-3rd move from less data
-than the bar allows. Replayed on the bar's logs, seeds 0-3 (docs/identification.md):
-as many loops identified from their first 4 moves, 2 off by more than 30% instead of 4."""
+limit 0.17 the bar's loops off by 32-54% were confident at 0.11-0.15 from their 2nd-4th
+move. Replayed on the bar's logs, seeds 0-3 (docs/identification.md): the same loops
+identified from their first 4 moves, 2 off by more than 30% instead of 4."""
 MAX_PREDICTION = 1.5
 """Consistency: the model of the earlier events must predict the last event's PV within
 this many times the noise (rms)."""
