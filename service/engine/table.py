@@ -270,7 +270,6 @@ class LoopTable:
         for slot, x in zip(picked, saved, strict=True):
             self.ident[slot] = watch.IdState() if x is None or x.ident is None else x.ident
         self.rec[s], self.rec_n[s], self.rec_k[s], self.rec_stride[s] = -1, 0, 0, 1
-        self.snap_moves[s] = -1  # never snapshotted
         self.mismatch[s] = self.out_env[s] = self.prev_ok[s] = False
         self.op_int[s] = self.op_kp[s] = 0.0
         self.prev_t[s] = self.prev_sp[s] = self.prev_pv[s] = self.prev_op[s] = math.nan
@@ -281,6 +280,8 @@ class LoopTable:
         self._restart(s)
         restoring = [i for i, x in enumerate(saved) if x is not None]
         restore_runtimes(self, s[restoring], [saved[i] for i in restoring], _COUNTERS)
+        # the store holds this state (the snapshot restored, or no row: as registered)
+        self.snap_moves[s] = self._moves(s)
         return s
 
     def scaling_of(self, s: int) -> Scaling | None:
