@@ -14,7 +14,7 @@ from service.bench.load import write_trace
 def test_the_generators_latencies_keep_publish_time_and_loop_for_the_trace(tmp_path):
     plan = Plan(
         gateways={"gw": ["A", "B"]}, endpoints=[], period=1.0, groups=2, batch_size=10,
-        window=(0.0, 10.0), end=10.0, t0=1000.0,
+        columns=True, window=(0.0, 10.0), end=10.0, t0=1000.0,
     )  # fmt: skip
     lat = _Latencies(plan)
     lo, hi = 100.0, 110.0

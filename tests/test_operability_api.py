@@ -9,13 +9,17 @@ import logging
 import re
 import signal
 
+import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
+from service.agent import load_agent
 from service.daemon import logs
 from service.daemon.api import MAX_OFFSET, create_app
 from service.daemon.metrics import Metrics
+from service.engine import LoopConfig, TuningEngine
 from service.engine.audit import audit_row
+from service.engine.table import STATUSES
 from service.procs import TunerProcess
 from tests.tuner_support import loop_body, tuner_settings, wait_until
 
@@ -157,17 +161,45 @@ def test_event_lines_per_change_rate_limited(caplog):
 
 
 def test_status_changes_are_logged_once(caplog):
+    """Slot by slot: a loop's change is logged once; a new slot, or a slot freed and
+    taken by another loop, is a first sight (its registration is logged)."""
     watch = logs.StatusWatch(logs.EventLog())
+    code = {status.value: k for k, status in enumerate(STATUSES)}
+
+    def check(*slots):
+        ids = [None if s is None else s[0] for s in slots]
+        codes = np.array([code["waiting"] if s is None else code[s[1]] for s in slots])
+        return watch.check(ids, codes)
+
     with caplog.at_level(logging.INFO, "pitune.events"):
-        assert watch.check({"A": "waiting", "B": "tuning"}) == []  # first sight
-        assert watch.check({"A": "tuning", "B": "tuning", "C": "waiting"}) == [
+        assert check(("A", "waiting"), ("B", "tuning")) == []  # first sight
+        assert check(("A", "tuning"), ("B", "tuning"), ("C", "waiting")) == [
             ("A", "waiting", "tuning")
         ]
-        assert watch.check({"A": "stale", "C": "waiting"}) == [("A", "tuning", "stale")]
+        assert check(("A", "stale"), None, ("C", "waiting")) == [("A", "tuning", "stale")]
+        assert check(("A", "stale"), ("D", "tuning"), ("C", "quiet")) == [("C", "waiting", "quiet")]
     assert [r.getMessage() for r in caplog.records] == [
         "loop 'A' status waiting -> tuning",
         "loop 'A' status tuning -> stale",
+        "loop 'C' status waiting -> quiet",
     ]
+
+
+def test_the_status_check_reads_every_slot_of_a_real_table(caplog):
+    """What the API's watcher runs: the statuses of a table's slots, a loop's change
+    logged once, a deleted one and its slot's next loop not a change."""
+    engine = TuningEngine(load_agent())
+    engine.register(LoopConfig(id="A", kp=0.5, ki=0.01, sample_period_s=1.0), wall=0.0)
+    engine.register(LoopConfig(id="B", kp=0.5, ki=0.01, sample_period_s=1.0), wall=0.0)
+    watch = logs.StatusWatch(logs.EventLog())
+    with caplog.at_level(logging.INFO, "pitune.events"):
+        assert watch.check(*logs.table_statuses(engine.table, 0.0)) == []
+        engine.ingest([{"loop_id": "A", "t": 0.0, "sp": 1.0, "pv": 0.0}], wall=0.0)
+        engine.remove("B")
+        engine.register(LoopConfig(id="C", kp=0.5, ki=0.01, sample_period_s=1.0), wall=0.0)
+        changes = watch.check(*logs.table_statuses(engine.table, 0.0))
+    assert [c[0] for c in changes] == ["A"] and changes[0][1] == "waiting"
+    assert changes[0][2] != "waiting"
 
 
 def test_rejection_bursts_end_with_their_count(caplog):

@@ -42,3 +42,27 @@ def test_a_chunk_snapshot_is_each_loops_own_and_restores_the_same_state():
     for loop_id, hidden, rt in chunk:
         other.restore(_config(loop_id), kp=1.0, ki=0.05, seq=0, hidden=hidden, runtime=rt, wall=0.0)
     assert sorted(other.snapshot()) == sorted(chunk)
+
+
+def test_the_periodic_snapshot_writes_moved_loops_each_turn_and_the_others_in_rotation():
+    """A loop whose agent stepped (or mode changed) since its last snapshot is in the
+    next turn; one that only took samples waits for its turn in the rotation, which
+    takes every loop within ``every`` turns."""
+    engine = TuningEngine(StillAgent())
+    ids = [f"R{i}" for i in range(8)]
+    for loop_id in ids:
+        engine.register(_config(loop_id), wall=0.0)
+    tb = engine.table
+    # as registered (the store's state: no row) or as last snapshotted: the rotation only
+    assert [len(tb.snapshot_turn(turn, 4)) for turn in range(4)] == [2, 2, 2, 2]
+    engine.snapshot()
+    for i in range(30):  # samples only, no step: the running sums move
+        engine.ingest([{"loop_id": x, "t": float(i), "e": 0.1} for x in ids], wall=0.0)
+    assert int(tb.n_steps.sum()) == 0 and int(tb.n_samples.sum()) == 240
+    turns = [tb.snapshot_turn(turn, 4) for turn in range(4)]
+    assert all(len(t) == 2 for t in turns) and sorted(sum(turns, [])) == ids
+    tb.n_steps[tb.slot("R1")] += 1  # a step
+    tb.mode[tb.slot("R2")] = 1  # another mode
+    assert set(tb.snapshot_turn(1, 4)) == {"R1", "R2", *turns[1]}
+    engine.snapshot(["R1", "R2"])
+    assert set(tb.snapshot_turn(1, 4)) == set(turns[1])

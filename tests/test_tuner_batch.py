@@ -16,7 +16,7 @@ from service.engine import rules
 from service.engine.config import LoopConfig
 from service.engine.stepping import step
 from service.engine.table import _BOOL, _F64, _I64, _REC, LoopTable
-from service.wire.decode import classify, decode_batch, decode_objects, joined
+from service.wire.decode import classify, decode_batch, decode_columns, decode_objects, joined
 from service.wire.protocol import MAX_BATCH, BatchedSample, Mode, RejectReason, Sample
 from tests.engine_reference import Rejected, reference_ingest
 from tests.tuner_support import loop_body
@@ -205,6 +205,74 @@ def test_batches_joined_decode_as_their_samples_together(parts):
         return [(r.index, r.loop_id, r.reason) for r in d.rejected]
 
     assert seen(one) == seen(whole)
+
+
+_columns = st.tuples(
+    st.lists(st.sampled_from(_KEYS), unique=True, min_size=1, max_size=7),
+    st.integers(0, 5),
+).flatmap(
+    lambda kn: st.lists(
+        st.fixed_dictionaries(
+            {k: st.one_of(_value, st.sampled_from(["L0", "L1", "bad/id"])) if k == "loop_id"
+             else _value for k in kn[0]}
+        ),
+        min_size=kn[1], max_size=kn[1],
+    ).map(lambda rows, keys=kn[0]: (keys, rows))
+)  # fmt: skip
+"""A columns message's samples: every sample with the same fields (any values)."""
+
+
+def _same(a, b):
+    assert a.received == b.received and a.rows.loop_ids == b.rows.loop_ids
+    for name in ("t", "e", "sp", "kp", "ki", "auto", "saturated", "index", "op", "applied_seq"):
+        np.testing.assert_array_equal(getattr(a.rows, name), getattr(b.rows, name), name)
+    assert [(r.index, r.loop_id, r.reason) for r in a.rejected] == [
+        (r.index, r.loop_id, r.reason) for r in b.rejected
+    ]
+
+
+@settings(max_examples=400, deadline=None)
+@given(_columns)
+def test_columns_decode_as_the_batch_of_their_rows(case):
+    """A columns message is its rows' batch: the same rows accepted, the same values,
+    positions and rejections (the rows' decoder agrees with the models, above)."""
+    keys, rows = case
+    message = {"v": 1, "columns": {k: [row[k] for row in rows] for k in keys}}
+    _same(decode_columns(message), decode_objects(rows))
+    _same(decode_batch(orjson.dumps(message)), decode_objects(rows))
+
+
+def test_a_gateways_columns_are_taken_whole_and_bad_shapes_rejected_whole():
+    columns = {
+        "loop_id": ["L0", "L1", "L2"],
+        "t": [1.0, 1.0, 1.0],
+        "sp": [2.0, 2.0, None],
+        "pv": [1.5, 0.5, 1.0],
+        "e": [None, None, 0.25],
+        "op": [10.0, 20.0, 30.0],
+    }
+    rows = decode_batch(orjson.dumps({"v": 1, "columns": columns})).rows
+    assert rows.loop_ids == ["L0", "L1", "L2"]
+    np.testing.assert_array_equal(rows.e, [0.5, 1.5, 0.25])
+    np.testing.assert_array_equal(rows.op, [10.0, 20.0, 30.0])
+    assert rows.auto.all() and np.isnan(rows.kp).all() and (rows.applied_seq == -1).all()
+    odd = {**columns, "t": [1.0, 2, 1.0]}  # an int: judged by the model (accepted as 2.0)
+    assert decode_batch(orjson.dumps({"columns": odd})).rows.t.tolist() == [1.0, 2.0, 1.0]
+    for message, n, detail in [
+        ({"columns": {**columns, "t": [1.0]}}, 3, "unequal lengths [1, 3]"),
+        ({"columns": [columns]}, 1, "not an object of lists"),
+        ({"columns": {"loop_id": "L0", "t": 1.0}}, 1, "not an object of lists"),
+        ({"columns": {"loop_id": ["L0"] * (MAX_BATCH + 1)}}, MAX_BATCH + 1, "at most"),
+    ]:
+        bad = decode_batch(orjson.dumps(message))
+        assert len(bad.rows) == 0 and bad.received == len(bad.rejected) == n
+        assert {r.reason for r in bad.rejected} == {RejectReason.schema}
+        assert detail in bad.rejected[0].detail
+    newer = decode_batch(orjson.dumps({"v": 2, "columns": columns}))
+    assert {r.reason for r in newer.rejected} == {RejectReason.unsupported_version}
+    nan = b'{"columns":{"loop_id":["L0","L1"],"t":[1.0,1.0],"e":[NaN,0.5]}}'
+    lax = decode_batch(nan)
+    assert lax.rows.loop_ids == ["L1"] and lax.rejected[0].reason is RejectReason.non_finite
 
 
 def test_one_bad_sample_does_not_take_its_batch_with_it():

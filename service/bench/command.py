@@ -37,6 +37,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--per-loop-gains", action="store_true",
       help="batched samples, but one gains message per loop and update")  # fmt: skip
     a("--batch-size", type=int, default=D.batch_size, help="most samples per batch message")
+    a("--sample-form", choices=["columns", "rows"], default=D.sample_form,
+      help="--instances: the gateways' batches as SampleColumns or SampleBatch")  # fmt: skip
     a("--instances", type=int, default=D.instances,
       help="tuners sharing a PostgreSQL store (default 1: one tuner on SQLite)")  # fmt: skip
     a("--gateways", type=int, default=D.gateways,

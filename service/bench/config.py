@@ -41,6 +41,9 @@ class BenchConfig:
     """The PostgreSQL URL for ``instances`` > 1 (None: a temporary server)."""
     batch_size: int = 2000
     """Most samples per batch message."""
+    sample_form: str = "columns"
+    """``--instances``: the gateways' batches as ``columns`` (SampleColumns, revision 6)
+    or ``rows`` (SampleBatch)."""
     tick: float = 0.01
     """Spacing of the phase groups of the sample clock, seconds."""
     tau: tuple[float, float] = (5.0, 30.0)

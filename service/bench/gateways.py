@@ -53,6 +53,8 @@ class Plan:
     groups: int
     """Phase groups of the sample clock (``period / tick``)."""
     batch_size: int
+    columns: bool
+    """Batches as :class:`~service.wire.protocol.SampleColumns` (else SampleBatch rows)."""
     window: tuple[float, float]
     """Start and end of the measured window, seconds after the start."""
     end: float
@@ -81,17 +83,25 @@ def _payloads(plan: Plan) -> list[list[tuple[str, bytes, bytes]]]:
             mine = ids[g :: plan.groups]
             for i in range(0, len(mine), plan.batch_size):
                 chunk = mine[i : i + plan.batch_size]
-                pair = tuple(
-                    b'{"v":1,"samples":['
-                    + b",".join(
-                        b'{"loop_id":"%s","t":%s,"e":%s}' % (x.encode(), PLACEHOLDER, e)
-                        for x in chunk
-                    )
-                    + b"]}"
-                    for e in (b"0.5", b"-0.5")
-                )
-                out[g].append((key, *pair))
+                encode = _columns if plan.columns else _rows
+                out[g].append((key, encode(chunk, b"0.5"), encode(chunk, b"-0.5")))
     return out
+
+
+def _rows(ids: list[str], e: bytes) -> bytes:
+    """A SampleBatch of ``ids``, each with error ``e`` and the time :data:`PLACEHOLDER`."""
+    samples = (b'{"loop_id":"%s","t":%s,"e":%s}' % (x.encode(), PLACEHOLDER, e) for x in ids)
+    return b'{"v":1,"samples":[' + b",".join(samples) + b"]}"
+
+
+def _columns(ids: list[str], e: bytes) -> bytes:
+    """The same samples as :func:`_rows`, as SampleColumns."""
+    n = len(ids)
+    return b'{"v":1,"columns":{"loop_id":%s,"t":[%s],"e":[%s]}}' % (
+        orjson.dumps(ids),
+        b",".join([PLACEHOLDER] * n),
+        b",".join([e] * n),
+    )
 
 
 class _Latencies:

@@ -125,6 +125,7 @@ def _plans(config: BenchConfig, fleet: Fleet, gateways: dict, members: Members, 
         period=fleet.period,
         groups=len(fleet.groups),
         batch_size=config.batch_size,
+        columns=config.sample_form == "columns",
         **timing,
     )
 

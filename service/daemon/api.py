@@ -323,8 +323,8 @@ def _is_loopback(host: str) -> bool:
 def _check_statuses(tuner: Tuner, watch: StatusWatch) -> None:
     """Log status changes of the loops and the ends of rejection bursts."""
     with tuner.table.lock:
-        statuses = table_statuses(tuner.table, tuner.clock.wall())
-    watch.check(statuses)
+        ids, codes = table_statuses(tuner.table, tuner.clock.wall())
+    watch.check(ids, codes)
     tuner.metrics.flush_logs()
 
 

@@ -84,6 +84,10 @@ _I64 = [
 _REC = ["rec", "rec_n", "rec_k", "rec_stride"]
 _COUNTERS = _I64[2:]
 """The counters a snapshot keeps, in this order (a new one goes at the end)."""
+_MOVES = [name for name in _I64 if name not in ("n_samples", "n_rejected")]
+"""What moves when a loop's state changes more than the samples' running sums do (a
+step, an update, a model, a pause, a mode or seq): all only ever grow, so their sum
+moves exactly when one of them does (:meth:`LoopTable.snapshot_turn`)."""
 """Identification recorder: pool row (-1: not recording), samples held, samples seen,
 recording stride."""
 _BOOL = [
@@ -154,7 +158,8 @@ class LoopTable:
         old = len(self.ids)
         layers, hidden = self.agent.cfg.layers, self.agent.cfg.hidden
         for names, dtype in (
-            (_F64, np.float64), (_I64, np.int64), (_REC, np.int64), (_BOOL, bool),
+            (_F64, np.float64), (_I64, np.int64), (_REC, np.int64), (["snap_moves"], np.int64),
+            (_BOOL, bool),
             (verify.F64, np.float64), (verify.F32, np.float32),
         ):  # fmt: skip
             for name in names:
@@ -275,6 +280,8 @@ class LoopTable:
         self._restart(s)
         restoring = [i for i, x in enumerate(saved) if x is not None]
         restore_runtimes(self, s[restoring], [saved[i] for i in restoring], _COUNTERS)
+        # the store holds this state (the snapshot restored, or no row: as registered)
+        self.snap_moves[s] = self._moves(s)
         return s
 
     def scaling_of(self, s: int) -> Scaling | None:
@@ -402,6 +409,19 @@ class LoopTable:
     def requeue_verify_dirty(self, ids: list[str]) -> None:
         self._verify_dirty.update(self.slot_of[i] for i in ids if i in self.slot_of)
 
+    def snapshot_turn(self, turn: int, every: int) -> list[str]:
+        """The loops a periodic snapshot's ``turn`` writes: each whose state moved beyond
+        its samples' running sums since its last snapshot (:data:`_MOVES`), and the
+        others in rotation, each at least every ``every`` turns."""
+        used = np.fromiter(self.slot_of.values(), np.int64, len(self.slot_of))
+        moved = self._moves(used) != self.snap_moves[used]
+        picked = used[moved | ((used + turn) % every == 0)]
+        ids = self.ids
+        return [ids[s] for s in picked.tolist()]
+
+    def _moves(self, slots: np.ndarray) -> np.ndarray:
+        return sum(getattr(self, name)[slots] for name in _MOVES)
+
     def requeue(self, gains: list[tuple[float, float, int, str]], audit: list[AuditRow]) -> None:
         """Put back changes :meth:`drain_changes` returned that could not be stored, ahead
         of any newer ones (a deleted loop's gains row is dropped: its row is gone too)."""
@@ -416,6 +436,7 @@ class LoopTable:
         else:
             items = [(i, self.slot_of[i]) for i in loop_ids if i in self.slot_of]
         slots = np.fromiter((s for _, s in items), np.int64, len(items))
+        self.snap_moves[slots] = self._moves(slots)
         hidden = self.hidden[slots]
         runtimes = runtimes_of(self, slots, _COUNTERS)
         return [
