@@ -121,14 +121,12 @@ class Guard(BaseModel):
     )
     model_check: Tolerance | None = Field(
         1.5,
-        description="While an identified model is in force, hold (do not publish) an agent "
-        "step whose gains the model predicts to track the paper's step test worse than "
-        "this factor times the model's SIMC tuning (step-test MSE) and worse than the "
-        "gains in force (counter model_holds, guard=model in the step's reason); and when "
-        "a newer confident model shows the plant moved (K or tau beyond three standard "
-        "errors) and predicts the gains in force worse than this factor times its tuning, "
-        "put that tuning in force (reason 'model'; docs/identification.md, Model check and "
-        "The envelope guard). null: off.",
+        description="With an identified model in force, hold an agent step whose gains the "
+        "model predicts to do the paper's step test worse than this factor times its SIMC "
+        "tuning and worse than the gains in force (counter model_holds, guard=model); when "
+        "a newer confident model shows the plant moved (K or tau 3 standard errors off) and "
+        "predicts the gains in force that much worse, put its tuning in force (reason "
+        "'model'; docs/identification.md, Model check, The envelope guard). null: off.",
     )
     envelope_guard: bool = Field(
         True,
