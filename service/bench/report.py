@@ -38,7 +38,13 @@ def judge(r: dict) -> dict:
         "samples_lost": line("lost", r["samples"]["lost"], operator.eq),
         "samples_rejected": line("rejected", r["samples"]["rejected"], operator.eq),
         "latency_p99_ms": line("latency_p99_ms", r["updates"]["latency_ms"]["p99"]),
-        "daemon_rss_mb": line("daemon_rss_mb", r["daemon"]["rss_max_mb"]),
+        # the single tuner's memory bar (10,000 loops): a cluster member's memory grows
+        # with its share of the loops (docs/deploy.md, Sizing), so no line for it
+        **(
+            {}
+            if r.get("failover")
+            else {"daemon_rss_mb": line("daemon_rss_mb", r["daemon"]["rss_max_mb"])}
+        ),
         "rss_per_loop_kb": line("rss_per_loop_kb", r["daemon"].get("rss_per_loop_kb")),
         "inference_ms": line("inference_ms", inf.get("fast_policy_ms_median")),
         **_cluster_lines(r.get("failover"), line),
