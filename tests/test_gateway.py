@@ -18,7 +18,15 @@ from service.daemon.tuner import Tuner
 from service.engine.config import LoopConfig
 from service.gateways.base import Gateway, Source, Update
 from service.procs import ROOT, Proc
-from service.wire.protocol import GainsBatch, GainsMessage, Keys, Mode, Sample, encode
+from service.wire.protocol import (
+    GainsBatch,
+    GainsMessage,
+    Keys,
+    Mode,
+    Sample,
+    SampleColumns,
+    encode,
+)
 from tests.tuner_support import loop_body, open_peer, tuner_settings, wait_until
 
 pytestmark = pytest.mark.timeout(90)
@@ -210,9 +218,11 @@ def test_the_example_gateway_applies_state_and_batched_gains(tuner, other, tmp_p
     assert stepped != 0.5
     samples = queue.SimpleQueue()
 
-    # a tuner of revision 4 listens on the gateway's samples key: each scan is one batch there
+    # a tuner listens on the gateway's samples key: each scan is one SampleColumns there
     def on_batch(s: zenoh.Sample) -> None:
-        for item in orjson.loads(s.payload.to_bytes())["samples"]:
+        columns = SampleColumns.model_validate_json(s.payload.to_bytes()).columns
+        for values in zip(*columns.values(), strict=True):
+            item = {k: v for k, v in zip(columns, values, strict=True) if v is not None}
             samples.put(orjson.dumps(item))
 
     sub = other.declare_subscriber(KEYS.gateway_samples("gw-1"), on_batch)

@@ -6,7 +6,7 @@ A gateway (the plant simulator here, a real DCS gateway in
 * it publishes one :class:`~service.wire.protocol.Sample` per loop and DCS scan on
   ``{prefix}/loops/{id}/sample`` with ``CongestionControl.BLOCK`` (never dropped); with a
   ``gateway_id``, :meth:`Gateway.publish_scan` sends a scan as one
-  :class:`~service.wire.protocol.SampleBatch` on ``{prefix}/gateways/{gateway_id}/samples``
+  :class:`~service.wire.protocol.SampleColumns` on ``{prefix}/gateways/{gateway_id}/samples``
   while a tuner subscribes to it (revision 4: in a cluster only the member owning this
   gateway's loops does, so no other member decodes them), per loop otherwise;
 * it receives :class:`~service.wire.protocol.GainsMessage` on ``{prefix}/loops/*/gains``
@@ -58,7 +58,7 @@ from service.wire.protocol import (
     Keys,
     Mode,
     Sample,
-    SampleBatch,
+    SampleColumns,
     StateBatch,
     StateReply,
     encode,
@@ -331,7 +331,8 @@ class Gateway:
     def publish_scan(self, samples: dict[str, Sample]) -> None:
         """Publish one scan's samples (loop id -> sample, ``applied_seq`` as
         :meth:`publish`). With a ``gateway_id`` and a tuner subscribed to this gateway's
-        samples key (revision 4), as SampleBatch messages there; else (no gateway id, a
+        samples key (revision 4), as SampleColumns messages there (revision 6: decoded ~5x
+        cheaper than a SampleBatch); else (no gateway id, a
         tuner of an earlier revision, or a cluster between two owners of this gateway)
         one message per loop, which every tuner hears."""
         batches = self._batches
@@ -344,7 +345,7 @@ class Gateway:
             for loop_id, sample in samples.items()
         ]
         for i in range(0, len(items), MAX_BATCH):
-            batches.put(encode(SampleBatch(samples=items[i : i + MAX_BATCH])))
+            batches.put(encode(SampleColumns.of(items[i : i + MAX_BATCH])))
 
     def _reported(self, loop_id: str, sample: Sample) -> Sample:
         if sample.applied_seq is None:

@@ -268,7 +268,7 @@ def decode_batch(payload: bytes) -> Decoded:
 def decode_columns(message: dict, *, strict_json: bool = True) -> Decoded:
     """Decode a :class:`~service.wire.protocol.SampleColumns` message (parsed): the same
     samples as the :class:`~service.wire.protocol.SampleBatch` whose sample ``i`` has
-    field ``k`` = ``columns[k][i]`` (null: as absent), judged by the same rules.
+    field ``k`` = ``columns[k][i]``, judged by the same rules.
 
     Plain columns are taken whole, one pass per column (no object per sample: ~5x
     cheaper than a batch's rows, the tuner's largest cost per sample at 150,000 loops
@@ -290,8 +290,10 @@ def decode_columns(message: dict, *, strict_json: bool = True) -> Decoded:
     if strict_json and n and "loop_id" in cols:
         f = {k: cols.get(k) or [default] * n for k, default in _DEFAULTS.items()}
         f["present"] = set(cols)
+        # a null applied_seq is one not carried, as the model reads it (a gateway's
+        # columns have one where the DCS applied no update yet)
         seqs = cols.get("applied_seq", ())
-        if _plain_whole(f, all(map(_seq_ok, seqs))):
+        if _plain_whole(f, all(_seq_ok(a) for a in seqs if a is not None)):
             return Decoded(_columns(f, range(n)), [], n)
     names = list(cols)
     rows = [dict(zip(names, values, strict=True)) for values in zip(*cols.values(), strict=True)]
