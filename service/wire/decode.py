@@ -258,7 +258,7 @@ def decode_batch(payload: bytes) -> Decoded:
         return _whole(1, RejectReason.schema, "batch without a 'samples' list")
     n = len(items)
     version = message.get("v", SCHEMA_VERSION)
-    if type(version) is not int or not 1 <= version <= SCHEMA_VERSION:
+    if not _speaks(version):
         return _whole(n, RejectReason.unsupported_version, f"batch v={version!r}")
     if n > MAX_BATCH:
         return _whole(n, RejectReason.schema, f"batch of {n} samples (at most {MAX_BATCH})")
@@ -283,7 +283,7 @@ def decode_columns(message: dict, *, strict_json: bool = True) -> Decoded:
     if len(lengths) > 1:
         return _whole(n, RejectReason.schema, f"columns of unequal lengths {sorted(lengths)}")
     version = message.get("v", SCHEMA_VERSION)
-    if type(version) is not int or not 1 <= version <= SCHEMA_VERSION:
+    if not _speaks(version):
         return _whole(n, RejectReason.unsupported_version, f"columns v={version!r}")
     if n > MAX_BATCH:
         return _whole(n, RejectReason.schema, f"columns of {n} samples (at most {MAX_BATCH})")
@@ -301,6 +301,11 @@ def decode_columns(message: dict, *, strict_json: bool = True) -> Decoded:
 
 
 # -- helpers ----------------------------------------------------------------------------
+def _speaks(version) -> bool:
+    """Whether a batch message's ``v`` is a schema version this tuner reads."""
+    return type(version) is int and 1 <= version <= SCHEMA_VERSION
+
+
 def _lax_loads(payload: bytes):
     """JSON with NaN/Infinity admitted (Python's json), or None if it is not JSON."""
     try:
