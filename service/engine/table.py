@@ -84,12 +84,11 @@ _I64 = [
 _REC = ["rec", "rec_n", "rec_k", "rec_stride"]
 _COUNTERS = _I64[2:]
 """The counters a snapshot keeps, in this order (a new one goes at the end)."""
-_MOVES = [name for name in _I64 if name not in ("n_samples", "n_rejected")]
-"""What moves when a loop's state changes more than the samples' running sums do (a
-step, an update, a model, a pause, a mode or seq): all only ever grow, so their sum
-moves exactly when one of them does (:meth:`LoopTable.snapshot_turn`)."""
 """Identification recorder: pool row (-1: not recording), samples held, samples seen,
 recording stride."""
+_MOVES = [name for name in _I64 if name not in ("mode", "n_samples", "n_rejected")]
+"""What grows when a loop's state changes more than its samples' running sums do (a
+step, an update, a model, a pause; seq): with the mode, :meth:`LoopTable._moves`."""
 _BOOL = [
     "pending", "manual", "saturated",
     # identification: it runs, a scaling is in force, flagged, paused, last sample usable
@@ -420,7 +419,10 @@ class LoopTable:
         return [ids[s] for s in picked.tolist()]
 
     def _moves(self, slots: np.ndarray) -> np.ndarray:
-        return sum(getattr(self, name)[slots] for name in _MOVES)
+        """One number that changes exactly when one of :data:`_MOVES` (they only grow:
+        their sum) or the mode (which may go either way) does."""
+        grown = sum(getattr(self, name)[slots] for name in _MOVES)
+        return grown * len(_MODES) + self.mode[slots]
 
     def requeue(self, gains: list[tuple[float, float, int, str]], audit: list[AuditRow]) -> None:
         """Put back changes :meth:`drain_changes` returned that could not be stored, ahead
