@@ -8,6 +8,7 @@ import torch
 from plant_sim.foptd import FOPTDBatch
 from plant_sim.loop import step_test_mse
 from service.agent import load_agent
+from service.agent.model import V2_WEIGHTS
 from service.learn.env import (
     EnvConfig,
     TuningEnv,
@@ -160,8 +161,8 @@ def test_the_excitation_gate_of_training_is_the_engines(tmp_path):
         opened.append(env.gate_open())
     opened = np.array(opened)
     assert opened[:, 0].all()  # toggles every 4 periods: always open
-    # a move at 0 and at 55 time units (20 periods): open for 5 periods after the start
-    assert opened[:6, 1].all() and not opened[6:, 1].any()
+    # a move at 0 and at 55 time units (20 periods): open for 4 periods after the start
+    assert opened[:5, 1].all() and not opened[5:, 1].any()
     # quiet until 8.5 periods, then moves every 4: closed before, open from the move on
     assert not opened[:9, 2].any() and opened[9:, 2].all()
 
@@ -196,7 +197,7 @@ def test_validation_scores_the_evaluations_adaptation_against_v2():
     """``--val-adapt``: the selection score takes in ``pitune evaluate``'s own tau ramp and
     K step (the same runs, the same numbers) as fractions of v2's, so an epoch that has
     lost the adaptation cannot score best."""
-    agent = load_agent()  # v2, the bar itself
+    agent = load_agent(V2_WEIGHTS)  # the bar itself
     plain = validate(agent.actor, 2, steps=12)
     scored = validate(agent.actor, 2, steps=12, adapt=True)
     assert "val_k_step" not in plain

@@ -35,6 +35,8 @@ from torch import nn
 
 MODELS_DIR = Path(__file__).resolve().parents[1] / "models"
 DEFAULT_WEIGHTS = MODELS_DIR / "pitune_agent.pt"
+V2_WEIGHTS = MODELS_DIR / "pitune_agent_v2.pt"
+"""v2, shipped until session 13: the adaptation bar v3 is held to (TRAINING.md)."""
 GAIN_FLOOR = 1e-3
 MAX_LOG_STEP = 1.0
 """Largest relative change per RL step, in log units (a factor of e = 2.7)."""

@@ -252,14 +252,24 @@ def write_model_card(path: Path, agent: Agent, metrics: dict) -> None:
     """``MODEL_CARD.md`` beside the weights: training facts, changes, evaluation numbers."""
     meta = agent.meta
     cfg = meta.get("train_config", {})
+    mix = cfg.get("core_share", 1.0) < 1.0  # the real-loop episodes beside the paper's
     lines = [
         "# pitune agent: model card",
         "",
         "Recurrent meta-RL PI tuner after McClement et al. (J. Process Control 2022): a",
         "2-layer GRU (100 units) and two Leaky-ReLU layers (64 units) to the action mean;",
         "trained offline on FOPTD plants K in [0.25, 1], tau in [0.25, 1], theta/tau in",
-        f"[0, 1]; one RL step every {RL_STEP_AGENT_UNITS:g} time units. Use it through"
-        " `service.agent.load_agent`.",
+        "[0, 1]"
+        + (
+            f" ({100 * cfg['core_share']:.0f}% of the episodes) and on real loops beside"
+            " them: measurement noise, load disturbances, setpoint moves of any size and"
+            " timing, hints off by up to 3x, theta/tau up to 2, second-order plants"
+            " (TRAINING.md)"
+            if mix
+            else ""
+        )
+        + f"; one RL step every {RL_STEP_AGENT_UNITS:g} time units. Use it through"
+        " `service.agent.load_agent`. Off the paper's protocol: `reports/robust.md`.",
         "",
         "## Training",
         "",

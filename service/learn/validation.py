@@ -62,9 +62,9 @@ VAL_ROBUST = tuple(
 )
 """The robustness conditions scored by :func:`validate_robust`."""
 VAL_ADAPT_BAR = {"tau_ramp": 0.00047, "k_step": 0.00011}
-"""The shipped v2's adaptive tracking MSE in ``pitune evaluate``'s adaptation experiment
+"""v2's (``V2_WEIGHTS``) adaptive tracking MSE in ``pitune evaluate``'s adaptation experiment
 (window-mean observation, session 9): a v3 ships only if it is no worse on both
-(TRAINING.md, the shipping rule), so :func:`validate_adaptation` scores against them."""
+(issue 12's line; TRAINING.md), so :func:`validate_adaptation` scores against them."""
 
 
 def validate(
