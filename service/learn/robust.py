@@ -255,7 +255,7 @@ def run_condition(
         if last is not None:
             results.append(last)
         for result in results:
-            rows_of = np.array([int(i[1:]) for i in result.loop_ids])
+            rows_of = np.array([int(i[1:]) for i in result.loop_ids], dtype=np.int64)
             new_kp, new_ki = pi.kp.copy(), pi.ki.copy()
             new_kp[rows_of], new_ki[rows_of] = result.new[:, 0], result.new[:, 1]
             pi.set_gains(new_kp, new_ki)
