@@ -104,3 +104,70 @@ def test_noise_damping_shortens_the_walk_of_a_tuned_loops_gains():
         path[d] = np.abs(np.diff(lg, axis=0)).sum(axis=(0, 2))
         worst[d] = np.abs(lg).max(axis=(0, 2))
     assert np.all(path[2.0] < 0.8 * path[0.0]) and np.all(worst[2.0] < worst[0.0])
+
+
+def test_settling_scales_the_agents_step_by_its_steps_so_far():
+    """``guard.settle_steps`` (docs/tuner.md, Robustness measures 7): the agent's asked-for
+    change of the gains (log units) is taken whole for the first settle_steps steps of an
+    episode, then scaled by settle_steps / n down to SETTLE_FLOOR; a decayed sum of asks
+    beyond SETTLE_RESET starts n again; a new episode (reset) does too."""
+    from service.agent.model import load_agent
+    from service.engine import LoopConfig, TuningEngine
+    from service.engine.stepping import SETTLE_FLOOR, SETTLE_MEMORY, SETTLE_RESET, _settle
+
+    eng = TuningEngine(load_agent())
+    for i, steps in enumerate((20.0, 0.0)):
+        eng.register(LoopConfig(id=f"L{i}", kp=1.0, ki=0.1, sample_period_s=1.0,
+                                guard={"settle_steps": steps}))  # fmt: skip
+    tb = eng.table
+    s = np.array([tb.slot("L0"), tb.slot("L1")])
+    on = tb.settle[s] > 0
+    assert on.tolist() == [True, False]
+
+    def taken(n_before: float, ask: float, acc: float = 0.0) -> float:
+        tb.settle_n[s], tb.settle_kp[s], tb.settle_ki[s] = n_before, acc, 0.0
+        old = np.column_stack([tb.kp[s], tb.ki[s]])
+        new = _settle(tb, s, old * np.exp([[ask, -ask]] * 2), on)
+        assert np.log(new[1] / old[1]) == pytest.approx([ask, -ask])  # off: whole
+        share = np.log(new[0] / old[0]) / [ask, -ask]
+        assert share[0] == pytest.approx(share[1])
+        return float(share[0])
+
+    assert taken(0.0, 0.1) == pytest.approx(1.0) and tb.settle_n[s[0]] == 1.0
+    assert taken(19.0, 0.1) == pytest.approx(1.0)
+    assert taken(39.0, 0.1) == pytest.approx(0.5)
+    assert taken(999.0, 0.1) == pytest.approx(SETTLE_FLOOR)
+    assert tb.settle_kp[s[0]] == pytest.approx(0.1)
+    below = (SETTLE_RESET - 0.1) / SETTLE_MEMORY  # decays to just under the reset
+    assert taken(999.0, 0.09, acc=below) == pytest.approx(SETTLE_FLOOR)
+    assert taken(999.0, 0.11, acc=below) == pytest.approx(1.0)  # a real change: n again
+    assert tb.settle_n[s[0]] == 1.0 and tb.settle_kp[s[0]] == 0.0
+    tb.settle_n[s] = 50.0
+    eng.reset("L0", wall=0.0)
+    assert tb.settle_n[s[0]] == 0.0
+
+
+def test_settling_steadies_a_noisy_loops_gains_and_follows_a_plant_that_moved():
+    """Through the engine (shipped agent, forgetting 0.99): 3 grid loops, noise 0.05,
+    irregular setpoints: the gains' largest deviation from their median over the last 80
+    of 160 RL periods 0.36, 0.17, 0.22 without settling, 0.16, 0.05, 0.07 with it; and
+    after K doubles at period 80 (no noise, settled by then) the gains follow it down (kp
+    from 1.17, 0.61, 0.40 to 0.51, 0.39, 0.28 in 40 periods)."""
+    from service.agent.model import load_agent
+    from service.learn.robust import Condition, grid, run_condition
+
+    agent = load_agent()
+    K, tau, r = (x[[4, 13, 22]] for x in grid())
+    wander = {}
+    for d in (0.0, 20.0):
+        run = run_condition(agent, Condition("noisy", noise=0.05, sp_irregular=True),
+                            periods=160, plants=(K, tau, r), seed=1, forgetting=0.99,
+                            guard={"settle_steps": d})  # fmt: skip
+        late = run.gains[80:]
+        wander[d] = np.abs(late / np.median(late, axis=0) - 1.0).max(axis=(0, 2))
+    assert np.all(wander[20.0] < 0.6 * wander[0.0]), wander
+    run = run_condition(agent, Condition("paper protocol"), periods=120, plants=(K, tau, r),
+                        seed=1, forgetting=0.99,
+                        schedule=lambda p: (2 * K, tau, r * tau) if p == 80 else None)  # fmt: skip
+    kp = run.gains[:, :, 0]
+    assert np.all(kp[120] < 0.9 * kp[79]), kp[[79, 120]]

@@ -13,7 +13,8 @@ from hypothesis import strategies as st
 
 from service.daemon.bus import Kind
 from service.daemon.tuner import Tuner
-from service.engine.config import LoopConfig, LoopPatch
+from service.engine.config import LoopConfig
+from service.engine.patch import LoopPatch
 from service.wire.protocol import GainsBatch, GainsMessage, Mode, RejectReason, UpdateReason
 from tests.tuner_support import connected_gateway, loop_body, tuner_settings, wait_until
 

@@ -19,8 +19,9 @@ from service.daemon.shards import shard_of
 from service.daemon.verdicts import SCAN, annotate
 from service.engine import views
 from service.engine.audit import AuditRow, audit_row
-from service.engine.config import LoopConfig, LoopPatch, LoopView
+from service.engine.config import LoopConfig, LoopView
 from service.engine.figures import Performance
+from service.engine.patch import LoopPatch
 from service.engine.updates import StepResult
 
 

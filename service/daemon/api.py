@@ -58,8 +58,9 @@ from service.daemon.schemas import (
 )
 from service.daemon.settings import Settings
 from service.daemon.tuner import Tuner
-from service.engine.config import LoopPatch, LoopView, Registration
+from service.engine.config import LoopView, Registration
 from service.engine.figures import Performance
+from service.engine.patch import LoopPatch
 
 log = logging.getLogger("pitune.api")
 _bearer = HTTPBearer(auto_error=False, description="PITUNE_API_TOKEN, when set")

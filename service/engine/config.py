@@ -63,6 +63,13 @@ class Guard(BaseModel):
         "pv_scale a loop counts as noise-free and is never damped), d this setting (2: "
         "docs/tuner.md, Robustness measures); 0 turns it off.",
     )
+    settle_steps: Periods = Field(
+        20.0,
+        description="Settling: from this many agent steps into an episode on, each step's "
+        "change of the gains is scaled by this / n (n the steps so far), down to a tenth, "
+        "until the agent keeps asking for a large change (a plant that moved): full steps "
+        "again (docs/tuner.md, Robustness measures 7). 0 turns it off.",
+    )
     max_sensitivity: Damping = Field(
         1.6,
         description="Robustness guard: with an identified model (guard.identify), each "
@@ -317,49 +324,6 @@ def check_bounds(guard: Guard, kp: float, ki: float) -> None:
         raise ValueError("bounds must satisfy min < max")
     if not (guard.kp_min <= kp <= guard.kp_max and guard.ki_min <= ki <= guard.ki_max):
         raise ValueError("the registered gains must lie within the bounds")
-
-
-class LoopPatch(BaseModel):
-    """Body of ``PATCH /loops/{id}``: fields to change, others untouched."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    mode: Mode | None = None
-    forgetting: Annotated[float, Field(strict=True, gt=0.0, le=1.0)] | None = None
-    kp_min: Gain | None = None
-    kp_max: Gain | None = None
-    ki_min: Gain | None = None
-    ki_max: Gain | None = None
-    max_rel_change: Fraction | None = None
-    noise_damping: Damping | None = None
-    max_sensitivity: Damping | None = None
-    stale_periods: Annotated[float, Field(strict=True, ge=1.0, le=1e6)] | None = None
-    excitation_periods: ExcitationPeriods | None = None
-    excitation_min_step: ExcitationStep | None = None
-    identify: bool | None = None
-    hint_tolerance: Tolerance | None = None
-    auto_rescale: bool | None = None
-    envelope_guard: bool | None = None
-    verify: bool | None = None
-    verify_margin: Margin | None = None
-    cooldown_periods: Periods | None = None
-    gateway: GatewayId | None = Field(
-        None, description="Set a gateway (batched gains), or null: one message per loop again."
-    )
-
-    def apply(self, config: LoopConfig) -> LoopConfig:
-        """The patched config; raises ValueError if the bounds become inconsistent."""
-        top = self.model_dump(include={"mode", "forgetting"}, exclude_none=True)
-        if "gateway" in self.model_fields_set:  # an explicit null is a change here
-            top["gateway"] = self.gateway
-        guard = config.guard.model_copy(
-            update=self.model_dump(exclude={"mode", "forgetting", "gateway"}, exclude_none=True)
-        )
-        if config.scaling is None:
-            check_given_bounds(guard, config.kp, config.ki)
-        else:
-            check_bounds(guard, config.kp, config.ki)
-        return config.model_copy(update={**top, "guard": guard})
 
 
 class Counters(BaseModel):

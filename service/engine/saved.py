@@ -50,7 +50,7 @@ class Saved:
 
 _SCALARS = (
     "last_t", "last_e", "int_e", "next_due", "sp_ref", "excited_until", "obs_gain",
-    "sp_anchor", "move_t", "manual", "saturated",
+    "sp_anchor", "move_t", "manual", "saturated", "settle_n", "settle_kp", "settle_ki",
 )  # fmt: skip
 """The runtime snapshot's per-loop scalars (arrays of the table of the same names)."""
 
@@ -123,11 +123,12 @@ _RESTORED = (
     ("last_t", math.nan), ("next_due", math.nan), ("last_e", math.nan), ("int_e", math.nan),
     ("manual", False), ("saturated", False), ("sp_ref", math.nan),
     ("excited_until", -math.inf), ("obs_gain", math.nan), ("sp_anchor", math.nan),
-    ("move_t", -math.inf),
+    ("move_t", -math.inf), ("settle_n", 0.0), ("settle_kp", 0.0), ("settle_ki", 0.0),
 )  # fmt: skip
 """The runtime snapshot's scalars restored, with the value of a null (the ones absent in
 older snapshots: sp_ref before the excitation gate, excited_until, sp_anchor and move_t
-before runs of moves, obs_gain before the normalisation, keep the registration's)."""
+before runs of moves, obs_gain before the normalisation, the settling's before it, keep
+the registration's)."""
 
 
 def _at(values: list, k: int):

@@ -26,7 +26,7 @@ if TYPE_CHECKING:
 
 _NAN, _INF = math.nan, math.inf
 _FLOATS = (
-    "stale_gap", "forgetting", "sign", "max_rel", "damp", "ms_max",
+    "stale_gap", "forgetting", "sign", "max_rel", "damp", "ms_max", "settle",
     "kp_unit", "ki_unit", "e_scale", "u_scale", "time_unit", "int_scale", "period",
     "kp_min", "kp_max", "ki_min", "ki_max", "exc_step", "exc_window", "mc_factor",
 )  # fmt: skip
@@ -92,7 +92,8 @@ def _row(tb: LoopTable, s: int, config: LoopConfig) -> tuple:
     model = state.in_force
     return (
         g.stale_periods * config.sample_period_s, config.forgetting, config.action_sign,
-        g.max_rel_change, g.noise_damping, g.max_sensitivity, *units, *bounds, *excitation,
+        g.max_rel_change, g.noise_damping, g.max_sensitivity, g.settle_steps, *units, *bounds,
+        *excitation,
         g.model_check or 0.0,
         config.scaling is None if g.identify is None else g.identify, g.envelope_guard,
         sc is not None,

@@ -58,6 +58,9 @@ def step(tb: LoopTable, slots: np.ndarray, wall: float) -> StepResult:
     damped = tb.damp[slots] > 0
     if damped.any():
         proposed = _damp(tb, slots, obs, proposed, damped)
+    settling = tb.settle[slots] > 0
+    if settling.any():
+        proposed = _settle(tb, slots, proposed, settling)
     sane = np.isfinite(proposed).all(axis=1) & np.isfinite(state).all(axis=(1, 2))
     if not sane.all():
         _faults(tb, slots[~sane], wall, "non-finite agent output")
@@ -232,6 +235,38 @@ def _damp(tb: LoopTable, slots, obs, proposed, damped) -> np.ndarray:
         w = np.where(damped & (noise > 0), e2 / (e2 + noise), 1.0)
     old = np.column_stack([tb.kp[slots], tb.ki[slots]])
     return old + w[:, None] * (proposed - old)
+
+
+SETTLE_FLOOR = 0.1
+"""Smallest share of the agent's step a settled loop takes (``guard.settle_steps``)."""
+SETTLE_MEMORY = 0.9
+"""Decay per step of the running sum of the log changes the agent asks for."""
+SETTLE_RESET = 1.2
+"""That sum (log units: 3.3x) beyond which the agent is asking for a real change (a plant
+that moved): full steps again. Its steps on a noisy loop, settled, sum to less (measured:
+docs/tuner.md, Robustness measures 7)."""
+
+
+def _settle(tb: LoopTable, slots, proposed, settling) -> np.ndarray:
+    """Settling: the agent's change of the gains (log units) scaled by settle_steps / n,
+    n its steps in the episode, between SETTLE_FLOOR and 1, so that converged gains stop
+    wandering with the noise and the load; n starts again where the agent keeps asking for
+    a large change (docs/tuner.md, Robustness measures 7)."""
+    old = np.column_stack([tb.kp[slots], tb.ki[slots]])
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        ask = np.log(proposed / old)
+    usable = settling & np.isfinite(ask).all(axis=1)
+    ask = np.where(usable[:, None], ask, 0.0)
+    s = slots[usable]
+    acc = SETTLE_MEMORY * np.column_stack([tb.settle_kp[s], tb.settle_ki[s]]) + ask[usable]
+    change = (np.abs(acc) > SETTLE_RESET).any(axis=1)
+    n = np.where(change, 1.0, tb.settle_n[s] + 1.0)
+    tb.settle_n[s] = n
+    tb.settle_kp[s], tb.settle_ki[s] = np.where(change[:, None], 0.0, acc).T
+    share = np.ones(slots.size)
+    share[usable] = np.clip(tb.settle[s] / n, SETTLE_FLOOR, 1.0)
+    with np.errstate(over="ignore", invalid="ignore"):
+        return np.where(usable[:, None], old * np.exp(share[:, None] * ask), proposed)
 
 
 def _faults(tb: LoopTable, slots: np.ndarray, wall: float, why: str) -> None:

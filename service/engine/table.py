@@ -61,6 +61,9 @@ _F64 = (
     # and the robustness guard's largest sensitivity (0: off)
     "kp_min", "kp_max", "ki_min", "ki_max", "max_rel", "tokens", "token_wall", "damp",
     "ms_max",
+    # settling (service.engine.stepping): the setting, the agent's steps in the episode and
+    # the decayed sum of the log changes it asked for, kp and ki
+    "settle", "settle_n", "settle_kp", "settle_ki",
     # the model check's factor (service.engine.model_check; 0: off)
     "mc_factor",
     # excitation gate: smallest setpoint step (engineering units), window after one (s;
@@ -306,6 +309,11 @@ class LoopTable:
         self.back_n[s] = 0.0
         self.last_wall[s] = -math.inf
         self.pending[s] = self.manual[s] = self.saturated[s] = False
+        self.unsettle(s)
+
+    def unsettle(self, s) -> None:
+        """The agent's steps at full size again: a new episode (``guard.settle_steps``)."""
+        self.settle_n[s] = self.settle_kp[s] = self.settle_ki[s] = 0.0
 
     def reconfigure(self, config: LoopConfig) -> None:
         s = self.slot(config.id)

@@ -206,6 +206,7 @@ def fail(
         tb.kp[s], tb.ki[s] = good
         tb.pending[s] = True
         tb.hidden[s] = 0.0  # the agent's memory of the failed gains goes with them
+        tb.unsettle(s)
         tb.adv_kp[s] = tb.adv_ki[s] = tb.adv_seq[s] = math.nan
         verdict = "rolled_back"
     else:

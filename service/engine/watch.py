@@ -420,6 +420,7 @@ def _put_in_force(tb, s, m, scaling: Scaling, t, wall, reason: str, detail: str)
     tb.reconfigure(tb.configs[tb.ids[s]])
     # a fresh episode from the gains in force, a decimation window from now
     tb.hidden[s] = 0.0
+    tb.unsettle(s)
     tb.int_e[s] = 0.0
     tb.next_due[s] = t + tb.period[s]
     if tb.exc_window[s] < math.inf:

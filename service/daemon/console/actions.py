@@ -14,7 +14,7 @@ from fastapi.responses import JSONResponse
 
 from service.daemon.console.context import tuner_of
 from service.daemon.console.sessions import Session, acting
-from service.engine.config import LoopPatch
+from service.engine.patch import LoopPatch
 
 router = APIRouter()
 
