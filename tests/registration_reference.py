@@ -64,6 +64,7 @@ def _configure(tb: LoopTable, s: int, config: LoopConfig) -> None:
     tb.max_rel[s] = g.max_rel_change
     tb.damp[s] = g.noise_damping
     tb.ms_max[s] = g.max_sensitivity
+    tb.settle[s] = g.settle_steps
     tb.mc_factor[s] = g.model_check or 0.0
     tb.mode[s] = _CODE[config.mode]
     tb.gateways[s] = None if config.gateway is None else sys.intern(config.gateway)
@@ -119,6 +120,8 @@ def _restore_runtime(tb: LoopTable, s: int, saved: Saved) -> None:
     anchor, move_t = rt.get("sp_anchor"), rt.get("move_t")
     tb.sp_anchor[s] = math.nan if anchor is None else anchor
     tb.move_t[s] = -math.inf if move_t is None else move_t
+    for name in ("settle_n", "settle_kp", "settle_ki"):  # absent before settling
+        getattr(tb, name)[s] = rt.get(name) or 0.0
     for name, value in zip(_COUNTERS, rt["counters"], strict=False):
         getattr(tb, name)[s] = value
     ident = rt.get("ident")
