@@ -113,6 +113,7 @@ def test_settling_scales_the_agents_step_by_its_steps_so_far():
     beyond SETTLE_RESET starts n again; a new episode (reset) does too."""
     from service.agent.model import load_agent
     from service.engine import LoopConfig, TuningEngine
+    from service.engine.patch import LoopPatch
     from service.engine.stepping import SETTLE_FLOOR, SETTLE_MEMORY, SETTLE_RESET, _settle
 
     eng = TuningEngine(load_agent())
@@ -145,6 +146,11 @@ def test_settling_scales_the_agents_step_by_its_steps_so_far():
     tb.settle_n[s] = 50.0
     eng.reset("L0", wall=0.0)
     assert tb.settle_n[s[0]] == 0.0
+    # PATCH /loops/{id} turns it off (and a bad value is refused)
+    eng.reconfigure(LoopPatch(settle_steps=0.0).apply(tb.configs["L0"]))
+    assert tb.settle[s[0]] == 0.0
+    with pytest.raises(ValueError, match="greater than or equal to 0"):
+        LoopPatch(settle_steps=-1.0)
 
 
 def test_settling_steadies_a_noisy_loops_gains_and_follows_a_plant_that_moved():
