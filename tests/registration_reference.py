@@ -122,6 +122,8 @@ def _restore_runtime(tb: LoopTable, s: int, saved: Saved) -> None:
     tb.move_t[s] = -math.inf if move_t is None else move_t
     for name in ("settle_n", "settle_kp", "settle_ki"):  # absent before settling
         getattr(tb, name)[s] = rt.get(name) or 0.0
+    if saved.hidden.size != tb.hidden[s].size:  # a new episode: settling starts again
+        tb.unsettle(s)
     for name, value in zip(_COUNTERS, rt["counters"], strict=False):
         getattr(tb, name)[s] = value
     ident = rt.get("ident")

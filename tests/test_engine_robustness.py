@@ -110,7 +110,7 @@ def test_settling_scales_the_agents_step_by_its_steps_so_far():
     """``guard.settle_steps`` (docs/tuner.md, Robustness measures 7): the agent's asked-for
     change of the gains (log units) is taken whole for the first settle_steps steps of an
     episode, then scaled by settle_steps / n down to SETTLE_FLOOR; a decayed sum of asks
-    beyond SETTLE_RESET starts n again; a new episode (reset) does too."""
+    beyond SETTLE_RESET starts n again; a new episode (reset) and a change of mode do too."""
     from service.agent.model import load_agent
     from service.engine import LoopConfig, TuningEngine
     from service.engine.patch import LoopPatch
@@ -145,6 +145,9 @@ def test_settling_scales_the_agents_step_by_its_steps_so_far():
     assert tb.settle_n[s[0]] == 1.0 and tb.settle_kp[s[0]] == 0.0
     tb.settle_n[s] = 50.0
     eng.reset("L0", wall=0.0)
+    assert tb.settle_n[s[0]] == 0.0
+    tb.settle_n[s] = 50.0  # a change of mode too: in shadow the asks were not applied
+    eng.reconfigure(LoopPatch(mode="shadow").apply(tb.configs["L0"]))
     assert tb.settle_n[s[0]] == 0.0
     # PATCH /loops/{id} turns it off (and a bad value is refused)
     eng.reconfigure(LoopPatch(settle_steps=0.0).apply(tb.configs["L0"]))

@@ -121,6 +121,7 @@ def apply(tb, s: int, m, wall: float, why: str) -> None:
         ratio = np.asarray(new) / np.asarray(old)
     if not ((ratio > step) | (ratio < 1.0 / step)).any():
         return
+    tb.unsettle(s)  # the plant moved, or a new model: the agent's steps whole again
     t = float(tb.last_t[s]) if math.isfinite(tb.last_t[s]) else 0.0
     tb.seq[s] += 1
     seq = int(tb.seq[s])

@@ -105,6 +105,8 @@ def restore_runtimes(tb, slots: np.ndarray, saved: list[Saved], counters: list[s
     rts = [x.runtime for x in saved]
     for name, default in _RESTORED:
         put(getattr(tb, name), slots, [rt.get(name, ABSENT) for rt in rts], default)
+    # an agent memory of another size is not restored: its episode starts again
+    tb.unsettle(slots[[i for i, x in enumerate(saved) if x.hidden.size != size]])
     # snapshots from before a counter was added list fewer: those stay 0
     for k, name in enumerate(counters):
         put(getattr(tb, name), slots, [_at(rt["counters"], k) for rt in rts], 0)

@@ -58,13 +58,13 @@ def step(tb: LoopTable, slots: np.ndarray, wall: float) -> StepResult:
     damped = tb.damp[slots] > 0
     if damped.any():
         proposed = _damp(tb, slots, obs, proposed, damped)
-    settling = tb.settle[slots] > 0
-    if settling.any():
-        proposed = _settle(tb, slots, proposed, settling)
     sane = np.isfinite(proposed).all(axis=1) & np.isfinite(state).all(axis=(1, 2))
     if not sane.all():
         _faults(tb, slots[~sane], wall, "non-finite agent output")
         slots, proposed, state = slots[sane], proposed[sane], state[sane]
+    settling = tb.settle[slots] > 0
+    if settling.any():
+        proposed = _settle(tb, slots, proposed, settling)
     tb.hidden[slots] = state
     old = np.column_stack([tb.kp[slots], tb.ki[slots]])
     mode = tb.mode[slots]

@@ -319,6 +319,8 @@ class LoopTable:
         s = self.slot(config.id)
         if _CODE[config.mode] != self.mode[s]:  # a proposal belongs to the mode it was made in
             self.adv_kp[s] = self.adv_ki[s] = self.adv_seq[s] = math.nan
+            # and so does settling: in shadow or advisory the agent's asks are not applied
+            self.unsettle(s)
         settings.configure(self, np.array([s]), [config])
 
     def remove(self, loop_id: str) -> None:
