@@ -118,19 +118,55 @@ def _lstsq(basis: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 def _sse_grid(windows: list[Window], taus, thetas) -> np.ndarray:
     """Residual sum of squares at each (tau, theta) of a grid, each point linear in every
-    window's (b, K, c) (independent K per window: a start for the joint refinement)."""
-    sse = np.zeros((len(taus), len(thetas)))
+    window's (b, K, c) (independent K per window: a start for the joint refinement).
+
+    One filter pass per tau: the lag is linear and time-invariant and the input is at rest
+    (0) before the window, so the response to the input delayed by theta = (d + f) dt is
+    the undelayed response shifted by d and d + 1 samples, blended as :func:`_delayed`
+    blends the input; a recorded row's sum of it is a difference of the running sum. An
+    input offset only adds ``c (1 - a^k)``, which b and c absorb."""
+    thetas = np.asarray(thetas, np.float64)
+    sse = np.zeros((len(taus), thetas.size))
     for w in windows:
-        steps = np.arange(w.t.size)
+        n = w.t.size
+        rows = np.arange(n) if w.rows is None else w.rows
+        count = np.ones(n, np.int64) if w.count is None else w.count
+        root = np.sqrt(count)
+        d = np.floor(thetas / w.dt).astype(np.int64)
+        f = thetas / w.dt - d
+        # running-sum indices of each row's first and one-past-last sample, delayed by d
+        # (and d + 1); before the window the response is 0
+        lo = np.clip(rows[None, :] - d[:, None], 0, n)
+        hi = np.clip((rows + count)[None, :] - d[:, None], 0, n)
+        lo1, hi1 = np.maximum(lo - 1, 0), np.maximum(hi - 1, 0)
+        ones = root  # the offset b, as recorded (weighted row sums of 1)
+        y = w.y
+        steps = np.arange(n)
+        v = w.v - w.v[0]
         for i, tau in enumerate(taus):
-            vd = _delayed(w.v, tau, thetas, w.dt)  # (n_theta, n)
             a = math.exp(-w.dt / tau)
-            x = lfilter([0.0, 1.0 - a], [1.0, -a], vd, axis=1)
-            # pv = b + K x + c a^k (c: the plant not at rest when the window opens)
-            basis = np.stack([np.ones_like(x), x, np.broadcast_to(a**steps, x.shape)], axis=1)
-            basis = w.observe(basis, weighted=True).transpose(0, 2, 1)
-            coef = _lstsq(basis, w.y)
-            sse[i] += (((basis @ coef[:, :, None])[..., 0] - w.y[None, :]) ** 2).sum(axis=1)
+            run = np.concatenate([[0.0], np.cumsum(lfilter([0.0, 1.0 - a], [1.0, -a], v))])
+            w_old = (np.exp(-(1.0 - f) * w.dt / tau) - a) / (1.0 - a)
+            x = (run[hi] - run[lo]) + w_old[:, None] * ((run[hi1] - run[lo1]) - (run[hi] - run[lo]))
+            x /= root
+            decay = np.concatenate([[0.0], np.cumsum(a**steps)])
+            g = (decay[rows + count] - decay[rows]) / root  # the transient c a^k
+            # the normal equations of (b, K, c) for every theta at once
+            xo, xg, xx = x @ ones, x @ g, (x * x).sum(axis=1)
+            const = np.ones_like(xo)
+            gram = np.stack(
+                [
+                    np.stack([(ones @ ones) * const, xo, (ones @ g) * const], axis=-1),
+                    np.stack([xo, xx, xg], axis=-1),
+                    np.stack([(ones @ g) * const, xg, (g @ g) * const], axis=-1),
+                ],
+                axis=-2,
+            )
+            gram += 1e-12 * np.eye(3)
+            rhs = np.stack([(ones @ y) * const, x @ y, (g @ y) * const], axis=-1)
+            coef = np.linalg.solve(gram, rhs[..., None])[..., 0]
+            r = y - coef[:, :1] * ones - coef[:, 1:2] * x - coef[:, 2:] * g
+            sse[i] += (r * r).sum(axis=1)
     return sse
 
 
