@@ -292,7 +292,9 @@ def _close(tb, s: int, t: float, wall: float, *, final: bool = False, why: str =
             return _trim(tb, s, n)
     st.skipped = 0
     if len(starts) >= identify.MIN_EVENTS and n >= identify.MIN_SAMPLES:
-        known = st.in_force  # a warm start (the grid search otherwise)
+        # a warm start (the grid search otherwise): the model in force, else the last
+        # confident one (a hinted loop's check; a hint-free loop's is in force)
+        known = st.in_force or (st.model if st.model is not None and st.model.confident else None)
         start = None if known is None else (known.tau, known.theta)
         # the samples the last row holds so far (a row per stride samples: record())
         last = int((tb.rec_k[s] - 1) % tb.rec_stride[s] + 1)
@@ -316,10 +318,16 @@ def closely(tb, s: int) -> bool:
     """Whether a loop is assessed at every chance (each event close and during events)
     rather than at every :data:`CHECK_EVERY` th close: no confident model yet, flagged,
     paused, or the latest model drifted from the one in force by more than
-    :data:`DRIFT` in K or tau (a plant on the move is caught before it leaves the box)."""
+    :data:`DRIFT` in K or tau (a plant on the move is caught before it leaves the box).
+    A loop tuned on its registered hint is assessed at each event close only: the check
+    of a hint is not urgent, and the fits are the engine's main cost."""
     st: IdState = tb.ident[s]
     m, known = st.model, st.in_force
-    if m is None or not m.confident or tb.mismatch[s] or tb.out_env[s]:
+    if tb.mismatch[s] or tb.out_env[s]:
+        return True
+    if known is None and tb.scaled[s]:
+        return False
+    if m is None or not m.confident:
         return True
     if known is None:
         return False
