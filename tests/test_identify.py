@@ -232,6 +232,36 @@ def test_a_right_hint_is_confirmed_not_flagged():
     assert view.counters.mismatches == 0 and not view.identification.out_of_envelope
 
 
+def test_a_hint_is_checked_at_event_closes_only_and_from_its_last_confident_model(
+    monkeypatch,
+):
+    """The cost rule (service.engine.watch.closely): a loop on its registered hint is
+    assessed once per setpoint move (at the close of the event), not during events as a
+    hint-free loop is, and once a model was confident its fits start from that model
+    instead of the grid search."""
+    from service.engine import identify
+
+    calls: dict[str, list] = {"hinted": [], "free": []}
+    real = identify.assess
+
+    def counted(t, sp, pv, op, starts, start=None, last=1):
+        calls[current].append(start)
+        return real(t, sp, pv, op, starts, start, last)
+
+    monkeypatch.setattr(identify, "assess", counted)
+    for current, config in (("hinted", hinted()), ("free", hint_free())):
+        engine = TuningEngine(untrained_agent(0))
+        engine.register(config, wall=0.0)
+        drive(engine, moves=6)
+    # moves 3-6 close an event with one before it (two are needed): one assessment each;
+    # the hint-free loop is also assessed during its events until identified
+    assert len(calls["hinted"]) == 4
+    assert len(calls["free"]) > 4
+    first = next(i for i, start in enumerate(calls["hinted"]) if start is not None)
+    assert all(start is not None for start in calls["hinted"][first:])
+    assert calls["hinted"][0] is None  # no model yet: the grid search
+
+
 # -- integrating loops and the envelope ------------------------------------------------------
 def test_an_integrating_loop_is_reported_as_such_and_never_identified_as_foptd():
     engine = TuningEngine(untrained_agent(0))
