@@ -245,11 +245,12 @@ def test_a_hint_is_checked_at_event_closes_only_and_from_its_last_confident_mode
     real = identify.assess
 
     def counted(t, sp, pv, op, starts, start=None, last=1):
-        calls[current].append(start)
+        calls[loop[0]].append(start)
         return real(t, sp, pv, op, starts, start, last)
 
     monkeypatch.setattr(identify, "assess", counted)
-    for current, config in (("hinted", hinted()), ("free", hint_free())):
+    for loop in (("hinted", hinted()), ("free", hint_free())):
+        config = loop[1]
         engine = TuningEngine(untrained_agent(0))
         engine.register(config, wall=0.0)
         drive(engine, moves=6)
