@@ -92,3 +92,26 @@ def test_robust_suite_runs_through_the_engine_and_reports(tmp_path):
     assert rows["paper protocol"]["worst_mse"] < 0.05  # untuned start: about 1.8
     assert (tmp_path / "robust.md").read_text().count("| noise 0.05 |") == 1
     assert (tmp_path / "fig10_robust_noise_load.png").stat().st_size > 10_000
+
+
+def test_robust_suite_guard_option_is_checked_and_named_in_the_report(tmp_path, capsys):
+    """``pitune evaluate --robust --guard JSON``: settings that are not a loop's guard are
+    refused before anything runs; a table made with settings says which."""
+    from service.cli import main
+    from service.learn.robust_suite import render
+
+    out = tmp_path / "robust"
+    for bad in ('{"identify": 3}', '{"no_such_setting": 1}', "[1]", "{"):
+        with pytest.raises(SystemExit) as exc:
+            main(["evaluate", "--robust", "--out", str(out), "--guard", bad])
+        assert exc.value.code == 2 and "guard settings" in capsys.readouterr().err
+    with pytest.raises(SystemExit, match="only with --robust"):
+        main(["evaluate", "--out", str(out), "--guard", '{"identify": true}'])
+    assert not out.exists()
+    row = {"condition": "paper protocol", "worst_mse": 0.002, "median_mse": 0.0002,
+           "beats_simc": 0.8, "unstable": 0, "meets_bar": True}  # fmt: skip
+    text = render({"periods": 80, "quick": False, "wall_s": 1.0, "conditions": [row],
+                   "guard": {"identify": True, "auto_rescale": True}})  # fmt: skip
+    assert 'guard settings {"auto_rescale": true, "identify": true}' in text
+    assert "default guard" in render({"periods": 80, "quick": False, "wall_s": 1.0,
+                                      "conditions": [row]})  # fmt: skip

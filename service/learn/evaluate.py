@@ -18,9 +18,11 @@ from pathlib import Path
 from typing import Literal, get_args
 
 import numpy as np
+from pydantic import ValidationError
 
 from service.agent.fast import FastPolicy
 from service.agent.model import load_agent
+from service.engine.config import Guard
 from service.learn.closed_loop import Policy
 from service.learn.experiments import (
     PAPER,
@@ -61,6 +63,10 @@ class EvalConfig:
     """Run only these experiments (names of :data:`PARTS`) and write their metrics.json,
     no report or figures: a fast check of a training checkpoint, e.g. the adaptation
     experiments alone in a few seconds. Empty: everything."""
+    guard: dict | None = None
+    """With ``robust``: guard settings every loop is registered with instead of the
+    defaults (checked as a loop's guard), e.g. ``{"identify": true, "auto_rescale":
+    true}``: the table an opt-in measure gives."""
 
 
 PARTS = ("grid", "adaptation")
@@ -183,10 +189,12 @@ def main(cfg: EvalConfig) -> int:
     """Evaluate, print the report, write the card; exit code 1 if a bar is not met (full run)."""
     if cfg.robust and cfg.only:
         raise SystemExit("--only selects among the paper's experiments; not with --robust")
+    if cfg.guard is not None and not cfg.robust:
+        raise SystemExit("--guard sets the robustness suite's loops; only with --robust")
     agent = load_agent(cfg.weights)
     policy = agent if cfg.precision == "reference" else FastPolicy(agent, precision=cfg.precision)
     if cfg.robust:
-        result = robust_suite(policy, cfg.out, quick=cfg.quick)
+        result = robust_suite(policy, cfg.out, quick=cfg.quick, guard=cfg.guard)
         print((cfg.out / "robust.md").read_text())
         return 0 if all(r["meets_bar"] for r in result["conditions"]) or cfg.quick else 1
     if cfg.only:
@@ -224,11 +232,30 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--card", type=Path, default=None, help="also write a model card here")
     p.add_argument(
+        "--guard",
+        type=_guard,
+        default=None,
+        metavar="JSON",
+        help="with --robust: guard settings for every loop instead of the defaults, e.g. "
+        '\'{"identify": true, "auto_rescale": true}\'',
+    )
+    p.add_argument(
         "--precision",
         choices=get_args(Inference),
         default=EvalConfig.precision,
         help="agent.act (reference), or the tuner's FastPolicy in this precision",
     )
+
+
+def _guard(value: str) -> dict:
+    """``--guard``'s JSON object, checked as a loop's guard (a clear error, not a crash
+    in the middle of the suite)."""
+    try:
+        settings = json.loads(value)
+        Guard.model_validate(settings)
+    except (ValueError, ValidationError) as exc:  # pydantic's error is a ValueError too
+        raise argparse.ArgumentTypeError(f"not a loop's guard settings: {exc}") from None
+    return settings
 
 
 def _parts(value: str) -> tuple[str, ...]:
@@ -249,5 +276,6 @@ def run(args: argparse.Namespace) -> int:
             card=args.card,
             robust=args.robust,
             only=args.only,
+            guard=args.guard,
         )
     )

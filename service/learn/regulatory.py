@@ -50,14 +50,17 @@ def oracle_of(plants: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -
     return oracle_gains(oracle_table(), K, tau, r * tau)
 
 
-def quiet_loop(policy: Policy, periods: int = 100) -> dict:
+def quiet_loop(policy: Policy, periods: int = 100, guard: dict | None = None) -> dict:
     """No setpoint move for ``periods`` RL periods, noise 0.05 and a random-walk load,
-    from the oracle's gains: final / initial gains with the gate on and off."""
+    from the oracle's gains: final / initial gains with the gate on and off (``guard``:
+    as :func:`~service.learn.robust.run_condition`'s)."""
     g0 = oracle_of()
     cond = Condition("quiet", noise=0.05, load_walk=0.5, sp_hold=1e9)
     out = {}
     for name, gate in (("gate on", True), ("gate off", False)):
-        run = run_condition(policy, cond, periods=periods, gains0=g0, excitation=gate, seed=2)
+        run = run_condition(
+            policy, cond, periods=periods, gains0=g0, excitation=gate, seed=2, guard=guard
+        )
         ratio = run.gains[-1] / g0
         out[name] = {
             "gain_ratio_min": float(ratio.min()),
@@ -72,6 +75,7 @@ def disturbance_tuning(
     periods: int = 80,
     plants: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
     excitation: bool = False,
+    guard: dict | None = None,
 ) -> list[dict]:
     """Each disturbance-only condition from each start: start and final step-test MSE
     (worst, median), share of loops improved, unstable count. ``excitation`` False: the
@@ -83,8 +87,9 @@ def disturbance_tuning(
         for start, factor in STARTS.items():
             g0 = None if factor is None else oracle * factor
             run = run_condition(
-                policy, cond, periods=periods, gains0=g0, excitation=excitation, plants=plants
-            )
+                policy, cond, periods=periods, gains0=g0, excitation=excitation,
+                plants=plants, guard=guard,
+            )  # fmt: skip
             plant = (run.K, run.tau, run.theta, run.lag)
             before, _ = score(*plant, *run.gains[0].T)
             after, unstable = score(*plant, *run.gains[-1].T)
@@ -103,9 +108,12 @@ def disturbance_tuning(
     return rows
 
 
-def regulatory(policy: Policy) -> dict:
+def regulatory(policy: Policy, guard: dict | None = None) -> dict:
     """Both measurements, for :func:`service.learn.robust_suite.robust_suite`."""
-    return {"quiet_loop": quiet_loop(policy), "disturbance_tuning": disturbance_tuning(policy)}
+    return {
+        "quiet_loop": quiet_loop(policy, guard=guard),
+        "disturbance_tuning": disturbance_tuning(policy, guard=guard),
+    }
 
 
 def render(result: dict) -> list[str]:

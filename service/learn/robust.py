@@ -359,11 +359,12 @@ def summarise(cond: Condition, run: Run) -> dict:
 
 
 # -- the long run --------------------------------------------------------
-def long_run(policy: Policy, periods: int = 400) -> dict:
+def long_run(policy: Policy, periods: int = 400, guard: dict | None = None) -> dict:
     """400 RL periods, forgetting 0.99, noise 0.05, irregular setpoints: how far the gains
-    wander after convergence (largest deviation from their median over the second half)."""
+    wander after convergence (largest deviation from their median over the second half).
+    ``guard``: as :func:`run_condition`'s."""
     cond = Condition("long run", noise=0.05, sp_irregular=True)
-    run = run_condition(policy, cond, periods=periods, forgetting=0.99, seed=1)
+    run = run_condition(policy, cond, periods=periods, forgetting=0.99, seed=1, guard=guard)
     late = run.gains[periods // 2 :]
     wander = np.abs(late / np.median(late, axis=0) - 1.0).max(axis=(0, 2))
     mse, unstable = score(run.K, run.tau, run.theta, run.lag, *run.gains[-1].T)

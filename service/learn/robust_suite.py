@@ -26,28 +26,30 @@ from service.learn.robust import (
 from service.units import RL_STEP_AGENT_UNITS
 
 
-def robust_suite(policy: Policy, out: Path, quick: bool = False) -> dict:
+def robust_suite(policy: Policy, out: Path, quick: bool = False, guard: dict | None = None) -> dict:
     """Every condition, the long run and the loops without setpoint moves; writes
-    robust.json, robust.md and a figure into ``out``."""
+    robust.json, robust.md and a figure into ``out``. ``guard``: settings every loop is
+    registered with instead of the defaults (an opt-in measure's table)."""
     out.mkdir(parents=True, exist_ok=True)
     start = time.monotonic()
     periods = 40 if quick else 80
     conditions = CONDITIONS[:2] if quick else CONDITIONS
     rows, runs = [], {}
     for cond in conditions:
-        run = run_condition(policy, cond, periods=periods)
+        run = run_condition(policy, cond, periods=periods, guard=guard)
         runs[cond.name] = run
         rows.append(summarise(cond, run))
     result = {
         "agent": getattr(policy, "meta", {}).get("source", "shipped"),
         "periods": periods,
         "quick": quick,
+        "guard": guard or {},
         "conditions": rows,
         "conditions_config": [asdict(c) for c in conditions],
     }
     if not quick:
-        result["long_run"] = long_run(policy)
-        result |= regulatory(policy)
+        result["long_run"] = long_run(policy, guard=guard)
+        result |= regulatory(policy, guard=guard)
     result["wall_s"] = round(time.monotonic() - start, 1)
     (out / "robust.json").write_text(json.dumps(result, indent=2))
     (out / "robust.md").write_text(render(result))
@@ -56,12 +58,18 @@ def robust_suite(policy: Policy, out: Path, quick: bool = False) -> dict:
 
 
 def render(result: dict) -> str:
+    guard = result.get("guard") or {}
+    settings = (
+        "default guard and excitation gate"
+        if not guard
+        else "guard settings " + json.dumps(guard, sort_keys=True) + ", the rest default"
+    )
     lines = [
         "# pitune robustness (through the tuning engine)",
         "",
         f"27 plants, {result['periods']} RL periods from kp = ki = 0.05, samples every"
-        " second in engineering units through the engine (default guard and excitation"
-        " gate), final gains scored by the step test on the true plant."
+        f" second in engineering units through the engine ({settings}), final gains scored"
+        " by the step test on the true plant."
         + (" Quick run." if result["quick"] else "")
         + f" Wall time {result['wall_s']} s.",
         "",
