@@ -223,6 +223,38 @@ def test_a_wrong_hint_is_flagged_and_rescaled_on_request(factor):
     assert ("A", "mismatch") in reasons and ("B", "rescaled") in reasons
 
 
+def test_the_sites_defaults_check_and_rescale_hinted_loops_that_left_it_unset():
+    """SiteDefaults (the tuner's identify_hinted_loops and auto_rescale): a hinted loop
+    whose registration leaves guard.identify and guard.auto_rescale unset is identified
+    and, its hint 3x off, rescaled; a loop's own setting wins either way."""
+    from service.engine import SiteDefaults
+
+    engine = TuningEngine(untrained_agent(0), site=SiteDefaults(True, True))
+    kp, ki = gains()
+
+    def wrong(loop_id, **guard):
+        scaling = {"k_hat": K, "tau_hat": 3.0 * TAU, "pv_scale": 20.0}
+        return LoopConfig(id=loop_id, kp=kp, ki=ki, sample_period_s=H, scaling=scaling,
+                          guard=guard)  # fmt: skip
+
+    engine.register(wrong("site"), wall=0.0)
+    engine.register(wrong("flag_only", auto_rescale=False), wall=0.0)
+    engine.register(wrong("own_off", identify=False), wall=0.0)
+    for loop_id in ("site", "flag_only", "own_off"):
+        drive(engine, loop_id, moves=6)
+    site, flag_only, off = (engine.view(i, wall=1e9) for i in ("site", "flag_only", "own_off"))
+    assert site.counters.mismatches == 1 and not site.identification.mismatch
+    assert site.scaling.apparent_tau(TAU) == pytest.approx(0.5, rel=0.3)  # rescaled
+    assert flag_only.counters.mismatches == 1 and flag_only.identification.mismatch
+    assert flag_only.scaling.apparent_tau(TAU) == pytest.approx(0.5 / 3, rel=0.3)  # kept
+    assert off.identification.state == "off" and off.counters.mismatches == 0
+    # the default engine leaves hinted loops alone
+    plain = TuningEngine(untrained_agent(0))
+    plain.register(wrong("site"), wall=0.0)
+    drive(plain, "site", moves=6)
+    assert plain.view("site", wall=1e9).identification.state == "off"
+
+
 def test_a_right_hint_is_confirmed_not_flagged():
     engine = TuningEngine(untrained_agent(0))
     engine.register(hinted(k_hat=K * 1.3, tau_hat=TAU / 1.3), wall=0.0)
@@ -307,6 +339,38 @@ def test_the_daemon_registers_a_hint_free_loop_and_shows_its_identification(tmp_
     with TestClient(create_app(tuner_settings(tmp_path))) as client:  # restored from the store
         view = client.get("/loops/TIC-7").json()
         assert view["identification"]["state"] == "identifying"
+
+
+def test_the_tuners_settings_turn_hint_checks_on_for_loops_that_leave_them_unset(
+    tmp_path, monkeypatch
+):
+    """PITUNE_IDENTIFY_HINTED_LOOPS / PITUNE_AUTO_RESCALE: a hinted loop registered
+    without guard.identify is checked, and says so; the stored config keeps the loop's
+    own choice (null), so a restart without the settings turns the check off again."""
+    from fastapi.testclient import TestClient
+
+    from service.daemon.api import create_app
+    from tests.tuner_support import tuner_settings
+
+    kp, ki = gains()
+    scaling = {"k_hat": K, "tau_hat": TAU, "pv_scale": 20.0}
+    body = {"id": "FIC-1", "kp": kp, "ki": ki, "sample_period_s": H, "scaling": scaling}
+    own = {**body, "id": "FIC-2", "guard": {"identify": False}}
+    monkeypatch.setenv("PITUNE_IDENTIFY_HINTED_LOOPS", "true")
+    monkeypatch.setenv("PITUNE_AUTO_RESCALE", "true")
+    with TestClient(create_app(tuner_settings(tmp_path))) as client:
+        for registration in (body, own):
+            assert client.post("/loops", json=registration).status_code == 201
+        site, mine = (client.get(f"/loops/{i}").json() for i in ("FIC-1", "FIC-2"))
+        assert site["identification"]["state"] == "checking"
+        assert site["config"]["guard"]["identify"] is None
+        assert site["config"]["guard"]["auto_rescale"] is None
+        assert mine["identification"]["state"] == "off"
+        tuner = client.app.state.tuner
+        assert tuner.engine.table.site.identify_hinted and tuner.engine.table.site.auto_rescale
+    monkeypatch.delenv("PITUNE_IDENTIFY_HINTED_LOOPS")
+    with TestClient(create_app(tuner_settings(tmp_path))) as client:
+        assert client.get("/loops/FIC-1").json()["identification"]["state"] == "off"
 
 
 def test_samples_out_of_order_or_on_a_new_clock_never_break_identification():

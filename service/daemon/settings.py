@@ -132,6 +132,17 @@ class Settings(BaseSettings):
         description="Arithmetic of the GRU's GEMMs: bfloat16 (oneDNN, AMX) is 4-5x faster "
         "where the CPU has native bfloat16 and tunes as well; auto picks it there.",
     )
+    identify_hinted_loops: bool = Field(
+        False,
+        description="Identify loops registered with a hint too, their hints checked "
+        "(guard.identify left unset). It costs memory and CPU per loop on the move: "
+        "docs/identification.md.",
+    )
+    auto_rescale: bool = Field(
+        False,
+        description="Rescale a loop whose identified model disagrees with its hint "
+        "(guard.auto_rescale left unset); off: flagged only.",
+    )
     store_failure_exit_s: Annotated[float, Field(gt=0.0)] = Field(
         60.0,
         description="Seconds of failing store commits after which the daemon exits "

@@ -59,6 +59,7 @@ from service.daemon.slotmemo import SlotMemo
 from service.daemon.snapwriter import SnapshotWriter
 from service.daemon.store import Store
 from service.daemon.upkeep import Upkeep
+from service.engine.config import SiteDefaults
 from service.engine.engine import TuningEngine
 from service.engine.updates import StepResult
 from service.wire.decode import Rejection, decode_batch, decode_singles, joined
@@ -136,6 +137,7 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
             inference_precision=settings.inference_precision,
             on_reject=self._on_reject,
             monitoring=settings.monitoring,
+            site=SiteDefaults(settings.identify_hinted_loops, settings.auto_rescale),
         )
         self.table = self.engine.table
         self.handoff = Handoff(self.table.lock)

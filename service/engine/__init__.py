@@ -1,7 +1,7 @@
 """The bus-free tuning engine: samples in, gain decisions out (see
 :mod:`service.engine.engine`)."""
 
-from service.engine.config import Guard, LoopConfig, LoopView
+from service.engine.config import Guard, LoopConfig, LoopView, SiteDefaults
 from service.engine.engine import TuningEngine
 from service.engine.patch import LoopPatch
 from service.engine.updates import GainUpdate, StepResult
@@ -14,6 +14,7 @@ __all__ = [
     "LoopPatch",
     "LoopView",
     "Rejection",
+    "SiteDefaults",
     "StepResult",
     "TuningEngine",
 ]

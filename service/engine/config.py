@@ -6,6 +6,7 @@ with, with the safety bounds resolved to explicit engineering values.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
@@ -97,19 +98,20 @@ class Guard(BaseModel):
         description="Identify the loop's FOPTD model from its closed-loop data (needs sp "
         "and pv in the samples). A loop registered without scaling is tuned only once "
         "identified; a hinted loop's hint is checked against the model. Default (null): "
-        "on for a loop registered without scaling, off for a hinted one (with the checks "
-        "on, the robustness suite's hint-error conditions came out worse, and they cost "
-        "memory and CPU: docs/identification.md).",
+        "on for a loop registered without scaling; for a hinted one the tuner's "
+        "identify_hinted_loops (off: the checks cost memory and CPU, "
+        "docs/identification.md).",
     )
     hint_tolerance: Tolerance = Field(
         2.0,
         description="The identified K or tau disagreeing with the scaling in force by more "
         "than this factor flags the loop (status hint_mismatch, audit 'mismatch').",
     )
-    auto_rescale: bool = Field(
-        False,
+    auto_rescale: bool | None = Field(
+        None,
         description="On a mismatch, rescale the loop to the identified model (audit "
-        "'rescaled') and restart its episode, instead of only flagging it.",
+        "'rescaled') and restart its episode, instead of only flagging it. Default "
+        "(null): the tuner's auto_rescale (off).",
     )
     model_tuning: bool = Field(
         True,
@@ -158,6 +160,29 @@ class Guard(BaseModel):
         8.0,
         description="RL periods the agent is held after a rollback or a rejected proposal.",
     )
+
+
+@dataclass(frozen=True)
+class SiteDefaults:
+    """What a loop whose registration leaves ``guard.identify`` or ``guard.auto_rescale``
+    unset (null) gets: the tuner's settings (``PITUNE_IDENTIFY_HINTED_LOOPS``,
+    ``PITUNE_AUTO_RESCALE``), so that a site turns hint checks on for all its loops at
+    once; a loop's own setting wins. Resolved when the config is applied, not stored:
+    loops that did not choose follow the site's setting after a restart."""
+
+    identify_hinted: bool = False
+    """Identify loops registered with a hint too (their hints checked)."""
+    auto_rescale: bool = False
+    """Rescale a loop whose identified model disagrees with its hint."""
+
+    def identifies(self, config: LoopConfig) -> bool:
+        own = config.guard.identify
+        if own is not None:
+            return own
+        return config.scaling is None or self.identify_hinted
+
+    def rescales(self, guard: Guard) -> bool:
+        return self.auto_rescale if guard.auto_rescale is None else guard.auto_rescale
 
 
 class LoopConfig(BaseModel):

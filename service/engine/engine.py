@@ -39,7 +39,7 @@ from service.agent.fast import Precision
 from service.agent.model import Agent, load_agent
 from service.engine import monitor, rules, stepping, verify, views, watch
 from service.engine.audit import AuditRow
-from service.engine.config import LoopConfig, LoopView
+from service.engine.config import LoopConfig, LoopView, SiteDefaults
 from service.engine.saved import Saved
 from service.engine.table import LoopTable
 from service.engine.updates import GainUpdate, StepResult
@@ -66,6 +66,7 @@ class TuningEngine:
         on_reject: RejectHandler | None = None,
         verifying: bool = True,
         monitoring: bool = True,
+        site: SiteDefaults | None = None,
     ) -> None:
         self.agent = agent if agent is not None else load_agent()
         self.table = LoopTable(
@@ -73,6 +74,7 @@ class TuningEngine:
             max_rate_hz=max_rate_hz,
             inference_workers=inference_workers,
             inference_precision=inference_precision,
+            site=site,
         )
         self.lock = self.table.lock
         self.table.monitoring = monitoring

@@ -95,7 +95,7 @@ def _row(tb: LoopTable, s: int, config: LoopConfig) -> tuple:
         g.max_rel_change, g.noise_damping, g.max_sensitivity, g.settle_steps, *units, *bounds,
         *excitation,
         g.model_check or 0.0,
-        config.scaling is None if g.identify is None else g.identify, g.envelope_guard,
+        tb.site.identifies(config), g.envelope_guard,
         sc is not None,
         _CODE[config.mode],
         # one string per gateway, however many loops it fronts

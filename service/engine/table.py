@@ -28,6 +28,7 @@ from service.engine.config import (
     Configs,
     LoopConfig,
     LoopView,
+    SiteDefaults,
 )  # fmt: skip
 from service.engine.modes import _CODE, _MODES, AUTO, FROZEN, SHADOW
 from service.engine.saved import Saved, restore_runtimes, runtimes_of
@@ -110,8 +111,11 @@ class LoopTable:
         capacity: int = 64,
         inference_workers: int = 1,
         inference_precision: Precision | Literal["reference"] = "float32",
+        site: SiteDefaults | None = None,
     ) -> None:
         self.agent = agent
+        self.site = site or SiteDefaults()
+        """What loops that leave guard.identify or guard.auto_rescale unset get."""
         # the allocation-free equivalent of agent.act; "reference" (and any object that
         # is not an Agent) steps with the agent's own act
         self._policy = (

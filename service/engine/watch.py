@@ -382,7 +382,7 @@ def use(tb, s: int, m: identify.Model, t: float, wall: float) -> None:
             tb.n_mismatch[s] += 1
             _audit(tb, s, t, wall, "mismatch", detail)
         tb.mismatch[s] = True
-        if guard.auto_rescale:
+        if tb.site.rescales(guard):
             pv_scale = 1.0 / scaling.e_scale
             _put_in_force(tb, s, m, model_scaling(m, pv_scale), t, wall, "rescaled", detail)
             tb.mismatch[s] = False
@@ -471,8 +471,8 @@ def view(tb, s: int) -> Identification | None:
         state=state,
         why=st.why
         if tb.watch[s]
-        else "identification off (guard.identify; on by default "
-        "only for loops registered without a hint)",
+        else "identification off (guard.identify; by default on for loops registered "
+        "without a hint, for hinted ones as the tuner's identify_hinted_loops says)",
         model=None if model is None else model.as_dict(),
         in_force=None if st.in_force is None else st.in_force.as_dict(),
         in_force_t=st.in_force_t,
