@@ -22,6 +22,8 @@ INTEGRATING_RATIO = 0.8
 the FOPTD fit's, or within 10% of it while the FOPTD's tau runs beyond the window (a lag
 that slow is an integrator as far as the data tell)."""
 
+_EPS_STEP = math.sqrt(np.finfo(np.float64).eps)
+"""Relative step of the forward differences in log tau and theta (scipy's '2-point')."""
 _TAU_GRID = 28
 _THETA_GRID = 12
 _FINE_TAU = 9
@@ -236,17 +238,43 @@ def _refine(windows: list[Window], span: float, dt: float, tau0: float, theta0: 
     def unpack(p):
         return p[0], math.exp(p[1]), p[2], p[3 : 3 + m], p[3 + m :]
 
+    def parts(tau, theta):
+        """Each window's response x and initial transient's decay at (tau, theta)."""
+        return [
+            (_response(w.t, w.v, tau, theta, w.dt), np.exp(-w.dt * steps[i] / tau))
+            for i, w in enumerate(windows)
+        ]
+
     def residual(p):
         k, tau, theta, b, c = unpack(p)
         return np.concatenate(
             [
-                w.observe(
-                    b[i] + k * _response(w.t, w.v, tau, theta, w.dt)
-                    + c[i] * np.exp(-w.dt * steps[i] / tau), weighted=True,
-                ) - w.y
-                for i, w in enumerate(windows)
+                w.observe(b[i] + k * x + c[i] * g, weighted=True) - w.y
+                for i, (w, (x, g)) in enumerate(zip(windows, parts(tau, theta), strict=True))
             ]
-        )  # fmt: skip
+        )
+
+    def jacobian(p):
+        """Exact in the linear parameters (K, b, c); forward differences in log tau and
+        theta with scipy's 2-point steps (a filter pass each instead of one per
+        parameter)."""
+        k, tau, theta, b, c = unpack(p)
+        h = _EPS_STEP * np.where(p[1:3] >= 0.0, 1.0, -1.0) * np.maximum(1.0, np.abs(p[1:3]))
+        h = np.where(p[1:3] + h > np.array(hi[1:3]), -h, h)  # stay inside the bounds
+        here = parts(tau, theta)
+        slower = parts(tau * math.exp(h[0]), theta)
+        later = parts(tau, theta + h[1])
+        blocks = []
+        for i, w in enumerate(windows):
+            (x, g), (x_t, g_t), (x_d, _) = here[i], slower[i], later[i]
+            col = np.zeros((w.pv.size, p.size))
+            col[:, 0] = w.observe(x, weighted=True)
+            col[:, 1] = w.observe(k * (x_t - x) + c[i] * (g_t - g), weighted=True) / h[0]
+            col[:, 2] = w.observe(k * (x_d - x), weighted=True) / h[1]
+            col[:, 3 + i] = w.observe(np.ones_like(x), weighted=True)
+            col[:, 3 + m + i] = w.observe(g, weighted=True)
+            blocks.append(col)
+        return np.vstack(blocks)
 
     # linear start for (K, b, c) at the grid's (tau, theta)
     starts = []
@@ -262,7 +290,9 @@ def _refine(windows: list[Window], span: float, dt: float, tau0: float, theta0: 
     p0 = np.clip(p0, np.add(lo, 1e-9), np.subtract(hi, 1e-9))
     pv_scale = [max(float(np.std(w.pv)), 1e-12) for w in windows]
     x_scale = [max(abs(k0), 1e-12), 1.0, max(dt, span / 20.0), *pv_scale, *pv_scale]
-    res = least_squares(residual, p0, bounds=(lo, hi), x_scale=x_scale, max_nfev=100 + 20 * m)
+    res = least_squares(
+        residual, p0, jac=jacobian, bounds=(lo, hi), x_scale=x_scale, max_nfev=100 + 20 * m
+    )
     k, tau, theta, _b, _c = unpack(res.x)
     r = res.fun
     n = r.size
