@@ -93,3 +93,23 @@ def test_monitor_ab_pairs_runs_with_the_monitoring_on_and_off(tmp_path, capsys):
     assert result["added_cpu_pct"]["median"] == pytest.approx(added)
     assert result["bar"]["met"] == (added < 20.0)
     assert "monitoring adds" in capsys.readouterr().out
+
+
+def test_guard_option_reaches_every_registration_and_bad_settings_are_refused(capsys):
+    """``--guard JSON`` adds guard settings to each loop's registration (what an opt-in
+    measure costs at the benchmark's load), checked before anything starts."""
+    from service.bench.fleet import Fleet
+
+    parser = argparse.ArgumentParser()
+    load.add_arguments(parser)
+    args = parser.parse_args(["--loops", "3", "--guard", '{"identify": true}'])
+    config = bench_config(args)
+    assert config.guard == {"identify": True}
+    guards = [r["guard"] for r in Fleet(config).registrations]
+    assert guards == [{"excitation_periods": 0.0, "identify": True}] * 3
+    assert [r["guard"] for r in Fleet(BenchConfig(loops=2)).registrations] == [
+        {"excitation_periods": 0.0}
+    ] * 2
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--guard", '{"identify": "maybe"}'])
+    assert "not a loop's guard settings" in capsys.readouterr().err

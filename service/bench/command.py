@@ -19,6 +19,7 @@ from service.bench.fleet import Fleet
 from service.bench.load import drive
 from service.bench.probes import machine_info
 from service.bench.report import judge, table, write
+from service.engine.config import guard_option
 from service.procs import TunerProcess
 
 D = BenchConfig()
@@ -89,6 +90,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
       help="keep the daemon's log here (--instances: a directory, one log per member)")  # fmt: skip
     a("--trace", type=Path, default=None,
       help="write the update latencies of the window to this CSV")  # fmt: skip
+    a("--guard", type=guard_option, default=None, metavar="JSON",
+      help="guard settings added to every loop's registration, e.g. "
+      "'{\"identify\": true, \"auto_rescale\": true}' (default: the gate off only)")  # fmt: skip
     retention.add_arguments(parser)
 
 

@@ -67,6 +67,9 @@ class BenchConfig:
     daemon_log: Path | None = None
     trace: Path | None = None
     """Write the update latencies of the window to this CSV."""
+    guard: dict | None = None
+    """Guard settings added to every loop's registration (e.g. identification on: what
+    an opt-in measure costs at this load); None: the benchmark's own (the gate off)."""
 
     @property
     def batched_gains(self) -> bool:

@@ -76,7 +76,7 @@ class Fleet:
                     "pv_scale": 1.0,
                 },
                 # every due loop is stepped, whatever its setpoint does: the worst case
-                "guard": {"excitation_periods": 0.0},
+                "guard": {"excitation_periods": 0.0, **(config.guard or {})},
                 **({"gateway": gateways[i % len(gateways)]} if config.batched_gains else {}),
             }
             for i in range(n)

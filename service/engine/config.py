@@ -6,6 +6,8 @@ with, with the safety bounds resolved to explicit engineering values.
 
 from __future__ import annotations
 
+import argparse
+import json
 from dataclasses import dataclass
 from typing import Annotated, Literal
 
@@ -160,6 +162,18 @@ class Guard(BaseModel):
         8.0,
         description="RL periods the agent is held after a rollback or a rejected proposal.",
     )
+
+
+def guard_option(text: str) -> dict:
+    """A command line's ``--guard``: a JSON object of guard settings, checked as a loop's
+    guard (``pitune evaluate --robust``, ``pitune bench``), so that a wrong one is refused
+    with its reason before anything runs."""
+    try:
+        settings = json.loads(text)
+        Guard.model_validate(settings)  # a list or a wrong value: a ValidationError
+    except ValueError as exc:  # (JSONDecodeError and ValidationError are ValueErrors)
+        raise argparse.ArgumentTypeError(f"not a loop's guard settings: {exc}") from None
+    return settings
 
 
 @dataclass(frozen=True)

@@ -18,11 +18,10 @@ from pathlib import Path
 from typing import Literal, get_args
 
 import numpy as np
-from pydantic import ValidationError
 
 from service.agent.fast import FastPolicy
 from service.agent.model import load_agent
-from service.engine.config import Guard
+from service.engine.config import guard_option
 from service.learn.closed_loop import Policy
 from service.learn.experiments import (
     PAPER,
@@ -233,7 +232,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--card", type=Path, default=None, help="also write a model card here")
     p.add_argument(
         "--guard",
-        type=_guard,
+        type=guard_option,
         default=None,
         metavar="JSON",
         help="with --robust: guard settings for every loop instead of the defaults, e.g. "
@@ -245,17 +244,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=EvalConfig.precision,
         help="agent.act (reference), or the tuner's FastPolicy in this precision",
     )
-
-
-def _guard(value: str) -> dict:
-    """``--guard``'s JSON object, checked as a loop's guard (a clear error, not a crash
-    in the middle of the suite)."""
-    try:
-        settings = json.loads(value)
-        Guard.model_validate(settings)
-    except (ValueError, ValidationError) as exc:  # pydantic's error is a ValueError too
-        raise argparse.ArgumentTypeError(f"not a loop's guard settings: {exc}") from None
-    return settings
 
 
 def _parts(value: str) -> tuple[str, ...]:
