@@ -59,8 +59,8 @@ from service.daemon.slotmemo import SlotMemo
 from service.daemon.snapwriter import SnapshotWriter
 from service.daemon.store import Store
 from service.daemon.upkeep import Upkeep
-from service.engine.config import SiteDefaults
 from service.engine.engine import TuningEngine
+from service.engine.site import SiteDefaults
 from service.engine.updates import StepResult
 from service.wire.decode import Rejection, decode_batch, decode_singles, joined
 from service.wire.protocol import (

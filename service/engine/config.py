@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import argparse
 import json
-from dataclasses import dataclass
 from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
@@ -174,29 +173,6 @@ def guard_option(text: str) -> dict:
     except ValueError as exc:  # (JSONDecodeError and ValidationError are ValueErrors)
         raise argparse.ArgumentTypeError(f"not a loop's guard settings: {exc}") from None
     return settings
-
-
-@dataclass(frozen=True)
-class SiteDefaults:
-    """What a loop whose registration leaves ``guard.identify`` or ``guard.auto_rescale``
-    unset (null) gets: the tuner's settings (``PITUNE_IDENTIFY_HINTED_LOOPS``,
-    ``PITUNE_AUTO_RESCALE``), so that a site turns hint checks on for all its loops at
-    once; a loop's own setting wins. Resolved when the config is applied, not stored:
-    loops that did not choose follow the site's setting after a restart."""
-
-    identify_hinted: bool = False
-    """Identify loops registered with a hint too (their hints checked)."""
-    auto_rescale: bool = False
-    """Rescale a loop whose identified model disagrees with its hint."""
-
-    def identifies(self, config: LoopConfig) -> bool:
-        own = config.guard.identify
-        if own is not None:
-            return own
-        return config.scaling is None or self.identify_hinted
-
-    def rescales(self, guard: Guard) -> bool:
-        return self.auto_rescale if guard.auto_rescale is None else guard.auto_rescale
 
 
 class LoopConfig(BaseModel):

@@ -39,8 +39,9 @@ from service.agent.fast import Precision
 from service.agent.model import Agent, load_agent
 from service.engine import monitor, rules, stepping, verify, views, watch
 from service.engine.audit import AuditRow
-from service.engine.config import LoopConfig, LoopView, SiteDefaults
+from service.engine.config import LoopConfig, LoopView
 from service.engine.saved import Saved
+from service.engine.site import SiteDefaults
 from service.engine.table import LoopTable
 from service.engine.updates import GainUpdate, StepResult
 from service.engine.views import RawView

@@ -24,14 +24,10 @@ from service.agent.fast import FastPolicy, Precision
 from service.agent.model import Agent
 from service.engine import monitor, settings, verify, views, watch
 from service.engine.audit import AuditRow, audit_row
-from service.engine.config import (
-    Configs,
-    LoopConfig,
-    LoopView,
-    SiteDefaults,
-)  # fmt: skip
+from service.engine.config import Configs, LoopConfig, LoopView
 from service.engine.modes import _CODE, _MODES, AUTO, FROZEN, SHADOW
 from service.engine.saved import Saved, restore_runtimes, runtimes_of
+from service.engine.site import SiteDefaults
 from service.engine.updates import MODE_VALUES, StepResult
 from service.units import Scaling
 from service.wire.protocol import LoopStatus, Mode, UpdateReason
