@@ -274,6 +274,12 @@ def summary(
             ),
         },
         "daemon": {"cpu_percent": 100.0 * daemon_cpu_s / span, **daemon},
+        # identification's fits in the window (the budget: identify_cpu_share)
+        "identification": {
+            "fit_cpu_percent": 100.0 * _delta(m0, m1, "pitune_identify_fit_seconds_total") / span,
+            "deferred": _delta(m0, m1, "pitune_identify_deferred_total"),
+            "owed_at_end": m1.get("pitune_identify_owed_waiting", 0.0),
+        },
         "generator": {
             "cpu_percent": 100.0 * gen_cpu / span,
             "late_max_ms": 1e3 * measured.late_max_s,
@@ -286,6 +292,10 @@ def summary(
             "capacity_percent": 100.0 * (sys1[1] - sys0[1]) / span,
         },
     }
+
+
+def _delta(m0: dict, m1: dict, name: str) -> float:
+    return m1.get(name, 0.0) - m0.get(name, 0.0)
 
 
 def _drain(inbox, fleet: Fleet, t0: float, window: Window, latencies: list, stats) -> None:

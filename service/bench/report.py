@@ -108,6 +108,15 @@ def table(r: dict) -> str:
                                  f"{r['machine_cpu']['busy_percent']:.0f} % busy of "
                                  f"{r['machine_cpu']['capacity_percent']:.0f} %)"),
     ]  # fmt: skip
+    ident = r.get("identification") or {}
+    if ident.get("fit_cpu_percent") or ident.get("deferred"):  # loops identified
+        rows.append(
+            (
+                "identification fits / deferred",
+                f"{ident['fit_cpu_percent']:.1f} % of one core / {ident['deferred']:.0f} "
+                f"assessments ({ident['owed_at_end']:.0f} loops owed one at the end)",
+            )
+        )
     if inf:
         rows.append(
             (

@@ -34,6 +34,10 @@ log = logging.getLogger("pitune.tuner")
 disable_created_metrics()  # process-wide: no `_created` series beside any counter
 
 
+GAUGES = ("_bytes", "_waiting")
+"""Name endings of :meth:`Metrics.totals` numbers that are levels (gauges), not counts."""
+
+
 class _Totals:
     """A collector of numbers kept by the tuner itself (no double bookkeeping)."""
 
@@ -42,7 +46,7 @@ class _Totals:
 
     def collect(self):
         for name, (text, value) in self.read.items():
-            family = GaugeMetricFamily if name.endswith("_bytes") else CounterMetricFamily
+            family = GaugeMetricFamily if name.endswith(GAUGES) else CounterMetricFamily
             yield family(name, text, value=float(value()))
 
 
@@ -179,7 +183,7 @@ class Metrics:
 
     def totals(self, read: dict[str, tuple[str, Callable[[], float]]]) -> None:
         """Counters kept as plain numbers elsewhere (name: (help, reader)), read at each
-        scrape; a name ending in ``_bytes`` is a gauge."""
+        scrape; a name ending in one of :data:`GAUGES` is a gauge."""
         self.registry.register(_Totals(read))
 
     def render(self) -> bytes:

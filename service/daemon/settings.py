@@ -143,6 +143,12 @@ class Settings(BaseSettings):
         description="Rescale a loop whose identified model disagrees with its hint "
         "(guard.auto_rescale left unset); off: flagged only.",
     )
+    identify_cpu_share: Annotated[float, Field(gt=0.0, le=1.0)] = Field(
+        0.25,
+        description="Share of one core identification's model fits may take (7-20 ms "
+        "each); assessments beyond it wait their turn, loops without a model first. "
+        "Keeps the samples' latency when thousands of identified loops move at once.",
+    )
     store_failure_exit_s: Annotated[float, Field(gt=0.0)] = Field(
         60.0,
         description="Seconds of failing store commits after which the daemon exits "

@@ -137,7 +137,9 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
             inference_precision=settings.inference_precision,
             on_reject=self._on_reject,
             monitoring=settings.monitoring,
-            site=SiteDefaults(settings.identify_hinted_loops, settings.auto_rescale),
+            site=SiteDefaults(
+                settings.identify_hinted_loops, settings.auto_rescale, settings.identify_cpu_share
+            ),
         )
         self.table = self.engine.table
         self.handoff = Handoff(self.table.lock)
@@ -189,6 +191,19 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
                 "pitune_queue_bytes": (
                     "Payload bytes waiting in the input queue.",
                     lambda: self.inbox.nbytes,
+                ),
+                "pitune_identify_owed_waiting": (
+                    "Loops owed a model assessment, waiting for the identification budget "
+                    "(identify_cpu_share).",
+                    lambda: self.table.fits.waiting,
+                ),
+                "pitune_identify_deferred": (
+                    "Model assessments deferred for the identification budget.",
+                    lambda: self.table.fits.deferred,
+                ),
+                "pitune_identify_fit_seconds": (
+                    "CPU seconds the model fits took (identification).",
+                    lambda: self.table.fits.spent_s,
                 ),
             }
         )
@@ -323,6 +338,9 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
                 if self._parked:  # the earliest after_t query to answer anyway
                     first = min(d for q in self._parked.values() for _, d, _ in q)
                     wait = min(wait, first - time.monotonic())
+                owed = self.table.fits.wait_s(self.clock.wall())  # assessments owed
+                if owed is not None:
+                    wait = min(wait, owed)
                 items = [self.inbox.get(timeout=max(0.0, wait))]
             except queue.Empty:
                 items = []
@@ -336,6 +354,8 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
                 if self._store_failing_since is not None and not stop:
                     continue  # no journal or snapshot work on a failing store
                 self._apply_journal()
+                if self.inbox.empty() and self.table.fits.wait_s(self.clock.wall()) == 0.0:
+                    self._identify_idle()
                 if stop:
                     self.snapshot()
                 elif self._snapshot_todo and time.monotonic() >= self._snapshot_at:
@@ -433,6 +453,14 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
             self._skipped = self.engine.skipped
         if result is not None:
             self._stepped(result)
+
+    def _identify_idle(self) -> None:
+        """Model assessments the identification budget owes, made while no samples wait
+        (:mod:`service.engine.fit_budget`); their decisions published like any."""
+        with self.engine.lock:
+            for result in self.engine.catch_up(self.clock.wall()):
+                self._stepped(result)
+            self._commit(None)
 
     def _stepped(self, result: StepResult) -> None:
         self.metrics.inference_seconds.observe(result.inference_s)

@@ -37,7 +37,7 @@ import numpy as np
 
 from service.agent.fast import Precision
 from service.agent.model import Agent, load_agent
-from service.engine import monitor, rules, stepping, verify, views, watch
+from service.engine import first_tuning, monitor, rules, stepping, verify, views, watch
 from service.engine.audit import AuditRow
 from service.engine.config import LoopConfig, LoopView
 from service.engine.saved import Saved
@@ -315,6 +315,19 @@ class TuningEngine:
             result = stepping.step(self.table, slots, _now(wall))
             result.inference_s = time.perf_counter() - started
             return result
+
+    def catch_up(self, wall: float | None = None) -> list[StepResult]:
+        """Assess loops owed an assessment by the identification budget, one pass's worth
+        (:mod:`service.engine.fit_budget`; the tuner calls it when no samples wait);
+        returns the decisions their models made (first tunings, rescales)."""
+        with self.lock:
+            if not self.table.fits.owed:
+                return []
+            watch.catch_up(self.table, _now(wall))
+            first_tuning.flush(self.table)
+            decided = list(self.table.decided)
+            self.table.decided.clear()
+            return decided
 
     @property
     def due(self) -> int:

@@ -49,6 +49,7 @@ def configure(tb: LoopTable, slots: np.ndarray, configs: Sequence[LoopConfig]) -
         getattr(tb, name)[slots] = values
     mode, gateway, tau, theta, verifying, margin, cooldown = columns[len(_FLOATS) + len(_FLAGS) :]
     tb.mode[slots] = mode
+    tb.recorder.reserve(int(np.count_nonzero(tb.watch)))  # here, not in the worker's path
     gateways = np.empty(len(slot_list), object)  # (a list of str would make a str array)
     gateways[:] = gateway
     tb.gateways[slots] = gateways

@@ -22,6 +22,9 @@ class SiteDefaults:
     """Identify loops registered with a hint too (their hints checked)."""
     auto_rescale: bool = False
     """Rescale a loop whose identified model disagrees with its hint."""
+    fit_share: float | None = None
+    """Share of one core identification's fits may take (``PITUNE_IDENTIFY_CPU_SHARE``;
+    None: no limit, each assessment when due: :mod:`service.engine.fit_budget`)."""
 
     def identifies(self, config: LoopConfig) -> bool:
         own = config.guard.identify

@@ -25,6 +25,7 @@ from service.agent.model import Agent
 from service.engine import monitor, settings, verify, views, watch
 from service.engine.audit import AuditRow, audit_row
 from service.engine.config import Configs, LoopConfig, LoopView
+from service.engine.fit_budget import FitBudget
 from service.engine.modes import _CODE, _MODES, AUTO, FROZEN, SHADOW
 from service.engine.saved import Saved, restore_runtimes, runtimes_of
 from service.engine.site import SiteDefaults
@@ -112,6 +113,7 @@ class LoopTable:
         self.agent = agent
         self.site = site or SiteDefaults()
         """What loops that leave guard.identify or guard.auto_rescale unset get."""
+        self.fits = FitBudget(self.site.fit_share)
         # the allocation-free equivalent of agent.act; "reference" (and any object that
         # is not an Agent) steps with the agent's own act
         self._policy = (

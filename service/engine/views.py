@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from service.engine import monitor, oscillation, verify, watch
+from service.engine import box, monitor, oscillation, verify
 from service.engine.config import Counters, Identification, LoopConfig, LoopView
 from service.engine.figures import (
     Performance,
@@ -93,7 +93,7 @@ def raw_view(tb: LoopTable, s: int, config: bytes, wall: float) -> RawView:
             model_holds=int(tb.n_model_holds[s]),
         ),
         scaling=tb.scaling_of(s),
-        identification=watch.view(tb, s),
+        identification=identification(tb, s),
         verification=verification(tb, s),
         proposal=proposal(tb, s),
     )
@@ -191,3 +191,34 @@ def monitor_summary(tb: LoopTable) -> tuple[dict[str, int], dict[str, float]]:
 
 
 _STATES = ("oscillating", "change_pending", "held", "proposal_pending")
+
+
+def identification(tb: LoopTable, s: int) -> Identification | None:
+    """The loop's identification as the REST view shows it (:mod:`service.engine.watch`)."""
+    st = tb.ident[s]
+    if st is None:
+        return None
+    scaling = tb.scaling_of(s)
+    state = "off" if not tb.watch[s] else "checking" if tb.scaled[s] else "identifying"
+    why = (
+        st.why
+        if tb.watch[s]
+        else (
+            "identification off (guard.identify; by default on for loops registered "
+            "without a hint, for hinted ones as the tuner's identify_hinted_loops says)"
+        )
+    )
+    if s in tb.fits.owed:
+        why = f"{why} (next assessment waiting for the identification budget)"
+    model = st.model
+    return Identification(
+        state=state,
+        why=why,
+        model=None if model is None else model.as_dict(),
+        in_force=None if st.in_force is None else st.in_force.as_dict(),
+        in_force_t=st.in_force_t,
+        apparent=None if model is None or scaling is None else box.apparent(scaling, model),
+        events=[ev.as_dict() for ev in st.events],
+        mismatch=bool(tb.mismatch[s]),
+        out_of_envelope=bool(tb.out_env[s]),
+    )

@@ -40,7 +40,6 @@ import numpy as np
 
 from service.engine import box, first_tuning, identify, model_check
 from service.engine.audit import audit_row
-from service.engine.config import Identification
 from service.units import AGENT_GAIN, AGENT_TAU, Scaling
 
 CAP = 512
@@ -118,12 +117,22 @@ class Recorder:
 
     def take(self) -> int:
         if not self.free:
-            old = self.data.shape[0]
-            grown = np.zeros((max(4, 2 * old), COLUMNS, CAP))
-            grown[:old] = self.data
-            self.data = grown
-            self.free.extend(range(grown.shape[0] - 1, old - 1, -1))
+            self.reserve(max(4, 2 * self.data.shape[0]))
         return self.free.pop()
+
+    def reserve(self, rows: int) -> None:
+        """Room for ``rows`` open segments (a row per identifying loop, reserved as loops
+        are configured): growing copies the pool, 0.3 s at 10,000 loops, which in the
+        worker's path stalled every loop's samples (``pitune bench``). Rows not yet
+        recorded into take no memory (zeroed pages are mapped on first write)."""
+        old = self.data.shape[0]
+        if rows <= old:
+            return
+        grown = np.zeros((max(rows, 2 * old), COLUMNS, CAP))
+        used = np.setdiff1d(np.arange(old), self.free)  # (copying free rows maps them)
+        grown[used] = self.data[used]
+        self.data = grown
+        self.free[:0] = range(grown.shape[0] - 1, old - 1, -1)
 
     def give(self, row: int) -> None:
         self.free.append(row)
@@ -134,6 +143,7 @@ def record(tb, slots: np.ndarray, cols: dict, last_t: np.ndarray, fresh: np.ndar
     """Record accepted samples of distinct loops (before ``last_e`` moves on)."""
     t, e, sp = cols["t"], cols["e"], cols["sp"]
     op = cols.get("op")
+    tb.fits.refill(wall)
     watch = tb.watch[slots] & ~np.isnan(sp)
     if not watch.any():
         return
@@ -281,37 +291,64 @@ def _compress(tb, s: int) -> None:
 
 
 def _close(tb, s: int, t: float, wall: float, *, final: bool = False, why: str = "") -> None:
-    """Assess the segment so far (its last event complete); ``final``: and release it."""
+    """Assess the segment so far (its last event complete), or owe the assessment when
+    the identification budget is spent (:mod:`service.engine.fit_budget`); ``final``:
+    assess it now and release it."""
     st: IdState = tb.ident[s]
     n = int(tb.rec_n[s])
-    data = tb.recorder.data[tb.rec[s], :, :n]
-    starts = [a for a in st.starts if a < n]
     if st.in_force is not None and not final and not closely(tb, s):
         st.skipped += 1  # a model in force the last assessment confirmed: check less often
         if st.skipped < CHECK_EVERY:
             return _trim(tb, s, n)
     st.skipped = 0
-    if len(starts) >= identify.MIN_EVENTS and n >= identify.MIN_SAMPLES:
-        # a warm start (the grid search otherwise): the model in force, else the last
-        # confident one (a hinted loop's check; a hint-free loop's is in force)
-        known = st.in_force or (st.model if st.model is not None and st.model.confident else None)
-        start = None if known is None else (known.tau, known.theta)
-        # the samples the last row holds so far (a row per stride samples: record())
-        last = int((tb.rec_k[s] - 1) % tb.rec_stride[s] + 1)
-        result = identify.assess(data[0], data[1], data[2], data[3], starts, start, last)
-        st.events = result.events[-MAX_EVENTS:]
-        st.model, st.why = result.model, result.why
-        if result.model is not None and result.model.confident:
-            use(tb, s, result.model, t, wall)
-        elif tb.scaled[s] and result.why.startswith((identify.IMPRECISE, identify.DISAGREE)):
-            _envelope(tb, s, result.model, t, wall, sure=False)
-    elif final:
+    if not (final or tb.fits.allows()):
+        tb.fits.owe(s, urgent=not tb.scaled[s] or closely(tb, s))
+    elif not tb.fits.timed(_assess, tb, s, t, wall) and final:
         st.why = why
     if final:
+        tb.fits.forget(s)
         tb.recorder.give(int(tb.rec[s]))
         tb.rec[s] = -1
         st.starts = []
     _trim(tb, s, n)
+
+
+def _assess(tb, s: int, t: float, wall: float) -> bool:
+    """Assess slot ``s``'s segment as it is and use a confident model (the fit and what
+    follows from it: the budget's cost); False if it holds too little to fit."""
+    st: IdState = tb.ident[s]
+    n = int(tb.rec_n[s])
+    data = tb.recorder.data[tb.rec[s], :, :n]
+    starts = [a for a in st.starts if a < n]
+    if len(starts) < identify.MIN_EVENTS or n < identify.MIN_SAMPLES:
+        return False
+    # a warm start (the grid search otherwise): the model in force, else the last
+    # confident one (a hinted loop's check; a hint-free loop's is in force)
+    known = st.in_force or (st.model if st.model is not None and st.model.confident else None)
+    start = None if known is None else (known.tau, known.theta)
+    # the samples the last row holds so far (a row per stride samples: record())
+    last = int((tb.rec_k[s] - 1) % tb.rec_stride[s] + 1)
+    result = identify.assess(data[0], data[1], data[2], data[3], starts, start, last)
+    st.events = result.events[-MAX_EVENTS:]
+    st.model, st.why = result.model, result.why
+    if result.model is not None and result.model.confident:
+        use(tb, s, result.model, t, wall)
+    elif tb.scaled[s] and result.why.startswith((identify.IMPRECISE, identify.DISAGREE)):
+        _envelope(tb, s, result.model, t, wall, sure=False)
+    return True
+
+
+def catch_up(tb, wall: float) -> None:
+    """Assess loops owed an assessment, one pass's worth of the identification budget,
+    each on its segment as it is now (:mod:`service.engine.fit_budget`)."""
+    fits = tb.fits
+    fits.refill(wall)
+    while fits.owed and fits.allows():
+        s = fits.next_owed()
+        if tb.rec[s] >= 0:
+            n = int(tb.rec_n[s])
+            tb.fits.timed(_assess, tb, s, float(tb.last_t[s]), wall)
+            _trim(tb, s, n)
 
 
 def closely(tb, s: int) -> bool:
@@ -347,6 +384,7 @@ def _trim(tb, s: int, n: int) -> None:
 
 def stop(tb, s: int) -> None:
     """Drop a loop's open segment (removal, a new identification)."""
+    tb.fits.forget(s)
     if tb.rec[s] >= 0:
         tb.recorder.give(int(tb.rec[s]))
         tb.rec[s] = -1
@@ -457,27 +495,3 @@ def restart(tb, s: int, wall: float) -> None:
     tb.reconfigure(tb.configs[tb.ids[s]])
     t = tb.last_t[s]
     _audit(tb, s, None if math.isnan(t) else float(t), wall, "identify", "restarted")
-
-
-# -- views --------------------------------------------------------------------------
-def view(tb, s: int) -> Identification | None:
-    st: IdState = tb.ident[s]
-    if st is None:
-        return None
-    scaling = tb.scaling_of(s)
-    state = "off" if not tb.watch[s] else "checking" if tb.scaled[s] else "identifying"
-    model = st.model
-    return Identification(
-        state=state,
-        why=st.why
-        if tb.watch[s]
-        else "identification off (guard.identify; by default on for loops registered "
-        "without a hint, for hinted ones as the tuner's identify_hinted_loops says)",
-        model=None if model is None else model.as_dict(),
-        in_force=None if st.in_force is None else st.in_force.as_dict(),
-        in_force_t=st.in_force_t,
-        apparent=None if model is None or scaling is None else box.apparent(scaling, model),
-        events=[ev.as_dict() for ev in st.events],
-        mismatch=bool(tb.mismatch[s]),
-        out_of_envelope=bool(tb.out_env[s]),
-    )
