@@ -113,3 +113,16 @@ def test_guard_option_reaches_every_registration_and_bad_settings_are_refused(ca
     with pytest.raises(SystemExit):
         parser.parse_args(["--guard", '{"identify": "maybe"}'])
     assert "not a loop's guard settings" in capsys.readouterr().err
+
+
+def test_no_hint_registers_every_loop_without_a_scaling():
+    """``--no-hint``: the loops registered without a scaling (identified before they are
+    tuned); by default each has its hint, the same as before the option."""
+    from service.bench.fleet import Fleet
+
+    parser = argparse.ArgumentParser()
+    load.add_arguments(parser)
+    config = bench_config(parser.parse_args(["--loops", "3", "--no-hint"]))
+    assert [r["scaling"] for r in Fleet(config).registrations] == [None] * 3
+    hinted = Fleet(BenchConfig(loops=3)).registrations
+    assert all(r["scaling"]["tau_hat"] > 0 and r["scaling"]["pv_scale"] == 1.0 for r in hinted)

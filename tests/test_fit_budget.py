@@ -7,7 +7,7 @@ from __future__ import annotations
 import pytest
 
 from service.agent import untrained_agent
-from service.engine import SiteDefaults, TuningEngine
+from service.engine import SiteDefaults, TuningEngine, identify
 from service.engine.fit_budget import WINDOW_S, FitBudget
 from tests.test_identify import TAU, THETA, H, K, drive, gains, hint_free, hinted
 
@@ -84,29 +84,53 @@ def test_a_spent_budget_owes_the_assessment_and_makes_it_when_it_refills():
     assert view.identification.in_force.tau == pytest.approx(40.0, rel=0.3)
 
 
+def _two_owed(*configs) -> TuningEngine:
+    """An engine far below one fit's budget with two loops driven through six moves:
+    both owed an assessment."""
+    engine = TuningEngine(untrained_agent(0), site=SiteDefaults(fit_share=1e-6))
+    for config in configs:
+        engine.register(config, wall=0.0)
+    for config in configs:
+        drive(engine, config.id, moves=6)
+    assert engine.table.fits.waiting == 2
+    return engine
+
+
 def test_a_loop_without_a_model_is_assessed_before_a_hint_check():
     """Both owed, one pass's budget (one fit overdraws it): the hint-free loop's
     assessment is made, the hinted loop's waits."""
-    engine = TuningEngine(untrained_agent(0), site=SiteDefaults(fit_share=1e-6))
-    engine.register(hinted("checked"), wall=0.0)
-    engine.register(hint_free("free"), wall=0.0)
-    drive(engine, "checked", moves=6)
-    drive(engine, "free", moves=6)
+    engine = _two_owed(hinted("checked"), hint_free("free"))
     fits = engine.table.fits
-    assert fits.waiting == 2
     engine.catch_up(wall=1e6)  # refilled: a pass's worth, one fit
     assert fits.waiting == 1 and engine.table.slot("checked") in fits.owed
     assert engine.view("free", wall=1e9).counters.identified == 1
 
 
+def test_segments_that_end_on_a_spent_budget_are_released_unassessed(monkeypatch):
+    """A plant trip puts every loop in manual at once: their segments end, and with the
+    budget spent they are released without a fit (no stall behind thousands of fits),
+    owed nothing, and say why."""
+    engine = _two_owed(hint_free("a"), hint_free("b"))
+    calls = []
+    real = identify.assess
+    monkeypatch.setattr(identify, "assess", lambda *a, **k: calls.append(1) or real(*a, **k))
+    tb = engine.table
+    for loop_id in ("a", "b"):
+        s = tb.slot(loop_id)
+        sp = float(tb.id_sp[s])
+        manual = {"loop_id": loop_id, "t": float(tb.last_t[s]) + H, "sp": sp, "pv": sp,
+                  "kp": float(tb.kp[s]), "ki": float(tb.ki[s]), "auto": False}  # fmt: skip
+        engine.ingest([manual], wall=3.0)
+    assert calls == [] and engine.table.fits.waiting == 0
+    for loop_id in ("a", "b"):
+        why = engine.view(loop_id, wall=1e9).identification.why
+        assert "manual" in why and "identification budget spent" in why, why
+        assert tb.rec[tb.slot(loop_id)] == -1  # released
+
+
 def test_a_removed_or_restarted_loop_is_owed_nothing():
-    engine = TuningEngine(untrained_agent(0), site=SiteDefaults(fit_share=1e-6))
-    engine.register(hint_free("a"), wall=0.0)
-    engine.register(hint_free("b"), wall=0.0)
-    drive(engine, "a", moves=6)
-    drive(engine, "b", moves=6)
+    engine = _two_owed(hint_free("a"), hint_free("b"))
     fits = engine.table.fits
-    assert fits.waiting == 2
     engine.identify("a", wall=1.0)
     engine.remove("b")
     assert fits.waiting == 0

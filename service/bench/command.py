@@ -93,6 +93,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--guard", type=guard_option, default=None, metavar="JSON",
       help="guard settings added to every loop's registration, e.g. "
       "'{\"identify\": true, \"auto_rescale\": true}' (default: the gate off only)")  # fmt: skip
+    a("--no-hint", action="store_true",
+      help="register the loops without a scaling hint: identified before they are tuned "
+      "(the update latencies then count the identified loops' agent steps)")  # fmt: skip
     retention.add_arguments(parser)
 
 

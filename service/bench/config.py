@@ -70,6 +70,9 @@ class BenchConfig:
     guard: dict | None = None
     """Guard settings added to every loop's registration (e.g. identification on: what
     an opt-in measure costs at this load); None: the benchmark's own (the gate off)."""
+    no_hint: bool = False
+    """Register the loops without a scaling hint: each is identified from its own data
+    before it is tuned (a site commissioned without models)."""
 
     @property
     def batched_gains(self) -> bool:

@@ -64,14 +64,17 @@ class Fleet:
         kp, ki = to_parallel(*simc_paper(K, tau, theta))
         detune = np.exp(rng.uniform(math.log(0.3), math.log(3.0), (2, n)))
         self.kp0, self.ki0 = kp * detune[0], ki * detune[1]
+        hint_k = K * np.exp(rng.normal(0.0, 0.2, n))
         self.registrations = [
             {
                 "id": self.ids[i],
                 "kp": float(self.kp0[i]),
                 "ki": float(self.ki0[i]),
                 "sample_period_s": self.period,
-                "scaling": {
-                    "k_hat": float(K[i] * math.exp(rng.normal(0.0, 0.2))),
+                "scaling": None
+                if config.no_hint
+                else {
+                    "k_hat": float(hint_k[i]),
                     "tau_hat": float(tau[i]),
                     "pv_scale": 1.0,
                 },

@@ -14,7 +14,9 @@ overdraws it); an assessment beyond is *owed*: the loop's segment keeps recordin
 owed loops are assessed in turn, on their latest data, by :meth:`TuningEngine.catch_up
 <service.engine.engine.TuningEngine.catch_up>`, which the tuner's worker calls when it
 has no samples waiting. Loops that cannot tune without a model (identifying, flagged or
-paused) go before loops whose hint is merely being checked.
+paused) go before loops whose hint is merely being checked. A segment that ends (manual,
+saturated, a gap) on a spent budget is released unassessed (:func:`service.engine.watch.
+_close`): a plant trip ends thousands at once.
 
 Without a share (``None``: the engine's default, and every evaluation) each assessment
 is made when due and nothing is owed, so an evaluation's numbers do not depend on the

@@ -293,7 +293,7 @@ def _compress(tb, s: int) -> None:
 def _close(tb, s: int, t: float, wall: float, *, final: bool = False, why: str = "") -> None:
     """Assess the segment so far (its last event complete), or owe the assessment when
     the identification budget is spent (:mod:`service.engine.fit_budget`); ``final``:
-    assess it now and release it."""
+    and release it."""
     st: IdState = tb.ident[s]
     n = int(tb.rec_n[s])
     if st.in_force is not None and not final and not closely(tb, s):
@@ -301,8 +301,12 @@ def _close(tb, s: int, t: float, wall: float, *, final: bool = False, why: str =
         if st.skipped < CHECK_EVERY:
             return _trim(tb, s, n)
     st.skipped = 0
-    if not (final or tb.fits.allows()):
-        tb.fits.owe(s, urgent=not tb.scaled[s] or closely(tb, s))
+    if not tb.fits.allows():  # a segment that ends is released unassessed (a plant trip
+        # ends thousands at once: no stall of the samples behind their fits)
+        if final:
+            st.why = f"{why} (its data not assessed: identification budget spent)"
+        else:
+            tb.fits.owe(s, urgent=not tb.scaled[s] or closely(tb, s))
     elif not tb.fits.timed(_assess, tb, s, t, wall) and final:
         st.why = why
     if final:
