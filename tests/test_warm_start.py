@@ -91,3 +91,43 @@ def test_a_pass_warms_at_most_warm_per_pass_loops_and_the_next_pass_the_rest():
     assert len(tb.warming) == 6
     first_tuning.flush(tb)
     assert warmed().all() and not tb.warming
+
+
+def test_a_budgeted_engine_warms_a_slice_a_pass_to_the_same_state():
+    """With an identification budget (the tuner) a warm run takes WARM_SLICE RL steps a
+    pass, the loops joining meanwhile wait for the next batch, and the state it leaves
+    is the whole run's to the bit; a loop removed meanwhile gets nothing."""
+    from service.engine import SiteDefaults
+    from service.engine.first_tuning import WARM_SLICE
+
+    def engine_with(n, site=None):
+        engine = TuningEngine(untrained_agent(3), inference_precision="reference", site=site)
+        scaling = {"k_hat": K, "tau_hat": TAU, "pv_scale": 20.0}
+        for i in range(n):
+            engine.register(
+                LoopConfig(id=f"L{i}", kp=0.1 * (i + 1), ki=0.01, sample_period_s=H,
+                           scaling=scaling),
+                wall=0.0,
+            )  # fmt: skip
+        return engine, engine.table, [engine.table.slot(f"L{i}") for i in range(n)]
+
+    m = Model(k=K, tau=TAU, theta=THETA, noise=0.1, move=5.0, r2=0.99, k_rse=0.01, tau_rse=0.01)
+    whole, tw, sw = engine_with(3)
+    tw.warming.extend((s, tw.ids[s], m) for s in sw[:2])  # the same batch, whole
+    first_tuning.flush(tw)
+    assert tw.warm_run is None and np.abs(tw.hidden[sw]).sum() > 0
+
+    sliced, tb, slots = engine_with(3, SiteDefaults(fit_share=0.25))
+    tb.warming.extend((s, tb.ids[s], m) for s in slots[:2])
+    passes = -(-warm.STEPS // WARM_SLICE)
+    first_tuning.flush(tb)
+    tb.warming.append((slots[2], tb.ids[slots[2]], m))  # joins while the batch runs
+    sliced.remove("L1")
+    for _ in range(passes - 1):
+        assert tb.warm_run is not None and not np.abs(tb.hidden[slots]).any()
+        first_tuning.flush(tb)
+    assert tb.warm_run is None and tb.fits.spent_s > 0.0
+    np.testing.assert_array_equal(tb.hidden[slots[0]], tw.hidden[sw[0]])
+    assert tb.int_e[slots[0]] == tw.int_e[sw[0]]
+    assert not np.abs(tb.hidden[slots[1:]]).any()  # removed; the third not yet warmed
+    assert [s for s, _, _ in tb.warming] == [slots[2]]

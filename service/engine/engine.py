@@ -321,7 +321,7 @@ class TuningEngine:
         (:mod:`service.engine.fit_budget`; the tuner calls it when no samples wait);
         returns the decisions their models made (first tunings, rescales)."""
         with self.lock:
-            if not self.table.fits.owed:
+            if not self.table.fits.owed and self.table.warm_run is None:
                 return []
             watch.catch_up(self.table, _now(wall))
             first_tuning.flush(self.table)

@@ -156,30 +156,50 @@ def apply(tb, s: int, m, wall: float, why: str) -> None:
 
 
 WARM_PER_PASS = 64
-"""Loops warmed in one pass of the worker: a warm run costs 7-10 ms a loop on this box
+"""Loops warmed in one batch: a warm run costs 7-10 ms a loop on this box at this size
 (docs/identification.md), so a pass that puts thousands of models in force at once
 (a plant-wide move after a restart) stalls the other loops' samples at most ~0.6 s."""
+WARM_SLICE = 2
+"""RL steps of the warm run one pass of a budgeted engine takes (of :data:`warm.STEPS
+<service.engine.warm.STEPS>`): 15-40 ms of the worker's time (a whole run, 0.17-0.4 s
+however few loops it holds, took 58 % of the worker at 2,000 loops identified at once:
+``pitune bench --no-hint``)."""
 
 
 def flush(tb) -> None:
-    """Warm the agent of every loop waiting in ``tb.warming`` in one batched run on its
-    model from the gains in force (:func:`service.engine.warm.run`, the model as the
+    """Warm the agent of the loops waiting in ``tb.warming`` in one batched run on their
+    models from the gains in force (:class:`service.engine.warm.WarmRun`, the model as the
     loop's new scaling shows it), and give each the run's hidden state and error
     integral (the observation's, so divided by the loop's setpoint-move gain). A run
     that goes non-finite leaves its loop's fresh state. At most :data:`WARM_PER_PASS`
-    loops a call: the rest wait for the next pass (they are held until their model
-    tuning's verdict, several RL periods, so none is stepped cold meanwhile)."""
-    items = [(s, m) for s, i, m in tb.warming[:WARM_PER_PASS] if s < len(tb.ids) and tb.ids[s] == i]
-    del tb.warming[:WARM_PER_PASS]
-    if not items:
+    loops a batch: the rest wait for the next (they are held until their model tuning's
+    verdict, several RL periods, so none is stepped cold meanwhile). An engine without an
+    identification budget runs a batch whole in the pass (an evaluation's numbers do not
+    depend on how passes fall); with one (the tuner), :data:`WARM_SLICE` RL steps a
+    pass, charged to the budget, and the loops joining meanwhile wait for the next."""
+    if tb.warm_run is None:
+        items = [
+            (s, i, m) for s, i, m in tb.warming[:WARM_PER_PASS]
+            if s < len(tb.ids) and tb.ids[s] == i
+        ]  # fmt: skip
+        del tb.warming[:WARM_PER_PASS]
+        if not items:
+            return
+        slots = np.array([s for s, _, _ in items])
+        apps = [box.apparent(tb.scaling_of(s), m) for s, _, m in items]
+        K, tau, ratio = (np.array([a[k] for a in apps]) for k in ("gain", "tau", "theta_ratio"))
+        run = warm.WarmRun(
+            tb, K, tau, tau * ratio, tb.kp[slots] / tb.kp_unit[slots],
+            tb.ki[slots] / tb.ki_unit[slots], tb.forgetting[slots],
+        )  # fmt: skip
+        tb.warm_run = (slots, [i for _, i, _ in items], run)
+    slots, ids, run = tb.warm_run
+    steps = warm.STEPS if tb.fits.share is None else WARM_SLICE
+    if not tb.fits.timed(run.advance, steps):
         return
-    slots = np.array([s for s, _ in items])
-    apps = [box.apparent(tb.scaling_of(s), m) for s, m in items]
-    K, tau, ratio = (np.array([a[k] for a in apps]) for k in ("gain", "tau", "theta_ratio"))
-    state, int_e = warm.run(
-        tb, K, tau, tau * ratio, tb.kp[slots] / tb.kp_unit[slots],
-        tb.ki[slots] / tb.ki_unit[slots], tb.forgetting[slots],
-    )  # fmt: skip
+    tb.warm_run = None
+    state, int_e = run.result()
     fine = np.isfinite(state).all(axis=(1, 2)) & np.isfinite(int_e)
+    fine &= np.array([s < len(tb.ids) and tb.ids[s] == i for s, i in zip(slots, ids, strict=True)])
     tb.hidden[slots[fine]] = state[fine]
     tb.int_e[slots[fine]] = int_e[fine] / tb.obs_gain[slots[fine]]
