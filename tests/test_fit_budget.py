@@ -74,7 +74,7 @@ def test_a_spent_budget_owes_the_assessment_and_makes_it_when_it_refills():
     assert "waiting for the identification budget" in view.identification.why
     fits = engine.table.fits
     assert fits.waiting == 1 and fits.deferred >= 1 and fits.tokens < 0.0
-    assert engine.catch_up(wall=2.0) == [] and fits.waiting == 1  # still in debt
+    assert engine.catch_up(wall=350.0) == [] and fits.waiting == 1  # a second on: in debt
     decided = engine.catch_up(wall=1e6)  # the bucket refilled (and capped)
     assert [u.reason for r in decided for u in r.updates()] == ["model"]
     view = engine.view("L", wall=1e9)
@@ -214,3 +214,28 @@ def test_the_tuner_makes_owed_assessments_between_messages(tmp_path):
         if gw is not None:
             gw.close()
         tuner.stop()
+
+
+def test_a_loop_assessed_when_due_is_owed_nothing_and_one_no_longer_identified_is_skipped(
+    monkeypatch,
+):
+    """Budget back: a's next move closes its event and assesses it there, so it leaves
+    the queue (no second fit of the same data); b's identification turned off while
+    owed: the catch-up passes it by."""
+    engine = _two_owed(hint_free("a"), hint_free("b"))
+    tb, fits = engine.table, engine.table.fits
+    calls = []
+    real = identify.assess
+    monkeypatch.setattr(identify, "assess", lambda *a, **k: calls.append(1) or real(*a, **k))
+    fits.tokens = 1.0  # (capped at the next refill, still > 0)
+    a = tb.slot("a")
+    sp = float(tb.id_sp[a]) + 20.0  # a setpoint move: a's event closes
+    move = {"loop_id": "a", "t": float(tb.last_t[a]) + H, "sp": sp, "pv": sp - 20.0,
+            "kp": float(tb.kp[a]), "ki": float(tb.ki[a])}  # fmt: skip
+    engine.ingest([move], wall=400.0)
+    assert len(calls) == 1 and a not in fits.owed and fits.waiting == 1
+    tb.watch[tb.slot("b")] = False  # (a patch of guard.identify does this)
+    fits.tokens = 1.0
+    engine.catch_up(wall=401.0)
+    assert len(calls) == 1 and fits.waiting == 0
+    assert engine.view("b", wall=1e9).counters.identified == 0

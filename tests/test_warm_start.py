@@ -84,6 +84,8 @@ def test_a_pass_warms_at_most_warm_per_pass_loops_and_the_next_pass_the_rest():
         )
     m = Model(k=K, tau=TAU, theta=THETA, noise=0.1, move=5.0, r2=0.99, k_rse=0.01, tau_rse=0.01)
     slots = [tb.slot(f"L{i}") for i in range(n)]
+    for s in slots:  # as identification puts a model in force (watch._put_in_force)
+        tb.ident[s].in_force = m
     tb.warming.extend((s, tb.ids[s], m) for s in slots)
     warmed = lambda: np.abs(tb.hidden[slots]).sum(axis=(1, 2)) > 0  # noqa: E731
     first_tuning.flush(tb)
@@ -109,7 +111,10 @@ def test_a_budgeted_engine_warms_a_slice_a_pass_to_the_same_state():
                            scaling=scaling),
                 wall=0.0,
             )  # fmt: skip
-        return engine, engine.table, [engine.table.slot(f"L{i}") for i in range(n)]
+        slots = [engine.table.slot(f"L{i}") for i in range(n)]
+        for s in slots:  # as identification puts a model in force (watch._put_in_force)
+            engine.table.ident[s].in_force = m
+        return engine, engine.table, slots
 
     m = Model(k=K, tau=TAU, theta=THETA, noise=0.1, move=5.0, r2=0.99, k_rse=0.01, tau_rse=0.01)
     whole, tw, sw = engine_with(3)
@@ -131,3 +136,27 @@ def test_a_budgeted_engine_warms_a_slice_a_pass_to_the_same_state():
     assert tb.int_e[slots[0]] == tw.int_e[sw[0]]
     assert not np.abs(tb.hidden[slots[1:]]).any()  # removed; the third not yet warmed
     assert [s for s, _, _ in tb.warming] == [slots[2]]
+
+
+def test_a_warm_result_does_not_land_on_a_loop_reset_meanwhile():
+    """A sliced warm run spans passes: a loop reset (or stepped, rescaled, identified
+    anew) meanwhile keeps its own state; the others get theirs."""
+    from service.engine import SiteDefaults
+
+    engine = TuningEngine(untrained_agent(3), inference_precision="reference",
+                          site=SiteDefaults(fit_share=0.25))  # fmt: skip
+    tb = engine.table
+    scaling = {"k_hat": K, "tau_hat": TAU, "pv_scale": 20.0}
+    m = Model(k=K, tau=TAU, theta=THETA, noise=0.1, move=5.0, r2=0.99, k_rse=0.01, tau_rse=0.01)
+    for i in range(2):
+        engine.register(LoopConfig(id=f"L{i}", kp=0.1, ki=0.01, sample_period_s=H,
+                                   scaling=scaling), wall=0.0)  # fmt: skip
+    slots = [tb.slot("L0"), tb.slot("L1")]
+    for s in slots:
+        tb.ident[s].in_force = m
+    tb.warming.extend((s, tb.ids[s], m) for s in slots)
+    first_tuning.flush(tb)
+    engine.reset("L0", wall=1.0)
+    while tb.warm_run is not None:
+        first_tuning.flush(tb)
+    assert not np.abs(tb.hidden[slots[0]]).any() and np.abs(tb.hidden[slots[1]]).any()

@@ -339,7 +339,7 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
                     first = min(d for q in self._parked.values() for _, d, _ in q)
                     wait = min(wait, first - time.monotonic())
                 owed = self.table.fits.wait_s(self.clock.wall())  # assessments owed
-                if owed is not None:
+                if owed is not None and self._store_failing_since is None:
                     wait = min(wait, owed)
                 items = [self.inbox.get(timeout=max(0.0, wait))]
             except queue.Empty:

@@ -192,14 +192,29 @@ def flush(tb) -> None:
             tb, K, tau, tau * ratio, tb.kp[slots] / tb.kp_unit[slots],
             tb.ki[slots] / tb.ki_unit[slots], tb.forgetting[slots],
         )  # fmt: skip
-        tb.warm_run = (slots, [i for _, i, _ in items], run)
-    slots, ids, run = tb.warm_run
+        # what the result may land on: the same loop, model and seq (a reset, a rescale,
+        # a restart of identification or a step meanwhile leave the loop's own state)
+        keys = [(i, m, int(tb.seq[s])) for s, i, m in items]
+        tb.warm_run = (slots, keys, run)
+    slots, keys, run = tb.warm_run
     steps = warm.STEPS if tb.fits.share is None else WARM_SLICE
-    if not tb.fits.timed(run.advance, steps):
-        return
+    try:
+        if not tb.fits.timed(run.advance, steps):
+            return
+    except Exception:
+        tb.warm_run = None  # a failed run is not resumed
+        raise
     tb.warm_run = None
     state, int_e = run.result()
     fine = np.isfinite(state).all(axis=(1, 2)) & np.isfinite(int_e)
-    fine &= np.array([s < len(tb.ids) and tb.ids[s] == i for s, i in zip(slots, ids, strict=True)])
+    fine &= np.array([_same(tb, int(s), key) for s, key in zip(slots, keys, strict=True)])
     tb.hidden[slots[fine]] = state[fine]
     tb.int_e[slots[fine]] = int_e[fine] / tb.obs_gain[slots[fine]]
+
+
+def _same(tb, s: int, key: tuple) -> bool:
+    loop_id, m, seq = key
+    return (
+        s < len(tb.ids) and tb.ids[s] == loop_id and tb.ident[s] is not None
+        and tb.ident[s].in_force is m and int(tb.seq[s]) == seq
+    )  # fmt: skip

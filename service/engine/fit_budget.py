@@ -9,8 +9,8 @@ the samples (p99 update latency 4.1 s in ``pitune bench``, docs/identification.m
 
 With a budget the fits take at most ``share`` of one core over time: a token bucket of
 CPU seconds, refilled with the wall clock, holding at most ``share`` x :data:`WINDOW_S`.
-In one pass of the sample path they take at most :data:`PASS_S` (and the one fit that
-overdraws it); an assessment beyond is *owed*: the loop's segment keeps recording, and
+In one ingest of samples (a message, usually) they take at most :data:`PASS_S` (and the
+one fit that overdraws it); an assessment beyond is *owed*: the loop's segment keeps recording, and
 owed loops are assessed in turn, on their latest data, by :meth:`TuningEngine.catch_up
 <service.engine.engine.TuningEngine.catch_up>`, which the tuner's worker calls when it
 has no samples waiting. Loops that cannot tune without a model (identifying, flagged or
@@ -40,6 +40,8 @@ class FitBudget:
     """The token bucket and the loops owed an assessment (slots, in order, each once)."""
 
     def __init__(self, share: float | None) -> None:
+        if share is not None and not share > 0.0:
+            raise ValueError(f"identification budget share must be positive, not {share}")
         self.share = share
         """Share of one core the fits may take (None: no limit)."""
         self.tokens = 0.0 if share is None else self.cap
@@ -66,7 +68,7 @@ class FitBudget:
             return
         if self.wall is not None and wall > self.wall:
             self.tokens = min(self.cap, self.tokens + (wall - self.wall) * self.share)
-        self.wall = wall if self.wall is None else max(self.wall, wall)
+        self.wall = wall  # a clock stepped back (NTP) refills nothing, and stalls nothing
 
     def allows(self) -> bool:
         return self.share is None or (self.tokens > 0.0 and self.pass_left > 0.0)

@@ -22,10 +22,9 @@ import numpy as np
 
 from service.agent.fast import FastPolicy, Precision
 from service.agent.model import Agent
-from service.engine import monitor, settings, verify, views, watch
+from service.engine import fit_budget, monitor, recorder, settings, verify, views, watch
 from service.engine.audit import AuditRow, audit_row
 from service.engine.config import Configs, LoopConfig, LoopView
-from service.engine.fit_budget import FitBudget
 from service.engine.modes import _CODE, _MODES, AUTO, FROZEN, SHADOW
 from service.engine.saved import Saved, restore_runtimes, runtimes_of
 from service.engine.site import SiteDefaults
@@ -113,7 +112,7 @@ class LoopTable:
         self.agent = agent
         self.site = site or SiteDefaults()
         """What loops that leave guard.identify or guard.auto_rescale unset get."""
-        self.fits = FitBudget(self.site.fit_share)
+        self.fits = fit_budget.FitBudget(self.site.fit_share)
         # the allocation-free equivalent of agent.act; "reference" (and any object that
         # is not an Agent) steps with the agent's own act
         self._policy = (
@@ -153,7 +152,7 @@ class LoopTable:
         """Where the model check's rotation over the loops to check starts
         (:data:`service.engine.model_check.PER_PASS`)."""
         self.ident: list[watch.IdState | None] = []
-        self.recorder = watch.Recorder()
+        self.recorder = recorder.Recorder()
         self._allocate(capacity)
 
     # -- storage ----------------------------------------------------------------------

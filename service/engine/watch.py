@@ -40,10 +40,9 @@ import numpy as np
 
 from service.engine import box, first_tuning, identify, model_check
 from service.engine.audit import audit_row
+from service.engine.recorder import CAP
 from service.units import AGENT_GAIN, AGENT_TAU, Scaling
 
-CAP = 512
-"""Samples a segment holds before it halves its resolution (or drops its oldest event)."""
 MIN_EVENT_SAMPLES = 8
 """Recorded samples an event needs before a new setpoint move closes it."""
 MAX_EVENTS = 6
@@ -61,7 +60,6 @@ before the loop is assessed at every chance again (:func:`closely`)."""
 CHECK_FIRST = 16
 """Samples after a move at which a loop without a confident model is first assessed
 within the event (then at 24, 32, 48, 64, 96...: :func:`check_due`)."""
-COLUMNS = 4  # t, sp, pv, op
 
 
 @dataclass(slots=True)
@@ -106,36 +104,6 @@ class IdState:
             scaling=None if d.get("scaling") is None else Scaling(**d["scaling"]),
             tuned_seq=d.get("tuned_seq", -1),
         )
-
-
-class Recorder:
-    """The pool of segment buffers of a table: row r holds (t, sp, pv, op) x CAP."""
-
-    def __init__(self) -> None:
-        self.data = np.zeros((0, COLUMNS, CAP))
-        self.free: list[int] = []
-
-    def take(self) -> int:
-        if not self.free:
-            self.reserve(max(4, 2 * self.data.shape[0]))
-        return self.free.pop()
-
-    def reserve(self, rows: int) -> None:
-        """Room for ``rows`` open segments (a row per identifying loop, reserved as loops
-        are configured): growing copies the pool, 0.3 s at 10,000 loops, which in the
-        worker's path stalled every loop's samples (``pitune bench``). Rows not yet
-        recorded into take no memory (zeroed pages are mapped on first write)."""
-        old = self.data.shape[0]
-        if rows <= old:
-            return
-        grown = np.zeros((max(rows, 2 * old), COLUMNS, CAP))
-        used = np.setdiff1d(np.arange(old), self.free)  # (copying free rows maps them)
-        grown[used] = self.data[used]
-        self.data = grown
-        self.free[:0] = range(grown.shape[0] - 1, old - 1, -1)
-
-    def give(self, row: int) -> None:
-        self.free.append(row)
 
 
 # -- the sample rule ---------------------------------------------------------------------
@@ -307,7 +275,9 @@ def _close(tb, s: int, t: float, wall: float, *, final: bool = False, why: str =
             st.why = f"{why} (its data not assessed: identification budget spent)"
         else:
             tb.fits.owe(s, urgent=not tb.scaled[s] or closely(tb, s))
-    elif not tb.fits.timed(_assess, tb, s, t, wall) and final:
+    elif tb.fits.timed(_assess, tb, s, t, wall):
+        tb.fits.forget(s)  # assessed now: owed nothing more
+    elif final:
         st.why = why
     if final:
         tb.fits.forget(s)
@@ -349,7 +319,7 @@ def catch_up(tb, wall: float) -> None:
     fits.refill(wall)
     while fits.owed and fits.allows():
         s = fits.next_owed()
-        if tb.rec[s] >= 0:
+        if tb.rec[s] >= 0 and tb.watch[s]:  # (identification since turned off: nothing)
             n = int(tb.rec_n[s])
             tb.fits.timed(_assess, tb, s, float(tb.last_t[s]), wall)
             _trim(tb, s, n)
