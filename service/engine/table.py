@@ -147,7 +147,7 @@ class LoopTable:
         """Decisions made while taking samples (the first tuning from an identified
         model: :mod:`service.engine.first_tuning`), to publish."""
         self.warming: list = []  # model tunings waiting for a warm run (first_tuning.flush)
-        self.warm_run: tuple | None = None  # the batch under way: slots, ids, WarmRun
+        self.warm_run: tuple | None = None  # the batch under way: slots, keys, WarmRun
         self.mc_turn = 0
         """Where the model check's rotation over the loops to check starts
         (:data:`service.engine.model_check.PER_PASS`)."""

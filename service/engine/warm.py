@@ -51,10 +51,12 @@ def act(tb, obs: np.ndarray, state: np.ndarray, forgetting: np.ndarray) -> np.nd
 
 
 class WarmRun:
-    """The warm run of a batch of loops, resumable: :meth:`advance` takes it a few RL
-    steps at a time (the tuner spreads it over passes of its worker, so that the samples
-    never wait behind a whole run: 0.17-0.4 s on this box however few loops it holds);
-    split or whole, the same arithmetic, the same result."""
+    """The warm run of a batch of loops: the agent on models (K, tau, theta) from gains
+    (kp, ki), all agent units, arrays (n,), for ``steps`` RL steps. Resumable:
+    :meth:`advance` takes it a few RL steps at a time (the tuner spreads it over passes of
+    its worker, so that the samples never wait behind a whole run: 0.17-0.4 s on this box
+    however few loops it holds); split or whole, the same arithmetic, the same result;
+    :meth:`result` then holds the hidden state and the observation's error integral."""
 
     def __init__(
         self, tb, K, tau, theta, kp, ki, forgetting, *, steps: int = STEPS, dt: float = DT
@@ -110,14 +112,3 @@ class WarmRun:
         """(hidden state (n, layers, hidden) float32, the observation's error integral
         int_e (n,)) where the run is."""
         return self.state, self.int_e
-
-
-def run(
-    tb, K, tau, theta, kp, ki, forgetting, *, steps: int = STEPS, dt: float = DT
-) -> tuple[np.ndarray, np.ndarray]:
-    """The agent on models (K, tau, theta) from gains (kp, ki), all agent units, arrays
-    (n,); returns (hidden state (n, layers, hidden) float32, the observation's error
-    integral int_e (n,)) after ``steps`` RL steps (:class:`WarmRun` whole)."""
-    warm = WarmRun(tb, K, tau, theta, kp, ki, forgetting, steps=steps, dt=dt)
-    warm.advance(steps)
-    return warm.result()
