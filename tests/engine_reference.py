@@ -173,22 +173,24 @@ def _record(tb: LoopTable, s: int, sample: Sample, e: float, last_t, fresh, wall
             watch._close(tb, s, t, wall)
             starts = tb.ident[s].starts
             starts.append(int(tb.rec_n[s]))
-        watch._append(tb, s, row, force=True)
+        watch._append(tb, s, row, move=True)
     elif tb.rec[s] < 0 and moved and not broken:
         watch._open(tb, s, row)
     elif tb.rec[s] < 0 and moved:
         why = "output saturated" if sample.saturated else "data gap"
         why = why if sample.auto else "manual"
         tb.ident[s].why = f"setpoint move not usable: {why}"
-    elif tb.rec[s] >= 0:  # recording, every stride-th sample
-        k = int(tb.rec_k[s])
+    elif tb.rec[s] >= 0:  # recording: after a move a row per sample, then wider rows
+        k, held = int(tb.rec_k[s]), int(tb.rec_m[s])
         tb.rec_k[s] += 1
-        if k % tb.rec_stride[s] == 0:
+        block = max(int(tb.rec_n[s]) - 1 - int(tb.rec_ev[s]), 0) // watch.HEAD_ROWS
+        if held >= min(2**block, int(tb.rec_stride[s])):
             watch._append(tb, s, row)
         else:  # averaged into the last kept row
             data, last = tb.recorder.data[tb.rec[s]], int(tb.rec_n[s]) - 1
-            data[2, last] += (pv - data[2, last]) / (k % tb.rec_stride[s] + 1)
-            data[3, last] += (op - data[3, last]) / (k % tb.rec_stride[s] + 1)
+            data[2, last] += (pv - data[2, last]) / (held + 1)
+            data[3, last] += (op - data[3, last]) / (held + 1)
+            tb.rec_m[s] = held + 1
         # an assessment during the event, 16, 24, 32, 48, 64... samples after the move
         if watch.check_due(k) and watch.closely(tb, s):
             watch._close(tb, s, t, wall)

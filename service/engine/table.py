@@ -81,11 +81,12 @@ _I64 = [
     "n_identified", "n_mismatch", "n_envelope", "n_model_holds",
 ]  # fmt: skip
 """Mode, seq, then the counters (persisted in this order: new ones go at the end)."""
-_REC = ["rec", "rec_n", "rec_k", "rec_stride"]
 _COUNTERS = _I64[2:]
 """The counters a snapshot keeps, in this order (a new one goes at the end)."""
-"""Identification recorder: pool row (-1: not recording), samples held, samples seen,
-recording stride."""
+_REC = ["rec", "rec_n", "rec_k", "rec_stride", "rec_m", "rec_ev"]
+"""Identification recorder: pool row (-1: not recording), rows held, samples since the
+last move, the segment's coarsest row (samples), samples in the last row, the running
+event's first row (service.engine.watch)."""
 _MOVES = [name for name in _I64 if name not in ("mode", "n_samples", "n_rejected")]
 """What grows when a loop's state changes more than its samples' running sums do (a
 step, an update, a model, a pause; seq): with the mode, :meth:`LoopTable._moves`."""
@@ -271,7 +272,8 @@ class LoopTable:
         # a restored identification first: the configuration follows its scaling
         for slot, x in zip(picked, saved, strict=True):
             self.ident[slot] = watch.IdState() if x is None or x.ident is None else x.ident
-        self.rec[s], self.rec_n[s], self.rec_k[s], self.rec_stride[s] = -1, 0, 0, 1
+        for name, value in zip(_REC, (-1, 0, 0, 1, 0, 0), strict=True):
+            getattr(self, name)[s] = value
         self.mismatch[s] = self.out_env[s] = self.prev_ok[s] = False
         self.op_int[s] = self.op_kp[s] = 0.0
         self.prev_t[s] = self.prev_sp[s] = self.prev_pv[s] = self.prev_op[s] = math.nan

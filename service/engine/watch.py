@@ -10,10 +10,13 @@ accepted sample; stated one sample at a time in ``tests/engine_reference.py``):
   reconstruct_op`: parallel PI ``u = kp e + I``, ``I' = ki e`` at the sample period,
   bumpless gain changes, no feedforward or output tracking).
 * A *segment* opens at a setpoint move (any change of sp) and records every sample
-  (once long, a row per ``stride`` samples, their mean: the buffer halves its resolution
-  when full) until a
-  sample in manual, saturated, after a stale gap or on a new plant clock breaks it (the
-  data up to there are assessed first). A later move closes the running event and
+  until a sample in manual, saturated, after a stale gap or on a new plant clock breaks
+  it (the data up to there are assessed first). After each move the first
+  :data:`HEAD_ROWS` rows hold a sample each, the next as many two samples each (their
+  mean), then four, eight..., at most the segment's ``stride``, which doubles each time
+  the full buffer merges pairs of rows (never within an event's first rows): a row
+  at time T after a move spans at most about T / HEAD_ROWS, so the response to each move
+  keeps its shape however long the segment runs. A later move closes the running event and
   opens the next, unless the running event holds fewer than :data:`MIN_EVENT_SAMPLES`
   (a ramping setpoint is one event).
 * At each close the segment is assessed (:func:`~service.engine.identify.assess`).
@@ -40,6 +43,7 @@ import numpy as np
 
 from service.engine import box, first_tuning, identify, model_check
 from service.engine.audit import audit_row
+from service.engine.foptd_fit import sample_period
 from service.engine.recorder import CAP
 from service.units import AGENT_GAIN, AGENT_TAU, Scaling
 
@@ -57,6 +61,13 @@ engine's main cost); a flagged or paused loop is assessed at every one."""
 DRIFT = 1.25
 """Factor (K or tau) by which the latest confident model may differ from the one in force
 before the loop is assessed at every chance again (:func:`closely`)."""
+HEAD_ROWS = 32
+"""Rows of one sample each after a setpoint move (then blocks of as many rows of 2, 4,
+8... samples). A segment that halved the resolution of all its rows recorded a loop of
+tau 15 s sampled every second, after a few long setpoint holds, in rows of 16-32
+samples, its moves included: the fits traded tau for dead time (tau 6.7 s, theta 6.2 s
+for 15 s and 1.5 s) with standard errors of 3-8 %, confident and wrong
+(docs/identification.md)."""
 CHECK_FIRST = 16
 """Samples after a move at which a loop without a confident model is first assessed
 within the event (then at 24, 32, 48, 64, 96...: :func:`check_due`)."""
@@ -152,17 +163,20 @@ def record(tb, slots: np.ndarray, cols: dict, last_t: np.ndarray, fresh: np.ndar
             if tb.rec_n[si] - st.starts[-1] >= MIN_EVENT_SAMPLES:
                 _close(tb, si, float(t[i]), wall)
                 st.starts.append(int(tb.rec_n[si]))
-            _append(tb, si, row, force=True)
+            _append(tb, si, row, move=True)
         else:
             _open(tb, si, row)
     # the usual path, vectorised: append to open segments at their stride
     plain = np.flatnonzero(~done & recording & ~broken)
     if plain.size:
         ps = s[plain]
-        k = tb.rec_k[ps]
-        take = k % tb.rec_stride[ps] == 0
+        k, m, n = tb.rec_k[ps], tb.rec_m[ps], tb.rec_n[ps]
         tb.rec_k[ps] = k + 1
-        rows, n = tb.rec[ps[take]], tb.rec_n[ps[take]]
+        # the last row's width (HEAD_ROWS): a new row once it holds that many samples
+        block = np.minimum(np.maximum(n - 1 - tb.rec_ev[ps], 0) // HEAD_ROWS, 62)
+        take = m >= np.minimum(np.left_shift(1, block), tb.rec_stride[ps])
+        tb.rec_m[ps] = np.where(take, 1, m + 1)
+        rows, n = tb.rec[ps[take]], n[take]
         sel = plain[take]
         data = tb.recorder.data
         for c, col in enumerate((t, sp, pv, op)):
@@ -172,9 +186,9 @@ def record(tb, slots: np.ndarray, cols: dict, last_t: np.ndarray, fresh: np.ndar
         skip = ~take
         if skip.any():
             rows, last = tb.rec[ps[skip]], tb.rec_n[ps[skip]] - 1
-            m = (k[skip] % tb.rec_stride[ps[skip]]).astype(np.float64)
+            held = m[skip].astype(np.float64)
             for c, col in ((2, pv), (3, op)):
-                data[rows, c, last] += (col[plain[skip]] - data[rows, c, last]) / (m + 1.0)
+                data[rows, c, last] += (col[plain[skip]] - data[rows, c, last]) / (held + 1.0)
         for si in ps[take][n + 1 >= CAP].tolist():
             _compress(tb, si)
         # a loop not yet confidently identified is assessed during an event too (the
@@ -202,41 +216,44 @@ def check_due(k):
 
 def _open(tb, s: int, row: tuple) -> None:
     r = tb.recorder.take()
-    tb.rec[s], tb.rec_n[s], tb.rec_k[s], tb.rec_stride[s] = r, 0, 1, 1
+    tb.rec[s], tb.rec_n[s], tb.rec_stride[s] = r, 0, 1
     st: IdState = tb.ident[s]
     # the sample before the move (not one from before a new plant clock or a reset)
     if tb.prev_ok[s] and tb.prev_t[s] < row[0]:
         _append(tb, s, (tb.prev_t[s], tb.prev_sp[s], tb.prev_pv[s], tb.prev_op[s]))
     st.starts = [int(tb.rec_n[s])]
-    _append(tb, s, row)
+    _append(tb, s, row, move=True)
 
 
-def _append(tb, s: int, row: tuple, force: bool = False) -> None:
+def _append(tb, s: int, row: tuple, move: bool = False) -> None:
+    """A row of one sample; ``move``: the sample of a setpoint move (rows of one sample
+    follow it, :data:`HEAD_ROWS`)."""
     n = int(tb.rec_n[s])
     tb.recorder.data[tb.rec[s], :, n] = row
-    tb.rec_n[s] = n + 1
-    if force:
-        tb.rec_k[s] = 1
+    tb.rec_n[s], tb.rec_m[s] = n + 1, 1
+    if move:
+        tb.rec_k[s], tb.rec_ev[s] = 1, n
     if n + 1 >= CAP:
         _compress(tb, s)
 
 
 def _compress(tb, s: int) -> None:
     """A full buffer drops its oldest event (keeping one sample before the next) if it
-    holds :data:`MAX_EVENTS`, else halves its resolution (event starts kept)."""
+    holds :data:`MAX_EVENTS`, else merges pairs of rows outside each move's first
+    :data:`HEAD_ROWS` rows and the row before it. At most MAX_EVENTS - 1 events and the
+    running move's rows are kept whole (at most 6 x 33 rows of the 512): a merge frees
+    at least a quarter of the buffer."""
     st: IdState = tb.ident[s]
     data = tb.recorder.data[tb.rec[s]]
     n = int(tb.rec_n[s])
     if len(st.starts) >= MAX_EVENTS:
-        cut = st.starts[1] - 1
-        data[:, : n - cut] = data[:, cut:n]
-        tb.rec_n[s] = n - cut
-        st.starts = [a - cut for a in st.starts[1:]]
-        return
-    keep = np.zeros(n, bool)
-    keep[::2] = True
-    keep[[a for a in st.starts if a < n]] = True
-    keep[[a - 1 for a in st.starts if 0 < a <= n]] = True
+        return _drop_oldest(tb, s, n)
+    i = np.arange(n)
+    head = np.zeros(n, bool)
+    for a in {*st.starts, int(tb.rec_ev[s])}:
+        head[max(a - 1, 0) : a + HEAD_ROWS] = True
+    # each run of other rows keeps every other row, from its first
+    keep = head | ((i - np.maximum.accumulate(np.where(head, i, -1))) % 2 == 1)
     kept = np.flatnonzero(keep)
     # each kept row's measurement and output: their time-weighted means over the rows it
     # now stands for (the output is the input the plant integrates over the row's
@@ -245,7 +262,8 @@ def _compress(tb, s: int) -> None:
     # output misrepresented the input). The mean measurement lags the row's time by
     # half its interval, which the dead time absorbs.
     t = data[0, :n]
-    w = np.diff(t, append=t[-1] + float(np.median(np.diff(t))))
+    h = sample_period(t)
+    w = np.diff(t, append=t[-1] + tb.rec_m[s] * h)
     span = np.concatenate([[0.0], np.cumsum(w)])
     ends = np.append(kept[1:], n)
     acc = np.zeros((2, n + 1))
@@ -254,7 +272,9 @@ def _compress(tb, s: int) -> None:
     data[:, : kept.size] = data[:, kept]
     data[2:4, : kept.size] = means
     tb.rec_n[s] = kept.size
+    tb.rec_m[s] += round((t[n - 1] - t[kept[-1]]) / h)  # the last row: the samples it holds
     st.starts = [int(np.searchsorted(kept, a)) for a in st.starts]
+    tb.rec_ev[s] = int(np.searchsorted(kept, tb.rec_ev[s]))
     tb.rec_stride[s] *= 2
 
 
@@ -300,8 +320,7 @@ def _assess(tb, s: int, t: float, wall: float) -> bool:
     # confident one (a hinted loop's check; a hint-free loop's is in force)
     known = st.in_force or (st.model if st.model is not None and st.model.confident else None)
     start = None if known is None else (known.tau, known.theta)
-    # the samples the last row holds so far (a row per stride samples: record())
-    last = int((tb.rec_k[s] - 1) % tb.rec_stride[s] + 1)
+    last = int(tb.rec_m[s])  # the samples the last row holds so far
     result = identify.assess(data[0], data[1], data[2], data[3], starts, start, last)
     st.events = result.events[-MAX_EVENTS:]
     st.model, st.why = result.model, result.why
@@ -347,13 +366,20 @@ def closely(tb, s: int) -> bool:
 
 
 def _trim(tb, s: int, n: int) -> None:
+    if len(tb.ident[s].starts) > MAX_EVENTS:
+        _drop_oldest(tb, s, n)
+
+
+def _drop_oldest(tb, s: int, n: int) -> None:
+    """Forget the oldest event of the segment's ``n`` rows (keeping the row before the
+    next move)."""
     st: IdState = tb.ident[s]
-    if len(st.starts) > MAX_EVENTS:  # forget the oldest event
-        cut = st.starts[1] - 1
-        data = tb.recorder.data[tb.rec[s]]
-        data[:, : n - cut] = data[:, cut:n]
-        tb.rec_n[s] = n - cut
-        st.starts = [a - cut for a in st.starts[1:]]
+    cut = st.starts[1] - 1
+    data = tb.recorder.data[tb.rec[s]]
+    data[:, : n - cut] = data[:, cut:n]
+    tb.rec_n[s] = n - cut
+    st.starts = [a - cut for a in st.starts[1:]]
+    tb.rec_ev[s] -= cut
 
 
 def stop(tb, s: int) -> None:
