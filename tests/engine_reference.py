@@ -183,8 +183,8 @@ def _record(tb: LoopTable, s: int, sample: Sample, e: float, last_t, fresh, wall
     elif tb.rec[s] >= 0:  # recording: after a move a row per sample, then wider rows
         k, held = int(tb.rec_k[s]), int(tb.rec_m[s])
         tb.rec_k[s] += 1
-        block = max(int(tb.rec_n[s]) - 1 - int(tb.rec_ev[s]), 0) // watch.HEAD_ROWS
-        if held >= min(2**block, int(tb.rec_stride[s])):
+        head = int(tb.rec_n[s]) - 1 - int(tb.rec_ev[s]) < watch.HEAD_ROWS
+        if held >= (1 if head else int(tb.rec_stride[s])):
             watch._append(tb, s, row)
         else:  # averaged into the last kept row
             data, last = tb.recorder.data[tb.rec[s]], int(tb.rec_n[s]) - 1
