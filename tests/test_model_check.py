@@ -109,3 +109,21 @@ def test_beyond_per_pass_loops_are_deferred_in_rotation(monkeypatch):
         assert len(deferred) == 3 and hold[deferred].all()
         checked.append(sorted(set(range(5)) - set(deferred)))
     assert checked == [[0, 1], [2, 3], [0, 4]]  # each loop checked in turn
+
+
+def test_a_plant_moved_when_k_moved_beyond_its_error_and_a_tenth_or_tau_beyond_its_error():
+    """model_check.moved, the trigger of a follow: standard errors as the fit gives them;
+    K's (0.1-0.4 %) is far below the scatter of its models on one plant, so a K change
+    under MOVED_K is never a move."""
+    from service.engine.identify import Model
+
+    def model(k, tau, k_rse=0.002, tau_rse=0.01):
+        return Model(k=k, tau=tau, theta=5.0, noise=1.0, move=20.0, r2=0.99, k_rse=k_rse,
+                     tau_rse=tau_rse, confident=True)  # fmt: skip
+
+    known = model(1.0, 40.0)
+    assert not model_check.moved(model(1.07, 40.0), known)  # 35 standard errors, under 10 %
+    assert model_check.moved(model(1.12, 40.0), known)
+    assert not model_check.moved(model(1.12, 40.0, k_rse=0.05), known)  # within 3 errors
+    assert model_check.moved(model(1.0, 42.0), known)  # tau: 3.5 standard errors
+    assert not model_check.moved(model(1.0, 41.0), known)
