@@ -176,6 +176,9 @@ def run(
              "kp": float(pi.kp[i]), "ki": float(pi.ki[i] / plants.h[i])}
             for i in idx.tolist()
         )  # fmt: skip
+        # the controllers act with the gains the samples report (a DCS's cycle); updates
+        # reach them for the next sample, as the engine reconstructs the output
+        u = pi.step(sp - y)
         if k % BATCH == BATCH - 1:
             wall += 1.0
             updates = engine.ingest(pending, wall=wall)
@@ -192,7 +195,6 @@ def run(
                     moves_at_id[i] = sum(tm <= t_model for tm in move_t[i])
                     moves_in_data[i] = sum(tm < t_model for tm in move_t[i])
                     out.first_model[i] = tb.ident[s].in_force
-        u = pi.step(sp - y)
         plant.step(u)
         k += 1
     for i in range(n):

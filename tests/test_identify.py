@@ -73,14 +73,15 @@ def drive(
             y = 50.0
         sample = {"loop_id": loop_id, "t": t, "sp": sp, "pv": y, "kp": float(pi.kp[0]),
                   "ki": float(pi.ki[0] / h), "auto": auto, "saturated": saturated}  # fmt: skip
-        u_now = float(pi.output()[0])
+        # the controller acts with the gains the sample reports (a DCS's cycle); an
+        # update reaches it for the next sample
+        u = pi.step(sp - y) if auto else np.array([50.0 / k])
         if send_op:
-            sample["op"] = u_now
+            sample["op"] = float(u[0])
         new = engine.ingest([sample], wall=float(j))
         for up in new:
             pi.set_gains(up.kp, up.ki * h)
         updates += new
-        u = pi.step(sp - y) if auto else np.array([50.0 / k])
         if integrating:
             plant.step(u * (k * h) * 1e9)  # a lag of tau 1e9 samples integrates k u dt
         else:

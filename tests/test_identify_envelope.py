@@ -98,6 +98,7 @@ def drift(rate: float, *, after_pause: int = 50) -> dict:
         y = float(plant.measure()[0])
         batch.append({"loop_id": "L", "t": j * H, "sp": sp, "pv": y, "kp": float(pi.kp[0]),
                       "ki": float(pi.ki[0] / H)})  # fmt: skip
+        u = pi.step(sp - y)  # with the gains the sample reports; updates for the next
         if len(batch) == BATCH:
             for up in engine.ingest(batch, wall=float(j)):
                 pi.set_gains(up.kp, up.ki * H)
@@ -108,7 +109,7 @@ def drift(rate: float, *, after_pause: int = 50) -> dict:
         if tau == 5.0 * TAU and stop == np.inf:
             stop = j + 2000
         rows.append((float(pi.kp[0]), float(pi.ki[0] / H), tau, bool(tb.n_identified[s])))
-        plant.step(pi.step(sp - y))
+        plant.step(u)
         j += 1
     out = {"wall_s": time.perf_counter() - started, "samples": j}
     out["view"] = engine.view("L", wall=float(j))

@@ -250,6 +250,9 @@ def run_condition(
         sp_col = sp[:, k] if send_sp else np.full(n, np.nan)
         rows = Columns(ids, np.full(n, t), e, sp_col, pi.kp.copy(), pi.ki.copy(),
                        np.ones(n, bool), np.zeros(n, bool), index)  # fmt: skip
+        # the controller acts with the gains the sample reports (a DCS's cycle); an
+        # update reaches it for the next sample, as the engine reconstructs the output
+        u = pi.step(e)
         results = engine.ingest_decoded(Decoded(rows, [], n), wall=t)
         last = engine.flush(t)
         if last is not None:
@@ -262,7 +265,6 @@ def run_condition(
         if t >= next_boundary:
             gains.append(np.column_stack([pi.kp / sc.kp_per_agent, pi.ki / sc.ki_per_agent]))
             next_boundary += period_s
-        u = pi.step(e)
         y1 = plant.step(u, disturbance=load[:, k])
         if cond.second_lag:
             second.step(y1)
