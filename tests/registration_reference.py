@@ -68,7 +68,9 @@ def _configure(tb: LoopTable, s: int, config: LoopConfig) -> None:
     tb.mc_factor[s] = g.model_check or 0.0
     tb.mode[s] = _CODE[config.mode]
     tb.gateways[s] = None if config.gateway is None else sys.intern(config.gateway)
-    tb.watch[s] = config.scaling is None if g.identify is None else g.identify
+    # a loop's own choice, else on without a hint and, with one, as the site says
+    unset = config.scaling is None or tb.site.identify_hinted
+    tb.watch[s] = unset if g.identify is None else g.identify
     tb.env_guard[s] = g.envelope_guard
     tb.scaled[s] = sc is not None
     model = tb.ident[s].in_force

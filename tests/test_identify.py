@@ -13,7 +13,7 @@ from plant_sim.foptd import FOPTDBatch
 from plant_sim.pi import PIBatch
 from plant_sim.tunings import simc_paper, to_parallel
 from service.agent import untrained_agent
-from service.engine import LoopConfig, TuningEngine
+from service.engine import LoopConfig, SiteDefaults, TuningEngine
 from service.engine.identify import assess, reconstruct_op
 from service.wire.protocol import LoopStatus
 
@@ -228,8 +228,6 @@ def test_the_sites_defaults_check_and_rescale_hinted_loops_that_left_it_unset():
     """SiteDefaults (the tuner's identify_hinted_loops and auto_rescale): a hinted loop
     whose registration leaves guard.identify and guard.auto_rescale unset is identified
     and, its hint 3x off, rescaled; a loop's own setting wins either way."""
-    from service.engine import SiteDefaults
-
     engine = TuningEngine(untrained_agent(0), site=SiteDefaults(True, True))
     kp, ki = gains()
 
@@ -249,11 +247,13 @@ def test_the_sites_defaults_check_and_rescale_hinted_loops_that_left_it_unset():
     assert flag_only.counters.mismatches == 1 and flag_only.identification.mismatch
     assert flag_only.scaling.apparent_tau(TAU) == pytest.approx(0.5 / 3, rel=0.3)  # kept
     assert off.identification.state == "off" and off.counters.mismatches == 0
-    # the default engine leaves hinted loops alone
+    # the default engine checks hinted loops and flags them, rescaling none
     plain = TuningEngine(untrained_agent(0))
     plain.register(wrong("site"), wall=0.0)
     drive(plain, "site", moves=6)
-    assert plain.view("site", wall=1e9).identification.state == "off"
+    view = plain.view("site", wall=1e9)
+    assert view.identification.mismatch and view.counters.mismatches == 1
+    assert view.scaling.apparent_tau(TAU) == pytest.approx(0.5 / 3, rel=0.3)  # kept
 
 
 def test_a_right_hint_is_confirmed_not_flagged():
@@ -369,7 +369,7 @@ def test_the_tuners_settings_turn_hint_checks_on_for_loops_that_leave_them_unset
         assert mine["identification"]["state"] == "off"
         tuner = client.app.state.tuner
         assert tuner.engine.table.site.identify_hinted and tuner.engine.table.site.auto_rescale
-    monkeypatch.delenv("PITUNE_IDENTIFY_HINTED_LOOPS")
+    monkeypatch.setenv("PITUNE_IDENTIFY_HINTED_LOOPS", "false")
     with TestClient(create_app(tuner_settings(tmp_path))) as client:
         assert client.get("/loops/FIC-1").json()["identification"]["state"] == "off"
 
@@ -414,7 +414,7 @@ def test_a_window_whose_times_do_not_increase_is_not_fitted():
     assert out.model is None and "not increasing" in out.why
 
 
-def test_identification_is_on_by_default_only_without_a_hint():
+def test_identification_is_on_by_default_for_every_loop_off_where_a_loop_or_site_says():
     engine = TuningEngine(untrained_agent(0))
     engine.register(hint_free(), wall=0.0)
     kp, ki = gains()
@@ -423,5 +423,12 @@ def test_identification_is_on_by_default_only_without_a_hint():
         scaling={"k_hat": K, "tau_hat": TAU, "pv_scale": 20.0},
     )  # fmt: skip
     engine.register(plain, wall=0.0)
-    watch = engine.table.watch
-    assert watch[engine.table.slot_of[hint_free().id]] and not watch[engine.table.slot_of["H"]]
+    own = plain.model_copy(
+        update={"id": "OWN", "guard": plain.guard.model_copy(update={"identify": False})}
+    )
+    engine.register(own, wall=0.0)
+    quiet = TuningEngine(untrained_agent(0), site=SiteDefaults(identify_hinted=False))
+    quiet.register(plain, wall=0.0)
+    watch, slot = engine.table.watch, engine.table.slot_of
+    assert watch[slot[hint_free().id]] and watch[slot["H"]] and not watch[slot["OWN"]]
+    assert not quiet.table.watch[quiet.table.slot_of["H"]]

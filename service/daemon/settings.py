@@ -133,10 +133,11 @@ class Settings(BaseSettings):
         "where the CPU has native bfloat16 and tunes as well; auto picks it there.",
     )
     identify_hinted_loops: bool = Field(
-        False,
+        True,
         description="Identify loops registered with a hint too, their hints checked "
-        "(guard.identify left unset). It costs memory and CPU per loop on the move: "
-        "docs/identification.md.",
+        "(guard.identify left unset): a hint 2x off in K or tau is flagged, and rescaled "
+        "with auto_rescale. It costs memory and CPU per loop on the move (capped by "
+        "identify_cpu_share): docs/identification.md.",
     )
     auto_rescale: bool = Field(
         False,

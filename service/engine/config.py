@@ -100,8 +100,8 @@ class Guard(BaseModel):
         "and pv in the samples). A loop registered without scaling is tuned only once "
         "identified; a hinted loop's hint is checked against the model. Default (null): "
         "on for a loop registered without scaling; for a hinted one the tuner's "
-        "identify_hinted_loops (off: the checks cost memory and CPU, "
-        "docs/identification.md).",
+        "identify_hinted_loops (on: its hint is checked; memory and CPU per loop on the "
+        "move, docs/identification.md).",
     )
     hint_tolerance: Tolerance = Field(
         2.0,

@@ -204,8 +204,8 @@ def identification(tb: LoopTable, s: int) -> Identification | None:
         st.why
         if tb.watch[s]
         else (
-            "identification off (guard.identify; by default on for loops registered "
-            "without a hint, for hinted ones as the tuner's identify_hinted_loops says)"
+            "identification off (guard.identify; by default on, for hinted loops as the "
+            "tuner's identify_hinted_loops says)"
         )
     )
     if s in tb.fits.owed:
