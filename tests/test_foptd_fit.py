@@ -37,3 +37,44 @@ def test_the_grid_search_sums_of_squares_are_those_of_the_definition(rows):
     thetas = np.array([0.0, 0.3, 1.25, 7.7, 60.0])  # whole and fractional samples
     direct = np.array([[_sse_direct(w, tau, th) for th in thetas] for tau in taus])
     np.testing.assert_allclose(_sse_grid([w], taus, thetas), direct, rtol=1e-9)
+
+
+def test_standard_errors_grow_with_slow_residuals_and_not_with_white_ones(monkeypatch):
+    """service.engine.foptd_fit._covariance: on white measurement noise tau's standard
+    error is the scatter of its estimates; with a slow disturbance on the measurement
+    (a random walk the linear model cannot explain) the estimates scatter 25x more and
+    the Newey-West sandwich's error grows 2.6x beyond the textbook form's (still about a
+    third of the scatter: a random walk outlasts any lag window)."""
+    from plant_sim.foptd import FOPTDBatch
+    from service.engine import foptd_fit
+
+    def fits(slow: float) -> tuple[float, float]:
+        """(scatter of log tau, median standard error) over 12 noise draws."""
+        taus, ses = [], []
+        for seed in range(12):
+            rng = np.random.default_rng(seed)
+            n = 600
+            op = np.repeat(rng.choice([-1.0, 1.0], n // 60), 60) * 10.0  # steps every 60
+            plant = FOPTDBatch(2.0, 15.0, 3.0, dt=1.0)
+            plant.reset(0.0)
+            pv = np.empty(n)
+            for k in range(n):
+                pv[k] = plant.output()[0]
+                plant.step(np.array([op[k]]))
+            pv += rng.normal(size=n) * 0.5 + np.cumsum(rng.normal(size=n)) * slow
+            fit = foptd_fit.fit_windows([Window.of(np.arange(n, dtype=float), pv, op)])
+            taus.append(np.log(fit.tau))
+            ses.append(fit.tau_rse)
+        return float(np.std(taus)), float(np.median(ses))
+
+    white_scatter, white_se = fits(0.0)
+    slow_scatter, slow_se = fits(0.3)
+    assert 0.7 < white_se / white_scatter < 1.5
+    assert slow_scatter > 10.0 * white_scatter
+    assert slow_se > 0.25 * slow_scatter
+    monkeypatch.setattr(  # the textbook form alone
+        foptd_fit,
+        "_covariance",
+        lambda jac, r, noise, p, lags: np.linalg.inv(jac.T @ jac) * noise**2,
+    )
+    assert slow_se > 2.0 * fits(0.3)[1]

@@ -303,7 +303,7 @@ def _refine(windows: list[Window], span: float, dt: float, tau0: float, theta0: 
     model = [w.pv + ri / np.sqrt(1.0 if w.count is None else w.count)
              for w, ri in zip(windows, np.split(r, split), strict=True)]  # fmt: skip
     try:
-        cov = np.linalg.inv(res.jac.T @ res.jac) * noise**2
+        cov = _covariance(res.jac, r, noise, res.x.size, _lags(span, n, tau + theta))
         se = np.sqrt(np.maximum(np.diag(cov), 0.0))
         k_rse = float(se[0] / abs(k)) if k else math.inf
         tau_rse = float(se[1])  # log tau: relative
@@ -329,6 +329,32 @@ def _refine(windows: list[Window], span: float, dt: float, tau0: float, theta0: 
         k_rse=k_rse, tau_rse=tau_rse, integrating=bool(integrating), params=res.x,
         model=model,
     )  # fmt: skip
+
+
+def _lags(span: float, rows: int, shown: float) -> int:
+    """Lags of :func:`_covariance`: the rows the model's response (``shown`` = tau + theta)
+    spans on average, at most a quarter of them."""
+    return int(min(max(1, round(shown * rows / max(span, 1e-300))), rows // 4))
+
+
+def _covariance(jac: np.ndarray, r: np.ndarray, noise: float, p: int, lags: int) -> np.ndarray:
+    """The parameters' covariance: the larger, entry by entry, of the textbook
+    ``(J'J)^-1 noise^2`` and the Newey-West (Bartlett-weighted, ``lags``) sandwich
+    ``B S B``, ``B = (J'J)^-1``, ``S`` the residual-weighted Jacobian's autocovariance up
+    to ``lags``. The textbook form assumes white residuals; a linear model of a real
+    loop leaves slow ones (its own error, an output reconstructed from the PI law), and
+    then tau's error is several times what it gives: on dead-time dominant loops of the
+    long robustness run tau scattered 58-68 s for 60 s at 0.7 % (docs/identification.md).
+    ``p``: fitted parameters (the small-sample factor)."""
+    bread = np.linalg.inv(jac.T @ jac)
+    g = jac * r[:, None]
+    meat = g.T @ g
+    for lag in range(1, lags + 1):
+        c = g[lag:].T @ g[:-lag]
+        meat += (1.0 - lag / (lags + 1)) * (c + c.T)
+    n = r.size
+    sandwich = bread @ meat @ bread * (n / max(n - p, 1))
+    return np.maximum(sandwich, bread * noise**2)
 
 
 def _sst(w: Window) -> float:
