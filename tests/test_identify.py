@@ -307,6 +307,31 @@ def test_an_integrating_loop_is_reported_as_such_and_never_identified_as_foptd()
     assert "integrating" in view.identification.why, view.identification.why
 
 
+@pytest.mark.parametrize(
+    ("tau_rse", "prediction", "paused"),
+    [(0.05, 2.0, True), (0.3, 1.0, True), (0.3, 11.0, False)],
+    ids=["precise-but-inconsistent", "consistent-but-imprecise", "neither"],
+)
+def test_an_unconfident_model_pauses_only_when_it_fails_one_check_of_two(
+    tau_rse, prediction, paused
+):
+    """A model of a plant 10x the hint's gain that passes every check but precision, or
+    but consistency, pauses the loop (a drifting plant); one that fails both (the earlier
+    events' model missed the next by 11x the noise: load steps at the plant input) is
+    not used (service.engine.watch._envelope)."""
+    from service.engine import watch
+    from service.engine.identify import Model
+
+    engine = TuningEngine(untrained_agent(0))
+    engine.register(hinted(), wall=0.0)
+    tb, s = engine.table, engine.table.slot("L")
+    m = Model(k=10 * K, tau=TAU, theta=THETA, noise=1.0, move=20.0, r2=0.95, k_rse=0.05,
+              tau_rse=tau_rse, events=3, prediction=prediction)  # fmt: skip
+    watch._envelope(tb, s, m, 100.0, 1.0, sure=False)
+    assert bool(tb.out_env[s]) is paused
+    assert engine.view("L", wall=1.0).counters.envelope_pauses == int(paused)
+
+
 def test_a_plant_gone_out_of_the_agents_envelope_is_paused():
     engine = TuningEngine(untrained_agent(0))
     engine.register(hint_free(), wall=0.0)

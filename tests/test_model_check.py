@@ -1,5 +1,5 @@
-"""The model check (service/engine/model_check.py): while an identified model is in force,
-an agent step whose gains the model predicts to track the step test worse than
+"""The model check (service/engine/model_check.py): while an identified model is in force
+(or a hinted loop's latest model is confident), an agent step whose gains the model predicts to track the step test worse than
 ``guard.model_check`` times the model's tuning (and worse than the gains in force) is
 held: nothing published, counted, audited with its predictions; ``null`` turns it off."""
 
@@ -12,7 +12,7 @@ from plant_sim.loop import step_test_mse
 from service.agent import DEFAULT_WEIGHTS, load_agent, untrained_agent
 from service.engine import LoopConfig, TuningEngine, model_check
 from service.engine.first_tuning import model_gains
-from tests.test_identify import TAU, THETA, H, K, drive, gains
+from tests.test_identify import TAU, THETA, H, K, drive, gains, hinted
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -127,3 +127,24 @@ def test_a_plant_moved_when_k_moved_beyond_its_error_and_a_tenth_or_tau_beyond_i
     assert not model_check.moved(model(1.12, 40.0, k_rse=0.05), known)  # within 3 errors
     assert model_check.moved(model(1.0, 42.0), known)  # tau: 3.5 standard errors
     assert not model_check.moved(model(1.0, 41.0), known)
+
+
+def test_a_hinted_loop_is_checked_on_its_latest_confident_model():
+    """A hint the data confirm puts no model in force (the scaling stays the hint's), but
+    the check runs on the confident model: under load steps at the plant input the
+    agent, unchecked, took the grid's loops to 0.5-2x the best integral gain (issue 12's
+    load condition, docs/tuner.md)."""
+    engine = TuningEngine(untrained_agent(0))
+    engine.register(hinted(k_hat=K * 1.3, tau_hat=TAU / 1.3), wall=0.0)
+    drive(engine, moves=6)
+    tb, s = engine.table, engine.table.slot("L")
+    st = tb.ident[s]
+    assert st.in_force is None and st.model is not None and st.model.confident
+    K_a, tau_a, theta_a = model_check.agent_model(tb, s)
+    # the model through the hint's scaling: the true plant appears 1/1.3 and 1.3 x 0.5
+    assert K_a == pytest.approx(0.5 / 1.3, rel=0.1) and tau_a == pytest.approx(0.65, rel=0.2)
+    assert theta_a / tau_a == pytest.approx(THETA / TAU, rel=0.3)
+    ref, mse_ref = reference(engine)
+    hold, _ = model_check.held(tb, np.array([s, s]), np.array([ref, ref]),
+                               np.array([ref * [1.0, 0.5], ref * 1.001]))  # fmt: skip
+    assert hold.tolist() == [True, False]

@@ -252,6 +252,11 @@ def assess(
     return out
 
 
+def precise(m: Model) -> bool:
+    """Whether K and tau are pinned down (:data:`MAX_REL_SE`, :data:`MAX_TAU_SE`)."""
+    return m.k_rse <= MAX_REL_SE and m.tau_rse <= MAX_TAU_SE
+
+
 def _verdict(m: Model, excited: int, n_events: int) -> str:
     if m.integrating:
         return "integrating: K/s e^(-theta s) fits better than an FOPTD model"
@@ -268,7 +273,7 @@ def _verdict(m: Model, excited: int, n_events: int) -> str:
         )
     if m.r2 < MIN_R2:
         return f"poor fit (R2 {m.r2:.2f} < {MIN_R2:g})"
-    if not (m.k_rse <= MAX_REL_SE and m.tau_rse <= MAX_TAU_SE):
+    if not precise(m):
         return f"{IMPRECISE} (rel. s.e. {m.k_rse:.2f}, {m.tau_rse:.2f})"
     if not m.prediction <= MAX_PREDICTION:
         return (

@@ -1,7 +1,8 @@
-"""The model check: while an identified model is in force, an agent step whose gains the
-model predicts to track much worse than the model's own tuning is held; and when a newer
-confident model shows the plant moved, gains in force it predicts that much worse are
-replaced by its tuning (:func:`follow`: a plant drifting inside the envelope).
+"""The model check: while an identified model is in force (or a hinted loop's latest model
+is confident), an agent step whose gains the model predicts to track much worse than the
+model's own tuning is held; and when a newer confident model shows the plant moved, gains
+in force it predicts that much worse are replaced by its tuning (:func:`follow`: a plant
+drifting inside the envelope).
 
 Why: with a confident model the engine knows, to within the model's error, how any
 gains will do on the paper's step test, and the model's tuning (:func:`first_tuning.
@@ -14,7 +15,7 @@ rose 100-1,000x above the model tuning's on the unchanged plant of
 control engineer would not accept a tuner that makes a loop 100x worse than the model it
 has identified says it could be.
 
-The rule, per loop stepped with a model in force (``guard.model_check`` the factor f,
+The rule, per loop stepped with a model (``guard.model_check`` the factor f,
 default 1.5) whose gains the step would change: predict the step-test MSE, on the model
 in the agent's units (:func:`service.engine.box.apparent`, the loop's latest confident
 model else the one in force, as the robustness guard), of the proposed gains, of the
@@ -58,12 +59,16 @@ are checked rotates from pass to pass (``tb.mc_turn``), so none is starved."""
 def agent_model(tb, s: int) -> tuple[float, float, float] | None:
     """The model slot ``s`` is checked on, (K, tau, theta) in agent units: its latest
     confident model, else the one in force (the robustness guard's choice: a plant on
-    the move is followed); None without a model in force or with an integrating one."""
+    the move is followed); None without either, or with an integrating one. A hinted
+    loop whose hint the data confirm has no model in force but is checked on its
+    confident model: unchecked, the agent took the grid's loops under load steps at the
+    plant input to 0.5-2x the best integral gain (issue 12's load condition: worst 0.11,
+    docs/tuner.md)."""
     st = tb.ident[s]
-    if st.in_force is None:
+    if st is None:
         return None
     m = st.model if st.model is not None and st.model.confident else st.in_force
-    if m.integrating or not m.k > 0:
+    if m is None or m.integrating or not m.k > 0:
         return None
     app = box.apparent(tb.scaling_of(s), m)
     return app["gain"], app["tau"], app["theta_ratio"] * app["tau"]

@@ -436,8 +436,12 @@ def _envelope(tb, s: int, m: identify.Model, t: float, wall: float, *, sure: boo
     tau two standard errors toward the box leave it (a drifting plant is never pinned
     down, nor consistent, on data that mix its old and new dynamics: with the consistency
     test on an event that has shown its response, the bar's ramp was paused at 4.5 tau0
-    instead of 4.0 until such models could pause). A model that fails any other check is
-    not used at all."""
+    instead of 4.0 until such models could pause). A model that fails any other check,
+    or both of those, is not used at all: under load steps at the plant input the
+    earlier events' models missed the next by 8-30x the noise at standard errors of tau
+    of 0.2-0.3, and their pauses held loops on their first gains for the rest of a run
+    (issue 12's load conditions, docs/tuner.md); a drifting plant's pausing models were
+    precise (tau 7-11 %) and missed by 2-2.4x."""
     if not tb.env_guard[s]:
         return
     app = box.apparent(tb.scaling_of(s), m)
@@ -445,6 +449,8 @@ def _envelope(tb, s: int, m: identify.Model, t: float, wall: float, *, sure: boo
         out = m.integrating or not box.in_envelope(app)
     else:
         if not (m.r2 >= identify.MIN_R2 and m.events >= identify.MIN_EVENTS and m.k > 0):
+            return
+        if not (identify.precise(m) or m.prediction <= identify.MAX_PREDICTION):
             return
         out = not box.in_envelope(box.toward_box(app, 2.0 * m.k_rse, 2.0 * m.tau_rse))
         if not out:
