@@ -1,7 +1,8 @@
 """The model check (service/engine/model_check.py): while an identified model is in force
-(or a hinted loop's latest model is confident), an agent step whose gains the model predicts to track the step test worse than
-``guard.model_check`` times the model's tuning (and worse than the gains in force) is
-held: nothing published, counted, audited with its predictions; ``null`` turns it off."""
+(or a hinted loop's latest model is confident), an agent step whose gains the model
+predicts to track the step test worse than ``guard.model_check`` times the model's tuning
+(and worse than the gains in force) is held: nothing published, counted, audited with its
+predictions; ``null`` turns it off."""
 
 from __future__ import annotations
 
