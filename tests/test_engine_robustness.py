@@ -168,10 +168,10 @@ def test_settling_steadies_a_noisy_loops_gains_and_follows_a_plant_that_moved():
     agent = load_agent()
     K, tau, r = (x[[4, 13, 22]] for x in grid())
     wander = {}
-    for d in (0.0, 20.0):
+    for d in (0.0, 20.0):  # settling alone: the model check (identification) off
         run = run_condition(agent, Condition("noisy", noise=0.05, sp_irregular=True),
                             periods=160, plants=(K, tau, r), seed=1, forgetting=0.99,
-                            guard={"settle_steps": d})  # fmt: skip
+                            guard={"settle_steps": d, "identify": False})  # fmt: skip
         late = run.gains[80:]
         wander[d] = np.abs(late / np.median(late, axis=0) - 1.0).max(axis=(0, 2))
     assert np.all(wander[20.0] < 0.6 * wander[0.0]), wander

@@ -149,3 +149,27 @@ def test_a_hinted_loop_is_checked_on_its_latest_confident_model():
     hold, _ = model_check.held(tb, np.array([s, s]), np.array([ref, ref]),
                                np.array([ref * [1.0, 0.5], ref * 1.001]))  # fmt: skip
     assert hold.tolist() == [True, False]
+
+
+def test_a_hinted_loops_first_confident_model_puts_its_tuning_in_force_once():
+    """Gains the first confident model of a hinted loop predicts much worse than its own
+    tuning (here a quarter of SIMC's: sluggish) are set to that tuning (audit reason
+    ``model``, after ``checked``), once: later models of the same plant only check the
+    agent's steps. The model survives a snapshot."""
+    from service.engine.watch import IdState
+
+    engine = TuningEngine(untrained_agent(0))
+    config = hinted()
+    kp, ki = gains(share=0.25)
+    engine.register(config.model_copy(update={"kp": kp, "ki": ki}), wall=0.0)
+    drive(engine, moves=10)
+    tb, s = engine.table, engine.table.slot("L")
+    st = tb.ident[s]
+    assert st.in_force is None and st.hint_model is not None
+    _, audit = engine.drain_changes()
+    checked = [r for r in audit if r[5] == "model" and '"after":"checked"' in r[10]]
+    assert len(checked) == 1
+    (row,) = checked
+    assert row[8] > 2.0 * kp and row[9] > 2.0 * ki  # raised to the model's tuning
+    assert sum(r[5] == "model" for r in audit) == 1  # no other model decision
+    assert IdState.load(st.dump()).hint_model == st.hint_model

@@ -60,11 +60,13 @@ hidden state and error integral then come from a run on the model
 TAU_C = 2.0
 """The closed-loop time constant, in plant time constants (detuned: SIMC's own choice is
 ``tau_c = theta``)."""
-REPLACE_AFTER = ("rescaled", "out_of_envelope", "followed")
+REPLACE_AFTER = ("rescaled", "out_of_envelope", "followed", "checked")
 """Decisions after which the model's tuning replaces the gains both ways, not only raises
 them: the gains in force were the agent's, tuned for the plant a wrong scaling described
 (or one outside its box, or an earlier model of a plant that has since moved:
-``followed``, :func:`service.engine.model_check.follow`), so a faster tuning among them
+``followed``, :func:`service.engine.model_check.follow`; or the agent's, unchecked
+until a hinted loop's first confident model predicted them much worse than its own:
+``checked``, :func:`service.engine.model_check.hint_checked`), so a faster tuning among them
 is no choice to keep (an integral time of 0.4-0.6 of the true tau after a tau hint 2-3x
 off: docs/identification.md)."""
 FOLLOW = 1.15

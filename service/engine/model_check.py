@@ -59,15 +59,17 @@ are checked rotates from pass to pass (``tb.mc_turn``), so none is starved."""
 def agent_model(tb, s: int) -> tuple[float, float, float] | None:
     """The model slot ``s`` is checked on, (K, tau, theta) in agent units: its latest
     confident model, else the one in force (the robustness guard's choice: a plant on
-    the move is followed); None without either, or with an integrating one. A hinted
-    loop whose hint the data confirm has no model in force but is checked on its
-    confident model: unchecked, the agent took the grid's loops under load steps at the
-    plant input to 0.5-2x the best integral gain (issue 12's load condition: worst 0.11,
-    docs/tuner.md)."""
+    the move is followed), else a hinted loop's last (:func:`hint_checked`); None without
+    any, or with an integrating one. A hinted loop has no model in force (unless
+    rescaled) but is checked too: unchecked, the agent took the grid's loops under load
+    steps at the plant input to 0.5-2x the best integral gain (issue 12's load
+    condition: worst 0.11, docs/tuner.md), and there the latest assessment is often not
+    confident."""
     st = tb.ident[s]
     if st is None:
         return None
     m = st.model if st.model is not None and st.model.confident else st.in_force
+    m = st.hint_model if m is None else m
     if m is None or m.integrating or not m.k > 0:
         return None
     app = box.apparent(tb.scaling_of(s), m)
@@ -154,16 +156,43 @@ def follow(tb, s: int, m, t: float, wall: float) -> None:
     st = tb.ident[s]
     known = st.in_force
     if known is None or not tb.mc_factor[s] > 0 or m.integrating or not m.k > 0:
-        return  # (a hinted loop has no model in force: the check leaves it to the agent)
-    if not moved(m, known):
+        return  # (a hinted loop has no model in force: hint_checked() is its rule)
+    if not moved(m, known) or not worse_than_tuning(tb, s, m):
         return
+    st.in_force, st.in_force_t = m, t
+    tb.reconfigure(tb.configs[tb.ids[s]])
+    first_tuning.apply(tb, s, m, wall, "followed")
+
+
+def hint_checked(tb, s: int, m, wall: float) -> None:
+    """A hinted loop's hint checked by confident model ``m`` with no model in force (the
+    hint confirmed within ``guard.hint_tolerance``, or flagged and not rescaled: the
+    scaling stays the hint's): ``m`` becomes the model the check falls back on
+    (``IdState.hint_model``: later assessments are often not confident), and at the
+    first such model, when it predicts the gains in force to track the step test worse
+    than ``guard.model_check`` times its own tuning, that tuning is put in force
+    (:func:`first_tuning.apply`, ``checked``: both ways, published, audited and verified
+    like a first tuning). At the first only: later models of the same plant differ by a
+    few % in K and tau, which near the step test's optimum is a factor of 2-4 in its
+    MSE, and resetting the gains at each would undo the agent's tuning again and again
+    (the follow rule's lesson, :data:`MOVED_K`). Why at all: until the first confident
+    model the agent is unchecked, and under load steps at the plant input it took one of
+    the grid's loops to twice the best integral gain (step-test MSE 0.11, issue 12's load
+    condition); the check holds further harm, not the harm done."""
+    st = tb.ident[s]
+    if st.in_force is not None or m.integrating or not m.k > 0:
+        return
+    first, st.hint_model = st.hint_model is None, m
+    if first and tb.mc_factor[s] > 0 and worse_than_tuning(tb, s, m):
+        first_tuning.apply(tb, s, m, wall, "checked")
+
+
+def worse_than_tuning(tb, s: int, m) -> bool:
+    """Whether model ``m`` (seen through slot ``s``'s scaling) predicts the gains in force
+    to track the step test worse than ``guard.model_check`` times its own tuning."""
     app = box.apparent(tb.scaling_of(s), m)
     k, tau, theta = app["gain"], app["tau"], app["theta_ratio"] * app["tau"]
     kp, ki = float(tb.kp[s] / tb.kp_unit[s]), float(tb.ki[s] / tb.ki_unit[s])
     ref_kp, ref_ki = model_gains(k, tau, theta)
     now, tuned = step_test_mse(k, tau, theta, [kp, ref_kp], [ki, ref_ki], dt=DT)
-    if not now > tb.mc_factor[s] * tuned:
-        return
-    st.in_force, st.in_force_t = m, t
-    tb.reconfigure(tb.configs[tb.ids[s]])
-    first_tuning.apply(tb, s, m, wall, "followed")
+    return bool(now > tb.mc_factor[s] * tuned)

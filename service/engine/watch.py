@@ -92,6 +92,10 @@ class IdState:
     tuned_seq: int = -1
     """The seq of a first tuning from a model that holds the agent until it is verified
     (:mod:`service.engine.first_tuning`; -1: none)."""
+    hint_model: identify.Model | None = None
+    """A hinted loop's latest confident model while none is in force (its hint checked:
+    confirmed or flagged; :func:`model_check.hint_checked
+    <service.engine.model_check.hint_checked>`)."""
 
     def dump(self) -> dict:
         return {
@@ -102,6 +106,7 @@ class IdState:
             "in_force_t": self.in_force_t,
             "scaling": None if self.scaling is None else self.scaling.model_dump(),
             "tuned_seq": self.tuned_seq,
+            "hint_model": None if self.hint_model is None else self.hint_model.as_dict(),
         }
 
     @classmethod
@@ -114,6 +119,9 @@ class IdState:
             in_force_t=d.get("in_force_t"),
             scaling=None if d.get("scaling") is None else Scaling(**d["scaling"]),
             tuned_seq=d.get("tuned_seq", -1),
+            hint_model=(
+                None if d.get("hint_model") is None else identify.Model.from_dict(d["hint_model"])
+            ),
         )
 
 
@@ -427,7 +435,8 @@ def use(tb, s: int, m: identify.Model, t: float, wall: float) -> None:
         tb.mismatch[s] = False
     _envelope(tb, s, m, t, wall, sure=True)
     if not tb.out_env[s]:  # the gains follow a plant drifting inside the envelope
-        model_check.follow(tb, s, m, t, wall)
+        model_check.follow(tb, s, m, t, wall)  # (with a model in force)
+        model_check.hint_checked(tb, s, m, wall)  # (without: a hinted loop)
 
 
 def _envelope(tb, s: int, m: identify.Model, t: float, wall: float, *, sure: bool) -> None:

@@ -167,7 +167,10 @@ def run_scenario(
         engine.register(LoopConfig(
             id=ids[i], kp=float(old[i, 0]), ki=float(old[i, 1]), sample_period_s=DT, mode=mode,
             scaling={"k_hat": float(K[i]), "tau_hat": float(tau[i]), "pv_scale": 1.0},
-            guard={"excitation_periods": 0.0, "verify_margin": margin},
+            # verification alone: identification (on for hinted loops by default) would
+            # put the first confident model's tuning in force, a second change in the
+            # window judged (model_check.hint_checked)
+            guard={"excitation_periods": 0.0, "verify_margin": margin, "identify": False},
         ), wall=0.0)  # fmt: skip
     rl = RL_STEP_AGENT_UNITS * 2.0 * tau
     toggle = np.rint(4.0 * rl / DT).astype(np.int64)
