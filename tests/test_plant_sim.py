@@ -134,6 +134,25 @@ def test_step_test_target_and_metric():
     assert step_test_mse(1.0, 0.25, 0.25, 50.0, 500.0)[0] > 1.0
 
 
+def test_the_filtered_step_test_is_the_simulations():
+    """plant_sim.loop.step_test_mse_filtered (the engine's model check) against the
+    simulation on 300 random loops, stable and unstable, dead time 0-3 tau."""
+    from plant_sim.loop import step_test_mse_filtered
+
+    rng = np.random.default_rng(3)
+    n = 300
+    K, tau = rng.uniform(0.1, 2.0, n), rng.uniform(0.1, 2.0, n)
+    theta = tau * rng.uniform(0.0, 3.0, n)
+    kp, ki = rng.uniform(0.05, 3.0, n), rng.uniform(0.05, 5.0, n)
+    simulated = step_test_mse(K, tau, theta, kp, ki)
+    filtered = step_test_mse_filtered(K, tau, theta, kp, ki)
+    stable = simulated < 4.0
+    assert 100 < stable.sum() < n  # both kinds drawn
+    np.testing.assert_allclose(filtered[stable], simulated[stable], rtol=1e-9)
+    assert (filtered[~stable] > 4.0).all() and not np.isnan(filtered).any()
+    assert np.isinf(filtered).tolist() == np.isinf(simulated).tolist()
+
+
 @pytest.mark.parametrize("K,tau,theta", [(0.5, 1.0, 0.2), (0.25, 0.25, 0.1), (1.0, 1.0, 1.0)])
 def test_oracle_beats_simc(K, tau, theta):
     kp, ki, mse = oracle(K, tau, theta)

@@ -27,12 +27,16 @@ whose gains are already off, by a rescale or a refined model, may still move tow
 model's optimum). The agent's hidden state moves on (it sees its gains unchanged, as
 when the guard's bounds clip a step).
 
-The prediction is :func:`plant_sim.loop.step_test_mse` itself, the paper's step test at
-its own time step (:data:`DT`): near the model's tuning the MSE is 1e-5-1e-3 and changes
-5-30x for a 10 % change of ki, so a coarser step (0.05: 0.35-32x off the 0.01 result) or
-the continuous-time integral (0.003-1.2x off near the tuning) would decide on
-discretisation error. Vectorised over the loops checked in one pass (three rows each), at
-most :data:`PER_PASS` of them.
+The prediction is the paper's step test at its own time step (:data:`DT`): near the
+model's tuning the MSE is 1e-5-1e-3 and changes 5-30x for a 10 % change of ki, so a
+coarser step (0.05: 0.35-32x off the 0.01 result) or the continuous-time integral
+(0.003-1.2x off near the tuning) would decide on discretisation error. It is computed as
+a linear filter (:func:`plant_sim.loop.step_test_mse_filtered`: the simulation's numbers
+to 1e-10) since session 17: the simulation (:func:`plant_sim.loop.step_test_mse`) costs
+~30 ms a call whatever the number of loops (1,100 Python-level time steps), which every
+pass stepping a loop with a model paid, and a site's passes are many and small (the
+10,000-loop benchmark: ~40 a second, 2-3 loops each); the filter costs ~0.17 ms a row
+(three rows a loop), at most :data:`PER_PASS` loops a pass.
 """
 
 from __future__ import annotations
@@ -41,7 +45,7 @@ import math
 
 import numpy as np
 
-from plant_sim.loop import step_test_mse
+from plant_sim.loop import step_test_mse_filtered
 from service.engine import box, first_tuning
 from service.engine.first_tuning import model_gains
 from service.engine.monitor import GAIN_RTOL
@@ -49,9 +53,10 @@ from service.engine.monitor import GAIN_RTOL
 DT = 0.01
 """Time step of the predicted step test (agent units): the paper's, the bar's metric."""
 PER_PASS = 256
-"""Loops checked in one pass at most: a check costs ~50 ms a pass plus ~0.55 ms a loop
-(three simulated step tests) at load average 8-10 on this box, so a pass in which
-thousands of identified loops fall due at once would stall the worker for seconds. The
+"""Loops checked in one pass at most: a check costs ~0.5 ms a loop (three filtered step
+tests; with the simulation before session 17, ~50 ms a pass plus ~0.55 ms a loop at load
+average 8-10), so a pass in which thousands of identified loops fall due at once would
+stall the worker for seconds. The
 others' steps in that pass are held unchecked (deferred, counted as holds); which loops
 are checked rotates from pass to pass (``tb.mc_turn``), so none is starved."""
 
@@ -105,7 +110,7 @@ def held(tb, slots: np.ndarray, base: np.ndarray, new: np.ndarray) -> tuple[np.n
     gains = np.concatenate(
         [new[rows] / units, base[rows] / units, np.column_stack([kp_ref, ki_ref])]
     )
-    mse = step_test_mse(np.tile(K, 3), np.tile(tau, 3), np.tile(theta, 3), *gains.T, dt=DT)
+    mse = step_test_mse_filtered(np.tile(K, 3), np.tile(tau, 3), np.tile(theta, 3), *gains.T, DT)
     n = len(rows)
     proposed, before, reference = mse[:n], mse[n : 2 * n], mse[2 * n :]
     worse = (proposed > factor[rows] * reference) & (proposed > before)
@@ -194,5 +199,5 @@ def worse_than_tuning(tb, s: int, m) -> bool:
     k, tau, theta = app["gain"], app["tau"], app["theta_ratio"] * app["tau"]
     kp, ki = float(tb.kp[s] / tb.kp_unit[s]), float(tb.ki[s] / tb.ki_unit[s])
     ref_kp, ref_ki = model_gains(k, tau, theta)
-    now, tuned = step_test_mse(k, tau, theta, [kp, ref_kp], [ki, ref_ki], dt=DT)
+    now, tuned = step_test_mse_filtered(k, tau, theta, [kp, ref_kp], [ki, ref_ki], DT)
     return bool(now > tb.mc_factor[s] * tuned)
