@@ -122,6 +122,11 @@ class Model:
         names = cls.__dataclass_fields__
         return cls(**{k: (math.inf if v is None else v) for k, v in d.items() if k in names})
 
+    @classmethod
+    def load(cls, d: dict | None) -> Model | None:
+        """:meth:`from_dict`, or None for None (a snapshot's missing model)."""
+        return None if d is None else cls.from_dict(d)
+
 
 @dataclass
 class Assessment:

@@ -53,21 +53,16 @@ NOISE_SCALE = 10.0
 """A hint-free loop's pv_scale is the typical setpoint move, at least this many times
 the measurement noise (the agent sees errors of order 1 and noise well below)."""
 CHECK_EVERY = 3
-"""Once a model is in force and the latest assessment confirmed it (no mismatch, in the
-envelope), the segment is assessed at every third event close only (the fits are the
-engine's main cost); a flagged or paused loop is assessed at every one."""
+"""With a model in force the latest assessment confirmed, a segment is assessed at every
+third event close only (fits cost most); a flagged or paused loop at every one."""
 DRIFT = 1.25
 """Factor (K or tau) by which the latest confident model may differ from the one in force
 before the loop is assessed at every chance again (:func:`closely`)."""
 HEAD_ROWS = 32
-"""Rows of one sample each after a setpoint move, never merged. A segment that halved the
-resolution of all its rows recorded a loop of tau 15 s sampled every second, after a
-few long setpoint holds, in rows of 16-32 samples from the move on: the fits traded tau
-for dead time (tau 6.7 s, theta 6.2 s for 15 s and 1.5 s) with standard errors of
-3-8 %, confident and wrong (docs/identification.md). Rows widening with the time since
-the move (32 of 1 sample, 32 of 2, 32 of 4...) cost a dead-time dominant loop of 49
-samples per tau the response its dead time delays: 1 of the bar's 60 first models came
-out 38 % off in tau instead of 10 %."""
+"""Rows of one sample each after a setpoint move, never merged: a segment that halved
+all its rows recorded a fast loop's responses in rows of 16-32 samples, and the fits
+traded tau for dead time, confident and wrong (tau 6.7 s for 15 s); rows widening with
+the time since the move cost dead-time dominant loops (docs/identification.md)."""
 CHECK_FIRST = 16
 """Samples after a move at which a loop without a confident model is first assessed
 within the event (then at 24, 32, 48, 64, 96...: :func:`check_due`)."""
@@ -93,9 +88,8 @@ class IdState:
     """The seq of a first tuning from a model that holds the agent until it is verified
     (:mod:`service.engine.first_tuning`; -1: none)."""
     hint_model: identify.Model | None = None
-    """A hinted loop's latest confident model while none is in force (its hint checked:
-    confirmed or flagged; :func:`model_check.hint_checked
-    <service.engine.model_check.hint_checked>`)."""
+    """A hinted loop's latest confident model while none is in force
+    (:func:`service.engine.model_check.hint_checked`)."""
 
     def dump(self) -> dict:
         return {
@@ -113,15 +107,13 @@ class IdState:
     def load(cls, d: dict) -> IdState:
         return cls(
             events=[identify.EventFit.from_dict(e) for e in d.get("events", [])],
-            model=None if d.get("model") is None else identify.Model.from_dict(d["model"]),
+            model=identify.Model.load(d.get("model")),
             why=d.get("why", ""),
-            in_force=None if d.get("in_force") is None else identify.Model.from_dict(d["in_force"]),
+            in_force=identify.Model.load(d.get("in_force")),
             in_force_t=d.get("in_force_t"),
             scaling=None if d.get("scaling") is None else Scaling(**d["scaling"]),
             tuned_seq=d.get("tuned_seq", -1),
-            hint_model=(
-                None if d.get("hint_model") is None else identify.Model.from_dict(d["hint_model"])
-            ),
+            hint_model=identify.Model.load(d.get("hint_model")),
         )
 
 
@@ -445,12 +437,9 @@ def _envelope(tb, s: int, m: identify.Model, t: float, wall: float, *, sure: boo
     tau two standard errors toward the box leave it (a drifting plant is never pinned
     down, nor consistent, on data that mix its old and new dynamics: with the consistency
     test on an event that has shown its response, the bar's ramp was paused at 4.5 tau0
-    instead of 4.0 until such models could pause). A model that fails any other check,
-    or both of those, is not used at all: under load steps at the plant input the
-    earlier events' models missed the next by 8-30x the noise at standard errors of tau
-    of 0.2-0.3, and their pauses held loops on their first gains for the rest of a run
-    (issue 12's load conditions, docs/tuner.md); a drifting plant's pausing models were
-    precise (tau 7-11 %) and missed by 2-2.4x."""
+    instead of 4.0 until such models could pause). One that fails any other check, or
+    both (under load steps: misses of 8-30x the noise, pauses for good; docs/tuner.md,
+    Session 17), is not used."""
     if not tb.env_guard[s]:
         return
     app = box.apparent(tb.scaling_of(s), m)
