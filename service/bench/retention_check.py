@@ -24,10 +24,12 @@ from pathlib import Path
 import numpy as np
 import orjson
 
-BYTES_PER_ROW = 300
+BYTES_PER_ROW = 400
 """Disk per audit row the budget allows, its index entry and page slack included (an
 agent step's row holds ~170 bytes of data; measured per row on disk:
-reports/retention.json, ``size.audit_bytes_per_row``)."""
+reports/retention.json, ``size.audit_bytes_per_row``: 190-215 until session 17, 368 in
+``tests/test_retention_run.py`` since hinted loops' steps are model-checked and a held
+step's row carries the check's three predictions)."""
 BYTES_PER_LOOP = 4096
 """Disk per registered loop beside its audit rows: the loops row (config JSON, ~0.8 KB)
 and the runtime snapshot (hidden state and counters, ~2 KB with the shipped agent)."""
