@@ -77,6 +77,11 @@ def agent_model(tb, s: int) -> tuple[float, float, float] | None:
     m = st.hint_model if m is None else m
     if m is None or m.integrating or not m.k > 0:
         return None
+    return _agent_units(tb, s, m)
+
+
+def _agent_units(tb, s: int, m) -> tuple[float, float, float]:
+    """Model ``m`` (engineering units) as slot ``s``'s scaling shows it: (K, tau, theta)."""
     app = box.apparent(tb.scaling_of(s), m)
     return app["gain"], app["tau"], app["theta_ratio"] * app["tau"]
 
@@ -195,8 +200,7 @@ def hint_checked(tb, s: int, m, wall: float) -> None:
 def worse_than_tuning(tb, s: int, m) -> bool:
     """Whether model ``m`` (seen through slot ``s``'s scaling) predicts the gains in force
     to track the step test worse than ``guard.model_check`` times its own tuning."""
-    app = box.apparent(tb.scaling_of(s), m)
-    k, tau, theta = app["gain"], app["tau"], app["theta_ratio"] * app["tau"]
+    k, tau, theta = _agent_units(tb, s, m)
     kp, ki = float(tb.kp[s] / tb.kp_unit[s]), float(tb.ki[s] / tb.ki_unit[s])
     ref_kp, ref_ki = model_gains(k, tau, theta)
     now, tuned = step_test_mse_filtered(k, tau, theta, [kp, ref_kp], [ki, ref_ki], DT)
