@@ -91,6 +91,8 @@ def test_robust_suite_runs_through_the_engine_and_reports(tmp_path):
     assert rows["paper protocol"]["unstable"] == 0
     assert rows["paper protocol"]["worst_mse"] < 0.05  # untuned start: about 1.8
     assert (tmp_path / "robust.md").read_text().count("| noise 0.05 |") == 1
+    assert result["inference"] == "reference"  # agent.act: the report names it
+    assert "inference reference." in (tmp_path / "robust.md").read_text()
     assert (tmp_path / "fig10_robust_noise_load.png").stat().st_size > 10_000
 
 

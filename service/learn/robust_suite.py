@@ -41,6 +41,7 @@ def robust_suite(policy: Policy, out: Path, quick: bool = False, guard: dict | N
         rows.append(summarise(cond, run))
     result = {
         "agent": getattr(policy, "meta", {}).get("source", "shipped"),
+        "inference": getattr(policy, "precision", "reference"),
         "periods": periods,
         "quick": quick,
         "guard": guard or {},
@@ -71,6 +72,7 @@ def render(result: dict) -> str:
         f" second in engineering units through the engine ({settings}), final gains scored"
         " by the step test on the true plant."
         + (" Quick run." if result["quick"] else "")
+        + f" Agent {result.get('agent', 'shipped')}, inference {result.get('inference', 'reference')}."
         + f" Wall time {result['wall_s']} s.",
         "",
         "| condition | worst MSE | median MSE | beats SIMC (true model) | unstable | bar |",
