@@ -72,7 +72,8 @@ def render(result: dict) -> str:
         f" second in engineering units through the engine ({settings}), final gains scored"
         " by the step test on the true plant."
         + (" Quick run." if result["quick"] else "")
-        + f" Agent {result.get('agent', 'shipped')}, inference {result.get('inference', 'reference')}."
+        + f" Agent {result.get('agent', 'shipped')},"
+        + f" inference {result.get('inference', 'reference')}."
         + f" Wall time {result['wall_s']} s.",
         "",
         "| condition | worst MSE | median MSE | beats SIMC (true model) | unstable | bar |",
