@@ -9,6 +9,7 @@ from plant_sim.foptd import FOPTDBatch
 from plant_sim.loop import step_test_mse
 from service.agent import load_agent
 from service.agent.model import V2_WEIGHTS
+from service.learn import sample_loop
 from service.learn.env import (
     EnvConfig,
     TuningEnv,
@@ -124,6 +125,33 @@ def test_sampled_conditions_leave_the_core_share_untouched():
     assert np.all(c["noise"][core] == 0) and np.all(c["noise"][~core] > 0)
     assert np.all(tau2[core] == 0) and np.all(tau2[~core] > 0)
     assert K[core].min() >= 0.25 and K[core].max() <= 1 and K[~core].max() > 1
+
+
+@pytest.mark.skipif(not sample_loop.KERNEL, reason="the C sample loop is not built")
+def test_the_c_sample_loop_equals_the_numpy_loop_bit_for_bit(monkeypatch):
+    """Every real-loop condition at once (noise white and low-pass, load steps and walk,
+    random moves and ramps, second lags, drift, quiet starts): observations, costs, MSEs
+    and the plants' states after 40 RL periods are the same doubles on both paths."""
+    cfg = EnvConfig(drift_prob=0.5, sp_jitter=0.3, core_share=0.3, noise_prob=0.6,
+                    load_prob=0.4, load_walk_prob=0.3, sp_random_prob=0.4, sp_amp_prob=0.3,
+                    sp_long_prob=0.2, lag2_prob=0.3, quiet_prob=0.2, wide_prob=0.4,
+                    ratio_prob=0.3)  # fmt: skip
+
+    def run() -> list[np.ndarray]:
+        rng = np.random.default_rng(5)
+        env = TuningEnv(cfg, rng)
+        K, tau, theta, tau2, core = sample_tasks_v3(200, rng, cfg)
+        cond = sample_conditions(200, rng, cfg, core)
+        out = [env.reset(K, tau, theta, horizon=40, tau2=tau2, conditions=cond)]
+        for t in range(40):
+            out += env.step(0.05 * np.sin(np.arange(400).reshape(200, 2) + t))
+        return out + [env.plant.x, env.plant._buf, env.pi.integral, env.target.x, env.int_e]
+
+    fast = run()
+    monkeypatch.setattr(sample_loop, "KERNEL", False)
+    slow = run()
+    assert all(np.array_equal(a, b, equal_nan=True) for a, b in zip(fast, slow, strict=True))
+    assert np.ptp(fast[-5]) > 0.5  # the plants moved
 
 
 def test_default_configs_are_the_paper_mdp(tmp_path):

@@ -44,15 +44,14 @@ from plant_sim.foptd import FOPTDBatch
 from plant_sim.loop import effective_foptd, target_filter
 from plant_sim.pi import PIBatch
 from service.agent.model import GAIN_FLOOR
+from service.learn import sample_loop
 from service.units import (
     AGENT_GAIN_RANGE,
     AGENT_KI0,
     AGENT_KP0,
     EXCITATION_PERIODS,
-    MOVE_STEP,
     RL_STEP_AGENT_UNITS,
     error_window,
-    track_moves,
     window_error,
 )
 
@@ -351,16 +350,6 @@ class TuningEnv:
         g = self.obs_gain
         return np.stack([self.pi.kp, self.pi.ki, self.e * g, self.int_e * g], axis=1)
 
-    def _track_moves(self, sp: np.ndarray) -> None:
-        """The engine's setpoint-move rule over the (B, inner) setpoints of the coming RL
-        period: run at the samples where some setpoint changes (a move needs a change),
-        with the engine's default smallest move and one RL period as the run window."""
-        prev = np.concatenate([self.sp[:, None], sp[:, :-1]], axis=1)
-        for j in np.flatnonzero((sp != prev).any(axis=0)).tolist():
-            m = track_moves(sp[:, j], self.sp_ref, self.sp_anchor, self.move_k, self.obs_gain,
-                            now=self.k + j, step=MOVE_STEP, run=self.inner)  # fmt: skip
-            self.sp_ref, self.sp_anchor, self.move_k, self.obs_gain = m[1:]
-
     @property
     def privileged(self) -> np.ndarray:
         """What only the critic sees: the task's true (K, tau, theta/tau)."""
@@ -436,7 +425,7 @@ class TuningEnv:
         plant, target, pi = self.plant, self.target, self.pi
         sq = np.zeros(self.n)
         sp = self._setpoint_window()
-        self._track_moves(sp)
+        sample_loop.track_moves_over(self, sp)
         loads = bool(np.any(c["load_step"] > 0) or np.any(c["load_walk"] > 0))
         load = self._load_window() if loads else None
         noisy = bool(np.any(c["noise"] > 0))
@@ -456,26 +445,31 @@ class TuningEnv:
             )
         due = self.k + self.inner
         total = count = np.zeros(self.n)
-        for j in range(self.inner):
-            self.sp = sp[:, j]
-            err = target.x - plant.x
-            sq += np.minimum(err * err, cfg.err_cap)
-            y = plant.measure()
-            if noisy:
-                self.noise_state = a_n * self.noise_state + w_n[:, j]
-                y = y + self.noise_state
-            e = self.sp - y
-            total, count = error_window(e, self.k, due, self.inner, total, count, due)
-            self.int_e += e * cfg.dt
-            u = pi.step(e)
-            if loads:
-                if walking:
-                    self.load_walk = a_w * self.load_walk + w_w[:, j]
-                plant.step(u, load[:, j] + self.load_walk)
-            else:
-                plant.step(u)
-            target.step(self.sp)
-            self.k += 1
+        if sample_loop.KERNEL and not np.any(plant.noise_std):
+            noise = (a_n, w_n) if noisy else None
+            walk = (a_w, w_w) if walking else None
+            total, count = sample_loop.run(self, sp, sq, load, noise, walk)
+        else:  # the definition: plant_sim's classes, one sample at a time
+            for j in range(self.inner):
+                self.sp = sp[:, j]
+                err = target.x - plant.x
+                sq += np.minimum(err * err, cfg.err_cap)
+                y = plant.measure()
+                if noisy:
+                    self.noise_state = a_n * self.noise_state + w_n[:, j]
+                    y = y + self.noise_state
+                e = self.sp - y
+                total, count = error_window(e, self.k, due, self.inner, total, count, due)
+                self.int_e += e * cfg.dt
+                u = pi.step(e)
+                if loads:
+                    if walking:
+                        self.load_walk = a_w * self.load_walk + w_w[:, j]
+                    plant.step(u, load[:, j] + self.load_walk)
+                else:
+                    plant.step(u)
+                target.step(self.sp)
+                self.k += 1
         y = plant.measure()
         if noisy:
             step = c["noise"] * np.sqrt(1 - a_n**2) * self.rng.standard_normal(self.n)
