@@ -45,15 +45,17 @@ def test_without_the_c_kernel_inference_falls_back_to_torch_with_one_log_line():
     assert "inference runs on torch" in warnings[0] and "gcc" in warnings[0]
 
 
-def test_the_kernel_is_an_optional_extension_and_the_license_an_spdx_expression():
-    """No C compiler: the install goes on without the extension (setuptools' optional),
-    and the fallback above runs. The license is an SPDX string (PEP 639): setuptools
-    drops the TOML-table form in 2027."""
+def test_the_kernels_are_optional_extensions_and_the_license_an_spdx_expression():
+    """No C compiler: the install goes on without the extensions (setuptools' optional),
+    and the fallbacks run (the agent's above; training's numpy sample loop, compared with
+    the C one in tests/test_learn_v3.py). The license is an SPDX string (PEP 639):
+    setuptools drops the TOML-table form in 2027."""
     import tomllib
 
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())
-    (ext,) = project["tool"]["setuptools"]["ext-modules"]
-    assert ext["name"] == "service.agent._gru" and ext["optional"] is True
+    exts = project["tool"]["setuptools"]["ext-modules"]
+    assert {e["name"] for e in exts} == {"service.agent._gru", "service.learn._period"}
+    assert all(e["optional"] is True for e in exts)
     assert project["project"]["license"] == "Apache-2.0"
 
 
