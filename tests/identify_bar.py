@@ -157,8 +157,12 @@ def run(
         active = ~out.done & (k < limit)
         if not active.any():
             break
-        move = active & (k >= next_move)
-        if move.any():
+        # moves fall due on every loop's clock, running or not, so the draws (and each
+        # loop's setpoint sequence) do not depend on when the others stop: a run cut
+        # short (--max-tau) makes the same identifications as the full one
+        due = k >= next_move
+        if due.any():
+            move = due & active
             size = rng.uniform(*MOVE, n) * rng.choice([-1.0, 1.0], n)
             new = sp + size
             new = np.where((new < 0.1 * SPAN) | (new > 0.9 * SPAN), sp - size, new)
@@ -166,7 +170,7 @@ def run(
             for i in np.flatnonzero(move).tolist():
                 move_t[i].append(float(k * plants.h[i]))
             next_move = np.where(
-                move, k + np.ceil(rng.uniform(*MOVE_EVERY, n) * plants.tau / plants.h), next_move
+                due, k + np.ceil(rng.uniform(*MOVE_EVERY, n) * plants.tau / plants.h), next_move
             )
         y = plant.measure()
         t = k * plants.h
