@@ -31,21 +31,25 @@ def test_a_sluggish_loop_gets_the_models_tuning_in_one_verified_change():
     engine = engine_with(0.25)
     updates = drive(engine, moves=6, every=12.0)  # responses complete: 2 RL periods, 11 tau
     view = engine.view("L", wall=1e9)
-    model = view.identification.in_force
     assert view.counters.identified == 1
-    first = updates[0]
-    assert first.reason == "model" and first.mode == "auto"
-    assert first.t == pytest.approx(view.identification.in_force_t)
-    assert (first.kp, first.ki) == pytest.approx(model_gains(model.k, model.tau, model.theta))
-    kp0, ki0 = gains(share=0.25)
-    assert first.kp > 3 * kp0 and first.ki > 3 * ki0  # a jump, not a guard step of 1.5x
-    assert "reason=model" in first.why and "rule=simc" in first.why
     _, audit = engine.drain_changes()
     rows = [r for r in audit if r[5] == "model"]
     detail = json.loads(rows[0][10])
-    assert (
-        len(rows) == 1 and detail["rule"].startswith("simc") and "pred_iae" in detail["predicted"]
-    )
+    assert detail["after"] == "identified" and detail["rule"].startswith("simc")
+    assert "pred_iae" in detail["predicted"]
+    first = updates[0]
+    assert first.reason == "model" and first.mode == "auto" and first.t == rows[0][2]
+    model = (detail["k"], detail["tau"], detail["theta"])
+    assert (first.kp, first.ki) == pytest.approx(model_gains(*model))
+    kp0, ki0 = gains(share=0.25)
+    assert first.kp > 3 * kp0 and first.ki > 3 * ki0  # a jump, not a guard step of 1.5x
+    assert "reason=model" in first.why and "rule=simc" in first.why
+    # the first model came from 3 moves (tau 29 s for 40, standard error 13 %: provisional);
+    # a later one, 6x as precise, refines it (model_check.refined) and its tuning follows
+    later = [json.loads(r[10]) for r in rows[1:]]
+    assert [d["after"] for d in later] == ["followed"]
+    assert later[0]["tau"] == pytest.approx(TAU, rel=0.05) and detail["tau"] < 0.8 * TAU
+    assert view.identification.in_force.tau == later[0]["tau"]
     # judged like any change: a verdict row covers its seq
     judged = [json.loads(r[10]) for r in audit if r[5] in ("verified", "rollback")]
     assert any(d["seqs"][0] <= first.seq <= d["seqs"][1] for d in judged), judged

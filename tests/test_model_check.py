@@ -130,6 +130,25 @@ def test_a_plant_moved_when_k_moved_beyond_its_error_and_a_tenth_or_tau_beyond_i
     assert not model_check.moved(model(1.0, 41.0), known)
 
 
+def test_a_provisional_model_is_refined_by_a_more_precise_one_that_shows_it_wrong():
+    """model_check.refined: a model in force with tau's standard error above PROVISIONAL
+    is replaced by one REFINED times more precise whose own 3 errors exclude it; a
+    precise model in force (the envelope test's 4.6 %) is left to moved()."""
+    from service.engine.identify import Model
+
+    def model(tau, tau_rse):
+        return Model(k=1.0, tau=tau, theta=5.0, noise=1.0, move=20.0, r2=0.99, k_rse=0.01,
+                     tau_rse=tau_rse, confident=True)  # fmt: skip
+
+    first = model(52.8, 0.16)  # tau +32 %, accepted near the limit
+    later = model(40.0, 0.03)
+    assert not model_check.moved(later, first)  # 1.7 errors of the difference
+    assert model_check.refined(later, first)  # 9 of its own
+    assert not model_check.refined(model(50.0, 0.03), first)  # within 3 of its own
+    assert not model_check.refined(model(40.0, 0.09), first)  # not twice as precise
+    assert not model_check.refined(model(37.1, 0.021), model(43.0, 0.046))  # not provisional
+
+
 def test_a_hinted_loop_is_checked_on_its_latest_confident_model():
     """A hint the data confirm puts no model in force (the scaling stays the hint's), but
     the check runs on the confident model: under load steps at the plant input the
