@@ -132,7 +132,8 @@ def test_a_plant_moved_when_k_moved_beyond_its_error_and_a_tenth_or_tau_beyond_i
 
 def test_a_provisional_model_is_refined_by_a_more_precise_one_that_shows_it_wrong():
     """model_check.refined: a model in force with tau's standard error above PROVISIONAL
-    is replaced by one REFINED times more precise whose own 3 errors exclude it; a
+    is replaced by one REFINED times more precise whose own 3 errors exclude it, and that
+    lies outside the provisional model's own error; a
     precise model in force (the envelope test's 4.6 %) is left to moved()."""
     from service.engine.identify import Model
 
@@ -145,6 +146,7 @@ def test_a_provisional_model_is_refined_by_a_more_precise_one_that_shows_it_wron
     assert not model_check.moved(later, first)  # 1.7 errors of the difference
     assert model_check.refined(later, first)  # 9 of its own
     assert not model_check.refined(model(50.0, 0.03), first)  # within 3 of its own
+    assert not model_check.refined(model(46.0, 0.01), first)  # within first's own error
     assert not model_check.refined(model(40.0, 0.09), first)  # not twice as precise
     assert not model_check.refined(model(37.1, 0.021), model(43.0, 0.046))  # not provisional
 
