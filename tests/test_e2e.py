@@ -151,22 +151,34 @@ def _until_kept(demo: subprocess.Popen, started: float) -> tuple[list[str], str,
 def test_tuner_sigkill_and_restart_resumes_the_loop_while_the_plant_runs_on(tmp_path):
     with Stack(tmp_path, speed=SPEED) as stack:
         tuner = stack.start_tuner("--snapshot-interval", "0.5")
-        stack.start_plant("--tank", LOOP)
-        before = wait_view(stack, lambda v: v["seq"] >= 4, "4 gain updates")
-        wait_for(
-            lambda: (
-                (snap := snapshot_of(stack.tuner.db, LOOP))
-                and snap[1]["last_t"] >= before["last_sample_t"]
-            ),
-            "a snapshot of the hidden state after the last update",
-        )
-        tuner.kill()
-        killed_at = plant_log(stack).t[-1]
-        during = wait_for(
-            lambda: (log := plant_log(stack)).t[-1] > killed_at + 300 and log,
-            "300 s of plant time without a tuner",
-        )
-        outage = during.t > killed_at + 10  # past any update still in flight at the kill
+        session, sub, inbox = gains_listener(stack)
+        try:
+            stack.start_plant("--tank", LOOP)
+            before = wait_view(stack, lambda v: v["seq"] >= 4, "4 gain updates")
+            wait_for(
+                lambda: (
+                    (snap := snapshot_of(stack.tuner.db, LOOP))
+                    and snap[1]["last_t"] >= before["last_sample_t"]
+                ),
+                "a snapshot of the hidden state after the last update",
+            )
+            tuner.kill()
+            killed_at = plant_log(stack).t[-1]
+            during = wait_for(
+                lambda: (log := plant_log(stack)).t[-1] > killed_at + 300 and log,
+                "300 s of plant time without a tuner",
+            )
+            last = [m for m in drain(inbox) if m.loop_id == LOOP][-1]
+        finally:
+            sub.undeclare()
+            session.close()
+        # the outage starts once the last update the tuner published has landed: it may
+        # land after the log's last line read at the kill (the plant flushes its log every
+        # 50 scans, up to 50 s of plant time: a CI run saw one land more than 10 s later)
+        landed = during.t[np.isclose(during.kp, last.kp, rtol=1e-12) & (during.t > last.t)]
+        start = max(killed_at + 10.0, landed[0] if landed.size else -np.inf)
+        outage = during.t > start
+        assert during.t[-1] - start >= 250.0  # a long outage, the gains held throughout
         assert len(set(during.kp[outage])) == 1 and len(set(during.ki[outage])) == 1
         held = (during.kp[outage][0], during.ki[outage][0])
 
