@@ -52,6 +52,13 @@ START_TUNING = 0.5
 """The loops' existing gains: this fraction of the paper's SIMC tuning (sluggish)."""
 
 
+def moved(sp, size):
+    """The setpoint after a move of ``size`` from ``sp`` (arrays or scalars): the other
+    way where it would leave 10..90 % of span."""
+    new = sp + size
+    return np.where((new < 0.1 * SPAN) | (new > 0.9 * SPAN), sp - size, new)
+
+
 @dataclass
 class Plants:
     K: np.ndarray
@@ -164,9 +171,7 @@ def run(
         if due.any():
             move = due & active
             size = rng.uniform(*MOVE, n) * rng.choice([-1.0, 1.0], n)
-            new = sp + size
-            new = np.where((new < 0.1 * SPAN) | (new > 0.9 * SPAN), sp - size, new)
-            sp = np.where(move, new, sp)
+            sp = np.where(move, moved(sp, size), sp)
             for i in np.flatnonzero(move).tolist():
                 move_t[i].append(float(k * plants.h[i]))
             next_move = np.where(

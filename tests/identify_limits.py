@@ -32,7 +32,7 @@ from plant_sim.foptd import FOPTDBatch
 from plant_sim.pi import PIBatch
 from service.engine import identify
 from service.engine.foptd_fit import _sse_grid, recorded
-from tests.identify_bar import MOVE, MOVE_EVERY, NOISE, SPAN, Plants
+from tests.identify_bar import MOVE, MOVE_EVERY, NOISE, Plants, moved
 
 LIMITS = (identify.MAX_TAU_SE, 0.15, 0.13, 0.11, 0.10, 0.09, 0.08)
 """Limits on tau's relative standard error compared (the shipped one first)."""
@@ -70,9 +70,7 @@ def closed_loop(
     level = y0
     for k in range(n):
         if k in at:
-            size = rng.uniform(*MOVE) * rng.choice([-1.0, 1.0])
-            new = level + size
-            level = level - size if new < 0.1 * SPAN or new > 0.9 * SPAN else new
+            level = float(moved(level, rng.uniform(*MOVE) * rng.choice([-1.0, 1.0])))
         sp[k], pv[k] = level, plant.measure()[0]
         plant.step(pi.step(np.array([level - pv[k]])))
     t = h * np.arange(n)
@@ -83,9 +81,9 @@ def closed_loop(
 def truth_excess(r: Record, end: int, p: Plants, i: int, m: identify.Model) -> float:
     """How much larger the residual sum of squares is at the true (tau, theta) than at
     the model's (each with its best K, offset and initial transient), in the model's
-    noise variances (what :func:`identify.assess` fits: from the sample before the first
-    move)."""
-    a = max(r.moves[0] - 1, 0)
+    noise variances, over the samples :func:`identify.assess` fits (from
+    :func:`identify.fitted_from`)."""
+    a = identify.fitted_from(r.moves)
     w = recorded(r.t[a:end], r.pv[a:end], r.op[a:end])
     truth = _sse_grid([w], [p.tau[i]], [p.theta[i]])[0, 0]
     fitted = _sse_grid([w], [m.tau], [m.theta])[0, 0]

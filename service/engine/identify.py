@@ -204,10 +204,7 @@ def assess(
     if len(starts) < MIN_EVENTS:
         out.why = f"waiting for setpoint moves ({len(starts)} of {MIN_EVENTS} seen)"
         return out
-    # from the sample before the first move (the input at rest before it: the window's
-    # first input is held before the window, so starting at the move would hide the
-    # controller's proportional kick and bias tau up, K up and theta down)
-    first = max(starts[0] - 1, 0)
+    first = fitted_from(starts)
     t, sp, pv, op = t[first:], sp[first:], pv[first:], op[first:]
     bounds = [b - first for b in bounds]
     out.why = screen(t, pv, op)
@@ -255,6 +252,14 @@ def assess(
     )
     m.confident = not out.why
     return out
+
+
+def fitted_from(starts: list[int]) -> int:
+    """The first sample :func:`assess` fits, given the events' starts: the sample before
+    the first move (the input at rest before it: the window's first input is held before
+    the window, so starting at the move would hide the controller's proportional kick and
+    bias tau up, K up and theta down)."""
+    return max(starts[0] - 1, 0)
 
 
 def precise(m: Model) -> bool:
