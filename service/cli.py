@@ -26,6 +26,7 @@ from service import __version__
 COMMANDS: dict[str, tuple[str, str]] = {
     "train": ("service.learn.train", "train the meta-RL agent offline (recurrent PPO)"),
     "evaluate": ("service.learn.evaluate", "reproduce the paper's experiments, write a report"),
+    "average": ("service.learn.average", "average the weights of kept actors of one lineage"),
     "verify-eval": (
         "service.learn.verification",
         "measure verify-or-rollback on simulated loops (false-rollback rate)",

@@ -275,6 +275,18 @@ def write_model_card(path: Path, agent: Agent, metrics: dict) -> None:
         "",
         f"- Source run: `{meta.get('source', '?')}` at commit `{meta.get('commit', '?')}`,"
         f" warm-started from: `{(meta.get('init_from') or {}).get('path', 'none')}`",
+        *(
+            [
+                "- Weights: the element-wise mean (`pitune average`) of "
+                + ", ".join(
+                    f"`{a['path']}` (epoch {a['epoch']}, {a['wall_s']} s into its run)"
+                    for a in meta["average_of"]
+                )
+                + "; the facts below are the latest one's"
+            ]
+            if meta.get("average_of")
+            else []
+        ),
         f"- Epochs: {meta.get('epoch', '?')} ({cfg.get('bc_epochs', '?')} imitation, then"
         f" {cfg.get('value_warmup', '?')} value warm-up and up to {cfg.get('epochs', '?')} PPO);"
         f" episodes: {meta.get('episodes', '?')}; wall time of this run:"

@@ -1,0 +1,87 @@
+"""Checkpoint averaging: one actor whose weights are the element-wise mean of kept actors.
+
+Imitation training at a constant learning rate leaves consecutive actors scattered around
+a region of good weights; each kept actor is one draw, good on some scores and off on
+others (TRAINING.md, session 22: stage K's epoch 240 settles fast, its epoch 390 adapts
+best, neither does both). The mean of actors of one run (stochastic weight averaging,
+Izmailov et al., UAI 2018) lands nearer the middle of that region. It is only meaningful
+for actors of one lineage (one warm start, so the same basin); averaging unrelated
+networks gives garbage, which :func:`average_actors` cannot detect and the evaluation will.
+
+The result is an ordinary agent file (:func:`service.agent.model.save_actor`): its meta is
+the latest actor's (the training facts the model card prints: the lineage's time is the
+latest actor's) with ``average_of`` listing every input's path, epoch, run wall time and
+validation.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import torch
+
+from service.agent.model import Actor, AgentConfig, save_actor
+
+
+def _read(path: Path) -> dict:
+    if not path.is_file():
+        raise FileNotFoundError(f"agent weights not found at {path}")
+    return torch.load(path, map_location="cpu", weights_only=True)
+
+
+def average_actors(paths: list[Path]) -> tuple[Actor, dict]:
+    """The actor with the mean weights of the agent files at ``paths`` and its meta.
+
+    The latest input (largest ``wall_s`` in its meta; the last one on ties) gives the
+    meta. Raises ValueError for fewer than two distinct files, different architectures
+    or non-finite weights.
+    """
+    paths = [Path(p) for p in paths]
+    if len({p.resolve() for p in paths}) != len(paths) or len(paths) < 2:
+        raise ValueError("give at least two distinct agent files to average")
+    blobs = [_read(p) for p in paths]
+    configs = {json.dumps(b["config"], sort_keys=True) for b in blobs}
+    if len(configs) != 1:
+        raise ValueError(f"the agent files differ in architecture: {sorted(configs)}")
+    keys = list(blobs[0]["actor"])
+    for path, blob in zip(paths, blobs, strict=True):
+        if list(blob["actor"]) != keys:
+            raise ValueError(f"{path} holds other parameters than {paths[0]}")
+    mean = {}
+    for key in keys:
+        stack = torch.stack([b["actor"][key].to(torch.float64) for b in blobs])
+        if not torch.isfinite(stack).all():
+            raise ValueError(f"non-finite weights in {key}")
+        mean[key] = stack.mean(0).to(blobs[0]["actor"][key].dtype)
+    actor = Actor(AgentConfig(**blobs[0]["config"]))
+    actor.load_state_dict(mean)
+    metas = [json.loads(b.get("meta", "{}")) for b in blobs]
+    latest = max(range(len(metas)), key=lambda i: (metas[i].get("wall_s", 0.0), i))
+    meta = dict(metas[latest])
+    meta["average_of"] = [
+        {"path": str(p), **{k: m.get(k) for k in ("source", "epoch", "wall_s", "validation")}}
+        for p, m in zip(paths, metas, strict=True)
+    ]
+    return actor, meta
+
+
+# -- command line ------------------------------------------------------------------------
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("actors", type=Path, nargs="+", help="agent files of one lineage (2 or more)")
+    p.add_argument("--out", type=Path, required=True, help="agent file to write")
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        actor, meta = average_actors(args.actors)
+    except (ValueError, FileNotFoundError) as err:
+        print(f"pitune average: {err}")
+        return 2
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = args.out.with_name(args.out.name + ".tmp")
+    save_actor(actor, tmp, meta)
+    tmp.replace(args.out)  # never a half-written agent file at --out
+    print(f"wrote {args.out}: mean of {len(args.actors)} actors")
+    return 0

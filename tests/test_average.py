@@ -1,0 +1,85 @@
+"""`pitune average`: the element-wise mean of kept actors, checked inputs, the model card."""
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from service.agent import load_agent, save_actor, untrained_agent
+from service.agent.model import Actor
+from service.cli import main
+from service.learn.report import write_model_card
+
+
+def _kept(tmp_path, name, seed, wall_s, epoch):
+    agent = untrained_agent(seed)
+    meta = {"source": "runs/x", "epoch": epoch, "wall_s": wall_s, "train_config": {"seed": seed}}
+    save_actor(agent.actor, tmp_path / name, meta)
+    return tmp_path / name
+
+
+def test_the_mean_of_two_actors_is_their_weights_mean_and_steps_like_it(tmp_path):
+    a = _kept(tmp_path, "val_0240.pt", 1, 1200.0, 240)
+    b = _kept(tmp_path, "val_0390.pt", 2, 2300.0, 390)
+    out = tmp_path / "avg" / "mean.pt"
+    assert main(["average", str(b), str(a), "--out", str(out)]) == 0
+    wa, wb, wm = (load_agent(p).actor.state_dict() for p in (a, b, out))
+    for key in wm:
+        torch.testing.assert_close(wm[key], (wa[key] + wb[key]) / 2, rtol=0, atol=1e-7)
+    # an agent like any other: it steps loops
+    mean = load_agent(out)
+    obs = np.array([[0.5, 1.0, 0.3, -0.2]])
+    delta, state = mean.act(obs, mean.initial_state(1))
+    assert delta.shape == (1, 2) and np.isfinite(delta).all() and state.any()
+    # the latest input's facts (wall 2,300 s: the lineage's time), every input listed
+    assert mean.meta["epoch"] == 390 and mean.meta["wall_s"] == 2300.0
+    assert [x["epoch"] for x in mean.meta["average_of"]] == [390, 240]
+    assert mean.meta["average_of"][1]["path"] == str(a)
+
+
+def test_the_model_card_names_the_averaged_actors(tmp_path):
+    a = _kept(tmp_path, "a.pt", 1, 10.0, 10)
+    b = _kept(tmp_path, "b.pt", 2, 20.0, 20)
+    out = tmp_path / "mean.pt"
+    assert main(["average", str(a), str(b), "--out", str(out)]) == 0
+    metrics = json.loads((Path(__file__).parents[1] / "reports" / "metrics.json").read_text())
+    write_model_card(tmp_path / "CARD.md", load_agent(out), metrics)
+    card = (tmp_path / "CARD.md").read_text()
+    assert f"`{a}` (epoch 10, 10.0 s into its run)" in card and f"`{b}` (epoch 20" in card
+
+
+@pytest.mark.parametrize(
+    "case, says",
+    [
+        ("one", "at least two distinct"),
+        ("same twice", "at least two distinct"),
+        ("missing", "not found"),
+        ("other architecture", "differ in architecture"),
+        ("nan", "non-finite"),
+    ],
+)
+def test_bad_inputs_are_refused_and_nothing_is_written(tmp_path, capsys, case, says):
+    a = _kept(tmp_path, "a.pt", 1, 10.0, 10)
+    b = _kept(tmp_path, "b.pt", 2, 20.0, 20)
+    if case == "one":
+        args = [a]
+    elif case == "same twice":
+        args = [a, tmp_path / "." / "a.pt"]
+    elif case == "missing":
+        args = [a, tmp_path / "nope.pt"]
+    elif case == "other architecture":
+        small = Actor(replace(untrained_agent(3).cfg, hidden=20))
+        save_actor(small, tmp_path / "small.pt")
+        args = [a, tmp_path / "small.pt"]
+    else:
+        blob = torch.load(b, weights_only=True)
+        blob["actor"]["head.0.bias"][0] = float("nan")
+        torch.save(blob, b)
+        args = [a, b]
+    out = tmp_path / "mean.pt"
+    assert main(["average", *map(str, args), "--out", str(out)]) == 2
+    assert says in capsys.readouterr().out
+    assert not out.exists() and not (tmp_path / "mean.pt.tmp").exists()
