@@ -16,7 +16,7 @@ from service.learn.report import write_model_card
 
 def _kept(tmp_path, name, seed, wall_s, epoch):
     agent = untrained_agent(seed)
-    meta = {"source": "runs/x", "epoch": epoch, "wall_s": wall_s, "train_config": {"seed": seed}}
+    meta = {"source": "runs/x", "epoch": epoch, "wall_s": wall_s, "validation": {"val_score": 1.0}}
     save_actor(agent.actor, tmp_path / name, meta)
     return tmp_path / name
 
@@ -37,7 +37,11 @@ def test_the_mean_of_two_actors_is_their_weights_mean_and_steps_like_it(tmp_path
     # the latest input's facts (wall 2,300 s: the lineage's time), every input listed
     assert mean.meta["epoch"] == 390 and mean.meta["wall_s"] == 2300.0
     assert [x["epoch"] for x in mean.meta["average_of"]] == [390, 240]
-    assert mean.meta["average_of"][1]["path"] == str(a)
+    assert mean.meta["average_of"][1] == {
+        "path": str(a), "source": "runs/x", "epoch": 240, "wall_s": 1200.0,
+        "validation": {"val_score": 1.0},
+    }  # fmt: skip
+    assert "validation" not in mean.meta  # the inputs' scores are not the mean's
 
 
 def test_the_model_card_names_the_averaged_actors(tmp_path):
@@ -49,6 +53,7 @@ def test_the_model_card_names_the_averaged_actors(tmp_path):
     write_model_card(tmp_path / "CARD.md", load_agent(out), metrics)
     card = (tmp_path / "CARD.md").read_text()
     assert f"`{a}` (epoch 10, 10.0 s into its run)" in card and f"`{b}` (epoch 20" in card
+    assert "RL steps): none (a weight average" in card
 
 
 @pytest.mark.parametrize(

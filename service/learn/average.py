@@ -10,8 +10,8 @@ networks gives garbage, which :func:`average_actors` cannot detect and the evalu
 
 The result is an ordinary agent file (:func:`service.agent.model.save_actor`): its meta is
 the latest actor's (the training facts the model card prints: the lineage's time is the
-latest actor's) with ``average_of`` listing every input's path, epoch, run wall time and
-validation.
+latest actor's) without its validation scores, which are not the mean's, and with
+``average_of`` listing every input's path, epoch, run wall time and validation.
 """
 
 from __future__ import annotations
@@ -60,6 +60,7 @@ def average_actors(paths: list[Path]) -> tuple[Actor, dict]:
     metas = [json.loads(b.get("meta", "{}")) for b in blobs]
     latest = max(range(len(metas)), key=lambda i: (metas[i].get("wall_s", 0.0), i))
     meta = dict(metas[latest])
+    meta.pop("validation", None)  # the latest input's scores, not the mean's
     meta["average_of"] = [
         {"path": str(p), **{k: m.get(k) for k in ("source", "epoch", "wall_s", "validation")}}
         for p, m in zip(paths, metas, strict=True)

@@ -292,7 +292,8 @@ def write_model_card(path: Path, agent: Agent, metrics: dict) -> None:
         f" episodes: {meta.get('episodes', '?')}; wall time of this run:"
         f" {meta.get('wall_s', '?')} s on 2 CPU cores (1 torch thread)",
         f"- Validation at export (64 random plants + 8 corners,"
-        f" {cfg.get('eval_steps', 80)} RL steps): {meta.get('validation')}",
+        f" {cfg.get('eval_steps', 80)} RL steps): "
+        + str(meta.get("validation", "none (a weight average; the evaluation below)")),
         "- Runs warm-started from earlier runs, and the PPO fine-tuning attempts: see"
         " `TRAINING.md` beside this card.",
         "",
