@@ -71,7 +71,9 @@ def average_actors(paths: list[Path]) -> tuple[Actor, dict]:
 # -- command line ------------------------------------------------------------------------
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("actors", type=Path, nargs="+", help="agent files of one lineage (2 or more)")
-    p.add_argument("--out", type=Path, required=True, help="agent file to write")
+    p.add_argument(
+        "--out", type=Path, required=True, help="agent file to write (required: no default)"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
