@@ -25,7 +25,7 @@ def test_the_mean_of_two_actors_is_their_weights_mean_and_steps_like_it(tmp_path
     a = _kept(tmp_path, "val_0240.pt", 1, 1200.0, 240)
     b = _kept(tmp_path, "val_0390.pt", 2, 2300.0, 390)
     out = tmp_path / "avg" / "mean.pt"
-    assert main(["average", str(b), str(a), "--out", str(out)]) == 0
+    assert main(["average", str(a), str(b), "--out", str(out)]) == 0
     wa, wb, wm = (load_agent(p).actor.state_dict() for p in (a, b, out))
     for key in wm:
         torch.testing.assert_close(wm[key], (wa[key] + wb[key]) / 2, rtol=0, atol=1e-7)
@@ -34,10 +34,10 @@ def test_the_mean_of_two_actors_is_their_weights_mean_and_steps_like_it(tmp_path
     obs = np.array([[0.5, 1.0, 0.3, -0.2]])
     delta, state = mean.act(obs, mean.initial_state(1))
     assert delta.shape == (1, 2) and np.isfinite(delta).all() and state.any()
-    # the latest input's facts (wall 2,300 s: the lineage's time), every input listed
+    # the last (latest) input's facts (wall 2,300 s: the lineage's time), every input listed
     assert mean.meta["epoch"] == 390 and mean.meta["wall_s"] == 2300.0
-    assert [x["epoch"] for x in mean.meta["average_of"]] == [390, 240]
-    assert mean.meta["average_of"][1] == {
+    assert [x["epoch"] for x in mean.meta["average_of"]] == [240, 390]
+    assert mean.meta["average_of"][0] == {
         "path": str(a), "source": "runs/x", "epoch": 240, "wall_s": 1200.0,
         "validation": {"val_score": 1.0},
     }  # fmt: skip
@@ -62,6 +62,8 @@ def test_the_model_card_names_the_averaged_actors(tmp_path):
         ("one", "at least two distinct"),
         ("same twice", "at least two distinct"),
         ("missing", "not found"),
+        ("not an agent", "is not an agent file"),
+        ("no actor", "is not an agent file"),
         ("other architecture", "differ in architecture"),
         ("nan", "non-finite"),
     ],
@@ -75,6 +77,12 @@ def test_bad_inputs_are_refused_and_nothing_is_written(tmp_path, capsys, case, s
         args = [a, tmp_path / "." / "a.pt"]
     elif case == "missing":
         args = [a, tmp_path / "nope.pt"]
+    elif case == "not an agent":
+        (tmp_path / "notes.pt").write_text("kp = 1.2\n")
+        args = [a, tmp_path / "notes.pt"]
+    elif case == "no actor":
+        torch.save({"weights": torch.zeros(3)}, tmp_path / "other.pt")
+        args = [a, tmp_path / "other.pt"]
     elif case == "other architecture":
         small = Actor(replace(untrained_agent(3).cfg, hidden=20))
         save_actor(small, tmp_path / "small.pt")

@@ -9,9 +9,10 @@ for actors of one lineage (one warm start, so the same basin); averaging unrelat
 networks gives garbage, which :func:`average_actors` cannot detect and the evaluation will.
 
 The result is an ordinary agent file (:func:`service.agent.model.save_actor`): its meta is
-the latest actor's (the training facts the model card prints: the lineage's time is the
-latest actor's) without its validation scores, which are not the mean's, and with
-``average_of`` listing every input's path, epoch, run wall time and validation.
+the last input's, listed last as the lineage's latest actor (the training facts the model
+card prints: the lineage's time is the latest actor's), without its validation scores,
+which are not the mean's, and with ``average_of`` listing every input's path, epoch, run
+wall time and validation.
 """
 
 from __future__ import annotations
@@ -28,15 +29,22 @@ from service.agent.model import Actor, AgentConfig, save_actor
 def _read(path: Path) -> dict:
     if not path.is_file():
         raise FileNotFoundError(f"agent weights not found at {path}")
-    return torch.load(path, map_location="cpu", weights_only=True)
+    try:
+        blob = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # torch raises pickle, zip and runtime errors alike
+        raise ValueError(f"{path} is not an agent file: {err}") from err
+    if not isinstance(blob, dict) or not {"config", "actor"} <= blob.keys():
+        raise ValueError(f"{path} is not an agent file (no actor weights and config)")
+    return blob
 
 
 def average_actors(paths: list[Path]) -> tuple[Actor, dict]:
     """The actor with the mean weights of the agent files at ``paths`` and its meta.
 
-    The latest input (largest ``wall_s`` in its meta; the last one on ties) gives the
-    meta. Raises ValueError for fewer than two distinct files, different architectures
-    or non-finite weights.
+    The last input gives the meta, so list the lineage's latest actor last (a run's
+    ``wall_s`` counts from that run's start, so the files cannot tell). Raises ValueError
+    for fewer than two distinct files, a file that is not an agent, different
+    architectures or non-finite weights; FileNotFoundError for a missing file.
     """
     paths = [Path(p) for p in paths]
     if len({p.resolve() for p in paths}) != len(paths) or len(paths) < 2:
@@ -58,8 +66,7 @@ def average_actors(paths: list[Path]) -> tuple[Actor, dict]:
     actor = Actor(AgentConfig(**blobs[0]["config"]))
     actor.load_state_dict(mean)
     metas = [json.loads(b.get("meta", "{}")) for b in blobs]
-    latest = max(range(len(metas)), key=lambda i: (metas[i].get("wall_s", 0.0), i))
-    meta = dict(metas[latest])
+    meta = dict(metas[-1])
     meta.pop("validation", None)  # the latest input's scores, not the mean's
     meta["average_of"] = [
         {"path": str(p), **{k: m.get(k) for k in ("source", "epoch", "wall_s", "validation")}}
@@ -70,7 +77,9 @@ def average_actors(paths: list[Path]) -> tuple[Actor, dict]:
 
 # -- command line ------------------------------------------------------------------------
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("actors", type=Path, nargs="+", help="agent files of one lineage (2 or more)")
+    p.add_argument(
+        "actors", type=Path, nargs="+", help="agent files of one lineage, the latest last"
+    )
     p.add_argument(
         "--out", type=Path, required=True, help="agent file to write (required: no default)"
     )
