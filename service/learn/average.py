@@ -18,24 +18,21 @@ wall time and validation.
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import torch
 
-from service.agent.model import Actor, AgentConfig, save_actor
+from service.agent.model import Actor, Agent, load_agent, save_actor
 
 
-def _read(path: Path) -> dict:
-    if not path.is_file():
-        raise FileNotFoundError(f"agent weights not found at {path}")
+def _load(path: Path) -> Agent:
+    """:func:`load_agent`, with anything that is not an agent file a ValueError."""
     try:
-        blob = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as err:  # torch raises pickle, zip and runtime errors alike
-        raise ValueError(f"{path} is not an agent file: {err}") from err
-    if not isinstance(blob, dict) or not {"config", "actor"} <= blob.keys():
-        raise ValueError(f"{path} is not an agent file (no actor weights and config)")
-    return blob
+        return load_agent(path)
+    except FileNotFoundError:
+        raise
+    except Exception as err:  # torch raises pickle, zip, key and runtime errors alike
+        raise ValueError(f"{path} is not an agent file: {err!r}") from err
 
 
 def average_actors(paths: list[Path]) -> tuple[Actor, dict]:
@@ -49,28 +46,24 @@ def average_actors(paths: list[Path]) -> tuple[Actor, dict]:
     paths = [Path(p) for p in paths]
     if len({p.resolve() for p in paths}) != len(paths) or len(paths) < 2:
         raise ValueError("give at least two distinct agent files to average")
-    blobs = [_read(p) for p in paths]
-    configs = {json.dumps(b["config"], sort_keys=True) for b in blobs}
-    if len(configs) != 1:
-        raise ValueError(f"the agent files differ in architecture: {sorted(configs)}")
-    keys = list(blobs[0]["actor"])
-    for path, blob in zip(paths, blobs, strict=True):
-        if list(blob["actor"]) != keys:
-            raise ValueError(f"{path} holds other parameters than {paths[0]}")
+    agents = [_load(p) for p in paths]
+    configs = {a.cfg for a in agents}
+    if len(configs) != 1:  # one config, one set of parameters (the actor derives them)
+        raise ValueError(f"the agent files differ in architecture: {sorted(map(str, configs))}")
+    states = [a.actor.state_dict() for a in agents]
     mean = {}
-    for key in keys:
-        stack = torch.stack([b["actor"][key].to(torch.float64) for b in blobs])
+    for key, first in states[0].items():
+        stack = torch.stack([s[key].to(torch.float64) for s in states])
         if not torch.isfinite(stack).all():
             raise ValueError(f"non-finite weights in {key}")
-        mean[key] = stack.mean(0).to(blobs[0]["actor"][key].dtype)
-    actor = Actor(AgentConfig(**blobs[0]["config"]))
+        mean[key] = stack.mean(0).to(first.dtype)
+    actor = Actor(agents[0].cfg)
     actor.load_state_dict(mean)
-    metas = [json.loads(b.get("meta", "{}")) for b in blobs]
-    meta = dict(metas[-1])
+    meta = dict(agents[-1].meta)
     meta.pop("validation", None)  # the latest input's scores, not the mean's
     meta["average_of"] = [
-        {"path": str(p), **{k: m.get(k) for k in ("source", "epoch", "wall_s", "validation")}}
-        for p, m in zip(paths, metas, strict=True)
+        {"path": str(p), **{k: a.meta.get(k) for k in ("source", "epoch", "wall_s", "validation")}}
+        for p, a in zip(paths, agents, strict=True)
     ]
     return actor, meta
 
