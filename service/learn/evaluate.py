@@ -26,6 +26,7 @@ from service.learn.closed_loop import Policy
 from service.learn.experiments import (
     PAPER,
     adaptation,
+    adaptation_spread,
     asymptotic,
     hidden_pca,
     quiet,
@@ -70,7 +71,8 @@ class EvalConfig:
 
 PARTS = ("grid", "adaptation")
 """Experiments ``--only`` can run alone: the paper grid (asymptotic MSE and convergence
-time, experiments 1-2) and the adaptation runs (tau ramp and K step, experiment 3)."""
+time, experiments 1-2) and the adaptation runs (tau ramp and K step, experiment 3, and
+the same over 16 plants)."""
 
 
 def evaluate(agent: Policy, out: Path, quick: bool = False) -> dict:
@@ -83,6 +85,7 @@ def evaluate(agent: Policy, out: Path, quick: bool = False) -> dict:
     robust = robustness(agent, steps, quick)
     still = quiet(agent, steps, quick)
     adapt = adaptation(agent, quick)
+    spread = adaptation_spread(agent, quick)
     pca = hidden_pca(agent, steps, quick)
     minutes = 60.0 if quick else 180.0
     tanks = {
@@ -99,6 +102,7 @@ def evaluate(agent: Policy, out: Path, quick: bool = False) -> dict:
         **grid_metrics(asym),
         "table2": t2,
         "adaptation": adaptation_metrics(adapt),
+        "adaptation_spread": spread,
         "hidden_pca": {"two_component_share": pca["share2"]},
         "robustness": robust,
         "quiet": still,
@@ -179,6 +183,7 @@ def evaluate_only(agent: Policy, out: Path, parts: tuple[str, ...], quick: bool 
         metrics |= {"rl_steps": steps, **grid_metrics(asymptotic(agent, steps, quick))}
     if "adaptation" in parts:
         metrics["adaptation"] = adaptation_metrics(adaptation(agent, quick))
+        metrics["adaptation_spread"] = adaptation_spread(agent, quick)
     metrics["wall_s"] = round(time.monotonic() - start, 1)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     return metrics

@@ -150,14 +150,17 @@ def table2(agent: Policy, steps: int) -> dict:
     return rows
 
 
+def adaptation_protocol(quick: bool) -> tuple[int, int, int, int]:
+    """The paper's adaptation protocol in RL steps: settle, length of the change, total, and
+    the scoring window (the last 16 steps, 44 time units: 4 setpoint changes)."""
+    return (40, 20, 80, 8) if quick else (60, 40, 140, 16)
+
+
 def adaptation(agent: Policy, quick: bool, frozen: bool = True) -> dict:
     """Experiment 3: tracking MSE after a tau ramp and a K step, adaptive vs frozen gains
     (``frozen`` False: the adaptive runs alone, as training's validation scores them).
     Both plants run in one batch (they share the protocol's clock)."""
-    settle, change, total = 60, 40, 140
-    window = 16  # last 44 time units: 4 setpoint changes
-    if quick:
-        settle, change, total, window = 40, 20, 80, 8
+    settle, change, total, window = adaptation_protocol(quick)
     names = ("tau_ramp", "k_step")  # columns: K = 0.5 both, tau 0.4 (ramped) and 0.5
 
     def schedule(t, env):
@@ -181,6 +184,43 @@ def adaptation(agent: Policy, quick: bool, frozen: bool = True) -> dict:
         name: {mode: float(r["mse"][-window:, i].mean()) for mode, r in runs.items()}
         | {"gains": {mode: r["gains"][:, i].tolist() for mode, r in runs.items()}}
         for i, name in enumerate(names)
+    }
+
+
+SPREAD_MOVES = np.array([(0.25, 0.5), (0.5, 1.0), (0.25, 1.0), (0.5, 0.25),
+                         (1.0, 0.5), (1.0, 0.25), (0.35, 0.7), (0.7, 0.35)])  # fmt: skip
+"""From / to values of the 8 K steps and the 8 tau ramps of :func:`adaptation_spread`:
+2x and 4x, up and down, inside the training box."""
+
+
+def adaptation_spread(agent: Policy, quick: bool) -> dict:
+    """Not in the paper: experiment 3 over 16 plants instead of one of each kind, so one
+    plant's luck does not decide it. 8 K steps (:data:`SPREAD_MOVES`) at tau 0.3-0.8 and 8
+    tau ramps (the same moves) at K 0.25-1, theta 0.2 x the first tau throughout (as the
+    paper's ramp keeps theta), the protocol and forgetting of :func:`adaptation`.
+
+    Returns ``{"k_steps" | "tau_ramps": {"mse": [8 tracking MSEs], "gmean", "worst"}}``.
+    """
+    settle, change, total, window = adaptation_protocol(quick)
+    start, end = SPREAD_MOVES.T
+    k_at, tau_at = np.linspace(0.25, 1.0, 8), np.linspace(0.3, 0.8, 8)
+    K0, tau0 = np.r_[start, k_at], np.r_[tau_at, start]  # K steps first, then tau ramps
+
+    def schedule(t, env):
+        frac = np.clip((t - settle) / change, 0.0, 1.0)
+        env.set_task(K=np.r_[end if t >= settle else start, k_at],
+                     tau=np.r_[tau_at, start + frac * (end - start)])  # fmt: skip
+
+    run = tune(agent, K0, tau0, 0.2 * tau0, steps=total, forgetting=DEFAULT_FORGETTING,
+               schedule=schedule)  # fmt: skip
+    mse = run["mse"][-window:].mean(axis=0)
+    return {
+        name: {
+            "mse": part.tolist(),
+            "gmean": float(np.exp(np.log(part).mean())),
+            "worst": float(part.max()),
+        }  # fmt: skip
+        for name, part in (("k_steps", mse[:8]), ("tau_ramps", mse[8:]))
     }
 
 
