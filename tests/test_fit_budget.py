@@ -4,14 +4,26 @@ loops without a model first; the REST view and the tuner's metrics say so."""
 
 from __future__ import annotations
 
+import itertools
+from types import SimpleNamespace
+
 import pytest
 
 from service.agent import untrained_agent
-from service.engine import SiteDefaults, TuningEngine, identify
-from service.engine.fit_budget import WINDOW_S, FitBudget
+from service.engine import SiteDefaults, TuningEngine, fit_budget, identify
+from service.engine.fit_budget import PASS_S, WINDOW_S, FitBudget
 from tests.test_identify import TAU, THETA, H, K, drive, gains, hint_free, hinted
 
 pytestmark = pytest.mark.timeout(120)
+
+
+@pytest.fixture
+def dear_fits(monkeypatch):
+    """Every fit charged 1.5 pass budgets of CPU: the engine tests below need one fit to
+    overdraw a pass (PASS_S) as on a busy box (5-30 ms a fit), which an idle one no longer
+    does (under 10 ms), so the budget's own clock is made deterministic."""
+    ticks = itertools.count(0.0, 1.5 * PASS_S)  # timed() reads it before and after a fit
+    monkeypatch.setattr(fit_budget, "time", SimpleNamespace(thread_time=lambda: next(ticks)))
 
 
 def test_the_bucket_refills_with_the_wall_clock_caps_at_its_window_and_limits_a_pass():
@@ -54,7 +66,7 @@ def test_owed_loops_come_in_turn_loops_without_a_model_first():
     assert fits.waiting == 0
 
 
-def test_a_spent_budget_owes_the_assessment_and_makes_it_when_it_refills():
+def test_a_spent_budget_owes_the_assessment_and_makes_it_when_it_refills(dear_fits):
     """With a budget far below one fit per run (1e-6 of a core: after the first fit the
     bucket is in debt for hours of wall time) a hint-free loop is assessed once and then
     owed: it stays identifying, says why, and publishes nothing; once the wall clock has
@@ -96,7 +108,7 @@ def _two_owed(*configs) -> TuningEngine:
     return engine
 
 
-def test_a_loop_without_a_model_is_assessed_before_a_hint_check():
+def test_a_loop_without_a_model_is_assessed_before_a_hint_check(dear_fits):
     """Both owed, one pass's budget (one fit overdraws it): the hint-free loop's
     assessment is made, the hinted loop's waits."""
     engine = _two_owed(hinted("checked"), hint_free("free"))
@@ -106,7 +118,7 @@ def test_a_loop_without_a_model_is_assessed_before_a_hint_check():
     assert engine.view("free", wall=1e9).counters.identified == 1
 
 
-def test_segments_that_end_on_a_spent_budget_are_released_unassessed(monkeypatch):
+def test_segments_that_end_on_a_spent_budget_are_released_unassessed(dear_fits, monkeypatch):
     """A plant trip puts every loop in manual at once: their segments end, and with the
     budget spent they are released without a fit (no stall behind thousands of fits),
     owed nothing, and say why."""
@@ -128,7 +140,7 @@ def test_segments_that_end_on_a_spent_budget_are_released_unassessed(monkeypatch
         assert tb.rec[tb.slot(loop_id)] == -1  # released
 
 
-def test_a_removed_or_restarted_loop_is_owed_nothing():
+def test_a_removed_or_restarted_loop_is_owed_nothing(dear_fits):
     engine = _two_owed(hint_free("a"), hint_free("b"))
     fits = engine.table.fits
     engine.identify("a", wall=1.0)
@@ -217,7 +229,7 @@ def test_the_tuner_makes_owed_assessments_between_messages(tmp_path):
 
 
 def test_a_loop_assessed_when_due_is_owed_nothing_and_one_no_longer_identified_is_skipped(
-    monkeypatch,
+    dear_fits, monkeypatch
 ):
     """Budget back: a's next move closes its event and assesses it there, so it leaves
     the queue (no second fit of the same data); b's identification turned off while
