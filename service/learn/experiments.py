@@ -219,7 +219,7 @@ def adaptation_spread(agent: Policy, quick: bool) -> dict:
             "mse": part.tolist(),
             "gmean": float(np.exp(np.log(part).mean())),
             "worst": float(part.max()),
-        }  # fmt: skip
+        }
         for name, part in (("k_steps", mse[:8]), ("tau_ramps", mse[8:]))
     }
 
