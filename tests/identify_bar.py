@@ -121,17 +121,19 @@ def run(
     steps_after_rescale: bool = False,
     seed: int = 1,
     max_tau: float = 420.0,
+    guard: dict | None = None,
 ) -> Run:
     """Drive every loop until it has taken STEPS agent steps (counted from its last
     identification or rescale when ``steps_after_rescale``), or ``max_tau`` time constants."""
     n = plants.K.size
     engine = TuningEngine(load_agent())
     for i in range(n):
-        guard = {"auto_rescale": auto_rescale, "identify": True}  # hints checked (opt-in)
+        # hints checked (opt-in); ``guard`` overrides fields (e.g. the model check)
+        loop_guard = {"auto_rescale": auto_rescale, "identify": True} | (guard or {})
         engine.register(
             LoopConfig(
                 id=f"L{i}", kp=float(plants.kp0[i]), ki=float(plants.ki0[i]),
-                sample_period_s=float(plants.h[i]), scaling=hints[i], guard=guard,
+                sample_period_s=float(plants.h[i]), scaling=hints[i], guard=loop_guard,
             ),
             wall=0.0,
         )  # fmt: skip
@@ -239,20 +241,24 @@ def _apply(engine, updates, pi, plants, out, slots, first_step, rescaled_seen, a
     out.kp[now], out.ki[now] = tb.kp[slots[now]], tb.ki[slots[now]]
 
 
-def one(which: str, n: int, seed: int, max_tau: float = 420.0) -> dict:
+def one(which: str, n: int, seed: int, max_tau: float = 420.0, guard: dict | None = None) -> dict:
     """One of the runs, as JSON-able numbers (``python -m tests.identify_bar --run``);
     ``max_tau`` shorter than the default ends the run before the loops took their steps
-    (what identification decided is known after a few tens of time constants)."""
+    (what identification decided is known after a few tens of time constants); ``guard``
+    overrides fields of every loop's guard."""
     plants = Plants.random(n, seed)
     factors = [(3.0, 1.0), (1 / 3, 1.0), (1.0, 3.0), (1.0, 1 / 3)]
     if which.startswith("true"):  # trueN: the noise and move sequence N (the scatter)
         hints = [plants.hint(i) for i in range(n)]
-        r = run(plants, hints=hints, seed=int(which[4:] or 1), max_tau=max_tau)
+        r = run(plants, hints=hints, seed=int(which[4:] or 1), max_tau=max_tau, guard=guard)
     elif which == "blind":
-        r = run(plants, hints=[None] * n, max_tau=max_tau)
+        r = run(plants, hints=[None] * n, max_tau=max_tau, guard=guard)
     else:
         wrong = [plants.hint(i, *factors[i % 4]) for i in range(n)]
-        r = run(plants, hints=wrong, auto_rescale=True, steps_after_rescale=True, max_tau=max_tau)
+        r = run(
+            plants, hints=wrong, auto_rescale=True, steps_after_rescale=True, max_tau=max_tau,
+            guard=guard,
+        )  # fmt: skip
     models = [None if m is None else [m.k, m.tau, m.theta] for m in r.identified_model]
     first = [None if m is None else [m.k, m.tau, m.theta] for m in r.first_model]
     return {
@@ -326,11 +332,20 @@ def summary(runs: dict, n: int, seed: int) -> dict:
     if len(draws) >= 3:  # the per-loop median over noise draws: a well-defined reference
         ref = np.median(draws, axis=0)
         spread = np.max(draws, axis=0) / np.min(draws, axis=0)
+        # the gains behind that spread: near its minimum the step-test MSE is so sharp
+        # that draws ending within a few percent of each other differ by more than 1.5x
+        gains = np.array([[runs[k][g] for g in ("kp", "ki")] for k in TRUE_DRAWS if k in mse])
+        gain_spread = (gains.max(axis=0) / gains.min(axis=0)).max(axis=0)
+        close = gain_spread <= 1.1
         out.update(
             true_draws=len(draws),
             true_spread_within_1_5=int((spread <= 1.5).sum()),
             true_spread_median=float(np.median(spread)),
             true_each_within_1_5_of_ref=[int((d / ref <= 1.5).sum()) for d in draws],
+            true_gain_spread_median=float(np.median(gain_spread)),
+            true_gain_spread_worst=float(np.max(gain_spread)),
+            true_gains_within_10pct=int(close.sum()),
+            true_gains_within_10pct_mse_spread_over_1_5=int((close & (spread > 1.5)).sum()),
         )
         for name, key in (("blind", "ref_mse_ratio"), ("rescaled", "ref_wrong_hint_ratio")):
             if name in mse:
@@ -359,9 +374,13 @@ def main() -> None:
         help="stop at this many time constants (30: identification only; 60: every wrong "
         "hint rescaled; the MSE lines need the full 420)",
     )  # fmt: skip
+    parser.add_argument(
+        "--guard", type=json.loads, default=None,
+        help='JSON fields overriding every loop\'s guard, e.g. \'{"model_check": 1.2}\'',
+    )  # fmt: skip
     args = parser.parse_args()
     if args.run:
-        print(json.dumps(one(args.run, args.loops, args.seed, args.max_tau)))
+        print(json.dumps(one(args.run, args.loops, args.seed, args.max_tau, args.guard)))
         return
     if args.summary:
         runs = {}

@@ -82,6 +82,7 @@ def _configure(tb: LoopTable, s: int, config: LoopConfig) -> None:
     tb.m_theta[s] = theta
     tb.period[s] = math.nan if sc is None else sc.rl_period_s
     tb.v_margin[s] = g.verify_margin if g.verify else math.nan
+    tb.v_over[s] = g.verify_overshoot if g.verify else math.nan
     period = tb.period[s]
     tb.v_cool[s] = g.cooldown_periods * period if math.isfinite(period) else 0.0
     if sc is None:
@@ -133,7 +134,7 @@ def _restore_runtime(tb: LoopTable, s: int, saved: Saved) -> None:
         tb.mismatch[s], tb.out_env[s] = ident["mismatch"], ident["out_env"]
     if "verify" in rt:
         for name, value in rt["verify"].items():
-            if hasattr(tb, name) and name not in ("v_margin", "v_cool"):
+            if hasattr(tb, name) and name not in ("v_margin", "v_over", "v_cool"):
                 default = -math.inf if name == "cool_until" else math.nan
                 getattr(tb, name)[s] = default if value is None else value
         figures = rt.get("figures") or {}

@@ -310,3 +310,65 @@ def test_with_the_monitoring_off_nothing_is_measured_or_judged(rng):
     out = run_scenario(scenario("bad", 5, rng), noise=NOISE, monitoring=False)
     assert out["verdict"] == ["pending"] * 5 and not any(out["flagged"])
     assert run_scenario(scenario("bad", 5, rng), noise=NOISE)["verdict"] == ["rolled_back"] * 5
+
+
+def _feed(engine, loop_id: str, t0: float, sp: list[float], pv: list[float], kp=1.0, ki=0.05):
+    """One sample a second from ``t0``, reporting the gains ``kp``, ``ki``; returns the
+    time after the last."""
+    for k, (s, y) in enumerate(zip(sp, pv, strict=True)):
+        engine.ingest([{"loop_id": loop_id, "t": t0 + k, "sp": s, "pv": y, "kp": kp, "ki": ki}],
+                      wall=0.0)  # fmt: skip
+    return t0 + len(sp)
+
+
+def _lag(y0: float, target: float, tau: float, n: int) -> list[float]:
+    return (target + (y0 - target) * np.exp(-np.arange(1, n + 1) / tau)).tolist()
+
+
+@pytest.mark.parametrize("got_to", [0.15, 0.9])
+def test_a_move_before_the_loop_settled_opens_no_response(got_to):
+    # the setpoint goes to 1 and back to 0 after 30 s, when a sluggish loop has got to
+    # 0.15 (0.85 still to go: 85 % of the move back) or 0.9 (10 %: settled enough); an
+    # RL period is 55 s, a response is judged over 110 s
+    engine, tb, s = _still_loop("S")
+    t = _feed(engine, "S", 0.0, [0.0] * 60, [0.0] * 60)
+    t = _feed(engine, "S", t, [1.0] * 30, np.linspace(0.0, got_to, 30).tolist())
+    t = _feed(engine, "S", t, [0.0] * 200, _lag(got_to, 0.0, 10.0, 200))
+    history = engine.performance("S").history
+    if got_to < 0.5:
+        # measured, its IAE per unit move (the move is 1, the error 0.15) would be a
+        # tenth of a settled response's, and the baseline every later change failed on
+        assert history == [] and engine.view("S").verification.last_good_iae_down is None
+    else:
+        assert len(history) == 1 and history[0].iae == pytest.approx(0.9 * 10.0, rel=0.1)
+
+
+def _overshoot(peak: float, n: int = 220) -> list[float]:
+    """An upward response from 0 (the move's own sample still at 0: the controller acts
+    on it after) that overshoots to ``1 + peak`` (fast, tau 3 s) and comes back to 1 (tau
+    5 s): a single lobe past the setpoint, no oscillation."""
+    up = [y for y in _lag(0.0, 3.0, 3.0, 60) if y < 1.0 + peak]
+    return [0.0, *up, 1.0 + peak, *_lag(1.0 + peak, 1.0, 5.0, n - len(up) - 2)]
+
+
+@pytest.mark.parametrize(("peak", "verdict"), [(0.8, "rolled_back"), (0.3, "verified")])
+def test_a_change_whose_response_overshoots_by_more_than_half_the_move_fails(peak, verdict):
+    engine, tb, s = _still_loop("V")
+    t = _feed(engine, "V", 0.0, [0.0] * 60, [0.0] * 60)
+    # the baselines of both directions (first-order responses, tau 10 s)
+    t = _feed(engine, "V", t, [1.0] * 220, _lag(0.0, 1.0, 10.0, 220))
+    t = _feed(engine, "V", t, [0.0] * 220, _lag(1.0, 0.0, 10.0, 220))
+    t = _feed(engine, "V", t, [0.0] * 10, [0.0] * 10, kp=2.0, ki=0.1)  # an operator's change
+    assert engine.view("V").verification.pending
+    _feed(engine, "V", t, [1.0] * 220, _overshoot(peak), kp=2.0, ki=0.1)
+    rows = [r for r in engine.drain_changes()[1] if r[5] in ("rollback", "verified")]
+    detail = json.loads(rows[-1][10])
+    assert detail["verdict"] == verdict
+    # faster than the baseline: the IAE alone would have verified the change
+    assert detail["iae"] < detail["good_iae"]
+    if verdict == "rolled_back":
+        # (less 3 noise sigmas: the estimate sees the lobe's sharp corners as a little noise)
+        assert detail["why"] == "overshoot" and peak - 0.05 <= detail["overshoot"] <= peak
+        assert (tb.kp[s], tb.ki[s]) == (1.0, pytest.approx(0.05))
+    else:
+        assert (tb.g_kp[s], tb.g_ki[s]) == (2.0, pytest.approx(0.1))

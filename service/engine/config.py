@@ -157,6 +157,14 @@ class Guard(BaseModel):
         "rollback in 1,000 good changes with 2 % noise, every doubled IAE fails, and room "
         "for a non-linear plant's operating points: docs/tuner.md).",
     )
+    verify_overshoot: Margin = Field(
+        0.5,
+        description="A change also fails when its response overshoots the new setpoint by "
+        "more than this share of the move, beyond 3 noise sigmas (0.5: a quarter-decay "
+        "response; no response of the robustness suite's conditions with the hint checked "
+        "came near it, and the loops the agent drove unstable on a wrong, trusted hint "
+        "crossed it: docs/tuner.md, Verdicts). 10: off.",
+    )
     cooldown_periods: Periods = Field(
         8.0,
         description="RL periods the agent is held after a rollback or a rejected proposal.",

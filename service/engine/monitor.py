@@ -5,7 +5,8 @@ the engine already receives (no extra traffic), and the oscillation detector.
 accepted samples (distinct loops, aligned arrays) and keeps three things per loop:
 
 * **The current setpoint response.** A setpoint move (the excitation gate's move: at
-  least ``excitation_min_step`` pv_scales) opens a response; it is *complete* when the
+  least ``excitation_min_step`` pv_scales) of a settled loop (:data:`SETTLED_AT_MOVE`)
+  opens a response; it is *complete* when the
   plant time passes ``RESPONSE_PERIODS`` RL periods after the move, *truncated* when
   another move comes first (truncated responses are not compared: their IAE covers a
   shorter time). Over the response the engine integrates |e| (IAE, trapezoid on the
@@ -47,6 +48,13 @@ constants: the paper's target trajectory, time constant 2 tau, is within 0.4 % o
 new setpoint by then; the paper's setpoints move every 4 RL periods)."""
 SETTLE_BAND = 0.05
 """Settling band, share of the move (5 %: a 2 % band sits inside 2 % noise)."""
+SETTLED_AT_MOVE = 0.2
+"""A move opens a response only if the error just before it was within this share of
+the move (plus 3 noise sigmas): from a loop still on its way, the IAE per unit move is
+the last response's tail as much as this one's. A setpoint sent back before a sluggish
+loop got far (irregular setpoints) left the loop a fifth of the move to go: its IAE per
+unit move was a tenth of a settled response's, became the baseline, and every later good
+change was rolled back to the sluggish gains (session 24: step-test MSE 0.455)."""
 WINDOW_PERIODS = 5.0
 """Time constant of the window figures, RL periods (the excitation gate's window)."""
 REJECT_FORGET = 0.01
@@ -140,7 +148,11 @@ def observe(
     just started oscillating)."""
     dt = np.where(fresh | np.isnan(last_t), 0.0, t - last_t)
     done = _close(tb, slots, t, moved)
-    _open(tb, slots[moved], t[moved], e[moved] - np.where(fresh[moved], 0.0, prev_e[moved]))
+    before = np.where(fresh[moved], 0.0, prev_e[moved])
+    move = e[moved] - before
+    allowed = SETTLED_AT_MOVE * np.abs(move) + 3.0 * oscillation.noise_sigma(tb, slots[moved])
+    settled = np.abs(before) <= allowed
+    _open(tb, slots[moved][settled], t[moved][settled], move[settled])
     _respond(tb, slots, t, e, prev_e, dt, moved)
     _window(tb, slots, e, dt, auto, saturated)
     osc = oscillation.detect(tb, slots, t, e, prev_e, dt, moved | fresh)

@@ -46,7 +46,7 @@ import orjson
 from service.engine.audit import audit_row
 from service.engine.modes import ADVISORY, AUTO
 from service.engine.monitor import ABSENT, put, same_gains
-from service.engine.oscillation import period
+from service.engine.oscillation import noise_sigma, period
 from service.engine.updates import MODE_VALUES, StepResult
 from service.wire.protocol import UpdateReason
 
@@ -66,14 +66,14 @@ F32 = [
     # the last-good gains' figures (normalised IAE, s, of upward and of downward setpoint
     # moves: a non-linear plant answers the two differently; NaN: none yet)
     "g_iae", "g_iae_dn",
-    # margin (NaN: verification off) and cool-down (s) of the loop's guard
-    "v_margin", "v_cool",
+    # margin and overshoot limit (NaN: verification off) and cool-down (s) of the guard
+    "v_margin", "v_over", "v_cool",
     # gains judged worse and kept (advisory: the proposal not taken; shadow, frozen):
     # not judged again on every response (compared within GAIN_RTOL, which float32 holds)
     "b_kp", "b_ki",
 ]  # fmt: skip
 """Per-loop float32 arrays of verification: figures and settings."""
-_STATE = [n for n in F64 + F32 if n not in ("v_margin", "v_cool")]
+_STATE = [n for n in F64 + F32 if n not in ("v_margin", "v_over", "v_cool")]
 """What the runtime snapshot keeps (the settings come from the config)."""
 
 Verdict = str
@@ -90,10 +90,11 @@ def init(tb: LoopTable, s: int) -> None:
     tb.b_kp[s] = tb.b_ki[s] = math.nan
 
 
-def configure(tb: LoopTable, s: np.ndarray, on, margin, cooldown_periods) -> None:
+def configure(tb: LoopTable, s: np.ndarray, on, margin, overshoot, cooldown_periods) -> None:
     """The guard's verification settings of the loops at slots ``s`` (aligned arrays of
     the settings; after their RL periods are set)."""
     tb.v_margin[s] = np.where(on, margin, math.nan)
+    tb.v_over[s] = np.where(on, overshoot, math.nan)
     period = tb.period[s]
     finite = np.isfinite(period)
     tb.v_cool[s] = np.where(finite, cooldown_periods * np.where(finite, period, 0.0), 0.0)
@@ -124,6 +125,12 @@ def judge(tb: LoopTable, done: np.ndarray, osc: np.ndarray, wall: float) -> list
             continue
         if same_gains(cand[0], tb.b_kp[s]) & same_gains(cand[1], tb.b_ki[s]):
             continue  # judged worse already, and kept by the operator
+        over = overshoot(tb, s)
+        if not is_good and over > tb.v_over[s]:
+            result = fail(tb, s, "overshoot", wall, figure=figure, overshoot=over)
+            if result is not None:
+                out.append(result)
+            continue
         if math.isfinite(good) and figure > (1.0 + tb.v_margin[s]) * good:
             result = fail(tb, s, "iae", wall, figure=figure)
             if result is not None:
@@ -150,6 +157,13 @@ def judge(tb: LoopTable, done: np.ndarray, osc: np.ndarray, wall: float) -> list
     return out
 
 
+def overshoot(tb: LoopTable, s: int) -> float:
+    """The last complete response's overshoot past the new setpoint, share of the move,
+    less 3 noise sigmas (what noise alone could show); NaN without a figure."""
+    noise = 3.0 * float(noise_sigma(tb, np.array([s]))[0]) / abs(float(tb.r_move[s]))
+    return float(tb.f_over[s]) / 100.0 - noise
+
+
 def reference(tb: LoopTable, s):
     """The last-good figure a response is judged against: of its own direction (``s``
     a slot or slots; the direction of the last response opened)."""
@@ -173,7 +187,14 @@ def _verified(tb, s: int, cand: tuple[float, float], seq: int, figure: float) ->
 
 
 def fail(
-    tb: LoopTable, s: int, why: str, wall: float, *, figure: float | None, actor: str = ""
+    tb: LoopTable,
+    s: int,
+    why: str,
+    wall: float,
+    *,
+    figure: float | None,
+    actor: str = "",
+    overshoot: float | None = None,
 ) -> StepResult | None:
     """A change failed (or an operator asked for a rollback): act by mode. Returns the
     message to publish (auto: the rollback; advisory: the rollback proposal)."""
@@ -187,6 +208,8 @@ def fail(
     }  # fmt: skip
     if why == "oscillation":
         detail["period_s"] = period(tb, s)
+    if overshoot is not None:
+        detail["overshoot"] = overshoot
     if actor:
         detail["actor"] = actor
     tb._verify_dirty.add(s)

@@ -22,13 +22,14 @@ Policy = Agent | FastPolicy
 """``agent.act`` (the reference) or the tuner's inference path."""
 
 
-def engine_of(policy: Policy) -> TuningEngine:
+def engine_of(policy: Policy, verifying: bool = False) -> TuningEngine:
     """A tuning engine computing with ``policy``: the tuner's fast path in its precision,
-    or ``agent.act`` (the reference). Verification is off: the evaluation measures the
-    agent itself (``pitune verify-eval`` measures verification)."""
+    or ``agent.act`` (the reference). Verification is off unless ``verifying``: the paper's
+    experiments measure the agent itself (``pitune verify-eval`` measures verification),
+    the robustness suite what a user gets (the guard's ``verify``, on by default)."""
     if isinstance(policy, FastPolicy):
-        return TuningEngine(policy.agent, inference_precision=policy.precision, verifying=False)
-    return TuningEngine(policy, inference_precision="reference", verifying=False)
+        return TuningEngine(policy.agent, inference_precision=policy.precision, verifying=verifying)
+    return TuningEngine(policy, inference_precision="reference", verifying=verifying)
 
 
 def tune(

@@ -22,6 +22,11 @@ plant with the target and SIMC of their FOPTD approximation by Skogestad's half 
 The suite that runs them all and writes the report is :mod:`service.learn.robust_suite`;
 loops without setpoint moves are in :mod:`service.learn.regulatory`.
 
+The engine verifies every change and rolls a failed one back, as the daemon does (the
+guard's ``verify``, on by default; ``guard={"verify": False}`` measures the agent and
+the other guards alone, as the suite did before session 24). The final gains are the
+gains in force at the end, a change still pending verification included.
+
 A loop counts as unstable when its step test with the final gains does not settle
 (non-finite, or the output still more than 0.5 from the target in the last fifth).
 
@@ -204,7 +209,7 @@ def run_condition(
     u_max = U_LIMIT / sc.u_scale
     pi = PIBatch(kp, ki, dt=SAMPLE_S, n=n, u_min=-u_max, u_max=u_max)
 
-    engine = engine_of(policy)
+    engine = engine_of(policy, verifying=True)
     ids = [f"P{i}" for i in range(n)]
     guard = dict(guard or {}) | ({} if excitation else {"excitation_periods": 0.0})
     extra = {} if forgetting is None else {"forgetting": forgetting}

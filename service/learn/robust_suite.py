@@ -61,7 +61,7 @@ def robust_suite(policy: Policy, out: Path, quick: bool = False, guard: dict | N
 def render(result: dict) -> str:
     guard = result.get("guard") or {}
     settings = (
-        "default guard and excitation gate"
+        "default guard, excitation gate and verify-or-rollback"
         if not guard
         else "guard settings " + json.dumps(guard, sort_keys=True) + ", the rest default"
     )
