@@ -12,6 +12,7 @@ import pytest
 
 from service.engine import LoopConfig, TuningEngine, oscillation
 from service.engine.identify import Model
+from service.engine.patch import LoopPatch
 from service.learn.verification import MARGIN, StillAgent, run_scenario, scenario
 
 pytestmark = pytest.mark.timeout(120)
@@ -351,9 +352,14 @@ def _overshoot(peak: float, n: int = 220) -> list[float]:
     return [0.0, *up, 1.0 + peak, *_lag(1.0 + peak, 1.0, 5.0, n - len(up) - 2)]
 
 
-@pytest.mark.parametrize(("peak", "verdict"), [(0.8, "rolled_back"), (0.3, "verified")])
-def test_a_change_whose_response_overshoots_by_more_than_half_the_move_fails(peak, verdict):
+@pytest.mark.parametrize(
+    ("peak", "limit", "verdict"),
+    [(0.8, None, "rolled_back"), (0.3, None, "verified"), (0.8, 1.0, "verified")],
+)
+def test_a_change_whose_response_overshoots_by_more_than_half_the_move_fails(peak, limit, verdict):
     engine, tb, s = _still_loop("V")
+    if limit is not None:  # an engineer who wants a livelier loop (PATCH /loops/{id})
+        engine.reconfigure(LoopPatch(verify_overshoot=limit).apply(tb.configs["V"]))
     t = _feed(engine, "V", 0.0, [0.0] * 60, [0.0] * 60)
     # the baselines of both directions (first-order responses, tau 10 s)
     t = _feed(engine, "V", t, [1.0] * 220, _lag(0.0, 1.0, 10.0, 220))

@@ -161,9 +161,9 @@ class Guard(BaseModel):
         0.5,
         description="A change also fails when its response overshoots the new setpoint by "
         "more than this share of the move, beyond 3 noise sigmas (0.5: a quarter-decay "
-        "response; no response of the robustness suite's conditions with the hint checked "
-        "came near it, and the loops the agent drove unstable on a wrong, trusted hint "
-        "crossed it: docs/tuner.md, Verdicts). 10: off.",
+        "response; one response in about 8,600 of the robustness suite with the hints "
+        "checked crossed it, a load step inside it, and the loops the agent drove to ring "
+        "on a wrong, trusted hint did: docs/tuner.md, Verdicts). 10: off.",
     )
     cooldown_periods: Periods = Field(
         8.0,
