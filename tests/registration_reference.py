@@ -85,6 +85,7 @@ def _configure(tb: LoopTable, s: int, config: LoopConfig) -> None:
     tb.v_over[s] = g.verify_overshoot if g.verify else math.nan
     period = tb.period[s]
     tb.v_cool[s] = g.cooldown_periods * period if math.isfinite(period) else 0.0
+    tb.v_fence[s] = g.fence_periods * period if math.isfinite(period) else 0.0
     if sc is None:
         tb.kp_unit[s] = tb.ki_unit[s] = tb.period[s] = tb.exc_step[s] = math.nan
         tb.u_scale[s] = tb.time_unit[s] = math.nan

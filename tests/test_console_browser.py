@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import inspect
 import json
+import math
 import time
 
 import httpx
@@ -214,7 +215,8 @@ def test_ten_thousand_loops_render_and_filter_within_two_seconds(daemon, new_pag
 def test_approve_a_proposal_roll_back_and_shadow_from_the_loop_page(daemon, new_page):
     """Log in, see an advisory loop's pending proposal, approve it and see the gains
     change on the plant, roll back (advisory: a rollback proposal, approved too: the
-    last-good gains back on the plant), reject the next proposal, switch to shadow."""
+    last-good gains back on the plant, and the fence shown), reject the next proposal,
+    switch to shadow."""
     loop = SimLoop(id="TIC-3", k=1.0, tau=6.0, theta=1.0, kp=0.3, ki=0.03, sp_period=20.0)
     body = loop.body(1.0, mode="advisory", guard={"excitation_periods": 0.0})
     assert httpx.post(f"{daemon.url}/loops", json=body, headers=BEARER).status_code == 201
@@ -235,6 +237,13 @@ def test_approve_a_proposal_roll_back_and_shadow_from_the_loop_page(daemon, new_
         accepted = next(e for e in history if e["reason"] == "accepted")
         assert json.loads(accepted["detail"])["actor"] == "ui:op"
 
+        # an operator doubles kp on the DCS (the gateway reports it: a change pending)
+        loop.kp = loop_kp_undone = 2.0 * view["kp"]
+        wait_until(
+            lambda: httpx.get(f"{daemon.url}/loops/TIC-3").json()["kp"] == loop.kp,
+            timeout=20.0,
+            what="the operator's kp adopted",
+        )
         page.once("dialog", lambda d: d.accept())
         page.click("#rollback")  # advisory: the last-good gains come back as a proposal
         page.wait_for_function(
@@ -247,6 +256,15 @@ def test_approve_a_proposal_roll_back_and_shadow_from_the_loop_page(daemon, new_
             what="the last-good gains on the plant",
         )
         page.wait_for_selector('#history tbody tr[data-reason="rollback"]')
+        # the rollback taken fences the agent's next proposals halfway to the kp undone
+        # (ki, moved by less than 5 %, is not fenced)
+        fence = httpx.get(f"{daemon.url}/loops/TIC-3").json()["verification"]["fence"]
+        assert fence["kp_max"] == pytest.approx(math.sqrt(0.3 * loop_kp_undone), rel=1e-4)
+        assert (fence["kp_min"], fence["ki_min"], fence["ki_max"]) == (None, None, None)
+        page.wait_for_function(
+            "document.getElementById('verify').textContent.includes('kp ≤ ')"
+            " && document.getElementById('verify').textContent.includes('until t =')"
+        )
 
         page.wait_for_function(
             "!document.getElementById('proposal-text').textContent.includes('(rollback)')"

@@ -378,3 +378,77 @@ def test_a_change_whose_response_overshoots_by_more_than_half_the_move_fails(pea
         assert (tb.kp[s], tb.ki[s]) == (1.0, pytest.approx(0.05))
     else:
         assert (tb.g_kp[s], tb.g_ki[s]) == (2.0, pytest.approx(0.1))
+
+
+def test_after_a_rollback_the_agent_stops_halfway_to_the_failed_gains_until_the_fence_expires():
+    # an agent that always asks for more, and an operator's change (kp 3, ki 0.2) rolled
+    # back: for 12 RL periods (55 s each) its steps stop at the geometric midpoint
+    engine = TuningEngine(Pushing())
+    config = LoopConfig(
+        id="F", kp=1.0, ki=0.05, sample_period_s=1.0,
+        scaling={"k_hat": 1.0, "tau_hat": 10.0, "pv_scale": 1.0},
+        guard={"excitation_periods": 0.0, "cooldown_periods": 0.0, "fence_periods": 12.0},
+    )  # fmt: skip
+    engine.register(config, wall=0.0)
+    engine.ingest([{"loop_id": "F", "t": 0.0, "e": 0.1, "kp": 3.0, "ki": 0.2}], wall=0.0)
+    engine.rollback("F", actor="api")
+    fence = engine.view("F").verification.fence
+    assert (fence.kp_min, fence.ki_min) == (None, None)
+    assert (fence.kp_max, fence.ki_max) == (pytest.approx(3.0**0.5), pytest.approx(0.1))
+    assert fence.until_t == pytest.approx(12 * 55.0)
+    ups = engine.ingest(
+        [{"loop_id": "F", "t": float(t), "e": 0.1} for t in range(1, 650)], wall=0.0
+    )
+    assert max(u.kp for u in ups) == pytest.approx(3.0**0.5)
+    assert max(u.ki for u in ups) == pytest.approx(0.1)
+    assert "guard=fence" in ups[-1].why
+    # the snapshot keeps it (a restarted daemon does not climb back either)
+    ((_, hidden, runtime),) = engine.snapshot(["F"])
+    other = TuningEngine(Pushing())
+    tb = engine.table
+    s = tb.slot("F")
+    other.restore(config, kp=float(tb.kp[s]), ki=float(tb.ki[s]), seq=int(tb.seq[s]),
+                  hidden=hidden, runtime=runtime, wall=0.0)  # fmt: skip
+    assert other.view("F").verification.fence == engine.view("F").verification.fence
+    later = engine.ingest(
+        [{"loop_id": "F", "t": float(t), "e": 0.1} for t in range(650, 900)], wall=0.0
+    )
+    assert engine.view("F").verification.fence is None
+    assert later[-1].kp > 3.0**0.5 and "guard=fence" not in later[-1].why
+
+
+def test_a_reset_or_an_operators_gains_take_the_fence_down():
+    engine = TuningEngine(Pushing())
+    engine.register(LoopConfig(
+        id="G", kp=1.0, ki=0.05, sample_period_s=1.0,
+        scaling={"k_hat": 1.0, "tau_hat": 10.0, "pv_scale": 1.0},
+        guard={"excitation_periods": 0.0},
+    ), wall=0.0)  # fmt: skip
+    for clear in ("reset", "operator"):
+        engine.ingest([{"loop_id": "G", "t": 0.0, "e": 0.1, "kp": 0.5, "ki": 0.2}], wall=0.0)
+        engine.rollback("G")
+        # a lowered kp puts a floor under it, a raised ki a ceiling over it
+        fence = engine.view("G").verification.fence
+        assert fence.kp_min == pytest.approx((0.5 * 1.0) ** 0.5) and fence.kp_max is None
+        assert fence.ki_max == pytest.approx((0.2 * 0.05) ** 0.5) and fence.ki_min is None
+        if clear == "reset":
+            engine.reset("G")
+        else:
+            engine.ingest([{"loop_id": "G", "t": 1.0, "e": 0.1, "kp": 2.0, "ki": 0.3}], wall=0.0)
+        assert engine.view("G").verification.fence is None
+
+
+def test_an_advisory_rollback_proposal_taken_puts_up_the_same_fence():
+    engine = TuningEngine(Pushing())
+    engine.register(LoopConfig(
+        id="H", kp=1.0, ki=0.05, sample_period_s=1.0, mode="advisory",
+        scaling={"k_hat": 1.0, "tau_hat": 10.0, "pv_scale": 1.0},
+        guard={"excitation_periods": 0.0},
+    ), wall=0.0)  # fmt: skip
+    engine.ingest([{"loop_id": "H", "t": 0.0, "e": 0.1, "kp": 2.0, "ki": 0.05}], wall=0.0)
+    (proposal,) = engine.rollback("H").updates()
+    assert engine.view("H").verification.fence is None  # proposed, not yet taken
+    engine.accept("H", proposal.seq)
+    fence = engine.view("H").verification.fence
+    assert fence.kp_max == pytest.approx(2.0**0.5)
+    assert (fence.kp_min, fence.ki_min, fence.ki_max) == (None, None, None)  # ki not moved

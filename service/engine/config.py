@@ -169,6 +169,12 @@ class Guard(BaseModel):
         8.0,
         description="RL periods the agent is held after a rollback or a rejected proposal.",
     )
+    fence_periods: Periods = Field(
+        40.0,
+        description="RL periods after a rollback during which the agent's steps stop "
+        "halfway from the restored gains to the ones that failed, on each gain the failed "
+        "change moved (so it does not climb straight back to them); 0: no fence.",
+    )
 
 
 def guard_option(text: str) -> dict:

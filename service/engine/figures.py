@@ -54,6 +54,17 @@ class WindowFigures(BaseModel):
     rejected_share: float = Field(description="Share of the last ~100 samples rejected.")
 
 
+class Fence(BaseModel):
+    """After a rollback, the agent's steps stop halfway from the restored gains to the ones
+    that failed (``guard.fence_periods``); a bound the failed change did not push is None."""
+
+    kp_min: float | None
+    kp_max: float | None
+    ki_min: float | None
+    ki_max: float | None
+    until_t: float = Field(description="Plant time the fence stands until.")
+
+
 class Verification(BaseModel):
     """Verify-or-rollback state of a loop."""
 
@@ -72,6 +83,9 @@ class Verification(BaseModel):
     pending: bool = Field(description="The gains in force differ from the last-good gains.")
     held_until_t: float | None = Field(
         description="Plant time until which the agent is held after a rollback or a rejection."
+    )
+    fence: Fence | None = Field(
+        None, description="The fence a rollback put up, while it stands (None: no fence)."
     )
 
 

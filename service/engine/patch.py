@@ -48,6 +48,7 @@ class LoopPatch(BaseModel):
     verify_margin: Margin | None = None
     verify_overshoot: Margin | None = None
     cooldown_periods: Periods | None = None
+    fence_periods: Periods | None = None
     gateway: GatewayId | None = Field(
         None, description="Set a gateway (batched gains), or null: one message per loop again."
     )

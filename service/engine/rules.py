@@ -47,7 +47,7 @@ import math
 
 import numpy as np
 
-from service.engine import first_tuning, monitor, oscillation, watch
+from service.engine import first_tuning, monitor, oscillation, verify, watch
 from service.engine.audit import audit_row
 from service.engine.modes import _MODES, AUTO, FROZEN
 from service.engine.table import LoopTable
@@ -241,7 +241,9 @@ def _adopt(tb: LoopTable, slots: np.ndarray, cols: dict[str, np.ndarray], wall: 
         s = int(slots[i])
         old = (tb.kp[s], tb.ki[s])
         tb.kp[s], tb.ki[s] = kp[i], ki[i]
+        verify.unfence(tb, s)  # the operator's gains: the agent starts from them, unfenced
         tb._gains_dirty.add(s)
+        tb._verify_dirty.add(s)
         tb._audit.append(
             audit_row(
                 tb.ids[s], wall, float(t[i]), int(tb.seq[s]), _MODES[tb.mode[s]].value,

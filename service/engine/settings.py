@@ -47,7 +47,7 @@ def configure(tb: LoopTable, slots: np.ndarray, configs: Sequence[LoopConfig]) -
     columns = list(zip(*rows, strict=True))
     for name, values in zip((*_FLOATS, *_FLAGS), columns, strict=False):
         getattr(tb, name)[slots] = values
-    mode, gateway, tau, theta, verifying, margin, over, cooldown = columns[
+    mode, gateway, tau, theta, verifying, margin, over, cooldown, fence = columns[
         len(_FLOATS) + len(_FLAGS) :
     ]
     tb.mode[slots] = mode
@@ -58,8 +58,9 @@ def configure(tb: LoopTable, slots: np.ndarray, configs: Sequence[LoopConfig]) -
     # the target trajectory's model (identified, else the hint's tau with no dead time)
     monitor.configure(tb, slots, np.array(tau, np.float64), np.array(theta, np.float64))
     verify.configure(
-        tb, slots, np.array(verifying, bool), np.array(margin), np.array(over), np.array(cooldown)
-    )
+        tb, slots, np.array(verifying, bool), np.array(margin), np.array(over),
+        np.array(cooldown), np.array(fence),
+    )  # fmt: skip
     # a model in force narrows the bounds just set to its band (rare: identified loops)
     for s, config in zip(slot_list, configs, strict=True):
         model, factor = tb.ident[s].in_force, config.guard.model_band
@@ -106,5 +107,5 @@ def _row(tb: LoopTable, s: int, config: LoopConfig) -> tuple:
         # one string per gateway, however many loops it fronts
         None if config.gateway is None else sys.intern(config.gateway),
         hinted if model is None else model.tau, 0.0 if model is None else model.theta,
-        g.verify, g.verify_margin, g.verify_overshoot, g.cooldown_periods,
+        g.verify, g.verify_margin, g.verify_overshoot, g.cooldown_periods, g.fence_periods,
     )  # fmt: skip

@@ -78,7 +78,10 @@ def step(tb: LoopTable, slots: np.ndarray, wall: float) -> StepResult:
     grow = 1.0 + tb.max_rel[slots, None]
     lo = np.column_stack([tb.kp_min[slots], tb.ki_min[slots]])
     hi = np.column_stack([tb.kp_max[slots], tb.ki_max[slots]])
-    bounded = np.clip(proposed, lo, hi)
+    # a rollback's fence first (fmin/fmax pass NaN, no fence), the loop's bounds over it
+    fence_lo, fence_hi = verify.fence(tb, slots, tb.last_t[slots])
+    fenced = np.fmin(np.fmax(proposed, fence_lo), fence_hi)
+    bounded = np.clip(fenced, lo, hi)
     new = np.clip(bounded, base / grow, base * grow)
     cut = tb.watch[slots] & (tb.ms_max[slots] > 0)
     if cut.any():
@@ -118,7 +121,7 @@ def step(tb: LoopTable, slots: np.ndarray, wall: float) -> StepResult:
         proposed,
         new,
         [gateways[s] for s in listed],
-        why=_why(tb, slots, mode, old, proposed, bounded, new, cut, hold),
+        why=_why(tb, slots, mode, old, proposed, fenced, bounded, new, cut, hold),
     )
     limited = np.flatnonzero(~np.isclose(proposed, new, rtol=GAIN_RTOL, atol=0.0).all(axis=1))
     # the audit row adds the figures the change was made on: the last response's IAE and
@@ -151,18 +154,22 @@ def step(tb: LoopTable, slots: np.ndarray, wall: float) -> StepResult:
     return result.without(unpublished) if unpublished.size else result
 
 
-def _why(tb, slots, mode, old, proposed, bounded, new, cut, hold) -> list[str]:
+def _why(tb, slots, mode, old, proposed, fenced, bounded, new, cut, hold) -> list[str]:
     """The short ``key=value`` reason of each step (docs/tuner.md, Reasons): the loop's
     basis (an identified model or the hint), the change, which guard limit bit, and the
     verdict to come."""
     with np.errstate(divide="ignore", invalid="ignore"):
         pct = (new / old - 1.0) * 100.0
-    same = np.isclose(proposed, bounded, rtol=GAIN_RTOL, atol=0.0).all(axis=1)
-    free = np.isclose(bounded, new, rtol=GAIN_RTOL, atol=0.0).all(axis=1)
-    guards = np.where(
-        hold,
-        "model",
-        np.where(cut, "margin", np.where(~same, "bounds", np.where(~free, "rate", "none"))),
+
+    def differ(a, b):
+        return ~np.isclose(a, b, rtol=GAIN_RTOL, atol=0.0).all(axis=1)
+
+    # the limit named: the model's hold, else the margin's cut, else the first of the
+    # fence, the bounds and the rate (the order they apply in) that changed the gains
+    guards = np.select(
+        [hold, cut, differ(proposed, fenced), differ(fenced, bounded), differ(bounded, new)],
+        ["model", "margin", "fence", "bounds", "rate"],
+        "none",
     ).tolist()
     basis = ["model" if tb.ident[s].scaling is not None else "hint" for s in slots.tolist()]
     verdicts = np.where(hold, "none", [_VERDICT.get(c, "none") for c in mode.tolist()])

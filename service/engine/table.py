@@ -358,6 +358,8 @@ class LoopTable:
         t = None if math.isnan(t) else float(t)
         self._restart(s)
         self.cool_until[s] = -math.inf
+        verify.unfence(self, s)
+        self._verify_dirty.add(s)
         self.adv_kp[s] = self.adv_ki[s] = self.adv_seq[s] = math.nan
         mode = self.mode[s]
         if mode in (FROZEN, SHADOW):

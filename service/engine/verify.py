@@ -60,20 +60,22 @@ F64 = [
     "v_seq", "cool_until",
     # the proposal track of advisory and shadow loops (NaN: none) and its seq
     "adv_kp", "adv_ki", "adv_seq",
+    # the fence after a rollback: bounds of the agent's gains (NaN: none) until a plant time
+    "x_kp_lo", "x_kp_hi", "x_ki_lo", "x_ki_hi", "x_until",
 ]  # fmt: skip
 """Per-loop float64 arrays of verification (allocated by the table beside its own)."""
 F32 = [
     # the last-good gains' figures (normalised IAE, s, of upward and of downward setpoint
     # moves: a non-linear plant answers the two differently; NaN: none yet)
     "g_iae", "g_iae_dn",
-    # margin and overshoot limit (NaN: verification off) and cool-down (s) of the guard
-    "v_margin", "v_over", "v_cool",
+    # margin and overshoot limit (NaN: verification off), cool-down and fence (s) of the guard
+    "v_margin", "v_over", "v_cool", "v_fence",
     # gains judged worse and kept (advisory: the proposal not taken; shadow, frozen):
     # not judged again on every response (compared within GAIN_RTOL, which float32 holds)
     "b_kp", "b_ki",
 ]  # fmt: skip
 """Per-loop float32 arrays of verification: figures and settings."""
-_STATE = [n for n in F64 + F32 if n not in ("v_margin", "v_over", "v_cool")]
+_STATE = [n for n in F64 + F32 if n not in ("v_margin", "v_over", "v_cool", "v_fence")]
 """What the runtime snapshot keeps (the settings come from the config)."""
 
 Verdict = str
@@ -88,16 +90,69 @@ def init(tb: LoopTable, s: int) -> None:
     tb.cool_until[s] = -math.inf
     tb.adv_kp[s] = tb.adv_ki[s] = tb.adv_seq[s] = math.nan
     tb.b_kp[s] = tb.b_ki[s] = math.nan
+    unfence(tb, s)
 
 
-def configure(tb: LoopTable, s: np.ndarray, on, margin, overshoot, cooldown_periods) -> None:
+def configure(
+    tb: LoopTable, s: np.ndarray, on, margin, overshoot, cooldown_periods, fence_periods
+) -> None:
     """The guard's verification settings of the loops at slots ``s`` (aligned arrays of
     the settings; after their RL periods are set)."""
     tb.v_margin[s] = np.where(on, margin, math.nan)
     tb.v_over[s] = np.where(on, overshoot, math.nan)
     period = tb.period[s]
     finite = np.isfinite(period)
-    tb.v_cool[s] = np.where(finite, cooldown_periods * np.where(finite, period, 0.0), 0.0)
+    seconds = np.where(finite, period, 0.0)
+    tb.v_cool[s] = np.where(finite, cooldown_periods * seconds, 0.0)
+    tb.v_fence[s] = np.where(finite, fence_periods * seconds, 0.0)
+
+
+FENCE_MIN_CHANGE = 0.05
+"""A gain the failed change moved by less than this (log units, 5 %) is not fenced: the
+change failed by the other one."""
+
+
+def fence_rollback(tb: LoopTable, s: int, failed: tuple, good: tuple, t: float) -> None:
+    """After a rollback from ``failed`` to ``good`` (kp, ki; in advisory, a rollback
+    proposal accepted): for ``guard.fence_periods`` RL periods the agent's steps stop
+    halfway (in log space) from the good gains to the failed ones, on each gain the failed
+    change moved. Without it the agent, its memory reset, climbs back to the gains that
+    failed within a few steps, and verification rolls them back again and again
+    (docs/tuner.md, Verdicts). A fence still up is narrowed, never widened: the good gains
+    lie inside it."""
+    if not tb.v_fence[s] > 0.0:
+        return
+    moved = [
+        (gain, f, g)
+        for gain, f, g in (("kp", failed[0], good[0]), ("ki", failed[1], good[1]))
+        if f > 0.0 and g > 0.0 and abs(math.log(f / g)) >= FENCE_MIN_CHANGE
+    ]
+    if not moved:
+        return
+    if not tb.x_until[s] > t:
+        unfence(tb, s)
+    for gain, f, g in moved:
+        half = math.sqrt(f * g)
+        if f > g:
+            getattr(tb, f"x_{gain}_hi")[s] = np.fmin(getattr(tb, f"x_{gain}_hi")[s], half)
+        else:
+            getattr(tb, f"x_{gain}_lo")[s] = np.fmax(getattr(tb, f"x_{gain}_lo")[s], half)
+    tb.x_until[s] = t + float(tb.v_fence[s])
+
+
+def unfence(tb: LoopTable, s) -> None:
+    """No fence (``s`` a slot or slots): a reset, an operator's gains, a model's tuning."""
+    tb.x_kp_lo[s] = tb.x_kp_hi[s] = tb.x_ki_lo[s] = tb.x_ki_hi[s] = math.nan
+    tb.x_until[s] = -math.inf
+
+
+def fence(tb: LoopTable, slots: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The fences of the loops at ``slots`` at plant times ``t``: (lo, hi), each (n, 2)
+    [kp, ki], NaN where there is none (or it expired)."""
+    up = (tb.x_until[slots] > t)[:, None]
+    lo = np.column_stack([tb.x_kp_lo[slots], tb.x_ki_lo[slots]])
+    hi = np.column_stack([tb.x_kp_hi[slots], tb.x_ki_hi[slots]])
+    return np.where(up, lo, math.nan), np.where(up, hi, math.nan)
 
 
 def changed(tb: LoopTable, s):
@@ -230,6 +285,7 @@ def fail(
         tb.pending[s] = True
         tb.hidden[s] = 0.0  # the agent's memory of the failed gains goes with them
         tb.unsettle(s)
+        fence_rollback(tb, s, old, good, t)
         tb.adv_kp[s] = tb.adv_ki[s] = tb.adv_seq[s] = math.nan
         verdict = "rolled_back"
     else:
@@ -247,6 +303,9 @@ def accept(tb: LoopTable, s: int, seq: int, wall: float, actor: str) -> StepResu
     ValueError if ``seq`` is not the loop's pending proposal."""
     _check_proposal(tb, s, seq)
     old, new = (float(tb.kp[s]), float(tb.ki[s])), (float(tb.adv_kp[s]), float(tb.adv_ki[s]))
+    t = float(tb.last_t[s]) if math.isfinite(tb.last_t[s]) else 0.0
+    if same_gains(new[0], tb.g_kp[s]) & same_gains(new[1], tb.g_ki[s]):
+        fence_rollback(tb, s, old, new, t)  # a rollback proposal taken: as in auto
     tb.prev_kp[s], tb.prev_ki[s] = old
     tb.kp[s], tb.ki[s] = new
     tb.pending[s] = True
@@ -254,7 +313,6 @@ def accept(tb: LoopTable, s: int, seq: int, wall: float, actor: str) -> StepResu
     tb.seq[s] += 1
     tb._gains_dirty.add(s)
     tb._verify_dirty.add(s)
-    t = float(tb.last_t[s]) if math.isfinite(tb.last_t[s]) else 0.0
     _audit(tb, s, wall, "accepted", old, new, {"proposal": seq, "actor": actor}, t=t)
     why = f"reason=accepted proposal={seq} verdict=pending"
     return single(tb, s, t, old, new, UpdateReason.accepted, why, AUTO)
@@ -315,5 +373,5 @@ def load(tb: LoopTable, slots: np.ndarray, dicts: list[dict]) -> None:
     """The verification state of snapshots (:func:`dumps`' dicts) into the loops at
     ``slots``, one assignment per array (a name a snapshot lacks stays as it is)."""
     for name in _STATE:
-        default = -math.inf if name == "cool_until" else math.nan
+        default = -math.inf if name in ("cool_until", "x_until") else math.nan
         put(getattr(tb, name), slots, [d.get(name, ABSENT) for d in dicts], default)

@@ -13,6 +13,7 @@ import numpy as np
 from service.engine import box, monitor, oscillation, verify
 from service.engine.config import Counters, Identification, LoopConfig, LoopView
 from service.engine.figures import (
+    Fence,
     Performance,
     Proposal,
     ResponseFigures,
@@ -116,7 +117,16 @@ def verification(tb: LoopTable, s: int) -> Verification:
         judged_seq=int(tb.v_seq[s]),
         pending=bool(verify.changed(tb, s)),
         held_until_t=_num(tb.cool_until[s]) if tb.cool_until[s] > tb.last_t[s] else None,
+        fence=_fence(tb, s),
     )
+
+
+def _fence(tb: LoopTable, s: int) -> Fence | None:
+    if not tb.x_until[s] > tb.last_t[s]:
+        return None
+    bounds = (_num(tb.x_kp_lo[s]), _num(tb.x_kp_hi[s]), _num(tb.x_ki_lo[s]), _num(tb.x_ki_hi[s]))
+    return Fence(**dict(zip(("kp_min", "kp_max", "ki_min", "ki_max"), bounds, strict=True)),
+                 until_t=float(tb.x_until[s]))  # fmt: skip
 
 
 def proposal(tb: LoopTable, s: int) -> Proposal | None:

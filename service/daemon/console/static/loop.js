@@ -90,6 +90,15 @@
   const kv = (el, pairs) => {
     el.innerHTML = pairs.map(([k, v]) => `<dt>${pitune.esc(k)}</dt><dd>${v}</dd>`).join("");
   };
+  // the bounds a rollback's fence puts on the agent's steps, and until when
+  const fenceText = (f) => {
+    if (!f) return "none";
+    const side = (name, lo, hi) =>
+      [lo !== null ? `${pitune.num(lo, 6)} ≤` : "", hi !== null || lo !== null ? name : "",
+       hi !== null ? `≤ ${pitune.num(hi, 6)}` : ""].filter(Boolean).join(" ");
+    const sides = [side("kp", f.kp_min, f.kp_max), side("ki", f.ki_min, f.ki_max)].filter(Boolean);
+    return `${sides.join(", ")} until t = ${pitune.num(f.until_t, 7)}`;
+  };
 
   function showLive() {
     if (!live) return;
@@ -144,6 +153,7 @@
       ["last-good IAE (s)", pitune.num(vf.last_good_iae)],
       ["change pending", vf.pending ? "<b>yes</b>" : "no"], ["judged up to seq", vf.judged_seq],
       ["agent held until t", pitune.num(vf.held_until_t, 7)],
+      ["fence after a rollback", fenceText(vf.fence)],
     ]);
     $("proposal-box").hidden = !pr;
     if (pr) {
