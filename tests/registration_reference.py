@@ -135,8 +135,8 @@ def _restore_runtime(tb: LoopTable, s: int, saved: Saved) -> None:
         tb.mismatch[s], tb.out_env[s] = ident["mismatch"], ident["out_env"]
     if "verify" in rt:
         for name, value in rt["verify"].items():
-            if hasattr(tb, name) and name not in ("v_margin", "v_over", "v_cool"):
-                default = -math.inf if name == "cool_until" else math.nan
+            if hasattr(tb, name) and name not in ("v_margin", "v_over", "v_cool", "v_fence"):
+                default = -math.inf if name in verify._MINUS_INF else math.nan
                 getattr(tb, name)[s] = default if value is None else value
         figures = rt.get("figures") or {}
         last = figures.get("last")

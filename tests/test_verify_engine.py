@@ -376,31 +376,35 @@ def test_a_change_whose_response_overshoots_by_more_than_half_the_move_fails(pea
         # (less 3 noise sigmas: the estimate sees the lobe's sharp corners as a little noise)
         assert detail["why"] == "overshoot" and peak - 0.05 <= detail["overshoot"] <= peak
         assert (tb.kp[s], tb.ki[s]) == (1.0, pytest.approx(0.05))
+        # and the agent is fenced short of the gains that rang
+        fence = engine.view("V", wall=0.0).verification.fence
+        assert (fence.kp_max, fence.ki_max) == (pytest.approx(1.6), pytest.approx(0.08))
     else:
         assert (tb.g_kp[s], tb.g_ki[s]) == (2.0, pytest.approx(0.1))
 
 
-def test_after_a_rollback_the_agent_stops_halfway_to_the_failed_gains_until_the_fence_expires():
-    # an agent that always asks for more, and an operator's change (kp 3, ki 0.2) rolled
-    # back: for 12 RL periods (55 s each) its steps stop at the geometric midpoint
+def test_after_a_rollback_the_agent_stops_short_of_the_failed_gains_until_the_fence_expires():
+    # an agent that always asks for more, and an operator's change (kp 3, ki 0.1) rolled
+    # back: for 20 RL periods (55 s each) its steps stop short of the undone gains
     engine = TuningEngine(Pushing())
     config = LoopConfig(
         id="F", kp=1.0, ki=0.05, sample_period_s=1.0,
         scaling={"k_hat": 1.0, "tau_hat": 10.0, "pv_scale": 1.0},
-        guard={"excitation_periods": 0.0, "cooldown_periods": 0.0, "fence_periods": 12.0},
+        guard={"excitation_periods": 0.0, "cooldown_periods": 0.0, "fence_periods": 20.0},
     )  # fmt: skip
     engine.register(config, wall=0.0)
-    engine.ingest([{"loop_id": "F", "t": 0.0, "e": 0.1, "kp": 3.0, "ki": 0.2}], wall=0.0)
+    engine.ingest([{"loop_id": "F", "t": 0.0, "e": 0.1, "kp": 3.0, "ki": 0.1}], wall=0.0)
     engine.rollback("F", actor="api")
     fence = engine.view("F").verification.fence
     assert (fence.kp_min, fence.ki_min) == (None, None)
-    assert (fence.kp_max, fence.ki_max) == (pytest.approx(3.0**0.5), pytest.approx(0.1))
-    assert fence.until_t == pytest.approx(12 * 55.0)
+    # 0.8 of the failed gains (nearer to them than the midpoints, sqrt(3) and 0.071)
+    assert (fence.kp_max, fence.ki_max) == (pytest.approx(2.4), pytest.approx(0.08))
+    assert fence.until_t == pytest.approx(20 * 55.0)
     ups = engine.ingest(
-        [{"loop_id": "F", "t": float(t), "e": 0.1} for t in range(1, 650)], wall=0.0
+        [{"loop_id": "F", "t": float(t), "e": 0.1} for t in range(1, 1100)], wall=0.0
     )
-    assert max(u.kp for u in ups) == pytest.approx(3.0**0.5)
-    assert max(u.ki for u in ups) == pytest.approx(0.1)
+    assert max(u.kp for u in ups) == pytest.approx(2.4)
+    assert max(u.ki for u in ups) == pytest.approx(0.08)
     assert "guard=fence" in ups[-1].why
     # the snapshot keeps it (a restarted daemon does not climb back either)
     ((_, hidden, runtime),) = engine.snapshot(["F"])
@@ -411,10 +415,24 @@ def test_after_a_rollback_the_agent_stops_halfway_to_the_failed_gains_until_the_
                   hidden=hidden, runtime=runtime, wall=0.0)  # fmt: skip
     assert other.view("F").verification.fence == engine.view("F").verification.fence
     later = engine.ingest(
-        [{"loop_id": "F", "t": float(t), "e": 0.1} for t in range(650, 900)], wall=0.0
-    )
-    assert engine.view("F").verification.fence is None
-    assert later[-1].kp > 3.0**0.5 and "guard=fence" not in later[-1].why
+        [{"loop_id": "F", "t": float(t), "e": 0.1} for t in range(1100, 1400)], wall=1100.0
+    )  # (a second later than the first 1,099 samples, as a gateway sends them: no flood)
+    assert engine.view("F", wall=1100.0).verification.fence is None
+    assert later[-1].kp > 2.4 and "guard=fence" not in later[-1].why
+
+
+def test_a_change_that_only_made_the_iae_worse_puts_no_fence_up():
+    # a sluggish response (tau 40 s against the baseline's 10 s) after an operator's
+    # change: rolled back on the IAE, which a load step inside the window can also fail
+    engine, tb, s = _still_loop("I")
+    t = _feed(engine, "I", 0.0, [0.0] * 60, [0.0] * 60)
+    t = _feed(engine, "I", t, [1.0] * 220, _lag(0.0, 1.0, 10.0, 220))
+    t = _feed(engine, "I", t, [0.0] * 220, _lag(1.0, 0.0, 10.0, 220))
+    t = _feed(engine, "I", t, [0.0] * 10, [0.0] * 10, kp=2.0, ki=0.1)
+    _feed(engine, "I", t, [1.0] * 220, [0.0, *_lag(0.0, 1.0, 40.0, 219)], kp=2.0, ki=0.1)
+    rows = [r for r in engine.drain_changes()[1] if r[5] == "rollback"]
+    assert json.loads(rows[-1][10])["why"] == "iae"
+    assert engine.view("I", wall=0.0).verification.fence is None
 
 
 def test_a_reset_or_an_operators_gains_take_the_fence_down():
@@ -427,10 +445,11 @@ def test_a_reset_or_an_operators_gains_take_the_fence_down():
     for clear in ("reset", "operator"):
         engine.ingest([{"loop_id": "G", "t": 0.0, "e": 0.1, "kp": 0.5, "ki": 0.2}], wall=0.0)
         engine.rollback("G")
-        # a lowered kp puts a floor under it, a raised ki a ceiling over it
+        # a lowered kp puts a floor under it, a raised ki a ceiling over it (the midpoint
+        # when nearer to the failed gain than 0.8 of it)
         fence = engine.view("G").verification.fence
-        assert fence.kp_min == pytest.approx((0.5 * 1.0) ** 0.5) and fence.kp_max is None
-        assert fence.ki_max == pytest.approx((0.2 * 0.05) ** 0.5) and fence.ki_min is None
+        assert fence.kp_min == pytest.approx(0.5 / 0.8) and fence.kp_max is None
+        assert fence.ki_max == pytest.approx(0.16) and fence.ki_min is None
         if clear == "reset":
             engine.reset("G")
         else:
@@ -450,5 +469,60 @@ def test_an_advisory_rollback_proposal_taken_puts_up_the_same_fence():
     assert engine.view("H").verification.fence is None  # proposed, not yet taken
     engine.accept("H", proposal.seq)
     fence = engine.view("H").verification.fence
-    assert fence.kp_max == pytest.approx(2.0**0.5)
+    assert fence.kp_max == pytest.approx(1.6)
     assert (fence.kp_min, fence.ki_min, fence.ki_max) == (None, None, None)  # ki not moved
+
+
+def _cycling(loop_id: str, t0: float, n: int, amplitude: float, sp: float = 0.0) -> list[dict]:
+    """Samples of a loop held at its setpoint whose PV cycles (period 40 s) with this
+    amplitude: an oscillating load, not the loop's own gains."""
+    k = np.arange(n)
+    pv = sp + amplitude * np.sin(2.0 * np.pi * (t0 + k) / 40.0)
+    return [{"loop_id": loop_id, "t": t0 + i, "sp": sp, "pv": float(y)} for i, y in enumerate(pv)]
+
+
+@pytest.mark.parametrize("calm_before", [True, False])
+def test_tuning_pauses_while_the_loop_oscillates_at_last_good_gains_that_were_calm(calm_before):
+    # a shadow loop: stepped, its gains never change (the registered, last-good ones)
+    engine = _shadow_engine(Pushing())
+    rng = np.random.default_rng(3)
+    t = 0.0
+    if calm_before:  # a setpoint response of those gains without an oscillation
+        engine.ingest(_responses("S", 0.0, 1, rng)[:300], wall=0.0)
+        t = 300.0
+    quiet = [{"loop_id": "S", "t": t + k, "sp": 1.0, "pv": 1.0 + float(0.002 * rng.normal())}
+             for k in range(60)]  # fmt: skip
+    engine.ingest(quiet, wall=0.0)
+    t0 = t + 60.0
+    engine.ingest(_cycling("S", t0, 400, 0.2, sp=1.0), wall=0.0)
+    view = engine.view("S", wall=0.0)
+    rows = engine.drain_changes()[1]
+    steps = [r[2] for r in rows if r[5] == "agent"]
+    if not calm_before:
+        # gains that oscillated from the start are the agent's to detune: no pause
+        assert view.status == "tuning" and view.counters.oscillation_pauses == 0
+        assert max(steps) > t0 + 300.0
+        return
+    assert view.status == "oscillating" and view.counters.oscillation_pauses == 1
+    (paused,) = [r for r in rows if r[5] == "oscillating"]
+    # flagged at its third lobe's end: 1.5 periods of 40 s into the cycling, plus the
+    # first lobe's rise out of the band
+    assert t0 + 60.0 <= paused[2] <= t0 + 75.0
+    detail = json.loads(paused[10])
+    assert detail["period_s"] == pytest.approx(40.0, rel=0.1)
+    assert max(steps) < paused[2]  # stepped every RL period (55 s) until then
+    end = t0 + 399.0
+    assert view.verification.paused_until_t == pytest.approx(end + 80.0, abs=2.0)
+    # a restarted daemon keeps the pause
+    ((_, hidden, runtime),) = engine.snapshot(["S"])
+    other = TuningEngine(Pushing())
+    other.restore(engine.table.configs["S"], kp=1.0, ki=0.05, seq=int(engine.table.seq[0]),
+                  hidden=hidden, runtime=runtime, wall=0.0)  # fmt: skip
+    assert other.view("S", wall=0.0).verification.paused_until_t == view.verification.paused_until_t
+    # the cycling stops: tuning resumes two periods after the detector lets go
+    engine.ingest(
+        [{"loop_id": "S", "t": end + 1.0 + k, "sp": 1.0, "pv": 1.0} for k in range(300)], wall=0.0
+    )
+    view = engine.view("S", wall=0.0)
+    assert view.status == "tuning" and view.verification.paused_until_t is None
+    assert [r for r in engine.drain_changes()[1] if r[5] == "agent"]

@@ -171,9 +171,10 @@ class Guard(BaseModel):
     )
     fence_periods: Periods = Field(
         40.0,
-        description="RL periods after a rollback during which the agent's steps stop "
-        "halfway from the restored gains to the ones that failed, on each gain the failed "
-        "change moved (so it does not climb straight back to them); 0: no fence.",
+        description="RL periods after a rollback for overshoot or oscillation (or an "
+        "operator's) during which the agent's steps stop short of the gains undone (0.8 of "
+        "them, or halfway from the restored ones when nearer), on each gain the undone "
+        "change moved: it does not climb straight back to gains that rang; 0: no fence.",
     )
 
 
@@ -375,6 +376,9 @@ class Counters(BaseModel):
         0, description="Times the identified model was found to disagree with the scaling."
     )
     envelope_pauses: int = Field(0, description="Times tuning paused as out_of_envelope.")
+    oscillation_pauses: int = Field(
+        0, description="Times tuning paused because the loop oscillated (status oscillating)."
+    )
     model_holds: int = Field(
         0,
         description="Agent steps held by the model check (guard.model_check): gains the "

@@ -88,9 +88,7 @@ class TuningEngine:
         """False: loops that fall due are not stepped (counted in :attr:`skipped`): the
         daemon's choice while its store cannot record a step."""
         self.skipped = 0
-        self.verifying = verifying
-        """False: no verdicts (the figures are still computed): ``pitune evaluate``
-        measures the agent itself."""
+        self.table.verifying = verifying
         self._due: dict[int, None] = {}  # ordered set of slots
         self._stamp = np.zeros(0, np.int64)  # scratch of _distinct, one entry a slot
 
@@ -342,7 +340,7 @@ class TuningEngine:
         done = np.concatenate([d for d, _ in tb.to_judge])
         osc = np.concatenate([o for _, o in tb.to_judge])
         tb.to_judge.clear()
-        if not self.verifying:
+        if not tb.verifying:
             return []
         failed = verify.judge(tb, done, osc, wall)
         for result in failed:

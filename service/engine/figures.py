@@ -87,6 +87,11 @@ class Verification(BaseModel):
     fence: Fence | None = Field(
         None, description="The fence a rollback put up, while it stands (None: no fence)."
     )
+    paused_until_t: float | None = Field(
+        None,
+        description="Plant time until which tuning pauses because the loop oscillates "
+        "(status oscillating; extended while it does).",
+    )
 
 
 class Proposal(BaseModel):

@@ -158,6 +158,7 @@ def ingest(
         )
         if judged[0].size or judged[1].size:
             tb.to_judge.append(judged)
+        verify.pause_oscillating(tb, slots, t, wall)
     period = tb.period[slots]
     next_due = np.where(fresh, t + period, tb.next_due[slots])
     step = np.where(fresh | paused, 0.0, 0.5 * (e + tb.last_e[slots]) * (t - last_t))
@@ -177,6 +178,7 @@ def ingest(
     )
     tb.next_due[slots] = next_due
     due_ok = reached & (tb.mode[slots] != FROZEN) & auto & ~saturated & ~tb.out_env[slots]
+    due_ok &= ~verify.paused(tb, slots, t)  # the loop oscillates: neither stepped nor quiet
     gated = due_ok & tb.gate_closed(slots, t)
     tb.n_quiet[slots[gated]] += 1
     # held after a rollback or a rejected proposal (verify.py): neither stepped nor quiet

@@ -35,7 +35,7 @@ from service.wire.protocol import LoopStatus, Mode, UpdateReason
 STATUSES = [
     LoopStatus.frozen, LoopStatus.waiting, LoopStatus.stale, LoopStatus.identifying,
     LoopStatus.out_of_envelope, LoopStatus.manual, LoopStatus.saturated,
-    LoopStatus.hint_mismatch, LoopStatus.quiet, LoopStatus.tuning,
+    LoopStatus.oscillating, LoopStatus.hint_mismatch, LoopStatus.quiet, LoopStatus.tuning,
 ]  # fmt: skip
 """Statuses in order of precedence (see :meth:`LoopTable.statuses`)."""
 
@@ -78,7 +78,7 @@ _F64 = (
 )  # fmt: skip
 _I64 = [
     "mode", "seq", "n_samples", "n_rejected", "n_steps", "n_updates", "n_quiet", "n_faults",
-    "n_identified", "n_mismatch", "n_envelope", "n_model_holds",
+    "n_identified", "n_mismatch", "n_envelope", "n_model_holds", "n_osc_pauses",
 ]  # fmt: skip
 """Mode, seq, then the counters (persisted in this order: new ones go at the end)."""
 _COUNTERS = _I64[2:]
@@ -142,6 +142,9 @@ class LoopTable:
         self.monitoring = True
         """False: no figures, no oscillation detector, hence no verdicts (benchmarks only:
         the setting ``monitoring`` measures what they cost)."""
+        self.verifying = True
+        """False: no verdicts and no oscillation pause (the figures are still computed):
+        ``pitune evaluate`` measures the agent itself."""
         self.to_judge: list[tuple[np.ndarray, np.ndarray]] = []
         """(responses completed, oscillations started) awaiting :func:`verify.judge`."""
         self.decided: list[StepResult] = []
@@ -357,7 +360,7 @@ class LoopTable:
         t = self.last_t[s]
         t = None if math.isnan(t) else float(t)
         self._restart(s)
-        self.cool_until[s] = -math.inf
+        self.cool_until[s] = self.osc_until[s] = -math.inf
         verify.unfence(self, s)
         self._verify_dirty.add(s)
         self.adv_kp[s] = self.adv_ki[s] = self.adv_seq[s] = math.nan
@@ -476,6 +479,7 @@ class LoopTable:
             self.out_env[slots],
             self.manual[slots],
             self.saturated[slots],
+            verify.paused(self, slots, t),
             self.mismatch[slots],
             self.gate_closed(slots, t),  # NaN t: False, and waiting comes first
             np.ones(slots.size, bool),

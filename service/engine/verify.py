@@ -45,7 +45,7 @@ import orjson
 
 from service.engine.audit import audit_row
 from service.engine.modes import ADVISORY, AUTO
-from service.engine.monitor import ABSENT, put, same_gains
+from service.engine.monitor import ABSENT, RESPONSE_PERIODS, put, same_gains
 from service.engine.oscillation import noise_sigma, period
 from service.engine.updates import MODE_VALUES, StepResult
 from service.wire.protocol import UpdateReason
@@ -62,6 +62,9 @@ F64 = [
     "adv_kp", "adv_ki", "adv_seq",
     # the fence after a rollback: bounds of the agent's gains (NaN: none) until a plant time
     "x_kp_lo", "x_kp_hi", "x_ki_lo", "x_ki_hi", "x_until",
+    # tuning paused until this plant time (the loop oscillates), and the last plant time
+    # the oscillation detector flagged the loop
+    "osc_until", "osc_seen",
 ]  # fmt: skip
 """Per-loop float64 arrays of verification (allocated by the table beside its own)."""
 F32 = [
@@ -73,10 +76,15 @@ F32 = [
     # gains judged worse and kept (advisory: the proposal not taken; shadow, frozen):
     # not judged again on every response (compared within GAIN_RTOL, which float32 holds)
     "b_kp", "b_ki",
+    # 1: the last-good gains have had a setpoint response without an oscillation
+    "g_calm",
 ]  # fmt: skip
 """Per-loop float32 arrays of verification: figures and settings."""
 _STATE = [n for n in F64 + F32 if n not in ("v_margin", "v_over", "v_cool", "v_fence")]
 """What the runtime snapshot keeps (the settings come from the config)."""
+
+_MINUS_INF = ("cool_until", "x_until", "osc_until", "osc_seen")
+"""Plant times whose "never" is -inf (a snapshot writes it as null)."""
 
 Verdict = str
 """``verified``, ``rolled_back``, ``rollback_proposed``, ``worse`` or ``pending``."""
@@ -90,6 +98,8 @@ def init(tb: LoopTable, s: int) -> None:
     tb.cool_until[s] = -math.inf
     tb.adv_kp[s] = tb.adv_ki[s] = tb.adv_seq[s] = math.nan
     tb.b_kp[s] = tb.b_ki[s] = math.nan
+    tb.osc_until[s] = tb.osc_seen[s] = -math.inf
+    tb.g_calm[s] = 0.0
     unfence(tb, s)
 
 
@@ -107,6 +117,16 @@ def configure(
     tb.v_fence[s] = np.where(finite, fence_periods * seconds, 0.0)
 
 
+FENCED = ("overshoot", "oscillation", "operator")
+"""The verdicts that put a fence up: the loop rang or oscillated at the failed gains, or
+an operator said they were wrong. Not ``iae``: a load step or noise inside the judged
+window fails good changes on loaded loops now and then, and a fence after those held the
+agent off the gains it needed (robustness suite, load steps: worst 0.027 -> 0.037)."""
+FENCE_SHORT = 0.8
+"""A fence stands at most this share of the way from the failed gain (the nearer to it of
+this and the midpoint): after a rollback from far above (a registration's gains 14x
+lower) the midpoint held the agent a tenth of the way up for the whole fence (load
+random walk, auto-rescale: worst 0.026 -> 0.095)."""
 FENCE_MIN_CHANGE = 0.05
 """A gain the failed change moved by less than this (log units, 5 %) is not fenced: the
 change failed by the other one."""
@@ -115,11 +135,10 @@ change failed by the other one."""
 def fence_rollback(tb: LoopTable, s: int, failed: tuple, good: tuple, t: float) -> None:
     """After a rollback from ``failed`` to ``good`` (kp, ki; in advisory, a rollback
     proposal accepted): for ``guard.fence_periods`` RL periods the agent's steps stop
-    halfway (in log space) from the good gains to the failed ones, on each gain the failed
-    change moved. Without it the agent, its memory reset, climbs back to the gains that
-    failed within a few steps, and verification rolls them back again and again
-    (docs/tuner.md, Verdicts). A fence still up is narrowed, never widened: the good gains
-    lie inside it."""
+    short of the failed gains (:data:`FENCE_SHORT` of them, or halfway in log space when
+    that is nearer), on each gain the failed change moved. Without it the agent, its
+    memory reset, climbs back to the gains that rang within a few steps (docs/tuner.md,
+    Verdicts). A fence still up is narrowed, never widened: the good gains lie inside it."""
     if not tb.v_fence[s] > 0.0:
         return
     moved = [
@@ -132,11 +151,12 @@ def fence_rollback(tb: LoopTable, s: int, failed: tuple, good: tuple, t: float) 
     if not tb.x_until[s] > t:
         unfence(tb, s)
     for gain, f, g in moved:
-        half = math.sqrt(f * g)
         if f > g:
-            getattr(tb, f"x_{gain}_hi")[s] = np.fmin(getattr(tb, f"x_{gain}_hi")[s], half)
+            bound = max(math.sqrt(f * g), f * FENCE_SHORT)
+            getattr(tb, f"x_{gain}_hi")[s] = np.fmin(getattr(tb, f"x_{gain}_hi")[s], bound)
         else:
-            getattr(tb, f"x_{gain}_lo")[s] = np.fmax(getattr(tb, f"x_{gain}_lo")[s], half)
+            bound = min(math.sqrt(f * g), f / FENCE_SHORT)
+            getattr(tb, f"x_{gain}_lo")[s] = np.fmax(getattr(tb, f"x_{gain}_lo")[s], bound)
     tb.x_until[s] = t + float(tb.v_fence[s])
 
 
@@ -174,9 +194,11 @@ def judge(tb: LoopTable, done: np.ndarray, osc: np.ndarray, wall: float) -> list
         if is_good and tb.r_mixed[s]:
             continue  # the last-good gains changed during it: no figure of theirs
         good = float(reference(tb, s))
+        calm = bool(tb.osc_seen[s] < tb.f_t[s] - RESPONSE_PERIODS * tb.period[s])
         if is_good and math.isfinite(good):
             _set_reference(tb, s, 0.5 * (good + figure))
             tb.v_seq[s] = max(tb.v_seq[s], seq)
+            tb.g_calm[s] = max(float(tb.g_calm[s]), float(calm))
             continue
         if same_gains(cand[0], tb.b_kp[s]) & same_gains(cand[1], tb.b_ki[s]):
             continue  # judged worse already, and kept by the operator
@@ -193,6 +215,7 @@ def judge(tb: LoopTable, done: np.ndarray, osc: np.ndarray, wall: float) -> list
             continue
         first = int(tb.v_seq[s]) + 1
         _verified(tb, s, cand, seq, figure)
+        tb.g_calm[s] = float(calm)
         if first > seq:  # nothing was pending: the baseline of unchanged gains
             continue
         ident = tb.ident[s]
@@ -210,6 +233,56 @@ def judge(tb: LoopTable, done: np.ndarray, osc: np.ndarray, wall: float) -> list
         if result is not None:
             out.append(result)
     return out
+
+
+OSC_PAUSE_PERIODS = 2.0
+"""Oscillation periods tuning stays paused after the detector last flagged the loop: a
+setpoint move restarts the detector, which needs three half-periods to flag the same
+oscillation again, and the agent must not step in between."""
+
+
+def pause_oscillating(tb: LoopTable, slots: np.ndarray, t: np.ndarray, wall: float) -> None:
+    """Tuning pauses while a loop oscillates at last-good gains that were calm (had a
+    setpoint response without an oscillation), and for :data:`OSC_PAUSE_PERIODS` after
+    (status ``oscillating``): the oscillation is not the gains' doing (an oscillating
+    load, an upstream loop cycling, a sticking valve, or a plant that changed), and the
+    agent would learn from it, and its changes be judged by it, as if it were the loop's
+    response. (A change pending when the detector flags is failed at once by
+    :func:`judge`; gains that oscillated from the start, an operator's, are the agent's
+    to detune: no pause.) A pause that begins is an audit row (reason ``oscillating``)
+    and a counter. ``slots`` distinct, ``t`` their samples' plant times."""
+    if not tb.verifying:
+        return
+    flag = tb.o_osc[slots] & np.isfinite(tb.v_margin[slots])
+    if not flag.any():
+        return
+    tb.osc_seen[slots[flag]] = t[flag]
+    flag &= (tb.g_calm[slots] == 1.0) & ~changed(tb, slots)
+    if not flag.any():
+        return
+    s, tf = slots[flag], t[flag]
+    began = ~(tf < tb.osc_until[s])
+    per = tb.o_per[s].astype(np.float64)
+    per = np.where(np.isfinite(per) & (per > 0.0), per, tb.period[s])
+    tb.osc_until[s] = tf + OSC_PAUSE_PERIODS * per
+    for i in np.flatnonzero(began).tolist():
+        k = int(s[i])
+        tb.n_osc_pauses[k] += 1
+        tb._verify_dirty.add(k)
+        _audit(tb, k, wall, "oscillating", _gains(tb, k), _gains(tb, k), {
+            "period_s": _num(per[i]), "oscillation_index": _num(tb.o_index[k]),
+            "until_t": float(tb.osc_until[k]),
+        }, t=float(tf[i]))  # fmt: skip
+
+
+def paused(tb: LoopTable, slots, t) -> np.ndarray:
+    """Where tuning pauses because the loop oscillates (:func:`pause_oscillating`) at
+    plant times ``t`` (aligned with ``slots``)."""
+    return tb.verifying & np.isfinite(tb.v_margin[slots]) & (t < tb.osc_until[slots])
+
+
+def _gains(tb: LoopTable, s: int) -> tuple[float, float]:
+    return float(tb.kp[s]), float(tb.ki[s])
 
 
 def overshoot(tb: LoopTable, s: int) -> float:
@@ -285,7 +358,8 @@ def fail(
         tb.pending[s] = True
         tb.hidden[s] = 0.0  # the agent's memory of the failed gains goes with them
         tb.unsettle(s)
-        fence_rollback(tb, s, old, good, t)
+        if why in FENCED:
+            fence_rollback(tb, s, old, good, t)
         tb.adv_kp[s] = tb.adv_ki[s] = tb.adv_seq[s] = math.nan
         verdict = "rolled_back"
     else:
@@ -373,5 +447,5 @@ def load(tb: LoopTable, slots: np.ndarray, dicts: list[dict]) -> None:
     """The verification state of snapshots (:func:`dumps`' dicts) into the loops at
     ``slots``, one assignment per array (a name a snapshot lacks stays as it is)."""
     for name in _STATE:
-        default = -math.inf if name in ("cool_until", "x_until") else math.nan
+        default = -math.inf if name in _MINUS_INF else math.nan
         put(getattr(tb, name), slots, [d.get(name, ABSENT) for d in dicts], default)

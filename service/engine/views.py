@@ -92,6 +92,7 @@ def raw_view(tb: LoopTable, s: int, config: bytes, wall: float) -> RawView:
             mismatches=int(tb.n_mismatch[s]),
             envelope_pauses=int(tb.n_envelope[s]),
             model_holds=int(tb.n_model_holds[s]),
+            oscillation_pauses=int(tb.n_osc_pauses[s]),
         ),
         scaling=tb.scaling_of(s),
         identification=identification(tb, s),
@@ -118,6 +119,7 @@ def verification(tb: LoopTable, s: int) -> Verification:
         pending=bool(verify.changed(tb, s)),
         held_until_t=_num(tb.cool_until[s]) if tb.cool_until[s] > tb.last_t[s] else None,
         fence=_fence(tb, s),
+        paused_until_t=_num(tb.osc_until[s]) if verify.paused(tb, s, tb.last_t[s]) else None,
     )
 
 

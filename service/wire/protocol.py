@@ -41,7 +41,7 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 SCHEMA_VERSION = 1
-SCHEMA_REVISION = 6
+SCHEMA_REVISION = 7
 """Additive revisions within :data:`SCHEMA_VERSION` (optional fields only, ``v`` unchanged):
 1 the original; 2 ``Sample.applied_seq``, ``epoch`` in gains and state messages, the
 supervision fields of :class:`StateReply`, :class:`StateBatch` and ``after_t``; 3
@@ -110,6 +110,9 @@ class LoopStatus(StrEnum):
     out_of_envelope = "out_of_envelope"
     """The identified dynamics, in the agent's units, are outside the region the agent was
     trained on (or integrating): tuning pauses until a rescale or a new identification."""
+    oscillating = "oscillating"
+    """The loop oscillates (verification's detector; revision 7): tuning pauses until the
+    oscillation has died away. A change pending when it began was rolled back."""
 
 
 class UpdateReason(StrEnum):
