@@ -123,10 +123,10 @@ an operator said they were wrong. Not ``iae``: a load step or noise inside the j
 window fails good changes on loaded loops now and then, and a fence after those held the
 agent off the gains it needed (robustness suite, load steps: worst 0.027 -> 0.037)."""
 FENCE_SHORT = 0.8
-"""A fence stands at most this share of the way from the failed gain (the nearer to it of
-this and the midpoint): after a rollback from far above (a registration's gains 14x
-lower) the midpoint held the agent a tenth of the way up for the whole fence (load
-random walk, auto-rescale: worst 0.026 -> 0.095)."""
+"""A fence stands at this share of the failed gain (its inverse for a lowered one), or at
+the midpoint when that is nearer to it: the midpoint alone, after a rollback to a
+registration's gains 14x below the failed ones, held the agent at a quarter of them for
+the whole fence (load random walk, auto-rescale: worst 0.026 -> 0.095)."""
 FENCE_MIN_CHANGE = 0.05
 """A gain the failed change moved by less than this (log units, 5 %) is not fenced: the
 change failed by the other one."""
