@@ -19,7 +19,7 @@ from service.daemon.api import MAX_OFFSET, create_app
 from service.daemon.metrics import Metrics
 from service.engine import LoopConfig, TuningEngine
 from service.engine.audit import audit_row
-from service.engine.table import STATUSES
+from service.engine.status import STATUSES
 from service.procs import TunerProcess
 from tests.tuner_support import loop_body, tuner_settings, wait_until
 

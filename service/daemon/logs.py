@@ -192,10 +192,10 @@ class StatusWatch:
 
     def check(self, ids: list[str | None], codes: np.ndarray) -> list[tuple[str, str, str]]:
         """``ids``: the loop in each table slot (None: free), ``codes``: each slot's
-        status, an index into :data:`~service.engine.table.STATUSES` (aligned). Logs and
+        status, an index into :data:`~service.engine.status.STATUSES` (aligned). Logs and
         returns (id, old, new) for each change; a loop seen for the first time (a new or
         reused slot) is not a change (its registration is)."""
-        from service.engine.table import STATUSES
+        from service.engine.status import STATUSES
 
         n = min(len(self._codes), codes.size)
         moved = np.flatnonzero(codes[:n] != self._codes[:n]).tolist()

@@ -22,22 +22,16 @@ import numpy as np
 
 from service.agent.fast import FastPolicy, Precision
 from service.agent.model import Agent
-from service.engine import fit_budget, monitor, recorder, settings, verify, views, watch
+from service.engine import fit_budget, monitor, recorder, settings, status, verify, views, watch
 from service.engine.audit import AuditRow, audit_row
 from service.engine.config import Configs, LoopConfig, LoopView
 from service.engine.modes import _CODE, _MODES, AUTO, FROZEN, SHADOW
 from service.engine.saved import Saved, restore_runtimes, runtimes_of
 from service.engine.site import SiteDefaults
+from service.engine.status import STATUSES
 from service.engine.updates import MODE_VALUES, StepResult
 from service.units import Scaling
 from service.wire.protocol import LoopStatus, Mode, UpdateReason
-
-STATUSES = [
-    LoopStatus.frozen, LoopStatus.waiting, LoopStatus.stale, LoopStatus.identifying,
-    LoopStatus.out_of_envelope, LoopStatus.manual, LoopStatus.saturated,
-    LoopStatus.oscillating, LoopStatus.hint_mismatch, LoopStatus.quiet, LoopStatus.tuning,
-]  # fmt: skip
-"""Statuses in order of precedence (see :meth:`LoopTable.statuses`)."""
 
 _F64 = (
     # gains now, registered, and replaced by an update still in flight
@@ -468,23 +462,8 @@ class LoopTable:
         return STATUSES[int(self.statuses(np.array([s]), wall)[0])]
 
     def statuses(self, slots: np.ndarray, wall: float) -> np.ndarray:
-        """Each loop's :class:`LoopStatus` as an index into :data:`STATUSES`: the first
-        condition that holds, in this order of precedence."""
-        t = self.last_t[slots]
-        conditions = [
-            self.mode[slots] == FROZEN,
-            np.isnan(t),
-            wall - self.last_wall[slots] > self.stale_gap[slots],
-            ~self.scaled[slots],
-            self.out_env[slots],
-            self.manual[slots],
-            self.saturated[slots],
-            verify.paused(self, slots, t),
-            self.mismatch[slots],
-            self.gate_closed(slots, t),  # NaN t: False, and waiting comes first
-            np.ones(slots.size, bool),
-        ]
-        return np.argmax(np.stack(conditions), axis=0)
+        """Each loop's status, an index into :data:`STATUSES` (:mod:`.status`)."""
+        return status.statuses(self, slots, wall)
 
     def view(self, loop_id: str, wall: float) -> LoopView:
         return self.raw_view(loop_id, wall).parse()

@@ -7,7 +7,7 @@ import math
 
 from fastapi import HTTPException, Request
 
-from service.engine.table import STATUSES
+from service.engine.status import STATUSES
 from service.wire.protocol import Mode
 
 MODES = list(Mode)

@@ -52,7 +52,7 @@ from service.daemon.console.sessions import (
 from service.daemon.console.tuner_view import Rates, tuner_figures
 from service.daemon.recent import REASONS
 from service.engine import verify
-from service.engine.table import STATUSES
+from service.engine.status import STATUSES
 from service.wire.protocol import Mode
 
 log = logging.getLogger("pitune.console")
