@@ -9,12 +9,14 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import orjson
 
-from service.engine import monitor, oscillation, rules, watch
+from service.engine import monitor, oscillation, output_limit, rules, watch
 from service.engine.audit import audit_row
 from service.engine.modes import AUTO, FROZEN
 from service.engine.rules import GAIN_RTOL, MAX_AGENT_ERROR
 from service.engine.table import LoopTable
+from service.engine.updates import MODE_VALUES
 from service.units import OBS_GAIN_RANGE, OBS_WINDOW, PAPER_MOVE
 from service.wire.decode import decode_objects
 from service.wire.protocol import RejectReason, Sample
@@ -100,21 +102,23 @@ def _ingest(tb: LoopTable, s: int, sample: Sample, wall: float) -> bool:
         gain = PAPER_MOVE / (size * tb.e_scale[s])
         tb.obs_gain[s] = min(max(gain, OBS_GAIN_RANGE[0]), OBS_GAIN_RANGE[1])
 
-    paused = not sample.auto or sample.saturated
-    resumed = (tb.manual[s] or tb.saturated[s]) and not paused
     tb.n_samples[s] += 1
     tb.last_wall[s] = wall
+    gap = math.isnan(last_t) or t - last_t > tb.stale_gap[s]
+    saturated = _held(tb, s, sample, e, last_t, gap, wall) or sample.saturated
+    paused = not sample.auto or saturated
+    resumed = (tb.manual[s] or tb.saturated[s]) and not paused
     tb.manual[s] = not sample.auto
-    tb.saturated[s] = sample.saturated
+    tb.saturated[s] = saturated
     tb.last_t[s] = t
-    fresh = math.isnan(last_t) or t - last_t > tb.stale_gap[s] or resumed
+    fresh = gap or resumed
     if tb.watch[s] and sample.sp is not None:
-        _record(tb, s, sample, e, last_t, fresh, wall)
+        _record(tb, s, sample.model_copy(update={"saturated": saturated}), e, last_t, fresh, wall)
     # performance monitoring is no sample rule: its one implementation, with one sample
     one = np.array([s])
     judged = monitor.observe(
         tb, one, np.array([t]), np.array([e]), tb.last_e[one], np.array([last_t]),
-        np.array([moved]), np.array([fresh]), np.array([sample.auto]), np.array([sample.saturated]),
+        np.array([moved]), np.array([fresh]), np.array([sample.auto]), np.array([saturated]),
     )  # fmt: skip
     if judged[0].size or judged[1].size:
         tb.to_judge.append(judged)
@@ -137,12 +141,47 @@ def _ingest(tb: LoopTable, s: int, sample: Sample, wall: float) -> bool:
     tb.obs_e[s] = tb.win_sum[s] / tb.win_n[s] if tb.win_n[s] and not mixed else e_agent
     period = tb.period[s]
     tb.next_due[s] += period * (math.floor((t - tb.next_due[s]) / period) + 1.0)
-    if tb.mode[s] == FROZEN or not sample.auto or sample.saturated or tb.out_env[s]:
+    if tb.mode[s] == FROZEN or not sample.auto or saturated or tb.out_env[s]:
         return False
     if tb.gate_closed(s, t):
         tb.n_quiet[s] += 1
         return False
     return t >= tb.cool_until[s]  # held after a rollback (service.engine.verify)
+
+
+def _held(tb: LoopTable, s: int, sample: Sample, e: float, last_t, gap: bool, wall) -> bool:
+    """service.engine.output_limit.observe, one sample: whether the output is held."""
+    if sample.op is None or not sample.auto or sample.saturated:
+        output_limit.end_runs(tb, s)
+        return False
+    op = sample.op
+    tb.oh_lo[s] = op if math.isnan(tb.oh_lo[s]) else min(tb.oh_lo[s], op)
+    tb.oh_hi[s] = op if math.isnan(tb.oh_hi[s]) else max(tb.oh_hi[s], op)
+
+    def scale() -> float:
+        return max(abs(tb.oh_op[s]) if not math.isnan(tb.oh_op[s]) else 0.0,
+                   tb.oh_hi[s] - tb.oh_lo[s], output_limit.SCALE_FLOOR)  # fmt: skip
+
+    was = bool(tb.oh_held[s])
+    if gap or math.isnan(tb.oh_op[s]) or abs(op - tb.oh_op[s]) > output_limit.OP_RTOL * scale():
+        tb.oh_op[s], tb.oh_n[s], tb.oh_law[s], tb.oh_held[s] = op, 0.0, 0.0, False
+        return False
+    kp = tb.kp[s] if sample.kp is None else sample.kp
+    ki = tb.ki[s] if sample.ki is None else sample.ki
+    last_e = tb.last_e[s]
+    tb.oh_law[s] += kp * (e - last_e) + ki * 0.5 * (e + last_e) * (sample.t - last_t)
+    tb.oh_n[s] += 1.0
+    big = abs(tb.oh_law[s]) >= output_limit.HELD_SHARE * scale()
+    tb.oh_held[s] = was or (tb.oh_n[s] >= output_limit.HELD_SAMPLES and big)
+    if tb.oh_held[s] and not was:
+        tb.n_held[s] += 1
+        detail = {"op": op, "samples": int(tb.oh_n[s]), "law_change": float(tb.oh_law[s]),
+                  "op_range": [float(tb.oh_lo[s]), float(tb.oh_hi[s])]}  # fmt: skip
+        gains = (float(tb.kp[s]), float(tb.ki[s]))
+        tb._audit.append(audit_row(tb.ids[s], wall, sample.t, int(tb.seq[s]),
+                                   MODE_VALUES[tb.mode[s]], "output_held", gains, gains,
+                                   orjson.dumps(detail).decode()))  # fmt: skip
+    return bool(tb.oh_held[s])
 
 
 def _record(tb: LoopTable, s: int, sample: Sample, e: float, last_t, fresh, wall) -> None:

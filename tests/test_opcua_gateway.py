@@ -174,12 +174,13 @@ def test_samples_and_the_write_policy():
                 async with running(gw):
                     await until(lambda: gw.bus.tuner_up, what="the tuner's token")
                     kp0, ki0 = dcs.gains(LOOP)
-                    for _ in range(5):
-                        await dcs.scan()
+                    scans = [(await dcs.scan())[0] for _ in range(5)]
                     await until(lambda: len(fake.drain()) >= 6, what="6 samples")
                     samples = fake.seen
                     # the initial value (last scan before start, t = -1), then scans 0..4
                     assert [s["t"] - dcs.epoch for s in samples[:6]] == [-1, 0, 1, 2, 3, 4]
+                    # the block's OUT (mapped as op) as read with that PV
+                    assert [s["op"] for s in samples[1:6]] == [scan.op for scan in scans]
                     assert all(close((s["kp"], s["ki"]), (kp0, ki0)) for s in samples)
                     assert samples[2]["sp"] == 60.0 and samples[2]["auto"] is True
                     assert samples[2]["saturated"] is False

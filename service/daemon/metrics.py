@@ -124,7 +124,8 @@ class Metrics:
         )
         self.monitor = Gauge(
             "pitune_loops_monitor",
-            "Loops by monitoring state at scrape time: oscillating, change_pending "
+            "Loops by monitoring state at scrape time: oscillating, output_held (the data "
+            "show the output at a limit), change_pending "
             "(gains differ from the last-good), held (after a rollback or rejection), "
             "proposal_pending (advisory). Aggregated: no per-loop series.",
             ["state"],

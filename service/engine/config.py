@@ -379,6 +379,11 @@ class Counters(BaseModel):
     oscillation_pauses: int = Field(
         0, description="Times tuning paused because the loop oscillated (status oscillating)."
     )
+    output_holds: int = Field(
+        0,
+        description="Times the data showed the controller output held at a limit (status "
+        "saturated while it lasts; the gateway's saturated flag is not counted).",
+    )
     model_holds: int = Field(
         0,
         description="Agent steps held by the model check (guard.model_check): gains the "

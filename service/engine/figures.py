@@ -52,6 +52,12 @@ class WindowFigures(BaseModel):
     manual_share: float = Field(description="Share of recent time in manual.")
     saturated_share: float = Field(description="Share of recent time saturated.")
     rejected_share: float = Field(description="Share of the last ~100 samples rejected.")
+    output_held: float | None = Field(
+        None,
+        description="The controller output (engineering units) the data show held at a "
+        "limit: unchanged while the PI law would have moved it by 5 % of its range (the loop "
+        "counts as saturated until it moves); None: not held, or no op in the samples.",
+    )
 
 
 class Fence(BaseModel):

@@ -9,7 +9,8 @@ for an RL step (:mod:`service.engine.stepping` then steps it).
   out of order (plant clock; a run of :data:`CLOCK_RESET_SAMPLES` consistent older
   samples is taken as a new plant clock instead), or absurd (an error beyond
   :data:`MAX_AGENT_ERROR` agent units). A rejected sample changes nothing of its loop.
-* No RL step while the gateway reports manual mode or a saturated output, and none
+* No RL step while the gateway reports manual mode or a saturated output (or the data
+  show the output held at a limit: :mod:`service.engine.output_limit`), and none
   across a gap of more than ``stale_periods`` sample periods (the decimation window
   restarts at the first sample after the gap, and the integral does not bridge it).
   Nor is the error integrated while in manual or saturated (training never saw an
@@ -47,7 +48,7 @@ import math
 
 import numpy as np
 
-from service.engine import first_tuning, monitor, oscillation, verify, watch
+from service.engine import first_tuning, monitor, oscillation, output_limit, verify, watch
 from service.engine.audit import audit_row
 from service.engine.modes import _MODES, AUTO, FROZEN
 from service.engine.table import LoopTable
@@ -143,13 +144,15 @@ def ingest(
 
     tb.n_samples[slots] += 1
     tb.last_wall[slots] = wall
+    gap = np.isnan(last_t) | (t - last_t > tb.stale_gap[slots])
+    cols["saturated"] = cols["saturated"] | output_limit.observe(tb, slots, cols, last_t, gap, wall)
     auto, saturated = cols["auto"], cols["saturated"]
     paused = ~auto | saturated
     resumed = (tb.manual[slots] | tb.saturated[slots]) & ~paused
     tb.manual[slots] = ~auto
     tb.saturated[slots] = saturated
     tb.last_t[slots] = t
-    fresh = np.isnan(last_t) | (t - last_t > tb.stale_gap[slots]) | resumed
+    fresh = gap | resumed
     watch.record(tb, slots, cols, last_t, fresh, wall)
     first_tuning.flush(tb)  # the models put in force: one batched warm run
     if tb.monitoring:

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import orjson
 
-from service.engine import monitor, verify, watch
+from service.engine import monitor, output_limit, verify, watch
 from service.engine.monitor import ABSENT, put
 
 
@@ -51,6 +51,7 @@ class Saved:
 _SCALARS = (
     "last_t", "last_e", "int_e", "next_due", "sp_ref", "excited_until", "obs_gain",
     "sp_anchor", "move_t", "manual", "saturated", "settle_n", "settle_kp", "settle_ki",
+    *output_limit.F64, *output_limit.BOOL,
 )  # fmt: skip
 """The runtime snapshot's per-loop scalars (arrays of the table of the same names)."""
 
@@ -126,11 +127,13 @@ _RESTORED = (
     ("manual", False), ("saturated", False), ("sp_ref", math.nan),
     ("excited_until", -math.inf), ("obs_gain", math.nan), ("sp_anchor", math.nan),
     ("move_t", -math.inf), ("settle_n", 0.0), ("settle_kp", 0.0), ("settle_ki", 0.0),
+    ("oh_op", math.nan), ("oh_n", 0.0), ("oh_law", 0.0), ("oh_lo", math.nan), ("oh_hi", math.nan),
+    ("oh_held", False),
 )  # fmt: skip
 """The runtime snapshot's scalars restored, with the value of a null (the ones absent in
 older snapshots: sp_ref before the excitation gate, excited_until, sp_anchor and move_t
 before runs of moves, obs_gain before the normalisation, the settling's before it, keep
-the registration's)."""
+the registration's; the output-limit run's before it, none)."""
 
 
 def _at(values: list, k: int):

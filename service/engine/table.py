@@ -22,7 +22,17 @@ import numpy as np
 
 from service.agent.fast import FastPolicy, Precision
 from service.agent.model import Agent
-from service.engine import fit_budget, monitor, recorder, settings, status, verify, views, watch
+from service.engine import (
+    fit_budget,
+    monitor,
+    output_limit,
+    recorder,
+    settings,
+    status,
+    verify,
+    views,
+    watch,
+)  # fmt: skip
 from service.engine.audit import AuditRow, audit_row
 from service.engine.config import Configs, LoopConfig, LoopView
 from service.engine.modes import _CODE, _MODES, AUTO, FROZEN, SHADOW
@@ -72,7 +82,7 @@ _F64 = (
 )  # fmt: skip
 _I64 = [
     "mode", "seq", "n_samples", "n_rejected", "n_steps", "n_updates", "n_quiet", "n_faults",
-    "n_identified", "n_mismatch", "n_envelope", "n_model_holds", "n_osc_pauses",
+    "n_identified", "n_mismatch", "n_envelope", "n_model_holds", "n_osc_pauses", "n_held",
 ]  # fmt: skip
 """Mode, seq, then the counters (persisted in this order: new ones go at the end)."""
 _COUNTERS = _I64[2:]
@@ -161,6 +171,7 @@ class LoopTable:
             (_F64, np.float64), (_I64, np.int64), (_REC, np.int64), (["snap_moves"], np.int64),
             (_BOOL, bool),
             (verify.F64, np.float64), (verify.F32, np.float32),
+            (output_limit.F64, np.float64), (output_limit.BOOL, bool),
         ):  # fmt: skip
             for name in names:
                 arr = np.zeros(capacity, dtype)
@@ -276,6 +287,7 @@ class LoopTable:
         self.prev_t[s] = self.prev_sp[s] = self.prev_pv[s] = self.prev_op[s] = math.nan
         self.id_sp[s] = math.nan
         monitor.clear(self, s)
+        output_limit.clear(self, s)
         verify.init(self, s)
         settings.configure(self, s, configs)
         self._restart(s)
@@ -308,6 +320,7 @@ class LoopTable:
         self.back_n[s] = 0.0
         self.last_wall[s] = -math.inf
         self.pending[s] = self.manual[s] = self.saturated[s] = False
+        output_limit.end_runs(self, s)
         self.unsettle(s)
 
     def unsettle(self, s) -> None:

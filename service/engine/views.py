@@ -93,6 +93,7 @@ def raw_view(tb: LoopTable, s: int, config: bytes, wall: float) -> RawView:
             envelope_pauses=int(tb.n_envelope[s]),
             model_holds=int(tb.n_model_holds[s]),
             oscillation_pauses=int(tb.n_osc_pauses[s]),
+            output_holds=int(tb.n_held[s]),
         ),
         scaling=tb.scaling_of(s),
         identification=identification(tb, s),
@@ -174,6 +175,7 @@ def performance(tb: LoopTable, s: int) -> Performance:
             manual_share=float(tb.w_manual[s]),
             saturated_share=float(tb.w_sat[s]),
             rejected_share=float(tb.w_rej[s]),
+            output_held=float(tb.oh_op[s]) if tb.oh_held[s] else None,
         ),  # fmt: skip
         verification=verification(tb, s),
     )
@@ -187,6 +189,7 @@ def monitor_summary(tb: LoopTable) -> tuple[dict[str, int], dict[str, float]]:
     pending = verify.changed(tb, used)
     counts = {
         "oscillating": int(tb.o_osc[used].sum()),
+        "output_held": int(tb.oh_held[used].sum()),
         "change_pending": int(pending.sum()),
         "held": int((tb.cool_until[used] > tb.last_t[used]).sum()),
         "proposal_pending": int(((tb.mode[used] == ADVISORY) & ~np.isnan(tb.adv_seq[used])).sum()),
@@ -202,7 +205,7 @@ def monitor_summary(tb: LoopTable) -> tuple[dict[str, int], dict[str, float]]:
     return counts, means
 
 
-_STATES = ("oscillating", "change_pending", "held", "proposal_pending")
+_STATES = ("oscillating", "output_held", "change_pending", "held", "proposal_pending")
 
 
 def identification(tb: LoopTable, s: int) -> Identification | None:

@@ -185,8 +185,10 @@ class Sample(BaseModel):
     op: Number | None = Field(
         None,
         description="Controller output (the PI's output, engineering units), for the "
-        "identification of the loop's model; when absent the tuner reconstructs it from "
-        "the PI law and the gains in force.",
+        "identification of the loop's model (when absent the tuner reconstructs it from "
+        "the PI law and the gains in force), and to see an output held at a limit where "
+        "the gateway cannot set saturated (unchanged while the PI law would move it: "
+        "docs/identification.md, An output held at a limit).",
     )
     auto: bool = Field(True, description="False while the loop is in manual: tuning pauses.")
     saturated: bool = Field(

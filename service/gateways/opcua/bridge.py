@@ -240,6 +240,9 @@ class OpcUaGateway:
             return
         sample = {"loop_id": lr.cfg.id, "t": float(t), "sp": sp, "pv": pv,
                   "auto": lr.auto, "saturated": lr.saturated}  # fmt: skip
+        op = number(lr.values.get("op"))
+        if op is not None:  # identification's input, and an output held at a limit shows
+            sample["op"] = op
         gains = lr.in_force()
         if gains is not None:
             sample["kp"], sample["ki"] = gains

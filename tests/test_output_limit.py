@@ -1,0 +1,159 @@
+"""A controller output held at a limit, seen in the data (service/engine/output_limit.py):
+closed FOPTD loops under a clamped PI, through the engine, with the gateway's saturated
+flag never set."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from plant_sim.foptd import FOPTDBatch
+from plant_sim.pi import PIBatch
+from service.engine import LoopConfig, TuningEngine, output_limit
+from service.learn.verification import StillAgent
+
+pytestmark = pytest.mark.timeout(120)
+K, TAU, THETA = 1.0, 8.0, 1.0
+"""The plant: PV units per output unit, s, s (sampled every second)."""
+
+
+class Loop:
+    """One loop: plant, DCS PI (output limits, executing every ``every`` samples), gateway
+    (reports op as the DCS holds it, rounded to ``quantum`` when given) and engine."""
+
+    def __init__(self, *, u_max=np.inf, noise=0.0, every=1, quantum=0.0, send_op=True, seed=0):
+        self.engine = TuningEngine(StillAgent())
+        # gate off: stepped every RL period (44 s) whatever the setpoint does
+        self.engine.register(LoopConfig(
+            id="V", kp=1.0, ki=0.1, sample_period_s=1.0,
+            scaling={"k_hat": K, "tau_hat": TAU, "pv_scale": 1.0},
+            guard={"excitation_periods": 0.0},
+        ), wall=0.0)  # fmt: skip
+        self.plant = FOPTDBatch(K, TAU, THETA, dt=1.0, noise_std=noise, seed=seed)
+        self.plant.reset(1.0)
+        self.pi = PIBatch(1.0, 0.1, dt=1.0, n=1, u_min=0.0, u_max=u_max)
+        self.pi.initialise([1.0 / K])
+        self.u = 1.0 / K
+        self.every, self.quantum, self.send_op = every, quantum, send_op
+        self.t = 0
+        self.rows: list = []
+
+    def run(self, sp: float, n: int) -> list[str]:
+        """``n`` samples at setpoint ``sp``; each sample's status."""
+        seen = []
+        for _ in range(n):
+            pv = float(self.plant.measure()[0])
+            if self.t % self.every == 0:
+                self.u = float(self.pi.step([sp - pv])[0])
+            sample = {"loop_id": "V", "t": float(self.t), "sp": sp, "pv": pv,
+                      "kp": float(self.pi.kp[0]), "ki": float(self.pi.ki[0])}  # fmt: skip
+            if self.send_op:
+                q = self.quantum
+                sample["op"] = round(self.u / q) * q if q else self.u
+            for update in self.engine.ingest([sample], wall=float(self.t)):
+                self.pi.set_gains(update.kp, update.ki)  # the DCS applies the tuner's gains
+            self.plant.step([self.u])
+            self.t += 1
+            seen.append(self.engine.view("V", wall=float(self.t)).status.value)
+        self.rows += self.engine.drain_changes()[1]
+        return seen
+
+    @property
+    def steps(self) -> int:
+        return self.engine.view("V", wall=0.0).counters.steps
+
+
+def test_an_output_held_at_its_limit_pauses_tuning_as_saturated_until_it_moves():
+    loop = Loop(u_max=1.5)
+    assert set(loop.run(1.0, 500)) == {"tuning"}
+    before = loop.steps
+    assert before >= 10  # stepped every RL period
+    # the move asks for an output of 2: the DCS clamps it at 1.5, the PV stops at 1.5
+    seen = loop.run(2.0, 300)
+    held_at = seen.index("saturated")
+    # 20 samples at the limit at least, and the law's change built up by then
+    assert output_limit.HELD_SAMPLES <= held_at <= 40
+    assert set(seen[held_at:]) == {"saturated"}
+    view, perf = loop.engine.view("V", wall=0.0), loop.engine.performance("V")
+    assert view.counters.output_holds == 1 and perf.window.output_held == 1.5
+    # no RL step while held (one at most before it: 40 s, under an RL period)
+    assert loop.steps <= before + 1
+    held_steps = loop.steps
+    (row,) = [r for r in loop.rows if r[5] == "output_held"]
+    detail = json.loads(row[10])
+    assert detail["op"] == 1.5 and detail["samples"] >= output_limit.HELD_SAMPLES
+    assert detail["law_change"] >= output_limit.HELD_SHARE * 1.5
+    # back to the old setpoint: the output leaves the limit at once, tuning resumes
+    seen = loop.run(1.0, 500)
+    assert seen[0] == "tuning" and set(seen) == {"tuning"}
+    assert loop.engine.performance("V").window.output_held is None
+    assert loop.steps >= held_steps + 10
+    assert loop.engine.view("V", wall=0.0).counters.output_holds == 1
+
+
+def test_a_held_output_survives_a_snapshot_and_restore():
+    loop = Loop(u_max=1.5)
+    loop.run(1.0, 100)
+    assert loop.run(2.0, 100)[-1] == "saturated"
+    ((_, hidden, runtime),) = loop.engine.snapshot(["V"])
+    other = TuningEngine(StillAgent())
+    other.restore(loop.engine.table.configs["V"], kp=1.0, ki=0.1, seq=0, hidden=hidden,
+                  runtime=runtime, wall=0.0)  # fmt: skip
+    loop.engine = other
+    assert loop.run(2.0, 1) == ["saturated"]  # held from the first sample after it
+    assert other.view("V", wall=0.0).counters.output_holds == 1
+
+
+@pytest.mark.parametrize("kind", ["flag", "no op"])
+def test_the_gateways_flag_governs_and_without_op_nothing_is_seen(kind):
+    loop = Loop(u_max=1.5, send_op=kind == "flag")
+    loop.run(1.0, 100)
+    if kind == "flag":  # the gateway says so: saturated, and no hold of the data's
+        seen = []
+        for _ in range(100):
+            pv = float(loop.plant.measure()[0])
+            loop.u = float(loop.pi.step([2.0 - pv])[0])
+            loop.engine.ingest([{"loop_id": "V", "t": float(loop.t), "sp": 2.0, "pv": pv,
+                                 "op": loop.u, "saturated": bool(loop.pi.saturated[0])}],
+                               wall=float(loop.t))  # fmt: skip
+            loop.plant.step([loop.u])
+            loop.t += 1
+            seen.append(loop.engine.view("V", wall=float(loop.t)).status.value)
+        assert seen[-1] == "saturated"
+    else:  # a reconstructed output follows the PI law by construction: nothing to see
+        assert set(loop.run(2.0, 300)) == {"tuning"}
+    assert loop.engine.view("V", wall=0.0).counters.output_holds == 0
+
+
+@pytest.mark.parametrize(
+    ("noise", "every", "quantum"),
+    [
+        (0.0, 1, 0.0),  # noise-free: a converged loop's output barely moves, nor its law
+        (0.01, 1, 0.0),  # 1 % noise
+        (0.01, 4, 0.0),  # the gateway samples 4 times per execution of the DCS's PI
+        (0.0, 1, 0.02),  # op reported in steps of 0.02 (1.5 % of its range, 2.5 % of it)
+        (0.01, 1, 0.02),
+    ],
+)
+def test_an_output_the_pi_moves_is_never_held(noise, every, quantum):
+    loop = Loop(noise=noise, every=every, quantum=quantum, seed=1)
+    seen = []
+    for sp in (1.0, 1.3, 0.8, 1.0, 1.05, 1.0):
+        seen += loop.run(sp, 250)
+    seen += loop.run(1.0, 1000)  # a long quiet stretch: converged
+    assert "saturated" not in seen
+    assert loop.engine.view("V", wall=0.0).counters.output_holds == 0
+    assert loop.steps >= 40  # tuned all along (the hint check's model tuning holds a while)
+
+
+def test_a_loop_without_a_model_is_not_identified_from_a_response_at_the_limit():
+    loop = Loop(u_max=1.5)
+    loop.engine = TuningEngine(StillAgent())
+    loop.engine.register(LoopConfig(id="V", kp=1.0, ki=0.1, sample_period_s=1.0), wall=0.0)
+    loop.run(1.0, 100)
+    assert set(loop.run(2.0, 200)) == {"identifying"}  # before saturated, in precedence
+    ident = loop.engine.view("V", wall=float(loop.t)).identification
+    assert ident.why == "segment ended: output saturated" and ident.model is None
+    assert [r[5] for r in loop.rows] == ["output_held"]
