@@ -153,14 +153,21 @@ def track_moves(sp, ref, anchor, last_move, gain, now, step, run, scale=1.0) -> 
     (service.engine.rules), training per controller sample (service.learn.env)."""
     with np.errstate(invalid="ignore"):  # NaN references compare False
         moved = np.abs(sp - ref) >= step
-        # a run continues in the same direction; a reversal starts a new one from its turn
-        run_on = (now - last_move <= run) & (np.sign(sp - ref) == np.sign(ref - anchor))
+    run_on = continues(sp, ref, anchor, last_move, now, run)
     anchor = np.where(moved & ~run_on, ref, anchor)
     with np.errstate(divide="ignore"):
         size = np.abs(sp - anchor) * scale
         gain = np.where(moved, np.clip(PAPER_MOVE / size, *OBS_GAIN_RANGE), gain)
     ref = np.where(moved | np.isnan(ref), sp, ref)
     return Moves(moved, ref, anchor, np.where(moved, now, last_move), gain)
+
+
+def continues(sp, ref, anchor, last_move, now, run):
+    """Whether a move of the setpoint to ``sp`` at ``now`` continues the run of moves
+    (arguments as :func:`track_moves`'): in the same direction, within ``run`` of the
+    last move. A reversal starts a new run from its turn."""
+    with np.errstate(invalid="ignore"):  # NaN references compare False
+        return (now - last_move <= run) & (np.sign(sp - ref) == np.sign(ref - anchor))
 
 
 Factor = Annotated[float, Field(strict=True, ge=1e-9, le=1e9, allow_inf_nan=False)]

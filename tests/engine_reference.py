@@ -93,6 +93,8 @@ def _ingest(tb: LoopTable, s: int, sample: Sample, wall: float) -> bool:
             run_on = t - tb.move_t[s] <= tb.period[s] and (sample.sp > ref) == (ref > anchor)
             if not run_on or ref == anchor:
                 tb.sp_anchor[s] = ref
+            else:  # a ramp (or a staircase): its RL periods are not stepped
+                tb.ramp_t[s] = t
             size = abs(sample.sp - tb.sp_anchor[s])
         if moved or math.isnan(ref):
             tb.sp_ref[s] = sample.sp
@@ -143,7 +145,7 @@ def _ingest(tb: LoopTable, s: int, sample: Sample, wall: float) -> bool:
     tb.next_due[s] += period * (math.floor((t - tb.next_due[s]) / period) + 1.0)
     if tb.mode[s] == FROZEN or not sample.auto or saturated or tb.out_env[s]:
         return False
-    if tb.gate_closed(s, t):
+    if tb.gate_closed(s, t) or t - tb.ramp_t[s] < tb.period[s]:
         tb.n_quiet[s] += 1
         return False
     return t >= tb.cool_until[s]  # held after a rollback (service.engine.verify)
@@ -197,14 +199,26 @@ def _record(tb: LoopTable, s: int, sample: Sample, e: float, last_t, fresh, wall
         integral = tb.op_int[s] - (kp - tb.op_kp[s]) * tb.last_e[s] + ki * e * (t - last_t)
     tb.op_int[s], tb.op_kp[s] = integral, kp
     op = kp * e + integral if sample.op is None else sample.op
-    broken = fresh or not sample.auto or sample.saturated
     moved = not math.isnan(tb.id_sp[s]) and sp != tb.id_sp[s]
+    ramp = False
+    if moved:  # a ramp: the third change in one direction, each within RAMP_GAP samples
+        way = 1.0 if sp > tb.id_sp[s] else -1.0
+        on = way == tb.id_dir[s] and tb.id_gap[s] < watch.RAMP_GAP
+        tb.id_run[s] = tb.id_run[s] + 1.0 if on else 1.0
+        tb.id_dir[s], tb.id_gap[s] = way, 0.0
+        ramp = tb.id_run[s] >= watch.RAMP_MOVES
+    else:
+        tb.id_gap[s] += 1.0
     tb.id_sp[s] = sp
+    broken = fresh or not sample.auto or sample.saturated or ramp
+    if not sample.auto:
+        why = "manual"
+    elif sample.saturated:
+        why = "output saturated"
+    else:
+        why = "setpoint ramp (tau and dead time not separable)" if ramp else "data gap"
     row = (t, sp, pv, op)
     if tb.rec[s] >= 0 and broken:
-        why = (
-            "manual" if not sample.auto else "output saturated" if sample.saturated else "data gap"
-        )
         watch._close(tb, s, t, wall, final=True, why=f"segment ended: {why}")
     elif tb.rec[s] >= 0 and moved:
         starts = tb.ident[s].starts
@@ -216,8 +230,6 @@ def _record(tb: LoopTable, s: int, sample: Sample, e: float, last_t, fresh, wall
     elif tb.rec[s] < 0 and moved and not broken:
         watch._open(tb, s, row)
     elif tb.rec[s] < 0 and moved:
-        why = "output saturated" if sample.saturated else "data gap"
-        why = why if sample.auto else "manual"
         tb.ident[s].why = f"setpoint move not usable: {why}"
     elif tb.rec[s] >= 0:  # recording: after a move a row per sample, then wider rows
         k, held = int(tb.rec_k[s]), int(tb.rec_m[s])

@@ -11,6 +11,7 @@ from pydantic import ValidationError
 from service.agent import DEFAULT_WEIGHTS, load_agent, untrained_agent
 from service.daemon.tuner import Tuner
 from service.engine import GainUpdate, LoopConfig, TuningEngine
+from service.learn.verification import StillAgent
 from service.wire.protocol import RejectReason
 from tests.test_tuner_tuning import STEPS, over_the_bus, run_plant, tank_config
 from tests.tuner_support import GATE_OFF, connected_gateway, loop_body, tuner_settings
@@ -173,3 +174,33 @@ def test_a_ramp_is_one_move_of_its_whole_size_not_many_small_ones():
     assert gains[-1] == pytest.approx(1.0)  # the whole ramp: 2 units, as the paper's move
     assert send(20, 10.4) == pytest.approx(2 / (3.6 / 2))  # back down within the run
     assert send(200, 14.4) == pytest.approx(1.0)  # a later move on its own: 4 PV units
+
+
+@pytest.mark.parametrize("shape", ["step", "ramp"])
+def test_the_agent_is_not_stepped_while_the_setpoint_ramps(shape):
+    """RL periods within one RL period of a ramp's step (a move continuing a run) are
+    quiet: the agent learned from step responses, and a ramp's lag, an error that grows
+    as 1/ki, took it to gains far too high (docs/tuner.md, Setpoint ramps)."""
+    eng = TuningEngine(StillAgent())
+    scaling = {"k_hat": 1.0, "tau_hat": 10.0, "pv_scale": 2.0}  # RL period 55 s, step 0.4
+    guard = {"identify": False}
+    eng.register(LoopConfig(id="L", kp=0.5, ki=0.05, sample_period_s=1.0, scaling=scaling,
+                            guard=guard), wall=0.0)  # fmt: skip
+    tb, s = eng.table, eng.table.slot("L")
+    # 10 -> 14 PV units (2 agent units): at once, or a ramp over 200 s (a move about every
+    # 20 s, each continuing the run)
+    sp = (lambda t: 14.0) if shape == "step" else (lambda t: 10.0 + 0.02 * min(t, 200))
+    eng.ingest([{"loop_id": "L", "t": 0.0, "sp": 10.0, "pv": 10.0}], wall=0.0)
+    stepped = []
+    for t in range(1, 420):
+        eng.ingest([{"loop_id": "L", "t": float(t), "sp": sp(t), "pv": 10.0}], wall=float(t))
+        if tb.n_steps[s] > len(stepped):
+            stepped.append(t)
+    if shape == "step":  # every RL period of the gate's window (4 periods after the move)
+        assert stepped == [55, 110, 165, 220] and tb.n_quiet[s] == 3
+        assert tb.ramp_t[s] == -np.inf
+        return
+    # none while it ramps nor an RL period after its last step; then the gate's window
+    assert 180.0 <= tb.ramp_t[s] <= 200.0
+    assert len(stepped) == 3 and stepped[0] > tb.ramp_t[s] + 55.0
+    assert tb.n_quiet[s] == 4  # the periods due at 55, 110, 165, 220

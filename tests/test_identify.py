@@ -48,9 +48,11 @@ def drive(
     tau_end=None,
     integrating=False,
     t0=0.0,
+    ramp=0.0,
 ) -> list:
     """Run one simulated loop through the engine: ``moves`` setpoint moves of +-``size``
-    every ``every`` time constants; returns the gain updates published."""  # fmt: skip
+    every ``every`` time constants (each a ramp over ``ramp`` time constants, 0: a step);
+    returns the gain updates published."""  # fmt: skip
     kp, ki = engine.view(loop_id, wall=0.0).kp, engine.view(loop_id, wall=0.0).ki
     if integrating:
         plant = FOPTDBatch(1.0, 1e9, theta / h, dt=1.0, noise_std=noise, seed=seed)
@@ -61,11 +63,14 @@ def drive(
     pi = PIBatch(kp, ki * h, dt=1.0)
     pi.initialise(0.0 if integrating else 50.0 / k)
     n = int(round((moves + 1) * every * tau / h))
-    sp, updates = 50.0, []
+    target, updates = 50.0, []
+    sp, rate = target, 0.0
     for j in range(n):
         t = t0 + j * h
         if j and j % int(round(every * tau / h)) == 0:
-            sp = 50.0 + size * (1 if (j // int(round(every * tau / h))) % 2 else -1)
+            target = 50.0 + size * (1 if (j // int(round(every * tau / h))) % 2 else -1)
+            rate = abs(target - sp) / max(ramp * tau / h, 1.0)
+        sp = min(max(target, sp - rate), sp + rate)
         if tau_end is not None:
             plant.set_params(tau=(tau + (tau_end - tau) * j / n) / h)
         y = float(plant.measure()[0])
@@ -186,6 +191,7 @@ def test_hint_free_loop_takes_no_step_and_publishes_nothing_while_identifying():
         ({"saturated": True}, "saturated"),
         ({"frozen_pv": True}, "frozen"),
         ({"size": 0.3}, "too small for the noise"),
+        ({"ramp": 1.0}, "setpoint ramp"),
     ],
 )
 def test_bad_data_yields_no_identification_and_says_why(case, why):

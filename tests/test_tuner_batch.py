@@ -59,8 +59,9 @@ def _random_batch(rng, table: LoopTable, k: float) -> list[dict]:
             item["e"] = float(rng.choice([rng.normal(0, 2.0), 5000.0]) if rng.random() < 0.05
                               else rng.normal(0, 2.0))  # fmt: skip
         else:
-            # setpoint steps above and below the gate's smallest (2.0 here), and none
-            item["sp"] = float(rng.choice([1.0, 1.0, 1.0, 2.5, 4.0]))
+            # setpoint steps above and below the gate's smallest (2.0 here), none, and runs
+            # of moves in one direction (a ramp's or a staircase's)
+            item["sp"] = float(rng.choice([1.0, 1.0, 1.0, 2.5, 4.0, 6.5, 9.0]))
             item["pv"] = float(rng.normal(1.0, 2.0))
         if rng.random() < 0.4:  # report gains: current, previous (in flight) or new
             choice = rng.integers(3)
@@ -144,6 +145,7 @@ def test_vectorised_ingest_equals_the_scalar_reference(seed, rate, monkeypatch):
             step(fast, due, wall)
             np.testing.assert_array_equal(fast.hidden, slow.hidden)
     assert holds and fast.n_held.sum() >= 2  # the rule was exercised, onsets audited
+    assert np.isfinite(fast.ramp_t[: len(fast.ids)]).any()  # and so was the ramp rule
 
 
 _value = st.one_of(

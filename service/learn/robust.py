@@ -86,6 +86,8 @@ class Condition:
     """Time units between setpoint changes (mean, when irregular)."""
     sp_irregular: bool = False
     """Exponentially distributed holds (at least one sample) instead of a fixed period."""
+    sp_ramp: float = 0.0
+    """Each setpoint change is a ramp over this many time units (0: a step)."""
     tau_factor: float = 1.0
     """True time constant / the hint's (and dead time with it)."""
     k_factor: float = 1.0
@@ -116,7 +118,10 @@ class Condition:
         if self.load_walk:
             out["load_walk"] = full(self.load_walk / 2)
         out["sp_amp"] = full(self.sp_amplitude)
-        if self.sp_irregular:
+        if self.sp_ramp:  # training's ramps come with its random moves (0.5-3 RL periods)
+            out |= {"sp_random": full(True), "sp_ramp": full(1.0),
+                    "sp_hold": full(self.sp_hold / RL_STEP_AGENT_UNITS)}  # fmt: skip
+        elif self.sp_irregular:
             out |= {"sp_random": full(True), "sp_hold": full(self.sp_hold / RL_STEP_AGENT_UNITS)}
         else:
             out["sp_period"] = full(self.sp_hold)
@@ -134,6 +139,7 @@ CONDITIONS = (
     Condition("setpoint amplitude 3", sp_amplitude=3.0),
     Condition("setpoint held 22", sp_hold=22.0),
     Condition("irregular setpoints (mean 4 RL periods)", sp_irregular=True),
+    Condition("setpoint ramps (over 2 RL periods)", sp_ramp=2.0 * RL_STEP_AGENT_UNITS),
     Condition("true tau = 2 x hint", tau_factor=2.0),
     Condition("true tau = 3 x hint", tau_factor=3.0),
     Condition("true tau = hint / 3", tau_factor=1.0 / 3.0),
@@ -288,6 +294,13 @@ def _setpoints(cond: Condition, n: int, samples: int, unit: float, rng) -> np.nd
             h = max(1, int(round(rng.exponential(hold)))) if cond.sp_irregular else int(hold)
             out[i, k : k + h] = s
             k, s = k + h, -s
+    ramp = int(round(cond.sp_ramp * unit / SAMPLE_S))
+    if ramp > 1:  # the mean of the last `ramp` steps' levels: each change a linear ramp
+        padded = np.concatenate([np.repeat(out[:, :1], ramp, axis=1), out], axis=1)
+        total = np.cumsum(padded, axis=1)
+        mean = (total[:, ramp:] - total[:, :-ramp]) / ramp
+        # a held level exactly (the sum's rounding would make every sample a tiny move)
+        out = np.where(np.abs(mean - out) < 1e-9, out, mean)
     return out
 
 
