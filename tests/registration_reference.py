@@ -11,8 +11,9 @@ from __future__ import annotations
 import math
 import sys
 
-from service.engine import first_tuning, monitor, verify, watch
+from service.engine import first_tuning, monitor, verify
 from service.engine.config import LoopConfig, resolve_bounds
+from service.engine.id_state import IdState
 from service.engine.modes import _CODE
 from service.engine.saved import Saved
 from service.engine.table import _COUNTERS, LoopTable
@@ -36,7 +37,7 @@ def add_one(tb: LoopTable, config: LoopConfig, *, kp, ki, seq, saved: Saved | No
         getattr(tb, name)[s] = 0
     tb.tokens[s], tb.token_wall[s] = tb.burst, wall
     restored = None if saved is None else saved.ident
-    tb.ident[s] = watch.IdState() if restored is None else restored
+    tb.ident[s] = IdState() if restored is None else restored
     tb.rec[s], tb.rec_n[s], tb.rec_k[s], tb.rec_stride[s] = -1, 0, 0, 1
     tb.mismatch[s] = tb.out_env[s] = tb.prev_ok[s] = False
     tb.op_int[s] = tb.op_kp[s] = 0.0

@@ -177,7 +177,7 @@ def test_a_hinted_loops_first_confident_model_puts_its_tuning_in_force_once():
     tuning (here a quarter of SIMC's: sluggish) are set to that tuning (audit reason
     ``model``, after ``checked``), once: later models of the same plant only check the
     agent's steps. The model survives a snapshot."""
-    from service.engine.watch import IdState
+    from service.engine.id_state import IdState
 
     engine = TuningEngine(untrained_agent(0))
     config = hinted()

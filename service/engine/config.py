@@ -380,9 +380,7 @@ class Counters(BaseModel):
         0, description="Times tuning paused because the loop oscillated (status oscillating)."
     )
     output_holds: int = Field(
-        0,
-        description="Times the data showed the controller output held at a limit (status "
-        "saturated while it lasts; the gateway's saturated flag is not counted).",
+        0, description="Times the data showed the output held at a limit (status saturated)."
     )
     model_holds: int = Field(
         0,

@@ -18,7 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 import orjson
 
-from service.engine import monitor, output_limit, verify, watch
+from service.engine import monitor, output_limit, verify
+from service.engine.id_state import IdState
 from service.engine.monitor import ABSENT, put
 
 
@@ -31,7 +32,7 @@ class Saved:
     """The agent's hidden state, float32, flat (restored only if its size still fits)."""
     runtime: dict
     """What :meth:`LoopTable.snapshot <service.engine.table.LoopTable.snapshot>` wrote."""
-    ident: watch.IdState | None
+    ident: IdState | None
     """The identification state (None: a snapshot from before identification)."""
 
     @classmethod
@@ -44,7 +45,7 @@ class Saved:
         return cls(
             np.frombuffer(hidden, np.float32),
             rt,
-            None if ident is None else watch.IdState.load(ident),
+            None if ident is None else IdState.load(ident),
         )
 
 

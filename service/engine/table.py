@@ -35,6 +35,7 @@ from service.engine import (
 )  # fmt: skip
 from service.engine.audit import AuditRow, audit_row
 from service.engine.config import Configs, LoopConfig, LoopView
+from service.engine.id_state import IdState
 from service.engine.modes import _CODE, _MODES, AUTO, FROZEN, SHADOW
 from service.engine.saved import Saved, restore_runtimes, runtimes_of
 from service.engine.site import SiteDefaults
@@ -159,7 +160,7 @@ class LoopTable:
         self.mc_turn = 0
         """Where the model check's rotation over the loops to check starts
         (:data:`service.engine.model_check.PER_PASS`)."""
-        self.ident: list[watch.IdState | None] = []
+        self.ident: list[IdState | None] = []
         self.recorder = recorder.Recorder()
         self._allocate(capacity)
 
@@ -279,7 +280,7 @@ class LoopTable:
         saved = [None] * n if saved is None else saved
         # a restored identification first: the configuration follows its scaling
         for slot, x in zip(picked, saved, strict=True):
-            self.ident[slot] = watch.IdState() if x is None or x.ident is None else x.ident
+            self.ident[slot] = IdState() if x is None or x.ident is None else x.ident
         for name, value in zip(_REC, (-1, 0, 0, 1, 0, 0), strict=True):
             getattr(self, name)[s] = value
         self.mismatch[s] = self.out_env[s] = self.prev_ok[s] = False

@@ -1,0 +1,60 @@
+"""A loop's identification state beyond the table's arrays: the events of its segment,
+its latest and its in-force models, why it is where it is (:mod:`service.engine.watch`
+keeps it; the runtime snapshot stores it)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from service.engine import identify
+from service.units import Scaling
+
+
+@dataclass(slots=True)
+class IdState:
+    """A loop's identification state beyond its arrays (Python objects; one per loop, so
+    slotted, and the lists empty tuples until used: ~80 bytes instead of ~260)."""
+
+    events: Sequence[identify.EventFit] = ()
+    model: identify.Model | None = None
+    why: str = "waiting for a setpoint move"
+    in_force: identify.Model | None = None
+    in_force_t: float | None = None
+    scaling: Scaling | None = None
+    """The scaling identification put in force (None: the config's hint, or none)."""
+    starts: Sequence[int] = ()
+    """Event starts (indices into the loop's recorder row; a list while recording)."""
+    skipped: int = 0
+    """Event closes since the last assessment (see :data:`service.engine.watch.CHECK_EVERY`)."""
+    tuned_seq: int = -1
+    """The seq of a first tuning from a model that holds the agent until it is verified
+    (:mod:`service.engine.first_tuning`; -1: none)."""
+    hint_model: identify.Model | None = None
+    """A hinted loop's latest confident model while none is in force
+    (:func:`service.engine.model_check.hint_checked`)."""
+
+    def dump(self) -> dict:
+        return {
+            "events": [ev.as_dict() for ev in self.events],
+            "model": None if self.model is None else self.model.as_dict(),
+            "why": self.why,
+            "in_force": None if self.in_force is None else self.in_force.as_dict(),
+            "in_force_t": self.in_force_t,
+            "scaling": None if self.scaling is None else self.scaling.model_dump(),
+            "tuned_seq": self.tuned_seq,
+            "hint_model": None if self.hint_model is None else self.hint_model.as_dict(),
+        }
+
+    @classmethod
+    def load(cls, d: dict) -> IdState:
+        return cls(
+            events=[identify.EventFit.from_dict(e) for e in d.get("events", [])],
+            model=identify.Model.load(d.get("model")),
+            why=d.get("why", ""),
+            in_force=identify.Model.load(d.get("in_force")),
+            in_force_t=d.get("in_force_t"),
+            scaling=None if d.get("scaling") is None else Scaling(**d["scaling"]),
+            tuned_seq=d.get("tuned_seq", -1),
+            hint_model=identify.Model.load(d.get("hint_model")),
+        )
