@@ -138,6 +138,8 @@ class Moves(NamedTuple):
     """Time of the last move (the caller's clock)."""
     gain: np.ndarray
     """Observation gain PAPER_MOVE / (size of the run of moves), within OBS_GAIN_RANGE."""
+    continued: np.ndarray
+    """The move continued a run (a ramp's or a staircase's step, not its first) (bool)."""
 
 
 def track_moves(sp, ref, anchor, last_move, gain, now, step, run, scale=1.0) -> Moves:
@@ -153,21 +155,14 @@ def track_moves(sp, ref, anchor, last_move, gain, now, step, run, scale=1.0) -> 
     (service.engine.rules), training per controller sample (service.learn.env)."""
     with np.errstate(invalid="ignore"):  # NaN references compare False
         moved = np.abs(sp - ref) >= step
-    run_on = continues(sp, ref, anchor, last_move, now, run)
+        # a run continues in the same direction; a reversal starts a new one from its turn
+        run_on = (now - last_move <= run) & (np.sign(sp - ref) == np.sign(ref - anchor))
     anchor = np.where(moved & ~run_on, ref, anchor)
     with np.errstate(divide="ignore"):
         size = np.abs(sp - anchor) * scale
         gain = np.where(moved, np.clip(PAPER_MOVE / size, *OBS_GAIN_RANGE), gain)
     ref = np.where(moved | np.isnan(ref), sp, ref)
-    return Moves(moved, ref, anchor, np.where(moved, now, last_move), gain)
-
-
-def continues(sp, ref, anchor, last_move, now, run):
-    """Whether a move of the setpoint to ``sp`` at ``now`` continues the run of moves
-    (arguments as :func:`track_moves`'): in the same direction, within ``run`` of the
-    last move. A reversal starts a new run from its turn."""
-    with np.errstate(invalid="ignore"):  # NaN references compare False
-        return (now - last_move <= run) & (np.sign(sp - ref) == np.sign(ref - anchor))
+    return Moves(moved, ref, anchor, np.where(moved, now, last_move), gain, moved & run_on)
 
 
 Factor = Annotated[float, Field(strict=True, ge=1e-9, le=1e9, allow_inf_nan=False)]

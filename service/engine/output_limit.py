@@ -66,12 +66,18 @@ F64 = ("oh_op", "oh_n", "oh_law", "oh_lo", "oh_hi")
 the lowest and highest output seen."""
 BOOL = ("oh_held",)
 """Per loop: the output is held (the loop counts as saturated)."""
+CLEAR = {
+    "oh_op": math.nan, "oh_n": 0.0, "oh_law": 0.0, "oh_lo": math.nan, "oh_hi": math.nan,
+    "oh_held": False,
+}  # fmt: skip
+"""Each array's value with no run and no output seen (a new loop; a snapshot from before
+the rule)."""
 
 
 def clear(tb: LoopTable, s) -> None:
-    """No run, no output seen (a new loop, a reset)."""
-    tb.oh_lo[s] = tb.oh_hi[s] = math.nan
-    end_runs(tb, s)
+    """No run, no output seen (a new loop)."""
+    for name, value in CLEAR.items():
+        getattr(tb, name)[s] = value
 
 
 def end_runs(tb: LoopTable, s) -> None:
@@ -106,8 +112,8 @@ def observe(
     was = tb.oh_held[slots]
     tb.oh_lo[slots] = np.where(usable, np.fmin(tb.oh_lo[slots], op), tb.oh_lo[slots])
     tb.oh_hi[slots] = np.where(usable, np.fmax(tb.oh_hi[slots], op), tb.oh_hi[slots])
-    ref = tb.oh_op[slots]
-    same = usable & ~gap & (np.abs(op - ref) <= OP_RTOL * scale(tb, slots))  # NaN ref: False
+    ref, size = tb.oh_op[slots], scale(tb, slots)  # a run's scale: its output's and range's
+    same = usable & ~gap & (np.abs(op - ref) <= OP_RTOL * size)  # NaN ref: False
     kp = np.where(np.isnan(cols["kp"]), tb.kp[slots], cols["kp"])
     ki = np.where(np.isnan(cols["ki"]), tb.ki[slots], cols["ki"])
     last_e = tb.last_e[slots]
@@ -117,11 +123,7 @@ def observe(
     tb.oh_n[slots] = np.where(same, tb.oh_n[slots] + 1.0, 0.0)
     tb.oh_op[slots] = np.where(same, ref, np.where(usable, op, math.nan))
     held = same & (
-        was
-        | (
-            (tb.oh_n[slots] >= HELD_SAMPLES)
-            & (np.abs(tb.oh_law[slots]) >= HELD_SHARE * scale(tb, slots))
-        )
+        was | ((tb.oh_n[slots] >= HELD_SAMPLES) & (np.abs(tb.oh_law[slots]) >= HELD_SHARE * size))
     )
     tb.oh_held[slots] = held
     for i in np.flatnonzero(held & ~was).tolist():

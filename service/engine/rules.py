@@ -52,7 +52,7 @@ from service.engine import first_tuning, monitor, oscillation, output_limit, ver
 from service.engine.audit import audit_row
 from service.engine.modes import _MODES, AUTO, FROZEN
 from service.engine.table import LoopTable
-from service.units import continues, error_window, track_moves, window_error
+from service.units import error_window, track_moves, window_error
 from service.wire.decode import Columns
 from service.wire.protocol import RejectReason
 
@@ -199,15 +199,18 @@ def _excite(tb: LoopTable, slots: np.ndarray, cols: dict[str, np.ndarray], last_
     # a loop sending only e: a setpoint change shows as a jump of e (and makes no runs)
     last_e = np.where(np.isnan(last_t), np.nan, tb.last_e[slots])
     sigma = EXCITATION_NOISE_SIGMAS * oscillation.noise_sigma(tb, slots, cold=~has_sp)
-    value, ref = np.where(has_sp, sp, e), np.where(has_sp, tb.sp_ref[slots], last_e)
-    run = np.where(has_sp, tb.period[slots], -np.inf)
     m = track_moves(
-        value, ref, tb.sp_anchor[slots], tb.move_t[slots], tb.obs_gain[slots], now=t,
+        np.where(has_sp, sp, e),
+        np.where(has_sp, tb.sp_ref[slots], last_e),
+        tb.sp_anchor[slots],
+        tb.move_t[slots],
+        tb.obs_gain[slots],
+        now=t,
         step=np.maximum(tb.exc_step[slots], np.where(has_sp, sigma, np.sqrt(2.0) * sigma)),
-        run=run, scale=tb.e_scale[slots],
-    )  # fmt: skip
-    ramp = m.moved & continues(value, ref, tb.sp_anchor[slots], tb.move_t[slots], t, run)
-    tb.ramp_t[slots[ramp]] = t[ramp]
+        run=np.where(has_sp, tb.period[slots], -np.inf),
+        scale=tb.e_scale[slots],
+    )
+    tb.ramp_t[slots[m.continued]] = t[m.continued]
     tb.sp_ref[slots] = np.where(has_sp, m.ref, tb.sp_ref[slots])
     tb.sp_anchor[slots], tb.move_t[slots], tb.obs_gain[slots] = m.anchor, m.last_move, m.gain
     tb.excited_until[slots[m.moved]] = t[m.moved] + tb.exc_window[slots[m.moved]]

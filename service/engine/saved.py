@@ -52,7 +52,7 @@ class Saved:
 _SCALARS = (
     "last_t", "last_e", "int_e", "next_due", "sp_ref", "excited_until", "obs_gain",
     "sp_anchor", "move_t", "manual", "saturated", "settle_n", "settle_kp", "settle_ki",
-    *output_limit.F64, *output_limit.BOOL,
+    *output_limit.CLEAR,
 )  # fmt: skip
 """The runtime snapshot's per-loop scalars (arrays of the table of the same names)."""
 
@@ -128,8 +128,7 @@ _RESTORED = (
     ("manual", False), ("saturated", False), ("sp_ref", math.nan),
     ("excited_until", -math.inf), ("obs_gain", math.nan), ("sp_anchor", math.nan),
     ("move_t", -math.inf), ("settle_n", 0.0), ("settle_kp", 0.0), ("settle_ki", 0.0),
-    ("oh_op", math.nan), ("oh_n", 0.0), ("oh_law", 0.0), ("oh_lo", math.nan), ("oh_hi", math.nan),
-    ("oh_held", False),
+    *output_limit.CLEAR.items(),
 )  # fmt: skip
 """The runtime snapshot's scalars restored, with the value of a null (the ones absent in
 older snapshots: sp_ref before the excitation gate, excited_until, sp_anchor and move_t

@@ -89,7 +89,7 @@ def track_moves_over(env, sp: np.ndarray) -> None:
             break
         j += int(cols[0])
         state = track_moves(sp[:, j], *state, now=env.k + j, step=MOVE_STEP,
-                            run=env.inner)[1:]  # fmt: skip
+                            run=env.inner)[1:5]  # fmt: skip
         j += 1
     for a, value in zip(names, state, strict=True):
         whole = getattr(env, a).copy()
