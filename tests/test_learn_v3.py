@@ -212,6 +212,34 @@ def test_the_excitation_gate_of_training_is_the_engines(tmp_path):
         Trainer(TrainConfig(excitation_gate=True), tmp_path)
 
 
+def test_trainings_gate_closes_on_a_ramp_as_the_engines():
+    """An RL period ending within one period of a ramp's continued step is not stepped, in
+    training as in the engine (``t - ramp_t < period``, service.engine.rules); a step of
+    the same size opens the gate for the excitation window at once."""
+    env = TuningEnv(EnvConfig(init_noise=0.0), np.random.default_rng(0))
+    cond = {"sp_random": np.array([True, True]), "sp_ramp": np.array([1.0, 0.0]),
+            "sp_hold": np.array([30.0, 30.0])}  # fmt: skip
+    env.reset(np.full(2, 0.5), np.full(2, 0.5), np.full(2, 0.1), horizon=40, conditions=cond)
+    opened, ramp_k = [], []
+    for _ in range(40):
+        opened.append(env.gate_open())
+        ramp_k.append(env.ramp_k.copy())
+        env.step(np.zeros((2, 2)))
+    opened, ramp_k = np.array(opened), np.array(ramp_k)
+    due = np.arange(40) * env.inner
+    assert np.isinf(ramp_k[:, 1]).all()  # a step never continues a run
+    first_move = 20  # both episodes' first move comes at the 20-period hold cap
+    assert opened[first_move + 1 : first_move + 5, 1].all() and not opened[first_move + 5, 1]
+    # the ramp: every period ending less than one period after a continued step is closed
+    ramped = np.isfinite(ramp_k[:, 0])
+    assert ramped.sum() >= 10
+    near = ramped & (due - ramp_k[:, 0] < env.inner)
+    assert near.any() and not opened[near, 0].any()
+    # and the first period one period after it, inside the excitation window, is open
+    after = np.flatnonzero(ramped & ~near)[0]
+    assert opened[after, 0] and due[after] - ramp_k[after, 0] >= env.inner
+
+
 def test_validate_robust_runs_through_the_agent_api():
     plants = (np.array([0.5]), np.array([0.5]), np.array([0.25]))
     out = validate_robust(load_agent(), plants, steps=30)

@@ -105,6 +105,8 @@ class EnvConfig:
     """Upper bound of the load-step level bound L and twice that of the walk's std."""
     sp_random_prob: float = 0.0
     """Share with random setpoint moves (+-A U[0.3, 1], random holds, ramps) not the toggle."""
+    sp_ramp_share: float = 0.2
+    """Share of those random moves that are ramps (over 0.5-3 RL periods), not steps."""
     sp_amp_prob: float = 0.0
     """Share of toggle episodes whose amplitude is log-uniform in sp_amp_range (not 1)."""
     sp_amp_range: tuple[float, float] = (0.1, 3.0)
@@ -171,7 +173,7 @@ def sample_conditions(n: int, rng: np.random.Generator, cfg: EnvConfig, core: np
         "sp_random": sp_random,
         "sp_amp": np.where(sp_random | pick(cfg.sp_amp_prob), np.exp(U(lo, hi)), 1.0),
         "sp_hold": U(1.0, 8.0),
-        "sp_ramp": np.where(sp_random, 0.2, 0.0),
+        "sp_ramp": np.where(sp_random, cfg.sp_ramp_share, 0.0),
         "sp_period": np.where(pick(cfg.sp_long_prob), U(11.0, 55.0), cfg.sp_period),
         "quiet": np.where(pick(cfg.quiet_prob), U(5.0, 100.0) * cfg.rl_period, 0.0),
     }
@@ -290,6 +292,7 @@ class TuningEnv:
         # the engine's setpoint-move scaling of the observation (service.units.track_moves)
         self.sp_ref, self.sp_anchor = self.sp.copy(), self.sp.copy()
         self.move_k, self.obs_gain = np.full(n, -np.inf), np.ones(n)
+        self.ramp_k = np.full(n, -np.inf)  # the last move that continued a run (a ramp's)
         self._plan_drift()
         return self.observe()
 
@@ -341,9 +344,11 @@ class TuningEnv:
         """(B,) bool: where the tuning engine's excitation gate would step the agent now,
         i.e. the last setpoint move (of at least MOVE_STEP) lies within ``periods`` RL
         periods (the engine's ``excitation_periods``, service.engine.rules); an episode's
-        start counts as a move unless it starts quiet (see :meth:`reset`)."""
+        start counts as a move unless it starts quiet (see :meth:`reset`). As in the
+        engine, an RL period ending within one period of a move that continued a run (a
+        ramp's step, :attr:`service.units.Moves.continued`) is not stepped."""
         last = np.maximum(self.move_k, self.start_move_k)
-        return self.k - last <= periods * self.inner
+        return (self.k - last <= periods * self.inner) & (self.k - self.ramp_k >= self.inner)
 
     def observe(self) -> np.ndarray:
         """[kp, ki, e, int_e] (B, 4), e and int_e scaled as the engine scales them."""

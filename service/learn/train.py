@@ -80,8 +80,8 @@ class Trainer:
         self.opt_pi = torch.optim.Adam(self.actor.parameters(), lr=cfg.pi_lr)
         self.opt_v = torch.optim.Adam(self.critic.parameters(), lr=cfg.v_lr)
         v3 = ("core_share", "noise_prob", "load_prob", "load_walk_prob", "sp_random_prob",
-              "sp_amp_prob", "sp_long_prob", "quiet_prob", "wide_prob", "ratio_prob",
-              "lag2_prob")  # fmt: skip
+              "sp_ramp_share", "sp_amp_prob", "sp_long_prob", "quiet_prob", "wide_prob",
+              "ratio_prob", "lag2_prob")  # fmt: skip
         self.env_cfg = EnvConfig(
             drift_prob=cfg.drift_prob, sp_jitter=cfg.sp_jitter, **{k: getattr(cfg, k) for k in v3}
         )

@@ -83,6 +83,8 @@ class TrainConfig:
     """Share of the other episodes with a slow load random walk (EnvConfig.load_walk_prob)."""
     sp_random_prob: float = 0.0
     """Share of the other episodes with random setpoint moves (EnvConfig.sp_random_prob)."""
+    sp_ramp_share: float = 0.2
+    """Share of those random moves that are ramps (EnvConfig.sp_ramp_share)."""
     sp_amp_prob: float = 0.0
     """Share of the other toggle episodes with a random amplitude (EnvConfig.sp_amp_prob)."""
     sp_long_prob: float = 0.0
