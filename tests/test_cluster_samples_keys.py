@@ -13,10 +13,12 @@ import pytest
 from service.daemon.tuner import Tuner
 from service.engine.config import LoopConfig
 from service.wire.protocol import Mode, RejectReason
-from tests.tuner_support import loop_body, open_peer, tuner_settings, wait_until
+from tests.tuner_support import loop_body, open_peer, subscribers, tuner_settings, wait_until
 
 pytestmark = pytest.mark.timeout(90)
 LEASE_S = 3.0
+RECEIVED = "pitune_samples_received_total"
+"""Counted after the samples' own counters (engine.received is counted before them)."""
 
 
 def _batch(ids: list[str], t: float) -> bytes:
@@ -40,7 +42,9 @@ def test_a_single_tuner_takes_a_gateway_s_batches_and_rejects_other_loops(tmp_pa
         try:
             pub = _publisher(session, settings.keys.gateway_samples("gwA"))
             pub.put(_batch(["A1", "B1"], 10.0))
-            wait_until(lambda: tuner.engine.received == 2, what="both samples handled")
+            wait_until(
+                lambda: tuner.metrics.value(RECEIVED) == 2, timeout=30.0, what="both samples"
+            )
             assert tuner.engine.rejected == {RejectReason.wrong_gateway: 1}
             assert tuner.table.n_samples[tuner.table.slot_of["A1"]] == 1
             pub.undeclare()
@@ -65,28 +69,42 @@ def test_only_the_owner_of_a_gateway_hears_its_samples_and_the_key_follows_the_s
     try:
         a.register_many(configs)
         b = member("b", zenoh_connect=a.settings.zenoh_listen)
-        session = open_peer([*a.settings.zenoh_listen, *b.settings.zenoh_listen])
+        session = open_peer([*a.settings.zenoh_listen, *b.settings.zenoh_listen], admin=True)
+        zids = {t: str(t.bus.session.info.zid()) for t in (a, b)}
 
         def settled() -> bool:  # b took its share; a member follows what it owns, only
             fa, fb = a.bus.followed, b.bus.followed
             owned = [{i.split("-")[0] for i in t.loop_ids()} for t in (a, b)]
             return fa and fb and fa | fb == set(gws) and owned == [fa, fb]
 
+        def routed(owner) -> bool:  # the peer puts each gateway's samples to its owner only
+            return all(
+                subscribers(session, a.settings.keys.gateway_samples(g)) == {zids[owner(g)]}
+                for g in gws
+            )
+
+        def received(*members: Tuner) -> float:
+            return sum(t.metrics.value(RECEIVED) for t in members)
+
         wait_until(settled, timeout=2 * LEASE_S, what="the gateways shared out")
         pubs = {g: _publisher(session, a.settings.keys.gateway_samples(g)) for g in gws}
+        owner = {g: a if g in a.bus.followed else b for g in gws}
+        wait_until(lambda: routed(owner.get), timeout=10.0, what="the peer routing to owners")
         for g, pub in pubs.items():
             pub.put(_batch([f"{g}-L{i}" for i in range(3)], 10.0))
-        wait_until(lambda: a.engine.received + b.engine.received == 24, what="24 samples")
+        wait_until(lambda: received(a, b) == 24, timeout=30.0, what="24 samples")
         assert a.engine.received == 3 * len(a.bus.followed)  # each batch heard once
         assert a.foreign_samples == b.foreign_samples == 0
         assert not a.engine.rejected and not b.engine.rejected
         b.stop()
         # b left: its gateways' keys are a's now, and their samples reach it
         wait_until(lambda: a.bus.followed == set(gws), timeout=LEASE_S, what="a follows all")
-        before = a.engine.received
+        wait_until(lambda: routed(lambda g: a), timeout=10.0, what="the peer routing to a")
+        before = received(a)
         for g, pub in pubs.items():
             pub.put(_batch([f"{g}-L{i}" for i in range(3)], 20.0))
-        wait_until(lambda: a.engine.received - before == 24, what="all batches at a")
+        wait_until(lambda: received(a) - before == 24, timeout=30.0, what="all batches at a")
+        assert a.foreign_samples == 0
         assert not a.engine.rejected
         for pub in pubs.values():
             pub.undeclare()

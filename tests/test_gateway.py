@@ -27,7 +27,7 @@ from service.wire.protocol import (
     SampleColumns,
     encode,
 )
-from tests.tuner_support import loop_body, open_peer, tuner_settings, wait_until
+from tests.tuner_support import loop_body, open_peer, subscribers, tuner_settings, wait_until
 
 pytestmark = pytest.mark.timeout(90)
 EXAMPLE = ROOT / "deploy" / "examples" / "dcs_gateway.py"
@@ -43,7 +43,7 @@ class Plant:
     """A gateway peer of the tuner with its own session; collects its updates."""
 
     def __init__(self, tuner: Tuner, loop_ids, gateway_id: str | None = None) -> None:
-        self.session = open_peer(tuner.settings.zenoh_listen)
+        self.session = open_peer(tuner.settings.zenoh_listen, admin=True)
         self.gateway = Gateway(self.session, loop_ids, KEYS, gateway_id=gateway_id)
         self.updates: list[Update] = []
 
@@ -60,6 +60,10 @@ class Plant:
         self.session.close()
 
 
+def _zid(session: zenoh.Session) -> str:
+    return str(session.info.zid())
+
+
 @pytest.fixture
 def tuner(tmp_path):
     tuner = Tuner(tuner_settings(tmp_path)).start()
@@ -72,7 +76,7 @@ def tuner(tmp_path):
 @pytest.fixture
 def other(tuner):
     """A second peer of the tuner: injects messages as a tuner would, watches samples."""
-    session = open_peer(tuner.settings.zenoh_listen)
+    session = open_peer(tuner.settings.zenoh_listen, admin=True)
     try:
         yield session
     finally:
@@ -85,7 +89,28 @@ def test_samples_go_out_with_block_and_gains_are_taken_once_in_seq_order(tuner, 
     sub = other.declare_subscriber(KEYS.all_samples, lambda s: seen.put(s.congestion_control))
     plant = Plant(tuner, ["LIC-101"])
     try:
-        plant.until(lambda _: plant.gateway.tuner_up, "the tuner's liveliness token")
+        # the state query the token triggers answered (seq 0) before any sample: else the
+        # tuner, which queues queries and samples from separate Zenoh threads, could answer
+        # it after the step, and the step's gains come as a state reply
+        plant.until(
+            lambda _: plant.gateway.tuner_up and "LIC-101" in plant.gateway.inbox.supervision,
+            "the tuner's liveliness token and its state reply",
+        )
+        # the other peer hears the plant's samples, the plant the other peer's gains: each
+        # knows the other's subscriber (their direct link comes by gossip, after the tuner's)
+        wait_until(
+            lambda: (
+                subscribers(plant.session, KEYS.sample("LIC-101"))
+                >= {_zid(tuner.bus.session), _zid(other)}
+            ),
+            timeout=10.0,
+            what="the subscribers of the plant's samples",
+        )
+        wait_until(
+            lambda: _zid(plant.session) in subscribers(other, KEYS.gains("LIC-101")),
+            timeout=10.0,
+            what="the plant's subscriber of gains",
+        )
         for i in range(170):  # one RL step (165 samples), through the gateway's publisher
             plant.gateway.publish("LIC-101", Sample(t=float(i), e=1.0))
         (step,) = plant.until(lambda u: u, "the agent's gains")

@@ -3,6 +3,7 @@ versions were recorded upgrades in place), and the PostgreSQL store keeping the 
 store's guarantees, against a real PostgreSQL server."""
 
 import io
+import socket
 import sqlite3
 
 import orjson
@@ -15,7 +16,6 @@ from service.daemon.store import Store
 from service.daemon.store_pg import Fenced, PgStore
 from service.engine.audit import audit_row
 from service.engine.config import LoopConfig
-from service.wire.session import free_port
 from tests.tuner_support import loop_body
 
 pytestmark = pytest.mark.timeout(60)
@@ -163,12 +163,16 @@ def test_a_lost_postgres_connection_is_reopened(pg_url):
         store.close()
 
 
+@pytest.mark.timeout(240)  # two tuners' start-ups (torch imported first), each up to 90 s
 def test_an_unreachable_postgres_store_is_one_line_without_the_password(tmp_path, pg_server):
     from service.daemon import main as daemon
     from tests.test_operability_startup import one_line, start
 
-    dead = f"postgresql://pitune:s3cret@127.0.0.1:{free_port()}/pitune"
-    line = one_line(start(tmp_path, "--db", dead), daemon.EXIT_CANT_CREATE, "cannot open the store")
+    with socket.socket() as held:  # bound, never listening: refused, and no one else's
+        held.bind(("127.0.0.1", 0))
+        dead = f"postgresql://pitune:s3cret@127.0.0.1:{held.getsockname()[1]}/pitune"
+        line = one_line(start(tmp_path, "--db", dead), daemon.EXIT_CANT_CREATE,
+                        "cannot open the store")  # fmt: skip
     assert "s3cret" not in line and "***" in line
     newer = pg_server.create_database()
     PgStore(newer).close()

@@ -58,9 +58,26 @@ def loop_body(loop_id: str = "LIC-101", **overrides: object) -> dict:
     }
 
 
-def open_peer(connect: list[str]) -> zenoh.Session:
-    """A loopback peer connected to ``connect``, multicast scouting off."""
-    return zenoh.open(session_config(mode="peer", connect=connect))
+def open_peer(connect: list[str], *, admin: bool = False) -> zenoh.Session:
+    """A loopback peer connected to ``connect``, multicast scouting off; ``admin``: with
+    its own admin space, where :func:`subscribers` reads its view of the bus."""
+    config = session_config(mode="peer", connect=connect)
+    if admin:
+        config.insert_json5("adminspace/enabled", "true")
+    return zenoh.open(config)
+
+
+def subscribers(session: zenoh.Session, key: str) -> set[str]:
+    """Zenoh ids of the remote subscribers a put on ``key`` from ``session`` (opened with
+    ``admin``) goes to, as that session knows them now: a declaration or undeclaration
+    reaches it over each peer's own link, in no order with the other peers' ones."""
+    zid = session.info.zid()
+    ids: set[str] = set()
+    for reply in session.get(f"@/{zid}/*/subscriber/{key}", timeout=5.0):
+        if reply.ok is not None:
+            for sources in json.loads(reply.ok.payload.to_bytes()).values():
+                ids.update(sources)
+    return ids
 
 
 def wait_until(predicate: Callable[[], object], timeout: float = 5.0, what: str = "") -> object:
