@@ -125,6 +125,54 @@ def window_error(total, count, e, due, period, last_move):
         return np.where((count > 0) & ~mixed, total / count, e)
 
 
+RAMP_GAP = 4
+"""Samples between two changes of one setpoint ramp at most: a change in the direction of
+the last, within this many samples of it, continues a ramp (a DCS ramp or a setpoint rate
+limit changes the setpoint every scan; a gateway may poll a few times a scan). An
+operator's steps seconds or minutes apart are steps, each with its own response."""
+
+
+class Ramp(NamedTuple):
+    """The setpoint-ramp rule's verdicts over a block of samples and its carried state."""
+
+    continues: np.ndarray
+    """(n, m) bool: the sample's setpoint change continued a ramp (not its first change)."""
+    last: np.ndarray
+    """(n,) the last setpoint seen (NaN: none yet)."""
+    way: np.ndarray
+    """(n,) the sign of the last change (NaN: none)."""
+    since: np.ndarray
+    """(n,) samples since the last change."""
+
+
+def ramp_rule(sp, last, way, since) -> Ramp:
+    """The setpoint-ramp rule over the next ``m`` samples of ``n`` loops, vectorised:
+    ``sp`` (n, m) the setpoints (NaN: a sample without one, which changes nothing),
+    ``last``, ``way``, ``since`` (n,) as returned for the previous block. A change of the
+    setpoint continues a ramp when it goes the way of the previous change and comes at
+    most :data:`RAMP_GAP` samples after it. A ramp is not a series of steps: the agent is
+    not stepped while one runs (service.engine.rules) and identification takes it as one
+    event (service.engine.watch). The engine calls it per sample (m = 1), training per
+    RL period (service.learn.env), so both compute the same."""
+    n, m = sp.shape
+    full = np.concatenate([np.asarray(last, np.float64)[:, None], sp], axis=1)
+    cols = np.arange(m + 1)
+    seen = np.maximum.accumulate(np.where(np.isnan(full), 0, cols), axis=1)
+    full = np.take_along_axis(full, seen, axis=1)  # a sample without one keeps the last
+    with np.errstate(invalid="ignore"):
+        d = np.diff(full, axis=1)
+        changed = np.abs(d) > 0.0  # False for NaN: the first setpoint is no change
+    j = cols[:m].astype(np.float64)
+    # each sample's previous change (the carried one at -1 - since) and its direction
+    at = np.concatenate([(-1.0 - since)[:, None], np.where(changed, j, -np.inf)], axis=1)
+    at = np.maximum.accumulate(at, axis=1)
+    ways = np.concatenate([np.asarray(way, np.float64)[:, None], np.sign(d)], axis=1)
+    pick = np.maximum.accumulate(np.where(np.c_[np.ones(n, bool), changed], cols, 0), axis=1)
+    ways = np.take_along_axis(ways, pick, axis=1)
+    continues = changed & (np.sign(d) == ways[:, :-1]) & (j - at[:, :-1] - 1.0 < RAMP_GAP)
+    return Ramp(continues, full[:, -1], ways[:, -1], m - 1.0 - at[:, -1])
+
+
 class Moves(NamedTuple):
     """Per-loop state of the setpoint-move rule after one sample, arrays of shape (n,)."""
 
@@ -138,8 +186,6 @@ class Moves(NamedTuple):
     """Time of the last move (the caller's clock)."""
     gain: np.ndarray
     """Observation gain PAPER_MOVE / (size of the run of moves), within OBS_GAIN_RANGE."""
-    continued: np.ndarray
-    """The move continued a run (a ramp's or a staircase's step, not its first) (bool)."""
 
 
 def track_moves(sp, ref, anchor, last_move, gain, now, step, run, scale=1.0) -> Moves:
@@ -162,7 +208,7 @@ def track_moves(sp, ref, anchor, last_move, gain, now, step, run, scale=1.0) -> 
         size = np.abs(sp - anchor) * scale
         gain = np.where(moved, np.clip(PAPER_MOVE / size, *OBS_GAIN_RANGE), gain)
     ref = np.where(moved | np.isnan(ref), sp, ref)
-    return Moves(moved, ref, anchor, np.where(moved, now, last_move), gain, moved & run_on)
+    return Moves(moved, ref, anchor, np.where(moved, now, last_move), gain)
 
 
 Factor = Annotated[float, Field(strict=True, ge=1e-9, le=1e9, allow_inf_nan=False)]

@@ -17,7 +17,7 @@ from service.engine.modes import AUTO, FROZEN
 from service.engine.rules import GAIN_RTOL, MAX_AGENT_ERROR
 from service.engine.table import LoopTable
 from service.engine.updates import MODE_VALUES
-from service.units import OBS_GAIN_RANGE, OBS_WINDOW, PAPER_MOVE
+from service.units import OBS_GAIN_RANGE, OBS_WINDOW, PAPER_MOVE, RAMP_GAP
 from service.wire.decode import decode_objects
 from service.wire.protocol import RejectReason, Sample
 
@@ -77,6 +77,20 @@ def _ingest(tb: LoopTable, s: int, sample: Sample, wall: float) -> bool:
     warm = tb.o_k[s] >= oscillation.NOISE_WARM or sample.sp is None  # e only: from the start
     sigma = math.sqrt(max(float(tb.o_var[s]), 0.0)) if warm else 0.0
     noise = rules.EXCITATION_NOISE_SIGMAS * sigma
+    # the ramp rule: a change the way of the last, within RAMP_GAP samples of it, continues
+    # a ramp (its RL periods are not stepped; identification takes it as one event)
+    ramping = False
+    last = tb.sp_last[s]
+    if sample.sp is not None and not math.isnan(last) and sample.sp != last:
+        way = 1.0 if sample.sp > last else -1.0
+        ramping = way == tb.sp_way[s] and tb.sp_since[s] < RAMP_GAP
+        tb.sp_way[s], tb.sp_since[s] = way, 0.0
+    else:
+        tb.sp_since[s] += 1.0
+    if sample.sp is not None:
+        tb.sp_last[s] = sample.sp
+    if ramping:
+        tb.ramp_t[s] = t
     if sample.sp is None:  # only the error: a setpoint change shows as a jump of it
         size = abs(e - tb.last_e[s])
         step = max(tb.exc_step[s], math.sqrt(2.0) * noise)
@@ -93,8 +107,6 @@ def _ingest(tb: LoopTable, s: int, sample: Sample, wall: float) -> bool:
             run_on = t - tb.move_t[s] <= tb.period[s] and (sample.sp > ref) == (ref > anchor)
             if not run_on or ref == anchor:
                 tb.sp_anchor[s] = ref
-            else:  # a ramp (or a staircase): its RL periods are not stepped
-                tb.ramp_t[s] = t
             size = abs(sample.sp - tb.sp_anchor[s])
         if moved or math.isnan(ref):
             tb.sp_ref[s] = sample.sp
@@ -115,7 +127,8 @@ def _ingest(tb: LoopTable, s: int, sample: Sample, wall: float) -> bool:
     tb.last_t[s] = t
     fresh = gap or resumed
     if tb.watch[s] and sample.sp is not None:
-        _record(tb, s, sample.model_copy(update={"saturated": saturated}), e, last_t, fresh, wall)
+        sample = sample.model_copy(update={"saturated": saturated})
+        _record(tb, s, sample, e, last_t, fresh, wall, ramping)
     # performance monitoring is no sample rule: its one implementation, with one sample
     one = np.array([s])
     judged = monitor.observe(
@@ -186,7 +199,7 @@ def _held(tb: LoopTable, s: int, sample: Sample, e: float, last_t, gap: bool, wa
     return bool(tb.oh_held[s])
 
 
-def _record(tb: LoopTable, s: int, sample: Sample, e: float, last_t, fresh, wall) -> None:
+def _record(tb: LoopTable, s: int, sample: Sample, e: float, last_t, fresh, wall, ramping) -> None:
     """Identification's sample rule (service.engine.watch.record), one sample."""
     t, sp = sample.t, sample.sp
     pv = sp - e
@@ -199,24 +212,11 @@ def _record(tb: LoopTable, s: int, sample: Sample, e: float, last_t, fresh, wall
         integral = tb.op_int[s] - (kp - tb.op_kp[s]) * tb.last_e[s] + ki * e * (t - last_t)
     tb.op_int[s], tb.op_kp[s] = integral, kp
     op = kp * e + integral if sample.op is None else sample.op
-    moved = not math.isnan(tb.id_sp[s]) and sp != tb.id_sp[s]
-    ramp = False
-    if moved:  # a ramp: the third change in one direction, each within RAMP_GAP samples
-        way = 1.0 if sp > tb.id_sp[s] else -1.0
-        on = way == tb.id_dir[s] and tb.id_gap[s] < watch.RAMP_GAP
-        tb.id_run[s] = tb.id_run[s] + 1.0 if on else 1.0
-        tb.id_dir[s], tb.id_gap[s] = way, 0.0
-        ramp = tb.id_run[s] >= watch.RAMP_MOVES
-    else:
-        tb.id_gap[s] += 1.0
+    # a ramp's later changes are samples of the event its first change opened
+    moved = not math.isnan(tb.id_sp[s]) and sp != tb.id_sp[s] and not ramping
     tb.id_sp[s] = sp
-    broken = fresh or not sample.auto or sample.saturated or ramp
-    if not sample.auto:
-        why = "manual"
-    elif sample.saturated:
-        why = "output saturated"
-    else:
-        why = "setpoint ramp (tau and dead time not separable)" if ramp else "data gap"
+    broken = fresh or not sample.auto or sample.saturated
+    why = "manual" if not sample.auto else "output saturated" if sample.saturated else "data gap"
     row = (t, sp, pv, op)
     if tb.rec[s] >= 0 and broken:
         watch._close(tb, s, t, wall, final=True, why=f"segment ended: {why}")

@@ -42,8 +42,7 @@ def add_one(tb: LoopTable, config: LoopConfig, *, kp, ki, seq, saved: Saved | No
     tb.mismatch[s] = tb.out_env[s] = tb.prev_ok[s] = False
     tb.op_int[s] = tb.op_kp[s] = 0.0
     tb.prev_t[s] = tb.prev_sp[s] = tb.prev_pv[s] = tb.prev_op[s] = math.nan
-    tb.id_sp[s] = tb.id_dir[s] = math.nan
-    tb.id_run[s] = tb.id_gap[s] = 0.0
+    tb.id_sp[s] = math.nan
     monitor.clear(tb, s)
     verify.init(tb, s)
     _configure(tb, s, config)

@@ -176,11 +176,13 @@ def test_a_ramp_is_one_move_of_its_whole_size_not_many_small_ones():
     assert send(200, 14.4) == pytest.approx(1.0)  # a later move on its own: 4 PV units
 
 
-@pytest.mark.parametrize("shape", ["step", "ramp"])
+@pytest.mark.parametrize("shape", ["step", "staircase", "ramp"])
 def test_the_agent_is_not_stepped_while_the_setpoint_ramps(shape):
-    """RL periods within one RL period of a ramp's step (a move continuing a run) are
-    quiet: the agent learned from step responses, and a ramp's lag, an error that grows
-    as 1/ki, took it to gains far too high (docs/tuner.md, Setpoint ramps)."""
+    """RL periods within one RL period of a ramp's change (one continuing a ramp:
+    service.units.ramp_rule) are quiet: the agent learned from step responses, and a
+    ramp's lag, an error that grows as 1/ki, took it to gains far too high (docs/tuner.md,
+    Setpoint ramps). An operator's second step in the same direction 29 s later is a step
+    (session 26 gated it as a ramp, and tuned the bar's loops of issue 13 less)."""
     eng = TuningEngine(StillAgent())
     scaling = {"k_hat": 1.0, "tau_hat": 10.0, "pv_scale": 2.0}  # RL period 55 s, step 0.4
     guard = {"identify": False}
@@ -189,14 +191,18 @@ def test_the_agent_is_not_stepped_while_the_setpoint_ramps(shape):
     tb, s = eng.table, eng.table.slot("L")
     # 10 -> 14 PV units (2 agent units): at once, or a ramp over 200 s (a move about every
     # 20 s, each continuing the run)
-    sp = (lambda t: 14.0) if shape == "step" else (lambda t: 10.0 + 0.02 * min(t, 200))
+    sp = {
+        "step": lambda t: 14.0,
+        "staircase": lambda t: 12.0 if t < 30 else 14.0,
+        "ramp": lambda t: 10.0 + 0.02 * min(t, 200),
+    }[shape]
     eng.ingest([{"loop_id": "L", "t": 0.0, "sp": 10.0, "pv": 10.0}], wall=0.0)
     stepped = []
     for t in range(1, 420):
         eng.ingest([{"loop_id": "L", "t": float(t), "sp": sp(t), "pv": 10.0}], wall=float(t))
         if tb.n_steps[s] > len(stepped):
             stepped.append(t)
-    if shape == "step":  # every RL period of the gate's window (4 periods after the move)
+    if shape != "ramp":  # every RL period of the gate's window (4 periods after the move)
         assert stepped == [55, 110, 165, 220] and tb.n_quiet[s] == 3
         assert tb.ramp_t[s] == -np.inf
         return

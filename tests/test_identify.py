@@ -191,7 +191,7 @@ def test_hint_free_loop_takes_no_step_and_publishes_nothing_while_identifying():
         ({"saturated": True}, "saturated"),
         ({"frozen_pv": True}, "frozen"),
         ({"size": 0.3}, "too small for the noise"),
-        ({"ramp": 1.0}, "setpoint ramp"),
+        ({"ramp": 3.0}, "setpoint ramp slower than the loop"),
     ],
 )
 def test_bad_data_yields_no_identification_and_says_why(case, why):
@@ -204,6 +204,27 @@ def test_bad_data_yields_no_identification_and_says_why(case, why):
     assert why in view.identification.why, view.identification.why
     model = view.identification.model
     assert model is None or not model.confident
+
+
+@pytest.mark.parametrize("ramp", [0.3, 1.0])
+def test_a_ramp_faster_than_the_loop_identifies_as_a_step_does(ramp):
+    """A setpoint ramping one change a sample over ``ramp`` time constants (a DCS's
+    setpoint rate limit) is one event from its first change, its move the whole ramp;
+    faster than tau + theta it tells tau from the dead time (over 3 tau it does not: the
+    bad-data case above)."""
+    engine = TuningEngine(untrained_agent(0))
+    engine.register(hint_free(), wall=0.0)
+    drive(engine, moves=6, ramp=ramp)
+    view = engine.view("L", wall=float(10**4))
+    ident = view.identification
+    assert view.counters.identified == 1 and ident.model.confident
+    assert ident.model.k == pytest.approx(K, rel=0.05)
+    assert ident.model.tau == pytest.approx(TAU, rel=0.1)
+    assert ident.model.theta == pytest.approx(THETA, abs=0.3 * THETA)
+    ramped = [ev for ev in ident.events if ev.move]
+    # the first move from the start's 50 to 70, each later one between 30 and 70
+    assert ramped and all(abs(ev.move) == pytest.approx(40.0) for ev in ramped[1:])
+    assert all(0.5 * ramp * TAU <= ev.ramp_s <= ramp * TAU + H for ev in ramped)
 
 
 # -- hints checked -----------------------------------------------------------------------

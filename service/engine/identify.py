@@ -37,6 +37,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from service.engine.foptd_fit import MIN_R2, fit_windows, predict, recorded
+from service.units import RAMP_GAP
 
 MIN_SAMPLES = 12
 """Fewest samples in an event worth fitting."""
@@ -62,6 +63,13 @@ later than with a prediction held to 0.2% of the 10 cm move. Under the bar's 1% 
 (moves of 5-25) the floor is below the noise and changes nothing."""
 MIN_EVENTS = 2
 """Excited events needed for a confident model."""
+RAMP_SHOWN = 1.0
+"""An event whose setpoint kept moving for longer than this many times the model's
+tau + theta (a ramp slower than the loop) excites nothing: a FOPTD follows a slow ramp
+by tau + theta, which the data tell, but not tau from theta (fits of ramps over 3-11 tau
+were confident and wrong, tau + theta taken as tau: docs/identification.md). A faster
+ramp shows both, as a step does (ramps over 0.3-1 tau: K, tau within 3 %)."""
+
 IMPRECISE = "K or tau not pinned down"
 """The verdict of a model that passes every check but precision."""
 DISAGREE = "events disagree"
@@ -76,7 +84,11 @@ class EventFit:
     t1: float
     n: int
     move: float
-    """The setpoint move that opened the event (engineering units, signed)."""
+    """The setpoint move of the event (engineering units, signed): from the setpoint before
+    it to the event's last (a ramp's whole run)."""
+    ramp_s: float = 0.0
+    """Seconds the setpoint kept moving after the event's first change (0: a step; inf:
+    still moving at the event's end)."""
     snr: float = math.nan
     """Peak-to-peak response the model shows in the event, in multiples of the noise."""
     excited: bool = False
@@ -196,7 +208,7 @@ def assess(
     events = [
         EventFit(
             t0=float(t[a]), t1=float(t[b - 1]), n=b - a,
-            move=float(sp[a] - sp[a - 1]) if a > 0 else 0.0,
+            move=float(sp[b - 1] - sp[a - 1]) if a > 0 else 0.0, ramp_s=_ramp(t, sp, a, b),
         )
         for a, b in zip(bounds[:-1], bounds[1:], strict=True)
     ]  # fmt: skip
@@ -213,11 +225,13 @@ def assess(
     whole = recorded(t, pv, op, last)
     joint = fit_windows([whole], start)
     pred = joint.model[0]
-    excited = 0
+    excited = slow = 0
     for ev, a, b in zip(events, bounds[:-1], bounds[1:], strict=True):
         ev.snr = float(np.ptp(pred[a:b])) / max(joint.noise, 1e-300) if b > a else 0.0
-        ev.excited = bool(ev.snr >= MIN_SNR)
+        shows = ev.ramp_s <= RAMP_SHOWN * (joint.tau + joint.theta)
+        ev.excited = bool(ev.snr >= MIN_SNR and shows)
         excited += ev.excited
+        slow += not shows
     out.model = Model(
         k=joint.k, tau=joint.tau, theta=joint.theta, noise=joint.noise,
         move=float(np.median([abs(ev.move) for ev in events if ev.excited] or [0.0])),
@@ -242,7 +256,7 @@ def assess(
         rms = float(np.sqrt(np.mean(miss**2)))
         floor = PREDICTION_FLOOR * out.model.move
         out.model.prediction = rms / max(joint.noise, floor, 1e-300)
-    out.why = _verdict(out.model, excited, len(events))
+    out.why = _verdict(out.model, excited, len(events), slow)
     m = out.model
     worst = max(m.k_rse / MAX_REL_SE, m.tau_rse / MAX_TAU_SE)
     precision = min(1.0, max(0.0, 1.5 - 0.5 * worst))
@@ -267,7 +281,16 @@ def precise(m: Model) -> bool:
     return m.k_rse <= MAX_REL_SE and m.tau_rse <= MAX_TAU_SE
 
 
-def _verdict(m: Model, excited: int, n_events: int) -> str:
+def _ramp(t: np.ndarray, sp: np.ndarray, a: int, b: int) -> float:
+    """:attr:`EventFit.ramp_s` of the event in rows ``a:b``."""
+    changed = np.flatnonzero(sp[a + 1 : b] != sp[a : b - 1])
+    if not changed.size:
+        return 0.0
+    last = a + 1 + int(changed[-1])
+    return math.inf if b - 1 - last < RAMP_GAP else float(t[last] - t[a])  # still ramping
+
+
+def _verdict(m: Model, excited: int, n_events: int, slow: int = 0) -> str:
     if m.integrating:
         return "integrating: K/s e^(-theta s) fits better than an FOPTD model"
     if not m.k > 0.0:
@@ -275,6 +298,11 @@ def _verdict(m: Model, excited: int, n_events: int) -> str:
             f"process gain {m.k:.3g} has the wrong sign for the registered controller "
             "action (the DCS block's action is probably the other one: register the loop "
             "again with the other 'action')"
+        )
+    if excited < MIN_EVENTS and slow:
+        return (
+            f"setpoint ramp slower than the loop ({slow} of {n_events} events ramp longer "
+            f"than tau + theta, {m.tau + m.theta:.3g} s: tau and dead time not separable)"
         )
     if excited < MIN_EVENTS:
         return (

@@ -52,7 +52,7 @@ from service.engine import first_tuning, monitor, oscillation, output_limit, ver
 from service.engine.audit import audit_row
 from service.engine.modes import _MODES, AUTO, FROZEN
 from service.engine.table import LoopTable
-from service.units import error_window, track_moves, window_error
+from service.units import error_window, ramp_rule, track_moves, window_error
 from service.wire.decode import Columns
 from service.wire.protocol import RejectReason
 
@@ -193,7 +193,9 @@ def ingest(
 
 def _excite(tb: LoopTable, slots: np.ndarray, cols: dict[str, np.ndarray], last_t) -> np.ndarray:
     """The excitation gate's part of :meth:`ingest` (before ``last_e`` moves on); returns
-    where the setpoint moved (the monitor's responses start there too)."""
+    where the setpoint moved (the monitor's responses start there too). Also the ramp
+    rule (:func:`service.units.ramp_rule`): ``cols["ramping"]``, where the sample's
+    setpoint change continued a ramp (identification's too, service.engine.watch)."""
     sp, e, t = cols["sp"], cols["e"], cols["t"]
     has_sp = ~np.isnan(sp)
     # a loop sending only e: a setpoint change shows as a jump of e (and makes no runs)
@@ -210,7 +212,11 @@ def _excite(tb: LoopTable, slots: np.ndarray, cols: dict[str, np.ndarray], last_
         run=np.where(has_sp, tb.period[slots], -np.inf),
         scale=tb.e_scale[slots],
     )
-    tb.ramp_t[slots[m.continued]] = t[m.continued]
+    r = ramp_rule(sp[:, None], tb.sp_last[slots], tb.sp_way[slots], tb.sp_since[slots])
+    tb.sp_last[slots], tb.sp_way[slots], tb.sp_since[slots] = r.last, r.way, r.since
+    ramping = r.continues[:, 0]
+    tb.ramp_t[slots[ramping]] = t[ramping]
+    cols["ramping"] = ramping
     tb.sp_ref[slots] = np.where(has_sp, m.ref, tb.sp_ref[slots])
     tb.sp_anchor[slots], tb.move_t[slots], tb.obs_gain[slots] = m.anchor, m.last_move, m.gain
     tb.excited_until[slots[m.moved]] = t[m.moved] + tb.exc_window[slots[m.moved]]

@@ -74,7 +74,10 @@ _F64 = (
     # observation gain: the paper's setpoint move (2 agent units) over the last move's
     # size, measured from the setpoint before a run of moves (service.units.track_moves)
     # and the time of the last move
-    "obs_gain", "sp_anchor", "move_t", "ramp_t",
+    "obs_gain", "sp_anchor", "move_t",
+    # the setpoint-ramp rule (service.units.ramp_rule): the last setpoint, the sign of its
+    # last change and the samples since; the time of the last change that continued a ramp
+    "sp_last", "sp_way", "sp_since", "ramp_t",
     # run of out-of-order samples that may be a new clock: length and last t
     "back_n", "back_t",
     # identification (service.engine.watch): the reconstructed PI's integral term and the
@@ -172,7 +175,7 @@ class LoopTable:
             (_F64, np.float64), (_I64, np.int64), (_REC, np.int64), (["snap_moves"], np.int64),
             (_BOOL, bool),
             (verify.F64, np.float64), (verify.F32, np.float32),
-            (output_limit.F64, np.float64), (output_limit.BOOL, bool), (watch.RAMP, np.float64),
+            (output_limit.F64, np.float64), (output_limit.BOOL, bool),
         ):  # fmt: skip
             for name in names:
                 arr = np.zeros(capacity, dtype)
@@ -286,8 +289,7 @@ class LoopTable:
         self.mismatch[s] = self.out_env[s] = self.prev_ok[s] = False
         self.op_int[s] = self.op_kp[s] = 0.0
         self.prev_t[s] = self.prev_sp[s] = self.prev_pv[s] = self.prev_op[s] = math.nan
-        self.id_sp[s] = self.id_dir[s] = math.nan
-        self.id_run[s] = self.id_gap[s] = 0.0
+        self.id_sp[s] = math.nan
         monitor.clear(self, s)
         output_limit.clear(self, s)
         verify.init(self, s)
@@ -317,6 +319,8 @@ class LoopTable:
         self.int_e[s] = self.last_e[s] = self.obs_e[s] = 0.0
         self.last_t[s] = self.next_due[s] = self.sp_ref[s] = self.win_due[s] = math.nan
         self.excited_until[s] = self.move_t[s] = self.ramp_t[s] = -math.inf
+        self.sp_last[s] = self.sp_way[s] = math.nan
+        self.sp_since[s] = 0.0
         self.obs_gain[s] = 1.0
         self.sp_anchor[s] = math.nan
         self.back_n[s] = 0.0

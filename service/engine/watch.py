@@ -16,8 +16,11 @@ accepted sample; stated one sample at a time in ``tests/engine_reference.py``):
   a full buffer merges pairs of rows (never a move's first rows) and doubles the
   stride, so the response to each move keeps its shape however long the segment runs.
   A later move closes the running event and opens the next, unless the running event
-  holds fewer than :data:`MIN_EVENT_SAMPLES`. A ramping setpoint (:data:`RAMP_MOVES`)
-  breaks the segment too.
+  holds fewer than :data:`MIN_EVENT_SAMPLES`. The later changes of a ramping setpoint
+  (:func:`service.units.ramp_rule`) are samples of the event its first change opened
+  (a ramp of one change a sample made an event of every eight samples, none starting at
+  rest, and fits confident and wrong); :func:`~service.engine.identify.assess` judges
+  whether the ramp was fast enough to tell tau from the dead time.
 * At each close the segment is assessed (:func:`~service.engine.identify.assess`).
   A confident model without a scaling in force becomes the loop's scaling (audit
   'identified'); with one in force it is compared: a disagreement beyond
@@ -63,18 +66,6 @@ HEAD_ROWS = 32
 all its rows recorded a fast loop's responses in rows of 16-32 samples, and the fits
 traded tau for dead time, confident and wrong (tau 6.7 s for 15 s); rows widening with
 the time since the move cost dead-time dominant loops (docs/identification.md)."""
-RAMP_MOVES = 3
-"""Setpoint changes in one direction, each within :data:`RAMP_GAP` samples of the last,
-that make a ramp: its response does not tell the time constant from the dead time (a
-FOPTD follows a ramp by their sum), and fits of it were confident and wrong (tau + theta
-taken as tau, paused as out of envelope: docs/identification.md). A ramp ends the
-segment, as manual does; the next step opens one."""
-RAMP_GAP = 4
-"""Samples between two changes of a ramp at most (a gateway polling a few times per
-execution of the DCS's ramp); an operator's clicks seconds apart are steps."""
-RAMP = ("id_dir", "id_run", "id_gap")
-"""Per loop: the direction of the last setpoint change, the changes in that direction
-so far, the samples since the last change."""
 CHECK_FIRST = 16
 """Samples after a move at which a loop without a confident model is first assessed
 within the event (then at 24, 32, 48, 64, 96...: :func:`check_due`)."""
@@ -94,10 +85,8 @@ def record(tb, slots: np.ndarray, cols: dict, last_t: np.ndarray, fresh: np.ndar
     op = np.full(idx.size, np.nan) if op is None else op[idx]
     pv = sp - e
     auto, saturated = cols["auto"][idx], cols["saturated"][idx]
-    with np.errstate(invalid="ignore"):
-        moved = (sp != tb.id_sp[s]) & ~np.isnan(tb.id_sp[s])
-        way = np.sign(sp - tb.id_sp[s])
-    ramp = _ramp(tb, s, moved, way)
+    # a ramp's later changes are samples of the event its first change opened
+    moved = (sp != tb.id_sp[s]) & ~np.isnan(tb.id_sp[s]) & ~cols["ramping"][idx]
     tb.id_sp[s] = sp
     # the controller output, reconstructed where the sample has none, with the gains the
     # sample reports in force (the DCS's; the tuner's may not have reached it yet)
@@ -108,20 +97,20 @@ def record(tb, slots: np.ndarray, cols: dict, last_t: np.ndarray, fresh: np.ndar
     integral = np.where(fresh, 0.0, tb.op_int[s] - (kp - tb.op_kp[s]) * e_prev) + ki * e * dt
     tb.op_int[s], tb.op_kp[s] = integral, kp
     op = np.where(np.isnan(op), kp * e + integral, op)
-    broken = fresh | ~auto | saturated | ramp
+    broken = fresh | ~auto | saturated
     recording = tb.rec[s] >= 0
     # rare paths, loop by loop: breaks, moves (open or close an event)
     special = np.flatnonzero((recording & broken) | (moved & ~broken))
     done = np.zeros(idx.size, bool)
     for i in np.flatnonzero(moved & broken & ~recording).tolist():  # say why nothing opens
-        why = broken_why(auto[i], saturated[i], ramp[i])
+        why = broken_why(auto[i], saturated[i])
         tb.ident[int(s[i])].why = f"setpoint move not usable: {why}"
     for i in special.tolist():
         done[i] = True
         si = int(s[i])
         row = (float(t[i]), float(sp[i]), float(pv[i]), float(op[i]))
         if recording[i] and broken[i]:
-            why = broken_why(auto[i], saturated[i], ramp[i])
+            why = broken_why(auto[i], saturated[i])
             _close(tb, si, float(t[i]), wall, final=True, why=f"segment ended: {why}")
         elif recording[i]:
             st: IdState = tb.ident[si]
@@ -165,22 +154,11 @@ def record(tb, slots: np.ndarray, cols: dict, last_t: np.ndarray, fresh: np.ndar
     tb.prev_ok[s] = ~broken
 
 
-def _ramp(tb, s: np.ndarray, moved: np.ndarray, way: np.ndarray) -> np.ndarray:
-    """Where the setpoint ramps (:data:`RAMP_MOVES`), after this sample's change."""
-    on = moved & (way == tb.id_dir[s]) & (tb.id_gap[s] < RAMP_GAP)
-    tb.id_run[s] = np.where(moved, np.where(on, tb.id_run[s] + 1.0, 1.0), tb.id_run[s])
-    tb.id_dir[s] = np.where(moved, way, tb.id_dir[s])
-    tb.id_gap[s] = np.where(moved, 0.0, tb.id_gap[s] + 1.0)
-    return moved & (tb.id_run[s] >= RAMP_MOVES)
-
-
-def broken_why(auto: bool, saturated: bool, ramp: bool) -> str:
+def broken_why(auto: bool, saturated: bool) -> str:
     """Why a sample breaks a segment (or makes a move unusable)."""
     if not auto:
         return "manual"
-    if saturated:
-        return "output saturated"
-    return "setpoint ramp (tau and dead time not separable)" if ramp else "data gap"
+    return "output saturated" if saturated else "data gap"
 
 
 def check_due(k):

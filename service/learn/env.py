@@ -52,6 +52,7 @@ from service.units import (
     EXCITATION_PERIODS,
     RL_STEP_AGENT_UNITS,
     error_window,
+    ramp_rule,
     window_error,
 )
 
@@ -292,7 +293,10 @@ class TuningEnv:
         # the engine's setpoint-move scaling of the observation (service.units.track_moves)
         self.sp_ref, self.sp_anchor = self.sp.copy(), self.sp.copy()
         self.move_k, self.obs_gain = np.full(n, -np.inf), np.ones(n)
-        self.ramp_k = np.full(n, -np.inf)  # the last move that continued a run (a ramp's)
+        # the setpoint-ramp rule's state (service.units.ramp_rule) and the sample of the
+        # last change that continued a ramp
+        self.sp_last, self.sp_way, self.sp_since = self.sp.copy(), np.full(n, np.nan), np.zeros(n)
+        self.ramp_k = np.full(n, -np.inf)
         self._plan_drift()
         return self.observe()
 
@@ -345,8 +349,8 @@ class TuningEnv:
         i.e. the last setpoint move (of at least MOVE_STEP) lies within ``periods`` RL
         periods (the engine's ``excitation_periods``, service.engine.rules); an episode's
         start counts as a move unless it starts quiet (see :meth:`reset`). As in the
-        engine, an RL period ending within one period of a move that continued a run (a
-        ramp's step, :attr:`service.units.Moves.continued`) is not stepped."""
+        engine, an RL period ending within one period of a setpoint change that continued
+        a ramp (:func:`service.units.ramp_rule`) is not stepped."""
         last = np.maximum(self.move_k, self.start_move_k)
         return (self.k - last <= periods * self.inner) & (self.k - self.ramp_k >= self.inner)
 
@@ -431,6 +435,10 @@ class TuningEnv:
         sq = np.zeros(self.n)
         sp = self._setpoint_window()
         sample_loop.track_moves_over(self, sp)
+        r = ramp_rule(sp, self.sp_last, self.sp_way, self.sp_since)
+        self.sp_last, self.sp_way, self.sp_since = r.last, r.way, r.since
+        last = self.inner - 1 - np.argmax(r.continues[:, ::-1], axis=1)
+        self.ramp_k = np.where(r.continues.any(axis=1), self.k + last, self.ramp_k)
         loads = bool(np.any(c["load_step"] > 0) or np.any(c["load_walk"] > 0))
         load = self._load_window() if loads else None
         noisy = bool(np.any(c["noise"] > 0))

@@ -82,17 +82,16 @@ def track_moves_over(env, sp: np.ndarray) -> None:
     if rows.size == 0:
         return
     sp, state, j = sp[rows], [getattr(env, a)[rows] for a in names], 0
-    ramp_k = env.ramp_k[rows]
     while j < env.inner:
         far = ~(np.abs(sp[:, j:] - state[0][:, None]) < MOVE_STEP)
         cols = np.flatnonzero(far.any(axis=0))
         if cols.size == 0:
             break
         j += int(cols[0])
-        m = track_moves(sp[:, j], *state, now=env.k + j, step=MOVE_STEP, run=env.inner)
-        state, ramp_k = list(m[1:5]), np.where(m.continued, env.k + j, ramp_k)
+        state = track_moves(sp[:, j], *state, now=env.k + j, step=MOVE_STEP,
+                            run=env.inner)[1:5]  # fmt: skip
         j += 1
-    for a, value in zip((*names, "ramp_k"), (*state, ramp_k), strict=True):
+    for a, value in zip(names, state, strict=True):
         whole = getattr(env, a).copy()
         whole[rows] = value
         setattr(env, a, whole)
