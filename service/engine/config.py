@@ -416,9 +416,7 @@ class IdentificationEvent(BaseModel):
     t1: float
     n: int = Field(description="Samples recorded.")
     move: float = Field(description="The setpoint move, PV units.")
-    ramp_s: float | None = Field(
-        0.0, description="Seconds the setpoint ramped (null: still ramping)."
-    )
+    ramp_s: float | None = Field(0.0, description="Seconds it ramped (null: still ramping).")
     snr: float | None = Field(description="Modelled response over the noise (peak to peak).")
     excited: bool
 

@@ -52,10 +52,9 @@ _F64 = (
     # the rest of the scaling in force (NaN: none; e_scale is above): three floats
     # instead of a Scaling object per loop (~0.5 KB of Python objects each)
     "u_scale", "time_unit",
-    # controller action: +1 reverse, -1 direct (rules.ingest negates e and sp by it)
-    "sign",
+    # controller action: +1 reverse, -1 direct (rules.ingest negates e and sp by it);
     # episode state
-    "last_t", "last_e", "int_e", "next_due", "last_wall",
+    "sign", "last_t", "last_e", "int_e", "next_due", "last_wall",
     # the agent's error observation (service.units.error_window): the window's running
     # sum and count, the end of the RL period they belong to, the mean at its end
     "win_sum", "win_n", "win_due", "obs_e",
@@ -71,13 +70,11 @@ _F64 = (
     # excitation gate: smallest setpoint step (engineering units), window after one (s;
     # inf: gate off), setpoint at the last step, end of the current window
     "exc_step", "exc_window", "sp_ref", "excited_until",
-    # observation gain: the paper's setpoint move (2 agent units) over the last move's
-    # size, measured from the setpoint before a run of moves (service.units.track_moves)
-    # and the time of the last move
-    "obs_gain", "sp_anchor", "move_t",
-    # the setpoint-ramp rule (service.units.ramp_rule): the last setpoint, the sign of its
-    # last change and the samples since; the time of the last change that continued a ramp
-    "sp_last", "sp_way", "sp_since", "ramp_t",
+    # observation gain: the paper's move (2 agent units) over the last move's size, from
+    # the setpoint before a run of moves (units.track_moves), the time of the last move;
+    # the ramp rule's (units.ramp_rule) last setpoint, way of and samples since its last
+    # change, and the time of the last change that continued a ramp
+    "obs_gain", "sp_anchor", "move_t", "sp_last", "sp_way", "sp_since", "ramp_t",
     # run of out-of-order samples that may be a new clock: length and last t
     "back_n", "back_t",
     # identification (service.engine.watch): the reconstructed PI's integral term and the
@@ -319,8 +316,7 @@ class LoopTable:
         self.int_e[s] = self.last_e[s] = self.obs_e[s] = 0.0
         self.last_t[s] = self.next_due[s] = self.sp_ref[s] = self.win_due[s] = math.nan
         self.excited_until[s] = self.move_t[s] = self.ramp_t[s] = -math.inf
-        self.sp_last[s] = self.sp_way[s] = math.nan
-        self.sp_since[s] = 0.0
+        self.sp_last[s], self.sp_way[s], self.sp_since[s] = math.nan, math.nan, 0.0
         self.obs_gain[s] = 1.0
         self.sp_anchor[s] = math.nan
         self.back_n[s] = 0.0
