@@ -17,7 +17,7 @@ from service.engine.modes import AUTO, FROZEN
 from service.engine.rules import GAIN_RTOL, MAX_AGENT_ERROR
 from service.engine.table import LoopTable
 from service.engine.updates import MODE_VALUES
-from service.units import OBS_GAIN_RANGE, OBS_WINDOW, PAPER_MOVE, RAMP_GAP
+from service.units import OBS_GAIN_RANGE, OBS_WINDOW, PAPER_MOVE, RAMP_GAP, RAMP_LONG
 from service.wire.decode import decode_objects
 from service.wire.protocol import RejectReason, Sample
 
@@ -85,12 +85,14 @@ def _ingest(tb: LoopTable, s: int, sample: Sample, wall: float) -> bool:
         way = 1.0 if sample.sp > last else -1.0
         ramping = way == tb.sp_way[s] and tb.sp_since[s] < RAMP_GAP
         tb.sp_way[s], tb.sp_since[s] = way, 0.0
+        if ramping:
+            tb.ramp_t[s] = t
+        else:  # a first change: a ramp may start here
+            tb.ramp_from[s] = t
     else:
         tb.sp_since[s] += 1.0
     if sample.sp is not None:
         tb.sp_last[s] = sample.sp
-    if ramping:
-        tb.ramp_t[s] = t
     if sample.sp is None:  # only the error: a setpoint change shows as a jump of it
         size = abs(e - tb.last_e[s])
         step = max(tb.exc_step[s], math.sqrt(2.0) * noise)
@@ -158,7 +160,11 @@ def _ingest(tb: LoopTable, s: int, sample: Sample, wall: float) -> bool:
     tb.next_due[s] += period * (math.floor((t - tb.next_due[s]) / period) + 1.0)
     if tb.mode[s] == FROZEN or not sample.auto or saturated or tb.out_env[s]:
         return False
-    if tb.gate_closed(s, t) or t - tb.ramp_t[s] < tb.period[s]:
+    # a ramp running, or a long one ended within the period (RAMP_LONG RL periods)
+    running = tb.sp_since[s] < RAMP_GAP and tb.ramp_t[s] >= tb.ramp_from[s]
+    ran = tb.ramp_t[s] - tb.ramp_from[s] if tb.ramp_from[s] > -math.inf else -math.inf
+    long = ran >= RAMP_LONG * tb.period[s]
+    if tb.gate_closed(s, t) or (t - tb.ramp_t[s] < tb.period[s] and (running or long)):
         tb.n_quiet[s] += 1
         return False
     return t >= tb.cool_until[s]  # held after a rollback (service.engine.verify)

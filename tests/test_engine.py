@@ -176,13 +176,14 @@ def test_a_ramp_is_one_move_of_its_whole_size_not_many_small_ones():
     assert send(200, 14.4) == pytest.approx(1.0)  # a later move on its own: 4 PV units
 
 
-@pytest.mark.parametrize("shape", ["step", "staircase", "ramp"])
+@pytest.mark.parametrize("shape", ["step", "staircase", "short ramp", "ramp"])
 def test_the_agent_is_not_stepped_while_the_setpoint_ramps(shape):
     """RL periods within one RL period of a ramp's change (one continuing a ramp:
     service.units.ramp_rule) are quiet: the agent learned from step responses, and a
     ramp's lag, an error that grows as 1/ki, took it to gains far too high (docs/tuner.md,
     Setpoint ramps). An operator's second step in the same direction 29 s later is a step
-    (session 26 gated it as a ramp, and tuned the bar's loops of issue 13 less)."""
+    (session 26 gated it as a ramp, and tuned the bar's loops of issue 13 less), and so is
+    a ramp shorter than an RL period once it has ended (units.RAMP_LONG)."""
     eng = TuningEngine(StillAgent())
     scaling = {"k_hat": 1.0, "tau_hat": 10.0, "pv_scale": 2.0}  # RL period 55 s, step 0.4
     guard = {"identify": False}
@@ -194,6 +195,7 @@ def test_the_agent_is_not_stepped_while_the_setpoint_ramps(shape):
     sp = {
         "step": lambda t: 14.0,
         "staircase": lambda t: 12.0 if t < 30 else 14.0,
+        "short ramp": lambda t: 10.0 + 0.2 * min(t, 20),
         "ramp": lambda t: 10.0 + 0.02 * min(t, 200),
     }[shape]
     eng.ingest([{"loop_id": "L", "t": 0.0, "sp": 10.0, "pv": 10.0}], wall=0.0)
@@ -204,7 +206,7 @@ def test_the_agent_is_not_stepped_while_the_setpoint_ramps(shape):
             stepped.append(t)
     if shape != "ramp":  # every RL period of the gate's window (4 periods after the move)
         assert stepped == [55, 110, 165, 220] and tb.n_quiet[s] == 3
-        assert tb.ramp_t[s] == -np.inf
+        assert tb.ramp_t[s] == (20.0 if shape == "short ramp" else -np.inf)
         return
     # none while it ramps nor an RL period after its last step; then the gate's window
     assert 180.0 <= tb.ramp_t[s] <= 200.0

@@ -213,9 +213,9 @@ def test_the_excitation_gate_of_training_is_the_engines(tmp_path):
 
 
 def test_trainings_gate_closes_on_a_ramp_as_the_engines():
-    """An RL period ending within one period of a ramp's continued step is not stepped, in
-    training as in the engine (``t - ramp_t < period``, service.engine.rules); a step of
-    the same size opens the gate for the excitation window at once."""
+    """An RL period ending within one period of a long ramp's last change is not stepped,
+    in training as in the engine (service.units.ramp_gated); a step of the same size
+    opens the gate for the excitation window at once."""
     env = TuningEnv(EnvConfig(init_noise=0.0), np.random.default_rng(0))
     cond = {"sp_random": np.array([True, True]), "sp_ramp": np.array([1.0, 0.0]),
             "sp_hold": np.array([30.0, 30.0])}  # fmt: skip

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.units import RAMP_GAP, ramp_rule
+from service.units import RAMP_GAP, RAMP_LONG, ramp_gated, ramp_rule
 
 
 def _per_sample(sp: np.ndarray) -> list[bool]:
@@ -53,3 +53,16 @@ def test_blocks_of_any_length_give_what_samples_one_at_a_time_give():
             blocks.append(r.continues)
         got = np.concatenate(blocks, axis=1)
         assert [list(row) for row in got] == [_per_sample(row) for row in sp]
+
+
+def test_an_rl_period_is_skipped_while_a_ramp_runs_and_after_a_long_one_only():
+    period, since = 100.0, np.array([0.0, 10.0, 10.0, 10.0, 0.0])
+    # running (changed a sample ago), long and ended, short and ended, long and ended a
+    # period ago, and a step (a first change) after a ramp
+    ramp_t = np.array([990.0, 950.0, 950.0, 890.0, 950.0])
+    ramp_from = np.array([980.0, 950.0 - RAMP_LONG * period, 900.0, 700.0, 999.0])
+    assert list(ramp_gated(1000.0, period, ramp_t, ramp_from, since)) == [
+        True, True, False, False, False,
+    ]  # fmt: skip
+    # no ramp yet
+    assert not ramp_gated(1000.0, period, -np.inf, -np.inf, 0.0)

@@ -52,7 +52,7 @@ from service.engine import first_tuning, monitor, oscillation, output_limit, ver
 from service.engine.audit import audit_row
 from service.engine.modes import _MODES, AUTO, FROZEN
 from service.engine.table import LoopTable
-from service.units import error_window, ramp_rule, track_moves, window_error
+from service.units import error_window, ramp_gated, ramp_rule, track_moves, window_error
 from service.wire.decode import Columns
 from service.wire.protocol import RejectReason
 
@@ -182,7 +182,8 @@ def ingest(
     tb.next_due[slots] = next_due
     due_ok = reached & (tb.mode[slots] != FROZEN) & auto & ~saturated & ~tb.out_env[slots]
     due_ok &= ~verify.paused(tb, slots, t)  # the loop oscillates: neither stepped nor quiet
-    gated = due_ok & (tb.gate_closed(slots, t) | (t - tb.ramp_t[slots] < period))
+    ramp = ramp_gated(t, period, tb.ramp_t[slots], tb.ramp_from[slots], tb.sp_since[slots])
+    gated = due_ok & (tb.gate_closed(slots, t) | ramp)
     tb.n_quiet[slots[gated]] += 1
     # held after a rollback or a rejected proposal (verify.py): neither stepped nor quiet
     due_ok &= ~gated & (t >= tb.cool_until[slots])
@@ -214,8 +215,8 @@ def _excite(tb: LoopTable, slots: np.ndarray, cols: dict[str, np.ndarray], last_
     )
     r = ramp_rule(sp[:, None], tb.sp_last[slots], tb.sp_way[slots], tb.sp_since[slots])
     tb.sp_last[slots], tb.sp_way[slots], tb.sp_since[slots] = r.last, r.way, r.since
-    ramping = r.continues[:, 0]
-    tb.ramp_t[slots[ramping]] = t[ramping]
+    ramping, starts = r.continues[:, 0], r.changed[:, 0] & ~r.continues[:, 0]
+    tb.ramp_t[slots[ramping]], tb.ramp_from[slots[starts]] = t[ramping], t[starts]
     cols["ramping"] = ramping
     tb.sp_ref[slots] = np.where(has_sp, m.ref, tb.sp_ref[slots])
     tb.sp_anchor[slots], tb.move_t[slots], tb.obs_gain[slots] = m.anchor, m.last_move, m.gain

@@ -73,8 +73,8 @@ _F64 = (
     # observation gain: the paper's move (2 agent units) over the last move's size, from
     # the setpoint before a run of moves (units.track_moves), the time of the last move;
     # the ramp rule's (units.ramp_rule) last setpoint, way of and samples since its last
-    # change, and the time of the last change that continued a ramp
-    "obs_gain", "sp_anchor", "move_t", "sp_last", "sp_way", "sp_since", "ramp_t",
+    # change, the times of the last change that continued a ramp and of a ramp's first
+    "obs_gain", "sp_anchor", "move_t", "sp_last", "sp_way", "sp_since", "ramp_t", "ramp_from",
     # run of out-of-order samples that may be a new clock: length and last t
     "back_n", "back_t",
     # identification (service.engine.watch): the reconstructed PI's integral term and the
@@ -315,7 +315,7 @@ class LoopTable:
         self.hidden[s] = 0.0
         self.int_e[s] = self.last_e[s] = self.obs_e[s] = 0.0
         self.last_t[s] = self.next_due[s] = self.sp_ref[s] = self.win_due[s] = math.nan
-        self.excited_until[s] = self.move_t[s] = self.ramp_t[s] = -math.inf
+        self.excited_until[s] = self.move_t[s] = self.ramp_t[s] = self.ramp_from[s] = -math.inf
         self.sp_last[s], self.sp_way[s], self.sp_since[s] = math.nan, math.nan, 0.0
         self.obs_gain[s] = 1.0
         self.sp_anchor[s] = math.nan

@@ -52,6 +52,7 @@ from service.units import (
     EXCITATION_PERIODS,
     RL_STEP_AGENT_UNITS,
     error_window,
+    ramp_gated,
     ramp_rule,
     window_error,
 )
@@ -293,10 +294,10 @@ class TuningEnv:
         # the engine's setpoint-move scaling of the observation (service.units.track_moves)
         self.sp_ref, self.sp_anchor = self.sp.copy(), self.sp.copy()
         self.move_k, self.obs_gain = np.full(n, -np.inf), np.ones(n)
-        # the setpoint-ramp rule's state (service.units.ramp_rule) and the sample of the
-        # last change that continued a ramp
+        # the setpoint-ramp rule's state (service.units.ramp_rule), the samples of the last
+        # change that continued a ramp and of a ramp's first
         self.sp_last, self.sp_way, self.sp_since = self.sp.copy(), np.full(n, np.nan), np.zeros(n)
-        self.ramp_k = np.full(n, -np.inf)
+        self.ramp_k, self.ramp_from_k = np.full(n, -np.inf), np.full(n, -np.inf)
         self._plan_drift()
         return self.observe()
 
@@ -349,10 +350,11 @@ class TuningEnv:
         i.e. the last setpoint move (of at least MOVE_STEP) lies within ``periods`` RL
         periods (the engine's ``excitation_periods``, service.engine.rules); an episode's
         start counts as a move unless it starts quiet (see :meth:`reset`). As in the
-        engine, an RL period ending within one period of a setpoint change that continued
-        a ramp (:func:`service.units.ramp_rule`) is not stepped."""
+        engine, an RL period with a ramp running, or ending a long one, is not stepped
+        (:func:`service.units.ramp_gated`)."""
         last = np.maximum(self.move_k, self.start_move_k)
-        return (self.k - last <= periods * self.inner) & (self.k - self.ramp_k >= self.inner)
+        ramp = ramp_gated(self.k, self.inner, self.ramp_k, self.ramp_from_k, self.sp_since)
+        return (self.k - last <= periods * self.inner) & ~ramp
 
     def observe(self) -> np.ndarray:
         """[kp, ki, e, int_e] (B, 4), e and int_e scaled as the engine scales them."""
@@ -437,8 +439,9 @@ class TuningEnv:
         sample_loop.track_moves_over(self, sp)
         r = ramp_rule(sp, self.sp_last, self.sp_way, self.sp_since)
         self.sp_last, self.sp_way, self.sp_since = r.last, r.way, r.since
-        last = self.inner - 1 - np.argmax(r.continues[:, ::-1], axis=1)
-        self.ramp_k = np.where(r.continues.any(axis=1), self.k + last, self.ramp_k)
+        for name, hit in (("ramp_k", r.continues), ("ramp_from_k", r.changed & ~r.continues)):
+            last = self.k + self.inner - 1 - np.argmax(hit[:, ::-1], axis=1)
+            setattr(self, name, np.where(hit.any(axis=1), last, getattr(self, name)))
         loads = bool(np.any(c["load_step"] > 0) or np.any(c["load_walk"] > 0))
         load = self._load_window() if loads else None
         noisy = bool(np.any(c["noise"] > 0))
