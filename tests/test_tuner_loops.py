@@ -427,10 +427,14 @@ def test_excitation_gate_steps_only_after_a_setpoint_change():
 def test_excitation_gate_ignores_small_steps_but_adds_up_a_ramp():
     t, s = _gated()
     assert _due_at(t, s, [50.0, 51.0, 50.0, 51.5, 50.5]) == []  # wiggles under 2.0
-    # a ramp of 0.5 per period: an event each time it has moved 2.0 from the last one
+    # a ramp of 0.5 per period: a move each time it has moved 2.0 from the last one (52.0
+    # at index 3, 54.0 at index 7); the agent is not stepped while it ramps (a change
+    # every sample: units.ramp_gated), so those periods count as quiet
     ramp = 50.0 + 0.5 * np.arange(1, 9)
-    due = _due_at(t, s, ramp.tolist(), start=165.0 * 5)
-    assert due == [3, 4, 5, 6, 7]  # 52.0 at index 3 (>= 50.0 + 2.0), 54.0 at index 7
+    quiet = t.n_quiet[s]
+    assert _due_at(t, s, ramp.tolist(), start=165.0 * 5) == []
+    assert t.move_t[s] == 165.0 * (5 + 7) and t.sp_ref[s] == 54.0
+    assert t.excited_until[s] == 165.0 * (5 + 7 + 3) and t.n_quiet[s] == quiet + 8
     # a larger smallest step (agent units): the same ramp never counts
     t, s = _gated(excitation_min_step=0.5)
     assert _due_at(t, s, [50.0] + ramp[:5].tolist()) == [] and t.n_quiet[s] == 5
