@@ -184,3 +184,34 @@ def test_settling_steadies_a_noisy_loops_gains_and_follows_a_plant_that_moved():
                         schedule=lambda p: (2 * K, tau, r * tau) if p == 80 else None)  # fmt: skip
     kp = run.gains[:, :, 0]
     assert np.all(kp[120] < 0.9 * kp[79]), kp[[79, 120]]
+
+
+def test_a_hinted_loop_follows_a_slowing_plant_the_check_no_longer_describes():
+    """Through the engine (shipped agent, default guard: the hint checked, the model
+    check and verify-or-rollback on): the spread's tau ramp 0.25 -> 1 at K 0.46
+    (``pitune evaluate --robust``'s adaptation). While the plant drifts its models are
+    precise but their events disagree, so none is confident, and the check fell back on
+    the model of before, which predicts every step toward the slower plant's gains worse:
+    the gains stayed where they were from RL period 59 to 100 (model_check.stale sets
+    that fallback aside). Then verification judged each step down against the IAE of the
+    faster plant and rolled it back (verify.forget_figures drops those figures when the
+    data show the plant moved). Step-test MSE on the slowed plant at the end: 0.070 in
+    the 18-plant run before; on this run alone 0.022 without the figures dropped, 0.026
+    without the fallback set aside, 0.0023 with both."""
+    from service.agent.model import load_agent
+    from service.learn import robust_adaptation
+    from service.learn.robust import Condition, run_condition, score
+
+    K0, tau0, theta, K1, tau1 = (x[[12]] for x in robust_adaptation.plants())
+    assert (tau0[0], tau1[0]) == (0.25, 1.0)
+
+    def schedule(p):
+        return (K1 if p >= 60 else K0), tau0 + np.clip((p - 60) / 40, 0, 1) * (tau1 - tau0), theta
+
+    plants = (K0, tau0, theta / tau0)
+    run = run_condition(load_agent(), Condition("paper protocol"), periods=140, plants=plants,
+                        forgetting=0.99, schedule=schedule)  # fmt: skip
+    ki = run.gains[:, 0, 1]
+    assert ki[100] < 0.5 * ki[59] and ki[140] < 0.35 * ki[59], ki[[59, 100, 140]]
+    mse = score(K1, tau1, theta, 0 * K1, *run.gains[-1].T)[0][0]
+    assert mse < 0.005, mse

@@ -194,3 +194,55 @@ def test_a_hinted_loops_first_confident_model_puts_its_tuning_in_force_once():
     assert row[8] > 2.0 * kp and row[9] > 2.0 * ki  # raised to the model's tuning
     assert sum(r[5] == "model" for r in audit) == 1  # no other model decision
     assert IdState.load(st.dump()).hint_model == st.hint_model
+
+
+def test_a_drifting_plants_precise_model_makes_the_fallback_stale():
+    """model_check.stale: a latest model that is not confident (its events disagree, as a
+    drifting plant's do) but fits, is pinned down and moved from the model the check
+    falls back on shows that model is the plant of before: the check stands aside
+    (agent_model None) until a confident model comes. An imprecise one (tau's standard
+    error 0.25, as under load steps) or one that did not move keeps the check on."""
+    from service.engine.identify import Model
+
+    def model(tau, tau_rse=0.03, confident=False, events=4):
+        return Model(k=K, tau=tau, theta=THETA, noise=1.0, move=20.0, r2=0.99, k_rse=0.01,
+                     tau_rse=tau_rse, events=events, confident=confident)  # fmt: skip
+
+    known = model(TAU, confident=True)
+    assert model_check.stale(known, model(1.5 * TAU))
+    assert not model_check.stale(known, model(1.5 * TAU, tau_rse=0.25))  # not pinned down
+    assert not model_check.stale(known, model(1.05 * TAU))  # within 3 errors
+    assert not model_check.stale(known, model(1.5 * TAU, events=1))  # one event
+    engine = TuningEngine(untrained_agent(0))
+    engine.register(hinted(), wall=0.0)
+    tb, s = engine.table, engine.table.slot("L")
+    st = tb.ident[s]
+    st.hint_model, st.model = known, model(1.05 * TAU)
+    assert model_check.agent_model(tb, s) is not None  # the fallback
+    ref, _ = reference(engine)
+    step = (np.array([s]), np.array([ref]), np.array([ref * [1.0, 0.3]]))
+    assert model_check.held(tb, *step)[0].tolist() == [True]
+    st.model = model(1.5 * TAU)
+    assert model_check.agent_model(tb, s) is None  # stale: no check
+    assert model_check.held(tb, *step)[0].tolist() == [False]
+    st.model = known
+    tau_before = model_check.agent_model(tb, s)[1]
+    st.model = model(1.5 * TAU, confident=True)  # the new plant's confident model
+    assert model_check.agent_model(tb, s)[1] == pytest.approx(1.5 * tau_before)
+
+
+def test_the_plant_moved_by_a_confident_model_that_moved_or_one_that_makes_the_fallback_stale():
+    """model_check.plant_moved, on which verification drops its last-good figures: a
+    confident model judged by moved(), one that is not by stale(); no fallback, never."""
+    from service.engine.identify import Model
+
+    def model(tau, confident, tau_rse=0.03):
+        return Model(k=K, tau=tau, theta=THETA, noise=1.0, move=20.0, r2=0.99, k_rse=0.01,
+                     tau_rse=tau_rse, events=4, confident=confident)  # fmt: skip
+
+    known = model(TAU, True)
+    assert model_check.plant_moved(known, model(1.5 * TAU, True))
+    assert model_check.plant_moved(known, model(1.5 * TAU, False))
+    assert not model_check.plant_moved(known, model(1.5 * TAU, False, tau_rse=0.25))
+    assert not model_check.plant_moved(known, model(1.02 * TAU, True))
+    assert not model_check.plant_moved(None, model(1.5 * TAU, True))

@@ -46,7 +46,7 @@ import math
 import numpy as np
 
 from plant_sim.loop import step_test_mse_filtered
-from service.engine import box, first_tuning
+from service.engine import box, first_tuning, identify
 from service.engine.first_tuning import model_gains
 from service.engine.monitor import GAIN_RTOL
 
@@ -65,7 +65,9 @@ def agent_model(tb, s: int) -> tuple[float, float, float] | None:
     """The model slot ``s`` is checked on, (K, tau, theta) in agent units: its latest
     confident model, else the one in force (the robustness guard's choice: a plant on
     the move is followed), else a hinted loop's last (:func:`hint_checked`); None without
-    any, or with an integrating one. A hinted loop has no model in force (unless
+    any, with an integrating one, or when the latest assessment shows the plant has left
+    the fallback (:func:`stale`: the agent adapts unchecked until a confident model
+    comes). A hinted loop has no model in force (unless
     rescaled) but is checked too: unchecked, the agent took the grid's loops under load
     steps at the plant input to 0.5-2x the best integral gain (issue 12's load
     condition: worst 0.11, docs/tuner.md), and there the latest assessment is often not
@@ -73,11 +75,47 @@ def agent_model(tb, s: int) -> tuple[float, float, float] | None:
     st = tb.ident[s]
     if st is None:
         return None
-    m = st.model if st.model is not None and st.model.confident else st.in_force
-    m = st.hint_model if m is None else m
+    latest = st.model
+    if latest is not None and latest.confident:
+        m = latest
+    else:
+        m = st.in_force if st.in_force is not None else st.hint_model
+        if m is not None and latest is not None and stale(m, latest):
+            return None
     if m is None or m.integrating or not m.k > 0:
         return None
     return _agent_units(tb, s, m)
+
+
+def plant_moved(known, latest) -> bool:
+    """Whether the latest assessment's model ``latest`` shows the plant left ``known``
+    (the model in force, else a hinted loop's last confident one; None: False): a
+    confident model that :func:`moved`, or one that makes ``known`` :func:`stale`."""
+    if known is None or latest.integrating or not latest.k > 0:
+        return False
+    return moved(latest, known) if latest.confident else stale(known, latest)
+
+
+def stale(known, latest) -> bool:
+    """Whether the latest assessment's model ``latest``, not confident, shows that the
+    plant has left ``known`` (the model the check would fall back on): it fits (R^2,
+    events, a positive gain), K and tau are pinned down (:func:`identify.precise
+    <service.engine.identify.precise>`) and they moved from ``known`` (:func:`moved`).
+    A drifting plant's models are that: precise, but their events disagree (old and new
+    dynamics in one segment), so no confident model comes while it drifts, and a check
+    on the model of before held the agent's steps that followed it: through the engine,
+    after the evaluation's tau ramps (2-4x, 40 RL periods) the final gains' step-test
+    MSE was 3.6x (geometric mean of 8) and up to 18x that with the check off (the
+    docs/identification.md table, Session 28). Models under load steps at the plant input
+    are not precise (tau's standard error 0.2-0.3), so the check there stays on."""
+    return (
+        latest.r2 >= identify.MIN_R2
+        and latest.events >= identify.MIN_EVENTS
+        and latest.k > 0
+        and not latest.integrating
+        and identify.precise(latest)
+        and moved(latest, known)
+    )
 
 
 def _agent_units(tb, s: int, m) -> tuple[float, float, float]:

@@ -305,6 +305,19 @@ def _set_reference(tb: LoopTable, s: int, value: float) -> None:
         tb.g_iae[s] = value
 
 
+def forget_figures(tb: LoopTable, s: int) -> None:
+    """Drop slot ``s``'s last-good figures when identification shows the plant moved
+    (:func:`service.engine.model_check.plant_moved`): the next response of either
+    direction is a baseline again, as after registration. Judged against the figure of
+    the plant of before, every step that followed a plant slowing down failed on IAE
+    (the slower plant's responses take longer whatever the gains: docs/tuner.md,
+    Adaptation through the engine). Overshoot and oscillation verdicts still apply."""
+    if math.isnan(tb.g_iae[s]) and math.isnan(tb.g_iae_dn[s]):
+        return
+    tb.g_iae[s] = tb.g_iae_dn[s] = math.nan
+    tb._verify_dirty.add(s)
+
+
 def _verified(tb, s: int, cand: tuple[float, float], seq: int, figure: float) -> None:
     # the other direction keeps the last-good gains' figure: the next response that way
     # is judged against it, like with like

@@ -41,7 +41,7 @@ import math
 
 import numpy as np
 
-from service.engine import box, first_tuning, identify, model_check
+from service.engine import box, first_tuning, identify, model_check, verify
 from service.engine.audit import audit_row
 from service.engine.foptd_fit import sample_period
 from service.engine.id_state import IdState
@@ -284,6 +284,9 @@ def _assess(tb, s: int, t: float, wall: float) -> bool:
     result = identify.assess(data[0], data[1], data[2], data[3], starts, start, last)
     st.events = result.events[-MAX_EVENTS:]
     st.model, st.why = result.model, result.why
+    fallback = st.in_force if st.in_force is not None else st.hint_model
+    if result.model is not None and model_check.plant_moved(fallback, result.model):
+        verify.forget_figures(tb, s)  # they are the plant of before's
     if result.model is not None and result.model.confident:
         use(tb, s, result.model, t, wall)
     elif tb.scaled[s] and result.why.startswith((identify.IMPRECISE, identify.DISAGREE)):

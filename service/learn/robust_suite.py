@@ -11,6 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
+from service.agent.model import V2_WEIGHTS, load_agent
+from service.learn import robust_adaptation
 from service.learn.closed_loop import Policy
 from service.learn.regulatory import regulatory
 from service.learn.regulatory import render as render_regulatory
@@ -51,6 +53,9 @@ def robust_suite(policy: Policy, out: Path, quick: bool = False, guard: dict | N
     if not quick:
         result["long_run"] = long_run(policy, guard=guard)
         result |= regulatory(policy, guard=guard)
+        # v2 beside it, through the same engine: issue 12's "adaptation no worse than v2"
+        result["adaptation"] = robust_adaptation.adaptation(policy, guard)
+        result["adaptation_v2"] = robust_adaptation.adaptation(load_agent(V2_WEIGHTS), guard)
     result["wall_s"] = round(time.monotonic() - start, 1)
     (out / "robust.json").write_text(json.dumps(result, indent=2))
     (out / "robust.md").write_text(render(result))
@@ -98,6 +103,8 @@ def render(result: dict) -> str:
             f" {100 * lr['wander_median']:.0f}%) from their median over the second half"
             f" (bar 15%); final worst MSE {lr['worst_mse']:.3g}, unstable {lr['unstable']}.",
         ]
+    if "adaptation" in result:
+        lines += robust_adaptation.render(result["adaptation"], result.get("adaptation_v2"))
     if "quiet_loop" in result:
         lines += render_regulatory(result)
     return "\n".join(lines) + "\n"
