@@ -104,10 +104,10 @@ def stale(known, latest) -> bool:
     A drifting plant's models are that: precise, but their events disagree (old and new
     dynamics in one segment), so no confident model comes while it drifts, and a check
     on the model of before held the agent's steps that followed it: through the engine,
-    after the evaluation's tau ramps (2-4x, 40 RL periods) the final gains' step-test
-    MSE was 3.6x (geometric mean of 8) and up to 18x that with the check off (the
-    docs/identification.md table, Session 28). Models under load steps at the plant input
-    are not precise (tau's standard error 0.2-0.3), so the check there stays on."""
+    after the evaluation's tau ramps (2-4x over 40 RL periods) the final gains' step-test
+    MSE was 3.6x (geometric mean of 8) and up to 8x that with the check off
+    (docs/tuner.md, Adaptation through the engine). Models under load steps at the plant
+    input are not precise (tau's standard error 0.2-0.3), so the check there stays on."""
     return (
         latest.r2 >= identify.MIN_R2
         and latest.events >= identify.MIN_EVENTS
