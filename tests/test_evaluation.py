@@ -134,3 +134,31 @@ def test_robust_suite_guard_option_is_checked_and_named_in_the_report(tmp_path, 
     assert 'guard settings {"auto_rescale": true, "identify": true}' in text
     assert "default guard" in render({"periods": 80, "quick": False, "wall_s": 1.0,
                                       "conditions": [row]})  # fmt: skip
+
+
+def test_robust_report_shows_the_adaptation_through_the_engine_beside_v2():
+    """The suite's adaptation section (service/learn/robust_adaptation.py): the paper's
+    two runs and the spread's geometric mean and worst per kind, each beside v2's, and
+    both unstable counts; the 18 plants are the paper's two then the spread's 16."""
+    from service.learn import robust_adaptation
+    from service.learn.experiments import SPREAD_MOVES
+    from service.learn.robust_suite import render
+
+    K0, tau0, theta, K1, tau1 = robust_adaptation.plants()
+    assert (K0[:2].tolist(), K1[:2].tolist()) == ([0.5, 0.5], [0.5, 1.0])
+    assert (tau0[:2].tolist(), tau1[:2].tolist()) == ([0.4, 0.5], [1.0, 0.5])
+    assert np.all(np.c_[K0[2:10], K1[2:10]] == SPREAD_MOVES)
+    assert np.all(np.c_[tau0[10:], tau1[10:]] == SPREAD_MOVES)
+    assert np.allclose(theta[10:], 0.2 * tau0[10:])
+
+    def result(x, unstable):
+        return {"tau_ramp": x, "k_step": 2 * x, "k_steps": {"gmean": 3 * x, "worst": 4 * x},
+                "tau_ramps": {"gmean": 5 * x, "worst": 6 * x}, "unstable": unstable}  # fmt: skip
+
+    row = {"condition": "paper protocol", "worst_mse": 0.002, "median_mse": 0.0002,
+           "beats_simc": 0.8, "unstable": 0, "meets_bar": True}  # fmt: skip
+    text = render({"periods": 80, "quick": False, "wall_s": 1.0, "conditions": [row],
+                   "adaptation": result(0.001, 0), "adaptation_v2": result(0.01, 2)})  # fmt: skip
+    assert "unstable 0, v2 2" in text
+    assert "| paper tau ramp (0.4 -> 1) | 0.001 | 0.01 |" in text
+    assert "| 8 tau ramps, worst | 0.006 | 0.06 |" in text

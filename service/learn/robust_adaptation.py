@@ -83,7 +83,8 @@ def render(result: dict, v2: dict | None = None) -> list[str]:
         "",
         "Adaptation through the engine (the paper's experiment 3 and the 16-plant spread,"
         " default guard, forgetting 0.99; step-test MSE of the gains over the last 16 of"
-        f" 140 RL periods on the changed plant; unstable {a['unstable']}):",
+        f" 140 RL periods on the changed plant; unstable {a['unstable']}"
+        + (f", v2 {v2['unstable']}):" if v2 else "):"),
         "",
         "| run | this agent | v2 |" if v2 else "| run | this agent |",
         "|---|---|---|" if v2 else "|---|---|",
