@@ -82,7 +82,7 @@ def render(result: dict, v2: dict | None = None) -> list[str]:
     lines = [
         "",
         "Adaptation through the engine (the paper's experiment 3 and the 16-plant spread,"
-        " default guard, forgetting 0.99; step-test MSE of the gains over the last 16 of"
+        " the guard above, forgetting 0.99; step-test MSE of the gains over the last 16 of"
         f" 140 RL periods on the changed plant; unstable {a['unstable']}"
         + (f", v2 {v2['unstable']}):" if v2 else "):"),
         "",
