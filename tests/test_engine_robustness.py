@@ -200,20 +200,14 @@ def test_a_hinted_loop_follows_a_slowing_plant_the_check_no_longer_describes():
     without the fallback set aside, 0.0023 with both."""
     from service.agent.model import load_agent
     from service.learn import robust_adaptation
-    from service.learn.robust import Condition, run_condition, score
+    from service.learn.robust import score
 
-    K0, tau0, theta, K1, tau1 = (x[[12]] for x in robust_adaptation.plants())
-    assert (tau0[0], tau1[0]) == (0.25, 1.0)
-
-    def schedule(p):
-        return (K1 if p >= 60 else K0), tau0 + np.clip((p - 60) / 40, 0, 1) * (tau1 - tau0), theta
-
-    plants = (K0, tau0, theta / tau0)
-    run = run_condition(load_agent(), Condition("paper protocol"), periods=140, plants=plants,
-                        forgetting=0.99, schedule=schedule)  # fmt: skip
+    K0, tau0, theta, K1, tau1 = (x[12] for x in robust_adaptation.plants())
+    assert (tau0, tau1) == (0.25, 1.0)
+    run = robust_adaptation.run(load_agent(), [12])
     ki = run.gains[:, 0, 1]
     assert ki[100] < 0.5 * ki[59] and ki[140] < 0.35 * ki[59], ki[[59, 100, 140]]
-    mse = score(K1, tau1, theta, 0 * K1, *run.gains[-1].T)[0][0]
+    mse = score(run.K, run.tau, run.theta, run.lag, *run.gains[-1].T)[0][0]
     assert mse < 0.005, mse
 
 
@@ -228,18 +222,12 @@ def test_a_hinted_loop_takes_the_tuning_of_a_model_that_shows_its_gain_quadruple
     step-test MSE 0.00045 at the end); with it 0.25x and 0.00011."""
     from service.agent.model import load_agent
     from service.learn import robust_adaptation
-    from service.learn.robust import Condition, run_condition, score
+    from service.learn.robust import score
 
-    K0, tau0, theta, K1, tau1 = (x[[4]] for x in robust_adaptation.plants())
-    assert (K0[0], K1[0]) == (0.25, 1.0)
-
-    def schedule(p):
-        return (K1 if p >= 60 else K0), tau0, theta
-
-    plants = (K0, tau0, theta / tau0)
-    run = run_condition(load_agent(), Condition("paper protocol"), periods=140, plants=plants,
-                        forgetting=0.99, schedule=schedule)  # fmt: skip
+    K0, tau0, theta, K1, tau1 = (x[4] for x in robust_adaptation.plants())
+    assert (K0, K1) == (0.25, 1.0)
+    run = robust_adaptation.run(load_agent(), [4])
     ki = run.gains[:, 0, 1]
     assert ki[100] < 0.3 * ki[59], ki[[59, 100, 140]]
-    mse = score(K1, tau1, theta, 0 * K1, *run.gains[-1].T)[0][0]
+    mse = score(run.K, run.tau, run.theta, run.lag, *run.gains[-1].T)[0][0]
     assert mse < 0.0002, mse

@@ -36,24 +36,31 @@ def plants() -> tuple[np.ndarray, ...]:
     return K0, tau0, theta, K1, tau1
 
 
-def adaptation(policy: Policy, guard: dict | None = None) -> dict:
-    """Run the 18 plants through the engine; returns the paper's two runs' scores and the
-    spread's geometric mean and worst per kind, each plant's score and the unstable
-    count (the final gains' step test, :func:`service.learn.robust.score`)."""
-    settle, change, total, window = adaptation_protocol(quick=False)
-    K0, tau0, theta, K1, tau1 = plants()
+def run(policy: Policy, which=slice(None), guard: dict | None = None):
+    """The plants ``which`` (an index into :func:`plants`) through the engine for the
+    protocol's 140 RL periods: :func:`service.learn.robust.run_condition`'s run, its
+    plants at the end (``run.K``, ``run.tau``, ``run.theta``)."""
+    settle, change, total, _ = adaptation_protocol(quick=False)
+    K0, tau0, theta, K1, tau1 = (x[which] for x in plants())
 
     def schedule(p: int):
         frac = np.clip((p - settle) / change, 0.0, 1.0)
         return (K1 if p >= settle else K0), tau0 + frac * (tau1 - tau0), theta
 
-    run = run_condition(policy, Condition("paper protocol"), periods=total, guard=guard,
-                        plants=(K0, tau0, theta / tau0), forgetting=DEFAULT_FORGETTING,
-                        schedule=schedule)  # fmt: skip
-    K, tau = K1, tau1
-    last = run.gains[total - window + 1 : total + 1]
-    mse = np.mean([score(K, tau, theta, 0.0 * K, *g.T)[0] for g in last], axis=0)
-    unstable = score(K, tau, theta, 0.0 * K, *run.gains[-1].T)[1]
+    return run_condition(policy, Condition("paper protocol"), periods=total, guard=guard,
+                         plants=(K0, tau0, theta / tau0), forgetting=DEFAULT_FORGETTING,
+                         schedule=schedule)  # fmt: skip
+
+
+def adaptation(policy: Policy, guard: dict | None = None) -> dict:
+    """Run the 18 plants through the engine; returns the paper's two runs' scores and the
+    spread's geometric mean and worst per kind, each plant's score and the unstable
+    count (the final gains' step test, :func:`service.learn.robust.score`)."""
+    _, _, total, window = adaptation_protocol(quick=False)
+    done = run(policy, guard=guard)
+    changed = (done.K, done.tau, done.theta, done.lag)
+    mse = np.mean([score(*changed, *g.T)[0] for g in done.gains[total - window + 1 :]], axis=0)
+    unstable = score(*changed, *done.gains[-1].T)[1]
 
     def spread(part: np.ndarray) -> dict:
         return {"gmean": float(np.exp(np.log(part).mean())), "worst": float(part.max())}
