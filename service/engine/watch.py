@@ -284,8 +284,8 @@ def _assess(tb, s: int, t: float, wall: float) -> bool:
     result = identify.assess(data[0], data[1], data[2], data[3], starts, start, last)
     st.events = result.events[-MAX_EVENTS:]
     st.model, st.why = result.model, result.why
-    fallback = st.in_force if st.in_force is not None else st.hint_model
-    if result.model is not None and model_check.plant_moved(fallback, result.model):
+    before = model_check.fallback(st)
+    if result.model is not None and model_check.plant_moved(before, result.model):
         verify.forget_figures(tb, s)  # they are the plant of before's
     if result.model is not None and result.model.confident:
         use(tb, s, result.model, t, wall)

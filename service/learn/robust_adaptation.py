@@ -75,9 +75,8 @@ def adaptation(policy: Policy, guard: dict | None = None) -> dict:
     }
 
 
-def render(result: dict, v2: dict | None = None) -> list[str]:
-    """Report lines of :func:`adaptation`'s result, beside ``v2``'s when given."""
-    a = result
+def render(a: dict, v2: dict | None = None) -> list[str]:
+    """Report lines of :func:`adaptation`'s result ``a``, beside ``v2``'s when given."""
     rows = [
         ("paper tau ramp (0.4 -> 1)", a["tau_ramp"], v2 and v2["tau_ramp"]),
         ("paper K step (0.5 -> 1)", a["k_step"], v2 and v2["k_step"]),
