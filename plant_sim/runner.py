@@ -138,7 +138,7 @@ def run_scans(
             else:
                 ignored += 1
 
-    waiting = config.tuner_lag > 0.0
+    pace = TunerPace(gateway, list(by_id), config.tuner_lag, take_gains, stop)
     for k in paced(sim.scan, sim.speed, stop):
         if last is not None and k >= last:
             break
@@ -156,51 +156,96 @@ def run_scans(
                     flush=True,
                 )
         gateway.publish_scan(samples)  # one batch on the gateway's key with a gateway id
-        if waiting and samples:
-            t = min(sample.t for sample in samples.values())
-            waiting = wait_for_tuner(gateway, list(by_id), t - config.tuner_lag, take_gains, stop)
+        if config.tuner_lag > 0.0 and samples:
+            pace.hold(min(sample.t for sample in samples.values()))
     return applied, ignored
 
 
 TUNER_WAIT_S = 10.0
-"""Wall seconds the plant waits for a tuner that does not catch up before it stops
-waiting for the rest of the run (a tuner down must not stall the plant)."""
+"""Wall seconds the plant waits for a tuner that makes no progress (accepts no newer
+sample) before it stops waiting (a tuner down must not stall the plant)."""
 POLL_S = 0.01
 """Wall seconds between two state queries while waiting."""
+RECHECK_S = 1.0
+"""Wall seconds between two state queries once the plant stopped waiting: a tuner heard
+making progress again is waited for again (one query a second, not a hundred)."""
 
 
-def wait_for_tuner(
-    gateway: Gateway, loop_ids: list[str], t: float, take_gains: Callable[[], None],
-    stop: Callable[[], bool],
-) -> bool:  # fmt: skip
-    """Hold the scan loop until the tuner has accepted every loop's samples up to plant
-    time ``t`` (the ``last_t`` of its state replies), asking for its state and applying
-    the gains that arrive meanwhile. The pace in simulated time is then the slower of
-    ``speed`` and the tuner's: on a machine too busy for the speed, the tuner's reaction
-    stays a few scans in simulated time (at 120x and a tuner 4 s of wall time behind,
-    the two-tank demo's first tuning from its identified model landed 8 simulated
-    minutes late, next to a setpoint change). Returns False when it gave up
-    (:data:`TUNER_WAIT_S`: no tuner, or one that does not catch up)."""
+class TunerPace:
+    """Holds the scan loop until the tuner has accepted every loop's samples up to
+    ``lag`` simulated seconds ago (the ``last_t`` of its state replies), asking for its
+    state and applying the gains that arrive meanwhile. The pace in simulated time is
+    then the slower of ``speed`` and the tuner's: on a machine too busy for the speed,
+    the tuner's reaction stays a few scans in simulated time (at 120x and a tuner 4 s of
+    wall time behind, the two-tank demo's first tuning from its identified model landed
+    8 simulated minutes late, next to a setpoint change).
 
-    def caught_up() -> bool:
-        states = gateway.inbox.supervision
-        seen = [states[i].last_t if i in states else None for i in loop_ids]
-        return all(s is not None and s >= t for s in seen)
+    A tuner that accepts no newer sample for :data:`TUNER_WAIT_S` (down, or not started
+    yet) is not waited for; the plant runs on at its speed and asks once every
+    :data:`RECHECK_S` whether it is back. When its replies show progress again the plant
+    waits for it again: a tuner slow to start (a cold import on a loaded machine) or
+    restarted is caught up with, not outrun for the rest of the run."""
 
-    if caught_up():
-        return True
-    deadline = time.monotonic() + TUNER_WAIT_S
-    while not stop():
-        gateway.query_state()
-        time.sleep(POLL_S)
-        take_gains()
-        if caught_up():
-            return True
-        if time.monotonic() > deadline:
-            print(
-                f"plant: the tuner has not accepted the samples of t={t:g} s after "
-                f"{TUNER_WAIT_S:g} s: running on without waiting for it",
-                file=sys.stderr, flush=True,
-            )  # fmt: skip
+    def __init__(
+        self, gateway: Gateway, loop_ids: list[str], lag: float,
+        take_gains: Callable[[], None], stop: Callable[[], bool],
+    ) -> None:  # fmt: skip
+        self.gateway, self.loop_ids, self.lag = gateway, loop_ids, lag
+        self.take_gains, self.stop = take_gains, stop
+        self.waiting = True
+        """False while the plant runs on without the tuner."""
+        self.seen: float | None = None
+        """The tuner's least accepted sample time when last looked at (progress test)."""
+        self.asked = -float("inf")
+        """Wall time of the last state query while not waiting."""
+
+    def accepted(self) -> float | None:
+        """Plant time up to which the tuner has accepted every loop's samples (None: a
+        loop it has not answered for)."""
+        states = self.gateway.inbox.supervision
+        seen = [states[i].last_t if i in states else None for i in self.loop_ids]
+        return None if any(s is None for s in seen) else min(seen)
+
+    def progressed(self) -> bool:
+        """Whether the tuner accepted newer samples since last looked at (and note them)."""
+        latest = self.accepted()
+        if latest is None or (self.seen is not None and latest <= self.seen):
             return False
-    return True
+        self.seen = latest
+        return True
+
+    def hold(self, t: float) -> None:
+        """Called after the samples of plant time ``t`` went out."""
+        if not self.waiting:
+            now = time.monotonic()
+            if now - self.asked < RECHECK_S:
+                return
+            self.asked = now
+            back = self.progressed()  # on the replies to the last query
+            self.gateway.query_state()
+            if not back:
+                return
+            self.waiting = True
+            print("plant: the tuner is making progress again: waiting for it", flush=True)
+        self.wait(t - self.lag)
+
+    def wait(self, target: float) -> None:
+        deadline = time.monotonic() + TUNER_WAIT_S
+        while not self.stop():
+            latest = self.accepted()
+            if latest is not None and latest >= target:
+                return
+            if self.progressed():
+                deadline = time.monotonic() + TUNER_WAIT_S
+            elif time.monotonic() > deadline:
+                print(
+                    f"plant: the tuner has accepted no newer sample for {TUNER_WAIT_S:g} s "
+                    f"(waiting for t={target:g} s): running on without waiting for it",
+                    file=sys.stderr, flush=True,
+                )  # fmt: skip
+                self.waiting = False
+                self.asked = time.monotonic()
+                return
+            self.gateway.query_state()
+            time.sleep(POLL_S)
+            self.take_gains()
