@@ -197,7 +197,8 @@ def test_a_hinted_loop_follows_a_slowing_plant_the_check_no_longer_describes():
     faster plant and rolled it back (verify.forget_figures drops those figures when the
     data show the plant moved). Step-test MSE on the slowed plant at the end: 0.070 in
     the 18-plant run before; on this run alone 0.022 without the figures dropped, 0.026
-    without the fallback set aside, 0.0023 with both."""
+    without the fallback set aside, 0.0023 with both (0.00094 since the followed tuning
+    also restarts the agent warmed on its model: the next test)."""
     from service.agent.model import load_agent
     from service.learn import robust_adaptation
     from service.learn.robust import score
@@ -231,3 +232,22 @@ def test_a_hinted_loop_takes_the_tuning_of_a_model_that_shows_its_gain_quadruple
     assert ki[100] < 0.3 * ki[59], ki[[59, 100, 140]]
     mse = score(run.K, run.tau, run.theta, run.lag, *run.gains[-1].T)[0][0]
     assert mse < 0.0002, mse
+
+
+def test_a_followed_plant_restarts_the_agent_warmed_on_its_model():
+    """Through the engine: the paper's tau ramp (K 0.5, tau 0.4 -> 1, theta 0.1). After
+    the ramp a confident model shows the plant moved and its tuning is followed (period
+    108: kp 0.98, ki 1.09); the agent, its hidden state still the faster plant's, then
+    walked kp down to 0.73 (step-test MSE 0.0017 at the end). Restarted from a state
+    warmed on the followed model (first_tuning.WARMED), as after identification, it
+    ends at kp 0.79: 0.00082."""
+    from service.agent.model import load_agent
+    from service.learn import robust_adaptation
+    from service.learn.robust import score
+
+    run = robust_adaptation.run(load_agent(), [0])
+    assert (run.K[0], run.tau[0]) == (0.5, 1.0)
+    followed = run.gains[101:, 0, 0] > 0.95  # the model's tuning in force
+    assert followed.any(), run.gains[100:, 0]
+    mse = score(run.K, run.tau, run.theta, run.lag, *run.gains[-1].T)[0][0]
+    assert mse < 0.0012, mse

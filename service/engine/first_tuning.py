@@ -53,10 +53,15 @@ from service.wire.protocol import UpdateReason
 
 RULE = "simc_improved tau_c=2tau"
 """The rule's name in the audit row."""
-WARMED = ("identified", "rescaled")
-"""Decisions that put a model in force and restart the agent's episode: the agent's
-hidden state and error integral then come from a run on the model
-(:mod:`service.engine.warm`), not from zero."""
+WARMED = ("identified", "rescaled", "followed")
+"""Decisions that put a model's tuning in force and restart the agent's episode: the
+agent's hidden state and error integral then come from a run on the model
+(:mod:`service.engine.warm`), not from zero nor (``followed``: the plant moved) from the
+plant of before. Why the last: after a tau ramp the agent, its state still the faster
+plant's, walked the followed tuning's kp down 25 % (evaluation's adaptation through the
+engine, paper's tau ramp: step-test MSE 0.0018, 0.00093 warmed; the spread's 8 tau ramps
+0.00099 / 0.0038 geometric mean / worst, 0.00050 / 0.0013 warmed; its K steps the same,
+docs/tuner.md)."""
 TAU_C = 2.0
 """The closed-loop time constant, in plant time constants (detuned: SIMC's own choice is
 ``tau_c = theta``)."""
@@ -102,8 +107,9 @@ def apply(tb, s: int, m, wall: float, why: str) -> None:
     after a decision in :data:`REPLACE_AFTER` set them to it if they are well off it
     either way (after the model's scaling and bounds are configured); queues the decision
     to publish in ``tb.decided``. ``why``: ``identified``, ``rescaled``,
-    ``out_of_envelope`` or ``followed``; the first two also queue the loop's warm start
-    (:func:`flush`), shadow loops included (their agent steps too)."""
+    ``out_of_envelope``, ``followed`` or ``checked``; those in :data:`WARMED` also queue
+    the loop's warm start (:func:`flush`), shadow loops included (their agent steps
+    too)."""
     mode = int(tb.mode[s])
     if mode == FROZEN or m.integrating or not m.k > 0:
         return
@@ -219,5 +225,5 @@ def _same(tb, s: int, key: tuple) -> bool:
     loop_id, m, seq = key
     return (
         s < len(tb.ids) and tb.ids[s] == loop_id and tb.ident[s] is not None
-        and tb.ident[s].in_force is m and int(tb.seq[s]) == seq
+        and tb.ident[s].fallback is m and int(tb.seq[s]) == seq
     )  # fmt: skip

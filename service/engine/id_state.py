@@ -34,6 +34,12 @@ class IdState:
     """A hinted loop's latest confident model while none is in force
     (:func:`service.engine.model_check.hint_checked`)."""
 
+    @property
+    def fallback(self) -> identify.Model | None:
+        """The model the loop is checked on when its latest is not confident: the one in
+        force, else a hinted loop's last confident one; None without either."""
+        return self.in_force if self.in_force is not None else self.hint_model
+
     def dump(self) -> dict:
         return {
             "events": [ev.as_dict() for ev in self.events],

@@ -79,19 +79,12 @@ def agent_model(tb, s: int) -> tuple[float, float, float] | None:
     if latest is not None and latest.confident:
         m = latest
     else:
-        m = fallback(st)
+        m = st.fallback
         if m is not None and latest is not None and stale(m, latest):
             return None
     if m is None or m.integrating or not m.k > 0:
         return None
     return _agent_units(tb, s, m)
-
-
-def fallback(st):
-    """The model a loop (its :class:`~service.engine.id_state.IdState` ``st``) is checked
-    on when its latest is not confident: the one in force, else a hinted loop's last
-    confident one (:func:`hint_checked`); None without either."""
-    return st.in_force if st.in_force is not None else st.hint_model
 
 
 def plant_moved(known, latest) -> bool:
