@@ -1,6 +1,7 @@
-"""The agent's warm start on an identified model: when a model's tuning is put in force,
-the shipped agent first tunes the *model* offline, and the loop continues from where
-that run ends (its hidden state, its error integral and, by default, its gains).
+"""The agent's warm start on an identified model: when a model's tuning is put in force
+(:data:`service.engine.first_tuning.WARMED`), the shipped agent first tunes the *model*
+offline from those gains, and the loop's agent continues from where that run ends (its
+hidden state and its error integral; the gains in force stay the model's tuning).
 
 Why: stepped from a fresh (zero) hidden state, the agent moves the gains 14-50 % a step
 while it works out the plant from scratch, and on a real loop (noise, irregular
