@@ -219,7 +219,7 @@ class PlantConfig:
     """Simulated seconds the plant may run ahead of the last sample the tuner accepted
     before it waits for the tuner (0: never waits, as a real plant). A plant at a high
     ``speed`` on a busy machine otherwise outruns its tuner: gains computed on a sample
-    reach it minutes of simulated time later (``plant_sim.runner.wait_for_tuner``)."""
+    reach it minutes of simulated time later (``plant_sim.runner.TunerPace``)."""
 
     def __post_init__(self) -> None:
         ids = [s.loop_id for s in self.loops]

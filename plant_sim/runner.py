@@ -184,7 +184,9 @@ class TunerPace:
     yet) is not waited for; the plant runs on at its speed and asks once every
     :data:`RECHECK_S` whether it is back. When its replies show progress again the plant
     waits for it again: a tuner slow to start (a cold import on a loaded machine) or
-    restarted is caught up with, not outrun for the rest of the run."""
+    restarted is caught up with, not outrun for the rest of the run. The pace is the
+    slowest loop's: a loop the tuner does not answer (not registered there, its samples
+    rejected) stops the waiting, and the message names it."""
 
     def __init__(
         self, gateway: Gateway, loop_ids: list[str], lag: float,
@@ -199,11 +201,15 @@ class TunerPace:
         self.asked = -float("inf")
         """Wall time of the last state query while not waiting."""
 
+    def last(self) -> dict[str, float | None]:
+        """Plant time of each loop's last sample the tuner accepted (None: not answered)."""
+        states = self.gateway.inbox.supervision
+        return {i: states[i].last_t if i in states else None for i in self.loop_ids}
+
     def accepted(self) -> float | None:
         """Plant time up to which the tuner has accepted every loop's samples (None: a
         loop it has not answered for)."""
-        states = self.gateway.inbox.supervision
-        seen = [states[i].last_t if i in states else None for i in self.loop_ids]
+        seen = self.last().values()
         return None if any(s is None for s in seen) else min(seen)
 
     def progressed(self) -> bool:
@@ -226,7 +232,10 @@ class TunerPace:
             if not back:
                 return
             self.waiting = True
-            print("plant: the tuner is making progress again: waiting for it", flush=True)
+            print(
+                "plant: the tuner is making progress again: waiting for it",
+                file=sys.stderr, flush=True,
+            )  # fmt: skip
         self.wait(t - self.lag)
 
     def wait(self, target: float) -> None:
@@ -238,9 +247,11 @@ class TunerPace:
             if self.progressed():
                 deadline = time.monotonic() + TUNER_WAIT_S
             elif time.monotonic() > deadline:
+                behind = [i for i, s in self.last().items() if s is None or s < target]
                 print(
-                    f"plant: the tuner has accepted no newer sample for {TUNER_WAIT_S:g} s "
-                    f"(waiting for t={target:g} s): running on without waiting for it",
+                    f"plant: the tuner has accepted no newer sample of {', '.join(behind)} "
+                    f"for {TUNER_WAIT_S:g} s (waiting for t={target:g} s): running on "
+                    "without waiting for it",
                     file=sys.stderr, flush=True,
                 )  # fmt: skip
                 self.waiting = False

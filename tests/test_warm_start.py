@@ -162,3 +162,36 @@ def test_a_warm_result_does_not_land_on_a_loop_reset_meanwhile():
     while tb.warm_run is not None:
         first_tuning.flush(tb)
     assert not np.abs(tb.hidden[slots[0]]).any() and np.abs(tb.hidden[slots[1]]).any()
+
+
+def test_a_followed_hinted_loop_is_warmed_on_its_model_and_loses_the_old_plants_state():
+    """A hinted loop's followed model is its ``hint_model`` (it has none in force): the
+    warm result lands while that is still the model the loop is checked on, and not
+    once a newer model replaced it or one came in force; either way the state of the
+    plant of before is gone from the decision on."""
+    from service.engine import SiteDefaults
+
+    engine = TuningEngine(untrained_agent(3), inference_precision="reference",
+                          site=SiteDefaults(fit_share=0.25))  # fmt: skip
+    tb = engine.table
+    scaling = {"k_hat": K, "tau_hat": TAU, "pv_scale": 20.0}
+    m = Model(k=K, tau=TAU, theta=THETA, noise=0.1, move=5.0, r2=0.99, k_rse=0.01, tau_rse=0.01)
+    later = Model(k=K, tau=TAU, theta=THETA, noise=0.1, move=5.0, r2=0.99, k_rse=0.01,
+                  tau_rse=0.01)  # fmt: skip
+    for i in range(3):
+        engine.register(LoopConfig(id=f"L{i}", kp=0.1, ki=0.01, sample_period_s=H,
+                                   scaling=scaling), wall=0.0)  # fmt: skip
+    slots = [tb.slot(f"L{i}") for i in range(3)]
+    for s in slots:
+        tb.ident[s].hint_model = m
+        tb.hidden[s], tb.int_e[s] = 1.0, 1.0  # the plant of before's
+        first_tuning.apply(tb, s, m, 1.0, "followed")
+    assert not np.abs(tb.hidden[slots]).any() and not tb.int_e[slots].any()
+    assert [s for s, _, _ in tb.warming] == slots
+    first_tuning.flush(tb)
+    tb.ident[slots[1]].hint_model = later
+    tb.ident[slots[2]].in_force = later
+    while tb.warm_run is not None:
+        first_tuning.flush(tb)
+    landed = np.abs(tb.hidden[slots]).sum(axis=(1, 2)) > 0
+    assert landed.tolist() == [True, False, False]

@@ -57,7 +57,10 @@ WARMED = ("identified", "rescaled", "followed")
 """Decisions that put a model's tuning in force and restart the agent's episode: the
 agent's hidden state and error integral then come from a run on the model
 (:mod:`service.engine.warm`), not from zero nor (``followed``: the plant moved) from the
-plant of before. Why the last: after a tau ramp the agent, its state still the faster
+plant of before (whose state a followed loop loses at the decision, so a warm result
+dropped as out of date leaves a fresh state, as for the other two). Not ``checked``: it
+corrects the agent's own first tuning of the same plant, whose memory is still its.
+Why ``followed``: after a tau ramp the agent, its state still the faster
 plant's, walked the followed tuning's kp down 25 % (evaluation's adaptation through the
 engine, paper's tau ramp: step-test MSE 0.0018, 0.00093 warmed; the spread's 8 tau ramps
 0.00099 / 0.0038 geometric mean / worst, 0.00050 / 0.0013 warmed; its K steps the same,
@@ -115,6 +118,8 @@ def apply(tb, s: int, m, wall: float, why: str) -> None:
         return
     if why in WARMED:  # from the gains this decision leaves in force
         tb.warming.append((s, tb.ids[s], m))
+        if why == "followed":  # the plant of before's memory goes, warm result or not
+            tb.hidden[s] = tb.int_e[s] = 0.0
     if mode not in (AUTO, ADVISORY) or not tb.configs[tb.ids[s]].guard.model_tuning:
         return
     old = (float(tb.kp[s]), float(tb.ki[s]))
