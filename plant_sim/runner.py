@@ -239,6 +239,8 @@ class TunerPace:
         self.wait(t - self.lag)
 
     def wait(self, target: float) -> None:
+        """Poll until the tuner has accepted every loop's samples up to ``target``, the
+        plant stops, or :data:`TUNER_WAIT_S` pass without progress (then stop waiting)."""
         deadline = time.monotonic() + TUNER_WAIT_S
         while not self.stop():
             latest = self.accepted()

@@ -284,8 +284,7 @@ def _assess(tb, s: int, t: float, wall: float) -> bool:
     result = identify.assess(data[0], data[1], data[2], data[3], starts, start, last)
     st.events = result.events[-MAX_EVENTS:]
     st.model, st.why = result.model, result.why
-    before = st.fallback
-    if result.model is not None and model_check.plant_moved(before, result.model):
+    if result.model is not None and model_check.plant_moved(st.fallback, result.model):
         verify.forget_figures(tb, s)  # they are the plant of before's
     if result.model is not None and result.model.confident:
         use(tb, s, result.model, t, wall)
