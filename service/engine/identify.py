@@ -74,6 +74,8 @@ IMPRECISE = "K or tau not pinned down"
 """The verdict of a model that passes every check but precision."""
 DISAGREE = "events disagree"
 """The verdict of a precise model that fails only the consistency test (a drifting plant)."""
+INTEGRATING = "integrating"
+"""The verdict of a segment an integrating model ``K/s e^{-theta s}`` fits better."""
 
 
 @dataclass
@@ -117,6 +119,10 @@ class Model:
     k_rse: float
     tau_rse: float
     integrating: bool = False
+    slope: float = 0.0
+    theta_i: float = 0.0
+    """The integrating alternative's K (PV units per output unit per second) and dead
+    time (s): the process, when ``integrating``."""
     events: int = 0
     """Excited events the model comes from."""
     prediction: float = math.inf
@@ -236,7 +242,7 @@ def assess(
         k=joint.k, tau=joint.tau, theta=joint.theta, noise=joint.noise,
         move=float(np.median([abs(ev.move) for ev in events if ev.excited] or [0.0])),
         r2=joint.r2, k_rse=joint.k_rse, tau_rse=joint.tau_rse,
-        integrating=joint.integrating, events=excited,
+        integrating=joint.integrating, slope=joint.slope, theta_i=joint.theta_i, events=excited,
     )  # fmt: skip
     # consistency: the model of the data before the last excited event that has run the
     # model's theta + tau predicts it and what follows (a quiet event, or the first
@@ -292,7 +298,10 @@ def _ramp(t: np.ndarray, sp: np.ndarray, a: int, b: int) -> float:
 
 def _verdict(m: Model, excited: int, n_events: int, slow: int = 0) -> str:
     if m.integrating:
-        return "integrating: K/s e^(-theta s) fits better than an FOPTD model"
+        return (
+            f"{INTEGRATING}: K/s e^(-theta s) fits better than an FOPTD model (K "
+            f"{m.slope:.3g} PV units per output unit per s, theta {m.theta_i:.3g} s)"
+        )
     if not m.k > 0.0:
         return (
             f"process gain {m.k:.3g} has the wrong sign for the registered controller "

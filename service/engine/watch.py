@@ -288,7 +288,9 @@ def _assess(tb, s: int, t: float, wall: float) -> bool:
         verify.forget_figures(tb, s)  # they are the plant of before's
     if result.model is not None and result.model.confident:
         use(tb, s, result.model, t, wall)
-    elif tb.scaled[s] and result.why.startswith((identify.IMPRECISE, identify.DISAGREE)):
+    elif tb.scaled[s] and result.why.startswith(
+        (identify.IMPRECISE, identify.DISAGREE, identify.INTEGRATING)
+    ):
         _envelope(tb, s, result.model, t, wall, sure=False)
     return True
 
@@ -400,9 +402,11 @@ def _envelope(tb, s: int, m: identify.Model, t: float, wall: float, *, sure: boo
     tau two standard errors toward the box leave it (a drifting plant is never pinned
     down, nor consistent, on data that mix its old and new dynamics: with the consistency
     test on an event that has shown its response, the bar's ramp was paused at 4.5 tau0
-    instead of 4.0 until such models could pause). One that fails any other check, or
-    both (under load steps: misses of 8-30x the noise, pauses for good; docs/tuner.md,
-    Session 17), is not used."""
+    instead of 4.0 until such models could pause). An integrating one (never confident)
+    pauses when it fits and comes from enough events: the agent does not tune an
+    integrator (docs/identification.md, Integrating processes). One that fails any
+    other check, or both (under load steps: misses of 8-30x the noise, pauses for good;
+    docs/tuner.md, Session 17), is not used."""
     if not tb.env_guard[s]:
         return
     app = box.apparent(tb.scaling_of(s), m)
@@ -411,19 +415,29 @@ def _envelope(tb, s: int, m: identify.Model, t: float, wall: float, *, sure: boo
     else:
         if not (m.r2 >= identify.MIN_R2 and m.events >= identify.MIN_EVENTS and m.k > 0):
             return
-        if not (identify.precise(m) or m.prediction <= identify.MAX_PREDICTION):
+        if m.integrating:
+            out = True
+        elif not (identify.precise(m) or m.prediction <= identify.MAX_PREDICTION):
             return
-        out = not box.in_envelope(box.toward_box(app, 2.0 * m.k_rse, 2.0 * m.tau_rse))
-        if not out:
-            return
+        else:
+            out = not box.in_envelope(box.toward_box(app, 2.0 * m.k_rse, 2.0 * m.tau_rse))
+            if not out:
+                return
+    detail = json.dumps(_integrator(m) if m.integrating else app, separators=(",", ":"))
     if out and not tb.out_env[s]:
         tb.n_envelope[s] += 1
-        _audit(tb, s, t, wall, "out_of_envelope", json.dumps(app, separators=(",", ":")))
+        _audit(tb, s, t, wall, "out_of_envelope", detail)
     elif not out and tb.out_env[s]:
-        _audit(tb, s, t, wall, "in_envelope", json.dumps(app, separators=(",", ":")))
+        _audit(tb, s, t, wall, "in_envelope", detail)
     tb.out_env[s] = out
     if out and sure:  # paused on the model's tuning (a no-op once the gains are at it)
         first_tuning.apply(tb, s, m, wall, "out_of_envelope")
+
+
+def _integrator(m: identify.Model) -> dict:
+    """An integrating model as the envelope's audit row shows it: K (PV units per output
+    unit per second) and dead time (s)."""
+    return {"integrating": True, "k_per_s": m.slope, "theta_s": m.theta_i}
 
 
 def _put_in_force(tb, s, m, scaling: Scaling, t, wall, reason: str, detail: str) -> None:

@@ -34,6 +34,8 @@ from service.learn.experiments import (
     table2,
     two_tank,
 )
+from service.learn.integrating import integrating
+from service.learn.integrating import render as render_integrating
 from service.learn.report import render_report, write_figures, write_model_card
 from service.learn.robust_suite import robust_suite
 
@@ -63,6 +65,9 @@ class EvalConfig:
     """Run only these experiments (names of :data:`PARTS`) and write their metrics.json,
     no report or figures: a fast check of a training checkpoint, e.g. the adaptation
     experiments alone in a few seconds. Empty: everything."""
+    integrating: bool = False
+    """Measure the agent on integrating processes through the tuning engine
+    (:mod:`service.learn.integrating`) instead of the paper's experiments."""
     guard: dict | None = None
     """With ``robust``: guard settings every loop is registered with instead of the
     defaults (checked as a loop's guard), e.g. ``{"identify": true, "auto_rescale":
@@ -195,12 +200,21 @@ def main(cfg: EvalConfig) -> int:
         raise SystemExit("--only selects among the paper's experiments; not with --robust")
     if cfg.guard is not None and not cfg.robust:
         raise SystemExit("--guard sets the robustness suite's loops; only with --robust")
+    if cfg.integrating and (cfg.robust or cfg.only):
+        raise SystemExit("--integrating is a measurement of its own: not with --robust or --only")
     agent = load_agent(cfg.weights)
     policy = agent if cfg.precision == "reference" else FastPolicy(agent, precision=cfg.precision)
     if cfg.robust:
         result = robust_suite(policy, cfg.out, quick=cfg.quick, guard=cfg.guard)
         print((cfg.out / "robust.md").read_text())
         return 0 if all(r["meets_bar"] for r in result["conditions"]) or cfg.quick else 1
+    if cfg.integrating:
+        cfg.out.mkdir(parents=True, exist_ok=True)
+        result = integrating(policy, periods=40 if cfg.quick else 80)
+        (cfg.out / "integrating.json").write_text(json.dumps(result, indent=2))
+        (cfg.out / "integrating.md").write_text(render_integrating(result))
+        print((cfg.out / "integrating.md").read_text())
+        return 0
     if cfg.only:
         print(json.dumps(evaluate_only(policy, cfg.out, cfg.only, quick=cfg.quick), indent=2))
         return 0
@@ -224,6 +238,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="the robustness suite through the tuning engine (noise, load, setpoint moves, "
         "hint errors, dead time, second-order plants) instead of the paper's section 5",
+    )
+    p.add_argument(
+        "--integrating",
+        action="store_true",
+        help="the agent on integrating processes (levels) through the tuning engine, "
+        "beside SIMC for integrating processes, and the check that pauses them",
     )
     p.add_argument("--quick", action="store_true", help="reduced version (CI, < 2 minutes)")
     p.add_argument(
@@ -268,6 +288,7 @@ def run(args: argparse.Namespace) -> int:
             precision=args.precision,
             card=args.card,
             robust=args.robust,
+            integrating=args.integrating,
             only=args.only,
             guard=args.guard,
         )

@@ -50,7 +50,7 @@ from plant_sim.foptd import FOPTDBatch
 from plant_sim.loop import step_test
 from plant_sim.pi import PIBatch
 from plant_sim.tunings import simc_paper, to_parallel
-from service.engine import LoopConfig
+from service.engine import LoopConfig, TuningEngine
 from service.learn.closed_loop import Policy, engine_of
 from service.units import AGENT_KI0, AGENT_KP0, RL_STEP_AGENT_UNITS, ScalingSpec
 from service.wire.decode import Columns, Decoded
@@ -167,6 +167,8 @@ class Run:
     sp: np.ndarray
     pv: np.ndarray
     """(N, samples) setpoint and measured PV (engineering units)."""
+    engine: TuningEngine | None = None
+    """The engine the loops were tuned through (its views, its audit rows)."""
 
 
 def grid() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -280,7 +282,7 @@ def run_condition(
         if cond.second_lag:
             second.step(y1)
     t_axis = np.arange(samples) * SAMPLE_S
-    return Run(K, tau, theta, lag, np.array(gains[: periods + 1]), t_axis, sp, pv_trace)
+    return Run(K, tau, theta, lag, np.array(gains[: periods + 1]), t_axis, sp, pv_trace, engine)
 
 
 def _setpoints(cond: Condition, n: int, samples: int, unit: float, rng) -> np.ndarray:
@@ -339,13 +341,14 @@ def _load(cond: Condition, n: int, samples: int, unit: float, rng) -> np.ndarray
 
 
 # -- scoring ------------------------------------------------------------------------------
-def score(K, tau, theta, lag, kp, ki) -> tuple[np.ndarray, np.ndarray]:
+def score(K, tau, theta, lag, kp, ki, tau_cl=None) -> tuple[np.ndarray, np.ndarray]:
     """(step-test MSE, unstable mask) of gains on the true plants (second lag ``lag``).
 
     First-order plants: the paper's step test. Second-order plants: the same test on the
-    true plant with the target of its half-rule FOPTD approximation.
+    true plant with the target of its half-rule FOPTD approximation. ``tau_cl``: the
+    target's closed-loop time constant (default twice the plant's tau).
     """
-    trace = step_test(K, tau, theta, kp, ki, tau2=lag)
+    trace = step_test(K, tau, theta, kp, ki, tau2=lag, tau_cl=tau_cl)
     with np.errstate(over="ignore", invalid="ignore"):
         err = trace.y - trace.target
         mse = np.mean(err**2, axis=1)
