@@ -78,3 +78,25 @@ def test_standard_errors_grow_with_slow_residuals_and_not_with_white_ones(monkey
         lambda jac, r, noise, p, lags: np.linalg.inv(jac.T @ jac) * noise**2,
     )
     assert slow_se > 2.0 * fits(0.3)[1]
+
+
+def test_the_integrating_alternative_finds_its_dead_time_from_a_coarse_grid():
+    """A noise-free integrator (dead time 7.3 samples) searched from a grid whose
+    nearest point is 7 samples off: the zoom finds the dead time within a twentieth of a
+    sample and the residual far below the coarse grid's."""
+    from service.engine.foptd_fit import Window, _integrating_fit
+
+    rng = np.random.default_rng(3)
+    n, theta, k = 300, 7.3, 0.02
+    u = np.repeat(rng.normal(0.0, 1.0, n // 20), 20)
+    t = np.arange(n, dtype=np.float64)
+    # exact ZOH integration of u delayed by theta: interval [j, j+1) holds u[j-8] for
+    # 0.3 of it and u[j-7] for the rest
+    held = 0.3 * u[np.clip(np.arange(n) - 8, 0, None)] + 0.7 * u[np.clip(np.arange(n) - 7, 0, None)]
+    pv = 5.0 + k * np.concatenate([[0.0], np.cumsum(held[:-1])])
+    w = Window.of(t, pv, u)
+    grid = np.append(np.linspace(0.0, 0.6 * w.span, 12), 0.0)
+    sse, k_fit, theta_fit = _integrating_fit(w, grid)
+    assert theta_fit == pytest.approx(theta, abs=0.05) and k_fit == pytest.approx(k, rel=1e-3)
+    coarse = _integrating_fit(w, np.array([0.0]))  # (one point: no zoom beyond a sample)
+    assert sse < 1e-4 * coarse[0]

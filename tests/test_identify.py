@@ -329,8 +329,8 @@ def test_a_hint_is_checked_at_event_closes_only_and_from_its_last_confident_mode
 def test_an_integrating_loop_is_reported_as_such_and_never_identified_as_foptd(noise):
     """Also without noise (a simulated level, a smooth transmitter), where the
     integrating model's residual is sharp in the dead time: taken at the grid's and the
-    FOPTD's dead times alone it was 5x the FOPTD's, and the loop said 'K or tau not
-    pinned down' (foptd_fit._integrating_sse)."""
+    FOPTD's dead times alone it was 5x the FOPTD's, and the loop said "K or tau not
+    pinned down" (foptd_fit._integrating_fit)."""
     engine = TuningEngine(untrained_agent(0))
     kp, ki = 0.05, 0.0002
     engine.register(LoopConfig(id="L", kp=kp, ki=ki, sample_period_s=H), wall=0.0)
@@ -373,6 +373,25 @@ def test_a_hinted_loop_on_an_integrating_process_is_paused_with_its_model(noise)
     later = drive(engine, k=0.01, moves=3, integrating=True, every=8.0, size=10.0,
                   noise=noise, t0=paused_at + 1e4)  # fmt: skip
     assert later == [] and engine.view("L", wall=1.0).counters.envelope_pauses == 1
+
+
+def test_a_slow_lag_in_the_box_that_fits_an_integrator_as_well_is_not_paused():
+    """Setpoint moves every 0.15 tau: a segment far shorter than the lag fits an
+    integrator as well as the FOPTD (the verdict says integrating), but the FOPTD's lag,
+    seen through the hint, is in the agent's box: the agent tunes it, unpaused (an
+    integrating verdict pauses only with its FOPTD out of the envelope)."""
+    engine = TuningEngine(untrained_agent(0))
+    kp, ki = gains(tau=400.0)
+    scaling = {"k_hat": K, "tau_hat": 400.0, "pv_scale": 20.0}
+    engine.register(
+        LoopConfig(id="L", kp=kp, ki=ki, sample_period_s=H, scaling=scaling,
+                   guard={"identify": True}),
+        wall=0.0,
+    )  # fmt: skip
+    drive(engine, tau=400.0, theta=40.0, moves=12, every=0.15, noise=0.1)
+    view = engine.view("L", wall=1.0)
+    assert view.identification.why.startswith("integrating"), view.identification.why
+    assert view.status == LoopStatus.tuning and view.counters.envelope_pauses == 0
 
 
 @pytest.mark.parametrize(

@@ -27,33 +27,40 @@ _EPS_STEP = math.sqrt(np.finfo(np.float64).eps)
 _TAU_GRID = 28
 _THETA_GRID = 12
 _FINE_TAU = 9
+_THETA_MAX = 0.9
+"""Largest dead time fitted, as a share of the window's span."""
+_TAU_MAX = 20.0
+"""Largest time constant fitted, in window spans (a slower lag is an integrator as far as
+the data tell)."""
+_THETA_RESOLUTION = 0.05
+"""Finest step of the integrating alternative's dead time, in samples."""
 
 
 def _delayed(v: np.ndarray, tau: float, theta: np.ndarray, dt: float) -> np.ndarray:
     """The input each sample interval contributes, for each dead time (rows), exactly as a
     zero-order hold sees it: an interval [t_k, t_k+1) receives u[k-d-1] for its first
     f dt and u[k-d] for the rest (theta = (d + f) dt), weighted as the first-order lag
-    integrates them, so that ``x[k+1] = a x[k] + (1 - a) w[k]``. Continuous in theta (as
-    the optimiser needs) without blending the input's noise beyond what the plant does.
-    Held at u[0] before the window."""
+    integrates them, so that ``x[k+1] = a x[k] + (1 - a) w[k]`` (``tau`` inf: an
+    integrator, the weights f and 1 - f). Continuous in theta (as the optimiser needs)
+    without blending the input's noise beyond what the plant does. Held at u[0] before
+    the window."""
     theta = np.asarray(theta, np.float64).reshape(-1)
     n = v.size
     d = np.floor(theta / dt).astype(np.int64)
     f = theta / dt - d
-    a = math.exp(-dt / tau)
-    a1 = np.exp(-(1.0 - f) * dt / tau)
-    w_old = (a1 - a) / (1.0 - a)
+    if math.isinf(tau):
+        w_old = f
+    else:
+        a = math.exp(-dt / tau)
+        w_old = (np.exp(-(1.0 - f) * dt / tau) - a) / (1.0 - a)
     k = np.arange(n)
     new = v[np.clip(k[None, :] - d[:, None], 0, n - 1)]
     old = v[np.clip(k[None, :] - d[:, None] - 1, 0, n - 1)]
     return new + w_old[:, None] * (old - new)
 
 
-def _response(t, v, tau, theta, dt, integrating=False) -> np.ndarray:
-    """x for one (tau, theta) (or the integral of the delayed input)."""
-    if integrating:
-        vd = _delayed(v, 1e12 * dt, np.array([theta]), dt)[0]
-        return np.concatenate([[0.0], np.cumsum(vd[:-1]) * dt])
+def _response(t, v, tau, theta, dt) -> np.ndarray:
+    """x for one (tau, theta)."""
     vd = _delayed(v, tau, np.array([theta]), dt)[0]
     a = math.exp(-dt / tau)
     return lfilter([0.0, 1.0 - a], [1.0, -a], vd)
@@ -206,9 +213,10 @@ class Fit:
     model: list[np.ndarray]
     """The model's pv over each window (as recorded: row means)."""
     slope: float = 0.0
+    """The integrating alternative's K (PV units per output unit per second), of the first
+    window (identification fits one)."""
     theta_i: float = 0.0
-    """The integrating alternative's K (PV units per output unit per second) and dead time
-    (s), of the first window (identification fits one)."""
+    """Its dead time (s)."""
 
 
 def predict(params: np.ndarray, w: Window, b: float, c: float) -> np.ndarray:
@@ -228,7 +236,8 @@ def fit_windows(windows: list[Window], start: tuple[float, float] | None = None)
     dt = float(np.median([w.dt for w in windows]))
     if not (span > 0.0 and dt > 0.0):  # screen() keeps such windows out of assess()
         raise ValueError(f"degenerate window (span {span}, dt {dt}): nothing to fit")
-    if start is not None and 0.05 * dt < start[0] < 20.0 * span and 0 <= start[1] < 0.9 * span:
+    fits = 0 <= start[1] < _THETA_MAX * span if start is not None else False
+    if fits and 0.05 * dt < start[0] < _TAU_MAX * span:
         fit = _refine(windows, span, dt, *start)
         if fit.k > 0.0 and fit.r2 >= MIN_R2:
             return fit  # else: the grid search after all
@@ -289,7 +298,7 @@ def _refine(windows: list[Window], span: float, dt: float, tau0: float, theta0: 
     starts = np.array(starts)
     k0 = float(np.median(starts[:, 1]))
     lo = [-np.inf, math.log(max(0.05 * dt, 1e-9)), 0.0] + [-np.inf] * (2 * m)
-    hi = [np.inf, math.log(20.0 * span), 0.9 * span] + [np.inf] * (2 * m)
+    hi = [np.inf, math.log(_TAU_MAX * span), _THETA_MAX * span] + [np.inf] * (2 * m)
     p0 = np.concatenate([[k0, math.log(tau0), theta0], starts[:, 0], starts[:, 2]])
     p0 = np.clip(p0, np.add(lo, 1e-9), np.subtract(hi, 1e-9))
     pv_scale = [max(float(np.std(w.pv)), 1e-12) for w in windows]
@@ -329,23 +338,21 @@ def _refine(windows: list[Window], span: float, dt: float, tau0: float, theta0: 
 def _integrating_fit(w: Window, thetas: np.ndarray) -> tuple[float, float, float]:
     """(residual sum of squares, K, theta) of the integrating alternative over window
     ``w``, ``pv = b + K int(u(t - theta)) dt + c t`` (c: the initial slope), linear in
-    (b, K, c) for each dead time, over three grids each around the last's best: ``thetas``
-    (the FOPTD's dead time among them), two samples either way in steps of half a sample,
-    half a sample either way in steps of a twentieth. Why the fine grids: the residual is
-    rippled in theta at the sample period and, on a loop with little noise, sharp (an
-    integrator with a dead time of 15 samples, no noise: 0.0007 at its dead time, 3.3 half
-    a sample off, 13 one sample off), so the coarse grid and the FOPTD's dead time (0.6
-    samples off: its tau runs into its bound, and the dead time makes up for the lag it
-    cannot drop) left it 5x the FOPTD's, and the process was taken for an imprecise FOPTD
-    instead of an integrator (docs/identification.md, Integrating processes). Each grid
-    is one vectorised pass (the three cost about what the coarse grid alone did one
-    dead time at a time)."""
-    top = 0.9 * w.span
-    best = 0.0
-    for offsets in (None, np.arange(-4, 5) / 2, np.arange(-10, 11) / 20):
-        grid = thetas if offsets is None else best + w.dt * offsets
-        grid = np.clip(np.asarray(grid, np.float64), 0.0, top)
-        vd = _delayed(w.v, 1e12 * w.dt, grid, w.dt)
+    (b, K, c) for each dead time: the best of the grid ``thetas`` (the FOPTD's dead time
+    among them), then zoomed in: 33 dead times over one grid step either way of it, and
+    again over two of the new steps either way, down to :data:`_THETA_RESOLUTION` of a
+    sample, each a vectorised pass. Why the zoom: the residual is rippled in theta at the
+    sample period and, on a loop with little noise, sharp (an integrator with a dead time
+    of 15 samples, no noise: 0.0007 there, 3.3 half a sample off, 13 a sample off), so
+    at the grid's dead times and the FOPTD's (half a sample off: its tau at its bound,
+    the dead time makes up for the lag it cannot drop) it came out 5x the FOPTD's, and
+    the process was taken for an imprecise FOPTD instead of an integrator
+    (docs/identification.md, Integrating processes)."""
+    top = _THETA_MAX * w.span
+    grid = np.clip(np.asarray(thetas, np.float64), 0.0, top)
+    half = float(np.max(np.diff(np.sort(grid)))) if grid.size > 1 else w.dt
+    while True:
+        vd = _delayed(w.v, math.inf, grid, w.dt)
         xi = np.concatenate([np.zeros((grid.size, 1)), np.cumsum(vd[:, :-1], axis=1) * w.dt], 1)
         basis = np.stack([np.ones_like(xi), xi, np.broadcast_to(w.t, xi.shape)], axis=1)
         basis = w.observe(basis, weighted=True).transpose(0, 2, 1)
@@ -353,7 +360,11 @@ def _integrating_fit(w: Window, thetas: np.ndarray) -> tuple[float, float, float
         sse = (((basis @ coef[..., None])[..., 0] - w.y) ** 2).sum(axis=1)
         j = int(np.argmin(sse))
         best, value, k = float(grid[j]), float(sse[j]), float(coef[j, 1])
-    return value, k, best
+        step = max(half / 16.0, _THETA_RESOLUTION * w.dt)
+        if half <= _THETA_RESOLUTION * w.dt:
+            return value, k, best
+        grid = np.unique(np.clip(best + step * np.arange(-16, 17), 0.0, top))
+        half = 2.0 * step if step > _THETA_RESOLUTION * w.dt else 0.0
 
 
 def _lags(span: float, rows: int, shown: float) -> int:

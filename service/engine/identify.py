@@ -120,9 +120,10 @@ class Model:
     tau_rse: float
     integrating: bool = False
     slope: float = 0.0
+    """The integrating alternative's K (PV units per output unit per second): the
+    process's, when ``integrating`` (the FOPTD's K and tau then say nothing)."""
     theta_i: float = 0.0
-    """The integrating alternative's K (PV units per output unit per second) and dead
-    time (s): the process, when ``integrating``."""
+    """The integrating alternative's dead time (s)."""
     events: int = 0
     """Excited events the model comes from."""
     prediction: float = math.inf

@@ -28,7 +28,9 @@ accepted sample; stated one sample at a time in ``tests/engine_reference.py``):
   ``guard.auto_rescale``, rescales it (audit 'rescaled'); outside the training box by
   :data:`service.engine.box.ENVELOPE_MARGIN` (or integrating) pauses it (audit
   'out_of_envelope'). Both set the gains to the model's tuning
-  (:mod:`service.engine.first_tuning`).
+  (:mod:`service.engine.first_tuning`), but for an integrating process, which keeps
+  its gains (no tuning of it is trusted: docs/identification.md, Integrating
+  processes).
 
 The recorder buffers are shared by all loops of a table (a pool of rows, one per open
 segment), so memory goes only to loops that are recording.
@@ -311,12 +313,14 @@ def catch_up(tb, wall: float) -> None:
 def closely(tb, s: int) -> bool:
     """Whether a loop is assessed at every chance (each event close and during events)
     rather than at every :data:`CHECK_EVERY` th close: no confident model yet, flagged,
-    paused, or the latest model drifted from the one in force by more than
+    paused (but as integrating), or the latest model drifted from the one in force by more than
     :data:`DRIFT` in K or tau (a plant on the move is caught before it leaves the box).
     A loop tuned on its registered hint is assessed at each event close only: the check
     of a hint is not urgent, and the fits are the engine's main cost."""
     st: IdState = tb.ident[s]
     m, known = st.model, st.in_force
+    if tb.out_env[s] and m is not None and m.integrating:
+        return False  # (no model comes to resume it while the process integrates)
     if tb.mismatch[s] or tb.out_env[s]:
         return True
     if known is None and tb.scaled[s]:
@@ -403,8 +407,10 @@ def _envelope(tb, s: int, m: identify.Model, t: float, wall: float, *, sure: boo
     down, nor consistent, on data that mix its old and new dynamics: with the consistency
     test on an event that has shown its response, the bar's ramp was paused at 4.5 tau0
     instead of 4.0 until such models could pause). An integrating one (never confident)
-    pauses when it fits and comes from enough events: the agent does not tune an
-    integrator (docs/identification.md, Integrating processes). One that fails any
+    pauses when it fits, comes from enough events and its FOPTD's lag is out of the
+    envelope too: the agent does not tune an integrator (docs/identification.md,
+    Integrating processes), but a slow lag the scaling shows in the box is one it tunes
+    (a segment shorter than the lag fits an integrator as well). One that fails any
     other check, or both (under load steps: misses of 8-30x the noise, pauses for good;
     docs/tuner.md, Session 17), is not used."""
     if not tb.env_guard[s]:
@@ -413,16 +419,16 @@ def _envelope(tb, s: int, m: identify.Model, t: float, wall: float, *, sure: boo
     if sure:
         out = m.integrating or not box.in_envelope(app)
     else:
-        if not (m.r2 >= identify.MIN_R2 and m.events >= identify.MIN_EVENTS and m.k > 0):
+        if not (m.r2 >= identify.MIN_R2 and m.events >= identify.MIN_EVENTS):
             return
-        if m.integrating:
-            out = True
-        elif not (identify.precise(m) or m.prediction <= identify.MAX_PREDICTION):
-            return
-        else:
+        if m.integrating:  # (either sign: a reverse-acting integrator is no better)
+            out = not box.in_envelope(app)
+        elif m.k > 0 and (identify.precise(m) or m.prediction <= identify.MAX_PREDICTION):
             out = not box.in_envelope(box.toward_box(app, 2.0 * m.k_rse, 2.0 * m.tau_rse))
-            if not out:
-                return
+        else:
+            return
+        if not out:
+            return
     detail = json.dumps(_integrator(m) if m.integrating else app, separators=(",", ":"))
     if out and not tb.out_env[s]:
         tb.n_envelope[s] += 1

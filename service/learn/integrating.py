@@ -32,7 +32,8 @@ import numpy as np
 from plant_sim.loop import step_test
 from plant_sim.tunings import simc, to_parallel
 from service.learn.closed_loop import Policy
-from service.learn.robust import Condition, run_condition, score
+from service.learn.robust import HINT, Condition, Run, run_condition, score
+from service.units import RL_STEP_AGENT_UNITS, ScalingSpec
 
 LAG = 1e5
 """Time constant (time units) of the lag that stands for the integrator."""
@@ -42,13 +43,19 @@ LONG_TEST = 110.0
 """Horizon (time units) of the step test that tells a slow oscillation from an unstable
 loop."""
 SLOPES = (0.5, 1.0, 2.0)
+"""The integrators' slopes as the hint shows them (agent units per time unit)."""
 THETAS = (0.05, 0.25, 0.5)
+"""Their dead times (time units)."""
 CONDITIONS = (
     Condition("paper protocol"),
     Condition("noise 0.05", noise=0.05),
     Condition("load steps 0.5 every 7", load_step=0.5),
 )
+"""The robustness suite's conditions the agent runs under (the first: the check's run)."""
 AGENT_ALONE = {"identify": False}
+"""The guard of the agent's runs: no check of the hint, so nothing pauses the agent."""
+PERIOD_S = RL_STEP_AGENT_UNITS * ScalingSpec(**HINT).resolve().time_unit_s
+"""One RL period of the loops, seconds of plant time."""
 
 
 def plants() -> tuple[np.ndarray, np.ndarray]:
@@ -77,7 +84,9 @@ def simc_gains(slope, theta) -> tuple[np.ndarray, np.ndarray]:
     return to_parallel(*simc(slope * LAG, LAG, theta, TAU_CL))
 
 
-def run(policy: Policy, cond: Condition, guard: dict | None, periods: int = 80):
+def run(policy: Policy, cond: Condition, guard: dict | None, periods: int = 80) -> Run:
+    """The nine integrators under ``cond`` through the engine (``guard``: as
+    :func:`~service.learn.robust.run_condition`'s; None the default, the hint checked)."""
     slope, theta = plants()
     return run_condition(
         policy, cond, periods=periods, guard=guard,
@@ -101,32 +110,44 @@ def integrating(policy: Policy, periods: int = 80) -> dict:
              "unstable": int(unstable.sum())}
         )  # fmt: skip
     out["checked"] = checked(run(policy, CONDITIONS[0], None, periods), slope, theta)
-    return out
+    return _finite(out)
+
+
+def _finite(value):
+    """``value`` with non-finite floats (an unstable loop's score) as None: valid JSON."""
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_finite(v) for v in value]
+    return None if isinstance(value, float) and not np.isfinite(value) else value
 
 
 def checked(done, slope, theta) -> dict:
-    """The default guard's run: per loop the RL period of its integrating pause (None:
-    not paused), its status and the step-test MSE of its final gains."""
+    """The default guard's run: per loop the plant time (s) and RL period of its first
+    integrating pause (None: not paused), its status and the step-test MSE of its final
+    gains. Drains the engine's audit rows."""
     engine = done.engine
     _, audit = engine.drain_changes()
-    period_s = (done.t[-1] - done.t[0]) / (done.gains.shape[0] - 1)
     paused_at: list[float | None] = [None] * slope.size
     for row in audit:  # the first integrating pause of each loop
         loop, t, reason, detail = row[0], row[2], row[5], row[10]
         i = int(loop[1:])
         first = paused_at[i] is None and reason == "out_of_envelope"
         if first and json.loads(detail).get("integrating"):
-            paused_at[i] = round(float(t) / period_s, 1)
+            paused_at[i] = float(t)
     kp, ki = done.gains[-1].T
     mse, unsettled, unstable = scores(slope, theta, kp, ki)
     wall = float(done.t[-1])
     statuses = [engine.view(f"P{i}", wall=wall).status.value for i in range(slope.size)]
-    return {"paused_at_period": paused_at, "status": statuses, "kp": kp.tolist(),
+    at_period = [None if t is None else round(t / PERIOD_S, 1) for t in paused_at]
+    return {"paused_at_s": paused_at, "paused_at_period": at_period, "status": statuses,
+            "kp": kp.tolist(),
             "ki": ki.tolist(), "mse": mse.tolist(), "not_settled": int(unsettled.sum()),
             "unstable": int(unstable.sum())}  # fmt: skip
 
 
 def render(result: dict) -> str:
+    """integrating.md: the agent's table and the check's, per plant."""
     slope, theta = (np.array(result["plants"][k]) for k in ("slope", "theta"))
     simc_mse = np.array(result["simc_mse"])
     lines = [
