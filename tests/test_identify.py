@@ -1,10 +1,9 @@
 """Closed-loop identification (issue 13): the fit, hint-free registration through the
-engine, bad data that must not identify, hints checked, snapshots, integrating loops and
-the envelope guard."""
+engine, bad data that must not identify, hints checked, snapshots and the envelope guard
+(integrating loops: tests/test_integrating.py)."""
 
 from __future__ import annotations
 
-import json
 import math
 
 import numpy as np
@@ -324,76 +323,7 @@ def test_a_hint_is_checked_at_event_closes_only_and_from_its_last_confident_mode
     assert calls["hinted"][0] is None  # no model yet: the grid search
 
 
-# -- integrating loops and the envelope ------------------------------------------------------
-@pytest.mark.parametrize("noise", [0.2, 0.0])
-def test_an_integrating_loop_is_reported_as_such_and_never_identified_as_foptd(noise):
-    """Also without noise (a simulated level, a smooth transmitter), where the
-    integrating model's residual is sharp in the dead time: taken at the grid's and the
-    FOPTD's dead times alone it was 5x the FOPTD's, and the loop said "K or tau not
-    pinned down" (foptd_fit._integrating_fit)."""
-    engine = TuningEngine(untrained_agent(0))
-    kp, ki = 0.05, 0.0002
-    engine.register(LoopConfig(id="L", kp=kp, ki=ki, sample_period_s=H), wall=0.0)
-    drive(engine, k=0.01, moves=6, integrating=True, every=8.0, size=10.0, noise=noise)
-    view = engine.view("L", wall=1e9)
-    assert view.counters.identified == 0
-    assert view.identification.why.startswith("integrating"), view.identification.why
-
-
-@pytest.mark.parametrize("noise", [0.2, 0.0])
-def test_a_hinted_loop_on_an_integrating_process_is_paused_with_its_model(noise):
-    """A loop registered with an FOPTD hint whose process integrates (a level): the
-    check pauses it (status out_of_envelope, the alarm's counter, an audit row with the
-    integrator's K and dead time) and the agent, which does not tune integrators
-    (service.learn.integrating: 7-18x SIMC's step-test MSE), takes no step after.
-    Before, an integrating verdict paused nothing: the agent went on tuning it."""
-    engine = TuningEngine(untrained_agent(0))
-    scaling = {"k_hat": 2.0, "tau_hat": 200.0, "pv_scale": 10.0}
-    engine.register(
-        LoopConfig(id="L", kp=0.05, ki=0.0002, sample_period_s=H, scaling=scaling,
-                   guard={"identify": True}),
-        wall=0.0,
-    )  # fmt: skip
-    drive(engine, k=0.01, moves=6, integrating=True, every=8.0, size=10.0, noise=noise)
-    view = engine.view("L", wall=1.0)
-    assert view.status == LoopStatus.out_of_envelope
-    assert view.counters.envelope_pauses == 1 and view.identification.out_of_envelope
-    assert view.identification.why.startswith("integrating"), view.identification.why
-    _, audit = engine.drain_changes()
-    (row,) = [r for r in audit if r[5] == "out_of_envelope"]
-    detail = json.loads(row[10])
-    assert detail["integrating"] is True
-    # drive's integrator: d pv / dt = k u (k = 0.01 per second), dead time THETA
-    assert detail["k_per_s"] == pytest.approx(0.01, rel=0.05)
-    if not noise:  # (under noise these slow ramps, 0.02 a sample, hide the onset)
-        # the simulation's 2.5-sample dead time acts on these data as 2 samples exactly
-        # (the integrating model's residual there: 1e-13)
-        assert detail["theta_s"] == pytest.approx(2 * H, abs=0.1 * H)
-    paused_at = row[2]
-    later = drive(engine, k=0.01, moves=3, integrating=True, every=8.0, size=10.0,
-                  noise=noise, t0=paused_at + 1e4)  # fmt: skip
-    assert later == [] and engine.view("L", wall=1.0).counters.envelope_pauses == 1
-
-
-def test_a_slow_lag_in_the_box_that_fits_an_integrator_as_well_is_not_paused():
-    """Setpoint moves every 0.15 tau: a segment far shorter than the lag fits an
-    integrator as well as the FOPTD (the verdict says integrating), but the FOPTD's lag,
-    seen through the hint, is in the agent's box: the agent tunes it, unpaused (an
-    integrating verdict pauses only with its FOPTD out of the envelope)."""
-    engine = TuningEngine(untrained_agent(0))
-    kp, ki = gains(tau=400.0)
-    scaling = {"k_hat": K, "tau_hat": 400.0, "pv_scale": 20.0}
-    engine.register(
-        LoopConfig(id="L", kp=kp, ki=ki, sample_period_s=H, scaling=scaling,
-                   guard={"identify": True}),
-        wall=0.0,
-    )  # fmt: skip
-    drive(engine, tau=400.0, theta=40.0, moves=12, every=0.15, noise=0.1)
-    view = engine.view("L", wall=1.0)
-    assert view.identification.why.startswith("integrating"), view.identification.why
-    assert view.status == LoopStatus.tuning and view.counters.envelope_pauses == 0
-
-
+# -- the envelope (integrating loops: tests/test_integrating.py) ---------------------------
 @pytest.mark.parametrize(
     ("tau_rse", "prediction", "paused"),
     [(0.05, 2.0, True), (0.3, 1.0, True), (0.3, 11.0, False)],
