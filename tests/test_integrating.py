@@ -144,3 +144,21 @@ def test_a_slow_lag_in_the_box_that_fits_an_integrator_as_well_is_not_paused():
     view = engine.view("L", wall=1.0)
     assert view.identification.why.startswith("integrating"), view.identification.why
     assert view.status == LoopStatus.tuning and view.counters.envelope_pauses == 0
+
+
+def test_the_command_stands_alone_and_its_report_renders_from_its_json(tmp_path):
+    """``pitune evaluate --integrating`` refuses --robust before anything runs; the
+    shipped report is its JSON rendered (a None score, an unstable loop's, included)."""
+    from pathlib import Path
+
+    from service.cli import main
+
+    out = tmp_path / "x"
+    with pytest.raises(SystemExit, match="a measurement of its own"):
+        main(["evaluate", "--integrating", "--robust", "--out", str(out)])
+    assert not out.exists()
+    reports = Path(__file__).resolve().parents[1] / "reports"
+    result = json.loads((reports / "integrating.json").read_text())
+    assert integrating.render(result) == (reports / "integrating.md").read_text()
+    result["agent"][0]["mse"][0] = result["agent"][0]["ratio_to_simc"][0] = None
+    assert "| paper protocol | " in integrating.render(integrating._finite(result))

@@ -151,10 +151,15 @@ def checked(done, slope, theta) -> dict:
             "unstable": int(unstable.sum())}  # fmt: skip
 
 
+def _scores(values: list) -> np.ndarray:
+    """Scores from the JSON: None (an unstable loop's) back to inf."""
+    return np.array([np.inf if v is None else v for v in values], np.float64)
+
+
 def render(result: dict) -> str:
     """integrating.md: the agent's table and the check's, per plant."""
     slope, theta = (np.array(result["plants"][k]) for k in ("slope", "theta"))
-    simc_mse = np.array(result["simc_mse"])
+    simc_mse = _scores(result["simc_mse"])
     lines = [
         "# pitune on integrating processes (through the tuning engine)",
         "",
@@ -172,27 +177,28 @@ def render(result: dict) -> str:
         "|---|---|---|---|---|---|---|",
     ]
     for r in result["agent"]:
-        mse, ratio = np.array(r["mse"]), np.array(r["ratio_to_simc"])
+        mse, ratio = _scores(r["mse"]), _scores(r["ratio_to_simc"])
         lines.append(
             f"| {r['condition']} | {mse.max():.3g} | {np.median(mse):.3g} |"
             f" {ratio.max():.1f}x / {np.median(ratio):.1f}x |"
             f" {np.mean(ratio < 1.0) * 100:.0f}% | {r['not_settled']} | {r['unstable']} |"
         )
     c = result["checked"]
+    kept = _scores(c["mse"])
     paused = [p for p in c["paused_at_period"] if p is not None]
     lines += [
         "",
         "Default guard (the hint checked by identification), paper protocol: "
         f"{len(paused)} of {slope.size} loops paused as integrating"
         + (f", at RL period {min(paused):g}-{max(paused):g}" if paused else "")
-        + f"; final worst / median MSE {max(c['mse']):.3g} / {np.median(c['mse']):.3g}"
+        + f"; final worst / median MSE {kept.max():.3g} / {np.median(kept):.3g}"
         f" (the gains the pause kept), not settled in the step test {c['not_settled']},"
         f" unstable {c['unstable']}.",
         "",
         "| slope | theta | SIMC MSE | agent MSE (paper protocol) | paused at RL period | status |",
         "|---|---|---|---|---|---|",
     ]
-    agent = np.array(result["agent"][0]["mse"])
+    agent = _scores(result["agent"][0]["mse"])
     for i in range(slope.size):
         at = c["paused_at_period"][i]
         lines.append(
