@@ -351,15 +351,19 @@ def _integrating_fit(w: Window, thetas: np.ndarray) -> tuple[float, float, float
     top = _THETA_MAX * w.span
     grid = np.clip(np.asarray(thetas, np.float64), 0.0, top)
     half = float(np.max(np.diff(np.sort(grid)))) if grid.size > 1 else w.dt
+    # (b, c) are the same columns at every dead time: project them out once
+    # (Frisch-Waugh-Lovell), leaving K's one column per dead time
+    q = np.linalg.qr(w.observe(np.stack([np.ones_like(w.t), w.t]), weighted=True).T)[0]
+    y = w.y - q @ (q.T @ w.y)
     while True:
         vd = _delayed(w.v, math.inf, grid, w.dt)
         xi = np.concatenate([np.zeros((grid.size, 1)), np.cumsum(vd[:, :-1], axis=1) * w.dt], 1)
-        basis = np.stack([np.ones_like(xi), xi, np.broadcast_to(w.t, xi.shape)], axis=1)
-        basis = w.observe(basis, weighted=True).transpose(0, 2, 1)
-        coef = _lstsq(basis, w.y)
-        sse = (((basis @ coef[..., None])[..., 0] - w.y) ** 2).sum(axis=1)
+        x = w.observe(xi, weighted=True)
+        x -= (x @ q) @ q.T
+        ks = (x @ y) / np.maximum((x * x).sum(axis=1), 1e-300)
+        sse = ((y - ks[:, None] * x) ** 2).sum(axis=1)
         j = int(np.argmin(sse))
-        best, value, k = float(grid[j]), float(sse[j]), float(coef[j, 1])
+        best, value, k = float(grid[j]), float(sse[j]), float(ks[j])
         step = max(half / 16.0, _THETA_RESOLUTION * w.dt)
         if half <= _THETA_RESOLUTION * w.dt:
             return value, k, best
