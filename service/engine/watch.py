@@ -59,7 +59,8 @@ NOISE_SCALE = 10.0
 the measurement noise (the agent sees errors of order 1 and noise well below)."""
 CHECK_EVERY = 3
 """With a model in force the latest assessment confirmed, a segment is assessed at every
-third event close only (fits cost most); a flagged or paused loop at every one."""
+third event close only (fits cost most); a flagged or paused loop at every one, but one
+paused as integrating (:func:`closely`)."""
 DRIFT = 1.25
 """Factor (K or tau) by which the latest confident model may differ from the one in force
 before the loop is assessed at every chance again (:func:`closely`)."""
