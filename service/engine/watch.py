@@ -416,12 +416,12 @@ def _envelope(tb, s: int, m: identify.Model, t: float, wall: float, *, sure: boo
     down, nor consistent, on data that mix its old and new dynamics: with the consistency
     test on an event that has shown its response, the bar's ramp was paused at 4.5 tau0
     instead of 4.0 until such models could pause). An integrating one (never confident)
-    pauses when it fits, comes from enough events and its FOPTD's lag is out of the
-    envelope too: the agent does not tune an integrator (docs/identification.md,
-    Integrating processes), but a slow lag the scaling shows in the box is one it tunes
-    (a segment shorter than the lag fits an integrator as well). One that fails any
-    other check, or both (under load steps: misses of 8-30x the noise, pauses for good;
-    docs/tuner.md, Session 17), is not used."""
+    pauses when it fits, comes from enough events, passes :func:`integrating_pause` and
+    its FOPTD's lag is out of the envelope too: the agent does not tune an integrator
+    (docs/identification.md, Integrating processes), but a slow lag the scaling shows
+    in the box is one it tunes (a segment shorter than the lag fits an integrator as
+    well). One that fails any other check, or both (under load steps: misses of 8-30x
+    the noise, pauses for good; docs/tuner.md, Session 17), is not used."""
     if not tb.env_guard[s]:
         return
     app = box.apparent(tb.scaling_of(s), m)
