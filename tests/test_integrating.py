@@ -90,6 +90,11 @@ def test_an_integrating_loop_is_reported_as_such_and_never_identified_as_foptd(n
     view = engine.view("L", wall=1e9)
     assert view.counters.identified == 0
     assert view.identification.why.startswith("integrating"), view.identification.why
+    # the view carries the integrator's own numbers (drive's: k = 0.01 per second)
+    model = view.identification.model
+    assert model.integrating and model.slope == pytest.approx(0.01, rel=0.05)
+    if not noise:  # as in the hinted case below
+        assert model.theta_i == pytest.approx(2 * H, abs=0.1 * H)
 
 
 @pytest.mark.parametrize("noise", [0.2, 0.0])

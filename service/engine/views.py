@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from service.engine import box, monitor, oscillation, verify
-from service.engine.config import Counters, Identification, LoopConfig, LoopView
+from service.engine.config import Counters, LoopConfig, LoopView
 from service.engine.figures import (
     Fence,
     Performance,
@@ -20,6 +20,7 @@ from service.engine.figures import (
     Verification,
     WindowFigures,
 )  # fmt: skip
+from service.engine.id_view import Identification
 from service.engine.modes import ADVISORY
 from service.engine.monitor import same_gains
 

@@ -141,7 +141,9 @@
     if (idn) {
       pairs.push(["identification", pitune.esc(idn.state) + (idn.why ? ` <span class="muted">(${pitune.esc(idn.why)})</span>` : "")]);
       const m = idn.model;
-      if (m) pairs.push(["identified", `K ${pitune.num(m.k)}, τ ${pitune.num(m.tau)} s, θ ${pitune.num(m.theta)} s, r² ${pitune.num(m.r2, 3)}, confidence ${pitune.num(m.confidence, 2)}`]);
+      // an integrating process's FOPTD numbers say nothing: its own K (per s) and dead time
+      if (m && m.integrating) pairs.push(["identified", `<b>integrating</b>: K ${pitune.num(m.slope)} /s, θ ${pitune.num(m.theta_i)} s, r² ${pitune.num(m.r2, 3)}`]);
+      else if (m) pairs.push(["identified", `K ${pitune.num(m.k)}, τ ${pitune.num(m.tau)} s, θ ${pitune.num(m.theta)} s, r² ${pitune.num(m.r2, 3)}, confidence ${pitune.num(m.confidence, 2)}`]);
       if (idn.mismatch) pairs.push(["hint", "<b>mismatch</b>"]);
       if (idn.out_of_envelope) pairs.push(["envelope", "<b>outside the training box</b>"]);
     }
