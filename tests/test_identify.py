@@ -335,8 +335,8 @@ def test_an_unconfident_model_pauses_only_when_it_fails_one_check_of_two(
     """A model of a plant 10x the hint's gain that passes every check but precision, or
     but consistency, pauses the loop (a drifting plant); one that fails both (the earlier
     events' model missed the next by 11x the noise: load steps at the plant input) is
-    not used (service.engine.watch._envelope)."""
-    from service.engine import watch
+    not used (service.engine.model_use.envelope)."""
+    from service.engine import model_use
     from service.engine.identify import Model
 
     engine = TuningEngine(untrained_agent(0))
@@ -344,7 +344,7 @@ def test_an_unconfident_model_pauses_only_when_it_fails_one_check_of_two(
     tb, s = engine.table, engine.table.slot("L")
     m = Model(k=10 * K, tau=TAU, theta=THETA, noise=1.0, move=20.0, r2=0.95, k_rse=0.05,
               tau_rse=tau_rse, events=3, prediction=prediction)  # fmt: skip
-    watch._envelope(tb, s, m, 100.0, 1.0, sure=False)
+    model_use.envelope(tb, s, m, 100.0, 1.0, sure=False)
     assert bool(tb.out_env[s]) is paused
     assert engine.view("L", wall=1.0).counters.envelope_pauses == int(paused)
 

@@ -86,7 +86,7 @@ def test_a_pass_warms_at_most_warm_per_pass_loops_and_the_next_pass_the_rest():
         )
     m = Model(k=K, tau=TAU, theta=THETA, noise=0.1, move=5.0, r2=0.99, k_rse=0.01, tau_rse=0.01)
     slots = [tb.slot(f"L{i}") for i in range(n)]
-    for s in slots:  # as identification puts a model in force (watch._put_in_force)
+    for s in slots:  # as identification puts a model in force (model_use._put_in_force)
         tb.ident[s].in_force = m
     tb.warming.extend((s, tb.ids[s], m) for s in slots)
     warmed = lambda: np.abs(tb.hidden[slots]).sum(axis=(1, 2)) > 0  # noqa: E731
@@ -114,7 +114,7 @@ def test_a_budgeted_engine_warms_a_slice_a_pass_to_the_same_state():
                 wall=0.0,
             )  # fmt: skip
         slots = [engine.table.slot(f"L{i}") for i in range(n)]
-        for s in slots:  # as identification puts a model in force (watch._put_in_force)
+        for s in slots:  # as identification puts a model in force (model_use._put_in_force)
             engine.table.ident[s].in_force = m
         return engine, engine.table, slots
 

@@ -21,15 +21,15 @@ accepted sample; stated one sample at a time in ``tests/engine_reference.py``):
   (a ramp of one change a sample made an event of every eight samples, none starting at
   rest, and fits confident and wrong); :func:`~service.engine.identify.assess` judges
   whether the ramp was fast enough to tell tau from the dead time.
-* At each close the segment is assessed (:func:`~service.engine.identify.assess`).
-  A confident model without a scaling in force becomes the loop's scaling (audit
-  'identified'); with one in force it is compared: a disagreement beyond
-  ``guard.hint_tolerance`` flags the loop (audit 'mismatch') and, with
-  ``guard.auto_rescale``, rescales it (audit 'rescaled'); outside the training box by
-  :data:`service.engine.box.ENVELOPE_MARGIN` (or integrating) pauses it (audit
-  'out_of_envelope'). Both set the gains to the model's tuning
-  (:mod:`service.engine.first_tuning`), but for an integrating process, which keeps
-  its gains (no tuning of it is trusted: docs/identification.md, Integrating
+* At each close the segment is assessed (:func:`~service.engine.identify.assess`) and
+  the model used (:mod:`service.engine.model_use`). A confident model without a
+  scaling in force becomes the loop's scaling (audit 'identified'); with one in force
+  it is compared: a disagreement beyond ``guard.hint_tolerance`` flags the loop (audit
+  'mismatch') and, with ``guard.auto_rescale``, rescales it (audit 'rescaled');
+  outside the training box by :data:`service.engine.box.ENVELOPE_MARGIN` (or
+  integrating) pauses it (audit 'out_of_envelope'). Both set the gains to the model's
+  tuning (:mod:`service.engine.first_tuning`), but for an integrating process, which
+  keeps its gains (no tuning of it is trusted: docs/identification.md, Integrating
   processes).
 
 The recorder buffers are shared by all loops of a table (a pool of rows, one per open
@@ -38,25 +38,19 @@ segment), so memory goes only to loops that are recording.
 
 from __future__ import annotations
 
-import json
 import math
 
 import numpy as np
 
-from service.engine import box, first_tuning, identify, model_check, verify
-from service.engine.audit import audit_row
+from service.engine import identify, model_check, model_use, verify
 from service.engine.foptd_fit import sample_period
 from service.engine.id_state import IdState
 from service.engine.recorder import CAP
-from service.units import AGENT_GAIN, AGENT_TAU, Scaling
 
 MIN_EVENT_SAMPLES = 8
 """Recorded samples an event needs before a new setpoint move closes it."""
 MAX_EVENTS = 6
 """Events a segment keeps (older ones are dropped: the plant may drift)."""
-NOISE_SCALE = 10.0
-"""A hint-free loop's pv_scale is the typical setpoint move, at least this many times
-the measurement noise (the agent sees errors of order 1 and noise well below)."""
 CHECK_EVERY = 3
 """With a model in force the latest assessment confirmed, a segment is assessed at every
 third event close only (fits cost most); a flagged or paused loop at every one, but one
@@ -290,11 +284,11 @@ def _assess(tb, s: int, t: float, wall: float) -> bool:
     if result.model is not None and model_check.plant_moved(st.fallback, result.model):
         verify.forget_figures(tb, s)  # they are the plant of before's
     if result.model is not None and result.model.confident:
-        use(tb, s, result.model, t, wall)
+        model_use.use(tb, s, result.model, t, wall)
     elif tb.scaled[s] and result.why.startswith(
         (identify.IMPRECISE, identify.DISAGREE, identify.INTEGRATING)
     ):
-        _envelope(tb, s, result.model, t, wall, sure=False)
+        model_use.envelope(tb, s, result.model, t, wall, sure=False)
     return True
 
 
@@ -309,14 +303,6 @@ def catch_up(tb, wall: float) -> None:
             n = int(tb.rec_n[s])
             tb.fits.timed(_assess, tb, s, float(tb.last_t[s]), wall)
             _trim(tb, s, n)
-
-
-INTEGRATING_K_RSE = 20.0
-"""Largest relative standard error of the FOPTD's K with which an integrating verdict
-pauses: on true integrators 0.26-0.62, up to 8 on a weakly excited one under noise (K
-and tau collinear at tau's bound); on the integrating verdicts load steps at the plant
-input gave 35-83 (the robustness suite's load-steps condition, session 30: without this
-test one loop paused on such a verdict, its worst step-test MSE 0.027 -> 0.055)."""
 
 
 def closely(tb, s: int) -> bool:
@@ -369,124 +355,6 @@ def stop(tb, s: int) -> None:
         tb.ident[s].starts = []
 
 
-# -- using a model ---------------------------------------------------------------------
-def model_scaling(m: identify.Model, pv_scale: float | None = None) -> Scaling:
-    """The section 5.4 scaling of a model: it appears with gain 0.5 and tau 0.5."""
-    if pv_scale is None:
-        pv_scale = max(m.move, NOISE_SCALE * m.noise)
-    e_scale = 1.0 / pv_scale
-    return Scaling(
-        e_scale=e_scale, u_scale=e_scale * m.k / AGENT_GAIN, time_unit_s=m.tau / AGENT_TAU
-    )
-
-
-def use(tb, s: int, m: identify.Model, t: float, wall: float) -> None:
-    """A confident model: the first scaling of a hint-free loop, or a check of the one in
-    force (mismatch flag, auto-rescale, envelope guard)."""
-    config = tb.configs[tb.ids[s]]
-    guard = config.guard
-    detail = json.dumps({k: v for k, v in m.as_dict().items()}, separators=(",", ":"))
-    if not tb.scaled[s]:
-        _put_in_force(tb, s, m, model_scaling(m), t, wall, "identified", detail)
-        return
-    scaling = tb.scaling_of(s)
-    app = box.apparent(scaling, m)
-    off = max(abs(math.log(app["gain"] / AGENT_GAIN)), abs(math.log(app["tau"] / AGENT_TAU)))
-    if off > math.log(guard.hint_tolerance):
-        if not tb.mismatch[s]:  # flagged (and, with auto-rescale, rescaled right after)
-            tb.n_mismatch[s] += 1
-            _audit(tb, s, t, wall, "mismatch", detail)
-        tb.mismatch[s] = True
-        if tb.site.rescales(guard):
-            pv_scale = 1.0 / scaling.e_scale
-            _put_in_force(tb, s, m, model_scaling(m, pv_scale), t, wall, "rescaled", detail)
-            tb.mismatch[s] = False
-    else:
-        tb.mismatch[s] = False
-    _envelope(tb, s, m, t, wall, sure=True)
-    if not tb.out_env[s]:  # the gains follow a plant drifting inside the envelope
-        model_check.follow(tb, s, m, t, wall)  # (with a model in force)
-        model_check.hint_checked(tb, s, m, wall)  # (without: a hinted loop)
-
-
-def _envelope(tb, s: int, m: identify.Model, t: float, wall: float, *, sure: bool) -> None:
-    """The envelope guard. A confident model (``sure``) decides both ways; one that passes
-    every check but precision, or but consistency, only pauses, and only when even K and
-    tau two standard errors toward the box leave it (a drifting plant is never pinned
-    down, nor consistent, on data that mix its old and new dynamics: with the consistency
-    test on an event that has shown its response, the bar's ramp was paused at 4.5 tau0
-    instead of 4.0 until such models could pause). An integrating one (never confident)
-    pauses when it fits, comes from enough events, passes :func:`integrating_pause` and
-    its FOPTD's lag is out of the envelope too: the agent does not tune an integrator
-    (docs/identification.md, Integrating processes), but a slow lag the scaling shows
-    in the box is one it tunes (a segment shorter than the lag fits an integrator as
-    well). One that fails any other check, or both (under load steps: misses of 8-30x
-    the noise, pauses for good; docs/tuner.md, Session 17), is not used."""
-    if not tb.env_guard[s]:
-        return
-    app = box.apparent(tb.scaling_of(s), m)
-    if sure:
-        out = m.integrating or not box.in_envelope(app)
-    else:
-        if not (m.r2 >= identify.MIN_R2 and m.events >= identify.MIN_EVENTS):
-            return
-        if m.integrating:
-            out = integrating_pause(m) and not box.in_envelope(app)
-        elif m.k > 0 and (identify.precise(m) or m.prediction <= identify.MAX_PREDICTION):
-            out = not box.in_envelope(box.toward_box(app, 2.0 * m.k_rse, 2.0 * m.tau_rse))
-        else:
-            return
-        if not out:
-            return
-    detail = json.dumps(_integrator(m) if m.integrating else app, separators=(",", ":"))
-    if out and not tb.out_env[s]:
-        tb.n_envelope[s] += 1
-        _audit(tb, s, t, wall, "out_of_envelope", detail)
-    elif not out and tb.out_env[s]:
-        _audit(tb, s, t, wall, "in_envelope", detail)
-    tb.out_env[s] = out
-    if out and sure:  # paused on the model's tuning (a no-op once the gains are at it)
-        first_tuning.apply(tb, s, m, wall, "out_of_envelope")
-
-
-def integrating_pause(m: identify.Model) -> bool:
-    """Whether an integrating verdict is one to pause on: the integrator's K has the
-    registered action's sign and the FOPTD's K is not lost in its standard error
-    (:data:`INTEGRATING_K_RSE`)."""
-    return m.slope > 0 and m.k_rse <= INTEGRATING_K_RSE
-
-
-def _integrator(m: identify.Model) -> dict:
-    """An integrating model as the envelope's audit row shows it: K (PV units per output
-    unit per second) and dead time (s)."""
-    return {"integrating": True, "k_per_s": m.slope, "theta_s": m.theta_i}
-
-
-def _put_in_force(tb, s, m, scaling: Scaling, t, wall, reason: str, detail: str) -> None:
-    st: IdState = tb.ident[s]
-    st.scaling, st.in_force, st.in_force_t = scaling, m, t
-    tb.reconfigure(tb.configs[tb.ids[s]])
-    # a fresh episode from the gains in force, a decimation window from now
-    tb.hidden[s] = 0.0
-    tb.unsettle(s)
-    tb.int_e[s] = 0.0
-    tb.next_due[s] = t + tb.period[s]
-    if tb.exc_window[s] < math.inf:
-        tb.excited_until[s] = t + tb.exc_window[s]
-    tb.out_env[s] = False
-    tb.n_identified[s] += 1
-    _audit(tb, s, t, wall, reason, detail)
-    first_tuning.apply(tb, s, m, wall, reason)
-
-
-def _audit(tb, s: int, t: float, wall: float, reason: str, detail: str) -> None:
-    gains = (float(tb.kp[s]), float(tb.ki[s]))
-    tb._audit.append(
-        audit_row(tb.ids[s], wall, t, int(tb.seq[s]), tb.mode_of(s).value, reason, gains,
-                  gains, detail)
-    )  # fmt: skip
-
-
 def restart(tb, s: int, wall: float) -> None:
     """Identify again from scratch (``POST /loops/{id}/identify``): the identified
     scaling is dropped (a hint-free loop is 'identifying' again, a hinted one back on its
@@ -496,4 +364,4 @@ def restart(tb, s: int, wall: float) -> None:
     tb.mismatch[s] = tb.out_env[s] = False
     tb.reconfigure(tb.configs[tb.ids[s]])
     t = tb.last_t[s]
-    _audit(tb, s, None if math.isnan(t) else float(t), wall, "identify", "restarted")
+    model_use.audit(tb, s, None if math.isnan(t) else float(t), wall, "identify", "restarted")
