@@ -130,7 +130,7 @@ def _ingest(tb: LoopTable, s: int, sample: Sample, wall: float) -> bool:
     fresh = gap or resumed
     if tb.watch[s] and sample.sp is not None:
         sample = sample.model_copy(update={"saturated": saturated})
-        _record(tb, s, sample, e, last_t, fresh, wall, ramping)
+        _record(tb, s, sample, e, last_t, gap, fresh, wall, ramping)
     # performance monitoring is no sample rule: its one implementation, with one sample
     one = np.array([s])
     judged = monitor.observe(
@@ -205,24 +205,40 @@ def _held(tb: LoopTable, s: int, sample: Sample, e: float, last_t, gap: bool, wa
     return bool(tb.oh_held[s])
 
 
-def _record(tb: LoopTable, s: int, sample: Sample, e: float, last_t, fresh, wall, ramping) -> None:
+def _record(
+    tb: LoopTable, s: int, sample: Sample, e: float, last_t, gap, fresh, wall, ramping
+) -> None:
     """Identification's sample rule (service.engine.watch.record), one sample."""
     t, sp = sample.t, sample.sp
     pv = sp - e
+    measured = sample.op is not None
+    # after a gap, a stretch not recorded, or where op is sent after samples without it
+    anew = (fresh and (gap or not tb.prev_ok[s])) or (measured and not tb.prev_meas[s])
     # the gains the sample reports in force, else the tuner's
     kp = tb.kp[s] if sample.kp is None else sample.kp
     ki = tb.ki[s] if sample.ki is None else sample.ki
-    if fresh:
+    if measured:  # the reconstruction goes on bumpless from the output sent
+        integral = sample.op - kp * e
+    elif anew:
         integral = ki * e * 0.0
     else:  # the PI's integral term: bumpless kp change, backward Euler
         integral = tb.op_int[s] - (kp - tb.op_kp[s]) * tb.last_e[s] + ki * e * (t - last_t)
     tb.op_int[s], tb.op_kp[s] = integral, kp
     op = kp * e + integral if sample.op is None else sample.op
-    # a ramp's later changes are samples of the event its first change opened
-    moved = not math.isnan(tb.id_sp[s]) and sp != tb.id_sp[s] and not ramping
+    before = tb.id_sp[s]
+    by_hand = not sample.auto and measured
+    if by_hand:  # an operator's output step is a move; the setpoint, the one before manual
+        moved = not anew and abs(op - tb.prev_op[s]) > watch._step(op, tb.prev_op[s])
+        sp = sp if math.isnan(before) else before
+    else:  # a ramp's later changes are samples of the event its first change opened
+        moved = not math.isnan(before) and sp != before and not ramping
     tb.id_sp[s] = sp
-    broken = fresh or not sample.auto or sample.saturated
-    why = "manual" if not sample.auto else "output saturated" if sample.saturated else "data gap"
+    broken = anew or (not sample.auto and not measured) or sample.saturated
+    why = (
+        "manual, without op in the samples" if not sample.auto
+        else "output saturated" if sample.saturated
+        else "data gap (or op sent after samples without)"
+    )  # fmt: skip
     row = (t, sp, pv, op)
     if tb.rec[s] >= 0 and broken:
         watch._close(tb, s, t, wall, final=True, why=f"segment ended: {why}")
@@ -252,7 +268,7 @@ def _record(tb: LoopTable, s: int, sample: Sample, e: float, last_t, fresh, wall
         if watch.check_due(k) and watch.closely(tb, s):
             watch._close(tb, s, t, wall)
     tb.prev_t[s], tb.prev_sp[s], tb.prev_pv[s], tb.prev_op[s] = t, sp, pv, op
-    tb.prev_ok[s] = not broken
+    tb.prev_ok[s], tb.prev_meas[s] = not broken, measured
 
 
 def _close(a: float, b: float) -> bool:

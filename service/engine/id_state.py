@@ -18,7 +18,7 @@ class IdState:
 
     events: Sequence[identify.EventFit] = ()
     model: identify.Model | None = None
-    why: str = "waiting for a setpoint move"
+    why: str = "waiting for a setpoint move (or an output step in manual, op in the samples)"
     in_force: identify.Model | None = None
     in_force_t: float | None = None
     scaling: Scaling | None = None

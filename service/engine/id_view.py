@@ -34,7 +34,8 @@ class IdentifiedModel(BaseModel):
 
 
 class IdentificationEvent(BaseModel):
-    """A setpoint move and the data up to the next, as identification saw it."""
+    """A setpoint move (or an output step in manual) and the data up to the next, as
+    identification saw it."""
 
     t0: float
     t1: float
@@ -43,6 +44,11 @@ class IdentificationEvent(BaseModel):
     ramp_s: float | None = Field(0.0, description="Seconds it ramped (null: still ramping).")
     snr: float | None = Field(description="Modelled response over the noise (peak to peak).")
     excited: bool
+    op_move: float = Field(
+        0.0,
+        description="The output step an operator made in manual that opened the event "
+        "(output units; 0: a setpoint move's event).",
+    )
 
 
 class Identification(BaseModel):

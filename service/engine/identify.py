@@ -1,8 +1,9 @@
 """Closed-loop identification of a loop's process model: pure numerics, no engine state.
 
 An *event* is a window of one loop's closed-loop data (sample times, setpoint,
-measurement and controller output) that starts at a setpoint move and ends at the next
-one (or when it grows too long). :func:`fit_event` fits a first-order-plus-dead-time
+measurement and controller output) that starts at a setpoint move, or at an operator's
+step of the output in manual (open-loop data, a bump test), and ends at the next one
+(or when it grows too long). :func:`fit_event` fits a first-order-plus-dead-time
 model from the controller output to the measurement over the window::
 
     pv(t) = b + K x(t),    tau x'(t) = u(t - theta) - u(t0) - x(t),    x(t0) = 0
@@ -94,6 +95,9 @@ class EventFit:
     snr: float = math.nan
     """Peak-to-peak response the model shows in the event, in multiples of the noise."""
     excited: bool = False
+    op_move: float = 0.0
+    """The output step an operator made in manual that opened the event (output units;
+    0: a setpoint move's event)."""
 
     def as_dict(self) -> dict:
         return {k: _num(v) for k, v in asdict(self).items()}
@@ -114,7 +118,8 @@ class Model:
     noise: float
     """Residual rms (PV units): the measurement noise."""
     move: float
-    """Typical setpoint move (median |move| of the excited events)."""
+    """Typical setpoint move (median |move| of the excited events; of an output step, the
+    PV change it makes, |K op_move|)."""
     r2: float
     k_rse: float
     tau_rse: float
@@ -197,7 +202,8 @@ def assess(
     t, sp, pv, op, starts: list[int], start: tuple[float, float] | None = None, last: int = 1
 ) -> Assessment:
     """Identify from one contiguous segment of closed-loop data (no gap, manual or
-    saturated sample inside) whose events (setpoint moves) start at the indices
+    saturated sample inside) whose events (setpoint moves, or output steps in manual:
+    those whose setpoint is the one before, :func:`_bump`) start at the indices
     ``starts``; the last event runs to the end of the data. Rows may be the recorder's
     means of several samples (:func:`recorded`; ``last``: the samples the last row holds).
 
@@ -213,7 +219,9 @@ def assess(
     t, sp, pv, op = (np.asarray(x, np.float64) for x in (t, sp, pv, op))
     bounds = [*starts, t.size]
     events = [
-        EventFit(
+        EventFit(float(t[a]), float(t[b - 1]), b - a, 0.0, op_move=float(op[a] - op[a - 1]))
+        if _bump(sp, a)
+        else EventFit(
             t0=float(t[a]), t1=float(t[b - 1]), n=b - a,
             move=float(sp[b - 1] - sp[a - 1]) if a > 0 else 0.0, ramp_s=_ramp(t, sp, a, b),
         )
@@ -221,7 +229,10 @@ def assess(
     ]  # fmt: skip
     out = Assessment(events=events)
     if len(starts) < MIN_EVENTS:
-        out.why = f"waiting for setpoint moves ({len(starts)} of {MIN_EVENTS} seen)"
+        out.why = (
+            f"waiting for setpoint moves or output steps in manual ({len(starts)} of "
+            f"{MIN_EVENTS} seen)"
+        )
         return out
     first = fitted_from(starts)
     t, sp, pv, op = t[first:], sp[first:], pv[first:], op[first:]
@@ -241,7 +252,8 @@ def assess(
         slow += not shows
     out.model = Model(
         k=joint.k, tau=joint.tau, theta=joint.theta, noise=joint.noise,
-        move=float(np.median([abs(ev.move) for ev in events if ev.excited] or [0.0])),
+        move=float(np.median([abs(ev.move or joint.k * ev.op_move) for ev in events
+                              if ev.excited] or [0.0])),  # fmt: skip
         r2=joint.r2, k_rse=joint.k_rse, tau_rse=joint.tau_rse,
         integrating=joint.integrating, slope=joint.slope, theta_i=joint.theta_i, events=excited,
     )  # fmt: skip
@@ -286,6 +298,13 @@ def fitted_from(starts: list[int]) -> int:
 def precise(m: Model) -> bool:
     """Whether K and tau are pinned down (:data:`MAX_REL_SE`, :data:`MAX_TAU_SE`)."""
     return m.k_rse <= MAX_REL_SE and m.tau_rse <= MAX_TAU_SE
+
+
+def _bump(sp: np.ndarray, a: int) -> bool:
+    """Whether the event from row ``a`` is an output step in manual: the recorder holds
+    the setpoint of before manual there (:func:`service.engine.watch.record`), where a
+    setpoint move's event starts with a new one."""
+    return a > 0 and sp[a] == sp[a - 1]
 
 
 def _ramp(t: np.ndarray, sp: np.ndarray, a: int, b: int) -> float:

@@ -153,7 +153,7 @@ def ingest(
     tb.saturated[slots] = saturated
     tb.last_t[slots] = t
     fresh = gap | resumed
-    watch.record(tb, slots, cols, last_t, fresh, wall)
+    watch.record(tb, slots, cols, last_t, gap, fresh, wall)
     first_tuning.flush(tb)  # the models put in force: one batched warm run
     if tb.monitoring:
         judged = monitor.observe(

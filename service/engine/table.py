@@ -97,8 +97,8 @@ _MOVES = [name for name in _I64 if name not in ("mode", "n_samples", "n_rejected
 step, an update, a model, a pause; seq): with the mode, :meth:`LoopTable._moves`."""
 _BOOL = [
     "pending", "manual", "saturated",
-    # identification: it runs, a scaling is in force, flagged, paused, last sample usable
-    "watch", "scaled", "mismatch", "out_env", "prev_ok", "env_guard",
+    # identification: it runs, a scaling is in force, flagged, paused, last sample usable, op
+    "watch", "scaled", "mismatch", "out_env", "prev_ok", "env_guard", "prev_meas",
 ]  # fmt: skip
 
 
@@ -283,7 +283,7 @@ class LoopTable:
             self.ident[slot] = IdState() if x is None or x.ident is None else x.ident
         for name, value in zip(_REC, (-1, 0, 0, 1, 0, 0), strict=True):
             getattr(self, name)[s] = value
-        self.mismatch[s] = self.out_env[s] = self.prev_ok[s] = False
+        self.mismatch[s] = self.out_env[s] = self.prev_ok[s] = self.prev_meas[s] = False
         self.op_int[s] = self.op_kp[s] = 0.0
         self.prev_t[s] = self.prev_sp[s] = self.prev_pv[s] = self.prev_op[s] = math.nan
         self.id_sp[s] = math.nan

@@ -63,14 +63,20 @@ HEAD_ROWS = 32
 all its rows recorded a fast loop's responses in rows of 16-32 samples, and the fits
 traded tau for dead time, confident and wrong (tau 6.7 s for 15 s); rows widening with
 the time since the move cost dead-time dominant loops (docs/identification.md)."""
+MANUAL_STEP = 0.02
+"""An output in manual moved by more than this share of its magnitude is an operator's
+step (an event; a bump test moves it by 5-10 %); less is noise: a gateway whose ``op`` is
+the valve's position feedback (noise up to about 0.3 % of it rms) would otherwise open
+an event at every sample or so."""
 CHECK_FIRST = 16
 """Samples after a move at which a loop without a confident model is first assessed
 within the event (then at 24, 32, 48, 64, 96...: :func:`check_due`)."""
 
 
 # -- the sample rule ---------------------------------------------------------------------
-def record(tb, slots: np.ndarray, cols: dict, last_t: np.ndarray, fresh: np.ndarray, wall):
-    """Record accepted samples of distinct loops (before ``last_e`` moves on)."""
+def record(tb, slots: np.ndarray, cols: dict, last_t: np.ndarray, gap, fresh, wall):
+    """Record accepted samples of distinct loops (before ``last_e`` moves on); ``gap``:
+    after a stale gap or none before, ``fresh``: that, or back from manual or saturated."""
     t, e, sp = cols["t"], cols["e"], cols["sp"]
     op = cols.get("op")
     tb.fits.refill(wall)
@@ -78,23 +84,35 @@ def record(tb, slots: np.ndarray, cols: dict, last_t: np.ndarray, fresh: np.ndar
     if not watch.any():
         return
     idx = np.flatnonzero(watch)
-    s, t, e, sp, fresh = slots[idx], t[idx], e[idx], sp[idx], fresh[idx]
+    s, t, e, sp, gap, fresh = slots[idx], t[idx], e[idx], sp[idx], gap[idx], fresh[idx]
     op = np.full(idx.size, np.nan) if op is None else op[idx]
     pv = sp - e
     auto, saturated = cols["auto"][idx], cols["saturated"][idx]
-    # a ramp's later changes are samples of the event its first change opened
-    moved = (sp != tb.id_sp[s]) & ~np.isnan(tb.id_sp[s]) & ~cols["ramping"][idx]
+    measured = ~np.isnan(op)
+    # the data go on from the last sample, but after a gap, a stretch not recorded, or
+    # an output that was reconstructed and is now sent (its constant is unknown)
+    anew = (fresh & (gap | ~tb.prev_ok[s])) | (measured & ~tb.prev_meas[s])
+    held = tb.id_sp[s]
+    # in manual with op sent the operator's output steps are the events and the setpoint
+    # (which a DCS may track to the PV) the one before manual; a ramp's later changes
+    # are samples of the event its first change opened
+    by_hand = ~auto & measured
+    moved = (sp != held) & ~np.isnan(held) & ~cols["ramping"][idx] & ~by_hand
+    moved |= by_hand & ~anew & (np.abs(op - tb.prev_op[s]) > _step(op, tb.prev_op[s]))
+    sp = np.where(by_hand & ~np.isnan(held), held, sp)
     tb.id_sp[s] = sp
     # the controller output, reconstructed where the sample has none, with the gains the
-    # sample reports in force (the DCS's; the tuner's may not have reached it yet)
+    # sample reports in force (the DCS's; the tuner's may not have reached it yet), and
+    # bumpless from the last one sent (as a DCS block from manual)
     kp = np.where(np.isnan(cols["kp"][idx]), tb.kp[s], cols["kp"][idx])
     ki = np.where(np.isnan(cols["ki"][idx]), tb.ki[s], cols["ki"][idx])
-    dt = np.where(fresh, 0.0, t - last_t[idx])
+    dt = np.where(anew, 0.0, t - last_t[idx])
     e_prev = tb.last_e[s]
-    integral = np.where(fresh, 0.0, tb.op_int[s] - (kp - tb.op_kp[s]) * e_prev) + ki * e * dt
+    integral = np.where(anew, 0.0, tb.op_int[s] - (kp - tb.op_kp[s]) * e_prev) + ki * e * dt
+    integral = np.where(measured, op - kp * e, integral)
     tb.op_int[s], tb.op_kp[s] = integral, kp
-    op = np.where(np.isnan(op), kp * e + integral, op)
-    broken = fresh | ~auto | saturated
+    op = np.where(measured, op, kp * e + integral)
+    broken = anew | (~auto & ~measured) | saturated
     recording = tb.rec[s] >= 0
     # rare paths, loop by loop: breaks, moves (open or close an event)
     special = np.flatnonzero((recording & broken) | (moved & ~broken))
@@ -148,14 +166,20 @@ def record(tb, slots: np.ndarray, cols: dict, last_t: np.ndarray, fresh: np.ndar
             if closely(tb, si):
                 _close(tb, si, ti, wall)
     tb.prev_t[s], tb.prev_sp[s], tb.prev_pv[s], tb.prev_op[s] = t, sp, pv, op
-    tb.prev_ok[s] = ~broken
+    tb.prev_ok[s], tb.prev_meas[s] = ~broken, measured
+
+
+def _step(op, before):
+    """The least change of the output that is an operator's step in manual
+    (:data:`MANUAL_STEP` of its magnitude)."""
+    return MANUAL_STEP * np.maximum(np.abs(op), np.abs(before))
 
 
 def broken_why(auto: bool, saturated: bool) -> str:
     """Why a sample breaks a segment (or makes a move unusable)."""
     if not auto:
-        return "manual"
-    return "output saturated" if saturated else "data gap"
+        return "manual, without op in the samples"
+    return "output saturated" if saturated else "data gap (or op sent after samples without)"
 
 
 def check_due(k):

@@ -1,0 +1,85 @@
+"""Identification from an operator's bump tests (service.engine.watch.record): a loop in
+manual whose samples carry the output ``op`` is open-loop data, and each step of the
+output opens an event as a setpoint move does in auto. A loop that only regulates (no
+setpoint moves: load disturbances alone do not identify it, docs/identification.md)
+is identified from two or three steps of its output."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from plant_sim.foptd import FOPTDBatch
+from service.agent import untrained_agent
+from service.engine import TuningEngine
+from service.wire.protocol import LoopStatus
+from tests.test_identify import TAU, THETA, H, K, hint_free
+
+pytestmark = pytest.mark.timeout(120)
+
+
+def bumps(engine, *, steps=4, every=5.0, size=4.0, noise=0.5, track=True, op=True, op_noise=0.0):
+    """The loop in manual at 25 % output, its output stepped by +-``size`` every ``every``
+    time constants; ``track``: the DCS's setpoint tracks the PV in manual (else it stays
+    at the last one in auto); ``op``: the samples carry the output, with white noise of
+    ``op_noise`` (a valve's position feedback). Returns the gain updates published."""
+    rng = np.random.default_rng(2)
+    plant = FOPTDBatch(K, TAU / H, THETA / H, dt=1.0, noise_std=noise, seed=1,
+                       max_theta=THETA / H)  # fmt: skip
+    u = 25.0
+    plant.reset(K * u)
+    per = int(round(every * TAU / H))
+    updates = []
+    for j in range((steps + 1) * per):
+        if j and j % per == 0:
+            u += size if (j // per) % 2 else -size
+        y = float(plant.measure()[0])
+        sample = {"loop_id": "L", "t": j * H, "sp": y if track else K * 25.0, "pv": y,
+                  "auto": False}  # fmt: skip
+        if op:
+            sample["op"] = u + op_noise * float(rng.standard_normal())
+        updates += engine.ingest([sample], wall=float(j))
+        plant.step(np.array([u]))
+    return updates
+
+
+@pytest.mark.parametrize(("track", "op_noise"), [(True, 0.0), (False, 0.0), (True, 0.075)])
+def test_a_loop_in_manual_is_identified_from_steps_of_its_output(track, op_noise):
+    engine = TuningEngine(untrained_agent(0))
+    engine.register(hint_free(), wall=0.0)
+    updates = bumps(engine, track=track, op_noise=op_noise)
+    view = engine.view("L", wall=250.0)  # (the last sample's)
+    ident = view.identification
+    assert view.counters.identified == 1, ident.why
+    m = ident.in_force
+    assert m.k == pytest.approx(K, rel=0.05)
+    assert m.tau == pytest.approx(TAU, rel=0.1)
+    assert m.theta == pytest.approx(THETA, abs=0.2 * THETA)
+    # the events are the output's steps; the typical move is the PV change they make
+    steps = [ev.op_move for ev in ident.events]
+    assert len(steps) >= 2 and all(abs(x) == pytest.approx(4.0, abs=0.2) for x in steps), steps
+    assert all(ev.move == 0.0 for ev in ident.events)
+    assert m.move == pytest.approx(4.0 * K, rel=0.1)
+    # its tuning is published, ready for auto (the DCS holds it while in manual)
+    assert updates and view.scaling is not None
+    assert view.status == LoopStatus.manual
+
+
+def test_without_op_in_the_samples_a_loop_in_manual_says_why_and_stays_identifying():
+    engine = TuningEngine(untrained_agent(0))
+    engine.register(hint_free(), wall=0.0)
+    assert bumps(engine, op=False) == []
+    view = engine.view("L", wall=1e6)
+    assert view.counters.identified == 0 and view.scaling is None
+    assert "manual, without op" in view.identification.why, view.identification.why
+
+
+def test_an_output_that_only_wanders_in_manual_opens_no_event():
+    """Noise on the output (a valve's position feedback, 0.3 % of it rms here) is no
+    operator's step (watch.MANUAL_STEP): no event, no model."""
+    engine = TuningEngine(untrained_agent(0))
+    engine.register(hint_free(), wall=0.0)
+    assert bumps(engine, size=0.0, op_noise=0.075) == []
+    view = engine.view("L", wall=250.0)
+    assert view.identification.events == [] and view.identification.model is None
+    assert "output step in manual" in view.identification.why, view.identification.why
