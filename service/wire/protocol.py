@@ -186,7 +186,8 @@ class Sample(BaseModel):
         None,
         description="Controller output (the PI's output, engineering units), for the "
         "identification of the loop's model (when absent the tuner reconstructs it from "
-        "the PI law and the gains in force), and to see an output held at a limit where "
+        "the PI law and the gains in force; in manual, the operator's output, whose steps "
+        "identify the loop: a bump test), and to see an output held at a limit where "
         "the gateway cannot set saturated (unchanged while the PI law would move it: "
         "docs/identification.md, An output held at a limit).",
     )
