@@ -131,6 +131,8 @@ def _ingest(tb: LoopTable, s: int, sample: Sample, wall: float) -> bool:
     if tb.watch[s] and sample.sp is not None:
         sample = sample.model_copy(update={"saturated": saturated})
         _record(tb, s, sample, e, last_t, gap, fresh, wall, ramping)
+    else:  # not recorded: the next sample goes on from no recorded one
+        tb.prev_ok[s], tb.prev_meas[s] = False, sample.op is not None
     # performance monitoring is no sample rule: its one implementation, with one sample
     one = np.array([s])
     judged = monitor.observe(
@@ -228,17 +230,16 @@ def _record(
     before = tb.id_sp[s]
     by_hand = not sample.auto and measured
     if by_hand:  # an operator's output step is a move; the setpoint, the one before manual
-        moved = not anew and abs(op - tb.prev_op[s]) > watch._step(op, tb.prev_op[s])
+        step = watch._step(op, tb.prev_op[s], tb.oh_hi[s] - tb.oh_lo[s])
+        moved = not anew and abs(op - tb.prev_op[s]) > step
         sp = sp if math.isnan(before) else before
+    elif fresh and not anew:  # back in auto from manual with op: the setpoint may track
+        moved = False
     else:  # a ramp's later changes are samples of the event its first change opened
         moved = not math.isnan(before) and sp != before and not ramping
     tb.id_sp[s] = sp
     broken = anew or (not sample.auto and not measured) or sample.saturated
-    why = (
-        "manual, without op in the samples" if not sample.auto
-        else "output saturated" if sample.saturated
-        else "data gap (or op sent after samples without)"
-    )  # fmt: skip
+    why = watch.broken_why(sample.auto, sample.saturated, measured)
     row = (t, sp, pv, op)
     if tb.rec[s] >= 0 and broken:
         watch._close(tb, s, t, wall, final=True, why=f"segment ended: {why}")
@@ -252,7 +253,7 @@ def _record(
     elif tb.rec[s] < 0 and moved and not broken:
         watch._open(tb, s, row)
     elif tb.rec[s] < 0 and moved:
-        tb.ident[s].why = f"setpoint move not usable: {why}"
+        tb.ident[s].why = f"{'output step' if by_hand else 'setpoint move'} not usable: {why}"
     elif tb.rec[s] >= 0:  # recording: after a move a row per sample, then wider rows
         k, held = int(tb.rec_k[s]), int(tb.rec_m[s])
         tb.rec_k[s] += 1

@@ -18,24 +18,31 @@ from tests.test_identify import TAU, THETA, H, K, hint_free
 pytestmark = pytest.mark.timeout(120)
 
 
-def bumps(engine, *, steps=4, every=5.0, size=4.0, noise=0.5, track=True, op=True, op_noise=0.0):
+def bumps(
+    engine, *, steps=4, every=5.0, size=4.0, noise=0.5, track=True, op=True, op_noise=0.0,
+    back=0,
+):  # fmt: skip
     """The loop in manual at 25 % output, its output stepped by +-``size`` every ``every``
     time constants; ``track``: the DCS's setpoint tracks the PV in manual (else it stays
     at the last one in auto); ``op``: the samples carry the output, with white noise of
-    ``op_noise`` (a valve's position feedback). Returns the gain updates published."""
+    ``op_noise`` (a valve's position feedback); then ``back`` samples in auto, the
+    setpoint left where tracking put it, the output held. Returns the gain updates
+    published."""
     rng = np.random.default_rng(2)
     plant = FOPTDBatch(K, TAU / H, THETA / H, dt=1.0, noise_std=noise, seed=1,
                        max_theta=THETA / H)  # fmt: skip
     u = 25.0
     plant.reset(K * u)
     per = int(round(every * TAU / H))
-    updates = []
-    for j in range((steps + 1) * per):
-        if j and j % per == 0:
+    manual = (steps + 1) * per
+    updates, sp = [], K * 25.0
+    for j in range(manual + back):
+        if j and j % per == 0 and j < manual:
             u += size if (j // per) % 2 else -size
         y = float(plant.measure()[0])
-        sample = {"loop_id": "L", "t": j * H, "sp": y if track else K * 25.0, "pv": y,
-                  "auto": False}  # fmt: skip
+        if track and j <= manual:
+            sp = y
+        sample = {"loop_id": "L", "t": j * H, "sp": sp, "pv": y, "auto": j >= manual}
         if op:
             sample["op"] = u + op_noise * float(rng.standard_normal())
         updates += engine.ingest([sample], wall=float(j))
@@ -98,3 +105,35 @@ def test_bump_tests_identify_the_bars_loops():
     assert result["k_and_tau_within_30pct"] == 12, result
     errors = result["abs_err_p50_p90_max"]  # (measured: worst 5.3 % and 15.6 %)
     assert errors["k"][2] < 0.1 and errors["tau"][2] < 0.2, result
+
+
+def test_back_in_auto_the_segment_goes_on_and_a_tracked_setpoint_is_no_move():
+    """The loop back in auto from a bump test: the plant is the same, so the segment goes
+    on; the setpoint the DCS tracked to the PV differs from the one recorded in manual,
+    but nothing stepped: no event (the same run without the return to compare)."""
+    starts = []
+    for back in (0, 20):
+        engine = TuningEngine(untrained_agent(0))
+        engine.register(hint_free(), wall=0.0)
+        bumps(engine, steps=4, back=back)
+        tb, s = engine.table, engine.table.slot("L")
+        assert tb.rec[s] >= 0
+        starts.append(list(tb.ident[s].starts))
+    assert len(starts[0]) >= 2 and starts[1] == starts[0]
+
+
+def test_a_manual_stretch_not_recorded_still_ends_the_segment():
+    """A loop whose samples carry no op: a stretch in manual whose samples carry only the
+    error (not recorded) ends the segment when the loop is back in auto, as any stretch
+    in manual does (its output is unknown)."""
+    engine = TuningEngine(untrained_agent(0))
+    engine.register(hint_free(), wall=0.0)
+    tb, s = engine.table, engine.table.slot("L")
+    for j, sp in enumerate([50.0, 60.0, 60.0]):
+        engine.ingest([{"loop_id": "L", "t": j * H, "sp": sp, "pv": 50.0}], wall=j)
+    assert tb.rec[s] >= 0  # a segment opened at the move
+    for j in (3, 4):
+        engine.ingest([{"loop_id": "L", "t": j * H, "e": 9.0, "auto": False}], wall=j)
+    engine.ingest([{"loop_id": "L", "t": 5 * H, "sp": 60.0, "pv": 51.0}], wall=5)
+    assert tb.rec[s] == -1
+    assert engine.view("L", wall=5).identification.why.startswith("segment ended: data gap")

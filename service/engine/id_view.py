@@ -14,7 +14,10 @@ class IdentifiedModel(BaseModel):
     tau: float = Field(description="Time constant, s.")
     theta: float = Field(description="Dead time, s.")
     noise: float = Field(description="Residual rms, PV units (the measurement noise).")
-    move: float = Field(description="Typical setpoint move of the events, PV units.")
+    move: float = Field(
+        description="Typical setpoint move of the events (an output step's: the PV change it "
+        "makes), PV units."
+    )
     r2: float = Field(description="Share of the PV's variance the model explains.")
     k_rse: float | None = Field(description="Relative standard error of K.")
     tau_rse: float | None = Field(description="Relative standard error of tau.")

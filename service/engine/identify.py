@@ -81,7 +81,8 @@ INTEGRATING = "integrating"
 
 @dataclass
 class EventFit:
-    """One event (a setpoint move and the data up to the next) as identification saw it."""
+    """One event (a setpoint move, or an output step in manual, and the data up to the
+    next) as identification saw it."""
 
     t0: float
     t1: float
@@ -96,8 +97,9 @@ class EventFit:
     """Peak-to-peak response the model shows in the event, in multiples of the noise."""
     excited: bool = False
     op_move: float = 0.0
-    """The output step an operator made in manual that opened the event (output units;
-    0: a setpoint move's event)."""
+    """The output step an operator made in manual that opened the event, from the output
+    before it to the event's last (a step in several parts: the whole; output units; 0:
+    a setpoint move's event)."""
 
     def as_dict(self) -> dict:
         return {k: _num(v) for k, v in asdict(self).items()}
@@ -201,11 +203,12 @@ def screen(t, pv, op) -> str:
 def assess(
     t, sp, pv, op, starts: list[int], start: tuple[float, float] | None = None, last: int = 1
 ) -> Assessment:
-    """Identify from one contiguous segment of closed-loop data (no gap, manual or
-    saturated sample inside) whose events (setpoint moves, or output steps in manual:
-    those whose setpoint is the one before, :func:`_bump`) start at the indices
-    ``starts``; the last event runs to the end of the data. Rows may be the recorder's
-    means of several samples (:func:`recorded`; ``last``: the samples the last row holds).
+    """Identify from one contiguous segment of data (no gap or saturated sample inside,
+    in auto or in manual with the output sent) whose events (setpoint moves, or output
+    steps in manual: those whose setpoint is the one before, :func:`_bump`) start at the
+    indices ``starts``; the last event runs to the end of the data. Rows may be the
+    recorder's means of several samples (:func:`recorded`; ``last``: the samples the last
+    row holds).
 
     One FOPTD model is fitted to the whole segment (one offset, one initial transient:
     far better determined than a fit per event). Each event is then judged by the
@@ -219,7 +222,7 @@ def assess(
     t, sp, pv, op = (np.asarray(x, np.float64) for x in (t, sp, pv, op))
     bounds = [*starts, t.size]
     events = [
-        EventFit(float(t[a]), float(t[b - 1]), b - a, 0.0, op_move=float(op[a] - op[a - 1]))
+        EventFit(float(t[a]), float(t[b - 1]), b - a, 0.0, op_move=float(op[b - 1] - op[a - 1]))
         if _bump(sp, a)
         else EventFit(
             t0=float(t[a]), t1=float(t[b - 1]), n=b - a,

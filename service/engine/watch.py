@@ -8,10 +8,15 @@ accepted sample; stated one sample at a time in ``tests/engine_reference.py``):
 * The controller output is the sample's ``op``; where absent it is reconstructed from
   the PI law and the gains the tuner holds in force (:func:`~service.engine.identify.
   reconstruct_op`: parallel PI ``u = kp e + I``, ``I' = ki e`` at the sample period,
-  bumpless gain changes, no feedforward or output tracking).
-* A *segment* opens at a setpoint move (any change of sp) and records every sample
-  until a sample in manual, saturated, after a stale gap or on a new plant clock breaks
-  it (the data up to there are assessed first). After each move the first
+  bumpless gain changes and from the last ``op`` sent, no feedforward).
+* A *segment* opens at a setpoint move (any change of sp) in auto, or at an operator's
+  step of the output (:data:`MANUAL_STEP`) in manual with ``op`` sent (a bump test:
+  open-loop data; the recorded setpoint stays the one before manual, and the sample
+  back in auto is no move: a DCS may track the PV with it), and records every sample
+  until a sample in manual without ``op``, saturated, after a stale gap, on a new
+  plant clock, after a sample not recorded (no sp) that resumed from such a state, or
+  with ``op`` after samples without it breaks it (the data up to there are assessed
+  first). After each move the first
   :data:`HEAD_ROWS` rows hold a sample each, later rows the mean of ``stride`` samples;
   a full buffer merges pairs of rows (never a move's first rows) and doubles the
   stride, so the response to each move keeps its shape however long the segment runs.
@@ -81,6 +86,10 @@ def record(tb, slots: np.ndarray, cols: dict, last_t: np.ndarray, gap, fresh, wa
     op = cols.get("op")
     tb.fits.refill(wall)
     watch = tb.watch[slots] & ~np.isnan(sp)
+    if not watch.all():  # a sample not recorded: the next goes on from no recorded one
+        rest = slots[~watch]
+        tb.prev_ok[rest] = False
+        tb.prev_meas[rest] = False if op is None else ~np.isnan(op[~watch])
     if not watch.any():
         return
     idx = np.flatnonzero(watch)
@@ -96,9 +105,10 @@ def record(tb, slots: np.ndarray, cols: dict, last_t: np.ndarray, gap, fresh, wa
     # in manual with op sent the operator's output steps are the events and the setpoint
     # (which a DCS may track to the PV) the one before manual; a ramp's later changes
     # are samples of the event its first change opened
-    by_hand = ~auto & measured
-    moved = (sp != held) & ~np.isnan(held) & ~cols["ramping"][idx] & ~by_hand
-    moved |= by_hand & ~anew & (np.abs(op - tb.prev_op[s]) > _step(op, tb.prev_op[s]))
+    by_hand, back = ~auto & measured, fresh & ~anew  # back: in auto from manual with op
+    moved = (sp != held) & ~np.isnan(held) & ~cols["ramping"][idx] & ~by_hand & ~back
+    step = _step(op, tb.prev_op[s], tb.oh_hi[s] - tb.oh_lo[s])
+    moved |= by_hand & ~anew & (np.abs(op - tb.prev_op[s]) > step)
     sp = np.where(by_hand & ~np.isnan(held), held, sp)
     tb.id_sp[s] = sp
     # the controller output, reconstructed where the sample has none, with the gains the
@@ -118,14 +128,15 @@ def record(tb, slots: np.ndarray, cols: dict, last_t: np.ndarray, gap, fresh, wa
     special = np.flatnonzero((recording & broken) | (moved & ~broken))
     done = np.zeros(idx.size, bool)
     for i in np.flatnonzero(moved & broken & ~recording).tolist():  # say why nothing opens
-        why = broken_why(auto[i], saturated[i])
-        tb.ident[int(s[i])].why = f"setpoint move not usable: {why}"
+        why = broken_why(auto[i], saturated[i], measured[i])
+        what = "output step" if by_hand[i] else "setpoint move"
+        tb.ident[int(s[i])].why = f"{what} not usable: {why}"
     for i in special.tolist():
         done[i] = True
         si = int(s[i])
         row = (float(t[i]), float(sp[i]), float(pv[i]), float(op[i]))
         if recording[i] and broken[i]:
-            why = broken_why(auto[i], saturated[i])
+            why = broken_why(auto[i], saturated[i], measured[i])
             _close(tb, si, float(t[i]), wall, final=True, why=f"segment ended: {why}")
         elif recording[i]:
             st: IdState = tb.ident[si]
@@ -169,17 +180,21 @@ def record(tb, slots: np.ndarray, cols: dict, last_t: np.ndarray, gap, fresh, wa
     tb.prev_ok[s], tb.prev_meas[s] = ~broken, measured
 
 
-def _step(op, before):
-    """The least change of the output that is an operator's step in manual
-    (:data:`MANUAL_STEP` of its magnitude)."""
-    return MANUAL_STEP * np.maximum(np.abs(op), np.abs(before))
+def _step(op, before, span):
+    """The least change of the output that is an operator's step in manual:
+    :data:`MANUAL_STEP` of its magnitude, or of the range of outputs seen in auto
+    (:mod:`service.engine.output_limit`; NaN: none) where that is larger (an output near
+    or across zero)."""
+    return MANUAL_STEP * np.fmax(np.maximum(np.abs(op), np.abs(before)), span)
 
 
-def broken_why(auto: bool, saturated: bool) -> str:
+def broken_why(auto: bool, saturated: bool, measured: bool) -> str:
     """Why a sample breaks a segment (or makes a move unusable)."""
-    if not auto:
+    if saturated:
+        return "output saturated"
+    if not auto and not measured:
         return "manual, without op in the samples"
-    return "output saturated" if saturated else "data gap (or op sent after samples without)"
+    return "data gap (or samples not recorded before it, or op newly sent)"
 
 
 def check_due(k):
