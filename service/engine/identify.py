@@ -319,6 +319,10 @@ def _ramp(t: np.ndarray, sp: np.ndarray, a: int, b: int) -> float:
     return math.inf if b - 1 - last < RAMP_GAP else float(t[last] - t[a])  # still ramping
 
 
+_WHAT_WORKS = "a setpoint step or an output step in manual, op in the samples, identifies it"
+"""What the operator can do where the loop's own moves do not identify it (a bump test)."""
+
+
 def _verdict(m: Model, excited: int, n_events: int, slow: int = 0) -> str:
     if m.integrating:
         return (
@@ -334,12 +338,14 @@ def _verdict(m: Model, excited: int, n_events: int, slow: int = 0) -> str:
     if excited < MIN_EVENTS and slow:
         return (
             f"setpoint ramp slower than the loop ({slow} of {n_events} events ramp longer "
-            f"than tau + theta, {m.tau + m.theta:.3g} s: tau and dead time not separable)"
+            f"than tau + theta, {m.tau + m.theta:.3g} s: tau and dead time not separable;"
+            f" {_WHAT_WORKS})"
         )
     if excited < MIN_EVENTS:
         return (
             f"move too small for the noise ({excited} of {n_events} events show a "
-            f"response {MIN_SNR:g}x the noise {m.noise:.3g}; {MIN_EVENTS} needed)"
+            f"response {MIN_SNR:g}x the noise {m.noise:.3g}; {MIN_EVENTS} needed; "
+            f"{_WHAT_WORKS})"
         )
     if m.r2 < MIN_R2:
         return f"poor fit (R2 {m.r2:.2f} < {MIN_R2:g})"
