@@ -4,10 +4,11 @@ held in manual, its output stepped by an operator every 3-6 time constants by an
 whose steady effect on the PV is a bar move (5-25 PV units, random sign, kept within
 10-90 % of span), the samples carrying ``op`` (docs/identification.md, Bump tests).
 
-    python -m tests.identify_bumps [--loops 60] [--seed 0] [--steps 4]
+    python -m tests.identify_bumps [--loops 60] [--seed 0] [--steps 4] [--ramp 1]
 
 Counted: loops identified from their first 2, 3, 4 steps (the data before the model's
-time), the first model's K and tau against the truth (the bar's 30 %)."""
+time), the first model's K and tau against the truth (the bar's 30 %). ``--ramp N``: each
+step made as a ramp over N samples (an operator holding a raise/lower button)."""
 
 from __future__ import annotations
 
@@ -25,9 +26,10 @@ MISS = 0.3
 """The bar's tolerance on K and tau (relative)."""
 
 
-def run(plants: Plants, steps: int, seed: int) -> dict:
-    """Drive every loop in manual through ``steps`` output steps (and ``MOVE_EVERY`` after
-    the last); the first model put in force and the steps before its time."""
+def run(plants: Plants, steps: int, seed: int, ramp: int = 1) -> dict:
+    """Drive every loop in manual through ``steps`` output steps, each over ``ramp``
+    samples (and ``MOVE_EVERY`` after the last); the first model put in force and the
+    steps before its time."""
     n = plants.K.size
     engine = TuningEngine(untrained_agent(0))  # (the agent takes no step in manual)
     ids = [f"L{i}" for i in range(n)]
@@ -41,6 +43,7 @@ def run(plants: Plants, steps: int, seed: int) -> dict:
     y0 = 50.0
     plant.reset(y0)
     u, level = y0 / plants.K, np.full(n, y0)
+    goal, rate = u.copy(), np.zeros(n)  # the output an operator is ramping to, per sample
     gap = lambda: np.ceil(rng.uniform(*MOVE_EVERY, n) * plants.tau / plants.h)  # noqa: E731
     next_step, made = np.ceil(rng.uniform(1.0, 2.0, n) * plants.tau / plants.h), np.zeros(n, int)
     step_t: list[list[float]] = [[] for _ in range(n)]
@@ -51,12 +54,14 @@ def run(plants: Plants, steps: int, seed: int) -> dict:
         due = (k >= next_step) & (made < steps)
         if due.any():
             target = moved(level, rng.uniform(*MOVE, n) * rng.choice([-1.0, 1.0], n))
-            u = np.where(due, u + (target - level) / plants.K, u)
+            goal = np.where(due, u + (target - level) / plants.K, goal)
+            rate = np.where(due, (goal - u) / ramp, rate)
             level = np.where(due, target, level)
             made += due
             for i in np.flatnonzero(due).tolist():
                 step_t[i].append(float(k * plants.h[i]))
             next_step = np.where(due, k + gap(), next_step)
+        u = np.where(np.abs(goal - u) > np.abs(rate) / 2, u + rate, goal)
         y = plant.measure()
         live = np.flatnonzero(k < end)
         # a DCS tracking the setpoint to the PV in manual
@@ -100,8 +105,9 @@ def main() -> None:
     ap.add_argument("--loops", type=int, default=60)
     ap.add_argument("--seed", type=int, default=0, help="the bar's loops (Plants.random)")
     ap.add_argument("--steps", type=int, default=4, help="output steps per loop")
+    ap.add_argument("--ramp", type=int, default=1, help="samples each step is ramped over")
     a = ap.parse_args()
-    print(json.dumps(run(Plants.random(a.loops, a.seed), a.steps, a.seed + 1), indent=1))
+    print(json.dumps(run(Plants.random(a.loops, a.seed), a.steps, a.seed + 1, a.ramp), indent=1))
 
 
 if __name__ == "__main__":

@@ -191,7 +191,7 @@ def test_hint_free_loop_takes_no_step_and_publishes_nothing_while_identifying():
         ({"saturated": True}, "saturated"),
         ({"frozen_pv": True}, "frozen"),
         ({"size": 0.3}, "too small for the noise"),
-        ({"ramp": 3.0}, "setpoint ramp slower than the loop"),
+        ({"ramp": 3.0}, "ramp slower than the loop"),
     ],
 )
 def test_bad_data_yields_no_identification_and_says_why(case, why):

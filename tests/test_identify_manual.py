@@ -20,14 +20,14 @@ pytestmark = pytest.mark.timeout(120)
 
 def bumps(
     engine, *, steps=4, every=5.0, size=4.0, noise=0.5, track=True, op=True, op_noise=0.0,
-    back=0,
+    back=0, ramp=1,
 ):  # fmt: skip
     """The loop in manual at 25 % output, its output stepped by +-``size`` every ``every``
     time constants; ``track``: the DCS's setpoint tracks the PV in manual (else it stays
     at the last one in auto); ``op``: the samples carry the output, with white noise of
     ``op_noise`` (a valve's position feedback); then ``back`` samples in auto, the
-    setpoint left where tracking put it, the output held. Returns the gain updates
-    published."""
+    setpoint left where tracking put it, the output held; each step made over ``ramp``
+    samples. Returns the gain updates published."""
     rng = np.random.default_rng(2)
     plant = FOPTDBatch(K, TAU / H, THETA / H, dt=1.0, noise_std=noise, seed=1,
                        max_theta=THETA / H)  # fmt: skip
@@ -37,8 +37,8 @@ def bumps(
     manual = (steps + 1) * per
     updates, sp = [], K * 25.0
     for j in range(manual + back):
-        if j and j % per == 0 and j < manual:
-            u += size if (j // per) % 2 else -size
+        if j >= per and j % per < ramp and j < manual:
+            u += (size if (j // per) % 2 else -size) / ramp
         y = float(plant.measure()[0])
         if track and j <= manual:
             sp = y
@@ -90,6 +90,27 @@ def test_an_output_that_only_wanders_in_manual_opens_no_event():
     view = engine.view("L", wall=250.0)
     assert view.identification.events == [] and view.identification.model is None
     assert "output step in manual" in view.identification.why, view.identification.why
+
+
+@pytest.mark.parametrize("ramp", [3, 30])
+def test_an_output_ramped_slower_than_the_loop_yields_no_model_and_says_why(ramp):
+    """An operator holding a raise/lower button: each step of 24 (on an output of 25) made
+    over ``ramp`` samples, every sample's change a step (above watch.MANUAL_STEP). Over 3
+    samples (a third of tau) the steps identify the loop; over 30 (3 tau, slower than
+    tau + theta) the data need not tell tau from the dead time (the rule of setpoint ramps,
+    identify.RAMP_SHOWN): no model, and the loop says so. (Without the rule this loop's
+    model was right, its noise 1 % of the response; on the bar's loops ramped over 30
+    samples 1 of 7 models was 43 % off in tau: tests.identify_bumps --ramp 30.)"""
+    engine = TuningEngine(untrained_agent(0))
+    engine.register(hint_free(), wall=0.0)
+    bumps(engine, size=24.0, every=8.0, ramp=ramp)
+    ident = engine.view("L", wall=1e6).identification
+    if ramp == 3:
+        assert ident.in_force is not None, ident.why
+        assert ident.in_force.tau == pytest.approx(TAU, rel=0.15)
+    else:
+        assert ident.in_force is None and "output ramp slower than the loop" in ident.why, ident
+        assert all(ev.ramp_s > TAU + THETA for ev in ident.events), ident.events
 
 
 def test_bump_tests_identify_the_bars_loops():

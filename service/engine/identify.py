@@ -71,6 +71,10 @@ by tau + theta, which the data tell, but not tau from theta (fits of ramps over 
 were confident and wrong, tau + theta taken as tau: docs/identification.md). A faster
 ramp shows both, as a step does (ramps over 0.3-1 tau: K, tau within 3 %)."""
 
+OP_RAMP_PART = 0.75
+"""Share of an output ramp's excursion whose time :func:`_op_ramp` measures (the whole
+would hang on the last noisy samples of a valve's position feedback)."""
+
 IMPRECISE = "K or tau not pinned down"
 """The verdict of a model that passes every check but precision."""
 DISAGREE = "events disagree"
@@ -91,8 +95,8 @@ class EventFit:
     """The setpoint move of the event (engineering units, signed): from the setpoint before
     it to the event's last (a ramp's whole run)."""
     ramp_s: float = 0.0
-    """Seconds the setpoint kept moving after the event's first change (0: a step; inf:
-    still moving at the event's end)."""
+    """Seconds the setpoint kept moving after the event's first change, or an output step's
+    output (0: a step; inf: still moving at the event's end)."""
     snr: float = math.nan
     """Peak-to-peak response the model shows in the event, in multiples of the noise."""
     excited: bool = False
@@ -220,9 +224,11 @@ def assess(
     integrating model does not fit better.
     """
     t, sp, pv, op = (np.asarray(x, np.float64) for x in (t, sp, pv, op))
+    starts = _ramps_whole(t, sp, op, starts)
     bounds = [*starts, t.size]
     events = [
-        EventFit(float(t[a]), float(t[b - 1]), b - a, 0.0, op_move=float(op[b - 1] - op[a - 1]))
+        EventFit(float(t[a]), float(t[b - 1]), b - a, 0.0, ramp_s=_op_ramp(t, sp, op, a, b),
+                 op_move=float(op[b - 1] - op[a - 1]))
         if _bump(sp, a)
         else EventFit(
             t0=float(t[a]), t1=float(t[b - 1]), n=b - a,
@@ -323,6 +329,38 @@ _WHAT_WORKS = "a setpoint step or an output step in manual, op in the samples, i
 """What the operator can do where the loop's own moves do not identify it (a bump test)."""
 
 
+def _ramps_whole(t, sp, op, starts: list[int]) -> list[int]:
+    """``starts`` without those that cut an output ramp: an operator's ramp whose every
+    sample changes the output by more than a step's threshold opens an event every
+    :data:`~service.engine.watch.MIN_EVENT_SAMPLES`; a piece still ramping at its end and
+    the output step after it are one event, the whole ramp (:func:`_op_ramp` judges it)."""
+    out = list(starts[:1])
+    for b in starts[1:]:
+        a = out[-1]
+        if not (_bump(sp, a) and _bump(sp, b) and _op_ramp(t, sp, op, a, b) == math.inf):
+            out.append(b)
+    return out
+
+
+def _op_ramp(t: np.ndarray, sp: np.ndarray, op: np.ndarray, a: int, b: int) -> float:
+    """:attr:`EventFit.ramp_s` of the output step in rows ``a:b`` (an operator holding a
+    raise/lower button ramps the output): over its rows in manual (those with the setpoint
+    of before manual, :func:`_bump`), the time the output took to cover
+    :data:`OP_RAMP_PART` of its largest excursion from the row before, scaled to the
+    whole (a step: 0); inf while the excursion still grows by more than the rest of it
+    within the last :data:`~service.units.RAMP_GAP` rows."""
+    held = sp[a:b] == sp[a - 1]
+    end = a + (int(np.argmin(held)) if not held.all() else b - a)  # manual rows: a..end-1
+    away = np.abs(op[a:end] - op[a - 1])
+    size = float(away.max())
+    if not size > 0.0:
+        return 0.0
+    if end == b and away[-1] - away[max(0, end - a - 1 - RAMP_GAP)] > (1.0 - OP_RAMP_PART) * size:
+        return math.inf
+    reach = a + int(np.argmax(away >= OP_RAMP_PART * size))
+    return float(t[reach] - t[a]) / OP_RAMP_PART
+
+
 def _verdict(m: Model, excited: int, n_events: int, slow: int = 0) -> str:
     if m.integrating:
         return (
@@ -337,7 +375,8 @@ def _verdict(m: Model, excited: int, n_events: int, slow: int = 0) -> str:
         )
     if excited < MIN_EVENTS and slow:
         return (
-            f"setpoint ramp slower than the loop ({slow} of {n_events} events ramp longer "
+            f"setpoint or output ramp slower than the loop ({slow} of {n_events} events "
+            f"ramp longer "
             f"than tau + theta, {m.tau + m.theta:.3g} s: tau and dead time not separable;"
             f" {_WHAT_WORKS})"
         )
