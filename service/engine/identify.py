@@ -376,9 +376,8 @@ def _verdict(m: Model, excited: int, n_events: int, slow: int = 0) -> str:
     if excited < MIN_EVENTS and slow:
         return (
             f"setpoint or output ramp slower than the loop ({slow} of {n_events} events "
-            f"ramp longer "
-            f"than tau + theta, {m.tau + m.theta:.3g} s: tau and dead time not separable;"
-            f" {_WHAT_WORKS})"
+            f"ramp longer than tau + theta, {m.tau + m.theta:.3g} s: tau and dead time not "
+            f"separable; {_WHAT_WORKS})"
         )
     if excited < MIN_EVENTS:
         return (
