@@ -81,6 +81,8 @@ DISAGREE = "events disagree"
 """The verdict of a precise model that fails only the consistency test (a drifting plant)."""
 INTEGRATING = "integrating"
 """The verdict of a segment an integrating model ``K/s e^{-theta s}`` fits better."""
+_WHAT_WORKS = "a setpoint step or an output step in manual, op in the samples, identifies it"
+"""What the operator can do where the loop's own moves do not identify it (a bump test)."""
 
 
 @dataclass
@@ -323,10 +325,6 @@ def _ramp(t: np.ndarray, sp: np.ndarray, a: int, b: int) -> float:
         return 0.0
     last = a + 1 + int(changed[-1])
     return math.inf if b - 1 - last < RAMP_GAP else float(t[last] - t[a])  # still ramping
-
-
-_WHAT_WORKS = "a setpoint step or an output step in manual, op in the samples, identifies it"
-"""What the operator can do where the loop's own moves do not identify it (a bump test)."""
 
 
 def _ramps_whole(t, sp, op, starts: list[int]) -> list[int]:
