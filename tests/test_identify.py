@@ -14,7 +14,7 @@ from plant_sim.pi import PIBatch
 from plant_sim.tunings import simc_paper, to_parallel
 from service.agent import untrained_agent
 from service.engine import LoopConfig, SiteDefaults, TuningEngine
-from service.engine.identify import assess, reconstruct_op
+from service.engine.identify import LUMP_THETA, assess, reconstruct_op
 from service.wire.protocol import LoopStatus
 
 pytestmark = pytest.mark.timeout(120)
@@ -191,7 +191,6 @@ def test_hint_free_loop_takes_no_step_and_publishes_nothing_while_identifying():
         ({"saturated": True}, "saturated"),
         ({"frozen_pv": True}, "frozen"),
         ({"size": 0.3}, "too small for the noise"),
-        ({"ramp": 3.0}, "ramp slower than the loop"),
     ],
 )
 def test_bad_data_yields_no_identification_and_says_why(case, why):
@@ -202,7 +201,7 @@ def test_bad_data_yields_no_identification_and_says_why(case, why):
     assert updates == [] and view.counters.identified == 0 and view.scaling is None
     assert view.status in (LoopStatus.identifying, LoopStatus.stale)
     assert why in view.identification.why, view.identification.why
-    if "size" in case or "ramp" in case:  # the loop's own moves will not do: what will
+    if "size" in case:  # the loop's own moves will not do: what will
         assert "output step in manual" in view.identification.why
     model = view.identification.model
     assert model is None or not model.confident
@@ -213,7 +212,7 @@ def test_a_ramp_faster_than_the_loop_identifies_as_a_step_does(ramp):
     """A setpoint ramping one change a sample over ``ramp`` time constants (a DCS's
     setpoint rate limit) is one event from its first change, its move the whole ramp;
     faster than tau + theta it tells tau from the dead time (over 3 tau it does not: the
-    bad-data case above)."""
+    lumped model below)."""
     engine = TuningEngine(untrained_agent(0))
     engine.register(hint_free(), wall=0.0)
     drive(engine, moves=6, ramp=ramp)
@@ -227,6 +226,23 @@ def test_a_ramp_faster_than_the_loop_identifies_as_a_step_does(ramp):
     # the first move from the start's 50 to 70, each later one between 30 and 70
     assert ramped and all(abs(ev.move) == pytest.approx(40.0) for ev in ramped[1:])
     assert all(0.5 * ramp * TAU <= ev.ramp_s <= ramp * TAU + H for ev in ramped)
+
+
+def test_a_ramp_slower_than_the_loop_gives_a_lumped_model_and_its_tuning():
+    """Ramps over 3 tau (slower than tau + theta) show K and the lag tau + theta, not the
+    split (identify.RAMP_SHOWN): the model put in force is lumped, K and the lag within
+    10 %, theta identify.LUMP_THETA of the lag, and the loop is tuned from it."""
+    engine = TuningEngine(untrained_agent(0))
+    engine.register(hint_free(), wall=0.0)
+    updates = drive(engine, moves=6, ramp=3.0)
+    view = engine.view("L", wall=float(10**4))
+    m = view.identification.in_force
+    assert view.counters.identified == 1 and m is not None and m.lumped and m.confident
+    assert m.k == pytest.approx(K, rel=0.1)
+    assert m.tau + m.theta == pytest.approx(TAU + THETA, rel=0.1)
+    assert m.theta == pytest.approx(LUMP_THETA * (m.tau + m.theta))
+    assert all(ev.ramp_s > TAU + THETA for ev in view.identification.events if ev.move)
+    assert updates and updates[0].reason == "model"
 
 
 # -- hints checked -----------------------------------------------------------------------

@@ -12,6 +12,7 @@ import pytest
 from plant_sim.foptd import FOPTDBatch
 from service.agent import untrained_agent
 from service.engine import TuningEngine
+from service.engine.identify import LUMP_THETA
 from service.wire.protocol import LoopStatus
 from tests.test_identify import TAU, THETA, H, K, hint_free
 
@@ -93,24 +94,27 @@ def test_an_output_that_only_wanders_in_manual_opens_no_event():
 
 
 @pytest.mark.parametrize("ramp", [3, 30])
-def test_an_output_ramped_slower_than_the_loop_yields_no_model_and_says_why(ramp):
+def test_an_output_ramped_slower_than_the_loop_yields_a_lumped_model(ramp):
     """An operator holding a raise/lower button: each step of 24 (on an output of 25) made
     over ``ramp`` samples, every sample's change a step (above watch.MANUAL_STEP). Over 3
     samples (a third of tau) the steps identify the loop; over 30 (3 tau, slower than
     tau + theta) the data need not tell tau from the dead time (the rule of setpoint ramps,
-    identify.RAMP_SHOWN): no model, and the loop says so. (Without the rule this loop's
-    model was right, its noise 1 % of the response; on the bar's loops ramped over 30
-    samples 1 of 7 models was 43 % off in tau: tests.identify_bumps --ramp 30.)"""
+    identify.RAMP_SHOWN; on the bar's loops ramped over 30 samples 1 of 7 models was 43 %
+    off in tau before it: tests.identify_bumps --ramp 30), only K and the lag tau +
+    theta: the model is lumped (identify.LUMP_THETA), and says so."""
     engine = TuningEngine(untrained_agent(0))
     engine.register(hint_free(), wall=0.0)
     bumps(engine, size=24.0, every=8.0, ramp=ramp)
     ident = engine.view("L", wall=1e6).identification
+    assert ident.in_force is not None, ident.why
+    assert ident.in_force.lumped == (ramp == 30)
+    assert ident.in_force.k == pytest.approx(K, rel=0.1)
     if ramp == 3:
-        assert ident.in_force is not None, ident.why
         assert ident.in_force.tau == pytest.approx(TAU, rel=0.15)
     else:
-        assert ident.in_force is None and "output ramp slower than the loop" in ident.why, ident
-        assert all(ev.ramp_s > TAU + THETA for ev in ident.events), ident.events
+        lag = ident.in_force.tau + ident.in_force.theta
+        assert lag == pytest.approx(TAU + THETA, rel=0.1)
+        assert ident.in_force.theta == pytest.approx(LUMP_THETA * lag)
 
 
 def test_bump_tests_identify_the_bars_loops():

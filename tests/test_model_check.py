@@ -151,6 +151,45 @@ def test_a_provisional_model_is_refined_by_a_more_precise_one_that_shows_it_wron
     assert not model_check.refined(model(37.1, 0.021), model(43.0, 0.046))  # not provisional
 
 
+def test_a_lumped_model_is_compared_by_its_lag_and_gives_way_to_a_split_one():
+    """A lumped model (identify.LUMP_THETA: only slow ramps seen) knows the lag tau + theta,
+    not the split: moved() compares lags where either model is lumped (a step's model
+    of the same plant did not move, whatever its split), and a model that is not lumped
+    refines a lumped one in force (the split shown at last); a later lumped one does
+    not, unless its lag moved."""
+    from service.engine.identify import Model
+
+    def model(tau, theta, lumped=False):
+        return Model(k=1.0, tau=tau, theta=theta, noise=1.0, move=20.0, r2=0.99, k_rse=0.01,
+                     tau_rse=0.01, confident=True, lumped=lumped)  # fmt: skip
+
+    lumped = model(35.0, 15.0, lumped=True)  # the lag of tau 45, theta 5
+    split = model(45.0, 5.0)
+    assert not model_check.moved(split, lumped) and not model_check.moved(lumped, split)
+    assert model_check.moved(split, model(35.0, 5.0))  # tau 29 % off: moved
+    assert model_check.moved(model(42.0, 18.0, lumped=True), lumped)  # the lag 20 % longer
+    assert model_check.refined(split, lumped)
+    assert not model_check.refined(model(35.7, 15.3, lumped=True), lumped)
+    assert not model_check.refined(lumped, split)
+
+
+def test_a_lumped_model_flags_a_hint_only_slower_than_its_whole_lag():
+    """model_use.hint_off: a lumped model bounds tau from above by its lag; a hint 3x
+    faster than the plant (apparent tau 1.5) cannot be told from a longer dead time,
+    one 3x slower (apparent lag under 0.25) can. K is judged as for any model."""
+    from service.engine.model_use import hint_off
+
+    def app(tau, gain=0.5, lumped=True):
+        ratio = 0.3 / 0.7  # identify.LUMP_THETA's split
+        return hint_off({"gain": gain, "tau": tau, "theta_ratio": ratio}, lumped)
+
+    assert app(0.35) == pytest.approx(0.0)  # lag 0.5: the hint's tau within it
+    assert app(3 * 0.35) == pytest.approx(0.0)
+    assert app(0.35 / 3) == pytest.approx(np.log(3.0))
+    assert app(0.35, gain=1.5) == pytest.approx(np.log(3.0))
+    assert app(3 * 0.35, lumped=False) == pytest.approx(np.log(3 * 0.7))
+
+
 def test_a_hinted_loop_is_checked_on_its_latest_confident_model():
     """A hint the data confirm puts no model in force (the scaling stays the hint's), but
     the check runs on the confident model: under load steps at the plant input the

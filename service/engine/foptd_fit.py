@@ -217,6 +217,9 @@ class Fit:
     window (identification fits one)."""
     theta_i: float = 0.0
     """Its dead time (s)."""
+    lag_rse: float = math.inf
+    """Relative standard error of tau + theta (the lag a slow ramp shows, whose split it
+    does not: :data:`service.engine.identify.LUMP_THETA`)."""
 
 
 def predict(params: np.ndarray, w: Window, b: float, c: float) -> np.ndarray:
@@ -320,8 +323,11 @@ def _refine(windows: list[Window], span: float, dt: float, tau0: float, theta0: 
         se = np.sqrt(np.maximum(np.diag(cov), 0.0))
         k_rse = float(se[0] / abs(k)) if k else math.inf
         tau_rse = float(se[1])  # log tau: relative
+        # d(tau + theta) = tau d(log tau) + d theta
+        lag_var = tau * tau * cov[1, 1] + cov[2, 2] + 2.0 * tau * cov[1, 2]
+        lag_rse = math.sqrt(max(float(lag_var), 0.0)) / (tau + theta)
     except np.linalg.LinAlgError:
-        k_rse = tau_rse = math.inf
+        k_rse = tau_rse = lag_rse = math.inf
     thetas = np.append(np.linspace(0.0, 0.6 * span, _THETA_GRID), theta)
     alternative = [_integrating_fit(w, thetas) for w in windows]
     sse_i = sum(a[0] for a in alternative)
@@ -331,7 +337,7 @@ def _refine(windows: list[Window], span: float, dt: float, tau0: float, theta0: 
         r2=1.0 - sse / sst if sst > 0 else 0.0,
         snr=float(np.ptp(np.concatenate(model))) / max(noise, 1e-300), noise=noise,
         k_rse=k_rse, tau_rse=tau_rse, integrating=bool(integrating), params=res.x,
-        model=model, slope=alternative[0][1], theta_i=alternative[0][2],
+        model=model, slope=alternative[0][1], theta_i=alternative[0][2], lag_rse=lag_rse,
     )  # fmt: skip
 
 

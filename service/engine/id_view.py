@@ -6,6 +6,8 @@ from __future__ import annotations
 
 from pydantic import BaseModel, Field
 
+from service.engine.identify import LUMP_THETA
+
 
 class IdentifiedModel(BaseModel):
     """An FOPTD model identified from closed-loop data (engineering units, seconds)."""
@@ -20,7 +22,9 @@ class IdentifiedModel(BaseModel):
     )
     r2: float = Field(description="Share of the PV's variance the model explains.")
     k_rse: float | None = Field(description="Relative standard error of K.")
-    tau_rse: float | None = Field(description="Relative standard error of tau.")
+    tau_rse: float | None = Field(
+        description="Relative standard error of tau (of a lumped model: of tau + theta)."
+    )
     integrating: bool = Field(description="An integrating model K/s e^-theta s fits better.")
     slope: float = Field(
         0.0,
@@ -34,6 +38,11 @@ class IdentifiedModel(BaseModel):
     )
     confidence: float = Field(description="0..1: excitation x precision x consistency.")
     confident: bool
+    lumped: bool = Field(
+        False,
+        description="Only setpoint or output ramps slower than the loop excited it: K and tau "
+        f"+ theta are identified, theta is {LUMP_THETA:g} of that lag (assumed).",
+    )
 
 
 class IdentificationEvent(BaseModel):

@@ -51,6 +51,12 @@ MAX_TAU_SE = 0.17
 on the same data (closed-loop data pin the gain down first; tau trades off against the
 dead time). Measured on the bar's loops, seeds 0-2 (docs/identification.md): 0.15, 0.17,
 0.20 identify 55-57, 57 and 58 of 60 from their first 4 moves."""
+LUMP_EVENTS = 3
+"""Events a lumped model needs (:data:`LUMP_THETA`): one more than :data:`MIN_EVENTS`.
+From two ramps over 3 tau (noise 5 % of the move) the model came mid-way through the
+second ramp's response with K 12 % and the lag 19 % low, 4 and 2 of their standard
+errors (tests/test_identify.py's loop); needing three, its first model came at the
+fifth ramp, K 1.5 % and the lag 2 % off."""
 MAX_PREDICTION = 1.5
 """Consistency: the model of the earlier events must predict the last event's PV within
 this many times the noise (rms)."""
@@ -70,6 +76,13 @@ tau + theta (a ramp slower than the loop) excites nothing: a FOPTD follows a slo
 by tau + theta, which the data tell, but not tau from theta (fits of ramps over 3-11 tau
 were confident and wrong, tau + theta taken as tau: docs/identification.md). A faster
 ramp shows both, as a step does (ramps over 0.3-1 tau: K, tau within 3 %)."""
+LUMP_THETA = 0.3
+"""A *lumped* model: where only ramps slower than the loop excite it, the events they show
+pin down K and tau + theta, not the split, and the model is that lag split with this
+share of dead time (theta/tau 0.43). Its tuning (:mod:`service.engine.first_tuning`)
+is then within a step-test MSE of 0.002-0.007 of zero for every true split with theta/tau
+up to 1 and tau + theta 0.275-2 agent units, 0.03 up to theta/tau 3; assuming no dead
+time instead, up to 0.026 and 0.07 (docs/identification.md, Lumped models)."""
 
 OP_RAMP_PART = 0.75
 """Share of an output ramp's excursion whose time :func:`_op_ramp` measures (the whole
@@ -145,6 +158,9 @@ class Model:
     confidence: float = 0.0
     """0..1: excitation x precision x consistency."""
     confident: bool = False
+    lumped: bool = False
+    """tau and theta are tau + theta split by :data:`LUMP_THETA` (the data showed the lag
+    only), and ``tau_rse`` is the lag's."""
 
     def as_dict(self) -> dict:
         return {k: _num(v) for k, v in asdict(self).items()}
@@ -254,30 +270,38 @@ def assess(
     whole = recorded(t, pv, op, last)
     joint = fit_windows([whole], start)
     pred = joint.model[0]
+    lag = joint.tau + joint.theta
     excited = slow = 0
     for ev, a, b in zip(events, bounds[:-1], bounds[1:], strict=True):
         ev.snr = float(np.ptp(pred[a:b])) / max(joint.noise, 1e-300) if b > a else 0.0
-        shows = ev.ramp_s <= RAMP_SHOWN * (joint.tau + joint.theta)
+        shows = ev.ramp_s <= RAMP_SHOWN * lag
         ev.excited = bool(ev.snr >= MIN_SNR and shows)
         excited += ev.excited
         slow += not shows
+    # only slow ramps stand out of the noise: they show K and the lag (LUMP_THETA)
+    seen = sum(ev.snr >= MIN_SNR for ev in events)
+    lumped = excited < MIN_EVENTS and seen >= LUMP_EVENTS
+    if lumped:
+        for ev in events:
+            ev.excited = bool(ev.snr >= MIN_SNR)
     out.model = Model(
-        k=joint.k, tau=joint.tau, theta=joint.theta, noise=joint.noise,
+        k=joint.k, tau=(1.0 - LUMP_THETA) * lag if lumped else joint.tau,
+        theta=LUMP_THETA * lag if lumped else joint.theta, noise=joint.noise,
         move=float(np.median([abs(ev.move or joint.k * ev.op_move) for ev in events
                               if ev.excited] or [0.0])),  # fmt: skip
-        r2=joint.r2, k_rse=joint.k_rse, tau_rse=joint.tau_rse,
-        integrating=joint.integrating, slope=joint.slope, theta_i=joint.theta_i, events=excited,
+        r2=joint.r2, k_rse=joint.k_rse, tau_rse=joint.lag_rse if lumped else joint.tau_rse,
+        integrating=joint.integrating, slope=joint.slope, theta_i=joint.theta_i,
+        events=seen if lumped else excited, lumped=lumped,
     )  # fmt: skip
     # consistency: the model of the data before the last excited event that has run the
     # model's theta + tau predicts it and what follows (a quiet event, or the first
     # samples of a new one, test next to nothing: docs/identification.md)
-    shown = joint.theta + joint.tau
     tested = max(
-        (i for i, ev in enumerate(events) if ev.excited and t[-1] - t[bounds[i]] >= shown),
+        (i for i, ev in enumerate(events) if ev.excited and t[-1] - t[bounds[i]] >= lag),
         default=0,
     )
     cut = bounds[tested]
-    if cut >= MIN_SAMPLES and excited >= MIN_EVENTS:
+    if cut >= MIN_SAMPLES and out.model.events >= MIN_EVENTS:
         early = fit_windows([whole.head(cut)], (joint.tau, joint.theta))
         b, c = early.params[3], early.params[4]
         miss = (predict(early.params, whole, b, c) - pv)[cut:]
@@ -286,13 +310,15 @@ def assess(
         rms = float(np.sqrt(np.mean(miss**2)))
         floor = PREDICTION_FLOOR * out.model.move
         out.model.prediction = rms / max(joint.noise, floor, 1e-300)
-    out.why = _verdict(out.model, excited, len(events), slow)
     m = out.model
+    out.why = _verdict(m, m.events, len(events), slow)
+    if lumped and out.why:  # the ramps' verdict, which says what identifies the loop
+        out.why = _verdict(m, excited, len(events), slow)
     worst = max(m.k_rse / MAX_REL_SE, m.tau_rse / MAX_TAU_SE)
     precision = min(1.0, max(0.0, 1.5 - 0.5 * worst))
     consistency = min(1.0, max(0.0, (2.0 * MAX_PREDICTION - m.prediction) / MAX_PREDICTION))
     m.confidence = float(
-        min(1.0, excited / MIN_EVENTS) * precision * consistency * (m.r2 >= MIN_R2)
+        min(1.0, m.events / MIN_EVENTS) * precision * consistency * (m.r2 >= MIN_R2)
     )
     m.confident = not out.why
     return out

@@ -181,9 +181,14 @@ the agent's gains to the model's tuning 20-30 % away, again and again. A K that 
 def moved(m, known) -> bool:
     """Whether confident model ``m`` differs from ``known`` in K or tau by more than
     :data:`MOVED` standard errors of the difference (their relative standard errors),
-    and in K by more than :data:`MOVED_K` too."""
+    and in K by more than :data:`MOVED_K` too. Where either is lumped
+    (:data:`identify.LUMP_THETA <service.engine.identify.LUMP_THETA>`) their lags tau +
+    theta are compared instead of tau: a lumped model's split is assumed, not measured."""
     k = abs(math.log(m.k / known.k))
-    tau = abs(math.log(m.tau / known.tau))
+    if m.lumped or known.lumped:
+        tau = abs(math.log((m.tau + m.theta) / (known.tau + known.theta)))
+    else:
+        tau = abs(math.log(m.tau / known.tau))
     return (k > max(MOVED * math.hypot(m.k_rse, known.k_rse), math.log1p(MOVED_K))) or (
         tau > MOVED * math.hypot(m.tau_rse, known.tau_rse)
     )
@@ -201,7 +206,8 @@ provisional one."""
 
 
 def refined(m, known) -> bool:
-    """Whether confident model ``m`` refines a provisional ``known`` (:data:`PROVISIONAL`):
+    """Whether confident model ``m`` refines a lumped ``known`` (its split assumed: ``m``
+    is not lumped), or a provisional one (:data:`PROVISIONAL`):
     :data:`REFINED` times more precise in tau, with ``known``'s tau outside ``m``'s own
     :data:`MOVED` standard errors and ``m``'s outside ``known``'s one: the provisional
     model was wrong beyond its own error. :func:`moved` judges by the standard error of
@@ -210,6 +216,8 @@ def refined(m, known) -> bool:
     true-hint run's step-test MSE (docs/identification.md). Without the second condition
     a loop of the long robustness run had a 5 % correction of tau (standard error 15 %)
     put in force at its 360th period, resetting the agent's gains by 24 %."""
+    if known.lumped:
+        return not m.lumped
     if not known.tau_rse > PROVISIONAL or not m.tau_rse * REFINED <= known.tau_rse:
         return False
     return abs(math.log(m.tau / known.tau)) > max(MOVED * m.tau_rse, known.tau_rse)
@@ -269,7 +277,7 @@ def hint_checked(tb, s: int, m, wall: float) -> None:
         return
     if known is None:
         first_tuning.apply(tb, s, m, wall, "checked")
-    elif moved(m, known):
+    elif moved(m, known) or (known.lumped and not m.lumped):
         first_tuning.apply(tb, s, m, wall, "followed")
 
 

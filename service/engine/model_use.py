@@ -46,9 +46,7 @@ def use(tb, s: int, m: identify.Model, t: float, wall: float) -> None:
         _put_in_force(tb, s, m, model_scaling(m), t, wall, "identified", detail)
         return
     scaling = tb.scaling_of(s)
-    app = box.apparent(scaling, m)
-    off = max(abs(math.log(app["gain"] / AGENT_GAIN)), abs(math.log(app["tau"] / AGENT_TAU)))
-    if off > math.log(guard.hint_tolerance):
+    if hint_off(box.apparent(scaling, m), m.lumped) > math.log(guard.hint_tolerance):
         if not tb.mismatch[s]:  # flagged (and, with auto-rescale, rescaled right after)
             tb.n_mismatch[s] += 1
             audit(tb, s, t, wall, "mismatch", detail)
@@ -63,6 +61,18 @@ def use(tb, s: int, m: identify.Model, t: float, wall: float) -> None:
     if not tb.out_env[s]:  # the gains follow a plant drifting inside the envelope
         model_check.follow(tb, s, m, t, wall)  # (with a model in force)
         model_check.hint_checked(tb, s, m, wall)  # (without: a hinted loop)
+
+
+def hint_off(app: dict[str, float], lumped: bool) -> float:
+    """How far (log) the hint in force is off a confident model seen through it
+    (:func:`box.apparent <service.engine.box.apparent>`), the worse of K and tau. A
+    lumped model bounds tau only from above, by its lag tau + theta (the dead time may
+    take any share of it): its tau counts only when the hint's is slower than the whole
+    lag."""
+    tau = math.log(app["tau"] / AGENT_TAU)
+    if lumped:
+        tau = min(0.0, tau + math.log1p(app["theta_ratio"]))
+    return max(abs(math.log(app["gain"] / AGENT_GAIN)), abs(tau))
 
 
 def envelope(tb, s: int, m: identify.Model, t: float, wall: float, *, sure: bool) -> None:
