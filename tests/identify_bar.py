@@ -122,9 +122,12 @@ def run(
     seed: int = 1,
     max_tau: float = 420.0,
     guard: dict | None = None,
+    ramp: float = 0.0,
 ) -> Run:
     """Drive every loop until it has taken STEPS agent steps (counted from its last
-    identification or rescale when ``steps_after_rescale``), or ``max_tau`` time constants."""
+    identification or rescale when ``steps_after_rescale``), or ``max_tau`` time constants.
+    ``ramp``: each setpoint move a linear ramp over this many time constants (a DCS's
+    setpoint rate limit; 0: a step)."""
     n = plants.K.size
     engine = TuningEngine(load_agent())
     for i in range(n):
@@ -147,6 +150,7 @@ def run(
     pi = PIBatch(plants.kp0, plants.ki0 * plants.h, dt=1.0)
     pi.initialise(y0 / plants.K)
     sp = np.full(n, y0)
+    target, rate = sp.copy(), np.zeros(n)
     next_move = np.ceil(rng.uniform(1.0, 2.0, n) * plants.tau / plants.h)
     moves_at_id = np.full(n, -1)
     first_step = np.zeros(n, np.int64)
@@ -173,12 +177,15 @@ def run(
         if due.any():
             move = due & active
             size = rng.uniform(*MOVE, n) * rng.choice([-1.0, 1.0], n)
-            sp = np.where(move, moved(sp, size), sp)
+            target = np.where(move, moved(target, size), target)
+            ramp_samples = np.maximum(ramp * plants.tau / plants.h, 1.0)
+            rate = np.where(move, np.abs(target - sp) / ramp_samples, rate)
             for i in np.flatnonzero(move).tolist():
                 move_t[i].append(float(k * plants.h[i]))
             next_move = np.where(
                 due, k + np.ceil(rng.uniform(*MOVE_EVERY, n) * plants.tau / plants.h), next_move
             )
+        sp = sp + np.clip(target - sp, -rate, rate)
         y = plant.measure()
         t = k * plants.h
         idx = np.flatnonzero(active)
@@ -241,7 +248,14 @@ def _apply(engine, updates, pi, plants, out, slots, first_step, rescaled_seen, a
     out.kp[now], out.ki[now] = tb.kp[slots[now]], tb.ki[slots[now]]
 
 
-def one(which: str, n: int, seed: int, max_tau: float = 420.0, guard: dict | None = None) -> dict:
+def one(
+    which: str,
+    n: int,
+    seed: int,
+    max_tau: float = 420.0,
+    guard: dict | None = None,
+    ramp: float = 0.0,
+) -> dict:
     """One of the runs, as JSON-able numbers (``python -m tests.identify_bar --run``);
     ``max_tau`` shorter than the default ends the run before the loops took their steps
     (what identification decided is known after a few tens of time constants); ``guard``
@@ -250,20 +264,23 @@ def one(which: str, n: int, seed: int, max_tau: float = 420.0, guard: dict | Non
     factors = [(3.0, 1.0), (1 / 3, 1.0), (1.0, 3.0), (1.0, 1 / 3)]
     if which.startswith("true"):  # trueN: the noise and move sequence N (the scatter)
         hints = [plants.hint(i) for i in range(n)]
-        r = run(plants, hints=hints, seed=int(which[4:] or 1), max_tau=max_tau, guard=guard)
+        r = run(plants, hints=hints, seed=int(which[4:] or 1), max_tau=max_tau, guard=guard,
+                ramp=ramp)  # fmt: skip
     elif which == "blind":
-        r = run(plants, hints=[None] * n, max_tau=max_tau, guard=guard)
+        r = run(plants, hints=[None] * n, max_tau=max_tau, guard=guard, ramp=ramp)
     else:
         wrong = [plants.hint(i, *factors[i % 4]) for i in range(n)]
         r = run(
             plants, hints=wrong, auto_rescale=True, steps_after_rescale=True, max_tau=max_tau,
-            guard=guard,
+            guard=guard, ramp=ramp,
         )  # fmt: skip
     models = [None if m is None else [m.k, m.tau, m.theta] for m in r.identified_model]
     first = [None if m is None else [m.k, m.tau, m.theta] for m in r.first_model]
+    lumped = [m is not None and m.lumped for m in r.first_model]
     return {
         "kp": r.kp.tolist(), "ki": r.ki.tolist(), "done": r.done.tolist(),
         "moves": r.moves_at_identification.tolist(), "models": models, "first_models": first,
+        "first_lumped": lumped,
         "moves_in_data": r.moves_in_data.tolist(),
         "statuses": r.statuses, "flagged": r.flagged.tolist(), "seconds": r.seconds,
     }  # fmt: skip
@@ -286,6 +303,11 @@ def summary(runs: dict, n: int, seed: int) -> dict:
             np.array([m[j] / truth[i] - 1 if m else np.nan for i, m in enumerate(first)])
             for j, truth in ((0, plants.K), (1, plants.tau))
         )
+        # a lumped first model (slow ramps: identify.LUMP_THETA) knows the lag, not tau
+        lag_err = np.array(
+            [(m[1] + m[2]) / (plants.tau[i] + plants.theta[i]) - 1 if m else np.nan
+             for i, m in enumerate(first)]
+        )  # fmt: skip
         tau_err_end = np.array(
             [m[1] / plants.tau[i] - 1 if m else np.nan for i, m in enumerate(b["models"])]
         )
@@ -300,6 +322,9 @@ def summary(runs: dict, n: int, seed: int) -> dict:
             tau_within_30=int((np.abs(tau_err[ident]) <= 0.3).sum()),
             k_err_worst=float(np.nanmax(np.abs(k_err))),
             tau_err_worst=float(np.nanmax(np.abs(tau_err))),
+            lumped_first=int(sum(b.get("first_lumped", []))),
+            lag_within_30=int((np.abs(lag_err[ident]) <= 0.3).sum()),
+            lag_err_worst=float(np.nanmax(np.abs(lag_err))),
             tau_within_30_at_end=int((np.abs(tau_err_end[ident]) <= 0.3).sum()),
             tau_err_worst_at_end=float(np.nanmax(np.abs(tau_err_end))),
             mse_ratio_within_1_5=int((ratio <= 1.5).sum()),
@@ -378,9 +403,13 @@ def main() -> None:
         "--guard", type=json.loads, default=None,
         help='JSON fields overriding every loop\'s guard, e.g. \'{"model_check": 1.2}\'',
     )  # fmt: skip
+    parser.add_argument(
+        "--ramp", type=float, default=0.0,
+        help="each setpoint move a ramp over this many time constants (0: a step)",
+    )  # fmt: skip
     args = parser.parse_args()
     if args.run:
-        print(json.dumps(one(args.run, args.loops, args.seed, args.max_tau, args.guard)))
+        print(json.dumps(one(args.run, args.loops, args.seed, args.max_tau, args.guard, args.ramp)))
         return
     if args.summary:
         runs = {}

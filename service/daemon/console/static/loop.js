@@ -143,7 +143,9 @@
       const m = idn.model;
       // an integrating process's FOPTD numbers say nothing: its own K (per s) and dead time
       if (m && m.integrating) pairs.push(["identified", `<b>integrating</b>: K ${pitune.num(m.slope)} /s, θ ${pitune.num(m.theta_i)} s, r² ${pitune.num(m.r2, 3)}`]);
-      else if (m) pairs.push(["identified", `K ${pitune.num(m.k)}, τ ${pitune.num(m.tau)} s, θ ${pitune.num(m.theta)} s, r² ${pitune.num(m.r2, 3)}, confidence ${pitune.num(m.confidence, 2)}`]);
+      else if (m) pairs.push(["identified", `K ${pitune.num(m.k)}, τ ${pitune.num(m.tau)} s, θ ${pitune.num(m.theta)} s, r² ${pitune.num(m.r2, 3)}, confidence ${pitune.num(m.confidence, 2)}` +
+        // slow ramps only: the lag is measured, its split assumed
+        (m.lumped ? ` <b>lumped</b>: τ + θ ${pitune.num(m.tau + m.theta)} s, split assumed` : "")]);
       if (idn.mismatch) pairs.push(["hint", "<b>mismatch</b>"]);
       if (idn.out_of_envelope) pairs.push(["envelope", "<b>outside the training box</b>"]);
     }
