@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import orjson
 import pytest
 
 from plant_sim.foptd import FOPTDBatch
@@ -51,8 +52,9 @@ def drive(
     ramp=0.0,
 ) -> list:
     """Run one simulated loop through the engine: ``moves`` setpoint moves of +-``size``
-    every ``every`` time constants (each a ramp over ``ramp`` time constants, 0: a step);
-    returns the gain updates published."""  # fmt: skip
+    every ``every`` time constants (each a ramp over ``ramp`` time constants, 0: a step;
+    a list: the i-th move's, the last for the moves beyond it); returns the gain updates
+    published."""  # fmt: skip
     kp, ki = engine.view(loop_id, wall=0.0).kp, engine.view(loop_id, wall=0.0).ki
     if integrating:
         plant = FOPTDBatch(1.0, 1e9, theta / h, dt=1.0, noise_std=noise, seed=seed)
@@ -68,8 +70,10 @@ def drive(
     for j in range(n):
         t = t0 + j * h
         if j and j % int(round(every * tau / h)) == 0:
-            target = 50.0 + size * (1 if (j // int(round(every * tau / h))) % 2 else -1)
-            rate = abs(target - sp) / max(ramp * tau / h, 1.0)
+            move = j // int(round(every * tau / h))
+            target = 50.0 + size * (1 if move % 2 else -1)
+            over = ramp[min(move, len(ramp)) - 1] if isinstance(ramp, list) else ramp
+            rate = abs(target - sp) / max(over * tau / h, 1.0)
         sp = min(max(target, sp - rate), sp + rate)
         if tau_end is not None:
             plant.set_params(tau=(tau + (tau_end - tau) * j / n) / h)
@@ -245,6 +249,24 @@ def test_a_ramp_slower_than_the_loop_gives_a_lumped_model_and_its_tuning():
     assert updates and updates[0].reason == "model"
 
 
+def test_a_lumped_model_in_force_gives_way_to_the_split_that_steps_show():
+    """Five ramps over 3 tau put a lumped model in force; the setpoint steps after them
+    show tau and theta apart, and that model replaces it (model_check.refined: the
+    lumped tuning predicted worse than guard.model_check times the split model's), its
+    tuning put in force (``followed``)."""
+    engine = TuningEngine(untrained_agent(0))
+    engine.register(hint_free(), wall=0.0)
+    drive(engine, moves=12, ramp=[3.0] * 5 + [0.0], every=6.0)
+    ident = engine.view("L", wall=1e5).identification
+    assert not ident.in_force.lumped
+    assert ident.in_force.tau == pytest.approx(TAU, rel=0.1)
+    assert ident.in_force.theta == pytest.approx(THETA, abs=0.3 * THETA)
+    _, audit = engine.drain_changes()
+    rows = [(r[5], orjson.loads(r[-1])) for r in audit if r[5] in ("identified", "model")]
+    assert [reason for reason, _ in rows] == ["identified", "model", "model"]
+    assert rows[0][1]["lumped"] and rows[2][1]["after"] == "followed"
+
+
 # -- hints checked -----------------------------------------------------------------------
 @pytest.mark.parametrize("factor", [("k_hat", 3.0), ("tau_hat", 1 / 3)])
 def test_a_wrong_hint_is_flagged_and_rescaled_on_request(factor):
@@ -267,6 +289,20 @@ def test_a_wrong_hint_is_flagged_and_rescaled_on_request(factor):
     _, audit = engine.drain_changes()
     reasons = [(r[0], r[5]) for r in audit]
     assert ("A", "mismatch") in reasons and ("B", "rescaled") in reasons
+
+
+@pytest.mark.parametrize(("tau_factor", "flagged"), [(1.0, False), (3.0, True), (1 / 3, False)])
+def test_a_lumped_model_flags_a_hint_slower_than_its_lag_only(tau_factor, flagged):
+    """A hinted loop whose setpoint only ramps slower than the loop: its lumped model
+    (K, the lag 50 s) confirms the true hint, flags one 3x too slow (120 s > 2x the whole
+    lag), and cannot tell one 3x too fast (13 s) from a longer dead time: not flagged."""
+    engine = TuningEngine(untrained_agent(0))
+    engine.register(hinted(tau_hat=TAU * tau_factor), wall=0.0)
+    drive(engine, moves=6, ramp=3.0, every=6.0)
+    view = engine.view("L", wall=1e5)
+    assert view.identification.model.lumped and view.identification.model.confident
+    assert view.identification.mismatch == flagged
+    assert view.counters.mismatches == int(flagged)
 
 
 def test_the_sites_defaults_check_and_rescale_hinted_loops_that_left_it_unset():
