@@ -80,9 +80,9 @@ LUMP_THETA = 0.3
 """A *lumped* model: where only ramps slower than the loop excite it, the events they show
 pin down K and tau + theta, not the split, and the model is that lag split with this
 share of dead time (theta/tau 0.43). Its tuning (:mod:`service.engine.first_tuning`)
-is then within a step-test MSE of 0.002-0.007 of zero for every true split with theta/tau
-up to 1 and tau + theta 0.275-2 agent units, 0.03 up to theta/tau 3; assuming no dead
-time instead, up to 0.026 and 0.07 (docs/identification.md, Lumped models)."""
+then scores a step-test MSE of at most 0.0013-0.007 on every true split with theta/tau
+up to 1 (tau + theta 0.275-2 agent units), 0.031 up to theta/tau 3; with the lag taken
+as tau, up to 0.026 and 0.07 (docs/identification.md, Lumped models)."""
 
 OP_RAMP_PART = 0.75
 """Share of an output ramp's excursion whose time :func:`_op_ramp` measures (the whole
@@ -278,7 +278,7 @@ def assess(
         ev.excited = bool(ev.snr >= MIN_SNR and shows)
         excited += ev.excited
         slow += not shows
-    # only slow ramps stand out of the noise: they show K and the lag (LUMP_THETA)
+    # where only ramps slower than the loop stand out of the noise: K and the lag
     seen = sum(ev.snr >= MIN_SNR for ev in events)
     lumped = excited < MIN_EVENTS and seen >= LUMP_EVENTS
     if lumped:

@@ -217,10 +217,16 @@ def refined(m, known) -> bool:
     a loop of the long robustness run had a 5 % correction of tau (standard error 15 %)
     put in force at its 360th period, resetting the agent's gains by 24 %."""
     if known.lumped:
-        return not m.lumped
+        return split_shown(m, known)
     if not known.tau_rse > PROVISIONAL or not m.tau_rse * REFINED <= known.tau_rse:
         return False
     return abs(math.log(m.tau / known.tau)) > max(MOVED * m.tau_rse, known.tau_rse)
+
+
+def split_shown(m, known) -> bool:
+    """Whether model ``m`` tells tau from theta where ``known`` is lumped (:data:`identify.
+    LUMP_THETA <service.engine.identify.LUMP_THETA>`: its split assumed)."""
+    return known.lumped and not m.lumped
 
 
 def follow(tb, s: int, m, t: float, wall: float) -> None:
@@ -277,7 +283,7 @@ def hint_checked(tb, s: int, m, wall: float) -> None:
         return
     if known is None:
         first_tuning.apply(tb, s, m, wall, "checked")
-    elif moved(m, known) or (known.lumped and not m.lumped):
+    elif moved(m, known) or split_shown(m, known):
         first_tuning.apply(tb, s, m, wall, "followed")
 
 
