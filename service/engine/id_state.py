@@ -33,6 +33,9 @@ class IdState:
     hint_model: identify.Model | None = None
     """A hinted loop's latest confident model while none is in force
     (:func:`service.engine.model_check.hint_checked`)."""
+    hint_base: identify.Model | None = None
+    """The model a hinted loop's later confident models are compared with: its first
+    confident one, then each whose tuning was put in force (``hint_checked``)."""
 
     @property
     def fallback(self) -> identify.Model | None:
@@ -50,6 +53,7 @@ class IdState:
             "scaling": None if self.scaling is None else self.scaling.model_dump(),
             "tuned_seq": self.tuned_seq,
             "hint_model": None if self.hint_model is None else self.hint_model.as_dict(),
+            "hint_base": None if self.hint_base is None else self.hint_base.as_dict(),
         }
 
     @classmethod
@@ -63,4 +67,5 @@ class IdState:
             scaling=None if d.get("scaling") is None else Scaling(**d["scaling"]),
             tuned_seq=d.get("tuned_seq", -1),
             hint_model=identify.Model.load(d.get("hint_model")),
+            hint_base=identify.Model.load(d.get("hint_base")),
         )

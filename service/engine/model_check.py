@@ -262,8 +262,14 @@ def hint_checked(tb, s: int, m, wall: float) -> None:
     than ``guard.model_check`` times its own tuning, that tuning is put in force
     (:func:`first_tuning.apply`, ``checked``: both ways, published, audited and verified
     like a first tuning). Later only when ``m`` shows the plant moved from the model
-    before it (:func:`moved`, the rule :func:`follow` applies to a model in force;
-    ``followed``): later models of the same plant differ by a few % in K and tau, which
+    the gains were last judged on (``IdState.hint_base``: the first confident model, then
+    each whose tuning was put in force; :func:`moved`, the rule :func:`follow` applies
+    to a model in force; ``followed``). Compared with the model just before it, as until
+    session 33, a plant that had stopped moving crept past the check: the paper's tau
+    ramp through the engine was followed once, mid-way (tau 51.8 s of 60 s), and the
+    later models (to 59.9 s, standard error 0.03 %) each differed too little from the
+    one before, so the gains stayed off (step-test MSE 0.00082; the accurate model's
+    tuning: 0.000033). Later models of the same plant differ by a few % in K and tau, which
     near the step test's optimum is a factor of 2-4 in its MSE, and resetting the gains
     at each would undo the agent's tuning again and again (the follow rule's lesson,
     :data:`MOVED_K`). After the plant's gain quadrupled (the evaluation's K step 0.25 ->
@@ -278,12 +284,15 @@ def hint_checked(tb, s: int, m, wall: float) -> None:
     st = tb.ident[s]
     if st.in_force is not None or m.integrating or not m.k > 0:
         return
-    known, st.hint_model = st.hint_model, m
+    first = st.hint_model is None
+    base = m if first else (st.hint_base or st.hint_model)  # (a snapshot before the base)
+    st.hint_model, st.hint_base = m, base
     if not tb.mc_factor[s] > 0 or not worse_than_tuning(tb, s, m):
         return
-    if known is None:
+    if first:
         first_tuning.apply(tb, s, m, wall, "checked")
-    elif moved(m, known) or split_shown(m, known):
+    elif moved(m, base) or split_shown(m, base):
+        st.hint_base = m
         first_tuning.apply(tb, s, m, wall, "followed")
 
 
