@@ -235,6 +235,36 @@ def test_a_hinted_loops_first_confident_model_puts_its_tuning_in_force_once():
     assert IdState.load(st.dump()).hint_model == st.hint_model
 
 
+def test_a_hinted_loops_models_are_compared_with_the_one_its_gains_were_judged_on():
+    """model_check.hint_checked with a plant creeping in tau by 2 % a model (each within
+    MOVED standard errors of the one before): the models are compared with the first
+    (IdState.hint_base), so the one 4 % off it, whose tuning the gains in force are
+    predicted worse than guard.model_check times, is followed and becomes the base, and
+    so on; compared with the model just before, none would be. The base survives a snapshot."""
+    from service.engine.id_state import IdState
+    from service.engine.identify import Model
+
+    engine = TuningEngine(untrained_agent(0))
+    engine.register(hinted(), wall=0.0)
+    tb, s = engine.table, engine.table.slot("L")
+
+    def model(tau):
+        return Model(k=K, tau=tau, theta=THETA, noise=1.0, move=20.0, r2=0.999, k_rse=0.002,
+                     tau_rse=0.005, confident=True)  # fmt: skip
+
+    taus = [TAU * 1.02**i for i in range(8)]
+    pairs = zip(taus, taus[1:], strict=False)
+    assert not any(model_check.moved(model(b), model(a)) for a, b in pairs)
+    followed = []
+    for tau in taus:
+        model_check.hint_checked(tb, s, model(tau), wall=0.0)
+        _, audit = engine.drain_changes()
+        followed += [tau for r in audit if r[5] == "model" and '"after":"followed"' in r[10]]
+    assert followed == pytest.approx([TAU * 1.02**2, TAU * 1.02**4, TAU * 1.02**6])
+    assert tb.ident[s].hint_base.tau == pytest.approx(followed[-1])
+    assert IdState.load(tb.ident[s].dump()).hint_base == tb.ident[s].hint_base
+
+
 def test_a_drifting_plants_precise_model_makes_the_fallback_stale():
     """model_check.stale: a latest model that is not confident (its events disagree, as a
     drifting plant's do) but fits, is pinned down and moved from the model the check
