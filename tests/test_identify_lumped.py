@@ -8,7 +8,7 @@ import pytest
 
 from service.agent import untrained_agent
 from service.engine import TuningEngine
-from service.engine.identify import LUMP_THETA
+from service.engine.identify import LUMP_EVENTS, LUMP_THETA, MIN_SNR
 from tests.test_identify import TAU, THETA, K, drive, hint_free, hinted
 
 
@@ -59,3 +59,19 @@ def test_a_lumped_model_flags_a_hint_slower_than_its_lag_only(tau_factor, flagge
     assert view.identification.model.lumped and view.identification.model.confident
     assert view.identification.mismatch == flagged
     assert view.counters.mismatches == int(flagged)
+
+
+def test_a_lumped_attempt_that_fails_is_reported_as_none_was_made():
+    """Ramps over 3 tau under 4x the noise: three of the four stand out of it (a lumped
+    attempt, identify.LUMP_EVENTS), too noisy for a confident K and lag. The assessment
+    then shows what the strict rule saw: no event excited, a model not lumped, counting
+    none, and the ramps' verdict."""
+    engine = TuningEngine(untrained_agent(0))
+    engine.register(hint_free(), wall=0.0)
+    drive(engine, moves=4, ramp=3.0, noise=4.0)
+    ident = engine.view("L", wall=1e5).identification
+    assert sum(ev.snr >= MIN_SNR for ev in ident.events) >= LUMP_EVENTS  # attempted
+    assert not any(ev.excited for ev in ident.events)
+    m = ident.model
+    assert not m.lumped and not m.confident and m.events == 0
+    assert "slower than the loop" in ident.why and ident.in_force is None

@@ -271,27 +271,41 @@ def assess(
     joint = fit_windows([whole], start)
     pred = joint.model[0]
     lag = joint.tau + joint.theta
-    excited = slow = 0
+    strict, slow = [], 0
     for ev, a, b in zip(events, bounds[:-1], bounds[1:], strict=True):
         ev.snr = float(np.ptp(pred[a:b])) / max(joint.noise, 1e-300) if b > a else 0.0
         shows = ev.ramp_s <= RAMP_SHOWN * lag
-        ev.excited = bool(ev.snr >= MIN_SNR and shows)
-        excited += ev.excited
+        strict.append(bool(ev.snr >= MIN_SNR and shows))
         slow += not shows
     # where only ramps slower than the loop stand out of the noise: K and the lag
-    seen = sum(ev.snr >= MIN_SNR for ev in events)
-    lumped = excited < MIN_EVENTS and seen >= LUMP_EVENTS
-    if lumped:
-        for ev in events:
-            ev.excited = bool(ev.snr >= MIN_SNR)
-    out.model = Model(
+    seen = [ev.snr >= MIN_SNR for ev in events]
+    lumped = sum(strict) < MIN_EVENTS and sum(seen) >= LUMP_EVENTS
+    data = (t, pv, bounds, whole, slow)
+    judged = _judged(joint, events, seen if lumped else strict, lumped, *data)
+    if lumped and judged[1]:  # a lumped attempt that fails is reported as none was made
+        judged = _judged(joint, events, strict, False, *data)
+    out.model, out.why = judged
+    return out
+
+
+def _judged(joint, events, excited, lumped, t, pv, bounds, whole, slow) -> tuple[Model, str]:
+    """:func:`assess`'s model of the segment fitted as ``joint`` (:func:`fit_windows`),
+    with the events flagged ``excited`` (``lumped``: its split assumed,
+    :data:`LUMP_THETA`), tested for consistency and judged: (model, why not confident).
+    ``t``, ``pv``: the rows fitted, ``bounds`` the events' first rows in them and their
+    end, ``whole`` their :func:`recorded` window, ``slow`` how many events ramp slower
+    than the loop."""
+    for ev, flag in zip(events, excited, strict=True):
+        ev.excited = bool(flag)
+    lag = joint.tau + joint.theta
+    m = Model(
         k=joint.k, tau=(1.0 - LUMP_THETA) * lag if lumped else joint.tau,
         theta=LUMP_THETA * lag if lumped else joint.theta, noise=joint.noise,
         move=float(np.median([abs(ev.move or joint.k * ev.op_move) for ev in events
                               if ev.excited] or [0.0])),  # fmt: skip
         r2=joint.r2, k_rse=joint.k_rse, tau_rse=joint.lag_rse if lumped else joint.tau_rse,
         integrating=joint.integrating, slope=joint.slope, theta_i=joint.theta_i,
-        events=seen if lumped else excited, lumped=lumped,
+        events=sum(excited), lumped=lumped,
     )  # fmt: skip
     # consistency: the model of the data before the last excited event that has run the
     # model's theta + tau predicts it and what follows (a quiet event, or the first
@@ -301,27 +315,23 @@ def assess(
         default=0,
     )
     cut = bounds[tested]
-    if cut >= MIN_SAMPLES and out.model.events >= MIN_EVENTS:
+    if cut >= MIN_SAMPLES and m.events >= MIN_EVENTS:
         early = fit_windows([whole.head(cut)], (joint.tau, joint.theta))
         b, c = early.params[3], early.params[4]
         miss = (predict(early.params, whole, b, c) - pv)[cut:]
         if whole.count is not None:  # in one sample's noise, as the residual
             miss = miss * np.sqrt(whole.count[cut:])
         rms = float(np.sqrt(np.mean(miss**2)))
-        floor = PREDICTION_FLOOR * out.model.move
-        out.model.prediction = rms / max(joint.noise, floor, 1e-300)
-    m = out.model
-    out.why = _verdict(m, m.events, len(events), slow)
-    if lumped and out.why:  # the ramps' verdict, which says what identifies the loop
-        out.why = _verdict(m, excited, len(events), slow)
+        m.prediction = rms / max(joint.noise, PREDICTION_FLOOR * m.move, 1e-300)
+    why = _verdict(m, m.events, len(events), slow)
     worst = max(m.k_rse / MAX_REL_SE, m.tau_rse / MAX_TAU_SE)
     precision = min(1.0, max(0.0, 1.5 - 0.5 * worst))
     consistency = min(1.0, max(0.0, (2.0 * MAX_PREDICTION - m.prediction) / MAX_PREDICTION))
     m.confidence = float(
         min(1.0, m.events / MIN_EVENTS) * precision * consistency * (m.r2 >= MIN_R2)
     )
-    m.confident = not out.why
-    return out
+    m.confident = not why
+    return m, why
 
 
 def fitted_from(starts: list[int]) -> int:
