@@ -49,10 +49,12 @@ def drive(
     integrating=False,
     t0=0.0,
     ramp=0.0,
+    u_max=np.inf,
 ) -> list:
     """Run one simulated loop through the engine: ``moves`` setpoint moves of +-``size``
     every ``every`` time constants (each a ramp over ``ramp`` time constants, 0: a step;
-    a list: the i-th move's, the last for the moves beyond it); returns the gain updates
+    a list: the i-th move's, the last for the moves beyond it; ``u_max``: the DCS's
+    output limit, which the samples do not show); returns the gain updates
     published."""  # fmt: skip
     kp, ki = engine.view(loop_id, wall=0.0).kp, engine.view(loop_id, wall=0.0).ki
     if integrating:
@@ -61,7 +63,7 @@ def drive(
         plant = FOPTDBatch(k, tau / h, theta / h, dt=1.0, noise_std=noise, seed=seed,
                            max_theta=theta / h)  # fmt: skip
     plant.reset(50.0)
-    pi = PIBatch(kp, ki * h, dt=1.0)
+    pi = PIBatch(kp, ki * h, dt=1.0, u_max=u_max)
     pi.initialise(0.0 if integrating else 50.0 / k)
     n = int(round((moves + 1) * every * tau / h))
     target, updates = 50.0, []
@@ -193,6 +195,8 @@ def test_hint_free_loop_takes_no_step_and_publishes_nothing_while_identifying():
         ({"auto": False}, "manual"),
         ({"saturated": True}, "saturated"),
         ({"frozen_pv": True}, "frozen"),
+        # every other move asks the output for 35, the valve stops at 28 (no op, no flag)
+        ({"u_max": 28.0}, "an output at a limit the samples do not show"),
         ({"size": 0.3}, "too small for the noise"),
     ],
 )

@@ -96,6 +96,11 @@ INTEGRATING = "integrating"
 """The verdict of a segment an integrating model ``K/s e^{-theta s}`` fits better."""
 _WHAT_WORKS = "a setpoint step or an output step in manual, op in the samples, identifies it"
 """What the operator can do where the loop's own moves do not identify it (a bump test)."""
+_NOT_LINEAR = (
+    "the data are not one linear process: an output at a limit the samples do not show "
+    "(send op, or the saturated flag), a disturbance, a change of the plant"
+)
+"""What a poor fit means to the user."""
 
 
 @dataclass
@@ -401,12 +406,6 @@ def _verdict(m: Model, excited: int, n_events: int, slow: int = 0) -> str:
             f"{INTEGRATING}: K/s e^(-theta s) fits better than an FOPTD model (K "
             f"{m.slope:.3g} PV units per output unit per s, theta {m.theta_i:.3g} s)"
         )
-    if not m.k > 0.0:
-        return (
-            f"process gain {m.k:.3g} has the wrong sign for the registered controller "
-            "action (the DCS block's action is probably the other one: register the loop "
-            "again with the other 'action')"
-        )
     if excited < MIN_EVENTS and slow:
         return (
             f"setpoint or output ramp slower than the loop ({slow} of {n_events} events "
@@ -419,8 +418,14 @@ def _verdict(m: Model, excited: int, n_events: int, slow: int = 0) -> str:
             f"response {MIN_SNR:g}x the noise {m.noise:.3g}; {MIN_EVENTS} needed; "
             f"{_WHAT_WORKS})"
         )
-    if m.r2 < MIN_R2:
-        return f"poor fit (R2 {m.r2:.2f} < {MIN_R2:g})"
+    if m.r2 < MIN_R2:  # before the sign: a model that does not fit says nothing of it
+        return f"poor fit (R2 {m.r2:.2f} < {MIN_R2:g}; {_NOT_LINEAR})"
+    if not m.k > 0.0:
+        return (
+            f"process gain {m.k:.3g} has the wrong sign for the registered controller "
+            "action (the DCS block's action is probably the other one: register the loop "
+            "again with the other 'action')"
+        )
     if not precise(m):
         return f"{IMPRECISE} (rel. s.e. {m.k_rse:.2f}, {m.tau_rse:.2f})"
     if not m.prediction <= MAX_PREDICTION:
