@@ -173,10 +173,19 @@ def _ingest(tb: LoopTable, s: int, sample: Sample, wall: float) -> bool:
 
 
 def _held(tb: LoopTable, s: int, sample: Sample, e: float, last_t, gap: bool, wall) -> bool:
-    """service.engine.output_limit.observe, one sample: whether the output is held."""
-    if sample.op is None or not sample.auto or sample.saturated:
-        output_limit.end_runs(tb, s)
-        return False
+    """service.engine.output_limit.observe, one sample: whether the output is held (seen
+    in op, or in the PV)."""
+    free = sample.auto and not sample.saturated
+    if free and sample.op is not None:
+        return _no_pv_run(tb, s) or _op_held(tb, s, sample, e, last_t, gap, wall)
+    tb.oh_op[s], tb.oh_n[s], tb.oh_law[s], tb.oh_held[s] = math.nan, 0.0, 0.0, False
+    if free and tb.scaled[s]:
+        return _pv_stalled(tb, s, sample, e, last_t, gap, wall)
+    return _no_pv_run(tb, s)
+
+
+def _op_held(tb: LoopTable, s: int, sample: Sample, e: float, last_t, gap: bool, wall) -> bool:
+    """The op rule (service.engine.output_limit._op_rule), one sample with op."""
     op = sample.op
     tb.oh_lo[s] = op if math.isnan(tb.oh_lo[s]) else min(tb.oh_lo[s], op)
     tb.oh_hi[s] = op if math.isnan(tb.oh_hi[s]) else max(tb.oh_hi[s], op)
@@ -198,13 +207,73 @@ def _held(tb: LoopTable, s: int, sample: Sample, e: float, last_t, gap: bool, wa
     tb.oh_held[s] = was or (tb.oh_n[s] >= output_limit.HELD_SAMPLES and big)
     if tb.oh_held[s] and not was:
         tb.n_held[s] += 1
-        detail = {"op": op, "samples": int(tb.oh_n[s]), "law_change": float(tb.oh_law[s]),
+        detail = {"seen": "op", "op": op, "samples": int(tb.oh_n[s]),
+                  "law_change": float(tb.oh_law[s]),
                   "op_range": [float(tb.oh_lo[s]), float(tb.oh_hi[s])]}  # fmt: skip
         gains = (float(tb.kp[s]), float(tb.ki[s]))
         tb._audit.append(audit_row(tb.ids[s], wall, sample.t, int(tb.seq[s]),
                                    MODE_VALUES[tb.mode[s]], "output_held", gains, gains,
                                    orjson.dumps(detail).decode()))  # fmt: skip
     return bool(tb.oh_held[s])
+
+
+def _no_pv_run(tb: LoopTable, s: int) -> bool:
+    tb.ps_ef[s], tb.ps_push[s], tb.ps_sp[s] = 0.0, 0.0, math.nan
+    tb.ps_sign[s] = tb.ps_stalls[s] = 0.0
+    tb.ps_held[s] = False
+    return False
+
+
+def _pv_stalled(tb: LoopTable, s: int, sample: Sample, e: float, last_t, gap: bool, wall):
+    """The PV rule (service.engine.output_limit._pv_rule), one usable sample."""
+    o = output_limit
+    t = sample.t
+    sp = math.nan if sample.sp is None else sample.sp
+    es, us, block = tb.e_scale[s], tb.u_scale[s], o.BLOCK * tb.time_unit[s]
+    ea, last_ea = e * es, tb.last_e[s] * es
+    dt = 0.0 if gap else t - last_t
+    same_sp = not gap and sp == tb.ps_sp[s]
+    alpha = min(1.0, dt / (o.FILTER * block)) if same_sp else 1.0
+    ef = tb.ps_ef[s] + alpha * (ea - tb.ps_ef[s])
+    nv = tb.ps_nv[s]
+    if same_sp:  # the noise: half the mean square change between samples
+        change = (ea - last_ea) * (ea - last_ea) / 2.0
+        nv = change if math.isnan(nv) else nv + o.NOISE_WEIGHT * (change - nv)
+        tb.ps_nv[s] = nv
+    sign = tb.ps_sign[s]
+    on = same_sp and sign != 0.0 and math.copysign(1.0, ef) == sign and abs(ef) >= 0.5 * o.BAND
+    tb.ps_ef[s], tb.ps_sp[s] = ef, sp
+    if not on:
+        tb.ps_push[s] = tb.ps_sign[s] = tb.ps_stalls[s] = 0.0
+        tb.ps_held[s] = False
+        if abs(ef) >= o.BAND:  # a run starts
+            tb.ps_sign[s], tb.ps_t0[s], tb.ps_ef0[s] = math.copysign(1.0, ef), t, ef
+            tb.ps_prev[s] = math.nan
+        return False
+    kp = tb.kp[s] if sample.kp is None else sample.kp
+    ki = tb.ki[s] if sample.ki is None else sample.ki
+    tb.ps_push[s] += ki * 0.5 * (e + tb.last_e[s]) * dt * us
+    if t - tb.ps_t0[s] < block:
+        return bool(tb.ps_held[s])
+    # the block's end: did the PV follow the push of the block before?
+    push = tb.ps_push[s] + kp * (ef - tb.ps_ef0[s]) / es * us
+    expected = o.SHARE * o.LOW_GAIN * sign * tb.ps_prev[s]
+    moved = sign * (tb.ps_ef0[s] - ef)
+    sd = math.sqrt(max(nv, 0.0) * dt / (o.FILTER * block))
+    was = bool(tb.ps_held[s])
+    stalled = expected >= o.NOISE_SIGMAS * sd and moved < o.FOLLOW * expected  # NaN: False
+    tb.ps_stalls[s] = tb.ps_stalls[s] + 1.0 if stalled else 0.0
+    tb.ps_held[s] = tb.ps_stalls[s] >= o.STALLS
+    tb.ps_prev[s], tb.ps_ef0[s], tb.ps_t0[s], tb.ps_push[s] = push, ef, t, 0.0
+    if tb.ps_held[s] and not was:
+        tb.n_held[s] += 1
+        detail = {"seen": "pv", "error": float(ef / es), "block_s": float(block),
+                  "expected_pv": float(expected / es), "moved_pv": float(moved / es)}  # fmt: skip
+        gains = (float(tb.kp[s]), float(tb.ki[s]))
+        tb._audit.append(audit_row(tb.ids[s], wall, t, int(tb.seq[s]),
+                                   MODE_VALUES[tb.mode[s]], "output_held", gains, gains,
+                                   orjson.dumps(detail).decode()))  # fmt: skip
+    return bool(tb.ps_held[s])
 
 
 def _record(

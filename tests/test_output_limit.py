@@ -23,19 +23,26 @@ class Loop:
     """One loop: plant, DCS PI (output limits, executing every ``every`` samples), gateway
     (reports op as the DCS holds it, rounded to ``quantum`` when given) and engine."""
 
-    def __init__(self, *, u_max=np.inf, noise=0.0, every=1, quantum=0.0, send_op=True, seed=0):
+    def __init__(
+        self, *, u_max=np.inf, noise=0.0, every=1, quantum=0.0, send_op=True, seed=0,
+        k=K, tau=TAU, theta=THETA, kp=1.0, ki=0.1,
+    ):  # fmt: skip
         self.engine = TuningEngine(StillAgent())
-        # gate off: stepped every RL period (44 s) whatever the setpoint does
+        # gate off: stepped every RL period (44 s) whatever the setpoint does; the hint is
+        # the model's constants (the plant's unless k, tau or theta say otherwise)
         self.engine.register(LoopConfig(
-            id="V", kp=1.0, ki=0.1, sample_period_s=1.0,
+            id="V", kp=kp, ki=ki, sample_period_s=1.0,
             scaling={"k_hat": K, "tau_hat": TAU, "pv_scale": 1.0},
             guard={"excitation_periods": 0.0},
         ), wall=0.0)  # fmt: skip
-        self.plant = FOPTDBatch(K, TAU, THETA, dt=1.0, noise_std=noise, seed=seed)
+        self.plant = FOPTDBatch(k, tau, theta, dt=1.0, noise_std=noise, seed=seed,
+                                max_theta=max(theta, 1.0))  # fmt: skip
         self.plant.reset(1.0)
-        self.pi = PIBatch(1.0, 0.1, dt=1.0, n=1, u_min=0.0, u_max=u_max)
-        self.pi.initialise([1.0 / K])
-        self.u = 1.0 / K
+        self.pi = PIBatch(kp, ki, dt=1.0, n=1, u_min=0.0, u_max=u_max)
+        self.pi.initialise([1.0 / k])
+        self.u = 1.0 / k
+        self.load = 0.0
+        """A disturbance at the plant's input (output units)."""
         self.every, self.quantum, self.send_op = every, quantum, send_op
         self.t = 0
         self.rows: list = []
@@ -54,7 +61,7 @@ class Loop:
                 sample["op"] = round(self.u / q) * q if q else self.u
             for update in self.engine.ingest([sample], wall=float(self.t)):
                 self.pi.set_gains(update.kp, update.ki)  # the DCS applies the tuner's gains
-            self.plant.step([self.u])
+            self.plant.step([self.u + self.load])
             self.t += 1
             seen.append(self.engine.view("V", wall=float(self.t)).status.value)
         self.rows += self.engine.drain_changes()[1]
@@ -106,24 +113,88 @@ def test_a_held_output_survives_a_snapshot_and_restore():
     assert other.view("V", wall=0.0).counters.output_holds == 1
 
 
-@pytest.mark.parametrize("kind", ["flag", "no op"])
-def test_the_gateways_flag_governs_and_without_op_nothing_is_seen(kind):
-    loop = Loop(u_max=1.5, send_op=kind == "flag")
+def test_the_gateways_flag_governs():
+    loop = Loop(u_max=1.5)
     loop.run(1.0, 100)
-    if kind == "flag":  # the gateway says so: saturated, and no hold of the data's
+    seen = []  # the gateway says so: saturated, and no hold of the data's
+    for _ in range(100):
+        pv = float(loop.plant.measure()[0])
+        loop.u = float(loop.pi.step([2.0 - pv])[0])
+        loop.engine.ingest([{"loop_id": "V", "t": float(loop.t), "sp": 2.0, "pv": pv,
+                             "op": loop.u, "saturated": bool(loop.pi.saturated[0])}],
+                           wall=float(loop.t))  # fmt: skip
+        loop.plant.step([loop.u])
+        loop.t += 1
+        seen.append(loop.engine.view("V", wall=float(loop.t)).status.value)
+    assert seen[-1] == "saturated"
+    assert loop.engine.view("V", wall=0.0).counters.output_holds == 0
+
+
+@pytest.mark.parametrize("noise", [0.0, 0.05])
+def test_without_op_a_pv_that_does_not_follow_the_law_is_held(noise):
+    """No op in the samples (the output reconstructed from the PI law): the move asks the
+    output for 2, the valve stops at 1.5, the PV at 1.5. The PV rule holds the loop from
+    the second block (60 s: the envelope's longest lag, no model) whose PV did not follow
+    the law's push, the third of the run; back at 1.0 the run ends and tuning resumes."""
+    loop = Loop(u_max=1.5, send_op=False, noise=noise)
+    assert set(loop.run(1.0, 500)) == {"tuning"}
+    seen = loop.run(2.0, 400)
+    block = output_limit.BLOCK * 2.0 * TAU  # the hint's time unit: 2 tau_hat
+    held_at = seen.index("saturated")
+    assert (output_limit.STALLS + 1) * block <= held_at + 1 <= (output_limit.STALLS + 2) * block
+    assert set(seen[held_at:]) == {"saturated"}
+    (row,) = [r for r in loop.rows if r[5] == "output_held"]
+    detail = json.loads(row[10])
+    assert detail["seen"] == "pv" and detail["block_s"] == pytest.approx(block)
+    assert detail["error"] == pytest.approx(0.5, abs=0.05)  # the PV stands at the limit
+    assert detail["moved_pv"] < output_limit.FOLLOW * detail["expected_pv"]
+    window = loop.engine.performance("V").window
+    assert window.pv_stalled and window.output_held is None  # (no op to show)
+    held_steps = loop.steps
+    assert loop.run(2.0, 200)[-1] == "saturated" and loop.steps <= held_steps + 1
+    assert set(loop.run(1.0, 300)) == {"tuning"}  # the error's sign turns: the run ends
+    assert not loop.engine.performance("V").window.pv_stalled
+    assert loop.steps >= held_steps + 5
+    assert loop.engine.view("V", wall=0.0).counters.output_holds == 1
+
+
+@pytest.mark.parametrize(
+    ("case", "kw"),
+    [
+        ("as tuned", {}),
+        ("noise", {"noise": 0.1}),
+        ("K a third of the hint's", {"k": K / 3.0}),  # the envelope's lowest gain
+        ("lag at the envelope's edge", {"tau": 1.5 * TAU, "theta": 1.5 * 1.5 * TAU}),
+        ("load steps", {}),
+    ],
+)
+def test_a_linear_loop_without_op_is_never_held(case, kw):
+    """A PV that follows the law, however slowly and whatever the disturbances, inside
+    the envelope the rule assumes: no hold. The PI is tuned 10-20x too slow (kp 0.1, ki
+    0.005 per s: most plant loops are), so the error outlasts the rule's blocks and the
+    blocks are judged (at least 4, the PV moving well beyond what the rule asks); setpoint
+    moves up and down of 0.2-1, load steps of 0.5 at the plant's input."""
+    judged = []
+    judge = output_limit._pv_rule
+
+    def spy(tb, slots, cols, *args):
+        before = tb.ps_prev[slots].copy()
+        held = judge(tb, slots, cols, *args)
+        judged.extend(~np.isnan(before) & (tb.ps_prev[slots] != before))
+        return held
+
+    loop = Loop(send_op=False, seed=2, kp=0.1, ki=0.005, **kw)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(output_limit, "_pv_rule", spy)
         seen = []
-        for _ in range(100):
-            pv = float(loop.plant.measure()[0])
-            loop.u = float(loop.pi.step([2.0 - pv])[0])
-            loop.engine.ingest([{"loop_id": "V", "t": float(loop.t), "sp": 2.0, "pv": pv,
-                                 "op": loop.u, "saturated": bool(loop.pi.saturated[0])}],
-                               wall=float(loop.t))  # fmt: skip
-            loop.plant.step([loop.u])
-            loop.t += 1
-            seen.append(loop.engine.view("V", wall=float(loop.t)).status.value)
-        assert seen[-1] == "saturated"
-    else:  # a reconstructed output follows the PI law by construction: nothing to see
-        assert set(loop.run(2.0, 300)) == {"tuning"}
+        for sp in (1.0, 2.0, 1.5, 0.8, 1.0, 1.2, 1.0):
+            seen += loop.run(sp, 600)
+        if case == "load steps":
+            for load in (0.5, -0.5, 0.0, 0.5, 0.0):
+                loop.load = load
+                seen += loop.run(1.0, 600)
+    assert sum(judged) >= 4
+    assert "saturated" not in seen
     assert loop.engine.view("V", wall=0.0).counters.output_holds == 0
 
 

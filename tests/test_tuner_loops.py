@@ -403,11 +403,13 @@ def _gated(**guard) -> tuple[LoopTable, int]:
 
 
 def _due_at(t: LoopTable, s: int, setpoints, start: float = 0.0) -> list[int]:
-    """Feed one sample per RL period with these setpoints (pv 50); indices that fell due."""
+    """Feed one sample per RL period with these setpoints (pv 50 on the first, then the
+    setpoint before: a loop that follows within a period); indices that fell due."""
+    pvs = [50.0, *setpoints[:-1]]
     return [
         k
-        for k, sp in enumerate(setpoints)
-        if ingest_one(t, s, sample(start + 165.0 * k, e=None, sp=sp, pv=50.0), WALL)
+        for k, (sp, pv) in enumerate(zip(setpoints, pvs, strict=True))
+        if ingest_one(t, s, sample(start + 165.0 * k, e=None, sp=sp, pv=pv), WALL)
     ]
 
 
@@ -460,13 +462,15 @@ def test_the_gate_moves_with_a_new_plant_clock(batched):
 
     ingest = ingest_one if batched else reference_ingest
     t, s = _gated()
-    for k, sp in enumerate([50.0] * 3 + [60.0] + [60.0] * 6):  # moved at 495: open to 990
-        ingest(t, s, sample(165.0 * k, e=None, sp=sp, pv=50.0), WALL)
+    # moved at 495: open to 990 (the PV follows within a period: a PV held off its setpoint
+    # is an output at a limit, service.engine.output_limit)
+    for k, sp in enumerate([50.0] * 3 + [60.0] + [60.0] * 6):
+        ingest(t, s, sample(165.0 * k, e=None, sp=sp, pv=50.0 if k <= 3 else 60.0), WALL)
     assert t.status(s, WALL) == LoopStatus.quiet
     restarted = []
     for k in range(CLOCK_RESET_SAMPLES + 6):  # the new clock from 0, setpoint still
         try:
-            restarted.append(ingest(t, s, sample(165.0 * k, e=None, sp=60.0, pv=50.0), WALL))
+            restarted.append(ingest(t, s, sample(165.0 * k, e=None, sp=60.0, pv=60.0), WALL))
         except Rejected:
             restarted.append(None)
     assert restarted[: CLOCK_RESET_SAMPLES - 1] == [None] * (CLOCK_RESET_SAMPLES - 1)

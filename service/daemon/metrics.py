@@ -125,7 +125,8 @@ class Metrics:
         self.monitor = Gauge(
             "pitune_loops_monitor",
             "Loops by monitoring state at scrape time: oscillating, output_held (the data "
-            "show the output at a limit), change_pending "
+            "show the output at a limit), pv_stalled (no op: the PV does not follow the "
+            "output the PI law gives), change_pending "
             "(gains differ from the last-good), held (after a rollback or rejection), "
             "proposal_pending (advisory). Aggregated: no per-loop series.",
             ["state"],

@@ -58,6 +58,12 @@ class WindowFigures(BaseModel):
         "limit: unchanged while the PI law would have moved it by 5 % of its range (the loop "
         "counts as saturated until it moves); None: not held, or no op in the samples.",
     )
+    pv_stalled: bool = Field(
+        False,
+        description="Without op in the samples: the PV has not followed the output the PI "
+        "law gives for two blocks of the envelope's longest lag (a valve at a limit, a "
+        "stuck valve or transmitter); the loop counts as saturated until it does.",
+    )
 
 
 class Fence(BaseModel):

@@ -177,6 +177,7 @@ def performance(tb: LoopTable, s: int) -> Performance:
             saturated_share=float(tb.w_sat[s]),
             rejected_share=float(tb.w_rej[s]),
             output_held=float(tb.oh_op[s]) if tb.oh_held[s] else None,
+            pv_stalled=bool(tb.ps_held[s]),
         ),  # fmt: skip
         verification=verification(tb, s),
     )
@@ -191,6 +192,7 @@ def monitor_summary(tb: LoopTable) -> tuple[dict[str, int], dict[str, float]]:
     counts = {
         "oscillating": int(tb.o_osc[used].sum()),
         "output_held": int(tb.oh_held[used].sum()),
+        "pv_stalled": int(tb.ps_held[used].sum()),
         "change_pending": int(pending.sum()),
         "held": int((tb.cool_until[used] > tb.last_t[used]).sum()),
         "proposal_pending": int(((tb.mode[used] == ADVISORY) & ~np.isnan(tb.adv_seq[used])).sum()),
@@ -206,7 +208,9 @@ def monitor_summary(tb: LoopTable) -> tuple[dict[str, int], dict[str, float]]:
     return counts, means
 
 
-_STATES = ("oscillating", "output_held", "change_pending", "held", "proposal_pending")
+_STATES = (
+    "oscillating", "output_held", "pv_stalled", "change_pending", "held", "proposal_pending",
+)  # fmt: skip
 
 
 def identification(tb: LoopTable, s: int) -> Identification | None:
