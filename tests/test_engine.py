@@ -199,9 +199,11 @@ def test_the_agent_is_not_stepped_while_the_setpoint_ramps(shape):
         "ramp": lambda t: 10.0 + 0.02 * min(t, 200),
     }[shape]
     eng.ingest([{"loop_id": "L", "t": 0.0, "sp": 10.0, "pv": 10.0}], wall=0.0)
-    stepped = []
-    for t in range(1, 420):
-        eng.ingest([{"loop_id": "L", "t": float(t), "sp": sp(t), "pv": 10.0}], wall=float(t))
+    stepped, pv = [], 10.0
+    for t in range(1, 420):  # the PV follows a sample late (a PV held off its setpoint is
+        # an output at a limit: service.engine.output_limit)
+        eng.ingest([{"loop_id": "L", "t": float(t), "sp": sp(t), "pv": pv}], wall=float(t))
+        pv = sp(t)
         if tb.n_steps[s] > len(stepped):
             stepped.append(t)
     if shape != "ramp":  # every RL period of the gate's window (4 periods after the move)
