@@ -158,6 +158,20 @@ def test_without_op_a_pv_that_does_not_follow_the_law_is_held(noise):
     assert loop.engine.view("V", wall=0.0).counters.output_holds == 1
 
 
+def test_a_stalled_pv_survives_a_snapshot_and_restore():
+    loop = Loop(u_max=1.5, send_op=False)
+    loop.run(1.0, 100)
+    assert loop.run(2.0, 250)[-1] == "saturated"
+    ((_, hidden, runtime),) = loop.engine.snapshot(["V"])
+    other = TuningEngine(StillAgent())
+    other.restore(loop.engine.table.configs["V"], kp=1.0, ki=0.1, seq=0, hidden=hidden,
+                  runtime=runtime, wall=0.0)  # fmt: skip
+    loop.engine = other
+    assert loop.run(2.0, 1) == ["saturated"]  # held from the first sample after it
+    assert other.performance("V").window.pv_stalled
+    assert other.view("V", wall=0.0).counters.output_holds == 1
+
+
 @pytest.mark.parametrize(
     ("case", "kw"),
     [
