@@ -67,6 +67,16 @@ class Loop:
         self.rows += self.engine.drain_changes()[1]
         return seen
 
+    def restart(self) -> TuningEngine:
+        """A new engine restored from this one's snapshot of the loop (a daemon's restart),
+        in its place."""
+        ((_, hidden, runtime),) = self.engine.snapshot(["V"])
+        other = TuningEngine(StillAgent())
+        other.restore(self.engine.table.configs["V"], kp=1.0, ki=0.1, seq=0, hidden=hidden,
+                      runtime=runtime, wall=0.0)  # fmt: skip
+        self.engine = other
+        return other
+
     @property
     def steps(self) -> int:
         return self.engine.view("V", wall=0.0).counters.steps
@@ -104,11 +114,7 @@ def test_a_held_output_survives_a_snapshot_and_restore():
     loop = Loop(u_max=1.5)
     loop.run(1.0, 100)
     assert loop.run(2.0, 100)[-1] == "saturated"
-    ((_, hidden, runtime),) = loop.engine.snapshot(["V"])
-    other = TuningEngine(StillAgent())
-    other.restore(loop.engine.table.configs["V"], kp=1.0, ki=0.1, seq=0, hidden=hidden,
-                  runtime=runtime, wall=0.0)  # fmt: skip
-    loop.engine = other
+    other = loop.restart()
     assert loop.run(2.0, 1) == ["saturated"]  # held from the first sample after it
     assert other.view("V", wall=0.0).counters.output_holds == 1
 
@@ -162,11 +168,7 @@ def test_a_stalled_pv_survives_a_snapshot_and_restore():
     loop = Loop(u_max=1.5, send_op=False)
     loop.run(1.0, 100)
     assert loop.run(2.0, 250)[-1] == "saturated"
-    ((_, hidden, runtime),) = loop.engine.snapshot(["V"])
-    other = TuningEngine(StillAgent())
-    other.restore(loop.engine.table.configs["V"], kp=1.0, ki=0.1, seq=0, hidden=hidden,
-                  runtime=runtime, wall=0.0)  # fmt: skip
-    loop.engine = other
+    other = loop.restart()
     assert loop.run(2.0, 1) == ["saturated"]  # held from the first sample after it
     assert other.performance("V").window.pv_stalled
     assert other.view("V", wall=0.0).counters.output_holds == 1
