@@ -69,7 +69,8 @@ LOOP = {
     "p": "ns=2;s=LIC-101.GAIN", "i": "ns=2;s=LIC-101.RESET",
     "limits": {"p": [0.1, 5.0], "i": [0.1, 30.0]},
 }  # fmt: skip
-SECURE = {"url": "opc.tcp://dcs:4840", "certificate": "c.der", "private_key": "k.pem"}
+SECURE = {"url": "opc.tcp://dcs:4840", "certificate": "c.der", "private_key": "k.pem",
+          "server_certificate": "s.der"}  # fmt: skip
 
 
 def test_security_none_needs_an_explicit_allow():
@@ -93,6 +94,11 @@ def test_secure_by_default_and_certificates_required():
         "SignAndEncrypt",
     )
     assert str(site.server.certificate) == "/m/c.der"  # relative to the map's folder
+    unpinned = {k: v for k, v in SECURE.items() if k != "server_certificate"}
+    with pytest.raises(MapError, match="needs server_certificate"):
+        parse_map({"server": unpinned, "loops": [LOOP]})
+    trusting = {**unpinned, "trust_endpoint_certificate": True}
+    assert parse_map({"server": trusting, "loops": [LOOP]}).server.server_certificate is None
 
 
 def test_defaults_apply_to_every_loop_and_limits_are_checked():

@@ -42,7 +42,8 @@ def test_encrypted_session_works_and_strangers_are_refused(tmp_path, monkeypatch
     async def scenario() -> None:
         async with SimulatedDcs([tank()], port=free_port(), security=security) as dcs:
             base = dcs.site_map(certificate="gateway-cert.der", private_key="gateway-key.pem",
-                                user="pitune", password_env=PASSWORD_ENV)  # fmt: skip
+                                server_certificate="dcs-cert.der", user="pitune",
+                                password_env=PASSWORD_ENV)  # fmt: skip
 
             def server(**change):
                 data = {**base, "server": {**base["server"], **change}}
@@ -74,5 +75,9 @@ def test_encrypted_session_works_and_strangers_are_refused(tmp_path, monkeypatch
             for reason, srv in refused.items():
                 with pytest.raises(Exception, match=reason):  # asyncua raises several kinds
                     await connect(srv)
+            # a server other than the pinned one (pinned here to another certificate) cannot
+            # read what the gateway encrypts for the pinned one: no session, no password
+            with pytest.raises(TimeoutError):
+                await connect(server(server_certificate="intruder-cert.der"))
 
     asyncio.run(scenario())

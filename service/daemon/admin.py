@@ -65,6 +65,21 @@ class LoopAdmin:
         with self.table.lock:
             return list(self.table.slot_of)
 
+    @contextlib.contextmanager
+    def _committing(self):
+        """A change the store must commit before the table takes it: StoreUnavailable
+        (503) while commits fail, or when this one cannot be committed (database locked,
+        disk full); integrity errors pass, for :func:`_taken_in_store`."""
+        if self.store_failure is not None:
+            raise StoreUnavailable(self.store_failure)
+        try:
+            yield
+        except self.store.integrity_errors:
+            raise
+        except self.store.commit_errors as exc:
+            detail = f"the store cannot commit ({self.store.location}): {exc}"
+            raise StoreUnavailable(detail) from None
+
     def _known(self, loop_id: str) -> None:
         if loop_id not in self.table.slot_of:
             raise UnknownLoop(loop_id)
@@ -125,7 +140,7 @@ class LoopAdmin:
         seqs = [last.get(c.id, 0) for c in configs]
         audit = [_registered(c, wall, seq) for c, seq in zip(configs, seqs, strict=True)]
         shards = [shard_of(c.id, c.gateway) for c in configs]
-        with _taken_in_store(self.store.integrity_errors):
+        with self._committing(), _taken_in_store(self.store.integrity_errors):
             self.store.insert_loops(configs, audit, seqs)
         owned = [
             i for i, shard in enumerate(shards) if self.cluster is None or self.cluster.owns(shard)
@@ -145,13 +160,15 @@ class LoopAdmin:
             s = self.table.slot(loop_id)
             config = patch.apply(self.table.configs[loop_id])
             gains = (float(self.table.kp[s]), float(self.table.ki[s]))
-            self.store.update_config(
-                config,
-                audit_row(
-                    loop_id, wall, None, int(self.table.seq[s]), config.mode.value, "patched",
-                    gains, gains, _with_actor(patch.model_dump_json(exclude_unset=True), actor),
-                ),
-            )  # fmt: skip
+            with self._committing():
+                self.store.update_config(
+                    config,
+                    audit_row(
+                        loop_id, wall, None, int(self.table.seq[s]), config.mode.value,
+                        "patched", gains, gains,
+                        _with_actor(patch.model_dump_json(exclude_unset=True), actor),
+                    ),
+                )  # fmt: skip
             self.table.reconfigure(config)
             self.metrics.set_loop_counts(self.table.mode_counts())
             return self.table.view(loop_id, wall)
@@ -190,12 +207,13 @@ class LoopAdmin:
             mode = self.table.mode_of(s).value
             if self.snapshot_writer is not None:  # no snapshot of it lands after the delete
                 self.snapshot_writer.discard([loop_id])
-            self.store.delete_loop(
-                loop_id,
-                audit_row(
-                    loop_id, wall, None, int(self.table.seq[s]), mode, "deleted", gains, None
-                ),
-            )
+            with self._committing():
+                self.store.delete_loop(
+                    loop_id,
+                    audit_row(
+                        loop_id, wall, None, int(self.table.seq[s]), mode, "deleted", gains, None
+                    ),
+                )
             self.engine.remove(loop_id)
             self.recent.forget(loop_id)
             if self.cluster is not None:  # (its count in GET /cluster)

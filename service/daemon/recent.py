@@ -285,12 +285,13 @@ class Recent:
                 return {"n": 0, "gn": 0, "t": [], "sp": [], "pv": [], "op": [], "kp": [],
                         "ki": [], "gains": []}  # fmt: skip
             n, gn = int(self.n[s]), int(self.g_n[s])
-            first = max(samples_seen, n - self.points, 0)
+            # a count beyond the loop's (a client's stale or made-up cursor) asks for nothing
+            first = min(max(samples_seen, n - self.points, 0), n)
             idx = np.arange(first, n) % self.points
             points = self.ring[s, idx]
             t = points["t"].copy()
             sp, e, op, kp, ki = (points[name].astype(np.float64) for name in _SAMPLE_F32)
-            gfirst = max(gains_seen, gn - self.gains_n, 0)
+            gfirst = min(max(gains_seen, gn - self.gains_n, 0), gn)
             gidx = np.arange(gfirst, gn) % self.gains_n
             gains = [
                 {"wall": w, "t": _num(tt), "kp": p, "ki": i, "reason": REASONS[r]}

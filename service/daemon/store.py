@@ -83,6 +83,8 @@ class Store:
     ORDER = "l.rowid"
     """The registration order of the loops table."""
     integrity_errors: tuple[type[Exception], ...] = (sqlite3.IntegrityError,)
+    commit_errors: tuple[type[Exception], ...] = (sqlite3.Error, OSError)
+    """What a commit raises when the store cannot take it (locked, disk full, gone)."""
 
     def __init__(self, path: Path | str) -> None:
         self.path = Path(path)

@@ -145,6 +145,7 @@ class PgStore(Store):
     dialect = "postgresql"
     ORDER = "l.ord"
     integrity_errors = (psycopg.errors.IntegrityError,)
+    commit_errors = (psycopg.Error, OSError)
 
     def __init__(self, url: str) -> None:
         self.url = url

@@ -262,6 +262,12 @@ class LoopConfig(BaseModel):
         return None if self.scaling is None else self.scaling.resolve()
 
 
+NEEDS_IDENTIFICATION = (
+    "a loop without scaling is tuned only once its model is identified: give a model hint "
+    "(scaling) or leave guard.identify on"
+)
+
+
 class Registration(LoopConfig):
     """A new registration (``POST /loops``, ``/loops/bulk``): a :class:`LoopConfig` that
     also passes the sanity rules below. Configs loaded from the store are not judged
@@ -290,6 +296,8 @@ class Registration(LoopConfig):
     def _sane(self) -> Registration:
         scaling = self.resolved_scaling
         if scaling is None:
+            if self.guard.identify is False:
+                raise ValueError(NEEDS_IDENTIFICATION)
             return self
         tau_s = scaling.time_unit_s * AGENT_TAU
         if tau_s < self.sample_period_s:

@@ -40,6 +40,7 @@ from service.agent.model import Agent, load_agent
 from service.engine import first_tuning, monitor, rules, stepping, verify, views, watch
 from service.engine.audit import AuditRow
 from service.engine.config import LoopConfig, LoopView
+from service.engine.modes import ADVISORY, AUTO
 from service.engine.saved import Saved
 from service.engine.site import SiteDefaults
 from service.engine.table import LoopTable
@@ -169,11 +170,11 @@ class TuningEngine:
             s = self.table.slot(loop_id)
             if not verify.changed(self.table, s):
                 raise ValueError("the gains in force are the last-good gains")
-            result = verify.fail(self.table, s, "operator", _now(wall), figure=None, actor=actor)
-            if result is None:
+            # refused before verify.fail, which records a verdict: a refusal changes nothing
+            if self.table.mode[s] not in (AUTO, ADVISORY):
                 raise ValueError(f"a {self.table.mode_of(s).value} loop publishes no gains")
             self._due.pop(s, None)
-            return result
+            return verify.fail(self.table, s, "operator", _now(wall), figure=None, actor=actor)
 
     def accept(
         self, loop_id: str, seq: int, wall: float | None = None, actor: str = ""

@@ -5,9 +5,10 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from service.engine.config import (
+    NEEDS_IDENTIFICATION,
     Damping,
     ExcitationPeriods,
     ExcitationStep,
@@ -16,10 +17,14 @@ from service.engine.config import (
     Margin,
     Periods,
     Tolerance,
-    check_bounds,
-    check_given_bounds,
 )
 from service.wire.protocol import Gain, GatewayId, Mode
+
+NULL_IS_DEFAULT = frozenset(
+    {"kp_min", "kp_max", "ki_min", "ki_max", "identify", "auto_rescale", "gateway"}
+)
+"""Fields whose null is a value: the default again (bounds from the scaling, the site's
+identification settings, one gains message per loop)."""
 
 
 class LoopPatch(BaseModel):
@@ -53,16 +58,24 @@ class LoopPatch(BaseModel):
         None, description="Set a gateway (batched gains), or null: one message per loop again."
     )
 
+    @model_validator(mode="after")
+    def _null_only_where_it_means_the_default(self) -> LoopPatch:
+        valued = self.model_fields_set - NULL_IS_DEFAULT
+        nulls = sorted(f for f in valued if getattr(self, f) is None)
+        if nulls:
+            raise ValueError(
+                f"null is not a value of {', '.join(nulls)}: leave a field out to keep it "
+                f"(null restores the default only for {', '.join(sorted(NULL_IS_DEFAULT))})"
+            )
+        return self
+
     def apply(self, config: LoopConfig) -> LoopConfig:
-        """The patched config; raises ValueError if the bounds become inconsistent."""
-        top = self.model_dump(include={"mode", "forgetting"}, exclude_none=True)
-        if "gateway" in self.model_fields_set:  # an explicit null is a change here
-            top["gateway"] = self.gateway
-        guard = config.guard.model_copy(
-            update=self.model_dump(exclude={"mode", "forgetting", "gateway"}, exclude_none=True)
-        )
-        if config.scaling is None:
-            check_given_bounds(guard, config.kp, config.ki)
-        else:
-            check_bounds(guard, config.kp, config.ki)
-        return config.model_copy(update={**top, "guard": guard})
+        """The patched config, checked as at registration: a bound set to null follows the
+        scaling (or the identified model) again; ValueError if the bounds become
+        inconsistent or a loop without scaling would never be identified."""
+        given = {f: getattr(self, f) for f in self.model_fields_set}
+        top = {f: given.pop(f) for f in ("mode", "forgetting", "gateway") if f in given}
+        guard = config.guard.model_dump() | given
+        if config.scaling is None and guard["identify"] is False:
+            raise ValueError(NEEDS_IDENTIFICATION)
+        return LoopConfig.model_validate(config.model_dump() | top | {"guard": guard})

@@ -390,6 +390,13 @@ def accept(tb: LoopTable, s: int, seq: int, wall: float, actor: str) -> StepResu
     ValueError if ``seq`` is not the loop's pending proposal."""
     _check_proposal(tb, s, seq)
     old, new = (float(tb.kp[s]), float(tb.ki[s])), (float(tb.adv_kp[s]), float(tb.adv_ki[s]))
+    lo, hi = (float(tb.kp_min[s]), float(tb.ki_min[s])), (float(tb.kp_max[s]), float(tb.ki_max[s]))
+    if not all(a <= g <= b for a, g, b in zip(lo, new, hi, strict=True)):
+        # the bounds changed after the proposal was made (PATCH): the guard in force rules
+        raise ValueError(
+            f"proposal {seq} (kp {new[0]:.6g}, ki {new[1]:.6g}) is outside the guard's bounds "
+            f"in force (kp {lo[0]:.6g}..{hi[0]:.6g}, ki {lo[1]:.6g}..{hi[1]:.6g}): reject it"
+        )
     t = float(tb.last_t[s]) if math.isfinite(tb.last_t[s]) else 0.0
     if same_gains(new[0], tb.g_kp[s]) & same_gains(new[1], tb.g_ki[s]):
         fence_rollback(tb, s, old, new, t)  # a rollback proposal taken: as in auto

@@ -8,14 +8,17 @@ import asyncio
 import json
 import re
 import time
+from typing import Annotated
 
 import numpy as np
-from fastapi import APIRouter, HTTPException, Request
+from fastapi import APIRouter, HTTPException, Query, Request
 from fastapi.responses import JSONResponse, StreamingResponse
 
 from service.daemon.console.context import MODES, STATUS_NAMES, finite, recent_of, tuner_of
 
 router = APIRouter()
+
+Count = Annotated[int, Query(ge=0, description="Samples (n) or gains (gn) already seen.")]
 
 STREAM_TICK_S = 0.5
 """How often a loop page's stream looks for new samples."""
@@ -54,7 +57,7 @@ def _live(tuner, loop_id: str) -> dict | None:
 
 
 @router.get("/api/loops/{loop_id}/recent")
-def looprecent_of(loop_id: str, request: Request, n: int = 0, gn: int = 0) -> JSONResponse:
+def looprecent_of(loop_id: str, request: Request, n: Count = 0, gn: Count = 0) -> JSONResponse:
     """The loop's recent samples and gains from the ring (after ``n`` / ``gn``)."""
     tuner = tuner_of(request)
     _known(tuner, loop_id)
@@ -73,7 +76,7 @@ def _tick(tuner, loop_id: str, n: int, gn: int) -> dict | None:
 
 
 @router.get("/api/loops/{loop_id}/stream")
-async def loop_stream(loop_id: str, request: Request, n: int = 0, gn: int = 0):
+async def loop_stream(loop_id: str, request: Request, n: Count = 0, gn: Count = 0):
     """Server-sent events: the loop's new samples and gains, and its live figures, at
     most every STREAM_TICK_S while something changed (a comment every 15 s otherwise)."""
     tuner = tuner_of(request)

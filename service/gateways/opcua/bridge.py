@@ -56,6 +56,8 @@ import zenoh
 from service.gateways.base import SAMPLE_CONGESTION, Gateway
 from service.gateways.opcua.client import Change, Item, LinkLost, OpcUaLink, now_epoch
 from service.gateways.opcua.loops import (
+    POLICY_FIELDS,
+    REL_TOL,
     WAIT,
     Event,
     LoopRuntime,
@@ -70,6 +72,8 @@ from service.gateways.registration import RegistrationError
 from service.wire.protocol import ENCODING, MAX_BATCH, Keys, Mode
 
 log = logging.getLogger("pitune.gateway.opcua")
+Due = tuple[LoopRuntime, tuple[float, float]]
+"""A loop whose pending update is to be written, and the (P, I) to write, block form."""
 TICK_S = 0.02
 """How often gains are taken from the bus and due writes made."""
 
@@ -294,6 +298,8 @@ class OpcUaGateway:
         for update in self.bus.gains():
             lr = self.by_id[update.loop_id]
             if update.mode != Mode.auto:
+                # never written; an auto update published before it still is: the tuner
+                # counts it in force (a loop switched to advisory keeps its gains)
                 self.stats["advisory"] += 1
                 continue
             if lr.pending is not None:
@@ -302,42 +308,64 @@ class OpcUaGateway:
             self.stats["received"] += 1
             self.emit("received", lr.cfg.id, update.seq, update.source.value)
 
-    async def _write_due(self) -> None:
-        now = time.monotonic()
-        due: list[tuple[LoopRuntime, Pending, tuple[float, float]]] = []
-        for lr in self.loops:
+    def _decided(self, loops: list[LoopRuntime], now: float) -> list[Due]:
+        """The policy for each loop's pending update: those finished with (refused, or
+        already in force) are reported and dropped; the (loop, target) to write are
+        returned, their updates still pending."""
+        due = []
+        for lr in loops:
             if lr.pending is None:
                 continue
-            decision = decide(lr, self.link is not None, now)
+            decision = decide(lr, self.link is not None, now, self.bus.tuner_up)
             if decision == WAIT:
+                continue
+            if not isinstance(decision, str):
+                due.append((lr, decision))
                 continue
             pending, lr.pending = lr.pending, None
             seq = pending.update.seq
-            if isinstance(decision, str):  # finished with, nothing written
-                self.bus.applied(pending.update)
+            self.bus.applied(pending.update)  # finished with, nothing written
             if decision == "applied":
                 self.stats["already_in_force"] += 1
                 self.emit("applied_already", lr.cfg.id, seq)
-            elif isinstance(decision, str):
+            else:
                 self.stats[f"refused_{decision}"] += 1
                 log.info("%s: gains seq %d not written: %s", lr.cfg.id, seq, decision)
                 self.emit("refused", lr.cfg.id, seq, decision)
-            else:
-                due.append((lr, pending, decision))
+        return due
+
+    async def _write_due(self) -> None:
+        now = time.monotonic()
+        due = self._decided(self.loops, now)
         link = self.link
         if not due or link is None:
             return
-        writes = []
-        for lr, _, (p, i) in due:
+        # Judged again on the block's values read now: a notification of a switch to
+        # manual, or of an operator's new gains, may still be a publishing interval away.
+        try:
+            self._apply(await link.read_items(_policy_nodes(lr for lr, _ in due)))
+        except LinkLost as exc:  # the updates stay pending, judged again after a reconnect
+            log.warning("reading %d loops before writing failed: %s", len(due), exc)
+            link.lost.set()
+            return
+        due = self._decided([lr for lr, _ in due], now)
+        if not due:
+            return
+        writes, before = [], []
+        for lr, (p, i) in due:
             lr.last_write = now
+            before.append(lr.block_gains())
             writes += [(lr.cfg.p, p, lr.types.get("p")), (lr.cfg.i, i, lr.types.get("i"))]
+        taken = [(lr, lr.pending) for lr, _ in due]
+        for lr, _ in due:
+            lr.pending = None
         try:
             codes, back = await link.write(writes)
         except LinkLost as exc:
             # Unknown whether it went through: keep each update pending (unless a newer one
             # came); after the reconnect it is written only if the block still has the
             # gains it had (else it is stale, or already in force).
-            for lr, pending, _ in due:
+            for lr, pending in taken:
                 if lr.pending is None:
                     lr.pending = pending
                 lr.last_write = -math.inf
@@ -346,7 +374,7 @@ class OpcUaGateway:
             link.lost.set()
             return
         done = time.monotonic()
-        for k, (lr, pending, target) in enumerate(due):
+        for k, ((lr, target), (_, pending)) in enumerate(zip(due, taken, strict=True)):
             seq = pending.update.seq
             (cp, ci), (bp, bi) = codes[2 * k : 2 * k + 2], back[2 * k : 2 * k + 2]
             read_back = []
@@ -359,11 +387,12 @@ class OpcUaGateway:
             # finished with: written, refused or changed by the block; the samples from
             # now on report the gains read back with applied_seq = seq
             self.bus.applied(pending.update)
-            if not (cp.is_good() and ci.is_good()):
-                bad = cp if not cp.is_good() else ci
+            if cp.is_good() != ci.is_good():
+                await self._undo_half(link, lr, seq, cp, ci, before[k])
+            elif not cp.is_good():
                 self.stats["refused_by_server"] += 1
-                log.warning("%s: server refused the gains of seq %d: %s", lr.cfg.id, seq, bad.name)
-                self.emit("refused", lr.cfg.id, seq, f"server:{bad.name}")
+                log.warning("%s: server refused the gains of seq %d: %s", lr.cfg.id, seq, cp.name)
+                self.emit("refused", lr.cfg.id, seq, f"server:{cp.name}")
             elif not close_to(tuple(read_back), target):  # type: ignore[arg-type]
                 self.stats["refused_read_back"] += 1
                 log.warning("%s: seq %d read back as %s, not %s", lr.cfg.id, seq, read_back, target)
@@ -372,6 +401,34 @@ class OpcUaGateway:
                 self.stats["written"] += 1
                 self.latencies.append(done - pending.received)
                 self.emit("written", lr.cfg.id, seq)
+
+    async def _undo_half(self, link, lr: LoopRuntime, seq: int, cp, ci, before) -> None:
+        """The server took one gain of the pair and refused the other: the one taken is
+        written back, so the block never runs a pair nobody asked for."""
+        name, bad = ("p", ci) if cp.is_good() else ("i", cp)
+        self.stats["refused_partial"] += 1
+        node, old = getattr(lr.cfg, name), before[0 if name == "p" else 1]
+        try:
+            codes, back = await link.write([(node, old, lr.types.get(name))])
+        except LinkLost as exc:
+            codes, back = [], []
+            link.lost.set()
+            log.error("%s: restoring %s after a partial write failed: %s", lr.cfg.id, name, exc)
+        value = number(back[0].Value.Value) if back and back[0].Value is not None else None
+        if value is not None:
+            lr.values[name] = back[0].Value.Value
+        restored = bool(codes) and codes[0].is_good() and value is not None
+        restored = restored and math.isclose(value, old, rel_tol=REL_TOL)
+        (log.warning if restored else log.error)(
+            "%s: server refused %s of seq %d (%s) and took the other; %s",
+            lr.cfg.id, "I" if name == "p" else "P", seq, bad.name,
+            f"{name.upper()} written back to {old:g}" if restored
+            else f"{name.upper()} could NOT be written back to {old:g}: the block holds a "
+            "pair pitune did not ask for",
+        )  # fmt: skip
+        if not restored:
+            self.stats["partial_not_undone"] += 1
+        self.emit("refused", lr.cfg.id, seq, f"server:partial:{bad.name}")
 
     def _flush(self, *, force: bool = False) -> None:
         if not self.outbox or not self.bus.tuner_up or not self._registered:
@@ -397,3 +454,13 @@ class OpcUaGateway:
         if bodies:
             await asyncio.to_thread(register_loops, self.site, bodies)
         self._registered = True
+
+
+def _policy_nodes(loops) -> list[tuple[Item, str]]:
+    """The nodes of the values the write policy judges by, of each loop."""
+    return [
+        (Item(lr.index, f), node)
+        for lr in loops
+        for f, node in lr.cfg.nodes().items()
+        if f in POLICY_FIELDS
+    ]

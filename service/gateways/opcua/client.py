@@ -223,6 +223,11 @@ class OpcUaLink:
             raise LinkLost(str(exc)) from exc
         return out
 
+    async def read_items(self, nodes: list[tuple[Item, str]]) -> list[Change]:
+        """The nodes' values now, as changes (one Read request per CHUNK)."""
+        dvs = await self.read([ua.NodeId.from_string(node) for _, node in nodes])
+        return [_change(item, dv) for (item, _), dv in zip(nodes, dvs, strict=True)]
+
     async def write(
         self, writes: Iterable[tuple[str, Any, ua.VariantType]]
     ) -> tuple[list[ua.StatusCode], list[ua.DataValue]]:

@@ -83,12 +83,18 @@ class LoopRuntime:
             return None
 
 
-def decide(lr: LoopRuntime, link_up: bool, now: float) -> str | tuple[float, float]:
+POLICY_FIELDS = ("mode", "tuning_enable", "p", "i")
+"""The block's values the policy judges by: read again just before a write."""
+
+
+def decide(
+    lr: LoopRuntime, link_up: bool, now: float, tuner_up: bool = True
+) -> str | tuple[float, float]:
     """The write policy for ``lr``'s pending update (docs/opcua.md, Writing gains):
     WAIT, a refusal reason, "applied" (nothing to write) or the (P, I) to write."""
     assert lr.pending is not None
     update = lr.pending.update
-    if not link_up:
+    if not link_up or not tuner_up:
         return WAIT
     if not lr.auto:
         return "manual"

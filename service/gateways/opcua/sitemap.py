@@ -58,8 +58,13 @@ class ServerMap(BaseModel):
     certificate: Path | None = Field(None, description="Client certificate, DER or PEM.")
     private_key: Path | None = Field(None, description="Client private key, PEM.")
     server_certificate: Path | None = Field(
-        None, description="Pin the server's certificate (DER or PEM); else taken from its endpoint."
-    )
+        None, description="The server's certificate (DER or PEM), pinned: required with "
+        "security, unless trust_endpoint_certificate."
+    )  # fmt: skip
+    trust_endpoint_certificate: bool = Field(
+        False, description="Take the server's certificate from its endpoint, unverified "
+        "(commissioning): whoever answers at url gets the password and the gain writes."
+    )  # fmt: skip
     application_uri: str = Field(
         "urn:pitune:gateway", description="Must match the URI in the client certificate."
     )
@@ -89,6 +94,13 @@ class ServerMap(BaseModel):
             raise ValueError(
                 f"security {self.security.value} needs certificate and private_key "
                 "(pitune gateway certs makes a self-signed pair)"
+            )
+        elif self.server_certificate is None and not self.trust_endpoint_certificate:
+            raise ValueError(
+                f"security {self.security.value} needs server_certificate, the DCS server's "
+                "certificate to pin: without it the gateway would take any server's "
+                "certificate from the endpoint and send that server the password and the "
+                "gains. Set trust_endpoint_certificate = true to run like that anyway"
             )
         return self
 
@@ -214,7 +226,7 @@ class SiteMap(BaseModel):
         if isinstance(data, dict) and "defaults" in data:
             data = dict(data)
             defaults = data.pop("defaults") or {}
-            data["loops"] = [{**defaults, **loop} for loop in data.get("loops", [])]
+            data["loops"] = [_merged(defaults, loop) for loop in data.get("loops", [])]
         return data
 
     @model_validator(mode="after")
@@ -241,6 +253,19 @@ class SiteMap(BaseModel):
             update={"zenoh_config": fix(self.bus.zenoh_config) or self.bus.zenoh_config}
         )
         return self.model_copy(update={"server": server, "bus": bus})
+
+
+def _merged(defaults: dict, loop: Any) -> Any:
+    """A loop's table over ``[defaults]``, tables key by key: a loop that sets only its
+    form's spans keeps the site's gain form (a table replaced whole would fall back, without
+    a word, on the built-in form)."""
+    if not isinstance(loop, dict):
+        return loop  # the validator says what is wrong with it
+    out = dict(defaults)
+    for key, value in loop.items():
+        both = isinstance(value, dict) and isinstance(out.get(key), dict)
+        out[key] = _merged(out[key], value) if both else value
+    return out
 
 
 def load_map(path: str | Path) -> SiteMap:

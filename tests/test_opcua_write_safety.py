@@ -1,0 +1,141 @@
+"""The OPC UA gateway's write policy where the block changed under it (a real asyncua
+server, real Zenoh on loopback): judged on the block's values read just before the
+write, not on the last notification (a publishing interval old); a pair the server took
+only half of is undone; nothing written while no tuner is up; a site map's
+``[defaults]`` tables merged key by key."""
+
+from __future__ import annotations
+
+import asyncio
+
+import pytest
+
+from plant_sim.opcua_block import AUTO, MAN
+from plant_sim.opcua_dcs import SimulatedDcs
+from service.gateways.opcua.bridge import OpcUaGateway
+from service.gateways.opcua.sitemap import parse_map
+from service.wire.session import free_port
+from tests.test_opcua_gateway import (
+    KEYS,
+    LOOP,
+    FakeTuner,
+    close,
+    open_session,
+    running,
+    site_for,
+    tank,
+    until,
+)
+
+pytestmark = pytest.mark.timeout(120)
+SLOW_MS = 2000.0
+"""The loop's sampling interval: a change reaches the gateway up to 2 s late."""
+
+
+def _run(scenario, **loop) -> None:
+    async def main() -> None:
+        fake = FakeTuner()
+        session = open_session(connect=[fake.endpoint])
+        try:
+            async with SimulatedDcs([tank()], port=free_port()) as dcs:
+                gw = OpcUaGateway(site_for(dcs, [fake.endpoint], **loop), session,
+                                  record_events=True)  # fmt: skip
+                async with running(gw):
+                    await until(lambda: gw.bus.tuner_up, what="the tuner's token")
+                    await scenario(dcs, gw, fake)
+        finally:
+            session.close()
+            fake.close()
+
+    asyncio.run(main())
+
+
+async def _outcome(gw: OpcUaGateway, seq: int):
+    return await gw.wait_event(lambda e: e.seq == seq and e.kind in ("written", "refused"))
+
+
+def test_a_switch_to_manual_or_an_operators_gain_not_yet_notified_stops_the_write():
+    async def scenario(dcs, gw, fake) -> None:
+        kp0, ki0 = dcs.gains(LOOP)
+        lr = gw.by_id[LOOP]
+        await dcs.set_mode(LOOP, MAN)
+        assert lr.auto  # the notification is up to a sampling interval away
+        fake.send(1, kp0 * 1.5, ki0 * 1.5)
+        assert (await _outcome(gw, 1)).detail == "manual"
+        assert close(dcs.gains(LOOP), (kp0, ki0))
+
+        await dcs.set_mode(LOOP, AUTO)
+        await until(lambda: lr.auto, what="auto seen")
+        gain, reset = lr.block_gains()
+        await dcs.set_param(LOOP, "GAIN", gain * 0.8)  # an operator's own change
+        fake.send(2, kp0 * 1.2, ki0)
+        assert (await _outcome(gw, 2)).detail == "stale"
+        await dcs.scan()
+        assert close(dcs.gains(LOOP), (kp0 * 0.8, ki0 * 0.8))  # the operator's gains kept
+        assert gw.stats["written"] == 0
+
+    _run(scenario, sampling_interval_ms=SLOW_MS)
+
+
+def test_a_pair_the_server_took_half_of_is_undone():
+    async def scenario(dcs, gw, fake) -> None:
+        kp0, ki0 = dcs.gains(LOOP)
+        block = dcs.blocks[LOOP]
+        await dcs.server.get_node(block.ids["RESET"]).set_writable(False)  # locked in the DCS
+        fake.send(1, kp0 * 2.0, ki0)  # a new GAIN, and a RESET that keeps ki
+        event = await _outcome(gw, 1)
+        assert (event.kind, event.detail) == ("refused", "server:partial:BadUserAccessDenied")
+        await dcs.scan()
+        assert close(dcs.gains(LOOP), (kp0, ki0))  # not kp doubled with ki doubled
+        assert close(gw.by_id[LOOP].block_gains(), (await _block(dcs)))
+        assert gw.stats["refused_partial"] == 1 and gw.stats["written"] == 0
+
+    _run(scenario)
+
+
+async def _block(dcs):
+    ids = dcs.blocks[LOOP].ids
+    return tuple([await dcs.server.get_node(ids[k]).read_value() for k in ("GAIN", "RESET")])
+
+
+def test_nothing_is_written_while_no_tuner_is_up():
+    async def scenario(dcs, gw, fake) -> None:
+        kp0, ki0 = dcs.gains(LOOP)
+        fake.send(1, kp0 * 1.1, ki0)
+        assert (await _outcome(gw, 1)).kind == "written"
+        fake.send(2, kp0 * 1.5, ki0 * 1.5)  # waits on the rate limit
+        await gw.wait_event(lambda e: e.seq == 2 and e.kind == "received")
+        fake._token.undeclare()  # the tuner is gone
+        await until(lambda: not gw.bus.tuner_up, what="the tuner gone")
+        later = asyncio.get_running_loop().time() + 1.5  # past the rate limit (1 s)
+        await until(lambda: asyncio.get_running_loop().time() > later, what="1.5 s")
+        assert gw.by_id[LOOP].pending is not None and gw.stats["written"] == 1
+        await dcs.scan()
+        assert close(dcs.gains(LOOP), (kp0 * 1.1, ki0))
+        fake._token = fake.session.liveliness().declare_token(KEYS.tuner("fake"))
+        assert (await _outcome(gw, 2)).kind == "written"  # the tuner back: its word stands
+
+    _run(scenario, min_write_interval_s=1.0)
+
+
+def test_defaults_tables_are_merged_key_by_key():
+    site = {
+        "server": {"url": "opc.tcp://dcs:4840", "security": "None", "allow_insecure": True},
+        "defaults": {
+            "form": {"p": "band", "i": "reset_s"},
+            "limits": {"p": [20.0, 500.0], "i": [5.0, 3000.0]},
+            "registration": {"scaling": {"k_hat": 2.0, "tau_hat": 20.0},
+                             "extra": {"action": "direct"}},
+        },
+        "loops": [{
+            "id": "TIC-1", "sp": "ns=2;s=T.SP", "pv": "ns=2;s=T.PV", "p": "ns=2;s=T.PB",
+            "i": "ns=2;s=T.TI", "form": {"pv_span": 120.0, "op_span": 100.0},
+            "registration": {"sample_period_s": 1.0},
+        }],
+    }  # fmt: skip
+    (loop,) = parse_map(site).loops
+    assert (loop.form.p, loop.form.i, loop.form.pv_span) == ("band", "reset_s", 120.0)
+    kp, ki = loop.form.to_parallel(150.0, 120.0)  # PB 150 %, TI 120 s, spans 120 / 100
+    assert (kp, ki) == pytest.approx((100 / 120 / 1.5, 100 / 120 / 1.5 / 120.0))
+    reg = loop.registration
+    assert (reg.extra, reg.scaling.k_hat, reg.sample_period_s) == ({"action": "direct"}, 2.0, 1.0)
