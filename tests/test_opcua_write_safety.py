@@ -1,8 +1,9 @@
 """The OPC UA gateway's write policy where the block changed under it (a real asyncua
 server, real Zenoh on loopback): judged on the block's values read just before the
 write, not on the last notification (a publishing interval old); a pair the server took
-only half of is undone; nothing written while no tuner is up; a site map's
-``[defaults]`` tables merged key by key."""
+only half of is undone; nothing written while no tuner is up. And mistakes in a site map:
+``[defaults]`` tables merged key by key, a node id that is not one refused with its key,
+a node the server does not know costing its loop only."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ import pytest
 from plant_sim.opcua_block import AUTO, MAN
 from plant_sim.opcua_dcs import SimulatedDcs
 from service.gateways.opcua.bridge import OpcUaGateway
-from service.gateways.opcua.sitemap import parse_map
+from service.gateways.opcua.sitemap import MapError, parse_map
 from service.wire.session import free_port
 from tests.test_opcua_gateway import (
     KEYS,
@@ -139,3 +140,45 @@ def test_defaults_tables_are_merged_key_by_key():
     assert (kp, ki) == pytest.approx((100 / 120 / 1.5, 100 / 120 / 1.5 / 120.0))
     reg = loop.registration
     assert (reg.extra, reg.scaling.k_hat, reg.sample_period_s) == ({"action": "direct"}, 2.0, 1.0)
+
+
+def test_a_node_the_server_does_not_know_costs_its_loop_not_the_others():
+    async def main() -> None:
+        fake = FakeTuner()
+        session = open_session(connect=[fake.endpoint])
+        try:
+            async with SimulatedDcs([tank(), tank("tank2", seed=1)], port=free_port()) as dcs:
+                site = site_for(dcs, [fake.endpoint])
+                good, typo = site.loops
+                typo = typo.model_copy(update={"i": typo.i + "T"})  # ...tank2.RESETT
+                gw = OpcUaGateway(site.model_copy(update={"loops": [good, typo]}), session,
+                                  record_events=True)  # fmt: skip
+                async with running(gw):  # connected: the session is up despite the typo
+                    await until(lambda: gw.bus.tuner_up, what="the tuner's token")
+                    await dcs.scan()
+                    seen = await until(
+                        lambda: (
+                            {s["loop_id"]: s for s in fake.drain()}.keys() >= {LOOP, "tank2"}
+                            and {s["loop_id"]: s for s in fake.seen}
+                        ),
+                        what="samples of both loops",
+                    )
+                    assert "kp" in seen[LOOP] and "kp" not in seen["tank2"]  # no gains known
+                    kp0, ki0 = dcs.gains(LOOP)
+                    fake.send(1, kp0 * 1.1, ki0)
+                    assert (await _outcome(gw, 1)).kind == "written"
+        finally:
+            session.close()
+            fake.close()
+
+    asyncio.run(main())
+
+
+def test_a_node_id_that_is_not_one_is_a_map_error_naming_its_key():
+    data = {
+        "server": {"url": "opc.tcp://dcs:4840", "security": "None", "allow_insecure": True},
+        "loops": [{"id": "A", "sp": "ns=2;s=A.SP", "pv": "ns=2;s=A.PV", "p": "ns=2;s=A.P",
+                   "i": "ns=2;i=12x", "limits": {"p": [0.1, 1.0], "i": [1.0, 10.0]}}],
+    }  # fmt: skip
+    with pytest.raises(MapError, match=r"loops\.0\.i: .*not an OPC UA node id"):
+        parse_map(data)

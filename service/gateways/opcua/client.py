@@ -135,8 +135,10 @@ class OpcUaLink:
         self.client = client
         try:
             by_node: dict[str, list[Item]] = {}
+            node_of = {}
             for item, node in nodes:
                 by_node.setdefault(node, []).append(item)
+                node_of[item] = node
             ids = {node: ua.NodeId.from_string(node) for node in by_node}
             initial = await self.read(list(ids.values()))
             changes = []
@@ -161,11 +163,17 @@ class OpcUaLink:
                 )
                 self._items[req.RequestedParameters.ClientHandle] = items
                 requests.append(req)
+            # a node the server refuses to monitor (e.g. BadNodeIdUnknown, a typo in the map)
+            # costs its loop, not the session: its initial read is bad too, so its change
+            # above says so, and the loop lacks that value (no samples, or no writes)
+            results = []
             for start in range(0, len(requests), CHUNK):
-                results = await self._sub.create_monitored_items(requests[start : start + CHUNK])
-                bad = [r for r in results if isinstance(r, ua.StatusCode)]
-                if bad:
-                    raise ua.UaStatusCodeError(bad[0].value)
+                results += await self._sub.create_monitored_items(requests[start : start + CHUNK])
+            for req, result in zip(requests, results, strict=True):
+                if isinstance(result, ua.StatusCode):
+                    for item in self._items.pop(req.RequestedParameters.ClientHandle):
+                        log.error("loop %d %s: %s not monitored: %s", item.loop, item.field,
+                                  node_of[item], result.name)  # fmt: skip
             return changes
         except BaseException:
             await self.close()

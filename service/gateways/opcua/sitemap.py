@@ -19,13 +19,34 @@ from enum import StrEnum
 from pathlib import Path
 from typing import Annotated, Any
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from asyncua import ua
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    field_validator,
+    model_validator,
+)
 
 from service.gateways.opcua.forms import GainForm
 from service.units import ScalingSpec
 from service.wire.protocol import DEFAULT_PREFIX, GatewayId, LoopId
 
-NodeRef = Annotated[str, Field(min_length=3, max_length=512, pattern=r"^(ns|i|s|g|b)=")]
+
+def _node_id(text: str) -> str:
+    try:
+        ua.NodeId.from_string(text)
+    except Exception as exc:  # asyncua raises several kinds for a bad string
+        raise ValueError(f"not an OPC UA node id ({type(exc).__name__}: {exc})") from None
+    return text
+
+
+NodeRef = Annotated[
+    str,
+    Field(min_length=3, max_length=512, pattern=r"^(ns|i|s|g|b)="),
+    AfterValidator(_node_id),
+]
 ModeValue = bool | int | str
 PositiveS = Annotated[float, Field(gt=0.0, le=86400.0, allow_inf_nan=False)]
 
