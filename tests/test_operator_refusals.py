@@ -133,3 +133,18 @@ def test_the_console_recent_samples_take_any_cursor(client):
     r = client.get(f"/ui/api/loops/L1/recent?n={huge}&gn={huge}")
     assert r.status_code == 200 and r.json()["recent"]["t"] == [], r.text
     assert client.get("/ui/api/loops/L1/recent?n=-1").status_code == 422
+
+
+def test_an_operators_own_gains_restart_the_proposal_track():
+    engine = TuningEngine(Pushing())
+    engine.register(LoopConfig(
+        id="A", kp=1.0, ki=0.05, sample_period_s=1.0, mode="advisory", scaling=HINT,
+        guard={"excitation_periods": 0.0, "max_rel_change": 0.5},
+    ), wall=0.0)  # fmt: skip
+    ups = engine.ingest([{"loop_id": "A", "t": float(t), "e": 0.1} for t in range(400)], wall=0.0)
+    assert ups[-1].kp > 1.5  # the track walked beyond one guard step from the gains in force
+    # the operator detunes the loop in the DCS: adopted, and the walk starts again from it
+    samples = [{"loop_id": "A", "t": 400.0 + t, "e": 0.1, "kp": 0.5, "ki": 0.02} for t in range(60)]
+    more = engine.ingest(samples, wall=0.0)
+    assert engine.view("A").kp == 0.5
+    assert more and all(u.kp <= 0.5 * 1.5 + 1e-9 for u in more), [u.kp for u in more]

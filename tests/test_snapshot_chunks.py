@@ -39,8 +39,10 @@ def test_a_chunk_snapshot_is_each_loops_own_and_restores_the_same_state():
     assert runtime["C4"]["verify"]["g_iae"] is None and runtime["C4"]["last_e"] == 0.25
     assert runtime["C0"]["figures"]["hist"] and not runtime["C5"]["figures"]["hist"]
     other = TuningEngine(StillAgent())
-    for loop_id, hidden, rt in chunk:
-        other.restore(_config(loop_id), kp=1.0, ki=0.05, seq=0, hidden=hidden, runtime=rt, wall=0.0)
+    for loop_id, hidden, rt in chunk:  # with the gains and seq the store has
+        s = tb.slot(loop_id)
+        stored = {"kp": float(tb.kp[s]), "ki": float(tb.ki[s]), "seq": int(tb.seq[s])}
+        other.restore(_config(loop_id), **stored, hidden=hidden, runtime=rt, wall=0.0)
     assert sorted(other.snapshot()) == sorted(chunk)
 
 

@@ -149,7 +149,7 @@ def apply(tb, s: int, m, wall: float, why: str) -> None:
         tb.prev_kp[s], tb.prev_ki[s] = old
         tb.kp[s], tb.ki[s] = new
         tb.pending[s] = True
-        tb.adv_kp[s] = tb.adv_ki[s] = tb.adv_seq[s] = math.nan
+        verify.restart_track(tb, s)
     else:  # a proposal: the track goes on from it
         tb.adv_kp[s], tb.adv_ki[s], tb.adv_seq[s] = new[0], new[1], seq
     (predicted,) = predict.predictions(tb, [s], np.array([old]), np.array([new]))

@@ -63,7 +63,7 @@ HISTORY = 8
 """Complete responses kept per loop for ``GET /loops/{id}/performance``."""
 HIST_FIELDS = ("t", "iae", "overshoot_pct", "rise_s", "settle_s", "mse")
 """Columns of the history ring (the ``f_`` arrays: t, iae, over, rise, settle, mse)."""
-_FIGURES = ("f_t", "f_iae", "f_over", "f_rise", "f_settle", "f_mse")
+_FIGURES = ("f_t", "f_iae", "f_over", "f_rise", "f_settle", "f_mse", "f_move")
 """The last complete response's figures (the history ring's columns, in order)."""
 F64 = [
     # current response: start, end, 10 %/90 % times, last time outside the settling band,
@@ -81,8 +81,8 @@ F32 = [
     "r_move", "r_iae", "r_sq", "r_over",
     # the target trajectory's model: dead time, closed-loop time constant (s)
     "m_theta", "m_tau_cl",
-    # last complete response
-    "f_iae", "f_over", "f_rise", "f_settle", "f_mse",
+    # last complete response (f_move: its signed move; a sample may open the next one)
+    "f_iae", "f_over", "f_rise", "f_settle", "f_mse", "f_move",
     # window: error mean and mean square, shares of time in manual / saturated, share of
     # samples rejected
     "w_mean", "w_sq", "w_manual", "w_sat", "w_rej",
@@ -147,7 +147,7 @@ def observe(
     usable previous sample). Returns (slots whose response just completed, slots that
     just started oscillating)."""
     dt = np.where(fresh | np.isnan(last_t), 0.0, t - last_t)
-    done = _close(tb, slots, t, moved)
+    done = _close(tb, slots, t, moved, fresh)
     before = np.where(fresh[moved], 0.0, prev_e[moved])
     move = e[moved] - before
     allowed = SETTLED_AT_MOVE * np.abs(move) + 3.0 * oscillation.noise_sigma(tb, slots[moved])
@@ -159,11 +159,13 @@ def observe(
     return done, osc
 
 
-def _close(tb: LoopTable, slots: np.ndarray, t: np.ndarray, moved: np.ndarray) -> np.ndarray:
-    """Close the responses a sample ends; keep the complete ones' figures."""
+def _close(tb: LoopTable, slots, t, moved, fresh) -> np.ndarray:
+    """Close the responses a sample ends; keep the complete ones' figures. A response
+    with a hole (``fresh``: a gap in the samples, or back from manual or saturation) is
+    dropped, as one a new move cuts short: its figures would judge part of it."""
     open_ = ~np.isnan(tb.r_t0[slots])
-    complete = open_ & (t > tb.r_end[slots])
-    ending = open_ & (complete | moved)
+    complete = open_ & (t > tb.r_end[slots]) & ~fresh
+    ending = open_ & (complete | moved | fresh)
     if not ending.any():
         return slots[:0]
     # a response during which the gains changed judges no gains alone: its figures
@@ -185,6 +187,7 @@ def _close(tb: LoopTable, slots: np.ndarray, t: np.ndarray, moved: np.ndarray) -
         settle = tb.r_settle[done] - t0
         tb.f_settle[done] = np.where(tb.r_settle[done] < tb.r_end[done] - 1e-9, settle, np.nan)
         tb.f_mse[done] = tb.r_sq[done] / (end - t0)
+        tb.f_move[done] = tb.r_move[done]
         ring[:, 1:] = ring[:, :-1]
         ring[:, 0] = np.column_stack(
             [np.zeros(done.size), tb.f_iae[done], tb.f_over[done], tb.f_rise[done],
@@ -199,6 +202,7 @@ def _close(tb: LoopTable, slots: np.ndarray, t: np.ndarray, moved: np.ndarray) -
 def _open(tb: LoopTable, slots: np.ndarray, t: np.ndarray, move: np.ndarray) -> None:
     if not slots.size:
         return
+    move = move.astype(np.float32)  # as stored: a move float32 holds as 0 is no move
     tb.r_t0[slots], tb.r_move[slots] = t, np.where(move == 0.0, np.nan, move)
     tb.r_end[slots] = t + RESPONSE_PERIODS * tb.period[slots]
     tb.r_iae[slots] = tb.r_sq[slots] = tb.r_over[slots] = 0.0
@@ -270,8 +274,9 @@ def load(tb: LoopTable, slots: np.ndarray, dicts: list[dict]) -> None:
     last response's with one assignment per array, the history of those that have one."""
     lasts = [d.get("last") for d in dicts]
     has = [i for i, last in enumerate(lasts) if last]
-    if has:
-        columns = zip(*(lasts[i] for i in has), strict=True)
+    if has:  # (a snapshot from before f_move has one figure fewer: null)
+        width = len(_FIGURES)
+        columns = zip(*(lasts[i] + [None] * (width - len(lasts[i])) for i in has), strict=True)
         for name, values in zip(_FIGURES, columns, strict=True):
             put(getattr(tb, name), slots[has], list(values), math.nan)
     tb.f_hist_n[slots] = 0

@@ -76,6 +76,17 @@ GAIN_RTOL = monitor.GAIN_RTOL
 as float32 reports them off by up to 6e-8 relative, which is no operator's change."""
 
 
+CLOCKED = (
+    "excited_until", "move_t", "ramp_t", "ramp_from",  # the excitation gate, the ramp rule
+    "cool_until", "x_until", "osc_until", "osc_seen",  # holds: cool-down, fence, pause
+    "o_tc", "o_seen", "o_z", "o_zs",  # the oscillation detector
+    "f_t", "ps_t0",  # the last response's end, the PV rule's block
+)  # fmt: skip
+"""The plant times a loop keeps (beyond the one sample before), moved with a new plant
+clock (a gateway restarted from 0): a hold left on the old clock would last as long as the
+old clock had run. (An open response is dropped at the clock's gap: monitor.observe.)"""
+
+
 def new_clock(tb: LoopTable, s: int, t: float) -> bool:
     """Count a run of consistent out-of-order samples; True when it is a new clock."""
     run = tb.back_n[s] + 1.0 if tb.back_n[s] and t > tb.back_t[s] else 1.0
@@ -122,8 +133,8 @@ def ingest(
     ok = ~(flood | dup | late | absurd)
     for i, old_t in reclocked:  # every time kept on the plant clock moves with it
         if ok[i]:
-            tb.excited_until[slots[i]] += t[i] - old_t
-            tb.move_t[slots[i]] += t[i] - old_t
+            for name in CLOCKED:
+                getattr(tb, name)[slots[i]] += t[i] - old_t
     rejections: list[tuple[int, RejectReason, str]] = []
     if not ok.all():
         for i in np.flatnonzero(~ok).tolist():
@@ -255,6 +266,7 @@ def _adopt(tb: LoopTable, slots: np.ndarray, cols: dict[str, np.ndarray], wall: 
         old = (tb.kp[s], tb.ki[s])
         tb.kp[s], tb.ki[s] = kp[i], ki[i]
         verify.unfence(tb, s)  # the operator's gains: the agent starts from them, unfenced
+        verify.restart_track(tb, s)  # and an advisory loop's proposals too, as at a reject
         tb._gains_dirty.add(s)
         tb._verify_dirty.add(s)
         tb._audit.append(

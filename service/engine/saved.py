@@ -67,12 +67,14 @@ def runtimes_of(tb, slots: np.ndarray, counters: list[str]) -> list[str]:
     snapshot's cost (~40 µs a loop with the store's write, ~20 % of a core for a
     150,000-loop member at the default interval)."""
     scalars = [getattr(tb, name)[slots].tolist() for name in _SCALARS]
+    flights = zip(*(getattr(tb, name)[slots].tolist() for name in _IN_FLIGHT), strict=True)
     counts = zip(*(getattr(tb, n)[slots].tolist() for n in counters), strict=True)
     flags = zip(tb.mismatch[slots].tolist(), tb.out_env[slots].tolist(), strict=True)
     return [
         orjson.dumps(
             {
                 **dict(zip(_SCALARS, values, strict=True)),
+                "in_flight": flight,
                 "counters": list(count),
                 "ident": {**tb.ident[s].dump(), "mismatch": mismatch, "out_env": out_env},
                 "verify": ver,
@@ -80,9 +82,10 @@ def runtimes_of(tb, slots: np.ndarray, counters: list[str]) -> list[str]:
             },
             option=orjson.OPT_SERIALIZE_NUMPY,
         ).decode()
-        for s, values, count, (mismatch, out_env), ver, figures in zip(
+        for s, values, flight, count, (mismatch, out_env), ver, figures in zip(
             slots.tolist(),
             zip(*scalars, strict=True),
+            flights,
             counts,
             flags,
             verify.dumps(tb, slots),
@@ -107,6 +110,7 @@ def restore_runtimes(tb, slots: np.ndarray, saved: list[Saved], counters: list[s
     rts = [x.runtime for x in saved]
     for name, default in _RESTORED:
         put(getattr(tb, name), slots, [rt.get(name, ABSENT) for rt in rts], default)
+    _restore_in_flight(tb, slots, rts)
     # an agent memory of another size is not restored: its episode starts again
     tb.unsettle(slots[[i for i, x in enumerate(saved) if x.hidden.size != size]])
     # snapshots from before a counter was added list fewer: those stay 0
@@ -134,6 +138,29 @@ _RESTORED = (
 older snapshots: sp_ref before the excitation gate, excited_until, sp_anchor and move_t
 before runs of moves, obs_gain before the normalisation, the settling's before it, keep
 the registration's; the output-limit run's before it, none)."""
+
+
+_IN_FLIGHT = ("seq", "kp", "ki", "pending", "prev_kp", "prev_ki")
+"""What says whether the last update published may still be in flight: the seq and gains
+at the snapshot, and its in-flight flag with the gains that update replaced."""
+
+
+def _restore_in_flight(tb, slots: np.ndarray, rts: list[dict]) -> None:
+    """The last update published is in flight again after a restore, as it may be: the
+    gateway's next samples may still report the gains it replaced, which must not be taken
+    for an operator's (and adopted, dropping a rollback's fence). The gains restored are
+    the store's, whose seq may be the snapshot's (its flag and the gains it replaced are
+    restored) or one later (published since: in flight, replacing the snapshot's gains);
+    further on, what it replaced is unknown and the flag stays off, as registered."""
+    for s, rt in zip(slots.tolist(), rts, strict=True):
+        saved = rt.get("in_flight")
+        if saved is None:  # a snapshot from before it was kept
+            continue
+        seq, kp, ki, pending, prev_kp, prev_ki = saved
+        if seq == tb.seq[s] and None not in (prev_kp, prev_ki):
+            tb.pending[s], tb.prev_kp[s], tb.prev_ki[s] = pending, prev_kp, prev_ki
+        elif seq == tb.seq[s] - 1 and None not in (kp, ki):
+            tb.pending[s], tb.prev_kp[s], tb.prev_ki[s] = True, kp, ki
 
 
 def _at(values: list, k: int):

@@ -332,7 +332,7 @@ class LoopTable:
     def reconfigure(self, config: LoopConfig) -> None:
         s = self.slot(config.id)
         if _CODE[config.mode] != self.mode[s]:  # a proposal belongs to the mode it was made in
-            self.adv_kp[s] = self.adv_ki[s] = self.adv_seq[s] = math.nan
+            verify.restart_track(self, s)
             # and so does settling: in shadow or advisory the agent's asks are not applied
             self.unsettle(s)
         settings.configure(self, np.array([s]), [config])
@@ -372,7 +372,7 @@ class LoopTable:
         self.cool_until[s] = self.osc_until[s] = -math.inf
         verify.unfence(self, s)
         self._verify_dirty.add(s)
-        self.adv_kp[s] = self.adv_ki[s] = self.adv_seq[s] = math.nan
+        verify.restart_track(self, s)
         mode = self.mode[s]
         if mode in (FROZEN, SHADOW):
             detail = f"agent state only: a {MODE_VALUES[mode]} loop's gains are not published"

@@ -32,7 +32,9 @@ its updates would in ``auto``, and stop where its step vanishes (its target), in
 repeating one guard-limited step from gains that never move. An operator accepting one
 (``POST /loops/{id}/proposals/{seq}/accept``) has it published as an ``auto`` message
 (reason ``accepted``); rejecting it restarts the track from the gains in force and holds
-the agent for the cool-down.
+the agent for the cool-down. Gains of the operator's own, adopted from the samples,
+restart the track too: proposals walked from gains no longer in force would start a
+guard step from nothing the plant runs (12-15x the gains in force, session 35's review).
 """
 
 from __future__ import annotations
@@ -96,7 +98,7 @@ def init(tb: LoopTable, s: int) -> None:
     tb.g_iae[s] = tb.g_iae_dn[s] = math.nan
     tb.g_seq[s] = tb.v_seq[s] = tb.seq[s]
     tb.cool_until[s] = -math.inf
-    tb.adv_kp[s] = tb.adv_ki[s] = tb.adv_seq[s] = math.nan
+    restart_track(tb, s)
     tb.b_kp[s] = tb.b_ki[s] = math.nan
     tb.osc_until[s] = tb.osc_seen[s] = -math.inf
     tb.g_calm[s] = 0.0
@@ -288,18 +290,21 @@ def _gains(tb: LoopTable, s: int) -> tuple[float, float]:
 def overshoot(tb: LoopTable, s: int) -> float:
     """The last complete response's overshoot past the new setpoint, share of the move,
     less 3 noise sigmas (what noise alone could show); NaN without a figure."""
-    noise = 3.0 * float(noise_sigma(tb, np.array([s]))[0]) / abs(float(tb.r_move[s]))
-    return float(tb.f_over[s]) / 100.0 - noise
+    move = abs(float(tb.f_move[s]))
+    if not move > 0.0:  # a move float32 holds as 0: nothing to judge an overshoot by
+        return math.nan
+    return float(tb.f_over[s]) / 100.0 - 3.0 * float(noise_sigma(tb, np.array([s]))[0]) / move
 
 
 def reference(tb: LoopTable, s):
     """The last-good figure a response is judged against: of its own direction (``s``
-    a slot or slots; the direction of the last response opened)."""
-    return np.where(tb.r_move[s] < 0, tb.g_iae_dn[s], tb.g_iae[s])
+    a slot or slots; the direction of the last complete response, not of one the same
+    sample may have opened)."""
+    return np.where(tb.f_move[s] < 0, tb.g_iae_dn[s], tb.g_iae[s])
 
 
 def _set_reference(tb: LoopTable, s: int, value: float) -> None:
-    if tb.r_move[s] < 0:
+    if tb.f_move[s] < 0:
         tb.g_iae_dn[s] = value
     else:
         tb.g_iae[s] = value
@@ -373,7 +378,7 @@ def fail(
         tb.unsettle(s)
         if why in FENCED:
             fence_rollback(tb, s, old, good, t)
-        tb.adv_kp[s] = tb.adv_ki[s] = tb.adv_seq[s] = math.nan
+        restart_track(tb, s)
         verdict = "rolled_back"
     else:
         tb.adv_kp[s], tb.adv_ki[s], tb.adv_seq[s] = good[0], good[1], seq
@@ -403,7 +408,7 @@ def accept(tb: LoopTable, s: int, seq: int, wall: float, actor: str) -> StepResu
     tb.prev_kp[s], tb.prev_ki[s] = old
     tb.kp[s], tb.ki[s] = new
     tb.pending[s] = True
-    tb.adv_kp[s] = tb.adv_ki[s] = tb.adv_seq[s] = math.nan
+    restart_track(tb, s)
     tb.seq[s] += 1
     tb._gains_dirty.add(s)
     tb._verify_dirty.add(s)
@@ -417,13 +422,19 @@ def reject(tb: LoopTable, s: int, seq: int, wall: float, actor: str) -> None:
     gains in force and the agent is held for the cool-down."""
     _check_proposal(tb, s, seq)
     gains, proposed = (float(tb.kp[s]), float(tb.ki[s])), (float(tb.adv_kp[s]), float(tb.adv_ki[s]))
-    tb.adv_kp[s] = tb.adv_ki[s] = tb.adv_seq[s] = math.nan
+    restart_track(tb, s)
     t = float(tb.last_t[s]) if math.isfinite(tb.last_t[s]) else 0.0
     tb.cool_until[s] = t + tb.v_cool[s]
     tb._verify_dirty.add(s)
     _audit(tb, s, wall, "rejected", gains, gains, {
         "proposal": seq, "kp": proposed[0], "ki": proposed[1], "actor": actor,
     }, t=t)  # fmt: skip
+
+
+def restart_track(tb: LoopTable, s) -> None:
+    """No proposal pending: the track restarts from the gains in force (``s`` a slot or
+    slots)."""
+    tb.adv_kp[s] = tb.adv_ki[s] = tb.adv_seq[s] = math.nan
 
 
 def _check_proposal(tb: LoopTable, s: int, seq: int) -> None:
