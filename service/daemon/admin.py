@@ -8,6 +8,7 @@ it, under the table's lock, so the worker never sees a change the store lacks.
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import gc
 from collections.abc import Callable
@@ -118,11 +119,13 @@ class LoopAdmin:
             return self.table.view(config.id, wall)
 
     def register_many(self, configs: list[LoopConfig]) -> list[str]:
-        """Register several loops at once, all or none (Conflict if any id is taken)."""
+        """Register several loops at once, all or none (Conflict if any id is taken,
+        ValueError if one is given twice)."""
         wall = self.clock.wall()
         ids = [c.id for c in configs]
-        if len(set(ids)) != len(ids):
-            raise Conflict("duplicate loop ids in the request")
+        twice = sorted(i for i, n in collections.Counter(ids).items() if n > 1)
+        if twice:
+            raise ValueError(f"loop ids given twice in the request: {twice[:5]!r}")
         self._claim(configs)
         with self.table.lock:
             taken = [i for i in ids if i in self.table.slot_of]

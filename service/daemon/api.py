@@ -117,13 +117,17 @@ def register_loop(config: Registration, tuner: TunerDep, request: Request) -> Lo
 
 @loops.post("/bulk", status_code=201, dependencies=mutating, responses={409: {}})
 def register_loops(
-    configs: Annotated[list[Registration], Body(max_length=MAX_BULK)],
+    configs: Annotated[list[Registration], Body(min_length=1, max_length=MAX_BULK)],
     tuner: TunerDep,
     request: Request,
     after: BackgroundTasks,
 ) -> BulkRegistered:
-    """Register many loops in one call (a large site), all or none: 409 if any id is taken."""
-    ids = tuner.register_many(configs)
+    """Register many loops in one call (a large site), all or none: 409 if any id is taken,
+    422 if the request names one twice."""
+    try:
+        ids = tuner.register_many(configs)
+    except ValueError as exc:
+        raise HTTPException(422, str(exc)) from None
     after.add_task(release_memory)  # once the request's parsed configs are gone
     first = ", ".join(repr(i) for i in ids[:5]) + (", ..." if len(ids) > 5 else "")
     _event(tuner, request, "registered", "%d loops registered in bulk: %s", len(ids), first)
