@@ -11,7 +11,7 @@ import math
 import numpy as np
 import orjson
 
-from service.engine import monitor, oscillation, output_limit, rules, watch
+from service.engine import monitor, oscillation, output_limit, rules, verify, watch
 from service.engine.audit import audit_row
 from service.engine.modes import AUTO, FROZEN
 from service.engine.rules import GAIN_RTOL, MAX_AGENT_ERROR
@@ -67,9 +67,9 @@ def _ingest(tb: LoopTable, s: int, sample: Sample, wall: float) -> bool:
     e = sample.error
     if abs(e) * tb.e_scale[s] > MAX_AGENT_ERROR:
         raise Rejected(RejectReason.out_of_range, f"|e|={abs(e):g} is absurd for this loop")
-    if math.isnan(last_t) and t <= tb.last_t[s]:  # a new clock: the gate's window moves too
-        tb.excited_until[s] += t - old_t
-        tb.move_t[s] += t - old_t
+    if math.isnan(last_t) and t <= tb.last_t[s]:  # a new clock: the plant times move too
+        for name in rules.CLOCKED:
+            getattr(tb, name)[s] += t - old_t
     tb.back_n[s] = 0.0
     if sample.kp is not None or sample.ki is not None:
         _adopt(tb, s, sample, wall)
@@ -360,6 +360,8 @@ def _adopt(tb: LoopTable, s: int, sample: Sample, wall: float) -> None:
     tb.pending[s] = False
     old = (tb.kp[s], tb.ki[s])
     tb.kp[s], tb.ki[s] = kp, ki
+    verify.unfence(tb, s)
+    verify.restart_track(tb, s)  # an advisory loop's proposals start from them
     tb._gains_dirty.add(s)
     tb._audit.append(
         audit_row(

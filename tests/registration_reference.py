@@ -131,6 +131,13 @@ def _restore_runtime(tb: LoopTable, s: int, saved: Saved) -> None:
         tb.unsettle(s)
     for name, value in zip(_COUNTERS, rt["counters"], strict=False):
         getattr(tb, name)[s] = value
+    flight = rt.get("in_flight")  # the last update in flight again: at the seq, or one on
+    if flight is not None:
+        at_seq, at_kp, at_ki, pending, prev_kp, prev_ki = flight
+        if at_seq == tb.seq[s] and prev_kp is not None and prev_ki is not None:
+            tb.pending[s], tb.prev_kp[s], tb.prev_ki[s] = pending, prev_kp, prev_ki
+        elif at_seq == tb.seq[s] - 1 and at_kp is not None and at_ki is not None:
+            tb.pending[s], tb.prev_kp[s], tb.prev_ki[s] = True, at_kp, at_ki
     ident = rt.get("ident")
     if ident is not None:
         tb.mismatch[s], tb.out_env[s] = ident["mismatch"], ident["out_env"]
@@ -142,8 +149,8 @@ def _restore_runtime(tb: LoopTable, s: int, saved: Saved) -> None:
         figures = rt.get("figures") or {}
         last = figures.get("last")
         if last:
-            for name, v in zip(("f_t", "f_iae", "f_over", "f_rise", "f_settle", "f_mse"), last,
-                               strict=True):  # fmt: skip
+            names = ("f_t", "f_iae", "f_over", "f_rise", "f_settle", "f_mse", "f_move")
+            for name, v in zip(names, last, strict=False):  # (f_move: since session 35)
                 getattr(tb, name)[s] = math.nan if v is None else v
         hist = figures.get("hist") or []
         n = min(len(hist), monitor.HISTORY)

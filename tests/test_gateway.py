@@ -157,6 +157,9 @@ def test_batched_gains_of_a_gateway_follow_the_same_rule(tuner, other):
     try:
         for p in (plant, deaf):
             p.until(lambda _, p=p: p.gateway.tuner_up, "the tuner's liveliness token")
+        # the state reply first: on a loaded machine it could come after the step below
+        # and bring seq 1 itself (source state_batch)
+        plant.until(lambda _: set(fronted) <= set(plant.gateway.inbox.supervision), "state")
         for t in (0.0, 165.0):
             batch = {"samples": [{"loop_id": i, "t": t, "e": 0.5} for i in [*fronted, "SOLO"]]}
             other.put(KEYS.batch, json.dumps(batch).encode())
