@@ -12,7 +12,7 @@ from service.daemon.api import create_app
 from service.engine import LoopConfig, TuningEngine
 from service.engine.patch import LoopPatch
 from service.learn.verification import StillAgent
-from tests.tuner_support import loop_body, tuner_settings
+from tests.tuner_support import loop_body, tuner_settings, wait_until
 
 pytestmark = pytest.mark.timeout(120)
 HINT = {"k_hat": 1.0, "tau_hat": 10.0, "pv_scale": 1.0}
@@ -119,11 +119,15 @@ def test_changes_the_store_cannot_commit_are_a_503_and_change_nothing(client, tm
         for method, path, kwargs in calls:
             r = getattr(client, method)(path, **kwargs)
             assert r.status_code == 503 and "store" in r.json()["detail"], (path, r.text)
+        # a reset's commit fails: held, and said so (published only if the store recovers)
+        r = client.post("/loops/L1/reset")
+        assert r.status_code == 503 and "held, not committed" in r.json()["detail"], r.text
     finally:
         other.execute("ROLLBACK")
         other.close()
     assert client.get("/loops/L2").status_code == 404
     assert client.get("/loops/L1").json()["mode"] == "auto"
+    wait_until(lambda: client.get("/healthz").status_code == 200, what="commits again")
     assert client.patch("/loops/L1", json={"mode": "frozen"}).status_code == 200
 
 

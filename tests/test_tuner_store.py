@@ -14,7 +14,13 @@ from service.daemon.bus import Kind
 from service.daemon.tuner import Tuner
 from service.engine.config import LoopConfig
 from service.wire.protocol import MAX_MAGNITUDE, UpdateReason
-from tests.tuner_support import connected_gateway, loop_body, tuner_settings, wait_until
+from tests.tuner_support import (
+    connected_gateway,
+    loop_body,
+    snapshot_of,
+    tuner_settings,
+    wait_until,
+)
 
 pytestmark = pytest.mark.timeout(60)
 TINY = {"k_hat": 1e-6, "tau_hat": 1e-6}
@@ -119,6 +125,11 @@ def test_a_failing_commit_publishes_nothing_loses_nothing_and_is_retried(tmp_pat
                 r = client.get(path)
                 assert r.status_code == 503 and "disk is full" in r.json()["detail"], path
             assert client.post("/loops/LIC-101/reset").status_code == 503
+            # the table holds the uncommitted step: no state reply hands it out, and no
+            # snapshot stores its agent state beside the older committed gains
+            assert list(gw.session.get(settings.keys.state("LIC-101"), timeout=1.0)) == []
+            tuner.snapshot()
+            assert snapshot_of(settings.db_path, "LIC-101") is None
             for i in range(170, 340):  # another due period: no step on unpublished gains
                 gw.send("LIC-101", {"t": float(i), "e": 2.0})
             wait_until(lambda: tuner.metrics.value("pitune_steps_skipped_total") == 1)
@@ -132,6 +143,8 @@ def test_a_failing_commit_publishes_nothing_loses_nothing_and_is_retried(tmp_pat
             items = client.get("/loops/LIC-101/history").json()["items"]
             assert [(e["reason"], e["seq"]) for e in items] == [("agent", 1), ("registered", 0)]
             assert client.get("/loops/LIC-101").json()["kp"] == msg.kp
+            ok, state = gw.state("LIC-101")  # committed: answered again
+            assert ok and (state["seq"], state["kp"]) == (1, msg.kp)
             # The control: a reset on the same path comes right after that one message; had
             # the uncommitted step been published during the failure, seq 1 came twice.
             assert client.post("/loops/LIC-101/reset").status_code == 200

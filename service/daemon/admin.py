@@ -81,6 +81,17 @@ class LoopAdmin:
             detail = f"the store cannot commit ({self.store.location}): {exc}"
             raise StoreUnavailable(detail) from None
 
+    def _committed(self, result: StepResult | None) -> None:
+        """An operator's decision committed (then published), or StoreUnavailable (503)
+        if its commit failed: it is held, and goes out only if the store commits again
+        before the tuner gives up (``store_failure_exit_s``), so it is not reported done."""
+        self._commit(result)
+        if self.store_failure is not None:
+            raise StoreUnavailable(
+                f"{self.store_failure}; the change is held, not committed: it is published "
+                "if the store commits again, and lost if the tuner exits first"
+            )
+
     def _known(self, loop_id: str) -> None:
         if loop_id not in self.table.slot_of:
             raise UnknownLoop(loop_id)
@@ -186,7 +197,7 @@ class LoopAdmin:
             if self.store_failure is not None:
                 raise StoreUnavailable(self.store_failure)
             self.engine.identify(loop_id, wall)
-            self._commit(None)  # its audit row
+            self._committed(None)  # its audit row
             self._write_snapshot([loop_id])  # identification state is in the snapshot
             return self.table.view(loop_id, wall)
 
@@ -198,7 +209,7 @@ class LoopAdmin:
             self._known(loop_id)
             if self.store_failure is not None:
                 raise StoreUnavailable(self.store_failure)
-            self._commit(self.engine.reset(loop_id, wall, actor=actor))
+            self._committed(self.engine.reset(loop_id, wall, actor=actor))
             return self.table.view(loop_id, wall)
 
     def delete(self, loop_id: str) -> None:
@@ -271,7 +282,7 @@ class LoopAdmin:
                 result = decide(wall)
             except ValueError as exc:
                 raise Conflict(str(exc)) from None
-            self._commit(result)
+            self._committed(result)
             return self.table.view(loop_id, wall)
 
 

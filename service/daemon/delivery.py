@@ -107,6 +107,7 @@ class Delivery:
         self._retry_at = now + COMMIT_RETRY_S
         if self._store_failing_since is None:
             self._store_failing_since = now
+            self._wake()  # a worker asleep until its next snapshot retries from now on
         failing_for = now - self._store_failing_since
         self._store_error = f"store commits failing for {failing_for:.0f} s: {exc!r}"
         self._failure_log.warning("store", f"{self._store_error}; no RL steps until it works")

@@ -26,6 +26,11 @@ class StateQueries:
     """State replies from the engine's table (mixed into the Tuner)."""
 
     def _answer(self, query: zenoh.Query) -> None:
+        if self.store_failure is not None:
+            # the table holds steps not committed yet (held, unpublished): a reply would
+            # hand the gateway gains that may never exist; it asks again on its schedule
+            query.drop()
+            return
         key = str(query.key_expr)
         loop_id = self.keys.loop_id(key)
         if loop_id is not None and loop_id in self.table.slot_of:
@@ -57,6 +62,8 @@ class StateQueries:
         """Answer the parked ``after_t`` queries whose sample came, or whose wait is over
         (the reply's ``last_t`` then says the sample was not handled: rejected or lost)."""
         now = time.monotonic()
+        if self.store_failure is not None:  # not answered while commits fail (_answer)
+            return
         for loop_id in list(self._parked):
             waiting = self._parked.pop(loop_id)
             if loop_id not in self.table.slot_of:  # deleted meanwhile
@@ -77,6 +84,9 @@ class StateQueries:
 
     def _answer_gateway(self, query: zenoh.Query) -> None:
         """One StateBatch with every loop registered with the gateway in the key."""
+        if self.store_failure is not None:  # as in _answer
+            query.drop()
+            return
         gateway = self.keys.gateway_id(str(query.key_expr))
         if gateway is None:
             error = ErrorReply(loop_id=str(query.key_expr), error="not a gateway's state key")
@@ -89,9 +99,11 @@ class StateQueries:
         states = [
             self._state(loop_id) for loop_id, s in tb.slot_of.items() if tb.gateways[s] == gateway
         ]
+        epoch = self.epoch if self.cluster is None else self.cluster.held.get(shard_of("", gateway))
         batch = StateBatch(
-            gateway=gateway, instance_id=self.settings.instance_id, epoch=self.epoch, states=states
-        )
+            gateway=gateway, instance_id=self.settings.instance_id, epoch=epoch or self.epoch,
+            states=states,
+        )  # fmt: skip
         reply(query, encode(batch))
 
     def _state(self, loop_id: str) -> StateReply:
@@ -106,7 +118,9 @@ class StateQueries:
             seq=int(tb.seq[s]),
             last_t=_finite(tb.last_t[s]),
             instance_id=self.settings.instance_id,
-            epoch=self.epoch,
+            # as on the loop's gains messages: in a cluster its shard's lease token
+            # (Ownership._publishable), else a reply would order before them and be dropped
+            epoch=(None if self.cluster is None else self.cluster.token(loop_id)) or self.epoch,
             rl_period_s=_finite(tb.period[s]),
             next_due_t=_finite(tb.next_due[s]),
             gateway=tb.gateways[s],

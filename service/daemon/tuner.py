@@ -69,6 +69,9 @@ from service.wire.protocol import (
 
 log = logging.getLogger("pitune.tuner")
 _STOP = (None, "", None)
+_WAKE = (None, "wake", None)
+"""Queued to have the worker compute its wait again (a commit failed on an API thread:
+the worker, asleep until its next snapshot, retries within COMMIT_RETRY_S instead)."""
 FLUSH_AFTER_S = 0.002
 """Longest a due loop waits for more due loops to join its batch while a backlog drains."""
 _RANGE_ERRORS = {"less_than_equal", "greater_than_equal", "less_than", "greater_than"}
@@ -350,7 +353,7 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
             stop = any(item is _STOP for item in items)
             began = time.perf_counter()
             try:
-                self._handle([item for item in items if item is not _STOP])
+                self._handle([item for item in items if item is not _STOP and item is not _WAKE])
                 if self._store_failing_since is not None and not stop:
                     continue  # no journal or snapshot work on a failing store
                 self._apply_journal()
@@ -370,6 +373,10 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
             self.pacer.worked(time.perf_counter() - began)
             if stop:
                 return
+
+    def _wake(self) -> None:
+        if self._worker is not None and threading.current_thread() is not self._worker:
+            self.inbox.put(_WAKE)
 
     def _handle(self, items: list[Item]) -> None:
         self.metrics.queue_depth.set(self.inbox.qsize())

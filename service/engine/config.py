@@ -262,8 +262,6 @@ class LoopConfig(BaseModel):
         return None if self.scaling is None else self.scaling.resolve()
 
 
-MIN_SAMPLE_PERIOD_S = 1e-3
-"""A registration's shortest sample period (a DCS scans loops every 50 ms to a few s)."""
 NEEDS_IDENTIFICATION = (
     "a loop without scaling is tuned only once its model is identified: give a model hint "
     "(scaling) or leave guard.identify on"
@@ -296,11 +294,6 @@ class Registration(LoopConfig):
 
     @model_validator(mode="after")
     def _sane(self) -> Registration:
-        if self.sample_period_s < MIN_SAMPLE_PERIOD_S:
-            raise ValueError(
-                f"sample_period_s {self.sample_period_s:g} s is below {MIN_SAMPLE_PERIOD_S:g} "
-                "s: no DCS samples a loop that fast; the period is in seconds"
-            )
         scaling = self.resolved_scaling
         if scaling is None:
             if self.guard.identify is False:
