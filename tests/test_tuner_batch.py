@@ -279,7 +279,9 @@ def test_a_gateways_columns_are_taken_whole_and_bad_shapes_rejected_whole():
         ({"columns": {"loop_id": ["L0"] * (MAX_BATCH + 1)}}, MAX_BATCH + 1, "at most"),
     ]:
         bad = decode_batch(orjson.dumps(message))
-        assert len(bad.rows) == 0 and bad.received == len(bad.rejected) == n
+        # rejected whole: one rejection standing for every sample
+        assert len(bad.rows) == 0 and len(bad.rejected) == 1
+        assert bad.received == bad.rejected[0].count == n
         assert {r.reason for r in bad.rejected} == {RejectReason.schema}
         assert detail in bad.rejected[0].detail
     newer = decode_batch(orjson.dumps({"v": 2, "columns": columns}))
@@ -300,7 +302,8 @@ def test_one_bad_sample_does_not_take_its_batch_with_it():
         (3, "L9", RejectReason.non_finite)
     ]
     big = decode_batch(orjson.dumps({"samples": [good[0]] * (MAX_BATCH + 1)}))
-    assert len(big.rows) == 0 and big.received == len(big.rejected) == MAX_BATCH + 1
+    assert len(big.rows) == 0 and len(big.rejected) == 1
+    assert big.received == big.rejected[0].count == MAX_BATCH + 1
     assert {r.reason for r in big.rejected} == {RejectReason.schema}
 
 

@@ -149,12 +149,12 @@ class Metrics:
         self._rejections.flush()
         self.events.flush()
 
-    def reject(self, reason: RejectReason, loop_id: str | None, detail: str) -> None:
-        """Count a rejected sample and log it (at most once per interval and reason).
+    def reject(self, reason: RejectReason, loop_id: str | None, detail: str, n: int = 1) -> None:
+        """Count ``n`` rejected samples and log it (at most once per interval and reason).
 
         ``loop_id`` may come straight from the wire: logged with repr, so that no id can
         forge log lines (a newline) or terminal escapes."""
-        self.samples_rejected.labels(reason.value).inc()
+        self.samples_rejected.labels(reason.value).inc(n)
         self._rejections.warning(
             reason.value, f"sample rejected ({reason}) loop={loop_id!r}: {detail}"
         )

@@ -449,7 +449,7 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
             del exc
 
     def _on_reject(self, rejection: Rejection) -> None:
-        self.metrics.reject(rejection.reason, rejection.loop_id, rejection.detail)
+        self.metrics.reject(rejection.reason, rejection.loop_id, rejection.detail, rejection.count)
 
     def _flush(self, wall: float) -> None:
         result = self.engine.flush(wall)

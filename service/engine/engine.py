@@ -349,7 +349,7 @@ class TuningEngine:
         return failed
 
     def _reject(self, rejection: Rejection) -> None:
-        self.rejected[rejection.reason] += 1
+        self.rejected[rejection.reason] += rejection.count
         slot = self.table.slot_of.get(rejection.loop_id)
         if slot is not None:
             self.table.n_rejected[slot] += 1

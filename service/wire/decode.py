@@ -16,6 +16,7 @@ decoder against the models.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import dataclass
 from operator import itemgetter
@@ -46,10 +47,14 @@ class Rejection:
     """A sample that was not accepted, and why."""
 
     index: int
-    """Position of the sample among those received together."""
+    """Position of the sample among those received together (the first, for ``count``)."""
     loop_id: str | None
     reason: RejectReason
     detail: str
+    count: int = 1
+    """Samples it stands for: a message rejected whole is one rejection of all of them
+    (one object, counted at once: a 32 MiB message of 16 million items would otherwise
+    cost as many objects and seconds of the worker's time)."""
 
 
 @dataclass
@@ -131,7 +136,7 @@ def joined(parts: list[Decoded]) -> Decoded:
     op = np.concatenate([_or(c.op, len(c), np.nan, np.float64) for c in cols])
     seq = np.concatenate([_or(c.applied_seq, len(c), -1, np.int64) for c in cols])
     rejected = [
-        Rejection(r.index + o, r.loop_id, r.reason, r.detail)
+        dataclasses.replace(r, index=r.index + o)
         for p, o in zip(parts, offsets, strict=True)
         for r in p.rejected
     ]
@@ -315,14 +320,14 @@ def _lax_loads(payload: bytes):
 
 
 def _whole(n: int, reason: RejectReason, detail: str) -> Decoded:
-    return Decoded(Columns.empty(), [Rejection(i, None, reason, detail) for i in range(n)], n)
+    return Decoded(Columns.empty(), [Rejection(0, None, reason, detail, count=n)] if n else [], n)
 
 
 def _renumber(decoded: Decoded, index: list[int], rejected: list[Rejection], n: int) -> Decoded:
     """Map positions among the decoded objects back to positions among the messages."""
     pos = np.asarray(index, np.int64)
     decoded.rows.index = pos[decoded.rows.index] if len(pos) else decoded.rows.index
-    rejected += [Rejection(index[r.index], r.loop_id, r.reason, r.detail) for r in decoded.rejected]
+    rejected += [dataclasses.replace(r, index=index[r.index]) for r in decoded.rejected]
     rejected.sort(key=lambda r: r.index)
     return Decoded(decoded.rows, rejected, n)
 
