@@ -19,7 +19,7 @@ from service.daemon.console.screenshots import SimLoop, SimPlant
 from service.engine.verify import FENCE_SHORT
 from tests.browser import *  # noqa: F403 - the fixtures
 from tests.browser import TOKEN
-from tests.tuner_support import loop_body, wait_until
+from tests.tuner_support import connected_gateway, loop_body, wait_until
 
 BEARER = {"Authorization": f"Bearer {TOKEN}"}
 
@@ -357,3 +357,23 @@ def _drain(q) -> list:
     while not q.empty():
         out.append(q.get())
     return out
+
+
+def test_the_trend_starts_over_on_a_new_plant_clock(daemon, new_page):
+    """A gateway restarted from t = 0: once the tuner takes the new clock, the page's
+    trend holds the new clock's samples (not frozen at the old clock's last)."""
+    body = loop_body("CLK-1")
+    assert httpx.post(f"{daemon.url}/loops", json=body, headers=BEARER).status_code == 201
+    gw = connected_gateway(daemon.settings)
+    try:
+        for t in range(1000, 1030):
+            gw.send("CLK-1", {"t": float(t), "sp": 50.0, "pv": 49.0})
+        page = logged_in(new_page(), daemon.url, "tester")
+        page.goto(f"{daemon.url}/ui/loops/CLK-1")
+        page.wait_for_function("document.getElementById('trend-count').dataset.lastT == '1029'")
+        for t in range(40):  # the tuner takes the new clock at its 10th sample
+            gw.send("CLK-1", {"t": float(t), "sp": 50.0, "pv": 49.0})
+        page.wait_for_function("document.getElementById('trend-count').dataset.lastT == '39'")
+        assert points(page) == 40  # the new clock's, as received (none of the old clock's)
+    finally:
+        gw.close()

@@ -81,3 +81,19 @@ def test_encrypted_session_works_and_strangers_are_refused(tmp_path, monkeypatch
                 await connect(server(server_certificate="intruder-cert.der"))
 
     asyncio.run(scenario())
+
+
+def test_certs_never_replace_a_pair_unasked_and_the_key_is_private(tmp_path, capsys):
+    out = ["gateway", "certs", "--out", str(tmp_path), "--host", "localhost"]
+    assert pitune(out) == 0
+    key = tmp_path / "gateway-key.pem"
+    first = key.read_bytes()
+    assert pitune(out) == 2  # the server trusts this pair: not replaced without --force
+    assert "exists (--force replaces it)" in capsys.readouterr().err
+    assert key.read_bytes() == first
+    key.chmod(0o644)  # e.g. copied around with a umask that left it readable
+    assert pitune([*out, "--force"]) == 0
+    assert key.read_bytes() != first and key.stat().st_mode & 0o777 == 0o600
+    with pytest.raises(SystemExit) as exit_:  # expired on arrival
+        pitune([*out, "--force", "--days", "0"])
+    assert exit_.value.code == 2

@@ -34,8 +34,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        help="application URI (the map's server.application_uri)")  # fmt: skip
     certs.add_argument("--host", action="append", default=None,
                        help="DNS name(s) in the certificate (default: this host)")  # fmt: skip
-    certs.add_argument("--days", type=int, default=730)
+    certs.add_argument("--days", type=_days, default=730, help="validity, days (730)")
     certs.add_argument("--server", action="store_true", help="a server certificate instead")
+    certs.add_argument("--force", action="store_true",
+                       help="replace an existing pair (the server trusts the old one)")  # fmt: skip
+
+
+def _days(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"at least 1 day, not {value}")
+    return value
 
 
 def run(args: argparse.Namespace) -> int:
@@ -43,8 +52,12 @@ def run(args: argparse.Namespace) -> int:
         from service.gateways.opcua.certs import generate_pair
 
         cert, key = args.out / f"{args.name}-cert.der", args.out / f"{args.name}-key.pem"
-        generate_pair(cert, key, application_uri=args.uri, hosts=args.host, days=args.days,
-                      server=args.server)  # fmt: skip
+        try:
+            generate_pair(cert, key, application_uri=args.uri, hosts=args.host,
+                          days=args.days, server=args.server, replace=args.force)  # fmt: skip
+        except (FileExistsError, OSError) as exc:
+            print(f"pitune gateway certs: {exc}", file=sys.stderr)
+            return 2
         print(f"wrote {cert} and {key} (mode 0600); trust {cert.name} on the OPC UA server")
         return 0
     import faulthandler

@@ -47,7 +47,13 @@
     if (!rec) return;
     for (let i = 0; i < rec.t.length; i++) {
       const t = rec.t[i];
-      if (t === null || (S.t.length && t <= S.t[S.t.length - 1])) continue;  // a new plant clock starts over
+      if (t === null) continue;
+      const last = S.t.length ? S.t[S.t.length - 1] : -Infinity;
+      if (t === last) continue;
+      if (t < last) {  // a new plant clock (the tuner took it: a restarted gateway): start over
+        for (const k in S) S[k].length = 0;
+        G = [];
+      }
       for (const k of ["t", "sp", "pv", "op", "kp", "ki"]) S[k].push(rec[k][i]);
     }
     if (S.t.length > MAX_POINTS) for (const k in S) S[k].splice(0, S.t.length - MAX_POINTS);
