@@ -61,6 +61,9 @@ def test_actions_need_a_session_and_its_csrf_token_and_record_the_actor(client):
     cookie = r.headers["set-cookie"]
     assert "HttpOnly" in cookie and "SameSite=strict" in cookie and "Path=/ui" in cookie
     assert TOKEN not in cookie
+    # no Max-Age: the browser would drop a session in use 8 h after its login; the
+    # daemon ends it after 8 h without use (and the browser when it closes)
+    assert "max-age" not in cookie.lower() and "expires" not in cookie.lower()
     csrf = csrf_of(client.get("/ui").text)
     assert client.post("/ui/api/loops/L1/patch", json={"mode": "advisory"}).status_code == 403
     wrong = {"X-CSRF-Token": "x" * len(csrf)}

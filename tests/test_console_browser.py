@@ -377,3 +377,25 @@ def test_the_trend_starts_over_on_a_new_plant_clock(daemon, new_page):
         assert points(page) == 40  # the new clock's, as received (none of the old clock's)
     finally:
         gw.close()
+
+
+def test_a_bookmarked_overview_keeps_its_sort_direction_and_mode_filter(daemon, new_page):
+    for i, kp in enumerate((0.2, 0.4, 0.6)):
+        body = loop_body(f"S{i}", kp=kp, mode="shadow" if i == 1 else "auto")
+        assert httpx.post(f"{daemon.url}/loops", json=body, headers=BEARER).status_code == 201
+    page = new_page()
+    page.goto(f"{daemon.url}/ui")
+    page.locator('#loops tbody tr[data-id="S2"]').wait_for()
+    header = page.locator('#loops th[data-sort="kp"]')
+    header.click()
+    page.locator('#loops[data-q*="sort=kp"]').wait_for()
+    header.click()  # descending, written in the address
+    page.locator('#loops[data-q*="desc=true"]').wait_for()
+    page.wait_for_function("location.search.includes('desc=true')")
+    page.reload()  # the bookmark
+    page.locator('#loops[data-q*="desc=true"] tbody tr[data-id="S2"]').wait_for()
+    ids = page.locator("#loops tbody tr").evaluate_all("rows => rows.map(r => r.dataset.id)")
+    assert ids == ["S2", "S1", "S0"]
+    page.goto(f"{daemon.url}/ui?mode=shadow")
+    page.locator('#loops[data-q*="mode=shadow"] tbody tr[data-id="S1"]').wait_for()
+    assert page.locator("#mode-filter").input_value() == "shadow"  # an option of every mode

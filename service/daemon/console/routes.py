@@ -41,7 +41,6 @@ from service.daemon.console.sessions import (
     ACTOR_NAME,
     COOKIE,
     LOGIN_PENALTY_S,
-    SESSION_IDLE_S,
     app_state,
     safe_next,
     same_origin,
@@ -125,7 +124,7 @@ _NO_STORE = {
 @router.get("", response_class=HTMLResponse)
 @router.get("/", response_class=HTMLResponse)
 def overview_page(request: Request) -> HTMLResponse:
-    return _page(request, "Loops", "overview.html", "overview.js")
+    return _page(request, "Loops", "overview.html", "overview.js", modes=" ".join(Mode))
 
 
 @router.get("/loops/{loop_id}", response_class=HTMLResponse)
@@ -167,9 +166,11 @@ async def login(request: Request) -> Response:
     sid, _ = sessions.create(actor)
     log.info("console login of %s from %s", actor, client)
     response = RedirectResponse(target, status_code=303)
+    # a browser session's cookie (no max_age): the daemon ends the session after
+    # SESSION_IDLE_S without use, which a fixed cookie lifetime from the login would cut
     response.set_cookie(
         COOKIE, sid, httponly=True, samesite="strict", path="/ui",
-        secure=request.url.scheme == "https", max_age=int(SESSION_IDLE_S),
+        secure=request.url.scheme == "https",
     )  # fmt: skip
     return response
 

@@ -6,8 +6,9 @@
   const state = {offset: 0, limit: 100, q: "", status: "", mode: "", sort: "registered", desc: false};
   const params = new URLSearchParams(location.search);
   for (const k of ["q", "status", "mode", "sort"]) if (params.get(k)) state[k] = params.get(k);
-  if (params.get("desc") === "1") state.desc = true;
+  if (["1", "true"].includes(params.get("desc"))) state.desc = true;  // what query() writes
   $("search").value = state.q;
+  for (const m of $("mode-filter").dataset.modes.split(" ")) $("mode-filter").add(new Option(m, m));
   $("mode-filter").value = state.mode;
   let seen = 0, timer = null, inflight = null;
 
