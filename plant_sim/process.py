@@ -106,7 +106,7 @@ def add_loop_arguments(run_p: argparse.ArgumentParser) -> None:
     )
     sim.add_argument(
         "--t0",
-        type=float,
+        type=_at_least(-math.inf),  # any finite time
         default=SIM.t0,
         help="plant clock at start, s (0); a loop the tuner knows resumes after its last sample",
     )
@@ -130,7 +130,7 @@ def add_loop_arguments(run_p: argparse.ArgumentParser) -> None:
     )
     sim.add_argument(
         "--gain-range",
-        type=float,
+        type=_at_least(1.0, strict=True),  # R <= 1: no range, or gains moved by the plant
         default=SIM.gain_range,
         help="accepted gains lie within initial/R..initial*R (100)",
     )

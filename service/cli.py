@@ -18,6 +18,7 @@ import dataclasses
 import importlib
 import inspect
 import re
+import sqlite3
 import sys
 import textwrap
 
@@ -132,7 +133,25 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     module = importlib.import_module(COMMANDS[args.command][0])
-    return int(module.run(args) or 0)
+    try:
+        return int(module.run(args) or 0)
+    except Exception as exc:
+        if not _users_mistake(exc):
+            raise
+        print(f"pitune {args.command}: {exc}", file=sys.stderr)
+        return 1
+
+
+def _users_mistake(exc: Exception) -> bool:
+    """A file or database the command was pointed at that is not there, not readable or
+    not what it should be: one line for the user, not a traceback (a defect still has
+    its traceback)."""
+    mistakes = (FileNotFoundError, NotADirectoryError, IsADirectoryError, PermissionError,
+                 sqlite3.DatabaseError)  # fmt: skip
+    if isinstance(exc, mistakes):
+        return True
+    kind = type(exc)  # psycopg's connection errors, without importing psycopg here
+    return kind.__module__.startswith("psycopg") and kind.__name__ == "OperationalError"
 
 
 if __name__ == "__main__":

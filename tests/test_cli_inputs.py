@@ -3,7 +3,7 @@
 import pytest
 
 from plant_sim.config import LoopSpec
-from service.cli import build_parser
+from service.cli import build_parser, main
 
 
 @pytest.mark.parametrize(
@@ -17,6 +17,11 @@ from service.cli import build_parser
         (["plant", "run", "--duration", "0"], "--duration: 0: must be > 0"),
         (["plant", "run", "--foptd", "f1:K=2,tau=-20,theta=5"], "tau out of range"),
         (["plant", "run", "--foptd", "f1:K=2,tau=20"], "missing theta"),
+        (["plant", "run", "--gain-range", "0.5"], "--gain-range: 0.5: must be > 1"),
+        (["plant", "run", "--gain-range", "0"], "--gain-range: 0: must be > 1"),
+        (["plant", "run", "--t0", "nan"], "--t0: nan: must be >="),
+        (["verify-eval", "--loops", "0"], "--loops: 0: at least 1"),
+        (["gateway", "certs", "--out", "x", "--days", "0"], "at least 1 day"),
     ],
 )
 def test_bad_arguments_are_refused_with_a_reason(argv, says, capsys):
@@ -39,3 +44,16 @@ def test_loop_specs_are_checked_when_parsed(text, says):
     with pytest.raises(ValueError, match=says.replace("(", r"\(")):
         LoopSpec.parse("foptd", text)
     assert LoopSpec.parse("foptd", "f1:K=2,tau=20,theta=5,lo=-3,hi=3").params["lo"] == -3.0
+
+
+def test_a_file_that_is_not_there_or_not_a_database_is_one_line(tmp_path, capsys):
+    not_db = tmp_path / "notes.db"
+    not_db.write_text("not a database")
+    for argv, says in (
+        (["store", "export", "--db", str(not_db)], "pitune store: file is not a database"),
+        (["plant", "plot", str(tmp_path / "none.csv"), "-o", str(tmp_path / "x.png")],
+         "No such file or directory"),
+    ):  # fmt: skip
+        assert main(argv) == 1
+        err = capsys.readouterr().err
+        assert says in err and "Traceback" not in err and len(err.strip().splitlines()) == 1

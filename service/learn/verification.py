@@ -325,8 +325,15 @@ def evaluate_aggressive(n: int, noise: float, seed: int, margin: float = MARGIN)
     return out
 
 
+def _count(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text}: at least 1")
+    return value
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--loops", type=int, default=1000, help="changes per kind")
+    parser.add_argument("--loops", type=_count, default=1000, help="changes per kind")
     parser.add_argument("--noise", type=float, default=0.02, help="noise sigma, share of the move")
     parser.add_argument("--seed", type=int, default=0, help="random seed")
     parser.add_argument("--margin", type=float, default=MARGIN, help="the loops' verify_margin")
