@@ -50,12 +50,14 @@ def drive(
     t0=0.0,
     ramp=0.0,
     u_max=np.inf,
+    u_min=-np.inf,
+    quantum=0.0,
 ) -> list:
     """Run one simulated loop through the engine: ``moves`` setpoint moves of +-``size``
     every ``every`` time constants (each a ramp over ``ramp`` time constants, 0: a step;
-    a list: the i-th move's, the last for the moves beyond it; ``u_max``: the DCS's
-    output limit, which the samples do not show); returns the gain updates
-    published."""  # fmt: skip
+    a list: the i-th move's, the last for the moves beyond it; ``u_min``, ``u_max``: the
+    DCS's output limits, which the samples do not show; ``quantum``: the PV's resolution);
+    returns the gain updates published."""  # fmt: skip
     kp, ki = engine.view(loop_id, wall=0.0).kp, engine.view(loop_id, wall=0.0).ki
     if integrating:
         plant = FOPTDBatch(1.0, 1e9, theta / h, dt=1.0, noise_std=noise, seed=seed)
@@ -63,7 +65,7 @@ def drive(
         plant = FOPTDBatch(k, tau / h, theta / h, dt=1.0, noise_std=noise, seed=seed,
                            max_theta=theta / h)  # fmt: skip
     plant.reset(50.0)
-    pi = PIBatch(kp, ki * h, dt=1.0, u_max=u_max)
+    pi = PIBatch(kp, ki * h, dt=1.0, u_min=u_min, u_max=u_max)
     pi.initialise(0.0 if integrating else 50.0 / k)
     n = int(round((moves + 1) * every * tau / h))
     target, updates = 50.0, []
@@ -81,6 +83,8 @@ def drive(
         y = float(plant.measure()[0])
         if frozen_pv:
             y = 50.0
+        elif quantum:  # the PV in coarse steps (an integer register, an ADC's)
+            y = quantum * round(y / quantum)
         sample = {"loop_id": loop_id, "t": t, "sp": sp, "pv": y, "kp": float(pi.kp[0]),
                   "ki": float(pi.ki[0] / h), "auto": auto, "saturated": saturated}  # fmt: skip
         # the controller acts with the gains the sample reports (a DCS's cycle); an
@@ -312,9 +316,9 @@ def test_a_hint_is_checked_at_event_closes_only_and_from_its_last_confident_mode
     calls: dict[str, list] = {"hinted": [], "free": []}
     real = identify.assess
 
-    def counted(t, sp, pv, op, starts, start=None, last=1):
+    def counted(t, sp, pv, op, starts, start=None, *rest):
         calls[loop[0]].append(start)
-        return real(t, sp, pv, op, starts, start, last)
+        return real(t, sp, pv, op, starts, start, *rest)
 
     monkeypatch.setattr(identify, "assess", counted)
     for loop in (("hinted", hinted()), ("free", hint_free())):

@@ -220,7 +220,10 @@ def screen(t, pv, op) -> str:
         return "non-finite data"
     if not (np.diff(t) > 0.0).all():  # a window of no duration: nothing to fit
         return "sample times not increasing (a new plant clock inside the segment)"
-    if np.ptp(pv) == 0.0 or np.mean(np.diff(pv) == 0.0) > 0.5:
+    # stuck: one value for most of the window (a PV in coarse steps, an integer register
+    # or an ADC's, repeats many samples in a row, but moves from value to value)
+    changes = np.flatnonzero(np.diff(pv) != 0.0)
+    if np.diff(np.r_[-1, changes, n - 1]).max() > 0.5 * n:
         return "measurement frozen (stuck transmitter?)"
     if np.ptp(op) == 0.0:
         return "controller output did not move"
@@ -228,14 +231,21 @@ def screen(t, pv, op) -> str:
 
 
 def assess(
-    t, sp, pv, op, starts: list[int], start: tuple[float, float] | None = None, last: int = 1
+    t,
+    sp,
+    pv,
+    op,
+    starts: list[int],
+    start: tuple[float, float] | None = None,
+    last: int = 1,
+    op_sent: bool = True,
 ) -> Assessment:
     """Identify from one contiguous segment of data (no gap or saturated sample inside,
     in auto or in manual with the output sent) whose events (setpoint moves, or output
     steps in manual: those whose setpoint is the one before, :func:`_bump`) start at the
     indices ``starts``; the last event runs to the end of the data. Rows may be the
     recorder's means of several samples (:func:`recorded`; ``last``: the samples the last
-    row holds).
+    row holds; ``op_sent``: the output is the gateway's, not rebuilt from the PI law).
 
     One FOPTD model is fitted to the whole segment (one offset, one initial transient:
     far better determined than a fit per event). Each event is then judged by the
@@ -285,7 +295,7 @@ def assess(
     # where only ramps slower than the loop stand out of the noise: K and the lag
     seen = [ev.snr >= MIN_SNR for ev in events]
     lumped = sum(strict) < MIN_EVENTS and sum(seen) >= LUMP_EVENTS
-    data = (t, pv, bounds, whole, slow)
+    data = (t, pv, bounds, whole, slow, op_sent)
     judged = _judged(joint, events, seen if lumped else strict, lumped, *data)
     if lumped and judged[1]:  # a lumped attempt that fails is reported as none was made
         judged = _judged(joint, events, strict, False, *data)
@@ -293,7 +303,9 @@ def assess(
     return out
 
 
-def _judged(joint, events, excited, lumped, t, pv, bounds, whole, slow) -> tuple[Model, str]:
+def _judged(
+    joint, events, excited, lumped, t, pv, bounds, whole, slow, op_sent
+) -> tuple[Model, str]:
     """:func:`assess`'s model of the segment fitted as ``joint`` (:func:`fit_windows`),
     with the events flagged ``excited`` (``lumped``: its split assumed,
     :data:`LUMP_THETA`), tested for consistency and judged: (model, why not confident).
@@ -328,7 +340,7 @@ def _judged(joint, events, excited, lumped, t, pv, bounds, whole, slow) -> tuple
             miss = miss * np.sqrt(whole.count[cut:])
         rms = float(np.sqrt(np.mean(miss**2)))
         m.prediction = rms / max(joint.noise, PREDICTION_FLOOR * m.move, 1e-300)
-    why = _verdict(m, m.events, len(events), slow)
+    why = _verdict(m, m.events, len(events), slow, op_sent)
     worst = max(m.k_rse / MAX_REL_SE, m.tau_rse / MAX_TAU_SE)
     precision = min(1.0, max(0.0, 1.5 - 0.5 * worst))
     consistency = min(1.0, max(0.0, (2.0 * MAX_PREDICTION - m.prediction) / MAX_PREDICTION))
@@ -400,7 +412,7 @@ def _op_ramp(t: np.ndarray, sp: np.ndarray, op: np.ndarray, a: int, b: int) -> f
     return float(t[reach] - t[a]) / OP_RAMP_PART
 
 
-def _verdict(m: Model, excited: int, n_events: int, slow: int = 0) -> str:
+def _verdict(m: Model, excited: int, n_events: int, slow: int = 0, op_sent: bool = True) -> str:
     if m.integrating:
         return (
             f"{INTEGRATING}: K/s e^(-theta s) fits better than an FOPTD model (K "
@@ -420,6 +432,10 @@ def _verdict(m: Model, excited: int, n_events: int, slow: int = 0) -> str:
         )
     if m.r2 < MIN_R2:  # before the sign: a model that does not fit says nothing of it
         return f"poor fit (R2 {m.r2:.2f} < {MIN_R2:g}; {_NOT_LINEAR})"
+    if not m.k > 0.0 and not op_sent:
+        # the output rebuilt from the PI law flips with the PV for either action: the
+        # sign says the data are not one linear process, not which action the block has
+        return f"process gain {m.k:.3g} < 0 from an output rebuilt from the PI law ({_NOT_LINEAR})"
     if not m.k > 0.0:
         return (
             f"process gain {m.k:.3g} has the wrong sign for the registered controller "

@@ -317,7 +317,9 @@ def _assess(tb, s: int, t: float, wall: float) -> bool:
     known = st.in_force or (st.model if st.model is not None and st.model.confident else None)
     start = None if known is None else (known.tau, known.theta)
     last = int(tb.rec_m[s])  # the samples the last row holds so far
-    result = identify.assess(data[0], data[1], data[2], data[3], starts, start, last)
+    # a segment starts anew where op comes in the samples: sent now, sent throughout
+    op_sent = bool(tb.prev_meas[s])
+    result = identify.assess(data[0], data[1], data[2], data[3], starts, start, last, op_sent)
     st.events = result.events[-MAX_EVENTS:]
     st.model, st.why = result.model, result.why
     if result.model is not None and model_check.plant_moved(st.fallback, result.model):
