@@ -49,6 +49,10 @@ OTHER_VARIABLES = frozenset(
         "PITUNE_ZENOH_SECRETS",
         "PITUNE_TLS_DIR",
         "PITUNE_OPCUA_PASSWORD",
+        # deploy/docker-compose.ha.yml's, and the smoke script's
+        "PITUNE_API2_HOST_PORT",
+        "PITUNE_POSTGRES_PASSWORD",
+        "PITUNE_SMOKE_LOG",
     }
 )
 POSTGRES_SCHEMES = ("postgresql://", "postgres://")
