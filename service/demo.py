@@ -119,8 +119,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _ended(signum: int, frame) -> None:
+    raise SystemExit(128 + signum)
+
+
 def run(args: argparse.Namespace) -> int:
     started = time.monotonic()
+    # A terminal closed or a `kill` ends the demo as Ctrl-C does: through the stack's
+    # teardown (tuner and plant stopped, the temporary folder removed), never leaving a
+    # tuner behind on its ports
+    for sig in (signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, _ended)
     try:
         with contextlib.ExitStack() as stack:
             workdir = args.workdir or Path(stack.enter_context(tempfile.TemporaryDirectory()))

@@ -223,8 +223,11 @@ class Stack:
 
     def start_plant(self, *plant_args: str) -> Proc:
         """Start a plant simulator that registers its loops and logs their trajectories."""
+        # listening on loopback only, as the tuner: a Zenoh peer's default listener is
+        # every interface, where any host could read the loop and send it gains
         argv = pitune("plant", "run", *plant_args, "--speed", f"{self.speed:g}",
-                      "--connect", self.zenoh, "--register", self.api,
+                      "--connect", self.zenoh, "--listen", "tcp/127.0.0.1:0",
+                      "--register", self.api,
                       "--log-dir", str(self.log_dir), "--progress", "0")  # fmt: skip
         log = self.workdir / f"plant{len(self.plants) or ''}.log"
         plant = Proc("plant", argv, log=log, env=clean_env(PITUNE_API_TOKEN=self.token))

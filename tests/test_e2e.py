@@ -5,6 +5,7 @@ run for tens of seconds are marked ``slow`` (``-m "not slow"`` leaves them out).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import queue
@@ -13,6 +14,7 @@ import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 
 import httpx
 import numpy as np
@@ -303,3 +305,60 @@ def test_demo_fails_with_a_clear_message_when_the_tuner_cannot_start(tmp_path):
     assert "pitune demo failed: tuner exited" in result.stderr
     assert "agent weights file not found" in result.stderr
     assert not (tmp_path / "demo").exists()
+
+
+def _listening(pid: int) -> list[str]:
+    """The local addresses (hex, as in /proc/net/tcp*) of the process's listening TCP
+    sockets."""
+    fds = Path(f"/proc/{pid}/fd")
+    inodes = set()
+    for fd in fds.iterdir():
+        with contextlib.suppress(OSError):
+            target = os.readlink(fd)
+            if target.startswith("socket:["):
+                inodes.add(target[8:-1])
+    out = []
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        for line in Path(table).read_text().splitlines()[1:]:
+            fields = line.split()
+            if fields[3] == "0A" and fields[9] in inodes:  # LISTEN
+                out.append(fields[1].rsplit(":", 1)[0])
+    return out
+
+
+LOOPBACK = {"0100007F", "00000000000000000000000001000000"}
+"""127.0.0.1 and ::1 as /proc/net/tcp and tcp6 write them."""
+
+
+def test_the_demo_stack_s_plant_listens_on_loopback_only(tmp_path):
+    with Stack(tmp_path, speed=SPEED) as stack:
+        stack.start_tuner()
+        plant = stack.start_plant("--tank", LOOP)
+        wait_view(stack, lambda v: v["last_sample_t"] is not None, "samples from the plant")
+        addresses = wait_for(lambda: _listening(plant.pid), "the plant's Zenoh listener")
+        assert set(addresses) <= LOOPBACK, addresses  # not every interface (00000000)
+
+
+def test_a_terminated_demo_leaves_no_tuner_behind(tmp_path):
+    """SIGTERM (a `kill`, a closed terminal's SIGHUP alike) tears the stack down as Ctrl-C
+    does: the tuner's API is gone when the demo has exited."""
+    argv = [sys.executable, "-m", "service.cli", "demo", "--out", str(tmp_path / "demo"),
+            "--speed", "150"]  # fmt: skip
+    demo = subprocess.Popen(argv, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True)  # fmt: skip
+    try:
+        console = ""
+        for line in demo.stdout:
+            if line.startswith("operator console: "):
+                console = line.split()[2]
+            if line.startswith("plant simulator started"):
+                break
+        assert console, demo.stderr.read()
+        demo.send_signal(signal.SIGTERM)
+        assert demo.wait(timeout=30) == 128 + signal.SIGTERM
+        with pytest.raises(httpx.TransportError):
+            httpx.get(console, timeout=2)
+    finally:  # an orphan of a failed run is in the demo's process group
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(demo.pid, signal.SIGKILL)
+        demo.wait()

@@ -1,8 +1,8 @@
 """Several tuners sharing one PostgreSQL store: membership, shard leases, fencing.
 
-Each member keeps a row in ``members`` (its API URL, live until ``expires``) and holds a
-lease in ``leases`` for every shard it owns (see :mod:`service.daemon.shards`). A
-member's thread, every ``lease_s / 5`` seconds (:data:`TICKS_PER_LEASE`):
+Each member keeps a row in ``members`` (its API URL, live until ``expires``) and holds a lease
+in ``leases`` for every shard it owns (see :mod:`service.daemon.shards`). A member's thread,
+every ``lease_s / 5`` seconds (:data:`TICKS_PER_LEASE`):
 
 1. renews its member row and its leases (one transaction, the database's clock); a
    lease it no longer finds (another member took it) is lost: its loops are dropped;
@@ -14,32 +14,30 @@ member's thread, every ``lease_s / 5`` seconds (:data:`TICKS_PER_LEASE`):
 4. acquires the shards it wins whose lease is free, expired or a dead member's (see
    below): a new fencing token (the store's epoch counter, so larger than every earlier
    token and epoch), then the shards' loops are loaded from the store (gains, seq, last
-   snapshot) into the engine;
+   snapshot) into the engine (a failed load lets the leases go: taken again);
 5. waits for ``NOTIFY pitune_loops`` (loops registered, patched or deleted through any
-   member) until the next tick, and reloads those loops it owns.
+   member) until the next tick, and reloads those loops it owns (a failed reload: again).
 
-Fencing: every commit carries the tokens of the shards it touches
-(:meth:`Cluster.fence`); the store refuses it unless this member still holds each lease
-unexpired (:class:`~service.daemon.store_pg.Fenced`). Publishing is allowed only while
-the leases are valid by this process's monotonic clock (:meth:`Cluster.may_publish`):
-from the start of the last successful renewal plus ``lease_s`` minus
-:data:`SAFETY_S`. A member paused past its lease (SIGSTOP, a VM freeze) finds on waking
-that it may no longer publish, its commits fail, and its next renewal finds the leases
-gone: it drops those loops and, still a member, gets shards again by the hashing.
-Gains messages carry the shard's token as their ``epoch``, so a gateway orders the new
-owner's messages after any of the old owner's.
+Fencing: every commit carries the tokens of the shards it touches (:meth:`Cluster.fence`); the
+store refuses it unless this member still holds each lease unexpired
+(:class:`~service.daemon.store_pg.Fenced`). Publishing is allowed only while the leases are
+valid by this process's monotonic clock (:meth:`Cluster.may_publish`): from the start of the
+last successful renewal plus ``lease_s`` minus :data:`SAFETY_S`. A member paused past its lease
+(SIGSTOP, a VM freeze) finds on waking that it may no longer publish, its commits fail, and its
+next renewal finds the leases gone: it drops those loops and, still a member, gets shards again
+by the hashing. Gains messages carry the shard's token as their ``epoch``, so a gateway orders
+the new owner's messages after any of the old owner's.
 
-A dead member's leases are taken before they expire when the database and the bus
-agree that it is dead: its Zenoh liveliness token is gone (a crashed process's
-connections close at once; a paused or starved one keeps its token) and its leases
-have not been renewed for :data:`DEAD_AFTER_TICKS` ticks, by the database's clock, in
-the statement that takes them (:meth:`Cluster._take`), so a member that still renews
-is never overrun, whatever the others believe (:mod:`service.daemon.suspects`). The
-others time their tick to that moment: loops move about 2-3 s after a crash plus the load
-(the last renewal was up to a tick before it). Otherwise (a token still there: a host
-that lost power or its network keeps it at the peers until Zenoh's transport lease, 10
-s by default, runs out) they take the leases when they expire, ``lease_s`` after the
-last renewal.
+A dead member's leases are taken before they expire when the database and the bus agree that it
+is dead: its Zenoh liveliness token is gone (a crashed process's connections close at once; a
+paused or starved one keeps its token) and its leases have not been renewed for
+:data:`DEAD_AFTER_TICKS` ticks, by the database's clock, in the statement that takes them
+(:meth:`Cluster._take`), so a member that still renews is never overrun, whatever the others
+believe (:mod:`service.daemon.suspects`). The others time their tick to that moment: loops move
+about 2-3 s after a crash plus the load (the last renewal was up to a tick before it).
+Otherwise (a token still there: a host that lost power or its network keeps it at the peers
+until Zenoh's transport lease, 10 s by default, runs out) they take the leases when they
+expire, ``lease_s`` after the last renewal.
 """
 
 from __future__ import annotations
@@ -133,6 +131,7 @@ class Cluster(Suspects):
         self._parsing: tuple[threading.Thread, threading.Event] | None = None
         """The thread parsing them, and the event that stops it."""
         self._lost: set[str] = set()
+        self._reload_todo: set[str] = set()  # loops whose reload failed: again until it works
         """Shards the renewal found taken, for the tick to drop their loops."""
         self.ready = threading.Event()
         """Set after the first tick (this member holds what it wins, as far as free)."""
@@ -316,16 +315,27 @@ class Cluster(Suspects):
         """Hand shards to the member that now wins them: commit and snapshot their loops
         while the leases are ours, drop them, end the leases."""
         self.tuner.drop_shards(shards, commit=True)
+        log.info("released %d shards to other members", len(self._let_go(shards)))
+
+    def _unadopt(self, shards: list[str]) -> None:
+        """A takeover whose load failed: let go, for a later tick to take and load again
+        (held, they stayed leased and were never loaded)."""
+        self.tuner.drop_shards(set(shards), commit=False)
+        log.warning("loading %d taken shards failed", len(self._let_go(shards, store_down=True)))
+
+    def _let_go(self, shards, *, store_down: bool = False) -> dict[str, int]:
+        """Hold the shards no more, end their leases (or, ``store_down``, let them lapse)."""
         with self._leasing:
             with self._lock:
                 tokens = {s: self.held.pop(s) for s in shards if s in self.held}
-            self._conn.execute(
-                "UPDATE leases l SET expires = clock_timestamp() - interval '1 second' "
-                "FROM unnest(%s::text[], %s::int8[]) AS h(shard, token) "
-                "WHERE l.shard = h.shard AND l.token = h.token AND l.owner = %s",
-                (list(tokens), list(tokens.values()), self.member),
-            )
-        log.info("released %d shards to other members", len(tokens))
+            with contextlib.suppress(*(psycopg.Error,) * store_down):  # (): nothing
+                self._conn.execute(
+                    "UPDATE leases l SET expires = clock_timestamp() - interval '1 second' "
+                    "FROM unnest(%s::text[], %s::int8[]) AS h(shard, token) "
+                    "WHERE l.shard = h.shard AND l.token = h.token AND l.owner = %s",
+                    (list(tokens), list(tokens.values()), self.member),
+                )
+        return tokens
 
     def claim(self, shards: set[str]) -> None:
         """Acquire now those of ``shards`` no member holds (a registration through this
@@ -347,7 +357,11 @@ class Cluster(Suspects):
             return
         if conn is None:  # (the cluster's thread: the parsing ahead's owner)
             self._stop_parsing()
-        timing = self.tuner.adopt_shards(taken, token)
+        try:
+            timing = self.tuner.adopt_shards(taken, token)
+        except Exception:
+            self._unadopt(taken)
+            raise
         self._count_loops(conn or self._conn)
         self.moves += len(taken)
         self.adoptions.append({"at": started, "shards": len(taken), **timing})
@@ -430,11 +444,14 @@ class Cluster(Suspects):
             except psycopg.Error:
                 self._stop.wait(max(0.0, until - time.monotonic()))
                 return
+            changed |= self._reload_todo  # a reload that failed: again until it works
             if changed:
                 try:
                     self.tuner.reload_loops(sorted(changed))
+                    self._reload_todo = set()
                 except Exception:
-                    log.exception("reloading %d changed loops failed", len(changed))
+                    self._reload_todo = changed
+                    log.exception("reloading %d changed loops failed; retried", len(changed))
 
     # -- for the tuner ----------------------------------------------------------------
     def owns(self, shard: str) -> bool:

@@ -43,12 +43,24 @@ def cluster_view(request: Request) -> dict:
     return directory.view(cluster)
 
 
+def _loop_not_here(request: Request) -> bool:
+    """The request is about one loop, answered by its owner, which is not in this member's
+    engine."""
+    match = _LOOP_PATH.match(request.url.path)
+    return bool(
+        match
+        and match["id"] != "bulk"
+        and match["rest"] not in _FROM_STORE
+        and match["id"] not in request.app.state.tuner.table.slot_of
+    )
+
+
 async def _target(request: Request, cluster) -> tuple[str | None, bool]:
     """(owner's API URL or None, whether the request is about a loop at all)."""
-    path, tuner = request.url.path, request.app.state.tuner
+    path = request.url.path
     match = _LOOP_PATH.match(path)
     if match and match["id"] != "bulk":
-        if match["rest"] in _FROM_STORE or match["id"] in tuner.table.slot_of:
+        if not _loop_not_here(request):
             return None, False
         return await run_in_threadpool(directory.owner_url, cluster.url, match["id"]), True
     if path == "/loops" and request.method == "POST":
@@ -70,16 +82,17 @@ def install(app: FastAPI) -> None:
     async def forward(request: Request, call_next):
         tuner = getattr(request.app.state, "tuner", None)
         cluster = None if tuner is None else tuner.cluster
-        if cluster is None or request.headers.get(FORWARDED):
+        if cluster is None:
             return await call_next(request)
-        url, about_loop = await _target(request, cluster)
+        if request.headers.get(FORWARDED):  # another member took us for the owner
+            url, about_loop = None, _loop_not_here(request)
+        else:
+            url, about_loop = await _target(request, cluster)
         if url is None or url == cluster.api_url:
-            if (
-                about_loop
-                and url is None
-                and await run_in_threadpool(
-                    directory.stored, cluster.url, request.url.path.split("/")[2]
-                )
+            # a stored loop no member has loaded: its owner is changing, or is this member
+            # still loading it (a takeover, a NOTIFY not handled yet): not a 404
+            if about_loop and await run_in_threadpool(
+                directory.stored, cluster.url, request.url.path.split("/")[2]
             ):
                 return JSONResponse(
                     {"detail": "the loop's owner is changing (failover); retry shortly"},
