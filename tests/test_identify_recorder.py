@@ -27,8 +27,8 @@ def test_a_long_segment_keeps_each_moves_response_at_the_sample_period(monkeypat
     seen: list[tuple] = []
     real = identify.assess
 
-    def spy(t, sp, pv, op, starts, start=None, last=1):
-        out = real(t, sp, pv, op, starts, start, last)
+    def spy(t, sp, pv, op, starts, start=None, last=1, *rest):
+        out = real(t, sp, pv, op, starts, start, last, *rest)
         seen.append((np.array(t), list(starts), last, out))
         return out
 
