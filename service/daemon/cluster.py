@@ -131,8 +131,8 @@ class Cluster(Suspects):
         self._parsing: tuple[threading.Thread, threading.Event] | None = None
         """The thread parsing them, and the event that stops it."""
         self._lost: set[str] = set()
-        self._reload_todo: set[str] = set()  # loops whose reload failed: again until it works
         """Shards the renewal found taken, for the tick to drop their loops."""
+        self._reload_todo: set[str] = set()  # loops whose reload failed: again until it works
         self.ready = threading.Event()
         """Set after the first tick (this member holds what it wins, as far as free)."""
         self._left: dict[str, float] = {}

@@ -25,12 +25,18 @@ AFTER_T_WAIT_S = 1.0
 class StateQueries:
     """State replies from the engine's table (mixed into the Tuner)."""
 
-    def _answer(self, query: zenoh.Query) -> None:
+    def answer(self, query: zenoh.Query, gateway: bool) -> None:
+        """A state query: of loops (a key, or a wildcard) or of a gateway's loops."""
         if self.store_failure is not None:
             # the table holds steps not committed yet (held, unpublished): a reply would
             # hand the gateway gains that may never exist; it asks again on its schedule
             query.drop()
-            return
+        elif gateway:
+            self._answer_gateway(query)
+        else:
+            self._answer(query)
+
+    def _answer(self, query: zenoh.Query) -> None:
         key = str(query.key_expr)
         loop_id = self.keys.loop_id(key)
         if loop_id is not None and loop_id in self.table.slot_of:
@@ -62,7 +68,7 @@ class StateQueries:
         """Answer the parked ``after_t`` queries whose sample came, or whose wait is over
         (the reply's ``last_t`` then says the sample was not handled: rejected or lost)."""
         now = time.monotonic()
-        if self.store_failure is not None:  # not answered while commits fail (_answer)
+        if self.store_failure is not None:  # not answered while commits fail (answer)
             return
         for loop_id in list(self._parked):
             waiting = self._parked.pop(loop_id)
@@ -84,9 +90,6 @@ class StateQueries:
 
     def _answer_gateway(self, query: zenoh.Query) -> None:
         """One StateBatch with every loop registered with the gateway in the key."""
-        if self.store_failure is not None:  # as in _answer
-            query.drop()
-            return
         gateway = self.keys.gateway_id(str(query.key_expr))
         if gateway is None:
             error = ErrorReply(loop_id=str(query.key_expr), error="not a gateway's state key")

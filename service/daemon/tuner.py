@@ -397,10 +397,7 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
                 self.handoff.let_in()
                 if kind is Kind.query or kind is Kind.gateway_query:
                     self._flush(wall)  # the reply reflects every sample handled before it
-                    if kind is Kind.query:
-                        self._answer(payload)
-                    else:
-                        self._answer_gateway(payload)
+                    self.answer(payload, gateway=kind is Kind.gateway_query)
                     continue
                 if kind is Kind.sample:
                     decoded = self._own_rows(

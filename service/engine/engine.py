@@ -40,7 +40,7 @@ from service.agent.model import Agent, load_agent
 from service.engine import first_tuning, monitor, rules, stepping, verify, views, watch
 from service.engine.audit import AuditRow
 from service.engine.config import LoopConfig, LoopView
-from service.engine.modes import ADVISORY, AUTO
+from service.engine.modes import PUBLISHING
 from service.engine.saved import Saved
 from service.engine.site import SiteDefaults
 from service.engine.table import LoopTable
@@ -171,7 +171,7 @@ class TuningEngine:
             if not verify.changed(self.table, s):
                 raise ValueError("the gains in force are the last-good gains")
             # refused before verify.fail, which records a verdict: a refusal changes nothing
-            if self.table.mode[s] not in (AUTO, ADVISORY):
+            if self.table.mode[s] not in PUBLISHING:
                 raise ValueError(f"a {self.table.mode_of(s).value} loop publishes no gains")
             self._due.pop(s, None)
             return verify.fail(self.table, s, "operator", _now(wall), figure=None, actor=actor)
@@ -352,7 +352,7 @@ class TuningEngine:
         self.rejected[rejection.reason] += rejection.count
         slot = self.table.slot_of.get(rejection.loop_id)
         if slot is not None:
-            self.table.n_rejected[slot] += 1
+            self.table.n_rejected[slot] += rejection.count
             monitor.rejected(self.table, slot)
         if self.on_reject is not None:
             self.on_reject(rejection)

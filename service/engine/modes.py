@@ -8,3 +8,5 @@ _CODE = {m: i for i, m in enumerate(_MODES)}
 AUTO, ADVISORY, FROZEN, SHADOW = (
     _CODE[m] for m in (Mode.auto, Mode.advisory, Mode.frozen, Mode.shadow)
 )
+PUBLISHING = (AUTO, ADVISORY)
+"""The modes whose loops get gains messages (frozen and shadow loops get none)."""

@@ -46,7 +46,7 @@ import numpy as np
 import orjson
 
 from service.engine.audit import audit_row
-from service.engine.modes import ADVISORY, AUTO
+from service.engine.modes import ADVISORY, AUTO, PUBLISHING
 from service.engine.monitor import ABSENT, RESPONSE_PERIODS, put, same_gains
 from service.engine.oscillation import noise_sigma, period
 from service.engine.updates import MODE_VALUES, StepResult
@@ -362,7 +362,7 @@ def fail(
     t = float(tb.last_t[s]) if math.isfinite(tb.last_t[s]) else 0.0
     if mode != AUTO:
         tb.b_kp[s], tb.b_ki[s] = old
-    if mode not in (AUTO, ADVISORY):
+    if mode not in PUBLISHING:
         tb.v_seq[s] = tb.seq[s]
         _audit(tb, s, wall, "verdict", old, old, {"verdict": "worse", **detail})
         return None

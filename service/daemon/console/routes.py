@@ -121,10 +121,14 @@ _NO_STORE = {
 
 
 # -- pages ------------------------------------------------------------------------------
+_MODE_NAMES = " ".join(m.value for m in Mode)
+"""The modes a page offers (its data-modes attribute: the mode buttons, the filter)."""
+
+
 @router.get("", response_class=HTMLResponse)
 @router.get("/", response_class=HTMLResponse)
 def overview_page(request: Request) -> HTMLResponse:
-    return _page(request, "Loops", "overview.html", "overview.js", modes=" ".join(Mode))
+    return _page(request, "Loops", "overview.html", "overview.js", modes=_MODE_NAMES)
 
 
 @router.get("/loops/{loop_id}", response_class=HTMLResponse)
@@ -132,8 +136,7 @@ def loop_page(loop_id: str, request: Request) -> HTMLResponse:
     tuner = tuner_of(request)
     if loop_id not in tuner.table.slot_of:
         return _page(request, "Unknown loop", "unknown.html", "", loop_id=loop_id)
-    modes = " ".join(m.value for m in Mode)
-    return _page(request, loop_id, "loop.html", "loop.js", loop_id=loop_id, modes=modes)
+    return _page(request, loop_id, "loop.html", "loop.js", loop_id=loop_id, modes=_MODE_NAMES)
 
 
 @router.get("/tuner", response_class=HTMLResponse)
