@@ -42,10 +42,11 @@ def test_a_takeover_whose_load_fails_is_loaded_on_a_later_tick(tmp_path, pg_url)
 
             b.adopt_shards = fails_once
             # b wins some shards; its first load fails; a later tick takes them again
-            wait_until(lambda: failed and b.loop_ids(), timeout=6 * LEASE_S, what="b loading")
+            # (a signal wait: about 2 s alone, far longer on a loaded CI box)
+            wait_until(lambda: failed and b.loop_ids(), timeout=60.0, what="b loading")
             ids = {c.id for c in configs}
             wait_until(lambda: set(a.loop_ids()) | set(b.loop_ids()) == ids,
-                       timeout=4 * LEASE_S, what="every loop owned and loaded")  # fmt: skip
+                       timeout=60.0, what="every loop owned and loaded")  # fmt: skip
             assert not set(a.loop_ids()) & set(b.loop_ids())
             assert {c.split("-")[0] for c in b.loop_ids()} >= {
                 s.removeprefix("gw:").replace("gw", "G") for s in failed[0]
@@ -76,9 +77,9 @@ def test_a_reload_that_fails_is_retried(tmp_path, pg_url):
                 "WHERE id = 'L1'"
             )
             conn.execute(f"NOTIFY {CHANNEL}, 'L1'")
-        wait_until(lambda: failed, timeout=10.0, what="the failed reload")
+        wait_until(lambda: failed, timeout=60.0, what="the failed reload")
         slot = tuner.table.slot("L1")
-        wait_until(lambda: tuner.table.mode[slot] == FROZEN, timeout=10.0, what="the retry")
+        wait_until(lambda: tuner.table.mode[slot] == FROZEN, timeout=60.0, what="the retry")
     finally:
         tuner.store.load = load
         tuner.stop()
@@ -109,7 +110,7 @@ def test_a_stored_loop_its_owner_has_not_loaded_yet_is_a_503_not_a_404(tmp_path,
         with _served(tmp_path, pg_url, "b", zenoh_connect=listen) as (b, b_url):
             bodies = [loop_body(f"G{g}-0", gateway=f"gw{g}") for g in range(6)]
             assert httpx.post(f"{a_url}/loops/bulk", json=bodies).status_code == 201
-            wait_until(lambda: a.loop_ids() and b.loop_ids(), timeout=4 * LEASE_S,
+            wait_until(lambda: a.loop_ids() and b.loop_ids(), timeout=60.0,
                        what="both members owning loops")  # fmt: skip
             b.reload_loops = lambda ids: None  # b is slow to take the NOTIFY of what follows
             gateway = b.table.gateways[b.table.slot(b.loop_ids()[0])]
