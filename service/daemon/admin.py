@@ -160,9 +160,11 @@ class LoopAdmin:
             i for i, shard in enumerate(shards) if self.cluster is None or self.cluster.owns(shard)
         ]
         self.engine.add_many([configs[i] for i in owned], seq=[seqs[i] for i in owned], wall=wall)
-        if self.cluster is not None:
+        if self.cluster is not None:  # an id registered again: its messages went out before
+            floor = self._floor([i for i in owned if seqs[i]])
             for i in owned:
-                self.cluster.adopted(shards[i], self.cluster.held[shards[i]], [configs[i].id])
+                held = self.cluster.held[shards[i]]
+                self.cluster.adopted(shards[i], held, [configs[i].id], floor if seqs[i] else None)
         self.metrics.set_loop_counts(self.table.mode_counts())
 
     def patch(self, loop_id: str, patch: LoopPatch, actor: str = "api") -> LoopView:

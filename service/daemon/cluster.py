@@ -53,34 +53,13 @@ import psycopg
 
 from service.daemon import shards as sharding
 from service.daemon.store_pg import CHANNEL, Fenced, connect
+from service.daemon.survey import survey
 from service.daemon.suspects import DEAD_AFTER_TICKS, Suspects
 
 if TYPE_CHECKING:
     from service.daemon.tuner import Tuner
 
 log = logging.getLogger("pitune.cluster")
-SHARDS_SQL = (
-    "WITH RECURSIVE s AS ("
-    "(SELECT shard FROM loops ORDER BY shard LIMIT 1) UNION ALL "
-    "SELECT (SELECT shard FROM loops WHERE shard > s.shard ORDER BY shard LIMIT 1) "
-    "FROM s WHERE s.shard IS NOT NULL) "
-    "SELECT shard FROM s WHERE shard IS NOT NULL"
-)
-"""The shards with loops, one index probe per shard on ``loops_shard`` (a loose index
-scan): ``SELECT DISTINCT shard`` reads every loop's row, every tick, on every member
-(parallel workers at 300,000 loops)."""
-LAST_EXPIRY_SQL = (
-    "SELECT owner, extract(epoch FROM max(expires) - clock_timestamp())::float8 FROM ("
-    "SELECT instance_id AS owner, expires FROM members WHERE instance_id <> %s "
-    "AND expires > clock_timestamp() UNION ALL "
-    "SELECT owner, expires FROM leases WHERE owner <> %s AND expires > clock_timestamp()"
-    ") AS e GROUP BY owner"
-)
-"""Each other member's seconds until it has nothing unexpired left (its row and every
-lease it holds): a dead member's leases were renewed one by one, each after the
-member's commits in flight on it (``FOR SHARE``), so they expire up to a busy worker's
-commit apart; a tick timed to the first of them took one shard and left the rest to a
-tick after that shard's loading (at 30,000 loops: 8 s later)."""
 TICKS_PER_LEASE = 5
 ADOPTIONS_KEPT = 16
 WAKE_POLL_S = 0.1
@@ -113,6 +92,9 @@ class Cluster(Suspects):
         """Shard -> lease token, of the shards whose loops are in the engine."""
         self.shard_of: dict[str, str] = {}
         """Loop id -> shard, of the loops in the engine."""
+        self.floors: dict[str, int] = {}
+        """Loop id -> the least epoch of its messages, of loops that came from another shard,
+        whose token may have been the higher (:meth:`token`)."""
         self.valid_until = 0.0
         """Monotonic time until which the held leases are valid (publishing allowed)."""
         self.members: list[str] = []
@@ -239,7 +221,7 @@ class Cluster(Suspects):
         if lost:
             log.warning("leases lost (taken by another member): %s", ", ".join(sorted(lost)))
             self.tuner.drop_shards(lost, commit=False)
-        live, stored, lasts = self._survey()
+        live, stored, lasts = survey(self._conn, self.member)
         # this member is alive whatever its row says: a renewal that came late (a starved
         # process) let the row run out, and releasing every shard it holds only to take
         # them back a tick later cost a 75,000-loop member 40 s of loading; its leases
@@ -294,22 +276,6 @@ class Cluster(Suspects):
                     self.held.pop(shard)
             self.valid_until = started + self.lease_s - SAFETY_S
         return lost
-
-    def _survey(self) -> tuple[dict[str, float], list[str], dict[str, float]]:
-        """(live members with the seconds left on their rows, shards with loops, each
-        other member's seconds until its row and leases have all expired). A live member
-        renews every tick, so its expiry is about ``lease_s`` away; a dead one's comes
-        closer, and the tick that takes its leases is timed to it (:meth:`_next_due`)
-        rather than up to a tick later."""
-        live = dict(
-            self._conn.execute(
-                "SELECT instance_id, extract(epoch FROM expires - clock_timestamp())::float8 "
-                "FROM members WHERE expires > clock_timestamp() ORDER BY instance_id"
-            ).fetchall()
-        )
-        stored = [r[0] for r in self._conn.execute(SHARDS_SQL)]
-        lasts = dict(self._conn.execute(LAST_EXPIRY_SQL, (self.member, self.member)).fetchall())
-        return live, stored, lasts
 
     def _release(self, shards: set[str]) -> None:
         """Hand shards to the member that now wins them: commit and snapshot their loops
@@ -463,16 +429,20 @@ class Cluster(Suspects):
             for shard in shards:
                 self.held.pop(shard, None)
 
-    def adopted(self, shard: str, token: int, loop_ids: list[str]) -> None:
+    def adopted(self, shard: str, token: int, loop_ids: list[str], floor: int | None = None):
+        """``floor``: the loops' least epoch from now on (0: none; None: as it was)."""
         with self._lock:
             self.held[shard] = token
             for loop_id in loop_ids:
                 self.shard_of[loop_id] = shard
+                if floor is not None:
+                    self.floors[loop_id] = floor
 
     def forget(self, loop_ids: list[str]) -> None:
         with self._lock:
             for loop_id in loop_ids:
                 self.shard_of.pop(loop_id, None)
+                self.floors.pop(loop_id, None)
 
     def fence(self, loop_ids) -> tuple[str, dict[str, int]]:
         """(member, shard -> token) for a commit touching ``loop_ids``: Fenced if one of
@@ -490,9 +460,15 @@ class Cluster(Suspects):
         return self.member, tokens
 
     def token(self, loop_id: str) -> int | None:
-        """The lease token (the epoch of messages) of a loop this member owns."""
+        """The epoch of the messages of a loop this member owns: its shard's lease token,
+        or its floor where that is higher. A loop whose gateway was patched, or whose id
+        was deleted and registered again under another gateway, came from a shard whose
+        token may be the higher, and a gateway drops a message whose ``(epoch, seq)`` is
+        not above the last it took; its floor, a fresh epoch, is above every earlier
+        token, and every later token is above it (a takeover's too)."""
         shard = self.shard_of.get(loop_id)
-        return None if shard is None else self.held.get(shard)
+        held = None if shard is None else self.held.get(shard)
+        return None if held is None else max(held, self.floors.get(loop_id, 0))
 
     def may_publish(self) -> bool:
         """The leases are valid by the local clock (see the module doc)."""

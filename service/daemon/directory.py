@@ -11,8 +11,8 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from service.daemon.cluster import SHARDS_SQL
 from service.daemon.store_pg import connect
+from service.daemon.survey import SHARDS_SQL
 
 if TYPE_CHECKING:
     from service.daemon.cluster import Cluster

@@ -126,6 +126,8 @@ class Ownership:
         with self.table.lock:
             self.deleted_here.clear()  # deletes from here on may postdate the read
         stored = {s.config.id: s for s in self.store.load(ids=loop_ids)}
+        moved = {i for i, loop in stored.items() if self._comes_from_another_shard(loop)}
+        floor = self._floor(moved)
         wall = time.time()
         leaving: list[str] = []
         arriving = []  # (added at once: a bulk registration through another member)
@@ -144,13 +146,31 @@ class Ownership:
                     arriving.append(loop)
                 elif self.table.configs[loop_id] != loop.config:
                     self.table.reconfigure(loop.config)
-                self.cluster.adopted(shard, self.cluster.held[shard], [loop_id])
+                self.cluster.adopted(
+                    shard, self.cluster.held[shard], [loop_id], floor if loop_id in moved else None
+                )
             self._restore_many(arriving, wall)
             for loop_id in leaving:  # deleted, or moved to another gateway's shard
                 self.engine.remove(loop_id)
                 self.recent.forget(loop_id)
             self.cluster.forget(leaving)
             self.metrics.set_loop_counts(self.table.mode_counts())
+
+    def _comes_from_another_shard(self, loop) -> bool:
+        """A stored loop of a shard this member owns, not in it here yet, with messages
+        out already (seq > 0): its gateway was patched, or its id registered again."""
+        shard = shard_of(loop.config.id, loop.config.gateway)
+        return (
+            bool(loop.seq)
+            and self.cluster.owns(shard)
+            and (self.cluster.shard_of.get(loop.config.id) != shard)
+        )
+
+    def _floor(self, loop_ids) -> int | None:
+        """The least epoch of the messages of loops come from another shard: a fresh one,
+        above the token they went out under (:meth:`Cluster.token
+        <service.daemon.cluster.Cluster.token>`); None without such loops."""
+        return self.store.next_epoch(time.time()) if loop_ids else None
 
     def _restore_many(self, stored: list, wall: float, saved: list[Saved | None] | None = None):
         """Stored loops into the engine at once (``saved``: their snapshots, parsed ahead;
