@@ -15,7 +15,12 @@ integral of the error) is the state, changing ``ki`` never moves the output; cha
 unchanged too. The tuner therefore can change gains while the loop runs.
 
 Anti-windup by clamping (conditional integration): when the output is saturated and the
-error would drive it further into saturation, the integral is not advanced.
+error would drive it further into saturation, the integral advances only as far as the
+limit (never past it, never back): frozen where it stood, a loop whose last increment
+would have crossed the limit settled short of it for good, flagged saturated below it.
+A gain change while saturated is bumpless in the same sense: it may carry the integral
+to the limit, not past it (kept past, the change stored windup: a tank 4 cm over its
+setpoint after a valve had held its limit).
 """
 
 from __future__ import annotations
@@ -67,8 +72,9 @@ class PIBatch:
         """Change gains without bumping the output (see module docstring)."""
         if kp is not None:
             kp = np.broadcast_to(np.asarray(kp, dtype=np.float64), (self.n,))
-            self.integral -= (kp - self.kp) * self.e_last
+            bumpless = self.integral - (kp - self.kp) * self.e_last
             self.kp = kp.copy()
+            self.integral = self._limited(bumpless, self.e_last, self.integral)
         if ki is not None:
             self.ki = np.broadcast_to(np.asarray(ki, dtype=np.float64), (self.n,)).copy()
 
@@ -85,13 +91,18 @@ class PIBatch:
     def step(self, e: ArrayLike) -> np.ndarray:
         """Advance one sample with error ``e`` (setpoint minus measurement); return ``u``."""
         e = np.asarray(e, dtype=np.float64)
-        integral = self.integral + self.ki * e * self.dt
-        raw = self.bias + self.kp * e + integral
-        high = raw > self.u_max
-        low = raw < self.u_min
-        # Conditional integration: freeze I only when integrating would deepen saturation.
-        freeze = (high & (e > 0)) | (low & (e < 0))
-        self.integral = np.where(freeze, self.integral, integral)
-        self.saturated = high | low
+        self.integral = self._limited(self.integral + self.ki * e * self.dt, e, self.integral)
+        raw = self.bias + self.kp * e + self.integral
+        self.saturated = (raw >= self.u_max) | (raw <= self.u_min)
         self.e_last = e
-        return np.clip(self.bias + self.kp * e + self.integral, self.u_min, self.u_max)
+        return np.clip(raw, self.u_min, self.u_max)
+
+    def _limited(self, integral: np.ndarray, e: np.ndarray, before: np.ndarray) -> np.ndarray:
+        """``integral``, moved from ``before``, as far as it may go: not past the
+        integral that puts the output at error ``e`` on a limit, unless ``before`` was
+        already past it (then no further than ``before``). Moving back from a limit is
+        always allowed."""
+        on_high = self.u_max - self.bias - self.kp * e
+        on_low = self.u_min - self.bias - self.kp * e
+        integral = np.minimum(integral, np.maximum(before, on_high))
+        return np.maximum(integral, np.minimum(before, on_low))

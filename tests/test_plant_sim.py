@@ -100,6 +100,44 @@ def test_pi_anti_windup_clamps_integral():
     assert pi.step(-0.5)[0] < 1.0
 
 
+def test_pi_reaches_its_limit_when_the_last_increment_would_cross_it():
+    """Closed form: a static plant y = 0.5 u with the setpoint 8 needs u = 16 > 10, so
+    the loop settles on the limit, pv = 5 (the integral frozen one increment short of
+    it left u = 7.2, pv = 3.6, flagged saturated)."""
+    pi, y = PIBatch(1.0, 0.7, dt=1.0, u_min=0.0, u_max=10.0), 0.0
+    for _ in range(300):
+        u = pi.step(8.0 - y)[0]
+        y = 0.5 * u
+    assert u == pytest.approx(10.0) and y == pytest.approx(5.0)
+    assert pi.saturated[0]
+    # the same loop with a setpoint it can hold is not saturated and unchanged by the limit
+    pi, y = PIBatch(1.0, 0.7, dt=1.0, u_min=0.0, u_max=10.0), 0.0
+    for _ in range(300):
+        u = pi.step(3.0 - y)[0]
+        y = 0.5 * u
+    assert y == pytest.approx(3.0) and not pi.saturated[0]
+
+
+def test_pi_gain_change_while_saturated_stores_no_windup():
+    """Saturated high, the error grown to 8, kp lowered 1 -> 0.2: bumpless on the
+    unclamped output (16) would raise the integral by 6.4 to 14.4, past the limit; the
+    output must leave the limit as soon as the error turns (as without the change)."""
+    pi = PIBatch(1.0, 0.5, dt=1.0, u_min=0.0, u_max=10.0)
+    for e in [2.0] * 100 + [8.0] * 3:
+        pi.step(e)
+    integral = pi.integral[0]
+    pi.set_gains(kp=0.2)
+    assert pi.output()[0] == pytest.approx(10.0)  # still bumpless: on the limit
+    assert pi.integral[0] == pytest.approx(max(integral, 10.0 - 0.2 * 8.0))
+    assert pi.step(-0.1)[0] < 10.0
+    # and while not saturated the change stays exactly bumpless
+    free = PIBatch(1.0, 0.5, dt=1.0, u_min=0.0, u_max=10.0)
+    free.step(2.0)
+    before = free.output()[0]
+    free.set_gains(kp=0.2)
+    assert free.output()[0] == pytest.approx(before, abs=1e-12)
+
+
 def test_simc_paper_reproduces_table_2():
     Kc, tau_I = simc_paper(0.5, 1.0, 0.2)
     assert Kc == pytest.approx(0.909, abs=5e-4)
