@@ -35,6 +35,9 @@ def tuner_settings(tmp_path: Path, **overrides: object) -> Settings:
         "instance_id": "test-tuner",
         "snapshot_interval_s": 3600.0,
         "max_sample_rate_hz": 1e6,
+        # Starlette's TestClient names its host "testserver"; the gate's own tests use
+        # the default (tests/test_api_gate.py)
+        "api_allowed_hosts": ["127.0.0.1", "localhost", "::1", "testserver"],
     }
     return load_settings(**{**values, **overrides})
 

@@ -21,7 +21,6 @@ import html
 import io
 import ipaddress
 import logging
-import secrets
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Annotated
@@ -47,6 +46,7 @@ from prometheus_client import CONTENT_TYPE_LATEST
 from service.agent.model import Agent
 from service.daemon import console, forward
 from service.daemon.admin import Conflict, OwnedElsewhere, StoreUnavailable, UnknownLoop
+from service.daemon.gate import BODY_BYTES, BULK_BODY_BYTES, Gate, token_matches
 from service.daemon.logs import StatusWatch, table_statuses
 from service.daemon.schemas import (
     MAX_BULK,
@@ -79,11 +79,7 @@ def require_token(
     credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
 ) -> None:
     """Mutating calls need the bearer token when one is configured."""
-    if settings.api_token is None:
-        return
-    expected = settings.api_token.get_secret_value().encode()
-    given = credentials.credentials.encode() if credentials else b""
-    if not secrets.compare_digest(given, expected):
+    if not token_matches(settings, credentials.credentials if credentials else ""):
         raise HTTPException(
             status.HTTP_401_UNAUTHORIZED,
             "missing or invalid bearer token",
@@ -115,7 +111,8 @@ def register_loop(config: Registration, tuner: TunerDep, request: Request) -> Lo
     return view
 
 
-@loops.post("/bulk", status_code=201, dependencies=mutating, responses={409: {}})
+@loops.post("/bulk", status_code=201, dependencies=mutating, responses={409: {}},
+            max_body_size=BULK_BODY_BYTES)  # fmt: skip
 def register_loops(
     configs: Annotated[list[Registration], Body(min_length=1, max_length=MAX_BULK)],
     tuner: TunerDep,
@@ -404,12 +401,14 @@ def create_app(
         lifespan=lifespan,
         docs_url=None,  # Swagger UI and ReDoc load their code from a CDN
         redoc_url=None,
+        max_body_size=BODY_BYTES,  # 413 beyond (service.daemon.gate)
     )
     app.state.settings = settings
     app.include_router(loops)
     app.include_router(ops)
     app.include_router(console.router)  # the operator console at /ui (docs/console.md)
     forward.install(app)  # a cluster's members answer for each other's loops
+    app.add_middleware(Gate, settings=settings)  # outermost: before any body is read
 
     @app.get("/docs", include_in_schema=False, response_class=HTMLResponse)
     def docs() -> HTMLResponse:

@@ -74,6 +74,12 @@ class Settings(BaseSettings):
     api_token: SecretStr | None = Field(
         None, description="When set, mutating REST calls need 'Authorization: Bearer <token>'."
     )
+    api_allowed_hosts: list[str] | None = Field(
+        None,
+        description="Host names the admin API answers to (the Host header, without its "
+        "port); others get a 400 (DNS rebinding). Default: the loopback names when api_host "
+        "is loopback, any otherwise. In the environment a JSON list.",
+    )
     key_prefix: str = DEFAULT_PREFIX
     instance_id: Annotated[str, Field(pattern=LOOP_ID_PATTERN)] = Field(
         default_factory=default_instance_id

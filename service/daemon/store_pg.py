@@ -27,10 +27,11 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import re
 import threading
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
-from urllib.parse import urlsplit, urlunsplit
+from urllib.parse import urlsplit
 
 import psycopg
 from pydantic import ValidationError
@@ -63,12 +64,14 @@ def is_url(location: object) -> bool:
 
 
 def redacted(url: str) -> str:
-    """The URL without its password (for logs and messages)."""
+    """The URL without its password, in the user part or a ``password`` query parameter
+    (libpq takes either), for logs, messages and the console."""
     parts = urlsplit(url)
-    if parts.password is None:
-        return url
-    netloc = parts.netloc.replace(f":{parts.password}@", ":***@", 1)
-    return urlunsplit(parts._replace(netloc=netloc))
+    if parts.password is not None:
+        netloc = parts.netloc.replace(f":{parts.password}@", ":***@", 1)
+        url = url.replace(f"//{parts.netloc}", f"//{netloc}", 1)
+    head, mark, query = url.partition("?")
+    return head + mark + re.sub(r"(^|&)password=[^&#]*", r"\1password=***", query)
 
 
 def connect(url: str) -> psycopg.Connection:

@@ -43,12 +43,12 @@ from service.daemon.console.sessions import (
     LOGIN_PENALTY_S,
     app_state,
     safe_next,
-    same_origin,
     session_of,
     sessions_of,
     token_ok,
 )
 from service.daemon.console.tuner_view import Rates, tuner_figures
+from service.daemon.gate import LOGIN_BODY_BYTES
 from service.daemon.recent import REASONS
 from service.engine import verify
 from service.engine.status import STATUSES
@@ -149,10 +149,8 @@ def login_page(request: Request, next: str = "/ui", error: str = "") -> HTMLResp
     return _page(request, "Log in", "login.html", "", next=safe_next(next), error=error)
 
 
-@router.post("/login")
+@router.post("/login", max_body_size=LOGIN_BODY_BYTES)
 async def login(request: Request) -> Response:
-    if not same_origin(request):
-        raise HTTPException(403, "cross-origin request refused")
     form = urllib.parse.parse_qs((await request.body()).decode("utf-8", "replace"))
     token = form.get("token", [""])[0]
     name = ACTOR_NAME.sub("", form.get("name", [""])[0])[:40]

@@ -1,0 +1,139 @@
+"""What every HTTP request passes before a route reads it (service.daemon.gate): the Host,
+a browser's Origin, the token of a REST change, the body's size. The real app under
+uvicorn over HTTP (a raw socket where the body must not be sent)."""
+
+from __future__ import annotations
+
+import contextlib
+import socket
+import threading
+
+import httpx
+import pytest
+import uvicorn
+
+from service.daemon.api import create_app
+from service.daemon.gate import BODY_BYTES, LOGIN_BODY_BYTES, allowed_hosts
+from service.daemon.settings import load_settings
+from service.daemon.store_pg import redacted
+from service.wire.session import free_port
+from tests.tuner_support import loop_body, tuner_settings, wait_until
+
+pytestmark = pytest.mark.timeout(90)
+TOKEN = "gate-test-token-0123456789"
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+
+
+@contextlib.contextmanager
+def _served(tmp_path, **settings):
+    """The app under uvicorn on loopback with the default allowed hosts."""
+    port = free_port()
+    app = create_app(tuner_settings(tmp_path, api_port=port, api_allowed_hosts=None, **settings))
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, lifespan="on",
+                                           log_config=None, access_log=False))  # fmt: skip
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    try:
+        wait_until(lambda: server.started, timeout=60.0, what="the API")
+        yield app.state.tuner, port
+    finally:
+        server.should_exit = True
+        thread.join(timeout=30.0)
+
+
+def _answer_to_headers_only(port: int, head: str) -> str:
+    """Send a request's head (announcing a body) and no body; the status line of the
+    answer, which must come without the body (a 20 s wait for it fails the test)."""
+    with socket.create_connection(("127.0.0.1", port), timeout=20.0) as sock:
+        sock.sendall(head.encode() + b"\r\n")
+        return sock.recv(4096).decode().split("\r\n", 1)[0]
+
+
+def test_an_unauthenticated_change_is_refused_before_its_body_is_read(tmp_path):
+    with _served(tmp_path, api_token=TOKEN) as (tuner, port):
+        host = f"Host: 127.0.0.1:{port}\r\nContent-Type: application/json\r\n"
+        head = f"POST /loops/bulk HTTP/1.1\r\n{host}Content-Length: {BODY_BYTES - 1}\r\n"
+        assert _answer_to_headers_only(port, head) == "HTTP/1.1 401 Unauthorized"
+        # a length over every route's limit is refused by its length alone, token or not
+        for auth in ("", f"Authorization: Bearer {TOKEN}\r\n"):
+            head = f"POST /loops HTTP/1.1\r\n{host}{auth}Content-Length: 24000000\r\n"
+            assert _answer_to_headers_only(port, head) == "HTTP/1.1 413 Request Entity Too Large"
+        assert tuner.loop_ids() == []
+        # the bulk route's own limit is the larger: 2 MiB of it is taken, with the token
+        body = httpx.Request("POST", "http://x", json=[loop_body("B1"), loop_body("B2")]).content
+        padded = body[:-1] + b" " * (2 << 20) + b"]"
+        r = httpx.post(f"http://127.0.0.1:{port}/loops/bulk", content=padded,
+                       headers={**AUTH, "Content-Type": "application/json"})  # fmt: skip
+        assert r.status_code == 201, r.text
+        assert sorted(tuner.loop_ids()) == ["B1", "B2"]
+
+
+def test_a_body_that_streams_past_its_limit_is_refused_and_changes_nothing(tmp_path):
+    with _served(tmp_path, api_token=TOKEN) as (tuner, port):
+        big = loop_body("L1")  # a valid registration, padded past 1 MiB below
+        padding = b" " * (BODY_BYTES + 10)
+        body = httpx.Request("POST", "http://x", json=big).content[:-1] + padding + b"}"
+
+        def chunks():  # no Content-Length: chunked transfer
+            for i in range(0, len(body), 65536):
+                yield body[i : i + 65536]
+
+        r = httpx.post(f"http://127.0.0.1:{port}/loops", content=chunks(),
+                       headers={**AUTH, "Content-Type": "application/json"})  # fmt: skip
+        assert r.status_code == 413, r.text
+        assert tuner.loop_ids() == []
+        # the same registration at its own size is taken
+        r = httpx.post(f"http://127.0.0.1:{port}/loops", json=big, headers=AUTH)
+        assert r.status_code == 201, r.text
+        # the login form has its own, small limit
+        r = httpx.post(f"http://127.0.0.1:{port}/ui/login",
+                       content=b"token=" + b"a" * LOGIN_BODY_BYTES,
+                       headers={"Content-Type": "application/x-www-form-urlencoded"})  # fmt: skip
+        assert r.status_code == 413
+
+
+def test_a_loopback_api_answers_only_to_loopback_host_names(tmp_path):
+    with _served(tmp_path) as (tuner, port):  # no token: open on loopback
+        url = f"http://127.0.0.1:{port}"
+        httpx.post(f"{url}/loops", json=loop_body("L1")).raise_for_status()
+        # DNS rebinding: a page of evil.example resolved to 127.0.0.1 sends its own Host
+        rebound = {"Host": f"evil.example:{port}"}
+        assert httpx.get(f"{url}/loops/L1", headers=rebound).status_code == 400
+        assert httpx.post(f"{url}/loops/L1/reset", headers=rebound).status_code == 400
+        assert httpx.get(f"{url}/loops/L1", headers={"Host": f"localhost:{port}"}).is_success
+        assert tuner.views(0, 10).items[0].seq == 0  # nothing was reset
+
+
+def test_a_browsers_cross_site_change_is_refused(tmp_path):
+    with _served(tmp_path) as (tuner, port):  # no token: open on loopback
+        url = f"http://127.0.0.1:{port}"
+        httpx.post(f"{url}/loops", json=loop_body("L1")).raise_for_status()
+        for origin in ("http://evil.example", "null"):
+            r = httpx.post(f"{url}/loops/L1/reset", headers={"Origin": origin})
+            assert r.status_code == 403, (origin, r.text)
+        assert tuner.views(0, 10).items[0].seq == 0
+        # a page of the API's own origin (the console), and a script without Origin
+        assert httpx.post(f"{url}/loops/L1/reset", headers={"Origin": url}).is_success
+        assert httpx.post(f"{url}/loops/L1/reset").is_success
+        assert tuner.views(0, 10).items[0].seq == 2
+
+
+def test_the_allowed_hosts_default_to_loopback_names_only_on_loopback():
+    assert allowed_hosts(load_settings(api_host="127.0.0.1")) == {"127.0.0.1", "localhost", "::1"}
+    assert allowed_hosts(load_settings(api_host="0.0.0.0")) is None  # behind a proxy or NAT
+    chosen = load_settings(api_host="0.0.0.0", api_allowed_hosts=["Tuner.Plant.Local"])
+    assert allowed_hosts(chosen) == {"tuner.plant.local"}
+
+
+def test_a_postgresql_password_is_shown_to_no_one(tmp_path, pg_url):
+    """The console's tuner view (read without a login) and /healthz show the store's
+    location with its password redacted, in the user part or a query parameter."""
+    secret = "Pg-S3cret-Pw"
+    sep = "&" if "?" in pg_url else "?"
+    with _served(tmp_path, db_path=f"{pg_url}{sep}password={secret}") as (tuner, port):
+        for path in ("/ui/api/tuner", "/healthz"):
+            r = httpx.get(f"http://127.0.0.1:{port}{path}")
+            assert r.is_success and secret not in r.text, (path, r.text[:300])
+        assert "password=***" in httpx.get(f"http://127.0.0.1:{port}/ui/api/tuner").text
+    url = f"postgresql://pitune:{secret}@db:5432/pitune?sslmode=require&password={secret}"
+    assert redacted(url) == url.replace(secret, "***")
