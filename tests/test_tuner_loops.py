@@ -12,7 +12,7 @@ import pytest
 from service.agent import untrained_agent
 from service.engine import TuningEngine
 from service.engine.config import LoopConfig
-from service.engine.modes import ADVISORY
+from service.engine.modes import ADVISORY, AUTO
 from service.engine.stepping import step
 from service.engine.table import LoopTable
 from service.wire.protocol import LoopStatus, RejectReason, Sample
@@ -236,6 +236,30 @@ def test_a_lagging_gateway_reporting_applied_seq_is_not_adopted(batched):
     assert t.kp[s] == pytest.approx(0.72) and t.pending[s]
     ingest(t, s, sample(333.0, kp=0.72, ki=0.0144, applied_seq=2), WALL)  # caught up
     assert not t.pending[s] and t.drain_changes() == ([], [])
+
+
+@pytest.mark.parametrize("batched", [False, True])
+def test_after_advisory_steps_an_operators_change_in_auto_is_adopted(batched):
+    """Advisory steps raise seq without anything to apply: back in auto, the gateway's
+    applied_seq (its last auto update, 1) stays below seq (3) until the next auto update.
+    With no auto update in flight that is no lag: gains it reports are an operator's
+    (they went unseen, and the next auto step overwrote them: an integrator's review)."""
+    t, s = table(ScalingAgent(1.2))
+    ingest = ingest_one if batched else reference_ingest
+    feed(t, s, [0.0, 165.0])
+    step(t, np.array([s]), WALL)  # seq 1, auto: 0.5 -> 0.6
+    ingest(t, s, sample(166.0, kp=0.6, ki=0.012, applied_seq=1), WALL)
+    assert not t.pending[s]
+    t.mode[s] = ADVISORY
+    for k in (330.0, 495.0):
+        feed(t, s, [k])
+        step(t, np.array([s]), WALL)
+    t.mode[s] = AUTO
+    t.drain_changes()
+    assert int(t.seq[s]) == 3 and not t.pending[s]
+    ingest(t, s, sample(496.0, kp=0.4, ki=0.01, applied_seq=1), WALL)
+    assert (t.kp[s], t.ki[s]) == (0.4, 0.01)
+    assert [row[5] for row in t.drain_changes()[1]] == ["adopted"]
 
 
 @pytest.mark.parametrize("batched", [False, True])

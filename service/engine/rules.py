@@ -245,9 +245,11 @@ def _adopt(tb: LoopTable, slots: np.ndarray, cols: dict[str, np.ndarray], wall: 
     kp = np.where(has_kp, cols["kp"][report], cur_kp)
     ki = np.where(has_ki, cols["ki"][report], cur_ki)
     same = _close(kp, cur_kp) & _close(ki, cur_ki)
-    # an auto loop's applied_seq (-1: absent) says whether the gateway caught up
+    # an auto loop's applied_seq (-1: absent) says whether the gateway caught up with an
+    # update in flight (pending); with none, a lower one is the last auto update's below
+    # advisory or shadow steps' seqs, and different gains are an operator's
     applied, auto = cols["applied_seq"][report], tb.mode[slots] == AUTO
-    lags = auto & (applied >= 0) & (applied < tb.seq[slots])
+    lags = auto & tb.pending[slots] & (applied >= 0) & (applied < tb.seq[slots])
     current = auto & (applied == tb.seq[slots])
     in_flight = lags | (
         ~same
