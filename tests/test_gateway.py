@@ -195,6 +195,30 @@ def test_batched_gains_of_a_gateway_follow_the_same_rule(tuner, other):
         plant.close()
 
 
+def test_a_gateway_fronting_loops_registered_without_it_sends_theirs_on_their_keys(tuner):
+    """Loops registered with the gateway's id go in its SampleColumns, the others on
+    their own keys (on the gateway's key the tuner rejects them as wrong_gateway); and an
+    advisory loop's state reply is no update to apply (docs/protocol.md, State)."""
+    tuner.register(LoopConfig(**loop_body("A", gateway="gw-1")))
+    tuner.register(LoopConfig(**loop_body("B")))
+    tuner.register(LoopConfig(**loop_body("C", mode="advisory")))
+    tuner.reset("C")  # seq 1: its state reply has a seq to order by
+    plant = Plant(tuner, ["A", "B", "C"], gateway_id="gw-1")
+    try:
+        plant.until(lambda _: {"A", "B", "C"} <= set(plant.gateway.inbox.supervision), "state")
+        wait_until(lambda: plant.gateway._batches.matching_status.matching, 10.0, "the tuner")
+        for t in range(5):
+            plant.gateway.publish_scan({i: Sample(t=float(t), e=0.1) for i in ("A", "B", "C")})
+        wait_until(
+            lambda: all(tuner.view(i).counters.samples == 5 for i in ("A", "B", "C")),
+            10.0, "every sample taken",
+        )  # fmt: skip
+        assert tuner.metrics.value("pitune_samples_rejected_total", reason="wrong_gateway") == 0
+        assert not [u for u in plant.poll() if u.loop_id == "C"]  # the advisory reply
+    finally:
+        plant.close()
+
+
 def test_missed_gains_come_from_the_state_query_on_connect_and_reconnect(tmp_path):
     settings = tuner_settings(tmp_path)
     tuner = Tuner(settings).start()

@@ -8,7 +8,9 @@ A gateway (the plant simulator here, a real DCS gateway in
   ``gateway_id``, :meth:`Gateway.publish_scan` sends a scan as one
   :class:`~service.wire.protocol.SampleColumns` on ``{prefix}/gateways/{gateway_id}/samples``
   while a tuner subscribes to it (revision 4: in a cluster only the member owning this
-  gateway's loops does, so no other member decodes them), per loop otherwise;
+  gateway's loops does, so no other member decodes them), per loop otherwise, and per
+  loop always for a loop whose state reply does not name this gateway (registered
+  without it: the tuner rejects its samples on the gateway's key as ``wrong_gateway``);
 * it receives :class:`~service.wire.protocol.GainsMessage` on ``{prefix}/loops/*/gains``
   and, with a ``gateway_id``, :class:`~service.wire.protocol.GainsBatch` on
   ``{prefix}/gateways/{gateway_id}/gains`` (loops registered with that gateway);
@@ -161,8 +163,8 @@ class GainsInbox:
             return None
         if isinstance(msg, StateReply):
             self.supervision[msg.loop_id] = msg
-            if msg.seq == 0 or msg.mode is Mode.frozen:
-                return None  # no gains published yet, or none to apply
+            if msg.seq == 0 or msg.mode is not Mode.auto:
+                return None  # no gains published yet, or none to apply (docs/protocol.md)
         state = source in (Source.state, Source.state_batch)
         key = (msg.loop_id, msg.instance_id)
         last = self._last.get(key)
@@ -336,16 +338,23 @@ class Gateway:
         tuner of an earlier revision, or a cluster between two owners of this gateway)
         one message per loop, which every tuner hears."""
         batches = self._batches
-        if batches is None or not batches.matching_status.matching:
-            for loop_id, sample in samples.items():
-                self.publish(loop_id, sample)
-            return
+        ours = {} if batches is None or not batches.matching_status.matching else {
+            loop_id: sample for loop_id, sample in samples.items() if self._ours(loop_id)
+        }  # fmt: skip
+        for loop_id in samples.keys() - ours.keys():
+            self.publish(loop_id, samples[loop_id])
         items = [
             BatchedSample(loop_id=loop_id, **self._reported(loop_id, sample).model_dump())
-            for loop_id, sample in samples.items()
+            for loop_id, sample in ours.items()
         ]
         for i in range(0, len(items), MAX_BATCH):
             batches.put(encode(SampleColumns.of(items[i : i + MAX_BATCH])))
+
+    def _ours(self, loop_id: str) -> bool:
+        """The tuner's state reply says the loop is registered with this gateway (until
+        one comes, its samples go on the loop's own key, which every tuner takes)."""
+        state = self.inbox.supervision.get(loop_id)
+        return state is not None and state.gateway == self.gateway_id
 
     def _reported(self, loop_id: str, sample: Sample) -> Sample:
         if sample.applied_seq is None:
