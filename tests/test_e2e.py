@@ -14,7 +14,6 @@ import subprocess
 import sys
 import threading
 import time
-from pathlib import Path
 
 import httpx
 import numpy as np
@@ -26,6 +25,7 @@ from plant_sim.trajectory import read_log
 from service.agent import DEFAULT_WEIGHTS
 from service.procs import ROOT, Stack
 from service.wire.protocol import GainsMessage, Keys, UpdateReason
+from tests.sockets import LOOPBACK, listening
 from tests.tuner_support import snapshot_of
 
 SPEED = 100.0
@@ -307,35 +307,12 @@ def test_demo_fails_with_a_clear_message_when_the_tuner_cannot_start(tmp_path):
     assert not (tmp_path / "demo").exists()
 
 
-def _listening(pid: int) -> list[str]:
-    """The local addresses (hex, as in /proc/net/tcp*) of the process's listening TCP
-    sockets."""
-    fds = Path(f"/proc/{pid}/fd")
-    inodes = set()
-    for fd in fds.iterdir():
-        with contextlib.suppress(OSError):
-            target = os.readlink(fd)
-            if target.startswith("socket:["):
-                inodes.add(target[8:-1])
-    out = []
-    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
-        for line in Path(table).read_text().splitlines()[1:]:
-            fields = line.split()
-            if fields[3] == "0A" and fields[9] in inodes:  # LISTEN
-                out.append(fields[1].rsplit(":", 1)[0])
-    return out
-
-
-LOOPBACK = {"0100007F", "00000000000000000000000001000000"}
-"""127.0.0.1 and ::1 as /proc/net/tcp and tcp6 write them."""
-
-
 def test_the_demo_stack_s_plant_listens_on_loopback_only(tmp_path):
     with Stack(tmp_path, speed=SPEED) as stack:
         stack.start_tuner()
         plant = stack.start_plant("--tank", LOOP)
         wait_view(stack, lambda v: v["last_sample_t"] is not None, "samples from the plant")
-        addresses = wait_for(lambda: _listening(plant.pid), "the plant's Zenoh listener")
+        addresses = wait_for(lambda: listening(plant.pid), "the plant's Zenoh listener")
         assert set(addresses) <= LOOPBACK, addresses  # not every interface (00000000)
 
 

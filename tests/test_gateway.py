@@ -27,6 +27,7 @@ from service.wire.protocol import (
     SampleColumns,
     encode,
 )
+from tests.sockets import LOOPBACK, listening
 from tests.tuner_support import loop_body, open_peer, subscribers, tuner_settings, wait_until
 
 pytestmark = pytest.mark.timeout(90)
@@ -304,6 +305,8 @@ def test_the_example_gateway_applies_state_and_batched_gains(tuner, other, tmp_p
         # The DCS's 0.5 is what the step replaced: the tuner takes it for the update not
         # applied yet, and the state query brings the gateway the step's gains.
         reported(stepped)
+        # reachable from this host only (Zenoh's default peer listener is every interface)
+        assert listening(child.pid) and set(listening(child.pid)) <= LOOPBACK
         batch = [gains("LIC-101", 4, 0.9)]
         other.put(KEYS.gateway_gains("gw-1"), encode(GainsBatch(gains=batch)))
         first = reported(0.9)

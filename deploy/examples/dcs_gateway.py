@@ -84,6 +84,12 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--connect", default=None, help="Zenoh endpoint of the tuner or router")
     parser.add_argument("--config", default=None, help="Zenoh JSON5 config (auth, router)")
+    parser.add_argument(
+        "--listen",
+        default=None,
+        help="Zenoh endpoint to listen on (default without --config: loopback only; the "
+        "gateway connects out, and a listener other hosts reach lets them send it gains)",
+    )
     parser.add_argument("--prefix", default="pitune", help="key-expression prefix")
     parser.add_argument(
         "--gateway-id", default=None, help="also apply the batched gains of this gateway's loops"
@@ -95,8 +101,9 @@ def main() -> None:
         parser.error(f"invalid gateway id {args.gateway_id!r}")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     dcs = Dcs({"LIC-101": (0.5, 0.01)})
+    listen = [args.listen] if args.listen else None if args.config else ["tcp/127.0.0.1:0"]
     config = session_config(
-        config_file=args.config, connect=[args.connect] if args.connect else None
+        config_file=args.config, connect=[args.connect] if args.connect else None, listen=listen
     )
     session = zenoh.open(config)
     try:
