@@ -108,6 +108,47 @@ def test_a_late_message_of_a_replaced_tuner_is_never_taken(tmp_path):
     assert inbox.stale == 3
 
 
+def test_a_restarted_tuner_s_state_reply_does_not_undo_an_operator_s_change(tmp_path):
+    """The gateway took seq 1 under the first run's epoch; the operator changed the gains
+    while the tuner was down. The restarted tuner's state reply (same seq) carries the
+    epoch seq 1 went out under, so the gateway drops it and keeps the operator's gains,
+    which the tuner adopts from the samples; its next message has the new epoch."""
+    settings = tuner_settings(tmp_path)
+    inbox = GainsInbox(loops=frozenset({"LIC-101"}))
+    with Tuner(settings) as first:
+        first.register(LoopConfig(**loop_body("LIC-101", kp=0.7)))
+        spy = Spy(settings)
+        try:
+            inbox.put_raw(Source.gains, _published(first, spy, "LIC-101"))
+        finally:
+            spy.close()
+        (taken,) = inbox.drain()
+        assert taken.epoch == first.epoch
+    with Tuner(settings) as again:
+        assert again.epoch > taken.epoch
+        session = open_peer(settings.zenoh_listen)
+        try:
+            wait_until(lambda: list(session.liveliness().get(KEYS.all_tuners, timeout=1.0)))
+            (reply,) = session.get(KEYS.state("LIC-101"), timeout=5.0)
+            inbox.put_raw(Source.state, reply.ok.payload.to_bytes())
+            assert inbox.drain() == []  # the same seq under the same epoch: no news
+            # the operator's gains reported: adopted (not undone), audited
+            operator = {"t": 5.0, "e": 0.1, "kp": 0.4, "ki": 0.02}
+            session.put(KEYS.sample("LIC-101"), json.dumps(operator).encode())
+            wait_until(lambda: again.view("LIC-101").kp == 0.4, what="the adoption")
+            spy = Spy(settings)
+            try:
+                inbox.put_raw(Source.gains, _published(again, spy, "LIC-101"))
+            finally:
+                spy.close()
+            (reset,) = inbox.drain()
+            assert (reset.epoch, reset.seq) == (again.epoch, taken.seq + 1)
+        finally:
+            session.close()
+    with Tuner(settings) as third:  # the epoch recorded with the gains, in the store
+        assert third.epoch_of("LIC-101") == again.epoch
+
+
 def test_epochs_increase_per_start_of_a_store(tmp_path):
     store = Store(tmp_path / "s.db")
     first = store.next_epoch(wall=1000.0)

@@ -232,6 +232,7 @@ class LoopAdmin:
                 )
             self.engine.remove(loop_id)
             self.recent.forget(loop_id)
+            self.epochs.pop(loop_id, None)  # registered again, it starts afresh
             if self.cluster is not None:  # (its count in GET /cluster)
                 self.cluster.forget([loop_id])
                 self.deleted_here.add(loop_id)  # (a NOTIFY's older read must not restore it)

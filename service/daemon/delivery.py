@@ -61,12 +61,14 @@ class Delivery:
                 self._snapshot_todo.append(row[0])
         dirty = self.table.drain_verify_dirty()
         if gains or audit:
+            # each with the epoch its message goes out under (its state replies' epoch)
+            rows = [(*g, self._epoch_now(g[3])) for g in gains]
             try:
                 if self.cluster is None:
-                    self.store.record_gains(gains, audit)
+                    self.store.record_gains(rows, audit)
                 else:
                     fence = self._fence({g[3] for g in gains} | {a[0] for a in audit})
-                    self.store.record_gains(gains, audit, fence)
+                    self.store.record_gains(rows, audit, fence)
             except Fenced as exc:
                 self._fenced(exc, gains, audit)
                 self.table.requeue_verify_dirty(dirty)  # of the loops still ours
@@ -77,6 +79,7 @@ class Delivery:
                 self.table.requeue_verify_dirty(dirty)
                 self._store_failed(exc)
                 return
+            self.epochs.update((row[3], row[4]) for row in rows if row[4] is not None)
             # INFO per gain change / adoption, rate-limited (the API logs resets with their caller)
             self.metrics.events.audit(row for row in audit if row[5] != "reset")
             self.metrics.verdict(audit)

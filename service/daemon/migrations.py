@@ -124,11 +124,19 @@ so ``GET /cluster`` reads the members' rows instead of counting every loop's row
 scan of the whole ``loops`` table, which took seconds on a loaded server at 300,000
 loops)."""
 
+V4 = "ALTER TABLE loops ADD COLUMN epoch BIGINT"
+"""Version 4: the epoch each loop's gains were last committed (and their message
+published) under, which its state replies carry. With the current start's epoch instead,
+a reply after a restart or a failover ordered above the gateway's last message of the
+same seq, and the gateway wrote the stored gains over an operator's change made while
+the tuner was down (an integrator's review, session 36). NULL: none recorded (a row of
+an older version, or a loop registered again): the current epoch, as before."""
+
 MIGRATIONS: dict[str, list[str]] = {
-    "sqlite": [SQLITE_V1, SQLITE_V2, V3],
-    "postgresql": [PG_V1, PG_V2, V3],
+    "sqlite": [SQLITE_V1, SQLITE_V2, V3, V4],
+    "postgresql": [PG_V1, PG_V2, V3, V4],
 }
-LATEST = 3
+LATEST = 4
 VERSION_TABLE = (
     "CREATE TABLE IF NOT EXISTS schema_version (version INTEGER PRIMARY KEY, applied REAL NOT NULL)"
 )

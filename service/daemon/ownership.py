@@ -113,6 +113,7 @@ class Ownership:
                 if loop_id in self.table.slot_of:
                     self.engine.remove(loop_id)
                     self.recent.forget(loop_id)
+                self.epochs.pop(loop_id, None)
             self.cluster.forget(ids)
             self.metrics.set_loop_counts(self.table.mode_counts())
 
@@ -153,6 +154,7 @@ class Ownership:
             for loop_id in leaving:  # deleted, or moved to another gateway's shard
                 self.engine.remove(loop_id)
                 self.recent.forget(loop_id)
+                self.epochs.pop(loop_id, None)
             self.cluster.forget(leaving)
             self.metrics.set_loop_counts(self.table.mode_counts())
 
@@ -174,7 +176,8 @@ class Ownership:
 
     def _restore_many(self, stored: list, wall: float, saved: list[Saved | None] | None = None):
         """Stored loops into the engine at once (``saved``: their snapshots, parsed ahead;
-        None: parsed here)."""
+        None: parsed here), with the epochs their gains were committed under."""
+        self.epochs.update((loop.config.id, loop.epoch) for loop in stored if loop.epoch)
         self.engine.add_many(
             [loop.config for loop in stored],
             kp=[loop.kp for loop in stored],
@@ -205,17 +208,26 @@ class Ownership:
         self.table.requeue([g for g in gains if g[3] in ids], [a for a in audit if a[0] in ids])
         self.drop_shards(lost, commit=False)
 
+    def _epoch_now(self, loop_id: str) -> int | None:
+        """The epoch a message of the loop goes out under now: this run's, or in a cluster
+        its shard's lease token (or its floor); None: not this member's loop."""
+        return self.epoch if self.cluster is None else self.cluster.token(loop_id)
+
+    def epoch_of(self, loop_id: str) -> int | None:
+        """The epoch of the loop's state: the one its gains were last committed (and
+        published) under, which a state reply carries. With the current one, a reply
+        after a restart or a failover ordered above the gateway's last message of the same
+        seq, and the gateway wrote the stored gains over an operator's change made
+        meanwhile. None recorded (a row of an older version): the current one."""
+        return self.epochs.get(loop_id) or self._epoch_now(loop_id)
+
     def _publishable(self, messages: list[dict], gateways: list) -> list[tuple[dict, object]]:
         """(message, gateway) of the messages this member may publish, with their epoch."""
-        if self.cluster is None:
-            for message in messages:
-                message["epoch"] = self.epoch
-            return list(zip(messages, gateways, strict=True))
         out = []
         for message, gateway in zip(messages, gateways, strict=True):
-            token = self.cluster.token(message["loop_id"])
-            if token is not None:
-                message["epoch"] = token
+            epoch = self._epoch_now(message["loop_id"])
+            if epoch is not None:
+                message["epoch"] = epoch
                 out.append((message, gateway))
         return out
 

@@ -121,9 +121,9 @@ class StateQueries:
             seq=int(tb.seq[s]),
             last_t=_finite(tb.last_t[s]),
             instance_id=self.settings.instance_id,
-            # as on the loop's gains messages: in a cluster its shard's lease token
-            # (Ownership._publishable), else a reply would order before them and be dropped
-            epoch=(None if self.cluster is None else self.cluster.token(loop_id)) or self.epoch,
+            # that of the loop's last gains message (Ownership.epoch_of): a reply of the same
+            # seq under a later epoch (a restart, a failover) would undo an operator's change
+            epoch=self.epoch_of(loop_id) or self.epoch,
             rl_period_s=_finite(tb.period[s]),
             next_due_t=_finite(tb.next_due[s]),
             gateway=tb.gateways[s],

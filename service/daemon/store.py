@@ -44,7 +44,14 @@ from service.engine.config import LoopConfig
 from service.engine.saved import Saved
 
 log = logging.getLogger("pitune.store")
-UPDATE_GAINS = "UPDATE loops SET kp = ?, ki = ?, seq = ? WHERE id = ?"
+UPDATE_GAINS = "UPDATE loops SET kp = ?1, ki = ?2, seq = ?3, epoch = ?5 WHERE id = ?4"
+"""A gains row (kp, ki, seq, id, epoch) applied (:func:`with_epoch`)."""
+
+
+def with_epoch(gains: list) -> list[tuple]:
+    """Gains rows as (kp, ki, seq, id, epoch): a row without its epoch (a journal row of
+    schema version 3 and before) gets None (NULL: not recorded)."""
+    return [(*g, None)[:5] for g in gains]
 
 
 @dataclass
@@ -56,6 +63,8 @@ class StoredLoop:
     hidden: bytes | None
     runtime: str | None
     """JSON of the runtime snapshot (see :meth:`service.engine.table.LoopTable.snapshot`)."""
+    epoch: int | None = None
+    """The epoch its gains were last committed under (None: not recorded)."""
 
 
 @dataclass
@@ -194,7 +203,8 @@ class Store:
                 break
             start, n_gains = entry.done, len(entry.gains)
             end = entry.size if budget is None else min(entry.size, start + budget)
-            db.executemany(UPDATE_GAINS, entry.gains[min(start, n_gains) : min(end, n_gains)])
+            gains = entry.gains[min(start, n_gains) : min(end, n_gains)]
+            db.executemany(UPDATE_GAINS, with_epoch(gains))
             self._audit(db, entry.audit[max(start - n_gains, 0) : max(end - n_gains, 0)])
             if end == entry.size:
                 db.execute("DELETE FROM journal WHERE id = ?", (entry.id,))
@@ -226,7 +236,7 @@ class Store:
         """
         self.apply_journal()
         query = (
-            "SELECT l.id, l.config, l.kp, l.ki, l.seq, s.hidden, s.runtime "
+            "SELECT l.id, l.config, l.kp, l.ki, l.seq, s.hidden, s.runtime, l.epoch "
             "FROM loops l LEFT JOIN snapshots s ON s.id = l.id"
         )
         with self._lock:
@@ -240,10 +250,10 @@ class Store:
                     where = f"{column} IN ({', '.join('?' * len(chunk))})"
                     rows += self._fetch(f"{query} WHERE {where} ORDER BY {self.ORDER}", chunk)
         loops, unloadable = [], []
-        for loop_id, config, kp, ki, seq, hidden, runtime in rows:
+        for loop_id, config, kp, ki, seq, hidden, runtime, epoch in rows:
             try:
                 loops.append(
-                    StoredLoop(self._config(loop_id, config), kp, ki, seq, hidden, runtime)
+                    StoredLoop(self._config(loop_id, config), kp, ki, seq, hidden, runtime, epoch)
                 )
             except ValidationError as exc:
                 unloadable.append(loop_id)
@@ -322,9 +332,9 @@ class Store:
             self._audit(db, [audit])
 
     def record_gains(
-        self, gains: list[tuple[float, float, int, str]], audit: list, fence: object = None
+        self, gains: list[tuple[float, float, int, str, int]], audit: list, fence: object = None
     ) -> None:
-        """New (kp, ki, seq, id) of loops and their audit rows: committed as one journal
+        """New (kp, ki, seq, id, epoch) of loops and their audit rows: committed as one journal
         row, applied to the tables by :meth:`apply_journal`. ``fence``: see
         :meth:`PgStore.record_gains <service.daemon.store_pg.PgStore.record_gains>` (an
         SQLite store has one tuner: nothing to fence)."""

@@ -37,7 +37,7 @@ import psycopg
 from pydantic import ValidationError
 
 from service.daemon import migrations
-from service.daemon.store import JournalEntry, Store, StoredLoop
+from service.daemon.store import JournalEntry, Store, StoredLoop, with_epoch
 from service.engine.audit import AUDIT_COLUMNS, AUDIT_TYPES, AuditRow
 from service.engine.config import LoopConfig
 from service.engine.saved import Saved
@@ -112,8 +112,9 @@ commit or snapshot and a concurrent claim could each hold a row the other waits 
 periodic snapshot was written concurrently with the claims, see
 :mod:`service.daemon.snapwriter`)."""
 RECORD_SQL = (
-    FENCE_CTE + "u AS (UPDATE loops l SET kp = u.kp, ki = u.ki, seq = u.seq FROM "
-    "unnest(%b::float8[], %b::float8[], %b::int8[], %b::text[]) AS u(kp, ki, seq, id), ok "
+    FENCE_CTE + "u AS (UPDATE loops l SET kp = u.kp, ki = u.ki, seq = u.seq, epoch = u.epoch "
+    "FROM unnest(%b::float8[], %b::float8[], %b::int8[], %b::text[], %b::int8[]) "
+    "AS u(kp, ki, seq, id, epoch), ok "
     "WHERE l.id = u.id AND ok.ok RETURNING 1), "
     f"a AS (INSERT INTO audit ({AUDIT_COLUMNS}) SELECT a.* FROM unnest("
     "%b::text[], %b::float8[], %b::float8[], %b::int8[], %b::text[], %b::text[], "
@@ -286,11 +287,11 @@ class PgStore(Store):
 
     def record_gains(
         self,
-        gains: list[tuple[float, float, int, str]],
+        gains: list[tuple[float, float, int, str, int]],
         audit: list,
         fence: tuple[str, dict[str, int]] | None = None,
     ) -> None:
-        """New (kp, ki, seq, id) of loops and their audit rows, written to the tables in
+        """New (kp, ki, seq, id, epoch) of loops and their audit rows, written to the tables in
         one durable commit; ``fence`` (member id, shard -> lease token): :class:`Fenced`
         (nothing written) unless this member holds every one of those leases.
 
@@ -302,7 +303,9 @@ class PgStore(Store):
         if not gains and not audit:
             return
         member, tokens = fence if fence is not None else ("", {})
-        kp, ki, seq, ids = (list(c) for c in zip(*gains, strict=True)) if gains else ([],) * 4
+        kp, ki, seq, ids, epochs = (
+            (list(c) for c in zip(*with_epoch(gains), strict=True)) if gains else ([],) * 5
+        )
         columns = (
             [_typed(c, k) for c, k in zip(zip(*audit, strict=True), AUDIT_TYPES, strict=True)]
             if audit
@@ -314,6 +317,7 @@ class PgStore(Store):
                 (
                     list(tokens), list(tokens.values()), member, len(tokens),
                     _typed(kp, float), _typed(ki, float), _typed(seq, int), _typed(ids, str),
+                    _typed(epochs, int),
                     *columns,
                 ),
             ).fetchone()  # fmt: skip

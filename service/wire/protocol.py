@@ -316,7 +316,9 @@ class StateReply(BaseModel):
     seq: int = Field(ge=0, description="Sequence number of the last gains message (0: none).")
     last_t: float | None = Field(description="Plant time (s) of the last accepted sample.")
     instance_id: str
-    epoch: int | None = Field(None, ge=1, description="The store's epoch (see GainsMessage).")
+    epoch: int | None = Field(
+        None, ge=1, description="The epoch the last gains message (seq) went out under."
+    )
     rl_period_s: float | None = Field(
         None, description="Plant seconds between two RL steps of this loop (revision 2)."
     )
