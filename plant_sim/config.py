@@ -34,7 +34,10 @@ from plant_sim.trajectory import Trajectory
 from service.units import AGENT_KI0, AGENT_KP0, ScalingSpec
 from service.wire.protocol import DEFAULT_PREFIX, is_valid_id
 
-TANK_SP = (50.0, 60.0)
+SP_DEFAULTS = {"two_tank": (50.0, 60.0), "foptd": (-1.0, 1.0)}
+"""Each kind's setpoint levels (lo, hi) where ``lo``/``hi`` are not given."""
+TANK_MAX_SP = 100.0
+"""Highest tank setpoint, cm: the full pump (80 L/min) holds 101 cm."""
 SP_PERIOD_S = 600.0
 """The tank's setpoint toggles every 10 simulated minutes, as in the paper's figure 10."""
 
@@ -82,8 +85,11 @@ class LoopSpec:
         if missing:
             raise ValueError(f"{text!r}: missing {', '.join(missing)}")
         bad = [k for k, v in params.items() if not _in_range(k, v)]
-        if params.get("lo", -1.0) >= params.get("hi", 1.0):
+        lo, hi = params.get("lo", SP_DEFAULTS[kind][0]), params.get("hi", SP_DEFAULTS[kind][1])
+        if lo >= hi:  # against the kind's own defaults: a tank's are 50 and 60 cm
             bad.append("lo < hi")
+        if kind == "two_tank" and not 0.0 < lo < hi <= TANK_MAX_SP:
+            bad.append(f"tank setpoints within (0, {TANK_MAX_SP:g}] cm (what the pump holds)")
         if bad:
             raise ValueError(
                 f"{text!r}: {', '.join(bad)} out of range (K nonzero; tau, gains and hints "
@@ -145,7 +151,7 @@ class LoopSpec:
     def build(self, sim: Simulation, *, seed: int, t0: float) -> SimulatedLoop:
         p = self.params
         kp, ki = self.initial_gains()
-        lo, hi = TANK_SP if self.kind == "two_tank" else (-1.0, 1.0)
+        lo, hi = SP_DEFAULTS[self.kind]
         settings = LoopSettings(
             kp=kp,
             ki=ki,

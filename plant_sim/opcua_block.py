@@ -20,7 +20,10 @@ OUT_HI_LIM, OUT_LO_LIM  Double   output limits (read only)
 A GAIN or RESET written by a client takes effect at the next scan, bumplessly; a value
 outside the block's range (the loop's gain range) is clamped and the clamped value
 written back, as a DCS does. In MAN the output holds (OUT, operator-writable) and the PI
-tracks it, so the return to AUTO is bumpless.
+tracks it, so the return to AUTO is bumpless; an OUT beyond the output limits is clamped
+(and shown clamped), a NaN one refused (an OUT of 150 on a 0-80 valve wound the PI up for
+97 s at the limit after AUTO). A MODE other than 1, 2, 3 is refused: the mode in force is
+written back (it ran as AUTO while the gateway's map read it as not auto).
 """
 
 from __future__ import annotations
@@ -139,15 +142,22 @@ class PidBlock:
                 loop.apply_gains(*self.form.to_parallel(p, i))
             self.shown["GAIN"], self.shown["RESET"] = p, i
         mode = self._read(server, "MODE")
-        if mode == MAN:
-            self.op = float(self._read(server, "OUT"))
+        if mode not in MODES.values():  # refused, as a DCS refuses it: the mode in force
+            mode = self.shown["MODE"]
+            await self._write(server, "MODE", mode, ts, force=True)
+        lo, hi = loop.op_limits
+        if mode == MAN:  # the operator's OUT, within the output limits (NaN: refused)
+            out = float(self._read(server, "OUT"))
+            if math.isfinite(out):
+                self.op = min(
+                    max(out, -math.inf if lo is None else lo), math.inf if hi is None else hi
+                )
             scan = held_scan(loop, self.op)
         else:
             scan = loop.scan()
             self.op = scan.op
         self.shown["MODE"] = mode
         in_force = self.form.from_parallel(scan.kp, scan.ki)
-        lo, hi = loop.op_limits
         await self._write(server, "SP", float(scan.sp), ts)
         await self._write(server, "OUT", float(scan.op), ts, force=True)
         await self._write(server, "OUT_HI_ACT", bool(hi is not None and scan.op >= hi), ts)

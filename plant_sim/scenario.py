@@ -219,7 +219,8 @@ class TankLoop(SimulatedLoop):
         return float(self.plant.measure()[0])
 
     def _advance(self, op: float, load: float) -> None:
-        # A load is extra feed (L/min) the flow loop cannot see: it adds to the flow setpoint.
+        # A load (L/min) adds to the flow setpoint: the inner flow loop delivers it, lagged
+        # and within the pump's 80 L/min (a demand on the feed, not a flow bypassing it).
         self.plant.step(op + load)
 
 

@@ -46,6 +46,16 @@ def test_loop_specs_are_checked_when_parsed(text, says):
     assert LoopSpec.parse("foptd", "f1:K=2,tau=20,theta=5,lo=-3,hi=3").params["lo"] == -3.0
 
 
+def test_tank_setpoints_are_checked_against_the_tanks_own_defaults():
+    """A tank's setpoints default to 50 and 60 cm (not the FOPTD loops' -1 and 1): lo = 45
+    alone is a valid schedule, hi = 40 alone an inverted one; and a level the full pump
+    cannot hold (101 cm) is refused."""
+    assert LoopSpec.parse("two_tank", "tank1:lo=45").params == {"lo": 45.0}
+    for text in ("tank1:hi=40", "tank1:lo=20,hi=110", "tank1:lo=-5,hi=30"):
+        with pytest.raises(ValueError, match="lo < hi|tank setpoints within"):
+            LoopSpec.parse("two_tank", text)
+
+
 def test_a_file_that_is_not_there_or_not_a_database_is_one_line(tmp_path, capsys):
     not_db = tmp_path / "notes.db"
     not_db.write_text("not a database")

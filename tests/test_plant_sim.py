@@ -209,6 +209,19 @@ def test_two_tank_steady_state_inflow_equals_outflow():
     assert flow[1] == pytest.approx(59.0, abs=0.5)  # Bernoulli at 55 cm: about 59 L/min
 
 
+@pytest.mark.parametrize("scan", [1.0, 60.0])
+def test_two_tank_settles_where_bernoulli_says_whatever_the_scan(scan):
+    """Closed form: the level whose outflow pi r^2 f_c sqrt(2 g h) is the inflow. With 4
+    integration substeps a scan, a 60 s scan settled at 31 cm for the 65 L/min that holds
+    66.7 cm."""
+    tank = TwoTankBatch(1, level_cm=55.0, dt=scan)
+    for _ in range(int(3600 / scan)):
+        tank.step(65.0)
+    p = tank.p
+    level_dm = (65.0 / (np.pi * p.r_pipe**2 * p.f_c)) ** 2 / (2.0 * p.g)
+    assert tank.level_cm[0] == pytest.approx(10.0 * level_dm, abs=0.01)
+
+
 def test_two_tank_units_by_foptd_fit():
     tank = TwoTankBatch(1, level_cm=55.0)
     f0 = tank.equilibrium_flow(55.0)
