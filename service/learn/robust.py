@@ -49,7 +49,7 @@ import numpy as np
 from plant_sim.foptd import FOPTDBatch
 from plant_sim.loop import step_test
 from plant_sim.pi import PIBatch
-from plant_sim.tunings import simc_paper, to_parallel
+from plant_sim.tunings import simc_improved, simc_paper, to_parallel
 from service.engine import LoopConfig, TuningEngine
 from service.learn.closed_loop import Policy, engine_of
 from service.units import AGENT_KI0, AGENT_KP0, RL_STEP_AGENT_UNITS, ScalingSpec
@@ -357,24 +357,42 @@ def score(K, tau, theta, lag, kp, ki, tau_cl=None) -> tuple[np.ndarray, np.ndarr
     return np.where(np.isfinite(mse), mse, np.inf), unstable
 
 
-def simc_score(run: Run) -> np.ndarray:
-    """Step-test MSE of SIMC (paper variant) with the true (half-rule) model."""
+def simc_score(run: Run, improved: bool = False) -> np.ndarray:
+    """Step-test MSE of SIMC with the true (half-rule) model: the paper's variant (its
+    Table 2: the original rule's gain, the improved rule's integral time), or
+    ``improved`` SIMC with tau_c = 2 tau (the engine's model tuning, much the stronger)."""
     tau_h, theta_h = run.tau + run.lag / 2, run.theta + run.lag / 2
-    kp, ki = to_parallel(*simc_paper(run.K, tau_h, theta_h))
+    rule = simc_improved(run.K, tau_h, theta_h, 2 * tau_h) if improved else (
+        simc_paper(run.K, tau_h, theta_h)
+    )  # fmt: skip
+    kp, ki = to_parallel(*rule)
     return score(run.K, run.tau, run.theta, run.lag, kp, ki)[0]
+
+
+def ends_on_model(run: Run) -> np.ndarray:
+    """(N,) whether each loop's last gain change was a model's tuning (audit reason
+    ``model``), not the agent's: the score is then the engine's identification's."""
+    last: dict[str, str] = {}
+    for row in run.engine.table.drain_changes()[1]:
+        if row[6:8] != row[8:10] and row[8] is not None:  # the gains changed
+            last[row[0]] = row[5]
+    return np.array([last.get(f"P{i}") == "model" for i in range(run.K.size)])
 
 
 def summarise(cond: Condition, run: Run) -> dict:
     kp, ki = run.gains[-1].T
     mse, unstable = score(run.K, run.tau, run.theta, run.lag, kp, ki)
-    simc = simc_score(run)
+    simc, improved = simc_score(run), simc_score(run, improved=True)
     return {
         "condition": cond.name,
         "worst_mse": float(mse.max()),
         "median_mse": float(np.median(mse)),
         "beats_simc": float(np.mean(mse < simc)),
+        "beats_simc_improved": float(np.mean(mse < improved)),
+        "on_model": int(ends_on_model(run).sum()),
         "unstable": int(unstable.sum()),
         "simc_worst_mse": float(simc.max()),
+        "simc_improved_worst_mse": float(improved.max()),
         "meets_bar": bool(
             mse.max() <= BAR_WORST and np.median(mse) <= BAR_MEDIAN and not unstable.any()
         ),  # fmt: skip
