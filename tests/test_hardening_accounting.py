@@ -19,7 +19,7 @@ from service.daemon.store import Store
 from service.daemon.tuner import Tuner
 from service.engine.config import LoopConfig
 from service.wire.protocol import MAX_MESSAGE_BYTES, RejectReason
-from tests.tuner_support import loop_body, tuner_settings
+from tests.tuner_support import loop_body, open_peer, tuner_settings, wait_until
 
 pytestmark = pytest.mark.timeout(120)
 IDS = ["A", "B", "C", "D"]
@@ -180,3 +180,32 @@ def test_messages_dropped_by_the_callback_are_counted_once(tuner):
     received, rejected, accepted = _counts(tuner)
     assert received == 60 + 4 + 3 + 1  # the queued batch's 60, 4 singles, 4 dropped unread
     assert received == rejected + accepted
+
+
+def test_a_message_far_over_the_limit_is_dropped_by_zenoh_before_it_is_assembled(tmp_path):
+    """Zenoh assembles a message before any callback sees it: the tuner's links take up
+    to RX_MAX_BYTES, so a 48 MiB batch costs it no memory (no sample, no rejection),
+    while one just over MAX_MESSAGE_BYTES still arrives and is counted too_large."""
+    with Tuner(tuner_settings(tmp_path)) as tuner:
+        tuner.register(LoopConfig(**loop_body("A")))
+        session = open_peer(tuner.settings.zenoh_listen)
+        try:
+            m = tuner.metrics
+            wait_until(lambda: list(session.liveliness().get("pitune/tuners/*", timeout=1.0)))
+
+            def then_a_sample(payload: bytes, t: float) -> None:
+                """``payload``, then a batch with one sample on the same key (in order):
+                once that sample is counted, the payload was handled or dropped."""
+                block = zenoh.CongestionControl.BLOCK  # as a gateway sends (DROP: lost)
+                session.put("pitune/samples", payload, congestion_control=block)
+                batch = {"samples": [{"loop_id": "A", "t": t, "e": 0.5}]}
+                session.put("pitune/samples", json.dumps(batch).encode(), congestion_control=block)
+                wait_until(lambda: tuner.view("A").counters.samples == t, 30.0, "the marker")
+
+            then_a_sample(b" " * (48 << 20), 1.0)
+            assert m.value("pitune_samples_rejected_total", reason="too_large") == 0
+            assert m.value("pitune_samples_received_total") == 1  # the marker alone
+            then_a_sample(b" " * (MAX_MESSAGE_BYTES + 1000), 2.0)
+            assert m.value("pitune_samples_rejected_total", reason="too_large") == 1
+        finally:
+            session.close()

@@ -153,6 +153,15 @@ def _size(item: Item) -> int:
     return len(payload) if isinstance(payload, bytes | bytearray) else QUERY_BYTES
 
 
+RX_MAX_BYTES = MAX_MESSAGE_BYTES + (1 << 20)
+"""Largest message Zenoh reassembles for the tuner (its links' ``rx/max_message_size``,
+whatever the config file says): the tuner refuses a message over
+:data:`MAX_MESSAGE_BYTES` unread (``too_large``), but Zenoh had assembled it first; a
+300 MB one cost 290 MB and three 31 MiB ones 1.7 GB (a security review, session 36).
+Beyond this, Zenoh drops the message on arrival (a message up to 1 MiB over the limit
+still reaches the tuner, to be counted ``too_large``)."""
+
+
 def zenoh_config(settings: Settings) -> zenoh.Config:
     """Zenoh config: the JSON5 file if given, then the settings' mode and endpoints.
 
@@ -165,13 +174,15 @@ def zenoh_config(settings: Settings) -> zenoh.Config:
     def given(field: str, value: object) -> object:
         return value if explicit is None or field in explicit else None
 
-    return session_config(
+    config = session_config(
         config_file=settings.zenoh_config,
         mode=given("zenoh_mode", settings.zenoh_mode),
         listen=given("zenoh_listen", settings.zenoh_listen),
         connect=given("zenoh_connect", settings.zenoh_connect),
         multicast_scouting=given("zenoh_multicast_scouting", settings.zenoh_multicast_scouting),
     )
+    config.insert_json5("transport/link/rx/max_message_size", str(RX_MAX_BYTES))
+    return config
 
 
 class Bus:
