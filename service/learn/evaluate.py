@@ -28,6 +28,7 @@ from service.learn.experiments import (
     adaptation,
     adaptation_spread,
     asymptotic,
+    held_out_grid,
     hidden_pca,
     quiet,
     robustness,
@@ -86,6 +87,7 @@ def evaluate(agent: Policy, out: Path, quick: bool = False) -> dict:
     start = time.monotonic()
     steps = 80 if quick else 100
     asym = asymptotic(agent, steps, quick)
+    held = grid_metrics(asymptotic(agent, steps, quick, plants=held_out_grid(32 if quick else 80)))
     t2 = table2(agent, steps)
     robust = robustness(agent, steps, quick)
     still = quiet(agent, steps, quick)
@@ -105,6 +107,7 @@ def evaluate(agent: Policy, out: Path, quick: bool = False) -> dict:
         "quick": quick,
         "rl_steps": steps,
         **grid_metrics(asym),
+        "held_out": {**held["asymptotic"], "convergence": held["convergence"]},
         "table2": t2,
         "adaptation": adaptation_metrics(adapt),
         "adaptation_spread": spread,
@@ -150,6 +153,9 @@ def grid_metrics(asym: dict) -> dict:
             "best_plant": plant(best),
             "simc_worst_mse": float(asym["simc_mse"].max()),
             "simc_median_mse": float(np.median(asym["simc_mse"])),
+            "simc_improved_worst_mse": float(asym["simc_improved_mse"].max()),
+            "simc_improved_median_mse": float(np.median(asym["simc_improved_mse"])),
+            "beats_simc_improved": float(np.mean(asym["mse"] < asym["simc_improved_mse"])),
         },
         "convergence": {
             "worst_time": float(asym["conv"].max()),
