@@ -150,3 +150,19 @@ def test_a_store_that_keeps_failing_makes_the_daemon_exit_for_a_restart(tmp_path
             assert [e["reason"] for e in items] == ["registered"]
     finally:
         d.stop()
+
+
+def test_a_local_client_cannot_choose_the_address_the_log_records(daemon):
+    """uvicorn's default believed X-Forwarded-For from any client on loopback; the tuner
+    believes only the proxies of api_trusted_proxies (none by default)."""
+    daemon.start()
+    with daemon.http() as client:
+        r = client.post("/loops", json=loop_body("L1"), headers={"X-Forwarded-For": "10.66.66.66"})
+        assert r.status_code == 201, r.text
+
+    def logged() -> str | None:
+        lines = daemon.log.read_text().splitlines()
+        return next((x for x in lines if "'L1' registered" in x), None)
+
+    line = wait_until(logged, 30.0, "the registration's log line")
+    assert "from 127.0.0.1" in line and "10.66.66.66" not in line, line

@@ -446,6 +446,9 @@ def serve(settings: Settings) -> int:
                 log_config=None,  # uvicorn's lines go through our handler and format
                 log_level=settings.log_level,
                 lifespan="on",
+                # (uvicorn's default believes any client on 127.0.0.1: a local process set
+                # the address the audit records)
+                forwarded_allow_ips=settings.api_trusted_proxies,
             )
         )
         log.info("admin API on http://%s:%d", settings.api_host, sock.getsockname()[1])

@@ -80,6 +80,13 @@ class Settings(BaseSettings):
         "port); others get a 400 (DNS rebinding). Default: the loopback names when api_host "
         "is loopback, any otherwise. In the environment a JSON list.",
     )
+    api_trusted_proxies: list[str] = Field(
+        [],
+        description="Addresses of reverse proxies whose X-Forwarded-For and "
+        "X-Forwarded-Proto the admin API believes (the client address it logs and audits, "
+        "https for the console's Secure cookie). Default: none, not even loopback. In the "
+        "environment a JSON list.",
+    )
     key_prefix: str = DEFAULT_PREFIX
     instance_id: Annotated[str, Field(pattern=LOOP_ID_PATTERN)] = Field(
         default_factory=default_instance_id
