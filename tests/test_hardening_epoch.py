@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import queue
+import time
 
 import pytest
 
@@ -239,3 +240,21 @@ def test_the_reference_gateway_reports_applied_seq_and_reset_t(tmp_path):
             gw.close()
             sub.undeclare()
             session.close()
+
+
+def test_an_epoch_far_ahead_of_the_clock_is_no_tuners_and_is_dropped():
+    """A forged message with an epoch of 2**62 would order above every real update of
+    its loop for ever; a gateway drops an epoch more than a day ahead of its clock."""
+    inbox = GainsInbox(loops=frozenset({"L"}))
+
+    def message(epoch: int, seq: int, kp: float) -> bytes:
+        msg = GainsMessage(loop_id="L", seq=seq, t=0.0, dkp=0.0, dki=0.0, kp=kp, ki=0.02,
+                           mode="auto", instance_id="x", epoch=epoch)  # fmt: skip
+        return msg.model_dump_json().encode()
+
+    now_ms = int(time.time() * 1000)
+    inbox.put_raw(Source.gains, message(2**62, 1, 500.0))
+    inbox.put_raw(Source.gains, message(now_ms, 1, 0.5))
+    inbox.put_raw(Source.gains, message(now_ms + 3_600_000, 2, 0.6))  # an hour's skew: fine
+    assert [(u.seq, u.kp) for u in inbox.drain()] == [(1, 0.5), (2, 0.6)]
+    assert inbox.implausible == 1

@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import logging
 import queue
+import time
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from enum import Enum
@@ -99,6 +100,14 @@ class Update:
     epoch: int | None = None
 
 
+EPOCH_AHEAD_MS = 86_400_000.0
+"""How far ahead of this host's wall clock (ms) an epoch may be: a tuner's epoch is its
+start's wall clock in ms, plus one per start within the same ms (docs/protocol.md), so a
+day covers clock differences between hosts. A message with an epoch beyond that is no
+tuner's: taken, it would order above every real update of its loop for ever (a forged
+epoch of 2**62 blocked a loop's updates in a security review, session 36)."""
+
+
 @dataclass
 class GainsInbox:
     """Raw gains payloads in, validated updates out, duplicates and late ones dropped.
@@ -115,6 +124,8 @@ class GainsInbox:
     """The loops of interest (None: all); messages of other loops are ignored."""
     invalid: int = 0
     stale: int = 0
+    implausible: int = 0
+    """Messages dropped for an epoch far ahead of this host's clock (:data:`EPOCH_AHEAD_MS`)."""
     _raw: queue.SimpleQueue = field(default_factory=queue.SimpleQueue)
     _last: dict[tuple[str, str], int] = field(default_factory=dict)
     _order: dict[str, tuple[int, int]] = field(default_factory=dict)
@@ -165,6 +176,9 @@ class GainsInbox:
             self.supervision[msg.loop_id] = msg
             if msg.seq == 0 or msg.mode is not Mode.auto:
                 return None  # no gains published yet, or none to apply (docs/protocol.md)
+        if msg.epoch is not None and msg.epoch > time.time() * 1000.0 + EPOCH_AHEAD_MS:
+            self.implausible += 1  # taken, it would put every real update below it
+            return None
         state = source in (Source.state, Source.state_batch)
         key = (msg.loop_id, msg.instance_id)
         last = self._last.get(key)
