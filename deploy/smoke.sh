@@ -166,18 +166,10 @@ case "$user" in ""|root|0|0:*) die "the image runs as root" ;; esac
 # -- secrets: the shipped configs with fresh passwords, a random token ----------------------
 SECRETS=$WORK/secrets
 LOG=$WORK/log
-mkdir -p "$SECRETS" "$LOG/untuned"
+mkdir -p "$LOG/untuned"
 chmod 777 "$LOG" "$LOG/untuned"   # written by the image's user (uid 10001)
-rand() { od -An -N16 -tx1 /dev/urandom | tr -d ' \n'; }
-TOKEN=$(rand)
-: >"$SECRETS/credentials.txt"
-for user in tuner gateway; do
-  pw=$(rand)
-  sed "s/$user-change-me/$pw/" "$DEPLOY/zenoh/$user.json5" >"$SECRETS/$user.json5"
-  grep -q "$pw" "$SECRETS/$user.json5" || die "no example password in deploy/zenoh/$user.json5"
-  echo "$user:$pw" >>"$SECRETS/credentials.txt"
-done
-chmod 644 "$SECRETS"/*   # read by the containers' user (the directory stays private)
+"$DEPLOY/secrets.sh" "$SECRETS" >/dev/null || die "deploy/secrets.sh failed"
+TOKEN=$(od -An -N16 -tx1 /dev/urandom | tr -d ' \n')
 cat >"$WORK/.env" <<EOF
 PITUNE_API_TOKEN=$TOKEN
 PITUNE_ZENOH_SECRETS=$SECRETS

@@ -16,6 +16,7 @@ import os
 import queue
 import re
 import shutil
+import stat
 import subprocess
 import sys
 import time
@@ -52,6 +53,7 @@ def run_compose(*args: str, files: tuple[Path, ...] = (), **env: str):
     """The compose binary on the compose file (plus ``files``) with deploy/.env.example as
     its .env and ``env`` as the only PITUNE_* variables of the environment."""
     environ = {k: v for k, v in os.environ.items() if not k.startswith("PITUNE_")}
+    env = {"PITUNE_ZENOH_SECRETS": "./zenoh", **env}  # (the example's is empty: required)
     command = [compose_binary(), "-f", str(COMPOSE_FILE)]
     for extra in files:
         command += ["-f", str(extra)]
@@ -101,6 +103,35 @@ def test_compose_refuses_to_start_without_an_api_token():
     assert result.returncode != 0
     assert "required variable PITUNE_API_TOKEN is missing a value" in result.stderr
     assert "deploy/.env" in result.stderr, "the message says where to set it"
+
+
+def test_compose_refuses_to_start_without_zenoh_secrets():
+    """The example names no secrets directory: the repository's example passwords are
+    public, and the router listens on every interface."""
+    example = (DEPLOY / ".env.example").read_text()
+    assert re.search(r"^PITUNE_ZENOH_SECRETS=$", example, re.M)
+    result = run_compose("config", "-q", PITUNE_API_TOKEN=TOKEN, PITUNE_ZENOH_SECRETS="")
+    assert result.returncode != 0
+    assert "set PITUNE_ZENOH_SECRETS in deploy/.env" in result.stderr
+
+
+def test_secrets_sh_makes_fresh_passwords_in_a_private_directory(tmp_path):
+    target = tmp_path / "secrets"
+    script = DEPLOY / "secrets.sh"
+    made = subprocess.run(["bash", str(script), str(target)], capture_output=True, text=True)
+    assert made.returncode == 0, made.stderr
+    assert stat.S_IMODE(target.stat().st_mode) == 0o700
+    users = dict(line.split(":") for line in (target / "credentials.txt").read_text().split())
+    assert set(users) == {"tuner", "gateway"} and len(set(users.values())) == 2
+    for user, password in users.items():
+        config = (target / f"{user}.json5").read_text()
+        assert password in config and "change-me" not in config
+        assert len(password) == 32
+    again = subprocess.run(["bash", str(script), str(target)], capture_output=True, text=True)
+    assert again.returncode == 1 and "not empty" in again.stderr
+    assert (
+        dict(line.split(":") for line in (target / "credentials.txt").read_text().split()) == users
+    )
 
 
 def test_compose_binds_and_secrets_come_from_the_environment():
