@@ -94,6 +94,8 @@ def test_compose_has_router_tuner_and_plant(compose):
     assert published(services["router"], 7447) == {"0.0.0.0"}, "Zenoh open to gateways"
     for name in ("tuner", "plant"):
         assert services[name]["environment"]["PITUNE_API_TOKEN"] == TOKEN, name
+        assert services[name]["cap_drop"] == ["ALL"], name
+        assert services[name]["security_opt"] == ["no-new-privileges:true"], name
 
 
 def test_compose_refuses_to_start_without_an_api_token():
