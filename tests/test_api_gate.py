@@ -13,7 +13,13 @@ import pytest
 import uvicorn
 
 from service.daemon.api import create_app
-from service.daemon.gate import BODY_BYTES, LOGIN_BODY_BYTES, allowed_hosts
+from service.daemon.gate import (
+    BODY_BYTES,
+    FAILURE_WINDOW_S,
+    LOGIN_BODY_BYTES,
+    MAX_FAILURES,
+    allowed_hosts,
+)
 from service.daemon.settings import load_settings
 from service.daemon.store_pg import redacted
 from service.wire.session import free_port
@@ -137,3 +143,25 @@ def test_a_postgresql_password_is_shown_to_no_one(tmp_path, pg_url):
         assert "password=***" in httpx.get(f"http://127.0.0.1:{port}/ui/api/tuner").text
     url = f"postgresql://pitune:{secret}@db:5432/pitune?sslmode=require&password={secret}"
     assert redacted(url) == url.replace(secret, "***")
+
+
+def test_a_client_guessing_tokens_is_locked_out_and_logged(tmp_path, caplog):
+    """MAX_FAILURES wrong tokens (REST and console login together) lock the client out,
+    the right token too, until they age; the lock-out is a WARNING."""
+    with _served(tmp_path, api_token=TOKEN) as (tuner, port):
+        url = f"http://127.0.0.1:{port}"
+        for k in range(MAX_FAILURES - 1):
+            r = httpx.post(f"{url}/loops/L{k}/reset", headers={"Authorization": f"Bearer {k}"})
+            assert r.status_code == 401
+        r = httpx.post(f"{url}/ui/login", data={"token": "guess"})  # the tenth, at the console
+        assert r.status_code == 303 and "wrong+token" in r.headers["location"]
+        for attempt in ({"headers": AUTH, "json": loop_body("L1")}, {"headers": {}}):
+            r = httpx.post(f"{url}/loops", **attempt)
+            assert r.status_code == 429, r.text
+            assert 0 < int(r.headers["Retry-After"]) <= FAILURE_WINDOW_S
+        r = httpx.post(f"{url}/ui/login", data={"token": TOKEN})
+        assert r.status_code == 429
+        assert tuner.loop_ids() == []
+        assert httpx.get(f"{url}/loops").is_success  # reads stay open
+    locked = [r for r in caplog.records if "locked out" in r.getMessage()]
+    assert len(locked) == 1 and locked[0].levelname == "WARNING"

@@ -46,7 +46,7 @@ from prometheus_client import CONTENT_TYPE_LATEST
 from service.agent.model import Agent
 from service.daemon import console, forward
 from service.daemon.admin import Conflict, OwnedElsewhere, StoreUnavailable, UnknownLoop
-from service.daemon.gate import BODY_BYTES, BULK_BODY_BYTES, Gate, token_matches
+from service.daemon.gate import BODY_BYTES, BULK_BODY_BYTES, Failures, Gate, token_matches
 from service.daemon.logs import StatusWatch, table_statuses
 from service.daemon.schemas import (
     MAX_BULK,
@@ -304,7 +304,19 @@ def _unhealthy(state: str, detail: str) -> JSONResponse:
     return JSONResponse(Health(status=state, detail=detail).model_dump(), status_code=503)
 
 
+MIN_TOKEN_CHARS = 16
+"""A shorter API token is warned about at start-up (guessable: the gate locks a guessing
+client out for a minute after 10 tries, which slows a search, not stops it)."""
+
+
 def _warn_if_open(settings: Settings) -> None:
+    token = settings.api_token
+    if token is not None and len(token.get_secret_value()) < MIN_TOKEN_CHARS:
+        log.warning(
+            "the API token has %d characters: guessable. Use a long random one "
+            "(openssl rand -hex 32).",
+            len(token.get_secret_value()),
+        )
     if settings.api_token is None and not _is_loopback(settings.api_host):
         log.warning(
             "the admin API listens on %r WITHOUT A TOKEN: anyone who reaches it can register, "
@@ -408,7 +420,8 @@ def create_app(
     app.include_router(ops)
     app.include_router(console.router)  # the operator console at /ui (docs/console.md)
     forward.install(app)  # a cluster's members answer for each other's loops
-    app.add_middleware(Gate, settings=settings)  # outermost: before any body is read
+    app.state.token_failures = Failures()  # (the console's login counts its own too)
+    app.add_middleware(Gate, settings=settings, failures=app.state.token_failures)
 
     @app.get("/docs", include_in_schema=False, response_class=HTMLResponse)
     def docs() -> HTMLResponse:

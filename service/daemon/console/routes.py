@@ -157,7 +157,7 @@ async def login(request: Request) -> Response:
     target = safe_next(form.get("next", ["/ui"])[0])
     client = request.client.host if request.client else "?"
     if not token_ok(request, token):
-        log.warning("console login refused (wrong token) from %s", client)
+        request.app.state.token_failures.failed(client, "console login")
         await asyncio.sleep(LOGIN_PENALTY_S)  # slows guessing down
         query = urllib.parse.urlencode({"next": target, "error": "wrong token"})
         return RedirectResponse(f"/ui/login?{query}", status_code=303)
