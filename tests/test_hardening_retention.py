@@ -131,3 +131,22 @@ def test_a_worker_that_is_never_idle_still_prunes_once_a_pass_is_late(tmp_path):
             stop.set()
             feeder.join()
     assert tuner.pruned == 8
+
+
+def test_export_into_a_reader_that_stops_early_ends_quietly(tmp_path):
+    """`pitune store export ... | head -1`: the pipe closes under the export; that is the
+    reader's choice, not a traceback."""
+    settings = tuner_settings(tmp_path)
+    with Tuner(settings) as tuner:
+        tuner.register(LoopConfig(**loop_body("LIC-101")))
+        for _ in range(3000):  # more than a pipe's buffer of rows
+            tuner.reset("LIC-101")
+    export = subprocess.Popen(
+        [sys.executable, "-m", "service.cli", "store", "export", "--db", str(settings.db_path)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+    )  # fmt: skip
+    first = export.stdout.readline()
+    export.stdout.close()  # as head does after its line
+    _, err = export.communicate(timeout=60)
+    assert json.loads(first)["reason"] == "registered"
+    assert export.returncode == 0 and b"Traceback" not in err, err.decode()

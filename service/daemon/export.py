@@ -16,6 +16,7 @@ in a read-only transaction; it has no journal, so every committed row is exporte
 from __future__ import annotations
 
 import argparse
+import os
 import sqlite3
 import sys
 from pathlib import Path
@@ -55,8 +56,13 @@ def run(args: argparse.Namespace) -> int:
         return 1
     try:
         if args.out is None:
-            n = export_audit(db, sys.stdout.buffer, args.loop, args.since_id)
-            sys.stdout.buffer.flush()
+            try:
+                n = export_audit(db, sys.stdout.buffer, args.loop, args.since_id)
+                sys.stdout.buffer.flush()
+            except BrokenPipeError:  # the reader stopped early (| head): not an error
+                # (Python's own flush at exit would raise again on the closed pipe)
+                os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+                return 0
         else:
             with open(args.out, "wb") as out:
                 n = export_audit(db, out, args.loop, args.since_id)
