@@ -97,11 +97,17 @@ def read_log(path: str | Path) -> Trajectory:
 
 
 def plot(
-    runs: Mapping[str, Trajectory], out: str | Path, *, title: str = "", units: str = ""
+    runs: Mapping[str, Trajectory],
+    out: str | Path,
+    *,
+    title: str = "",
+    units: str = "",
+    gain_units: str = "",
 ) -> Path:
     """PV vs setpoint vs target (top) and kp, ki (bottom) of one or more runs, as a PNG.
 
     The first run's setpoint and target are drawn (runs are meant to share a schedule).
+    ``units``: the PV's; ``gain_units``: kp's (output per PV unit; ki's is that per s).
     """
     import matplotlib
 
@@ -122,8 +128,8 @@ def plot(
     ax_pv.set_ylabel(f"PV {units}".strip())
     ax_pv.legend(loc="upper right", fontsize=8)
     ax_pv.set_title(title)
-    ax_kp.set_ylabel("kp (solid)")
-    ax_ki.set_ylabel("ki, 1/s (dotted)")
+    ax_kp.set_ylabel(f"kp, {gain_units} (solid)" if gain_units else "kp (solid)")
+    ax_ki.set_ylabel(f"ki, {gain_units}/s (dotted)" if gain_units else "ki, 1/s (dotted)")
     ax_kp.set_xlabel("simulated time, min")
     handles = ax_kp.get_legend_handles_labels()
     more = ax_ki.get_legend_handles_labels()

@@ -256,6 +256,7 @@ class Demo:
             title=f"Two-tank level loop, {self.args.minutes:g} simulated minutes "
             f"(tracking MSE {mse_tuned:.3g} vs {mse_untuned:.3g} cm^2 untuned)",
             units="level, cm",
+            gain_units="(L/min)/cm",
         )
         print(summary_markdown(summary), end="")
         print(f"wrote {out}/two_tank.png, summary.md, summary.json, {LOOP_ID}.csv")
@@ -326,6 +327,7 @@ def _hint_line(s: dict) -> str:
 
 def summary_markdown(s: dict) -> str:
     reg, fin, simc = s["registered_gains"], s["final_gains"], s["simc_reference_gains"]
+    lin = s["linearisation"]
     return f"""# pitune demo: two-tank level loop
 
 {s["simulated_minutes"]:g} simulated minutes at {s["speed"]:g}x real time ({s["wall_s"]:g} s wall),
@@ -342,8 +344,9 @@ over the last {MSE_CHANGES} setpoint changes (t >= {s["mse_window_start_s"]:g} s
 {s["mse_tuned_cm2"]:.4g} |
 
 The tuned loop tracks the target {s["improvement"]:.1f}x better (MSE ratio). For reference,
-improved SIMC on the tank's identified model 1.9 exp(-15 s)/(47 s + 1) with tau_c = 94 s
-gives kp = {simc["kp"]:.3g}, ki = {simc["ki"]:.3g}.
+improved SIMC on the tank's linearisation {lin["k"]:g} exp(-{lin["theta_s"]:g} s)/\
+({lin["tau_s"]:g} s + 1) with tau_c = {2 * lin["tau_s"]:g} s gives kp = {simc["kp"]:.3g} \
+(L/min)/cm, ki = {simc["ki"]:.3g} (L/min)/(cm s).
 """
 
 
