@@ -366,6 +366,6 @@ def _adopt(tb: LoopTable, s: int, sample: Sample, wall: float) -> None:
     tb._audit.append(
         audit_row(
             tb.ids[s], wall, sample.t, int(tb.seq[s]), tb.mode_of(s).value,
-            "adopted", old, (kp, ki), "gains reported by the gateway",
+            "adopted", old, (kp, ki), rules.adopted_detail(tb, s),
         )
     )  # fmt: skip

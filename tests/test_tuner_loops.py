@@ -263,6 +263,21 @@ def test_after_advisory_steps_an_operators_change_in_auto_is_adopted(batched):
 
 
 @pytest.mark.parametrize("batched", [False, True])
+def test_gains_adopted_outside_the_guards_bounds_are_said_so(batched):
+    """No step of the tuner's leaves the guard's bounds: gains reported outside them are
+    an operator's deliberate choice or samples that are not the DCS's; the audit says so."""
+    t, s = table(ScalingAgent(1.2))
+    ingest = ingest_one if batched else reference_ingest
+    feed(t, s, [0.0])
+    ingest(t, s, sample(1.0, kp=0.4, ki=0.01), WALL)
+    ingest(t, s, sample(2.0, kp=5000.0, ki=0.01), WALL)
+    details = [row[10] for row in t.drain_changes()[1]]
+    assert details[0] == "gains reported by the gateway"
+    assert details[1].startswith("gains reported by the gateway, OUTSIDE the guard's bounds")
+    assert (t.kp[s], t.ki[s]) == (5000.0, 0.01)  # in force in the DCS: adopted all the same
+
+
+@pytest.mark.parametrize("batched", [False, True])
 def test_stale_gains_without_applied_seq_are_adopted_as_today(batched):
     t, s, ingest = _two_updates_ahead(batched)
     ingest(t, s, sample(331.0, kp=0.5, ki=0.01), WALL)  # not the gains just replaced

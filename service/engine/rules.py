@@ -274,9 +274,23 @@ def _adopt(tb: LoopTable, slots: np.ndarray, cols: dict[str, np.ndarray], wall: 
         tb._audit.append(
             audit_row(
                 tb.ids[s], wall, float(t[i]), int(tb.seq[s]), _MODES[tb.mode[s]].value,
-                "adopted", old, (float(kp[i]), float(ki[i])), "gains reported by the gateway",
+                "adopted", old, (float(kp[i]), float(ki[i])), adopted_detail(tb, s),
             )
         )  # fmt: skip
+
+
+def adopted_detail(tb: LoopTable, s: int) -> str:
+    """The audit detail of gains adopted from the gateway (in force in ``s`` now): said
+    where they lie outside the guard's bounds, which no step of the tuner's would have
+    left (an operator's deliberate choice, or samples that are not the DCS's)."""
+    kp, ki = tb.kp[s], tb.ki[s]
+    lo, hi = (tb.kp_min[s], tb.ki_min[s]), (tb.kp_max[s], tb.ki_max[s])
+    if lo[0] <= kp <= hi[0] and lo[1] <= ki <= hi[1]:
+        return "gains reported by the gateway"
+    return (
+        f"gains reported by the gateway, OUTSIDE the guard's bounds (kp {lo[0]:.6g} to"
+        f" {hi[0]:.6g}, ki {lo[1]:.6g} to {hi[1]:.6g})"
+    )
 
 
 def _close(a: np.ndarray, b: np.ndarray) -> np.ndarray:
