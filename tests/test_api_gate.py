@@ -165,3 +165,34 @@ def test_a_client_guessing_tokens_is_locked_out_and_logged(tmp_path, caplog):
         assert httpx.get(f"{url}/loops").is_success  # reads stay open
     locked = [r for r in caplog.records if "locked out" in r.getMessage()]
     assert len(locked) == 1 and locked[0].levelname == "WARNING"
+
+
+def test_a_gateways_token_registers_its_own_loops_and_nothing_else(tmp_path):
+    gw_token = "gateway-one-token-0123456789"
+    mine = {"Authorization": f"Bearer {gw_token}"}
+    with _served(tmp_path, api_token=TOKEN, api_gateway_tokens={"gw-1": gw_token}) as (
+        tuner, port,
+    ):  # fmt: skip
+        url = f"http://127.0.0.1:{port}"
+        r = httpx.post(f"{url}/loops", json=loop_body("A", gateway="gw-1"), headers=mine)
+        assert r.status_code == 201, r.text
+        pair = [loop_body("B", gateway="gw-1"), loop_body("C", gateway="gw-1")]
+        r = httpx.post(f"{url}/loops/bulk", headers=mine, json=pair)
+        assert r.status_code == 201, r.text
+        for body in (loop_body("X", gateway="gw-2"), loop_body("X")):  # another's, or none
+            r = httpx.post(f"{url}/loops", json=body, headers=mine)
+            assert r.status_code == 403, r.text
+        mixed = [loop_body("Y", gateway="gw-1"), loop_body("Z", gateway="gw-2")]
+        r = httpx.post(f"{url}/loops/bulk", headers=mine, json=mixed)
+        assert r.status_code == 403 and "'Z'" in r.text
+        httpx.post(f"{url}/loops", json=loop_body("O"), headers=AUTH).raise_for_status()
+        for method, path, body in (
+            ("PATCH", "/loops/O", {"kp_max": 1e6}),
+            ("PATCH", "/loops/A", {"kp_max": 1e6}),  # its own loop: registration only
+            ("DELETE", "/loops/O", None),
+            ("POST", "/loops/A/reset", None),
+        ):
+            r = httpx.request(method, f"{url}{path}", json=body, headers=mine)
+            assert r.status_code == 403, (method, path, r.text)
+        assert sorted(tuner.loop_ids()) == ["A", "B", "C", "O"]
+        assert tuner.view("O").config.guard.kp_max < 1e6

@@ -46,7 +46,14 @@ from prometheus_client import CONTENT_TYPE_LATEST
 from service.agent.model import Agent
 from service.daemon import console, forward
 from service.daemon.admin import Conflict, OwnedElsewhere, StoreUnavailable, UnknownLoop
-from service.daemon.gate import BODY_BYTES, BULK_BODY_BYTES, Failures, Gate, token_matches
+from service.daemon.gate import (
+    BODY_BYTES,
+    BULK_BODY_BYTES,
+    Failures,
+    Gate,
+    registering_gateway,
+    token_matches,
+)
 from service.daemon.logs import StatusWatch, table_statuses
 from service.daemon.schemas import (
     MAX_BULK,
@@ -75,11 +82,14 @@ def get_tuner(request: Request) -> Tuner:
 
 
 def require_token(
+    request: Request,
     settings: Annotated[Settings, Depends(get_settings)],
     credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
 ) -> None:
-    """Mutating calls need the bearer token when one is configured."""
-    if not token_matches(settings, credentials.credentials if credentials else ""):
+    """Mutating calls need the bearer token when one is configured (or a gateway's, for
+    the registrations the gate let through with it: service.daemon.gate)."""
+    given = credentials.credentials if credentials else ""
+    if not token_matches(settings, given) and registering_gateway(request.scope) is None:
         raise HTTPException(
             status.HTTP_401_UNAUTHORIZED,
             "missing or invalid bearer token",
@@ -105,6 +115,7 @@ Limit = Annotated[int, Query(ge=1, le=MAX_PAGE)]
 @loops.post("", status_code=201, dependencies=mutating, responses={409: {}})
 def register_loop(config: Registration, tuner: TunerDep, request: Request) -> LoopView:
     """Register a loop; it starts at its registered gains with a fresh agent state."""
+    _own_gateway(request, [config])
     view = tuner.register(config)
     _event(tuner, request, "registered", "loop %r registered (%s, kp=%.6g ki=%.6g, seq %d)",
            config.id, view.mode, view.kp, view.ki, view.seq)  # fmt: skip
@@ -121,6 +132,7 @@ def register_loops(
 ) -> BulkRegistered:
     """Register many loops in one call (a large site), all or none: 409 if any id is taken,
     422 if the request names one twice."""
+    _own_gateway(request, configs)
     try:
         ids = tuner.register_many(configs)
     except ValueError as exc:
@@ -129,6 +141,16 @@ def register_loops(
     first = ", ".join(repr(i) for i in ids[:5]) + (", ..." if len(ids) > 5 else "")
     _event(tuner, request, "registered", "%d loops registered in bulk: %s", len(ids), first)
     return BulkRegistered(registered=ids)
+
+
+def _own_gateway(request: Request, configs: list[Registration]) -> None:
+    """With a gateway's token, every loop must be that gateway's (403, nothing done)."""
+    gateway = registering_gateway(request.scope)
+    others = sorted({c.id for c in configs if c.gateway != gateway}) if gateway else []
+    if others:
+        raise HTTPException(
+            403, f"gateway {gateway!r}'s token registers only its own loops, not {others[:5]}"
+        )
 
 
 @loops.get("")

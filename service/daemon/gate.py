@@ -15,6 +15,11 @@ app (:class:`Gate`, an ASGI middleware), in order:
    scripts send no ``Origin``. With the Host checked, the Origin is worth comparing.
 3. **Token**: a change to the REST API (``/loops``; the console has its sessions)
    without the bearer token, when one is set: refused, 401, before its body is read.
+   A gateway's token (``api_gateway_tokens``) may only register loops: any other change
+   with it is refused, 403, and the registration routes refuse loops of another gateway
+   (:func:`registering_gateway`). A gateway host then holds no admin credential (with
+   the admin token it held, one raised another gateway's loop to kp_max = 1e6 and
+   deleted it).
    A client with :data:`MAX_FAILURES` wrong tokens (here or at the console's login)
    within :data:`FAILURE_WINDOW_S` is refused, 429, until the window has passed, and
    each lock-out is a WARNING: the REST check took 880 guesses a second, unlogged, and
@@ -118,6 +123,25 @@ def token_matches(settings: Settings, given: str) -> bool:
     return secrets.compare_digest(given.encode(), expected)
 
 
+def gateway_of(settings: Settings, given: str) -> str | None:
+    """The gateway whose token ``given`` is (None: no gateway's)."""
+    found = None
+    for gateway, token in settings.api_gateway_tokens.items():  # every one compared
+        if secrets.compare_digest(given.encode(), token.get_secret_value().encode()):
+            found = gateway
+    return found
+
+
+REGISTRATION = frozenset({("POST", "/loops"), ("POST", "/loops/bulk")})
+"""What a gateway's token may change."""
+
+
+def registering_gateway(scope: Scope) -> str | None:
+    """The gateway whose token the gate let this registration through with (None: the
+    admin token, or none needed)."""
+    return scope.get("state", {}).get("gateway_token_of")
+
+
 def bearer(authorization: str | None) -> str:
     """The token of an ``Authorization: Bearer <token>`` header ('' without one)."""
     scheme, _, token = (authorization or "").partition(" ")
@@ -179,7 +203,13 @@ class Gate:
                 detail = f"too many wrong tokens from this address; retry in {wait:.0f} s"
                 return 429, detail, {"Retry-After": str(max(1, round(wait)))}
         given = bearer(headers.get("authorization"))
-        if change and rest and not token_matches(self.settings, given):
+        if not (change and rest) or token_matches(self.settings, given):
+            return None
+        gateway = gateway_of(self.settings, given) if given else None
+        if gateway is None:
             self.failures.failed(client_of(scope), "REST API")
             return 401, "missing or invalid bearer token", {"WWW-Authenticate": "Bearer"}
+        if (scope["method"], scope["path"]) not in REGISTRATION:
+            return 403, f"gateway {gateway!r}'s token may only register its loops", None
+        scope.setdefault("state", {})["gateway_token_of"] = gateway
         return None

@@ -74,6 +74,12 @@ class Settings(BaseSettings):
     api_token: SecretStr | None = Field(
         None, description="When set, mutating REST calls need 'Authorization: Bearer <token>'."
     )
+    api_gateway_tokens: dict[str, SecretStr] = Field(
+        {},
+        description="Gateway id -> a token that may only register loops of that gateway "
+        "(POST /loops and /loops/bulk, every loop's 'gateway' that id): what a gateway "
+        "host holds instead of the admin token. In the environment a JSON object.",
+    )
     api_allowed_hosts: list[str] | None = Field(
         None,
         description="Host names the admin API answers to (the Host header, without its "
