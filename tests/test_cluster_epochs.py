@@ -6,6 +6,7 @@ a gateway drops a message whose (epoch, seq) is not above the last it took
 
 from __future__ import annotations
 
+import contextlib
 import queue
 
 import pytest
@@ -20,8 +21,10 @@ from tests.tuner_support import loop_body, open_peer, tuner_settings, wait_until
 pytestmark = pytest.mark.timeout(90)
 
 
+@contextlib.contextmanager
 def _gateway_gains(tuner: Tuner):
-    """A peer collecting (loop_id, epoch, seq) of every batched gains item."""
+    """A peer collecting (loop_id, epoch, seq) of every batched gains item, once the
+    tuner's token is seen."""
     taken: queue.SimpleQueue = queue.SimpleQueue()
     session = open_peer(tuner.settings.zenoh_listen)
 
@@ -30,7 +33,12 @@ def _gateway_gains(tuner: Tuner):
             taken.put((item.loop_id, item.epoch, item.seq))
 
     sub = session.declare_subscriber(tuner.settings.keys.gateway_gains("*"), take)
-    return session, sub, taken
+    try:
+        wait_until(lambda: list(session.liveliness().get(tuner.settings.keys.all_tuners)))
+        yield taken
+    finally:
+        sub.undeclare()
+        session.close()
 
 
 def _published(tuner: Tuner, taken: queue.SimpleQueue, loop_id: str) -> tuple[int, int]:
@@ -57,9 +65,7 @@ def tuner(tmp_path, pg_url):
 
 
 def test_a_loop_patched_to_a_gateway_of_an_older_lease_publishes_above_its_last(tuner):
-    session, sub, taken = _gateway_gains(tuner)
-    try:
-        wait_until(lambda: list(session.liveliness().get(tuner.settings.keys.all_tuners)))
+    with _gateway_gains(tuner) as taken:
         before = _published(tuner, taken, "L")
         tuner.patch("L", LoopPatch(gateway="gB"))
         wait_until(  # the tuner's own NOTIFY reload moves it to gB's shard
@@ -70,20 +76,12 @@ def test_a_loop_patched_to_a_gateway_of_an_older_lease_publishes_above_its_last(
         assert after[0] > tuner.cluster.held[gateway_shard("gB")]
         # the loop that was in gB all along keeps the shard's token
         assert tuner.cluster.token("M") == tuner.cluster.held[gateway_shard("gB")]
-    finally:
-        sub.undeclare()
-        session.close()
 
 
 def test_a_deleted_id_registered_again_under_another_gateway_publishes_above_its_last(tuner):
-    session, sub, taken = _gateway_gains(tuner)
-    try:
-        wait_until(lambda: list(session.liveliness().get(tuner.settings.keys.all_tuners)))
+    with _gateway_gains(tuner) as taken:
         before = _published(tuner, taken, "L")
         tuner.delete("L")
         tuner.register(LoopConfig(**loop_body("L", gateway="gB")))
         after = _published(tuner, taken, "L")
         assert after > before
-    finally:
-        sub.undeclare()
-        session.close()

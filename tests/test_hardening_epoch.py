@@ -109,6 +109,16 @@ def test_a_late_message_of_a_replaced_tuner_is_never_taken(tmp_path):
     assert inbox.stale == 3
 
 
+def _heard(tuner: Tuner, inbox: GainsInbox) -> list:
+    """Reset LIC-101 and put the gains message heard into ``inbox``: its updates."""
+    spy = Spy(tuner.settings)
+    try:
+        inbox.put_raw(Source.gains, _published(tuner, spy, "LIC-101"))
+    finally:
+        spy.close()
+    return inbox.drain()
+
+
 def test_a_restarted_tuner_s_state_reply_does_not_undo_an_operator_s_change(tmp_path):
     """The gateway took seq 1 under the first run's epoch; the operator changed the gains
     while the tuner was down. The restarted tuner's state reply (same seq) carries the
@@ -118,12 +128,7 @@ def test_a_restarted_tuner_s_state_reply_does_not_undo_an_operator_s_change(tmp_
     inbox = GainsInbox(loops=frozenset({"LIC-101"}))
     with Tuner(settings) as first:
         first.register(LoopConfig(**loop_body("LIC-101", kp=0.7)))
-        spy = Spy(settings)
-        try:
-            inbox.put_raw(Source.gains, _published(first, spy, "LIC-101"))
-        finally:
-            spy.close()
-        (taken,) = inbox.drain()
+        (taken,) = _heard(first, inbox)
         assert taken.epoch == first.epoch
     with Tuner(settings) as again:
         assert again.epoch > taken.epoch
@@ -137,12 +142,7 @@ def test_a_restarted_tuner_s_state_reply_does_not_undo_an_operator_s_change(tmp_
             operator = {"t": 5.0, "e": 0.1, "kp": 0.4, "ki": 0.02}
             session.put(KEYS.sample("LIC-101"), json.dumps(operator).encode())
             wait_until(lambda: again.view("LIC-101").kp == 0.4, what="the adoption")
-            spy = Spy(settings)
-            try:
-                inbox.put_raw(Source.gains, _published(again, spy, "LIC-101"))
-            finally:
-                spy.close()
-            (reset,) = inbox.drain()
+            (reset,) = _heard(again, inbox)
             assert (reset.epoch, reset.seq) == (again.epoch, taken.seq + 1)
         finally:
             session.close()
