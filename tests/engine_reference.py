@@ -349,8 +349,8 @@ def _adopt(tb: LoopTable, s: int, sample: Sample, wall: float) -> None:
     kp = tb.kp[s] if sample.kp is None else sample.kp
     ki = tb.ki[s] if sample.ki is None else sample.ki
     applied = -1 if sample.applied_seq is None else sample.applied_seq
-    if tb.mode[s] == AUTO and tb.pending[s] and 0 <= applied < tb.seq[s]:
-        return  # the gateway has not applied the update in flight yet: it stays pending
+    if tb.mode[s] == AUTO and 0 <= applied < tb.auto_seq[s]:
+        return  # the gateway has not applied the last auto update yet: it stays pending
     if _close(kp, tb.kp[s]) and _close(ki, tb.ki[s]):
         tb.pending[s] = False
         return

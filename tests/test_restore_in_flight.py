@@ -71,3 +71,22 @@ def test_two_updates_after_the_snapshot_leave_the_restore_as_registered():
     restored.restore(_config(), kp=last.kp, ki=last.ki, seq=last.seq, hidden=hidden,
                      runtime=runtime, wall=0.0)  # fmt: skip
     assert not restored.table.pending[restored.table.slot("A")]
+
+
+def test_after_a_restore_a_gateway_still_behind_is_not_taken_for_an_operator():
+    """Two updates after the snapshot: whether an update is in flight is unknown, but a
+    gateway reporting applied_seq below the seq is behind (an approval window), and the
+    gains it reports are its last applied update's, not an operator's change."""
+    engine = TuningEngine(Pushing())
+    engine.register(_config(), wall=0.0)
+    ((_, hidden, runtime),) = engine.snapshot(["A"])
+    first, last = engine.ingest([_sample(float(t)) for t in range(120)], wall=0.0)
+    restored = TuningEngine(Pushing())
+    restored.restore(_config(), kp=last.kp, ki=last.ki, seq=last.seq, hidden=hidden,
+                     runtime=runtime, wall=0.0)  # fmt: skip
+    restored.drain_changes()
+    behind = {"loop_id": "A", "t": 121.0, "e": 0.1, "kp": first.kp, "ki": first.ki,
+              "applied_seq": first.seq}  # fmt: skip
+    restored.ingest([behind], wall=1.0)
+    assert restored.drain_changes() == ([], [])
+    assert restored.view("A").kp == last.kp

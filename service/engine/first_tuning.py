@@ -148,7 +148,7 @@ def apply(tb, s: int, m, wall: float, why: str) -> None:
     if mode == AUTO:
         tb.prev_kp[s], tb.prev_ki[s] = old
         tb.kp[s], tb.ki[s] = new
-        tb.pending[s] = True
+        tb.pending[s], tb.auto_seq[s] = True, seq
         verify.restart_track(tb, s)
     else:  # a proposal: the track goes on from it
         tb.adv_kp[s], tb.adv_ki[s], tb.adv_seq[s] = new[0], new[1], seq

@@ -245,11 +245,11 @@ def _adopt(tb: LoopTable, slots: np.ndarray, cols: dict[str, np.ndarray], wall: 
     kp = np.where(has_kp, cols["kp"][report], cur_kp)
     ki = np.where(has_ki, cols["ki"][report], cur_ki)
     same = _close(kp, cur_kp) & _close(ki, cur_ki)
-    # an auto loop's applied_seq (-1: absent) says whether the gateway caught up with an
-    # update in flight (pending); with none, a lower one is the last auto update's below
-    # advisory or shadow steps' seqs, and different gains are an operator's
+    # an auto loop's applied_seq (-1: absent) says whether the gateway caught up with the
+    # last auto update (auto_seq: advisory and shadow steps raise seq with nothing to
+    # apply; after a restore, unknown: the seq)
     applied, auto = cols["applied_seq"][report], tb.mode[slots] == AUTO
-    lags = auto & tb.pending[slots] & (applied >= 0) & (applied < tb.seq[slots])
+    lags = auto & (applied >= 0) & (applied < tb.auto_seq[slots])
     current = auto & (applied == tb.seq[slots])
     in_flight = lags | (
         ~same

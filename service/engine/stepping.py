@@ -98,7 +98,7 @@ def step(tb: LoopTable, slots: np.ndarray, wall: float) -> StepResult:
     auto = slots[applied]
     tb.prev_kp[auto], tb.prev_ki[auto] = old[applied, 0], old[applied, 1]
     tb.kp[auto], tb.ki[auto] = new[applied, 0], new[applied, 1]
-    tb.pending[auto] = True
+    tb.pending[auto], tb.auto_seq[auto] = True, tb.seq[auto] + 1
     moved = slots[go]
     tb.seq[moved] += 1
     tb.n_steps[slots] += 1

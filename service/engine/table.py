@@ -45,8 +45,8 @@ from service.units import Scaling
 from service.wire.protocol import LoopStatus, Mode, UpdateReason
 
 _F64 = (
-    # gains now, registered, and replaced by an update still in flight
-    "kp", "ki", "reg_kp", "reg_ki", "prev_kp", "prev_ki",
+    # gains now, registered, replaced by an update in flight; seq of the last auto update
+    "kp", "ki", "reg_kp", "reg_ki", "prev_kp", "prev_ki", "auto_seq",
     # unit mapping (engineering per agent) and timing
     "kp_unit", "ki_unit", "e_scale", "int_scale", "period", "stale_gap", "forgetting",
     # the rest of the scaling in force (NaN: none; e_scale is above): three floats
@@ -273,7 +273,7 @@ class LoopTable:
         self.reg_ki[s] = [c.ki for c in configs]
         self.kp[s] = self.reg_kp[s] if kp is None else kp
         self.ki[s] = self.reg_ki[s] if ki is None else ki
-        self.seq[s] = 0 if seq is None else seq
+        self.seq[s] = self.auto_seq[s] = 0 if seq is None else seq  # (unknown: the seq)
         for name in _COUNTERS:
             getattr(self, name)[s] = 0
         self.tokens[s], self.token_wall[s] = self.burst, wall
@@ -384,7 +384,7 @@ class LoopTable:
             return None
         if mode == AUTO:
             (self.prev_kp[s], self.prev_ki[s]), (self.kp[s], self.ki[s]) = old, new
-            self.pending[s] = True
+            self.pending[s], self.auto_seq[s] = True, self.seq[s] + 1
         self.seq[s] += 1
         self._gains_dirty.add(s)
         self._audit.append(

@@ -373,7 +373,7 @@ def fail(
     if mode == AUTO:
         tb.prev_kp[s], tb.prev_ki[s] = old
         tb.kp[s], tb.ki[s] = good
-        tb.pending[s] = True
+        tb.pending[s], tb.auto_seq[s] = True, seq
         tb.hidden[s] = 0.0  # the agent's memory of the failed gains goes with them
         tb.unsettle(s)
         if why in FENCED:
@@ -407,7 +407,7 @@ def accept(tb: LoopTable, s: int, seq: int, wall: float, actor: str) -> StepResu
         fence_rollback(tb, s, old, new, t)  # a rollback proposal taken: as in auto
     tb.prev_kp[s], tb.prev_ki[s] = old
     tb.kp[s], tb.ki[s] = new
-    tb.pending[s] = True
+    tb.pending[s], tb.auto_seq[s] = True, tb.seq[s] + 1
     restart_track(tb, s)
     tb.seq[s] += 1
     tb._gains_dirty.add(s)
