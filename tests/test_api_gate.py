@@ -4,6 +4,7 @@ uvicorn over HTTP (a raw socket where the body must not be sent)."""
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import socket
 import threading
@@ -196,3 +197,29 @@ def test_a_gateways_token_registers_its_own_loops_and_nothing_else(tmp_path):
             assert r.status_code == 403, (method, path, r.text)
         assert sorted(tuner.loop_ids()) == ["A", "B", "C", "O"]
         assert tuner.view("O").config.guard.kp_max < 1e6
+
+
+def test_concurrent_wrong_logins_are_limited_too(tmp_path):
+    """60 wrong console logins at once all pass the gate before any has failed; the
+    login looks again once it has the form, so only MAX_FAILURES are tried."""
+
+    async def burst(port: int) -> list[int]:
+        limits = httpx.Limits(max_connections=60)
+        async with httpx.AsyncClient(timeout=60.0, limits=limits) as c:
+            url = f"http://127.0.0.1:{port}/ui/login"
+            replies = await asyncio.gather(
+                *(c.post(url, data={"token": f"guess-{k}"}) for k in range(60))
+            )
+            return [r.status_code for r in replies]
+
+    with _served(tmp_path, api_token=TOKEN) as (_, port):
+        codes = asyncio.run(burst(port))
+    assert codes.count(303) == MAX_FAILURES and codes.count(429) == 60 - MAX_FAILURES
+
+
+def test_a_malformed_host_or_origin_is_refused_not_a_server_error(tmp_path):
+    with _served(tmp_path) as (_, port):
+        url = f"http://127.0.0.1:{port}"
+        assert httpx.get(f"{url}/loops", headers={"Host": "[::1"}).status_code == 400
+        r = httpx.post(f"{url}/loops/X/reset", headers={"Origin": "http://[evil"})
+        assert r.status_code == 403

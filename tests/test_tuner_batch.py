@@ -12,12 +12,21 @@ from hypothesis import strategies as st
 from pydantic import ValidationError
 
 from service.agent import untrained_agent
+from service.daemon.delivery import _within_size
 from service.engine import output_limit, rules
 from service.engine.config import LoopConfig
 from service.engine.stepping import step
 from service.engine.table import _BOOL, _F64, _I64, _REC, LoopTable
 from service.wire.decode import classify, decode_batch, decode_columns, decode_objects, joined
-from service.wire.protocol import MAX_BATCH, BatchedSample, Mode, RejectReason, Sample
+from service.wire.protocol import (
+    MAX_BATCH,
+    MAX_MESSAGE_BYTES,
+    BatchedSample,
+    GainsMessage,
+    Mode,
+    RejectReason,
+    Sample,
+)
 from tests.engine_reference import Rejected, reference_ingest
 from tests.tuner_support import loop_body
 
@@ -346,3 +355,19 @@ def test_single_sample_messages_received_together(tmp_path):
         assert [int(table.n_samples[table.slot_of[f"L{i}"]]) for i in range(3)] == [2, 2, 1]
         assert tuner.metrics.value("pitune_samples_received_total") == 6
         assert tuner.metrics.value("pitune_samples_rejected_total", reason="duplicate") == 1
+
+
+def test_a_gateways_gains_batch_is_split_to_fit_a_message():
+    """100,000 items of long loop ids exceed MAX_MESSAGE_BYTES, which routers and
+    gateways drop unread (their links take 33 MiB): the lane splits the batch so each
+    message fits, every item once, in order."""
+    why = "reason=agent basis=hint dkp=+3.2% dki=+1.1% guard=none verdict=pending"
+    item = GainsMessage(loop_id="L" * 64, seq=123456, t=1733333333.123456,
+                        dkp=0.012345678901234, dki=0.00012345678901234, kp=1.2345678901234567,
+                        ki=0.012345678901234567, mode="auto", instance_id="tuner-a-0123456789",
+                        epoch=1733333333123, why=why)  # fmt: skip
+    messages = [{**item.model_dump(mode="json"), "seq": k} for k in range(MAX_BATCH)]
+    payloads = _within_size(messages)
+    assert len(payloads) > 1 and all(len(p) <= MAX_MESSAGE_BYTES for p in payloads)
+    seqs = [g["seq"] for p in payloads for g in orjson.loads(p)["gains"]]
+    assert seqs == list(range(MAX_BATCH))

@@ -24,7 +24,7 @@ import orjson
 from service.daemon.lanes import Lane
 from service.daemon.store_pg import Fenced
 from service.engine.updates import StepResult
-from service.wire.protocol import MAX_BATCH, SCHEMA_VERSION
+from service.wire.protocol import MAX_BATCH, MAX_MESSAGE_BYTES, SCHEMA_VERSION
 
 log = logging.getLogger("pitune.tuner")
 COMMIT_RETRY_S = 1.0
@@ -163,10 +163,21 @@ class Delivery:
                 self.bus.publish(self.keys.gains(message["loop_id"]), orjson.dumps(message))
             return
         for i in range(0, len(messages), MAX_BATCH):
-            payload = {"v": SCHEMA_VERSION, "gains": messages[i : i + MAX_BATCH]}
-            self.bus.publish(self.keys.gateway_gains(gateway), orjson.dumps(payload))
+            for payload in _within_size(messages[i : i + MAX_BATCH]):
+                self.bus.publish(self.keys.gateway_gains(gateway), payload)
 
     @property
     def superseded(self) -> int:
         """Gains messages replaced in their lane by a newer one before they went out."""
         return sum(lane.superseded for lane in list(self.lanes.values()))
+
+
+def _within_size(messages: list[dict]) -> list[bytes]:
+    """``messages`` as GainsBatch payloads of at most MAX_MESSAGE_BYTES each, halved until
+    they fit: 100,000 items of 64-character loop ids made 37 MiB, which the routers and
+    gateways drop unread (their links take 33 MiB: deploy/zenoh/router.json5)."""
+    payload = orjson.dumps({"v": SCHEMA_VERSION, "gains": messages})
+    if len(payload) <= MAX_MESSAGE_BYTES or len(messages) == 1:
+        return [payload]
+    half = len(messages) // 2
+    return _within_size(messages[:half]) + _within_size(messages[half:])

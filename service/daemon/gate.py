@@ -157,7 +157,10 @@ def allowed_hosts(settings: Settings) -> frozenset[str] | None:
 
 def host_name(host: str) -> str:
     """The name of a ``Host`` header's value, without its port (``[::1]:80`` -> ``::1``)."""
-    name = urllib.parse.urlsplit(f"//{host}").hostname
+    try:
+        name = urllib.parse.urlsplit(f"//{host}").hostname
+    except ValueError:  # not a host ("[::1"): no name, refused
+        return ""
     return (name or "").lower()
 
 
@@ -166,7 +169,11 @@ def same_origin(headers: Headers) -> bool:
     origin = headers.get("origin")
     if origin is None:
         return True
-    return origin != "null" and urllib.parse.urlsplit(origin).netloc == headers.get("host", "")
+    try:
+        netloc = urllib.parse.urlsplit(origin).netloc
+    except ValueError:  # not a URL ("http://[evil"): not this origin
+        return False
+    return origin != "null" and netloc == headers.get("host", "")
 
 
 class Gate:

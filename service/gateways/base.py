@@ -115,8 +115,9 @@ class GainsInbox:
     The sequence rule of docs/protocol.md, per loop: a message whose ``(epoch, seq)`` is
     not above the highest one taken for that loop is a duplicate, arrived out of order,
     or comes from a tuner instance since replaced, and is dropped. ``advisory`` messages
-    and state replies count too (``seq`` increases per loop whatever the mode), so a late
-    ``auto`` message never undoes a newer update. A message without ``epoch`` (a tuner of
+    and ``auto`` state replies count too (``seq`` increases per loop whatever the mode),
+    so a late ``auto`` message never undoes a newer update; other state replies change
+    nothing. A message without ``epoch`` (a tuner of
     revision 1) is judged against the messages of its own ``instance_id`` only.
     """
 

@@ -156,8 +156,13 @@ async def login(request: Request) -> Response:
     name = ACTOR_NAME.sub("", form.get("name", [""])[0])[:40]
     target = safe_next(form.get("next", ["/ui"])[0])
     client = request.client.host if request.client else "?"
+    failures = request.app.state.token_failures
+    wait = failures.locked_for(client)  # again: logins may have failed since the gate looked
+    if wait > 0:  # (nothing awaits between here and the failure's count: one at a time)
+        raise HTTPException(429, "too many wrong tokens from this address",
+                            headers={"Retry-After": str(max(1, round(wait)))})  # fmt: skip
     if not token_ok(request, token):
-        request.app.state.token_failures.failed(client, "console login")
+        failures.failed(client, "console login")
         await asyncio.sleep(LOGIN_PENALTY_S)  # slows guessing down
         query = urllib.parse.urlencode({"next": target, "error": "wrong token"})
         return RedirectResponse(f"/ui/login?{query}", status_code=303)

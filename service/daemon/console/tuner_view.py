@@ -59,7 +59,8 @@ def tuner_figures(tuner) -> dict:
         "store": {
             "ok": tuner.store_failure is None,
             "failure": tuner.store_failure,
-            "path": tuner.store.location,  # (a PostgreSQL URL's password redacted)
+            # (a PostgreSQL URL's password redacted)
+            "path": store.location if store is not None else None,
             "journal_rows": store.journal_rows if store is not None else None,
             "commit_failures": int(m.value("pitune_store_commit_failures_total")),
             "steps_skipped": int(m.value("pitune_steps_skipped_total")),
