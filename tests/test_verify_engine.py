@@ -10,7 +10,7 @@ import json
 import numpy as np
 import pytest
 
-from service.engine import LoopConfig, TuningEngine, oscillation
+from service.engine import LoopConfig, TuningEngine, oscillation, verify
 from service.engine.identify import Model
 from service.engine.patch import LoopPatch
 from service.learn.verification import MARGIN, StillAgent, run_scenario, scenario
@@ -526,3 +526,35 @@ def test_tuning_pauses_while_the_loop_oscillates_at_last_good_gains_that_were_ca
     view = engine.view("S", wall=0.0)
     assert view.status == "tuning" and view.verification.paused_until_t is None
     assert [r for r in engine.drain_changes()[1] if r[5] == "agent"]
+
+
+@pytest.mark.parametrize(("why", "actor", "rolled_back"), [
+    ("iae", "", False), ("overshoot", "", False),  # kept: the last-good gains are no refuge
+    ("oscillation", "", True),  # an oscillating change is undone all the same
+    ("operator", "api", True),  # and an operator's explicit rollback is done
+])  # fmt: skip
+def test_no_rollback_to_last_good_gains_that_oscillated_in_force(why, actor, rolled_back):
+    """Last-good gains the detector flagged while in force (the plant changed under them)
+    are discredited: a change failing on IAE or overshoot stays, as the new last-good
+    gains measured anew. Rolled back, an operator's detune of a changed plant went back to
+    gains with a gain margin of 1.0 on it (session 36's review)."""
+    engine = TuningEngine(StillAgent())
+    engine.register(LoopConfig(id="L", kp=1.0, ki=0.1, sample_period_s=1.0,
+                               scaling={"k_hat": 1.0, "tau_hat": 10.0, "pv_scale": 1.0}),
+                    wall=0.0)  # fmt: skip
+    tb = engine.table
+    s = tb.slot("L")
+    tb.o_osc[s] = True  # the detector flags the loop at its last-good gains (1.0, 0.1)
+    verify.pause_oscillating(tb, np.array([s]), np.array([50.0]), 0.0)
+    assert verify.discredited(tb, s) and tb.g_osc[s] == 50.0
+    tb.o_osc[s] = False
+    tb.kp[s], tb.ki[s] = 0.25, 0.025  # the operator's detune, pending
+    result = verify.fail(tb, s, why, 100.0, figure=9.0, actor=actor)
+    assert (result is not None) == rolled_back
+    if rolled_back:
+        assert (tb.kp[s], tb.ki[s]) == (1.0, 0.1)
+        return
+    assert (tb.kp[s], tb.ki[s]) == (tb.g_kp[s], tb.g_ki[s]) == (0.25, 0.025)
+    assert np.isnan(tb.g_iae[s]) and not verify.discredited(tb, s)
+    (row,) = [r for r in engine.drain_changes()[1] if r[5] == "verdict"]
+    assert json.loads(row[10])["kept"].startswith("kept: the last-good gains oscillated")

@@ -37,7 +37,7 @@ import numpy as np
 
 from service.agent.fast import Precision
 from service.agent.model import Agent, load_agent
-from service.engine import first_tuning, monitor, rules, stepping, verify, views, watch
+from service.engine import first_tuning, monitor, proposals, rules, stepping, verify, views, watch
 from service.engine.audit import AuditRow
 from service.engine.config import LoopConfig, LoopView
 from service.engine.modes import PUBLISHING
@@ -179,16 +179,16 @@ class TuningEngine:
     def accept(
         self, loop_id: str, seq: int, wall: float | None = None, actor: str = ""
     ) -> StepResult:
-        """Accept an advisory loop's pending proposal ``seq`` (see :func:`verify.accept`)."""
+        """Accept an advisory loop's pending proposal ``seq`` (see :func:`proposals.accept`)."""
         with self.lock:
             s = self.table.slot(loop_id)
             self._due.pop(s, None)
-            return verify.accept(self.table, s, seq, _now(wall), actor)
+            return proposals.accept(self.table, s, seq, _now(wall), actor)
 
     def reject(self, loop_id: str, seq: int, wall: float | None = None, actor: str = "") -> None:
-        """Reject an advisory loop's pending proposal ``seq`` (see :func:`verify.reject`)."""
+        """Reject an advisory loop's pending proposal ``seq`` (see :func:`proposals.reject`)."""
         with self.lock:
-            verify.reject(self.table, self.table.slot(loop_id), seq, _now(wall), actor)
+            proposals.reject(self.table, self.table.slot(loop_id), seq, _now(wall), actor)
 
     def performance(self, loop_id: str):
         """The loop's figures, their history and its verification state."""

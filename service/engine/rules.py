@@ -78,7 +78,7 @@ as float32 reports them off by up to 6e-8 relative, which is no operator's chang
 
 CLOCKED = (
     "excited_until", "move_t", "ramp_t", "ramp_from",  # the excitation gate, the ramp rule
-    "cool_until", "x_until", "osc_until", "osc_seen",  # holds: cool-down, fence, pause
+    "cool_until", "x_until", "osc_until", "osc_seen", "g_osc",  # holds, oscillations seen
     "o_tc", "o_seen", "o_z", "o_zs",  # the oscillation detector
     "f_t", "ps_t0",  # the last response's end, the PV rule's block
 )  # fmt: skip

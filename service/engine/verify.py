@@ -13,7 +13,12 @@ complete setpoint response judges the gains in force at its move (the candidate)
 * otherwise the candidate is ``verified`` and becomes the last-good gains with its figure.
 
 An oscillation (:func:`service.engine.oscillation.detect`) while a change is pending
-fails the change at once. A failed change is acted on by mode: ``auto`` restores the
+fails the change at once. Last-good gains the detector flagged while they were in force
+(after they became last-good) are **discredited** (:func:`discredited`): the plant they
+were verified on has changed, or the loop is driven from outside. A change that then
+fails on IAE or overshoot is not rolled back to them: it stays, verdict ``worse``, and
+becomes the last-good gains, measured anew (:func:`_keep`); a change that oscillates
+is still rolled back. A failed change is acted on by mode: ``auto`` restores the
 last-good gains (published, reason ``rollback``; the agent's hidden state restarts and
 the agent is held for ``cooldown_periods`` RL periods), ``advisory`` proposes them (an
 advisory message, reason ``rollback``: verdict ``rollback_proposed``), ``shadow`` and
@@ -31,10 +36,11 @@ the previous proposal. Successive proposals thus walk where the agent's steps po
 its updates would in ``auto``, and stop where its step vanishes (its target), instead of
 repeating one guard-limited step from gains that never move. An operator accepting one
 (``POST /loops/{id}/proposals/{seq}/accept``) has it published as an ``auto`` message
-(reason ``accepted``); rejecting it restarts the track from the gains in force and holds
-the agent for the cool-down. Gains of the operator's own, adopted from the samples,
-restart the track too: proposals walked from gains no longer in force would start a
-guard step from nothing the plant runs (12-15x the gains in force, session 35's review).
+(reason ``accepted``; :mod:`service.engine.proposals`); rejecting it restarts the track
+from the gains in force and holds the agent for the cool-down. Gains of the operator's
+own, adopted from the samples, restart the track too: proposals walked from gains no
+longer in force would start a guard step from nothing the plant runs (12-15x the gains
+in force, session 35's review).
 """
 
 from __future__ import annotations
@@ -46,7 +52,7 @@ import numpy as np
 import orjson
 
 from service.engine.audit import audit_row
-from service.engine.modes import ADVISORY, AUTO, PUBLISHING
+from service.engine.modes import AUTO, PUBLISHING
 from service.engine.monitor import ABSENT, RESPONSE_PERIODS, put, same_gains
 from service.engine.oscillation import noise_sigma, period
 from service.engine.updates import MODE_VALUES, StepResult
@@ -65,8 +71,9 @@ F64 = [
     # the fence after a rollback: bounds of the agent's gains (NaN: none) until a plant time
     "x_kp_lo", "x_kp_hi", "x_ki_lo", "x_ki_hi", "x_until",
     # tuning paused until this plant time (the loop oscillates), and the last plant time
-    # the oscillation detector flagged the loop
-    "osc_until", "osc_seen",
+    # the oscillation detector flagged the loop, and flagged it at the last-good gains
+    # since they became last-good (-inf: never)
+    "osc_until", "osc_seen", "g_osc",
 ]  # fmt: skip
 """Per-loop float64 arrays of verification (allocated by the table beside its own)."""
 F32 = [
@@ -85,7 +92,7 @@ F32 = [
 _STATE = [n for n in F64 + F32 if n not in ("v_margin", "v_over", "v_cool", "v_fence")]
 """What the runtime snapshot keeps (the settings come from the config)."""
 
-_MINUS_INF = ("cool_until", "x_until", "osc_until", "osc_seen")
+_MINUS_INF = ("cool_until", "x_until", "osc_until", "osc_seen", "g_osc")
 """Plant times whose "never" is -inf (a snapshot writes it as null)."""
 
 Verdict = str
@@ -100,7 +107,7 @@ def init(tb: LoopTable, s: int) -> None:
     tb.cool_until[s] = -math.inf
     restart_track(tb, s)
     tb.b_kp[s] = tb.b_ki[s] = math.nan
-    tb.osc_until[s] = tb.osc_seen[s] = -math.inf
+    tb.osc_until[s] = tb.osc_seen[s] = tb.g_osc[s] = -math.inf
     tb.g_calm[s] = 0.0
     unfence(tb, s)
 
@@ -259,7 +266,9 @@ def pause_oscillating(tb: LoopTable, slots: np.ndarray, t: np.ndarray, wall: flo
     if not flag.any():
         return
     tb.osc_seen[slots[flag]] = t[flag]
-    flag &= (tb.g_calm[slots] == 1.0) & ~changed(tb, slots)
+    flag &= ~changed(tb, slots)
+    tb.g_osc[slots[flag]] = t[flag]  # at the last-good gains: no rollback to them now
+    flag &= tb.g_calm[slots] == 1.0
     if not flag.any():
         return
     s, tf = slots[flag], t[flag]
@@ -327,6 +336,7 @@ def _verified(tb, s: int, cand: tuple[float, float], seq: int, figure: float) ->
     # the other direction keeps the last-good gains' figure: the next response that way
     # is judged against it, like with like
     tb.g_kp[s], tb.g_ki[s], tb.g_seq[s] = cand[0], cand[1], seq
+    tb.g_osc[s] = -math.inf
     _set_reference(tb, s, figure)
     tb.v_seq[s] = max(tb.v_seq[s], seq)
     tb._verify_dirty.add(s)
@@ -360,6 +370,8 @@ def fail(
         detail["actor"] = actor
     tb._verify_dirty.add(s)
     t = float(tb.last_t[s]) if math.isfinite(tb.last_t[s]) else 0.0
+    if discredited(tb, s) and why != "oscillation" and not actor:
+        return _keep(tb, s, old, wall, detail)
     if mode != AUTO:
         tb.b_kp[s], tb.b_ki[s] = old
     if mode not in PUBLISHING:
@@ -389,61 +401,34 @@ def fail(
     return single(tb, s, t, old, good, UpdateReason.rollback, why_text, mode)
 
 
-def accept(tb: LoopTable, s: int, seq: int, wall: float, actor: str) -> StepResult:
-    """An operator accepts the advisory proposal ``seq``: published as an ``auto``
-    message (the gateway applies it), in flight until the gateway reports it.
-    ValueError if ``seq`` is not the loop's pending proposal."""
-    _check_proposal(tb, s, seq)
-    old, new = (float(tb.kp[s]), float(tb.ki[s])), (float(tb.adv_kp[s]), float(tb.adv_ki[s]))
-    lo, hi = (float(tb.kp_min[s]), float(tb.ki_min[s])), (float(tb.kp_max[s]), float(tb.ki_max[s]))
-    if not all(a <= g <= b for a, g, b in zip(lo, new, hi, strict=True)):
-        # the bounds changed after the proposal was made (PATCH): the guard in force rules
-        raise ValueError(
-            f"proposal {seq} (kp {new[0]:.6g}, ki {new[1]:.6g}) is outside the guard's bounds "
-            f"in force (kp {lo[0]:.6g}..{hi[0]:.6g}, ki {lo[1]:.6g}..{hi[1]:.6g}): reject it"
-        )
-    t = float(tb.last_t[s]) if math.isfinite(tb.last_t[s]) else 0.0
-    if same_gains(new[0], tb.g_kp[s]) & same_gains(new[1], tb.g_ki[s]):
-        fence_rollback(tb, s, old, new, t)  # a rollback proposal taken: as in auto
-    tb.prev_kp[s], tb.prev_ki[s] = old
-    tb.kp[s], tb.ki[s] = new
-    tb.pending[s], tb.auto_seq[s] = True, tb.seq[s] + 1
-    restart_track(tb, s)
-    tb.seq[s] += 1
-    tb._gains_dirty.add(s)
-    tb._verify_dirty.add(s)
-    _audit(tb, s, wall, "accepted", old, new, {"proposal": seq, "actor": actor}, t=t)
-    why = f"reason=accepted proposal={seq} verdict=pending"
-    return single(tb, s, t, old, new, UpdateReason.accepted, why, AUTO)
+def discredited(tb: LoopTable, s: int) -> bool:
+    """The last-good gains oscillated in force since they became last-good: the plant
+    they were verified on has changed (or the oscillation comes from outside), and
+    restoring them is no rollback to safety."""
+    return bool(tb.g_osc[s] > -math.inf)
 
 
-def reject(tb: LoopTable, s: int, seq: int, wall: float, actor: str) -> None:
-    """An operator rejects the advisory proposal ``seq``: the track restarts from the
-    gains in force and the agent is held for the cool-down."""
-    _check_proposal(tb, s, seq)
-    gains, proposed = (float(tb.kp[s]), float(tb.ki[s])), (float(tb.adv_kp[s]), float(tb.adv_ki[s]))
-    restart_track(tb, s)
-    t = float(tb.last_t[s]) if math.isfinite(tb.last_t[s]) else 0.0
-    tb.cool_until[s] = t + tb.v_cool[s]
-    tb._verify_dirty.add(s)
-    _audit(tb, s, wall, "rejected", gains, gains, {
-        "proposal": seq, "kp": proposed[0], "ki": proposed[1], "actor": actor,
-    }, t=t)  # fmt: skip
+def _keep(tb: LoopTable, s: int, gains: tuple[float, float], wall: float, detail: dict):
+    """A change judged worse (on IAE or overshoot, not oscillating) whose last-good gains
+    are :func:`discredited`: it stays, as the new last-good gains, measured anew (the
+    next response of either direction is their baseline), verdict ``worse``. Restored,
+    the last-good gains undid an operator's detune of a plant that had changed, to gains
+    with a gain margin of 1.0 on it, which then oscillated for hours (session 36's
+    review)."""
+    seq = int(tb.seq[s])
+    tb.v_seq[s] = seq
+    tb.g_kp[s], tb.g_ki[s], tb.g_seq[s] = gains[0], gains[1], seq
+    tb.g_iae[s] = tb.g_iae_dn[s] = math.nan
+    tb.g_osc[s], tb.g_calm[s] = -math.inf, 0.0
+    note = "kept: the last-good gains oscillated in force since they were verified"
+    _audit(tb, s, wall, "verdict", gains, gains, {"verdict": "worse", "kept": note, **detail})
+    return None
 
 
 def restart_track(tb: LoopTable, s) -> None:
     """No proposal pending: the track restarts from the gains in force (``s`` a slot or
     slots)."""
     tb.adv_kp[s] = tb.adv_ki[s] = tb.adv_seq[s] = math.nan
-
-
-def _check_proposal(tb: LoopTable, s: int, seq: int) -> None:
-    if tb.mode[s] != ADVISORY:
-        raise ValueError("only an advisory loop has proposals to accept or reject")
-    if math.isnan(tb.adv_seq[s]):
-        raise ValueError("no proposal is pending")
-    if int(tb.adv_seq[s]) != seq:
-        raise ValueError(f"proposal {seq} is not the pending one ({int(tb.adv_seq[s])})")
 
 
 def single(tb, s, t, old, new, reason: UpdateReason, why: str, mode: int) -> StepResult:
