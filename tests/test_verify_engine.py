@@ -558,3 +558,21 @@ def test_no_rollback_to_last_good_gains_that_oscillated_in_force(why, actor, rol
     assert np.isnan(tb.g_iae[s]) and not verify.discredited(tb, s)
     (row,) = [r for r in engine.drain_changes()[1] if r[5] == "verdict"]
     assert json.loads(row[10])["kept"].startswith("kept: the last-good gains oscillated")
+
+
+def test_a_rollback_restores_the_last_good_gains_within_the_bounds_in_force():
+    """Bounds narrowed by a PATCH after the last-good gains were verified: a rollback
+    publishes them clipped to the bounds, never above kp_max (a review found 14 rollbacks
+    above it in 6 hours)."""
+    engine = TuningEngine(StillAgent())
+    engine.register(LoopConfig(id="L", kp=0.4, ki=0.04, sample_period_s=1.0,
+                               scaling={"k_hat": 1.0, "tau_hat": 10.0, "pv_scale": 1.0}),
+                    wall=0.0)  # fmt: skip
+    tb = engine.table
+    s = tb.slot("L")
+    tb.g_kp[s], tb.g_ki[s] = 1.0, 0.1  # verified since
+    engine.reconfigure(LoopPatch(kp_max=0.6, ki_max=0.06).apply(tb.configs["L"]))
+    tb.kp[s], tb.ki[s] = 0.5, 0.05  # a step into the bounds, failed
+    result = verify.fail(tb, s, "iae", 100.0, figure=9.0)
+    assert result is not None and tuple(result.new[0]) == (0.6, 0.06)
+    assert (tb.kp[s], tb.ki[s]) == (0.6, 0.06)

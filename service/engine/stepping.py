@@ -89,6 +89,9 @@ def step(tb: LoopTable, slots: np.ndarray, wall: float) -> StepResult:
     # the model check: a step the identified model predicts much worse is held (no change,
     # nothing published; the agent's state moves on)
     hold, held_text = model_check.held(tb, slots, base, new)
+    # a step from gains outside the bounds (narrowed by a PATCH, or an operator's) into
+    # them is the guard's, not the agent's: held, the gains stayed outside for good
+    hold &= ~((base < lo) | (base > hi)).any(axis=1)
     if hold.any():
         new = np.where(hold[:, None], base, new)
         tb.n_model_holds[slots[hold]] += 1

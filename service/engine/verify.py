@@ -355,7 +355,11 @@ def fail(
     """A change failed (or an operator asked for a rollback): act by mode. Returns the
     message to publish (auto: the rollback; advisory: the rollback proposal)."""
     mode = int(tb.mode[s])
-    old, good = (float(tb.kp[s]), float(tb.ki[s])), (float(tb.g_kp[s]), float(tb.g_ki[s]))
+    old = (float(tb.kp[s]), float(tb.ki[s]))
+    # the last-good gains within the guard's bounds in force (a PATCH may have narrowed
+    # them since: restored as they were, a rollback went back above kp_max 14 times)
+    good = (float(np.clip(tb.g_kp[s], tb.kp_min[s], tb.kp_max[s])),
+            float(np.clip(tb.g_ki[s], tb.ki_min[s], tb.ki_max[s])))  # fmt: skip
     judged = [int(tb.v_seq[s]) + 1, int(tb.seq[s])]
     detail = {
         "why": why, "seqs": judged, "iae": figure,
