@@ -32,7 +32,7 @@ def add_one(tb: LoopTable, config: LoopConfig, *, kp, ki, seq, saved: Saved | No
     tb.reg_kp[s], tb.reg_ki[s] = config.kp, config.ki
     tb.kp[s] = config.kp if kp is None else kp
     tb.ki[s] = config.ki if ki is None else ki
-    tb.seq[s] = seq
+    tb.seq[s] = tb.auto_seq[s] = seq
     for name in _COUNTERS:
         getattr(tb, name)[s] = 0
     tb.tokens[s], tb.token_wall[s] = tb.burst, wall
