@@ -528,6 +528,15 @@ def test_tuning_pauses_while_the_loop_oscillates_at_last_good_gains_that_were_ca
     assert [r for r in engine.drain_changes()[1] if r[5] == "agent"]
 
 
+def _one_loop(kp: float, ki: float):
+    """(engine, table, slot) of one hinted loop "L" at (kp, ki), its agent still."""
+    engine = TuningEngine(StillAgent())
+    engine.register(LoopConfig(id="L", kp=kp, ki=ki, sample_period_s=1.0,
+                               scaling={"k_hat": 1.0, "tau_hat": 10.0, "pv_scale": 1.0}),
+                    wall=0.0)  # fmt: skip
+    return engine, engine.table, engine.table.slot("L")
+
+
 @pytest.mark.parametrize(("why", "actor", "rolled_back"), [
     ("iae", "", False), ("overshoot", "", False),  # kept: the last-good gains are no refuge
     ("oscillation", "", True),  # an oscillating change is undone all the same
@@ -538,12 +547,7 @@ def test_no_rollback_to_last_good_gains_that_oscillated_in_force(why, actor, rol
     are discredited: a change failing on IAE or overshoot stays, as the new last-good
     gains measured anew. Rolled back, an operator's detune of a changed plant went back to
     gains with a gain margin of 1.0 on it (session 36's review)."""
-    engine = TuningEngine(StillAgent())
-    engine.register(LoopConfig(id="L", kp=1.0, ki=0.1, sample_period_s=1.0,
-                               scaling={"k_hat": 1.0, "tau_hat": 10.0, "pv_scale": 1.0}),
-                    wall=0.0)  # fmt: skip
-    tb = engine.table
-    s = tb.slot("L")
+    engine, tb, s = _one_loop(1.0, 0.1)
     tb.o_osc[s] = True  # the detector flags the loop at its last-good gains (1.0, 0.1)
     verify.pause_oscillating(tb, np.array([s]), np.array([50.0]), 0.0)
     assert verify.discredited(tb, s) and tb.g_osc[s] == 50.0
@@ -564,12 +568,7 @@ def test_a_rollback_restores_the_last_good_gains_within_the_bounds_in_force():
     """Bounds narrowed by a PATCH after the last-good gains were verified: a rollback
     publishes them clipped to the bounds, never above kp_max (a review found 14 rollbacks
     above it in 6 hours)."""
-    engine = TuningEngine(StillAgent())
-    engine.register(LoopConfig(id="L", kp=0.4, ki=0.04, sample_period_s=1.0,
-                               scaling={"k_hat": 1.0, "tau_hat": 10.0, "pv_scale": 1.0}),
-                    wall=0.0)  # fmt: skip
-    tb = engine.table
-    s = tb.slot("L")
+    engine, tb, s = _one_loop(0.4, 0.04)
     tb.g_kp[s], tb.g_ki[s] = 1.0, 0.1  # verified since
     engine.reconfigure(LoopPatch(kp_max=0.6, ki_max=0.06).apply(tb.configs["L"]))
     tb.kp[s], tb.ki[s] = 0.5, 0.05  # a step into the bounds, failed
