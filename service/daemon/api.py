@@ -19,7 +19,6 @@ import ctypes
 import gc
 import html
 import io
-import ipaddress
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -51,6 +50,7 @@ from service.daemon.gate import (
     BULK_BODY_BYTES,
     Failures,
     Gate,
+    is_loopback,
     registering_gateway,
     token_matches,
 )
@@ -333,27 +333,19 @@ client out for a minute after 10 tries, which slows a search, not stops it)."""
 
 def _warn_if_open(settings: Settings) -> None:
     token = settings.api_token
-    if token is not None and len(token.get_secret_value()) < MIN_TOKEN_CHARS:
+    chars = 0 if token is None else len(token.get_secret_value())
+    if token is not None and chars < MIN_TOKEN_CHARS:
         log.warning(
             "the API token has %d characters: guessable. Use a long random one "
             "(openssl rand -hex 32).",
-            len(token.get_secret_value()),
+            chars,
         )
-    if settings.api_token is None and not _is_loopback(settings.api_host):
+    if token is None and not is_loopback(settings.api_host):
         log.warning(
             "the admin API listens on %r WITHOUT A TOKEN: anyone who reaches it can register, "
             "retune, reset and delete loops. Set PITUNE_API_TOKEN.",
             settings.api_host,
         )
-
-
-def _is_loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:  # a host name: it may resolve to anything
-        return False
 
 
 def _check_statuses(tuner: Tuner, watch: StatusWatch) -> None:

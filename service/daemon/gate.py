@@ -32,6 +32,7 @@ route's limit is refused, 413, by its ``Content-Length`` or as it streams in.
 from __future__ import annotations
 
 import collections
+import ipaddress
 import logging
 import secrets
 import threading
@@ -81,14 +82,16 @@ class Failures:
             times.popleft()
         return times
 
-    def locked_for(self, client: str) -> float:
-        """Seconds the client stays locked out (0: not locked out)."""
+    def lockout(self, client: str) -> tuple[str, dict[str, str]] | None:
+        """(detail, headers) of the 429 while the client is locked out, else None."""
         now = time.monotonic()
         with self._lock:
             times = self._recent(client, now)
             if len(times) < MAX_FAILURES:
-                return 0.0
-            return times[0] + FAILURE_WINDOW_S - now
+                return None
+            wait = times[0] + FAILURE_WINDOW_S - now
+        detail = f"too many wrong tokens from this address; retry in {wait:.0f} s"
+        return detail, {"Retry-After": str(max(1, round(wait)))}
 
     def failed(self, client: str, where: str) -> None:
         """A wrong token from ``client`` (``where``: the REST API or the console)."""
@@ -148,11 +151,21 @@ def bearer(authorization: str | None) -> str:
     return token.strip() if scheme.lower() == "bearer" else ""
 
 
+def is_loopback(host: str) -> bool:
+    """``host`` (an address the API binds to) is this machine's loopback only."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:  # a host name: it may resolve to anything
+        return False
+
+
 def allowed_hosts(settings: Settings) -> frozenset[str] | None:
     """The host names the API answers to (None: any)."""
     if settings.api_allowed_hosts is not None:
         return frozenset(h.lower() for h in settings.api_allowed_hosts)
-    return LOOPBACK_NAMES if settings.api_host in LOOPBACK_NAMES else None
+    return LOOPBACK_NAMES if is_loopback(settings.api_host) else None
 
 
 def host_name(host: str) -> str:
@@ -205,10 +218,9 @@ class Gate:
             return 403, "cross-origin request refused", None
         rest = scope["path"] == "/loops" or scope["path"].startswith("/loops/")
         if change and (rest or scope["path"] == "/ui/login"):
-            wait = self.failures.locked_for(client_of(scope))
-            if wait > 0:
-                detail = f"too many wrong tokens from this address; retry in {wait:.0f} s"
-                return 429, detail, {"Retry-After": str(max(1, round(wait)))}
+            locked = self.failures.lockout(client_of(scope))
+            if locked is not None:
+                return 429, *locked
         given = bearer(headers.get("authorization"))
         if not (change and rest) or token_matches(self.settings, given):
             return None

@@ -45,10 +45,9 @@ from service.daemon.console.sessions import (
     safe_next,
     session_of,
     sessions_of,
-    token_ok,
 )
 from service.daemon.console.tuner_view import Rates, tuner_figures
-from service.daemon.gate import LOGIN_BODY_BYTES
+from service.daemon.gate import LOGIN_BODY_BYTES, token_matches
 from service.daemon.recent import REASONS
 from service.engine import verify
 from service.engine.status import STATUSES
@@ -157,11 +156,11 @@ async def login(request: Request) -> Response:
     target = safe_next(form.get("next", ["/ui"])[0])
     client = request.client.host if request.client else "?"
     failures = request.app.state.token_failures
-    wait = failures.locked_for(client)  # again: logins may have failed since the gate looked
-    if wait > 0:  # (nothing awaits between here and the failure's count: one at a time)
-        raise HTTPException(429, "too many wrong tokens from this address",
-                            headers={"Retry-After": str(max(1, round(wait)))})  # fmt: skip
-    if not token_ok(request, token):
+    locked = failures.lockout(client)  # again: logins may have failed since the gate looked
+    if locked is not None:  # (nothing awaits between here and the failure's count)
+        raise HTTPException(429, locked[0], headers=locked[1])
+    # an open API (no token set): the console is open too (any token logs in)
+    if not token_matches(request.app.state.settings, token):
         failures.failed(client, "console login")
         await asyncio.sleep(LOGIN_PENALTY_S)  # slows guessing down
         query = urllib.parse.urlencode({"next": target, "error": "wrong token"})

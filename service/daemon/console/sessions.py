@@ -18,8 +18,6 @@ from dataclasses import dataclass, field
 
 from fastapi import HTTPException, Request
 
-from service.daemon.gate import token_matches
-
 COOKIE = "pitune_ui"
 SESSION_IDLE_S = 8 * 3600.0
 """A session unused this long is logged out."""
@@ -105,11 +103,6 @@ def acting(request: Request) -> Session:
     if not secrets.compare_digest(given.encode(), session.csrf.encode()):
         raise HTTPException(403, "missing or wrong CSRF token")
     return session  # (its origin: checked for every change, service.daemon.gate)
-
-
-def token_ok(request: Request, given: str) -> bool:
-    """An open API (no token set): the console is open too (any token logs in)."""
-    return token_matches(request.app.state.settings, given)
 
 
 def safe_next(target: str) -> str:
