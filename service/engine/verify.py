@@ -419,11 +419,9 @@ def _keep(tb: LoopTable, s: int, gains: tuple[float, float], wall: float, detail
     the last-good gains undid an operator's detune of a plant that had changed, to gains
     with a gain margin of 1.0 on it, which then oscillated for hours (session 36's
     review)."""
-    seq = int(tb.seq[s])
-    tb.v_seq[s] = seq
-    tb.g_kp[s], tb.g_ki[s], tb.g_seq[s] = gains[0], gains[1], seq
-    tb.g_iae[s] = tb.g_iae_dn[s] = math.nan
-    tb.g_osc[s], tb.g_calm[s] = -math.inf, 0.0
+    _verified(tb, s, gains, int(tb.seq[s]), math.nan)
+    forget_figures(tb, s)  # both directions' (_verified sets the one of the last move)
+    tb.g_calm[s] = 0.0
     note = "kept: the last-good gains oscillated in force since they were verified"
     _audit(tb, s, wall, "verdict", gains, gains, {"verdict": "worse", "kept": note, **detail})
     return None
