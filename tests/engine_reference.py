@@ -360,8 +360,7 @@ def _adopt(tb: LoopTable, s: int, sample: Sample, wall: float) -> None:
     tb.pending[s] = False
     old = (tb.kp[s], tb.ki[s])
     tb.kp[s], tb.ki[s] = kp, ki
-    verify.unfence(tb, s)
-    verify.restart_track(tb, s)  # an advisory loop's proposals start from them
+    verify.adopted(tb, s, old)
     tb._gains_dirty.add(s)
     tb._audit.append(
         audit_row(

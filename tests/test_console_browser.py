@@ -16,7 +16,7 @@ import httpx
 import pytest
 
 from service.daemon.console.screenshots import SimLoop, SimPlant
-from service.engine.verify import FENCE_SHORT
+from service.engine.fences import FENCE_SHORT
 from tests.browser import *  # noqa: F403 - the fixtures
 from tests.browser import TOKEN
 from tests.tuner_support import connected_gateway, loop_body, wait_until

@@ -2,8 +2,8 @@
 
 Two simulated FOPTD loops, one ``auto`` and one ``advisory``, their setpoints toggling,
 started on sluggish gains; after a baseline response an operator improves both loops'
-gains (verified on the next response), then cuts them so that the IAE more than
-doubles. The daemon is SIGKILLed while those changes are pending and restarted: the
+gains (verified on the next response), then cuts kp so that the IAE more than doubles
+(ki left as it was: no detune, which would be kept). The daemon is SIGKILLed while those changes are pending and restarted: the
 last-good gains and the pending verdicts survive, the next response fails the changes,
 the auto loop is rolled back (published, reason ``rollback``) and the advisory loop gets
 a rollback proposal, which an operator accepts (published as ``auto``, reason
@@ -67,7 +67,7 @@ class Plant:
 
 def test_a_doubled_iae_is_rolled_back_and_sigkill_keeps_last_good_and_pending(tmp_path):
     good = np.column_stack(simc(K, TAU, THETA, THETA))
-    slow, bad = good * 0.5, good * 0.3
+    slow, bad = good * 0.5, good * [0.25, 1.0]
     horizon = 2.0 * RL
     assert (
         true_iae(K, TAU, THETA, bad, horizon) > 2 * true_iae(K, TAU, THETA, good, horizon)

@@ -42,6 +42,16 @@ def test_in_advisory_the_same_change_is_proposed_for_rollback(rng):
     assert max(out["after_periods"]) <= 1.3
 
 
+def test_an_operators_detune_that_doubles_the_iae_is_kept_not_rolled_back(rng):
+    sc = scenario("detune", 20, rng)
+    assert (sc["ratio"] >= 2.0).all()
+    out = run_scenario(sc, noise=NOISE)
+    assert out["verdict"] == ["worse"] * 20  # judged in the same window, and kept
+    assert max(out["after_periods"]) <= 1.3
+    for detail in out["detail"]:
+        assert detail["why"] == "iae" and detail["kept"] == verify.KEPT_DETUNE
+
+
 def test_improving_changes_are_verified_and_noise_alone_rolls_nothing_back(rng):
     sc = scenario("good", 60, rng)
     assert (sc["ratio"] <= 1.05).all()
@@ -575,3 +585,42 @@ def test_a_rollback_restores_the_last_good_gains_within_the_bounds_in_force():
     result = verify.fail(tb, s, "iae", 100.0, figure=9.0)
     assert result is not None and tuple(result.new[0]) == (0.6, 0.06)
     assert (tb.kp[s], tb.ki[s]) == (0.6, 0.06)
+
+
+@pytest.mark.parametrize(("new", "detune"), [
+    ((0.25, 0.025), True), ((0.5, 0.04), True), ((1.0, 0.05), True),  # Ti kept or longer
+    ((0.25, 0.1), False), ((0.5, 0.1), False),  # kp alone cut: the integral time shortened
+    ((0.25, 0.05), False), ((1.2, 0.05), False), ((1.0, 0.1), False),
+])  # fmt: skip
+def test_a_detune_lowers_both_gains_and_keeps_the_integral_time(new, detune):
+    assert verify.is_detune((1.0, 0.1), new) is detune
+
+
+def test_no_automatic_rollback_goes_past_an_operators_detune():
+    """Session 36's safety review, the valve limited: an agent step was pending when the
+    plant changed and the tuned gains began to ring, so the detector never flagged them
+    in force; the operator's detune (adopted), then two agent steps from it, failed on
+    IAE against the old plant's figure and were rolled back to the ringing gains. Now a
+    failed change goes back to the detune, and the detune itself is kept."""
+    engine, tb, s = _one_loop(1.0, 0.1)  # verified: the last-good gains
+    engine.ingest([{"loop_id": "L", "t": 0.0, "sp": 0.0, "pv": 0.0, "kp": 0.25, "ki": 0.025}],
+                  wall=0.0)  # fmt: skip
+    assert (tb.kp[s], tb.o_kp[s], tb.o_ki[s]) == (0.25, 0.25, 0.025)  # adopted: the floor
+    tb.kp[s], tb.ki[s] = 0.3, 0.03  # the agent stepped from it
+    result = verify.fail(tb, s, "iae", 10.0, figure=9.0)
+    assert result is not None and tuple(result.new[0]) == (0.25, 0.025)  # back to the detune
+    assert (tb.g_kp[s], tb.g_ki[s]) == (1.0, 0.1)  # not yet verified: the floor stands
+    assert verify.fail(tb, s, "oscillation", 20.0, figure=None) is None  # judged: kept
+    assert (tb.g_kp[s], tb.g_ki[s]) == (0.25, 0.025) and np.isnan(tb.o_kp[s])
+    rows = [json.loads(r[10]) for r in engine.drain_changes()[1] if r[5] in ("rollback", "verdict")]
+    assert rows[0]["to"] == "the operator's detune" and rows[1]["kept"] == verify.KEPT_DETUNE
+
+
+@pytest.mark.parametrize(("gains", "actor"), [((0.25, 0.1), ""), ((0.25, 0.025), "api")])
+def test_an_operators_other_change_and_an_explicit_rollback_go_to_the_last_good_gains(gains, actor):
+    engine, tb, s = _one_loop(1.0, 0.1)
+    engine.ingest([{"loop_id": "L", "t": 0.0, "sp": 0.0, "pv": 0.0, "kp": gains[0],
+                    "ki": gains[1]}], wall=0.0)  # fmt: skip
+    result = verify.fail(tb, s, "operator" if actor else "iae", 10.0, figure=9.0, actor=actor)
+    assert result is not None and tuple(result.new[0]) == (1.0, 0.1)
+    assert (tb.kp[s], tb.ki[s]) == (1.0, 0.1) and np.isnan(tb.o_kp[s])

@@ -47,7 +47,7 @@ import math
 import numpy as np
 
 from plant_sim.tunings import simc_improved, to_parallel
-from service.engine import box, predict, verify, warm
+from service.engine import box, fences, predict, verify, warm
 from service.engine.modes import AUTO, FROZEN, PUBLISHING
 from service.wire.protocol import UpdateReason
 
@@ -143,7 +143,7 @@ def apply(tb, s: int, m, wall: float, why: str) -> None:
     # the agent is held until the change is verified (at most the cool-down after a
     # rollback): one change judged at a time
     tb.cool_until[s] = t + tb.v_cool[s]
-    verify.unfence(tb, s)  # a fence of gains tuned for the plant as it was before
+    fences.unfence(tb, s)  # a fence of gains tuned for the plant as it was before
     tb.ident[s].tuned_seq = seq
     if mode == AUTO:
         tb.prev_kp[s], tb.prev_ki[s] = old

@@ -6,10 +6,11 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING
 
+from service.engine.fences import fence_rollback
 from service.engine.modes import ADVISORY, AUTO
 from service.engine.monitor import same_gains
 from service.engine.updates import StepResult
-from service.engine.verify import _audit, fence_rollback, restart_track, single
+from service.engine.verify import _audit, restart_track, single
 from service.wire.protocol import UpdateReason
 
 if TYPE_CHECKING:

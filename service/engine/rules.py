@@ -267,10 +267,8 @@ def _adopt(tb: LoopTable, slots: np.ndarray, cols: dict[str, np.ndarray], wall: 
         s = int(slots[i])
         old = (tb.kp[s], tb.ki[s])
         tb.kp[s], tb.ki[s] = kp[i], ki[i]
-        verify.unfence(tb, s)  # the operator's gains: the agent starts from them, unfenced
-        verify.restart_track(tb, s)  # and an advisory loop's proposals too, as at a reject
+        verify.adopted(tb, s, old)
         tb._gains_dirty.add(s)
-        tb._verify_dirty.add(s)
         tb._audit.append(
             audit_row(
                 tb.ids[s], wall, float(t[i]), int(tb.seq[s]), _MODES[tb.mode[s]].value,

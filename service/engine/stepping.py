@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.engine import box, margin, model_check, oscillation, predict, verify
+from service.engine import box, fences, margin, model_check, oscillation, predict, verify
 from service.engine.audit import audit_row
 from service.engine.modes import ADVISORY, AUTO, SHADOW
 from service.engine.rules import GAIN_RTOL
@@ -79,7 +79,7 @@ def step(tb: LoopTable, slots: np.ndarray, wall: float) -> StepResult:
     lo = np.column_stack([tb.kp_min[slots], tb.ki_min[slots]])
     hi = np.column_stack([tb.kp_max[slots], tb.ki_max[slots]])
     # a rollback's fence first (fmin/fmax pass NaN, no fence), the loop's bounds over it
-    fence_lo, fence_hi = verify.fence(tb, slots, tb.last_t[slots])
+    fence_lo, fence_hi = fences.fence(tb, slots, tb.last_t[slots])
     fenced = np.fmin(np.fmax(proposed, fence_lo), fence_hi)
     bounded = np.clip(fenced, lo, hi)
     new = np.clip(bounded, base / grow, base * grow)

@@ -23,6 +23,7 @@ import numpy as np
 from service.agent.fast import FastPolicy, Precision
 from service.agent.model import Agent
 from service.engine import (
+    fences,
     fit_budget,
     monitor,
     output_limit,
@@ -370,7 +371,8 @@ class LoopTable:
         t = None if math.isnan(t) else float(t)
         self._restart(s)
         self.cool_until[s] = self.osc_until[s] = -math.inf
-        verify.unfence(self, s)
+        fences.unfence(self, s)
+        verify.no_floor(self, s)
         self._verify_dirty.add(s)
         verify.restart_track(self, s)
         mode = self.mode[s]

@@ -18,7 +18,10 @@ fails the change at once. Last-good gains the detector flagged while they were i
 were verified on has changed, or the loop is driven from outside. A change that then
 fails on IAE or overshoot is not rolled back to them: it stays, verdict ``worse``, and
 becomes the last-good gains, measured anew (:func:`_keep`); a change that oscillates
-is still rolled back. A failed change is acted on by mode: ``auto`` restores the
+is still rolled back. In ``auto`` an operator's detune (:func:`adopted`) is never rolled
+back automatically: it is kept the same way when it fails, and until a verdict it is the
+floor of rollbacks (a change from it that fails goes back to it, not past it). A failed
+change is acted on by mode: ``auto`` restores the
 last-good gains (published, reason ``rollback``; the agent's hidden state restarts and
 the agent is held for ``cooldown_periods`` RL periods), ``advisory`` proposes them (an
 advisory message, reason ``rollback``: verdict ``rollback_proposed``), ``shadow`` and
@@ -52,8 +55,9 @@ import numpy as np
 import orjson
 
 from service.engine.audit import audit_row
+from service.engine.fences import FENCED, fence_rollback, unfence
 from service.engine.modes import AUTO, PUBLISHING
-from service.engine.monitor import ABSENT, RESPONSE_PERIODS, put, same_gains
+from service.engine.monitor import ABSENT, GAIN_RTOL, RESPONSE_PERIODS, put, same_gains
 from service.engine.oscillation import noise_sigma, period
 from service.engine.updates import MODE_VALUES, StepResult
 from service.wire.protocol import UpdateReason
@@ -74,6 +78,9 @@ F64 = [
     # the oscillation detector flagged the loop, and flagged it at the last-good gains
     # since they became last-good (-inf: never)
     "osc_until", "osc_seen", "g_osc",
+    # an operator's detune adopted since the last-good gains were set (NaN: none): no
+    # automatic rollback goes past it
+    "o_kp", "o_ki",
 ]  # fmt: skip
 """Per-loop float64 arrays of verification (allocated by the table beside its own)."""
 F32 = [
@@ -110,6 +117,7 @@ def init(tb: LoopTable, s: int) -> None:
     tb.osc_until[s] = tb.osc_seen[s] = tb.g_osc[s] = -math.inf
     tb.g_calm[s] = 0.0
     unfence(tb, s)
+    no_floor(tb, s)
 
 
 def configure(
@@ -126,62 +134,35 @@ def configure(
     tb.v_fence[s] = np.where(finite, fence_periods * seconds, 0.0)
 
 
-FENCED = ("overshoot", "oscillation", "operator")
-"""The verdicts that put a fence up: the loop rang or oscillated at the failed gains, or
-an operator said they were wrong. Not ``iae``: a load step or noise inside the judged
-window fails good changes on loaded loops now and then, and a fence after those held the
-agent off the gains it needed (robustness suite, load steps: worst 0.027 -> 0.037)."""
-FENCE_SHORT = 0.8
-"""A fence stands at this share of the failed gain (its inverse for a lowered one), or at
-the midpoint when that is nearer to it: the midpoint alone, after a rollback to a
-registration's gains 14x below the failed ones, held the agent at a quarter of them for
-the whole fence (load random walk, auto-rescale: worst 0.026 -> 0.095)."""
-FENCE_MIN_CHANGE = 0.05
-"""A gain the failed change moved by less than this (log units, 5 %) is not fenced: the
-change failed by the other one."""
+def adopted(tb: LoopTable, s: int, old: tuple[float, float]) -> None:
+    """Gains an operator set in the DCS replaced ``old`` in slot ``s`` (adopted from the
+    samples): the agent starts from them, unfenced, an advisory loop's proposals too (as
+    at a reject), and a detune (:func:`is_detune`) becomes the floor of automatic
+    rollbacks (:func:`fail`) until a verdict sets new last-good gains."""
+    unfence(tb, s)
+    restart_track(tb, s)
+    new = _gains(tb, s)
+    tb.o_kp[s], tb.o_ki[s] = new if is_detune(old, new) else (math.nan, math.nan)
+    tb._verify_dirty.add(s)
 
 
-def fence_rollback(tb: LoopTable, s: int, failed: tuple, good: tuple, t: float) -> None:
-    """After a rollback from ``failed`` to ``good`` (kp, ki; in advisory, a rollback
-    proposal accepted): for ``guard.fence_periods`` RL periods the agent's steps stop
-    short of the failed gains (:data:`FENCE_SHORT` of them, or halfway in log space when
-    that is nearer), on each gain the failed change moved. Without it the agent, its
-    memory reset, climbs back to the gains that rang within a few steps (docs/tuner.md,
-    Verdicts). A fence still up is narrowed, never widened: the good gains lie inside it."""
-    if not tb.v_fence[s] > 0.0:
-        return
-    moved = [
-        (gain, f, g)
-        for gain, f, g in (("kp", failed[0], good[0]), ("ki", failed[1], good[1]))
-        if f > 0.0 and g > 0.0 and abs(math.log(f / g)) >= FENCE_MIN_CHANGE
-    ]
-    if not moved:
-        return
-    if not tb.x_until[s] > t:
-        unfence(tb, s)
-    for gain, f, g in moved:
-        if f > g:
-            bound = max(math.sqrt(f * g), f * FENCE_SHORT)
-            getattr(tb, f"x_{gain}_hi")[s] = np.fmin(getattr(tb, f"x_{gain}_hi")[s], bound)
-        else:
-            bound = min(math.sqrt(f * g), f / FENCE_SHORT)
-            getattr(tb, f"x_{gain}_lo")[s] = np.fmax(getattr(tb, f"x_{gain}_lo")[s], bound)
-    tb.x_until[s] = t + float(tb.v_fence[s])
+def is_detune(old: tuple[float, float], new: tuple[float, float]) -> bool:
+    """Whether gains ``new`` (kp, ki) detune ``old``: neither gain raised, the integral
+    time kp/ki not shortened, and not the same gains. The controller's gain and phase
+    lag then fall at every frequency, so the loop's margins can only grow on the plants
+    the tuner assumes (what an operator does to calm a loop that rings: cutting kp alone
+    shortens the integral time and may not)."""
+    (kp0, ki0), (kp1, ki1) = old, new
+    up = 1.0 + GAIN_RTOL
+    return (
+        kp1 <= kp0 * up and ki1 <= ki0 * up and ki1 * kp0 <= ki0 * kp1 * up
+        and not bool(same_gains(kp0, kp1) & same_gains(ki0, ki1))
+    )  # fmt: skip
 
 
-def unfence(tb: LoopTable, s) -> None:
-    """No fence (``s`` a slot or slots): a reset, an operator's gains, a model's tuning."""
-    tb.x_kp_lo[s] = tb.x_kp_hi[s] = tb.x_ki_lo[s] = tb.x_ki_hi[s] = math.nan
-    tb.x_until[s] = -math.inf
-
-
-def fence(tb: LoopTable, slots: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The fences of the loops at ``slots`` at plant times ``t``: (lo, hi), each (n, 2)
-    [kp, ki], NaN where there is none (or it expired)."""
-    up = (tb.x_until[slots] > t)[:, None]
-    lo = np.column_stack([tb.x_kp_lo[slots], tb.x_ki_lo[slots]])
-    hi = np.column_stack([tb.x_kp_hi[slots], tb.x_ki_hi[slots]])
-    return np.where(up, lo, math.nan), np.where(up, hi, math.nan)
+def no_floor(tb: LoopTable, s) -> None:
+    """No operator's detune bounds the loop's rollbacks (``s`` a slot or slots)."""
+    tb.o_kp[s] = tb.o_ki[s] = math.nan
 
 
 def changed(tb: LoopTable, s):
@@ -337,6 +318,7 @@ def _verified(tb, s: int, cand: tuple[float, float], seq: int, figure: float) ->
     # is judged against it, like with like
     tb.g_kp[s], tb.g_ki[s], tb.g_seq[s] = cand[0], cand[1], seq
     tb.g_osc[s] = -math.inf
+    no_floor(tb, s)
     _set_reference(tb, s, figure)
     tb.v_seq[s] = max(tb.v_seq[s], seq)
     tb._verify_dirty.add(s)
@@ -375,7 +357,18 @@ def fail(
     tb._verify_dirty.add(s)
     t = float(tb.last_t[s]) if math.isfinite(tb.last_t[s]) else 0.0
     if discredited(tb, s) and why != "oscillation" and not actor:
-        return _keep(tb, s, old, wall, detail)
+        return _keep(tb, s, old, wall, detail, KEPT_DISCREDITED)
+    floor = (float(tb.o_kp[s]), float(tb.o_ki[s]))
+    if mode == AUTO and not actor and not math.isnan(floor[0]):
+        if same_gains(old[0], floor[0]) & same_gains(old[1], floor[1]):
+            return _keep(tb, s, old, wall, detail, KEPT_DETUNE)
+        good = (float(np.clip(floor[0], tb.kp_min[s], tb.kp_max[s])),
+                float(np.clip(floor[1], tb.ki_min[s], tb.ki_max[s])))  # fmt: skip
+        tb.o_kp[s], tb.o_ki[s] = good  # within the bounds in force, as the gains restored
+        detail["to"] = "the operator's detune"
+    else:
+        floor = None
+        no_floor(tb, s)
     if mode != AUTO:
         tb.b_kp[s], tb.b_ki[s] = old
     if mode not in PUBLISHING:
@@ -399,7 +392,8 @@ def fail(
     else:
         tb.adv_kp[s], tb.adv_ki[s], tb.adv_seq[s] = good[0], good[1], seq
         verdict = "rollback_proposed"
-    tb.v_seq[s] = seq
+    # gains restored are judged no more, but an operator's detune is not verified yet
+    tb.v_seq[s] = seq if floor is None else seq - 1
     _audit(tb, s, wall, "rollback", old, good, {"verdict": verdict, **detail}, t=t)
     why_text = f"reason=rollback why={why} verdict={verdict}"
     return single(tb, s, t, old, good, UpdateReason.rollback, why_text, mode)
@@ -412,17 +406,27 @@ def discredited(tb: LoopTable, s: int) -> bool:
     return bool(tb.g_osc[s] > -math.inf)
 
 
-def _keep(tb: LoopTable, s: int, gains: tuple[float, float], wall: float, detail: dict):
-    """A change judged worse (on IAE or overshoot, not oscillating) whose last-good gains
-    are :func:`discredited`: it stays, as the new last-good gains, measured anew (the
-    next response of either direction is their baseline), verdict ``worse``. Restored,
-    the last-good gains undid an operator's detune of a plant that had changed, to gains
-    with a gain margin of 1.0 on it, which then oscillated for hours (session 36's
-    review)."""
+KEPT_DISCREDITED = "kept: the last-good gains oscillated in force since they were verified"
+KEPT_DETUNE = "kept: an operator's detune is not undone automatically"
+
+
+def _keep(tb: LoopTable, s: int, gains: tuple[float, float], wall: float, detail: dict, note):
+    """A change judged worse that is not rolled back: it stays, as the new last-good
+    gains, measured anew (the next response of either direction is their baseline),
+    verdict ``worse``, the ``note`` saying why. Two cases:
+
+    * the last-good gains are :func:`discredited` (and the change did not oscillate);
+    * in ``auto``, the change is an operator's detune (:func:`adopted`), whatever the
+      verdict: its IAE is judged against a figure of the plant as it was, and an operator
+      detunes because the loop rings. Restored, the last-good gains undid such a detune of
+      a plant that had changed, to gains with a gain margin of 1.0 on it, which then
+      oscillated for hours (session 36's safety review; the oscillation detector had
+      not flagged them in force, an agent step was pending when the loop began to ring).
+      The rollback is an operator's call (``POST /loops/{id}/rollback``, before the
+      verdict), and a later change that fails goes back to the detune, not past it."""
     _verified(tb, s, gains, int(tb.seq[s]), math.nan)
     forget_figures(tb, s)  # both directions' (_verified sets the one of the last move)
     tb.g_calm[s] = 0.0
-    note = "kept: the last-good gains oscillated in force since they were verified"
     _audit(tb, s, wall, "verdict", gains, gains, {"verdict": "worse", "kept": note, **detail})
     return None
 

@@ -13,9 +13,14 @@ follow. The engine's verdict of that change is read from its audit log.
 * ``good`` changes: SIMC gains of a faster or about equal time constant, kept when the
   noise-free IAE of the change is at most 1.05 times the old one: every rollback of
   one is a false rollback.
-* ``bad`` changes: both gains cut to 0.2-0.6 of well-tuned SIMC gains, kept when the
-  noise-free IAE at least doubles: every one must be rolled back within one
-  verification window (the next complete setpoint response).
+* ``bad`` changes: kp cut to 0.1-0.4 of well-tuned SIMC gains, ki left as it was (the
+  integral time shortened), kept when the noise-free IAE at least doubles: every one
+  must be rolled back within one verification window (the next complete setpoint
+  response).
+* ``detune`` changes: both gains cut by one factor of 0.2-0.6 (an operator's detune:
+  :func:`service.engine.verify.is_detune`), kept when the noise-free IAE at least
+  doubles: judged ``worse`` and kept, never rolled back automatically (docs/tuner.md,
+  Verdicts), within the same window.
 * ``oscillating`` changes: kp raised to 1.3 times the loop's ultimate gain (the loop
   goes unstable): must be rolled back on the oscillation detector, within 3 periods of
   the oscillation (``verdict_after_periods``: setpoint periods for the other kinds),
@@ -52,7 +57,7 @@ from service.units import RL_STEP_AGENT_UNITS
 
 DT = 1.0
 """Sample period of every simulated loop, s."""
-KINDS = ("good", "bad", "oscillating")
+KINDS = ("good", "bad", "detune", "oscillating")
 MARGIN = Guard.model_fields["verify_margin"].default
 """The loops' ``verify_margin``: the default unless ``--margin``."""
 U_LIMIT = 10.0
@@ -100,9 +105,12 @@ def scenario(kind: str, n: int, rng: np.random.Generator) -> dict:
             np.column_stack(simc(K, tau, theta, lam_old)),
             np.column_stack(simc(K, tau, theta, lam_new)),
         )
-    elif kind == "bad":
+    elif kind in ("bad", "detune"):
         old = np.column_stack(simc(K, tau, theta, theta * rng.uniform(1.0, 2.0, 4 * n)))
-        new = old * rng.uniform(0.2, 0.6, (4 * n, 1))
+        if kind == "bad":
+            new = old * np.column_stack([rng.uniform(0.1, 0.4, 4 * n), np.ones(4 * n)])
+        else:
+            new = old * rng.uniform(0.2, 0.6, (4 * n, 1))
     else:
         old = np.column_stack(simc(K, tau, theta, theta * rng.uniform(1.0, 2.0, 4 * n)))
         ku, period = ultimate(K, tau, theta)
@@ -110,7 +118,7 @@ def scenario(kind: str, n: int, rng: np.random.Generator) -> dict:
     ratio = true_iae(K, tau, theta, new, horizon) / true_iae(K, tau, theta, old, horizon)
     keep = {
         "good": np.flatnonzero(ratio <= 1.05), "bad": np.flatnonzero(ratio >= 2.0),
-        "oscillating": np.arange(4 * n),
+        "detune": np.flatnonzero(ratio >= 2.0), "oscillating": np.arange(4 * n),
     }[kind][:n]  # fmt: skip
     out = {"K": K[keep], "tau": tau[keep], "theta": theta[keep], "old": old[keep],
            "new": new[keep], "ratio": ratio[keep]}  # fmt: skip
@@ -156,7 +164,7 @@ def run_scenario(
     monitoring: bool = True,
 ) -> dict:
     """Drive the engine through one scenario; returns the verdict of each loop's change
-    ('verified', 'rolled_back', 'rollback_proposed', 'pending') and when it came
+    ('verified', 'rolled_back', 'rollback_proposed', 'worse', 'pending') and when it came
     (``monitoring``: the engine's switch, see :class:`TuningEngine`)."""
     K, tau, theta, old, new = sc["K"], sc["tau"], sc["theta"], sc["old"], sc["new"]
     n = K.size
