@@ -11,7 +11,7 @@ import math
 import numpy as np
 import orjson
 
-from service.engine import monitor, oscillation, output_limit, rules, verify, watch
+from service.engine import monitor, oscillation, output_limit, reported, rules, verify, watch
 from service.engine.audit import audit_row
 from service.engine.modes import AUTO, FROZEN
 from service.engine.rules import GAIN_RTOL, MAX_AGENT_ERROR
@@ -162,6 +162,8 @@ def _ingest(tb: LoopTable, s: int, sample: Sample, wall: float) -> bool:
     tb.next_due[s] += period * (math.floor((t - tb.next_due[s]) / period) + 1.0)
     if tb.mode[s] == FROZEN or not sample.auto or saturated or tb.out_env[s]:
         return False
+    if reported.held(tb, s):  # gains reported outside the bounds
+        return False
     # a ramp running, or a long one ended within the period (RAMP_LONG RL periods)
     running = tb.sp_since[s] < RAMP_GAP and tb.ramp_t[s] >= tb.ramp_from[s]
     ran = tb.ramp_t[s] - tb.ramp_from[s] if tb.ramp_from[s] > -math.inf else -math.inf
@@ -307,8 +309,9 @@ def _record(
     else:  # a ramp's later changes are samples of the event its first change opened
         moved = not math.isnan(before) and sp != before and not ramping
     tb.id_sp[s] = sp
-    broken = anew or (not sample.auto and not measured) or sample.saturated
-    why = watch.broken_why(sample.auto, sample.saturated, measured)
+    foreign = bool(reported.held(tb, s)) and not measured
+    broken = anew or (not sample.auto and not measured) or sample.saturated or foreign
+    why = watch.broken_why(sample.auto, sample.saturated, measured, foreign)
     row = (t, sp, pv, op)
     if tb.rec[s] >= 0 and broken:
         watch._close(tb, s, t, wall, final=True, why=f"segment ended: {why}")

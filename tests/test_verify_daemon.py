@@ -1,13 +1,12 @@
-"""Verify-or-rollback through the real daemon (a subprocess, SQLite, Zenoh, HTTP).
-
-Two simulated FOPTD loops, one ``auto`` and one ``advisory``, their setpoints toggling,
+"""Verify-or-rollback through the real daemon (a subprocess, SQLite, Zenoh, HTTP). Two
+simulated FOPTD loops, one ``auto`` and one ``advisory``, their setpoints toggling,
 started on sluggish gains; after a baseline response an operator improves both loops'
 gains (verified on the next response), then cuts kp so that the IAE more than doubles
-(ki left as it was: no detune, which would be kept). The daemon is SIGKILLed while those changes are pending and restarted: the
-last-good gains and the pending verdicts survive, the next response fails the changes,
-the auto loop is rolled back (published, reason ``rollback``) and the advisory loop gets
-a rollback proposal, which an operator accepts (published as ``auto``, reason
-``accepted``). The history shows each change's verdict.
+(ki left as it was: no detune, which would be kept). The daemon is SIGKILLed while those
+changes are pending and restarted: the last-good gains and the pending verdicts survive,
+the next response fails the changes, the auto loop is rolled back (published, reason
+``rollback``) and the advisory loop gets a rollback proposal, which an operator accepts
+(published as ``auto``, reason ``accepted``). The history shows each change's verdict.
 """
 
 import signal

@@ -10,8 +10,9 @@ import json
 import numpy as np
 import pytest
 
-from service.engine import LoopConfig, TuningEngine, oscillation, verify
+from service.engine import LoopConfig, TuningEngine, oscillation, reported, verify
 from service.engine.identify import Model
+from service.engine.modes import ADVISORY
 from service.engine.patch import LoopPatch
 from service.learn.verification import MARGIN, StillAgent, run_scenario, scenario
 
@@ -538,10 +539,10 @@ def test_tuning_pauses_while_the_loop_oscillates_at_last_good_gains_that_were_ca
     assert [r for r in engine.drain_changes()[1] if r[5] == "agent"]
 
 
-def _one_loop(kp: float, ki: float):
+def _one_loop(kp: float, ki: float, mode: str = "auto"):
     """(engine, table, slot) of one hinted loop "L" at (kp, ki), its agent still."""
     engine = TuningEngine(StillAgent())
-    engine.register(LoopConfig(id="L", kp=kp, ki=ki, sample_period_s=1.0,
+    engine.register(LoopConfig(id="L", kp=kp, ki=ki, sample_period_s=1.0, mode=mode,
                                scaling={"k_hat": 1.0, "tau_hat": 10.0, "pv_scale": 1.0}),
                     wall=0.0)  # fmt: skip
     return engine, engine.table, engine.table.slot("L")
@@ -593,7 +594,7 @@ def test_a_rollback_restores_the_last_good_gains_within_the_bounds_in_force():
     ((0.25, 0.05), False), ((1.2, 0.05), False), ((1.0, 0.1), False),
 ])  # fmt: skip
 def test_a_detune_lowers_both_gains_and_keeps_the_integral_time(new, detune):
-    assert verify.is_detune((1.0, 0.1), new) is detune
+    assert reported.is_detune((1.0, 0.1), new) is detune
 
 
 def test_no_automatic_rollback_goes_past_an_operators_detune():
@@ -624,3 +625,92 @@ def test_an_operators_other_change_and_an_explicit_rollback_go_to_the_last_good_
     result = verify.fail(tb, s, "operator" if actor else "iae", 10.0, figure=9.0, actor=actor)
     assert result is not None and tuple(result.new[0]) == (1.0, 0.1)
     assert (tb.kp[s], tb.ki[s]) == (1.0, 0.1) and np.isnan(tb.o_kp[s])
+
+
+def _toggling(kp: float, ki: float, t0: float, n: int) -> list[dict]:
+    """``n`` samples of loop "L" from plant time ``t0``, the setpoint toggling every 110 s,
+    reporting gains (kp, ki)."""
+    return [{"loop_id": "L", "t": t0 + k, "sp": float((k // 110) % 2), "pv": 0.0, "kp": kp,
+             "ki": ki} for k in range(n)]  # fmt: skip
+
+
+def test_gains_reported_outside_the_bounds_hold_the_loop_until_they_are_back_within():
+    """A site map that reports the integral time as ki (session 36's review: 929x the
+    registered ki): identification's model came out 1,000x off and its tuning, written
+    back through the same map, gave a gain margin of 0.003. Such gains now hold the loop:
+    no step, no model tuning, no rollback, until gains within the bounds are reported."""
+    engine, tb, s = _one_loop(1.0, 0.1)
+    foreign = 50.0 * float(tb.ki_max[s])  # an integral time, s, taken for ki
+    updates = engine.ingest(_toggling(1.0, foreign, 0.0, 600), wall=0.0)
+    assert updates == [] and engine.view("L", wall=0.0).status == "gains_out_of_bounds"
+    assert verify.judge(tb, np.array([], int), np.array([s]), 0.0) == []  # no rollback
+    (row,) = [r for r in engine.drain_changes()[1] if r[5] == "adopted"]
+    assert "tuning held, status gains_out_of_bounds" in row[10]
+    # the gateway fixed: the registered gains reported again, tuning resumes
+    updates = engine.ingest(_toggling(1.0, 0.1, 600.0, 600), wall=0.0)
+    assert updates and engine.view("L", wall=0.0).status != "gains_out_of_bounds"
+
+
+def test_bounds_patched_to_hold_reported_gains_end_the_hold():
+    engine, tb, s = _one_loop(1.0, 0.1)
+    engine.ingest(_toggling(1.0, 2.0, 0.0, 10), wall=0.0)
+    assert bool(reported.held(tb, s))
+    engine.reconfigure(LoopPatch(ki_max=4.0).apply(tb.configs["L"]))
+    assert not reported.held(tb, s)
+    assert verify.judge(tb, np.array([], int), np.array([s]), 0.0)  # judged again: rolled back
+
+
+def _report(engine, kp: float, ki: float, t: float = 0.0) -> None:
+    engine.ingest([{"loop_id": "L", "t": t, "sp": 0.0, "pv": 0.0, "kp": kp, "ki": ki}], wall=0.0)
+
+
+def test_a_back_off_above_the_verified_gains_is_no_detune_and_is_rolled_back():
+    """A review's case: the tuner's raise (1.25, 0.1125), read back rounded or trimmed by an
+    operator to (1.125, 0.10125), is lower than the gains it replaced but above the
+    verified (1.0, 0.1): no floor, and an oscillation rolls it back as before."""
+    engine, tb, s = _one_loop(1.0, 0.1)
+    tb.kp[s], tb.ki[s] = 1.25, 0.1125  # the tuner's pending raise
+    _report(engine, 1.125, 0.10125)
+    assert np.isnan(tb.o_kp[s])
+    result = verify.fail(tb, s, "oscillation", 10.0, figure=None)
+    assert result is not None and tuple(result.new[0]) == (1.0, 0.1)
+
+
+def test_in_advisory_a_failed_change_from_a_detune_is_proposed_back_to_it():
+    engine, tb, s = _one_loop(1.0, 0.1, mode="advisory")
+    _report(engine, 0.25, 0.025)
+    tb.kp[s], tb.ki[s] = 0.3, 0.03  # a proposal accepted from it
+    result = verify.fail(tb, s, "iae", 10.0, figure=9.0)
+    assert result is not None and (result.mode[0], tuple(result.new[0])) == (
+        ADVISORY,
+        (0.25, 0.025),
+    )
+
+
+def test_a_model_band_narrowing_the_bounds_makes_no_hold_of_a_detune():
+    """The band (guard.model_band) narrows the bounds in force about a model's tuning; an
+    operator's detune below it is no sign of foreign gains."""
+    engine, tb, s = _one_loop(1.0, 0.1)
+    tb.kp_min[s], tb.ki_min[s] = 0.7, 0.07  # a band about the model's tuning
+    _report(engine, 0.5, 0.05)
+    assert not reported.held(tb, s) and tb.o_kp[s] == 0.5
+
+
+def test_the_hold_lasts_while_the_reported_gains_are_in_force_and_no_longer():
+    engine, tb, s = _one_loop(1.0, 0.1, mode="advisory")
+    _report(engine, 1.0, 2.0)
+    engine.reset("L", wall=0.0)  # an advisory loop keeps its gains: still held
+    assert bool(reported.held(tb, s))
+    engine.reconfigure(LoopPatch(ki_max=4.0).apply(tb.configs["L"]))
+    tb.ki[s] = 1.5  # a change of the tuner's since (an accepted proposal)
+    engine.reconfigure(LoopPatch(ki_max=1.0).apply(tb.configs["L"]))
+    assert not reported.held(tb, s)  # bounds narrowed under the tuner's gains: walked back
+
+
+def test_a_snapshot_from_before_the_hold_restores_foreign_gains_held():
+    engine, tb, s = _one_loop(1.0, 0.1)
+    tb.ki[s] = 2.0  # in force before the upgrade, outside the bounds
+    state = {k: v for k, v in verify.dumps(tb, np.array([s]))[0].items() if k[:2] != "a_"}
+    tb.a_kp[s] = tb.a_ki[s] = np.nan
+    verify.load(tb, np.array([s]), [state])
+    assert bool(reported.held(tb, s))

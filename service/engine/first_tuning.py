@@ -47,7 +47,7 @@ import math
 import numpy as np
 
 from plant_sim.tunings import simc_improved, to_parallel
-from service.engine import box, fences, predict, verify, warm
+from service.engine import box, fences, predict, reported, verify, warm
 from service.engine.modes import AUTO, FROZEN, PUBLISHING
 from service.wire.protocol import UpdateReason
 
@@ -120,7 +120,11 @@ def apply(tb, s: int, m, wall: float, why: str) -> None:
         tb.warming.append((s, tb.ids[s], m))
         if why == "followed":  # the plant of before's memory goes, warm result or not
             tb.hidden[s] = tb.int_e[s] = 0.0
-    if mode not in PUBLISHING or not tb.configs[tb.ids[s]].guard.model_tuning:
+    if (
+        mode not in PUBLISHING
+        or not tb.configs[tb.ids[s]].guard.model_tuning
+        or reported.held(tb, s)
+    ):
         return
     old = (float(tb.kp[s]), float(tb.ki[s]))
     target = model_gains(m.k, m.tau, m.theta)

@@ -48,7 +48,7 @@ import math
 
 import numpy as np
 
-from service.engine import first_tuning, monitor, oscillation, output_limit, verify, watch
+from service.engine import first_tuning, monitor, oscillation, output_limit, reported, verify, watch
 from service.engine.audit import audit_row
 from service.engine.modes import _MODES, AUTO, FROZEN
 from service.engine.table import LoopTable
@@ -193,6 +193,7 @@ def ingest(
     tb.next_due[slots] = next_due
     due_ok = reached & (tb.mode[slots] != FROZEN) & auto & ~saturated & ~tb.out_env[slots]
     due_ok &= ~verify.paused(tb, slots, t)  # the loop oscillates: neither stepped nor quiet
+    due_ok &= ~reported.held(tb, slots)  # gains reported outside the bounds: not ours to step
     ramp = ramp_gated(t, period, tb.ramp_t[slots], tb.ramp_from[slots], tb.sp_since[slots])
     gated = due_ok & (tb.gate_closed(slots, t) | ramp)
     tb.n_quiet[slots[gated]] += 1
@@ -281,13 +282,13 @@ def adopted_detail(tb: LoopTable, s: int) -> str:
     """The audit detail of gains adopted from the gateway (in force in ``s`` now): said
     where they lie outside the guard's bounds, which no step of the tuner's would have
     left (an operator's deliberate choice, or samples that are not the DCS's)."""
-    kp, ki = tb.kp[s], tb.ki[s]
-    lo, hi = (tb.kp_min[s], tb.ki_min[s]), (tb.kp_max[s], tb.ki_max[s])
-    if lo[0] <= kp <= hi[0] and lo[1] <= ki <= hi[1]:
+    if not reported.outside(tb, s):
         return "gains reported by the gateway"
+    lo, hi = (tb.c_kp_min[s], tb.c_ki_min[s]), (tb.c_kp_max[s], tb.c_ki_max[s])
     return (
         f"gains reported by the gateway, OUTSIDE the guard's bounds (kp {lo[0]:.6g} to"
-        f" {hi[0]:.6g}, ki {lo[1]:.6g} to {hi[1]:.6g})"
+        f" {hi[0]:.6g}, ki {lo[1]:.6g} to {hi[1]:.6g}): tuning held, status"
+        " gains_out_of_bounds (are they the DCS's gains, in pitune's parallel form?)"
     )
 
 

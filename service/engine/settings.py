@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from service.engine import first_tuning, monitor, verify
+from service.engine import first_tuning, monitor, reported, verify
 from service.engine.config import LoopConfig, resolve_bounds
 from service.engine.modes import _CODE
 
@@ -61,6 +61,7 @@ def configure(tb: LoopTable, slots: np.ndarray, configs: Sequence[LoopConfig]) -
         tb, slots, np.array(verifying, bool), np.array(margin), np.array(over),
         np.array(cooldown), np.array(fence),
     )  # fmt: skip
+    reported.configure(tb, slots)
     # a model in force narrows the bounds just set to its band (rare: identified loops)
     for s, config in zip(slot_list, configs, strict=True):
         model, factor = tb.ident[s].in_force, config.guard.model_band

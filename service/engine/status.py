@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from service.engine import verify
+from service.engine import reported, verify
 from service.engine.modes import FROZEN
 from service.wire.protocol import LoopStatus
 
@@ -15,7 +15,8 @@ if TYPE_CHECKING:
     from service.engine.table import LoopTable
 
 STATUSES = [
-    LoopStatus.frozen, LoopStatus.waiting, LoopStatus.stale, LoopStatus.identifying,
+    LoopStatus.frozen, LoopStatus.waiting, LoopStatus.stale, LoopStatus.gains_out_of_bounds,
+    LoopStatus.identifying,
     LoopStatus.out_of_envelope, LoopStatus.manual, LoopStatus.saturated,
     LoopStatus.oscillating, LoopStatus.hint_mismatch, LoopStatus.quiet, LoopStatus.tuning,
 ]  # fmt: skip
@@ -30,6 +31,7 @@ def statuses(tb: LoopTable, slots: np.ndarray, wall: float) -> np.ndarray:
         tb.mode[slots] == FROZEN,
         np.isnan(t),
         wall - tb.last_wall[slots] > tb.stale_gap[slots],
+        reported.held(tb, slots),
         ~tb.scaled[slots],
         tb.out_env[slots],
         tb.manual[slots],

@@ -2,7 +2,8 @@
 
 Safety guard, per loop: new gains are clipped to the loop's absolute bounds, then to at
 most a relative change ``r`` per update ([old / (1 + r), old * (1 + r)], symmetric in log
-space), so a gain outside its bounds (an operator's choice) is walked back gradually.
+space), so a gain outside bounds a PATCH narrowed is walked back gradually (gains the
+gateway reports outside them hold the loop instead: :func:`service.engine.reported.held`).
 ``auto`` loops take the guarded gains at once (an update in flight until the gateway
 reports them); ``advisory`` loops are stepped and their proposals published, but their
 gains change only when the gateway reports new ones; ``shadow`` loops are stepped and

@@ -23,11 +23,11 @@ import numpy as np
 from service.agent.fast import FastPolicy, Precision
 from service.agent.model import Agent
 from service.engine import (
-    fences,
     fit_budget,
     monitor,
     output_limit,
     recorder,
+    reported,
     settings,
     status,
     verify,
@@ -173,7 +173,7 @@ class LoopTable:
             (_F64, np.float64), (_I64, np.int64), (_REC, np.int64), (["snap_moves"], np.int64),
             (_BOOL, bool),
             (verify.F64, np.float64), (verify.F32, np.float32),
-            (output_limit.F64, np.float64), (output_limit.BOOL, bool),
+            (output_limit.F64, np.float64), (output_limit.BOOL, bool), (reported.F64, np.float64),
         ):  # fmt: skip
             for name in names:
                 arr = np.zeros(capacity, dtype)
@@ -370,11 +370,7 @@ class LoopTable:
         t = self.last_t[s]
         t = None if math.isnan(t) else float(t)
         self._restart(s)
-        self.cool_until[s] = self.osc_until[s] = -math.inf
-        fences.unfence(self, s)
-        verify.no_floor(self, s)
-        self._verify_dirty.add(s)
-        verify.restart_track(self, s)
+        verify.reset(self, s)
         mode = self.mode[s]
         if mode in (FROZEN, SHADOW):
             detail = f"agent state only: a {MODE_VALUES[mode]} loop's gains are not published"

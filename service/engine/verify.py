@@ -57,8 +57,9 @@ import orjson
 from service.engine.audit import audit_row
 from service.engine.fences import FENCED, fence_rollback, unfence
 from service.engine.modes import AUTO, PUBLISHING
-from service.engine.monitor import ABSENT, GAIN_RTOL, RESPONSE_PERIODS, put, same_gains
+from service.engine.monitor import ABSENT, RESPONSE_PERIODS, put, same_gains
 from service.engine.oscillation import noise_sigma, period
+from service.engine.reported import held, is_detune, no_floor, outside
 from service.engine.updates import MODE_VALUES, StepResult
 from service.wire.protocol import UpdateReason
 
@@ -78,9 +79,12 @@ F64 = [
     # the oscillation detector flagged the loop, and flagged it at the last-good gains
     # since they became last-good (-inf: never)
     "osc_until", "osc_seen", "g_osc",
-    # an operator's detune adopted since the last-good gains were set (NaN: none): no
-    # automatic rollback goes past it
+    # an operator's detune of the last-good gains, adopted since they were set (NaN:
+    # none): no automatic rollback goes past it
     "o_kp", "o_ki",
+    # the gains last adopted from the gateway (NaN: none): outside the guard's bounds,
+    # and still in force, they hold the loop (reported.held)
+    "a_kp", "a_ki",
 ]  # fmt: skip
 """Per-loop float64 arrays of verification (allocated by the table beside its own)."""
 F32 = [
@@ -116,6 +120,7 @@ def init(tb: LoopTable, s: int) -> None:
     tb.b_kp[s] = tb.b_ki[s] = math.nan
     tb.osc_until[s] = tb.osc_seen[s] = tb.g_osc[s] = -math.inf
     tb.g_calm[s] = 0.0
+    tb.a_kp[s] = tb.a_ki[s] = math.nan
     unfence(tb, s)
     no_floor(tb, s)
 
@@ -137,32 +142,18 @@ def configure(
 def adopted(tb: LoopTable, s: int, old: tuple[float, float]) -> None:
     """Gains an operator set in the DCS replaced ``old`` in slot ``s`` (adopted from the
     samples): the agent starts from them, unfenced, an advisory loop's proposals too (as
-    at a reject), and a detune (:func:`is_detune`) becomes the floor of automatic
-    rollbacks (:func:`fail`) until a verdict sets new last-good gains."""
+    at a reject). A detune of the last-good gains (:func:`~service.engine.reported.
+    is_detune`; of the verified gains, not of a pending change it backs off from) is the
+    floor of automatic rollbacks (:func:`fail`) until a verdict sets new last-good gains;
+    gains outside the guard's bounds hold the loop while in force
+    (:func:`~service.engine.reported.held`)."""
     unfence(tb, s)
     restart_track(tb, s)
     new = _gains(tb, s)
-    tb.o_kp[s], tb.o_ki[s] = new if is_detune(old, new) else (math.nan, math.nan)
+    good = (float(tb.g_kp[s]), float(tb.g_ki[s]))
+    tb.o_kp[s], tb.o_ki[s] = new if is_detune(good, new) else (math.nan, math.nan)
+    tb.a_kp[s], tb.a_ki[s] = new
     tb._verify_dirty.add(s)
-
-
-def is_detune(old: tuple[float, float], new: tuple[float, float]) -> bool:
-    """Whether gains ``new`` (kp, ki) detune ``old``: neither gain raised, the integral
-    time kp/ki not shortened, and not the same gains. The controller's gain and phase
-    lag then fall at every frequency, so the loop's margins can only grow on the plants
-    the tuner assumes (what an operator does to calm a loop that rings: cutting kp alone
-    shortens the integral time and may not)."""
-    (kp0, ki0), (kp1, ki1) = old, new
-    up = 1.0 + GAIN_RTOL
-    return (
-        kp1 <= kp0 * up and ki1 <= ki0 * up and ki1 * kp0 <= ki0 * kp1 * up
-        and not bool(same_gains(kp0, kp1) & same_gains(ki0, ki1))
-    )  # fmt: skip
-
-
-def no_floor(tb: LoopTable, s) -> None:
-    """No operator's detune bounds the loop's rollbacks (``s`` a slot or slots)."""
-    tb.o_kp[s] = tb.o_ki[s] = math.nan
 
 
 def changed(tb: LoopTable, s):
@@ -176,7 +167,7 @@ def judge(tb: LoopTable, done: np.ndarray, osc: np.ndarray, wall: float) -> list
     started oscillating (``osc``); returns the rollbacks to publish."""
     out: list[StepResult] = []
     for s in done.tolist():
-        if math.isnan(tb.v_margin[s]) or not math.isfinite(tb.f_iae[s]):
+        if math.isnan(tb.v_margin[s]) or not math.isfinite(tb.f_iae[s]) or held(tb, s):
             continue
         figure, cand = float(tb.f_iae[s]), (float(tb.r_kp[s]), float(tb.r_ki[s]))
         seq = int(tb.r_seq[s])
@@ -217,7 +208,7 @@ def judge(tb: LoopTable, done: np.ndarray, osc: np.ndarray, wall: float) -> list
             "good_iae": None if math.isnan(good) else good, "baseline": math.isnan(good),
         })  # fmt: skip
     for s in osc.tolist():
-        if math.isnan(tb.v_margin[s]) or not changed(tb, s):
+        if math.isnan(tb.v_margin[s]) or not changed(tb, s) or held(tb, s):
             continue
         result = fail(tb, s, "oscillation", wall, figure=None)
         if result is not None:
@@ -359,7 +350,7 @@ def fail(
     if discredited(tb, s) and why != "oscillation" and not actor:
         return _keep(tb, s, old, wall, detail, KEPT_DISCREDITED)
     floor = (float(tb.o_kp[s]), float(tb.o_ki[s]))
-    if mode == AUTO and not actor and not math.isnan(floor[0]):
+    if mode in PUBLISHING and not actor and not math.isnan(floor[0]):
         if same_gains(old[0], floor[0]) & same_gains(old[1], floor[1]):
             return _keep(tb, s, old, wall, detail, KEPT_DETUNE)
         good = (float(np.clip(floor[0], tb.kp_min[s], tb.kp_max[s])),
@@ -431,6 +422,18 @@ def _keep(tb: LoopTable, s: int, gains: tuple[float, float], wall: float, detail
     return None
 
 
+def reset(tb: LoopTable, s: int) -> None:
+    """A loop reset (in ``auto`` its registration's gains back): no hold after a
+    rollback, no oscillation pause, no fence, no proposal, no operator's floor. (A loop
+    held for gains reported outside the bounds stays held while they are in force: a
+    reset of an advisory, shadow or frozen loop leaves them.)"""
+    tb.cool_until[s] = tb.osc_until[s] = -math.inf
+    unfence(tb, s)
+    no_floor(tb, s)
+    restart_track(tb, s)
+    tb._verify_dirty.add(s)
+
+
 def restart_track(tb: LoopTable, s) -> None:
     """No proposal pending: the track restarts from the gains in force (``s`` a slot or
     slots)."""
@@ -471,3 +474,8 @@ def load(tb: LoopTable, slots: np.ndarray, dicts: list[dict]) -> None:
     for name in _STATE:
         default = -math.inf if name in _MINUS_INF else math.nan
         put(getattr(tb, name), slots, [d.get(name, ABSENT) for d in dicts], default)
+    # snapshots from before session 37 have no adopted gains: gains in force outside the
+    # bounds are taken as adopted (held), as they would have been adopted now
+    for s, d in zip(slots.tolist(), dicts, strict=True):
+        if "a_kp" not in d and outside(tb, s):
+            tb.a_kp[s], tb.a_ki[s] = tb.kp[s], tb.ki[s]

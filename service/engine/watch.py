@@ -47,7 +47,7 @@ import math
 
 import numpy as np
 
-from service.engine import identify, model_check, model_use, verify
+from service.engine import identify, model_check, model_use, reported, verify
 from service.engine.foptd_fit import sample_period
 from service.engine.id_state import IdState
 from service.engine.recorder import CAP
@@ -122,13 +122,15 @@ def record(tb, slots: np.ndarray, cols: dict, last_t: np.ndarray, gap, fresh, wa
     integral = np.where(measured, op - kp * e, integral)
     tb.op_int[s], tb.op_kp[s] = integral, kp
     op = np.where(measured, op, kp * e + integral)
-    broken = anew | (~auto & ~measured) | saturated
+    # gains reported outside the bounds may not be the DCS's: no output from them
+    foreign = reported.held(tb, s) & ~measured
+    broken = anew | (~auto & ~measured) | saturated | foreign
     recording = tb.rec[s] >= 0
     # rare paths, loop by loop: breaks, moves (open or close an event)
     special = np.flatnonzero((recording & broken) | (moved & ~broken))
     done = np.zeros(idx.size, bool)
     for i in np.flatnonzero(moved & broken & ~recording).tolist():  # say why nothing opens
-        why = broken_why(auto[i], saturated[i], measured[i])
+        why = broken_why(auto[i], saturated[i], measured[i], foreign[i])
         what = "output step" if by_hand[i] else "setpoint move"
         tb.ident[int(s[i])].why = f"{what} not usable: {why}"
     for i in special.tolist():
@@ -136,7 +138,7 @@ def record(tb, slots: np.ndarray, cols: dict, last_t: np.ndarray, gap, fresh, wa
         si = int(s[i])
         row = (float(t[i]), float(sp[i]), float(pv[i]), float(op[i]))
         if recording[i] and broken[i]:
-            why = broken_why(auto[i], saturated[i], measured[i])
+            why = broken_why(auto[i], saturated[i], measured[i], foreign[i])
             _close(tb, si, float(t[i]), wall, final=True, why=f"segment ended: {why}")
         elif recording[i]:
             st: IdState = tb.ident[si]
@@ -188,10 +190,12 @@ def _step(op, before, span):
     return MANUAL_STEP * np.fmax(np.maximum(np.abs(op), np.abs(before)), span)
 
 
-def broken_why(auto: bool, saturated: bool, measured: bool) -> str:
+def broken_why(auto: bool, saturated: bool, measured: bool, foreign: bool) -> str:
     """Why a sample breaks a segment (or makes a move unusable)."""
     if saturated:
         return "output saturated"
+    if foreign:
+        return "gains reported outside the guard's bounds, without op in the samples"
     if not auto and not measured:
         return "manual, without op in the samples"
     return "data gap (or samples not recorded before it, or op newly sent)"

@@ -18,7 +18,7 @@ follow. The engine's verdict of that change is read from its audit log.
   must be rolled back within one verification window (the next complete setpoint
   response).
 * ``detune`` changes: both gains cut by one factor of 0.2-0.6 (an operator's detune:
-  :func:`service.engine.verify.is_detune`), kept when the noise-free IAE at least
+  :func:`service.engine.reported.is_detune`), kept when the noise-free IAE at least
   doubles: judged ``worse`` and kept, never rolled back automatically (docs/tuner.md,
   Verdicts), within the same window.
 * ``oscillating`` changes: kp raised to 1.3 times the loop's ultimate gain (the loop
@@ -57,7 +57,9 @@ from service.units import RL_STEP_AGENT_UNITS
 
 DT = 1.0
 """Sample period of every simulated loop, s."""
-KINDS = ("good", "bad", "detune", "oscillating")
+KINDS = ("good", "bad", "oscillating", "detune")
+"""The kinds of change, drawn in this order from one stream (a kind added goes last: the
+draws of those before it stay as reported)."""
 MARGIN = Guard.model_fields["verify_margin"].default
 """The loops' ``verify_margin``: the default unless ``--margin``."""
 U_LIMIT = 10.0

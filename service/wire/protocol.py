@@ -41,7 +41,7 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 SCHEMA_VERSION = 1
-SCHEMA_REVISION = 7
+SCHEMA_REVISION = 8
 """Additive revisions within :data:`SCHEMA_VERSION` (optional fields only, ``v`` unchanged):
 1 the original; 2 ``Sample.applied_seq``, ``epoch`` in gains and state messages, the
 supervision fields of :class:`StateReply`, :class:`StateBatch` and ``after_t``; 3
@@ -113,6 +113,11 @@ class LoopStatus(StrEnum):
     oscillating = "oscillating"
     """The loop oscillates (verification's detector; revision 7): tuning pauses until the
     oscillation has died away. A change pending when it began was rolled back."""
+    gains_out_of_bounds = "gains_out_of_bounds"
+    """The gains the gateway reports lie outside the guard's bounds (revision 8): an
+    operator's choice, or samples that do not carry the DCS's gains in pitune's parallel
+    form. Tuning is held (no step, no model tuning, no rollback) until reported gains are
+    within the bounds, the bounds are patched to hold them, or the loop is reset."""
 
 
 class UpdateReason(StrEnum):
