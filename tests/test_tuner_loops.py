@@ -133,6 +133,18 @@ def test_guard_limits_relative_change_then_bounds():
     np.testing.assert_allclose(r.new[0], [0.45, 0.005])  # kp at its bound, ki halved
 
 
+def test_a_step_that_changes_no_gain_is_not_published():
+    """At its bounds the guard leaves the gains as they are: the step is recorded, but no
+    message of the same gains goes out (and takes no seq) every RL period."""
+    t, s = table(ScalingAgent(10.0), guard={"kp_max": 0.5, "ki_max": 0.01})
+    feed(t, s, [0.0, 165.0])
+    r = step(t, np.array([s]), WALL)
+    assert r.loop_ids == [] and t.seq[s] == 0 and not t.pending[s]
+    assert (t.n_steps[s], t.n_updates[s]) == (1, 0)
+    gains, audit = t.drain_changes()
+    assert gains == [] and [row[5] for row in audit] == ["agent"]
+
+
 def test_gains_reported_outside_the_bounds_are_not_stepped_but_a_reset_ends_the_hold():
     """Not walked back (before session 37): such gains are an operator's choice beyond
     the bounds, or not the DCS's gains at all (docs/tuner.md, Behaviour)."""
@@ -213,7 +225,7 @@ def test_reported_gains_are_adopted_unless_an_update_is_in_flight():
     ingest_one(t, s, sample(168.0, kp=0.5, ki=0.01), WALL)  # now an operator's change
     assert (t.kp[s], t.ki[s]) == (0.5, 0.01)
     gains, audit = t.drain_changes()
-    assert gains == [(0.5, 0.01, 1, "LIC-101")]
+    assert gains == [(0.5, 0.01, 2, "LIC-101")]  # the adoption's own seq
     assert [row[5] for row in audit] == ["adopted"]
 
 
@@ -286,7 +298,7 @@ def test_stale_gains_without_applied_seq_are_adopted_as_today(batched):
     ingest(t, s, sample(331.0, kp=0.5, ki=0.01), WALL)  # not the gains just replaced
     assert (t.kp[s], t.ki[s]) == (0.5, 0.01) and not t.pending[s]
     gains, audit = t.drain_changes()
-    assert gains == [(0.5, 0.01, 2, "LIC-101")] and [row[5] for row in audit] == ["adopted"]
+    assert gains == [(0.5, 0.01, 3, "LIC-101")] and [row[5] for row in audit] == ["adopted"]
 
 
 @pytest.mark.parametrize("batched", [False, True])
@@ -302,7 +314,7 @@ def test_applied_seq_equal_with_other_gains_is_an_operators_change(batched, advi
     ingest(t, s, sample(331.0, kp=0.6, ki=0.012, applied_seq=2), WALL)
     assert (t.kp[s], t.ki[s]) == (0.6, 0.012) and not t.pending[s]
     gains, audit = t.drain_changes()
-    assert gains == [(0.6, 0.012, 2, "LIC-101")] and [row[5] for row in audit] == ["adopted"]
+    assert gains == [(0.6, 0.012, 3, "LIC-101")] and [row[5] for row in audit] == ["adopted"]
 
 
 @pytest.mark.parametrize("batched", [False, True])

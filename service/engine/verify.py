@@ -149,6 +149,7 @@ def adopted(tb: LoopTable, s: int, old: tuple[float, float]) -> None:
     (:func:`~service.engine.reported.held`)."""
     unfence(tb, s)
     restart_track(tb, s)
+    tb.seq[s] += 1  # a change of the gains in force, judged as one: a seq of its own
     new = _gains(tb, s)
     good = (float(tb.g_kp[s]), float(tb.g_ki[s]))
     tb.o_kp[s], tb.o_ki[s] = new if is_detune(good, new) else (math.nan, math.nan)
@@ -197,7 +198,7 @@ def judge(tb: LoopTable, done: np.ndarray, osc: np.ndarray, wall: float) -> list
         first = int(tb.v_seq[s]) + 1
         _verified(tb, s, cand, seq, figure)
         tb.g_calm[s] = float(calm)
-        if first > seq:  # nothing was pending: the baseline of unchanged gains
+        if is_good:  # nothing was pending: the baseline of unchanged gains
             continue
         ident = tb.ident[s]
         if ident is not None and first <= ident.tuned_seq <= seq:  # a model's tuning held
