@@ -225,7 +225,7 @@ def test_reported_gains_are_adopted_unless_an_update_is_in_flight():
     ingest_one(t, s, sample(168.0, kp=0.5, ki=0.01), WALL)  # now an operator's change
     assert (t.kp[s], t.ki[s]) == (0.5, 0.01)
     gains, audit = t.drain_changes()
-    assert gains == [(0.5, 0.01, 2, "LIC-101")]  # the adoption's own seq
+    assert gains == [(0.5, 0.01, 1, "LIC-101")]
     assert [row[5] for row in audit] == ["adopted"]
 
 
@@ -298,7 +298,7 @@ def test_stale_gains_without_applied_seq_are_adopted_as_today(batched):
     ingest(t, s, sample(331.0, kp=0.5, ki=0.01), WALL)  # not the gains just replaced
     assert (t.kp[s], t.ki[s]) == (0.5, 0.01) and not t.pending[s]
     gains, audit = t.drain_changes()
-    assert gains == [(0.5, 0.01, 3, "LIC-101")] and [row[5] for row in audit] == ["adopted"]
+    assert gains == [(0.5, 0.01, 2, "LIC-101")] and [row[5] for row in audit] == ["adopted"]
 
 
 @pytest.mark.parametrize("batched", [False, True])
@@ -314,7 +314,7 @@ def test_applied_seq_equal_with_other_gains_is_an_operators_change(batched, advi
     ingest(t, s, sample(331.0, kp=0.6, ki=0.012, applied_seq=2), WALL)
     assert (t.kp[s], t.ki[s]) == (0.6, 0.012) and not t.pending[s]
     gains, audit = t.drain_changes()
-    assert gains == [(0.6, 0.012, 3, "LIC-101")] and [row[5] for row in audit] == ["adopted"]
+    assert gains == [(0.6, 0.012, 2, "LIC-101")] and [row[5] for row in audit] == ["adopted"]
 
 
 @pytest.mark.parametrize("batched", [False, True])

@@ -10,6 +10,9 @@ import json
 import numpy as np
 import pytest
 
+from plant_sim import FOPTDBatch, PIBatch
+from service.daemon.schemas import AuditEntry
+from service.daemon.verdicts import annotate
 from service.engine import LoopConfig, TuningEngine, oscillation, reported, verify
 from service.engine.identify import Model
 from service.engine.modes import ADVISORY
@@ -716,3 +719,48 @@ def test_a_snapshot_from_before_the_hold_restores_foreign_gains_held():
     tb.a_kp[s] = tb.a_ki[s] = np.nan
     verify.load(tb, np.array([s]), [state])
     assert bool(reported.held(tb, s))
+
+
+def _history(engine) -> list[AuditEntry]:
+    """The engine's audit rows as the history shows them, newest first, with verdicts."""
+    rows = engine.drain_changes()[1]
+    items = [
+        AuditEntry(id=i, loop_id=r[0], wall_time=r[1], t=r[2], seq=r[3], mode=r[4], reason=r[5],
+                   kp_old=r[6], ki_old=r[7], kp_new=r[8], ki_new=r[9], detail=r[10])
+        for i, r in enumerate(rows)
+    ][::-1]  # fmt: skip
+    annotate(items, int(engine.table.v_seq[engine.table.slot("L")]))
+    return items
+
+
+def test_an_operators_change_after_a_judged_update_gets_its_own_verdict():
+    """An adoption shares the seq of the update it replaced (a seq of its own would be news
+    to a gateway's state query). Judged from that seq on, it gets a verdict row of its
+    own, and the history gives each row its own verdict; before, with no update after
+    it (the agent still), it was verified without a verdict row and showed none."""
+    K, tau, theta = np.array([1.0]), np.array([10.0]), np.array([2.0])
+    engine = TuningEngine(StillAgent())
+    engine.register(LoopConfig(id="L", kp=1.25, ki=0.125, sample_period_s=1.0, scaling={
+        "k_hat": 1.0, "tau_hat": 10.0, "pv_scale": 1.0}, guard={"excitation_periods": 0.0,
+        "identify": False}), wall=0.0)  # fmt: skip
+    tb, s = engine.table, engine.table.slot("L")
+    plant = FOPTDBatch(K, tau, theta, dt=1.0, max_theta=3.0)
+    plant.reset(0.0)
+    pi = PIBatch(np.array([1.25]), np.array([0.125]), dt=1.0, n=1)
+    pi.initialise(np.zeros(1))
+    for k in range(7 * 220):
+        if k == 2 * 220 + 55:  # an update of the tuner's (seq 1), verified by 3 * 220 + 110
+            tb.kp[s], tb.ki[s], tb.seq[s] = 2.0, 0.2, 1
+            pi.set_gains(np.array([2.0]), np.array([0.2]))
+        if k == 4 * 220 + 55:  # the operator's change, after that verdict
+            assert int(tb.v_seq[s]) == 1
+            pi.set_gains(np.array([2.5]), np.array([0.25]))
+        sp, pv = float((k // 220) % 2), float(plant.output()[0])
+        sample = {"loop_id": "L", "t": float(k), "sp": sp, "pv": pv, "kp": float(pi.kp[0]),
+                  "ki": float(pi.ki[0])}  # fmt: skip
+        assert engine.ingest([sample], wall=float(k)) == []
+        plant.step(pi.step(np.array([sp - pv])))
+    assert (tb.g_kp[s], int(tb.seq[s]), int(tb.v_seq[s])) == (2.5, 1, 1)
+    history = _history(engine)
+    adopted = [r.verdict for r in history if r.reason == "adopted"]
+    assert adopted == ["verified"]

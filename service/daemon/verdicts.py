@@ -3,8 +3,10 @@
 The engine writes a verdict row when it judges changes (reason ``verified``,
 ``rollback`` or ``verdict``, with the seqs judged in its JSON detail: see
 :mod:`service.engine.verify`); a change row (an agent step of an ``auto`` loop, a reset,
-an adoption, an accepted proposal, a model's first tuning) takes the verdict of the newer
-verdict row whose seqs cover its seq, or ``pending`` past the loop's judged seq.
+an adoption, an accepted proposal, a model's first tuning) takes the verdict of the
+oldest newer verdict row whose seqs cover its seq, else ``pending`` past the loop's
+judged seq (an adoption shares the seq of the update it replaced: the update's verdict
+row comes between them).
 """
 
 from __future__ import annotations
@@ -36,10 +38,12 @@ def annotate(items: list[AuditEntry], judged_seq: int | None) -> None:
             continue
         if item.reason not in CHANGES or (item.reason in PROPOSALS and item.mode != "auto"):
             continue
-        if judged_seq is not None and item.seq > judged_seq:
-            item.verdict = "pending"
-            continue
-        for first, last, verdict in covers:
+        # the first verdict after the change that covers its seq (an operator's change
+        # shares the seq of the update it replaced, judged before it)
+        for first, last, verdict in reversed(covers):
             if first <= item.seq <= last:
                 item.verdict = verdict
                 break
+        else:
+            if judged_seq is not None and item.seq > judged_seq:
+                item.verdict = "pending"

@@ -149,7 +149,10 @@ def adopted(tb: LoopTable, s: int, old: tuple[float, float]) -> None:
     (:func:`~service.engine.reported.held`)."""
     unfence(tb, s)
     restart_track(tb, s)
-    tb.seq[s] += 1  # a change of the gains in force, judged as one: a seq of its own
+    # judged from the loop's seq on: an operator's change takes no seq (a seq unpublished
+    # would be news to a gateway's state query, which would then write these gains over
+    # a later change of the operator's), it shares that of the last update it replaced
+    tb.v_seq[s] = min(tb.v_seq[s], tb.seq[s] - 1)
     new = _gains(tb, s)
     good = (float(tb.g_kp[s]), float(tb.g_ki[s]))
     tb.o_kp[s], tb.o_ki[s] = new if is_detune(good, new) else (math.nan, math.nan)
