@@ -133,18 +133,6 @@ def test_guard_limits_relative_change_then_bounds():
     np.testing.assert_allclose(r.new[0], [0.45, 0.005])  # kp at its bound, ki halved
 
 
-def test_a_step_that_changes_no_gain_is_not_published():
-    """At its bounds the guard leaves the gains as they are: the step is recorded, but no
-    message of the same gains goes out (and takes no seq) every RL period."""
-    t, s = table(ScalingAgent(10.0), guard={"kp_max": 0.5, "ki_max": 0.01})
-    feed(t, s, [0.0, 165.0])
-    r = step(t, np.array([s]), WALL)
-    assert r.loop_ids == [] and t.seq[s] == 0 and not t.pending[s]
-    assert (t.n_steps[s], t.n_updates[s]) == (1, 0)
-    gains, audit = t.drain_changes()
-    assert gains == [] and [row[5] for row in audit] == ["agent"]
-
-
 def test_gains_reported_outside_the_bounds_are_not_stepped_but_a_reset_ends_the_hold():
     """Not walked back (before session 37): such gains are an operator's choice beyond
     the bounds, or not the DCS's gains at all (docs/tuner.md, Behaviour)."""

@@ -733,11 +733,17 @@ def _history(engine) -> list[AuditEntry]:
     return items
 
 
-def test_an_operators_change_after_a_judged_update_gets_its_own_verdict():
+@pytest.mark.parametrize(("at", "gains", "verdict"), [
+    (4 * 220 + 55, (2.5, 0.25), "verified"),  # after the update's verdict
+    (3 * 220 + 60, (6.0, 0.6), "rolled_back"),  # during the response that judges it
+])  # fmt: skip
+def test_an_operators_change_gets_its_own_verdict(at, gains, verdict):
     """An adoption shares the seq of the update it replaced (a seq of its own would be news
     to a gateway's state query). Judged from that seq on, it gets a verdict row of its
-    own, and the history gives each row its own verdict; before, with no update after
-    it (the agent still), it was verified without a verdict row and showed none."""
+    own, and the history shows it; before, made after the update's verdict with no update
+    after it (the agent still), it was verified without a verdict row and showed none;
+    made during the update's response, that response verified the update after it, and
+    its rollback showed as the update's verdict (a review's case)."""
     K, tau, theta = np.array([1.0]), np.array([10.0]), np.array([2.0])
     engine = TuningEngine(StillAgent())
     engine.register(LoopConfig(id="L", kp=1.25, ki=0.125, sample_period_s=1.0, scaling={
@@ -752,15 +758,29 @@ def test_an_operators_change_after_a_judged_update_gets_its_own_verdict():
         if k == 2 * 220 + 55:  # an update of the tuner's (seq 1), verified by 3 * 220 + 110
             tb.kp[s], tb.ki[s], tb.seq[s] = 2.0, 0.2, 1
             pi.set_gains(np.array([2.0]), np.array([0.2]))
-        if k == 4 * 220 + 55:  # the operator's change, after that verdict
-            assert int(tb.v_seq[s]) == 1
-            pi.set_gains(np.array([2.5]), np.array([0.25]))
+        if k == at:  # the operator's change
+            pi.set_gains(np.array([gains[0]]), np.array([gains[1]]))
         sp, pv = float((k // 220) % 2), float(plant.output()[0])
         sample = {"loop_id": "L", "t": float(k), "sp": sp, "pv": pv, "kp": float(pi.kp[0]),
                   "ki": float(pi.ki[0])}  # fmt: skip
-        assert engine.ingest([sample], wall=float(k)) == []
+        for u in engine.ingest([sample], wall=float(k)):  # the rollback, applied
+            pi.set_gains(np.array([u.kp]), np.array([u.ki]))
         plant.step(pi.step(np.array([sp - pv])))
-    assert (tb.g_kp[s], int(tb.seq[s]), int(tb.v_seq[s])) == (2.5, 1, 1)
     history = _history(engine)
-    adopted = [r.verdict for r in history if r.reason == "adopted"]
-    assert adopted == ["verified"]
+    assert [r.verdict for r in history if r.reason == "adopted"] == [verdict]
+    if verdict == "rolled_back":  # to the gains before the update: it was never verified
+        assert (tb.kp[s], tb.ki[s]) == (1.25, 0.125)
+        assert not [r for r in history if r.reason == "verified" and r.t > at]
+
+
+def test_gains_judged_worse_and_kept_adopted_again_leave_nothing_pending():
+    """A frozen loop's gains judged worse are kept (nothing may be published): adopted
+    again later, their response is not judged anew, and the judged seq moves up with it
+    (a review found it left at -1, the history showing pending for good)."""
+    engine, tb, s = _one_loop(1.0, 0.1, mode="frozen")
+    _report(engine, 0.3, 0.03)
+    assert int(tb.v_seq[s]) == -1  # the operator's change, judged from seq 0
+    tb.b_kp[s], tb.b_ki[s] = 0.3, 0.03  # judged worse before, kept
+    tb.f_iae[s], tb.r_kp[s], tb.r_ki[s], tb.r_seq[s], tb.r_mixed[s] = 5.0, 0.3, 0.03, 0, False
+    assert verify.judge(tb, np.array([s]), np.array([], int), 0.0) == []
+    assert int(tb.v_seq[s]) == 0

@@ -96,11 +96,7 @@ def step(tb: LoopTable, slots: np.ndarray, wall: float) -> StepResult:
     if hold.any():
         new = np.where(hold[:, None], base, new)
         tb.n_model_holds[slots[hold]] += 1
-    # a step that changes neither gain (the agent at its target, or the bounds reached) is
-    # no update: not published and no seq (at a bound, one message of the same gains
-    # every RL period is noise in a DCS's change log; session 36's review)
-    still = ~hold & np.isclose(new, base, rtol=GAIN_RTOL, atol=0.0).all(axis=1)
-    go = ~hold & ~still
+    go = ~hold
 
     applied = (mode == AUTO) & go
     auto = slots[applied]
@@ -158,7 +154,7 @@ def step(tb: LoopTable, slots: np.ndarray, wall: float) -> StepResult:
             new[:, 0].tolist(), new[:, 1].tolist(), details, strict=True,
         )
     )  # fmt: skip
-    unpublished = np.flatnonzero((mode == SHADOW) | hold | still)
+    unpublished = np.flatnonzero((mode == SHADOW) | hold)
     return result.without(unpublished) if unpublished.size else result
 
 

@@ -152,7 +152,11 @@ def adopted(tb: LoopTable, s: int, old: tuple[float, float]) -> None:
     # judged from the loop's seq on: an operator's change takes no seq (a seq unpublished
     # would be news to a gateway's state query, which would then write these gains over
     # a later change of the operator's), it shares that of the last update it replaced
-    tb.v_seq[s] = min(tb.v_seq[s], tb.seq[s] - 1)
+    if not math.isnan(tb.v_margin[s]):
+        tb.v_seq[s] = min(tb.v_seq[s], tb.seq[s] - 1)
+    # a response open across it judges neither gains (as one a gap cuts short): judged
+    # on it, the gains it replaced were verified after it and its own verdict lost
+    tb.r_t0[s] = math.nan
     new = _gains(tb, s)
     good = (float(tb.g_kp[s]), float(tb.g_ki[s]))
     tb.o_kp[s], tb.o_ki[s] = new if is_detune(good, new) else (math.nan, math.nan)
@@ -176,8 +180,10 @@ def judge(tb: LoopTable, done: np.ndarray, osc: np.ndarray, wall: float) -> list
         figure, cand = float(tb.f_iae[s]), (float(tb.r_kp[s]), float(tb.r_ki[s]))
         seq = int(tb.r_seq[s])
         is_good = bool(same_gains(cand[0], tb.g_kp[s]) & same_gains(cand[1], tb.g_ki[s]))
-        if is_good and tb.r_mixed[s]:
-            continue  # the last-good gains changed during it: no figure of theirs
+        if tb.r_mixed[s] and (is_good or not changed(tb, s)):
+            # the gains changed during it: no figure of the last-good gains, and none of
+            # gains since rolled back (nothing is pending: judged, they were judged twice)
+            continue
         good = float(reference(tb, s))
         calm = bool(tb.osc_seen[s] < tb.f_t[s] - RESPONSE_PERIODS * tb.period[s])
         if is_good and math.isfinite(good):
@@ -186,7 +192,8 @@ def judge(tb: LoopTable, done: np.ndarray, osc: np.ndarray, wall: float) -> list
             tb.g_calm[s] = max(float(tb.g_calm[s]), float(calm))
             continue
         if same_gains(cand[0], tb.b_kp[s]) & same_gains(cand[1], tb.b_ki[s]):
-            continue  # judged worse already, and kept by the operator
+            tb.v_seq[s] = max(tb.v_seq[s], seq)  # judged worse already, kept by the operator
+            continue
         over = overshoot(tb, s)
         if not is_good and over > tb.v_over[s]:
             result = fail(tb, s, "overshoot", wall, figure=figure, overshoot=over)

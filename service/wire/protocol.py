@@ -261,8 +261,7 @@ class SampleColumns(BaseModel):
 
 
 class GainsMessage(BaseModel):
-    """New absolute gains for one loop (tuner -> gateway), published once per RL step
-    that changes a gain."""
+    """New absolute gains for one loop (tuner -> gateway), published once per RL step."""
 
     model_config = _WIRE
 
