@@ -610,6 +610,8 @@ def test_no_automatic_rollback_goes_past_an_operators_detune():
     engine.ingest([{"loop_id": "L", "t": 0.0, "sp": 0.0, "pv": 0.0, "kp": 0.25, "ki": 0.025}],
                   wall=0.0)  # fmt: skip
     assert (tb.kp[s], tb.o_kp[s], tb.o_ki[s]) == (0.25, 0.25, 0.025)  # adopted: the floor
+    shown = engine.view("L", wall=0.0).verification
+    assert (shown.detune_floor_kp, shown.detune_floor_ki) == (0.25, 0.025)
     tb.kp[s], tb.ki[s] = 0.3, 0.03  # the agent stepped from it
     result = verify.fail(tb, s, "iae", 10.0, figure=9.0)
     assert result is not None and tuple(result.new[0]) == (0.25, 0.025)  # back to the detune

@@ -104,6 +104,12 @@ class Verification(BaseModel):
         description="Plant time until which tuning pauses because the loop oscillates "
         "(status oscillating; extended while it does).",
     )
+    detune_floor_kp: float | None = Field(
+        None,
+        description="An operator's detune of the last-good gains, adopted and not yet "
+        "judged: no automatic rollback goes past it (None: none; docs/tuner.md, Verdicts).",
+    )
+    detune_floor_ki: float | None = None
 
 
 class Proposal(BaseModel):

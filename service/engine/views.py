@@ -122,6 +122,8 @@ def verification(tb: LoopTable, s: int) -> Verification:
         held_until_t=_num(tb.cool_until[s]) if tb.cool_until[s] > tb.last_t[s] else None,
         fence=_fence(tb, s),
         paused_until_t=_num(tb.osc_until[s]) if verify.paused(tb, s, tb.last_t[s]) else None,
+        detune_floor_kp=_num(tb.o_kp[s]),
+        detune_floor_ki=_num(tb.o_ki[s]),
     )
 
 
