@@ -123,7 +123,8 @@ def test_a_restarted_tuner_s_state_reply_does_not_undo_an_operator_s_change(tmp_
     """The gateway took seq 1 under the first run's epoch; the operator changed the gains
     while the tuner was down. The restarted tuner's state reply (same seq) carries the
     epoch seq 1 went out under, so the gateway drops it and keeps the operator's gains,
-    which the tuner adopts from the samples; its next message has the new epoch."""
+    which the tuner adopts from the samples (recorded under the epoch of seq 1: its
+    state is still no news); its next message has the new epoch."""
     settings = tuner_settings(tmp_path)
     inbox = GainsInbox(loops=frozenset({"LIC-101"}))
     with Tuner(settings) as first:
@@ -142,6 +143,14 @@ def test_a_restarted_tuner_s_state_reply_does_not_undo_an_operator_s_change(tmp_
             operator = {"t": 5.0, "e": 0.1, "kp": 0.4, "ki": 0.02}
             session.put(KEYS.sample("LIC-101"), json.dumps(operator).encode())
             wait_until(lambda: again.view("LIC-101").kp == 0.4, what="the adoption")
+            history = again.history
+            wait_until(lambda: any(e.reason == "adopted" for e in history("LIC-101", 0, 50).items),
+                       what="the adoption committed")  # fmt: skip
+            # its state: the same (epoch, seq), no news to write over a later change of
+            # the operator's (committed under this run's epoch, it was: session 37)
+            (reply,) = session.get(KEYS.state("LIC-101"), timeout=5.0)
+            inbox.put_raw(Source.state, reply.ok.payload.to_bytes())
+            assert inbox.drain() == []
             (reset,) = _heard(again, inbox)
             assert (reset.epoch, reset.seq) == (again.epoch, taken.seq + 1)
         finally:

@@ -62,7 +62,7 @@ class Delivery:
         dirty = self.table.drain_verify_dirty()
         if gains or audit:
             # each with the epoch its message goes out under (its state replies' epoch)
-            rows = [(*g, self._epoch_now(g[3])) for g in gains]
+            rows = [(*g, self._row_epoch(g[3], g[2])) for g in gains]
             try:
                 if self.cluster is None:
                     self.store.record_gains(rows, audit)
@@ -79,7 +79,7 @@ class Delivery:
                 self.table.requeue_verify_dirty(dirty)
                 self._store_failed(exc)
                 return
-            self.epochs.update((row[3], row[4]) for row in rows if row[4] is not None)
+            self.epochs.update((row[3], (row[4], row[2])) for row in rows if row[4] is not None)
             # INFO per gain change / adoption, rate-limited (the API logs resets with their caller)
             self.metrics.events.audit(row for row in audit if row[5] != "reset")
             self.metrics.verdict(audit)

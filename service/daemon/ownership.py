@@ -177,7 +177,7 @@ class Ownership:
     def _restore_many(self, stored: list, wall: float, saved: list[Saved | None] | None = None):
         """Stored loops into the engine at once (``saved``: their snapshots, parsed ahead;
         None: parsed here), with the epochs their gains were committed under."""
-        self.epochs.update((loop.config.id, loop.epoch) for loop in stored if loop.epoch)
+        self.epochs.update((lp.config.id, (lp.epoch, lp.seq)) for lp in stored if lp.epoch)
         self.engine.add_many(
             [loop.config for loop in stored],
             kp=[loop.kp for loop in stored],
@@ -219,7 +219,17 @@ class Ownership:
         after a restart or a failover ordered above the gateway's last message of the same
         seq, and the gateway wrote the stored gains over an operator's change made
         meanwhile. None recorded (a row of an older version): the current one."""
-        return self.epochs.get(loop_id) or self._epoch_now(loop_id)
+        last = self.epochs.get(loop_id)
+        return last[0] if last else self._epoch_now(loop_id)
+
+    def _row_epoch(self, loop_id: str, seq: int) -> int | None:
+        """The epoch a committed gains row of the loop is recorded under: its last row's
+        when the seq has not moved (a change not published: an operator's, adopted),
+        else the one its message goes out under now. Under this run's, an adoption after
+        a restart or a failover made a gateway's state query take it for news, and write
+        it over a change the operator made again while the gateway was away."""
+        last = self.epochs.get(loop_id)
+        return last[0] if last and last[1] == seq else self._epoch_now(loop_id)
 
     def _publishable(self, messages: list[dict], gateways: list) -> list[tuple[dict, object]]:
         """(message, gateway) of the messages this member may publish, with their epoch."""

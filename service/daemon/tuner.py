@@ -157,8 +157,8 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
         """The worker's busy share: a busy worker waits for more batches (pacing.py)."""
         self.epoch: int | None = None
         """The store's epoch of this run (set by :meth:`start`)."""
-        self.epochs: dict[str, int] = {}
-        """Loop id -> the epoch its gains were last committed under (Ownership.epoch_of)."""
+        self.epochs: dict[str, tuple[int, int]] = {}
+        """Loop id -> (epoch, seq) of its last committed gains (Ownership.epoch_of)."""
         self.lanes: dict[str | None, Lane] = {}
         self._lanes_lock = threading.Lock()
         self._parked: dict[str, list[tuple[float, float, zenoh.Query]]] = {}
