@@ -151,6 +151,8 @@ def ingest(
         cols = {k: v[ok] for k, v in cols.items()}
     tb.back_n[slots] = 0.0
     _adopt(tb, slots, cols, wall)
+    # gains reported outside the bounds hold the loop (identification's output, steps)
+    cols["held"] = reported.held(tb, slots)
     moved = _excite(tb, slots, cols, last_t)
 
     tb.n_samples[slots] += 1
@@ -193,7 +195,7 @@ def ingest(
     tb.next_due[slots] = next_due
     due_ok = reached & (tb.mode[slots] != FROZEN) & auto & ~saturated & ~tb.out_env[slots]
     due_ok &= ~verify.paused(tb, slots, t)  # the loop oscillates: neither stepped nor quiet
-    due_ok &= ~reported.held(tb, slots)  # gains reported outside the bounds: not ours to step
+    due_ok &= ~cols["held"]  # gains reported outside the bounds: not ours to step
     ramp = ramp_gated(t, period, tb.ramp_t[slots], tb.ramp_from[slots], tb.sp_since[slots])
     gated = due_ok & (tb.gate_closed(slots, t) | ramp)
     tb.n_quiet[slots[gated]] += 1

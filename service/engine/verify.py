@@ -18,9 +18,9 @@ fails the change at once. Last-good gains the detector flagged while they were i
 were verified on has changed, or the loop is driven from outside. A change that then
 fails on IAE or overshoot is not rolled back to them: it stays, verdict ``worse``, and
 becomes the last-good gains, measured anew (:func:`_keep`); a change that oscillates
-is still rolled back. In ``auto`` an operator's detune (:func:`adopted`) is never rolled
-back automatically: it is kept the same way when it fails, and until a verdict it is the
-floor of rollbacks (a change from it that fails goes back to it, not past it). A failed
+is still rolled back. An operator's detune (:func:`adopted`) is never rolled back (nor
+proposed away) automatically: it is kept the same way when it fails, and until a verdict
+it is the floor of rollbacks (a change from it that fails goes back to it, not past it). A failed
 change is acted on by mode: ``auto`` restores the
 last-good gains (published, reason ``rollback``; the agent's hidden state restarts and
 the agent is held for ``cooldown_periods`` RL periods), ``advisory`` proposes them (an
@@ -342,8 +342,7 @@ def fail(
     old = (float(tb.kp[s]), float(tb.ki[s]))
     # the last-good gains within the guard's bounds in force (a PATCH may have narrowed
     # them since: restored as they were, a rollback went back above kp_max 14 times)
-    good = (float(np.clip(tb.g_kp[s], tb.kp_min[s], tb.kp_max[s])),
-            float(np.clip(tb.g_ki[s], tb.ki_min[s], tb.ki_max[s])))  # fmt: skip
+    good = _within_bounds(tb, s, (tb.g_kp[s], tb.g_ki[s]))
     judged = [int(tb.v_seq[s]) + 1, int(tb.seq[s])]
     detail = {
         "why": why, "seqs": judged, "iae": figure,
@@ -364,8 +363,7 @@ def fail(
     if mode in PUBLISHING and not actor and not math.isnan(floor[0]):
         if same_gains(old[0], floor[0]) & same_gains(old[1], floor[1]):
             return _keep(tb, s, old, wall, detail, KEPT_DETUNE)
-        good = (float(np.clip(floor[0], tb.kp_min[s], tb.kp_max[s])),
-                float(np.clip(floor[1], tb.ki_min[s], tb.ki_max[s])))  # fmt: skip
+        good = _within_bounds(tb, s, floor)
         tb.o_kp[s], tb.o_ki[s] = good  # within the bounds in force, as the gains restored
         detail["to"] = "the operator's detune"
     else:
@@ -401,6 +399,11 @@ def fail(
     return single(tb, s, t, old, good, UpdateReason.rollback, why_text, mode)
 
 
+def _within_bounds(tb: LoopTable, s: int, gains) -> tuple[float, float]:
+    return (float(np.clip(gains[0], tb.kp_min[s], tb.kp_max[s])),
+            float(np.clip(gains[1], tb.ki_min[s], tb.ki_max[s])))  # fmt: skip
+
+
 def discredited(tb: LoopTable, s: int) -> bool:
     """The last-good gains oscillated in force since they became last-good: the plant
     they were verified on has changed (or the oscillation comes from outside), and
@@ -418,12 +421,13 @@ def _keep(tb: LoopTable, s: int, gains: tuple[float, float], wall: float, detail
     verdict ``worse``, the ``note`` saying why. Two cases:
 
     * the last-good gains are :func:`discredited` (and the change did not oscillate);
-    * in ``auto``, the change is an operator's detune (:func:`adopted`), whatever the
-      verdict: its IAE is judged against a figure of the plant as it was, and an operator
-      detunes because the loop rings. Restored, the last-good gains undid such a detune of
-      a plant that had changed, to gains with a gain margin of 1.0 on it, which then
-      oscillated for hours (session 36's safety review; the oscillation detector had
-      not flagged them in force, an agent step was pending when the loop began to ring).
+    * in ``auto`` or ``advisory``, the change is an operator's detune (:func:`adopted`),
+      whatever the verdict: its IAE is judged against a figure of the plant as it was,
+      and an operator detunes because the loop rings. Restored, the last-good gains
+      undid such a detune of a plant that had changed, to gains with a gain margin of
+      1.0 on it, which then oscillated for hours (session 36's safety review; the
+      oscillation detector had not flagged them in force, an agent step was pending
+      when the loop began to ring).
       The rollback is an operator's call (``POST /loops/{id}/rollback``, before the
       verdict), and a later change that fails goes back to the detune, not past it."""
     _verified(tb, s, gains, int(tb.seq[s]), math.nan)
@@ -487,6 +491,6 @@ def load(tb: LoopTable, slots: np.ndarray, dicts: list[dict]) -> None:
         put(getattr(tb, name), slots, [d.get(name, ABSENT) for d in dicts], default)
     # snapshots from before session 37 have no adopted gains: gains in force outside the
     # bounds are taken as adopted (held), as they would have been adopted now
-    for s, d in zip(slots.tolist(), dicts, strict=True):
-        if "a_kp" not in d and outside(tb, s):
-            tb.a_kp[s], tb.a_ki[s] = tb.kp[s], tb.ki[s]
+    old = slots[np.array(["a_kp" not in d for d in dicts], bool)]
+    old = old[outside(tb, old)]
+    tb.a_kp[old], tb.a_ki[old] = tb.kp[old], tb.ki[old]

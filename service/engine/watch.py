@@ -47,7 +47,7 @@ import math
 
 import numpy as np
 
-from service.engine import identify, model_check, model_use, reported, verify
+from service.engine import identify, model_check, model_use, verify
 from service.engine.foptd_fit import sample_period
 from service.engine.id_state import IdState
 from service.engine.recorder import CAP
@@ -123,7 +123,7 @@ def record(tb, slots: np.ndarray, cols: dict, last_t: np.ndarray, gap, fresh, wa
     tb.op_int[s], tb.op_kp[s] = integral, kp
     op = np.where(measured, op, kp * e + integral)
     # gains reported outside the bounds may not be the DCS's: no output from them
-    foreign = reported.held(tb, s) & ~measured
+    foreign = cols["held"][idx] & ~measured
     broken = anew | (~auto & ~measured) | saturated | foreign
     recording = tb.rec[s] >= 0
     # rare paths, loop by loop: breaks, moves (open or close an event)
