@@ -631,6 +631,35 @@ def test_compose_tuner_settings_make_an_authenticated_client_of_the_router(compo
     assert json.loads(config.get_json("transport/auth/usrpwd/user")) == "tuner"
 
 
+def test_compose_gives_the_tuner_the_gateway_tokens_of_the_env_file(monkeypatch):
+    """PITUNE_API_GATEWAY_TOKENS of deploy/.env reaches the tuner (and the HA file's second
+    tuner): a gateway's token registers that gateway's loops there; unset, there are none."""
+    from service.daemon.gate import gateway_of
+    from service.daemon.settings import load_settings
+
+    def tuner_settings(**env):
+        for name, value in compose_config(PITUNE_API_TOKEN=TOKEN, **env)["services"]["tuner"][
+            "environment"
+        ].items():
+            monkeypatch.setenv(name, value)
+        return load_settings()
+
+    assert tuner_settings().api_gateway_tokens == {}
+    tokens = json.dumps({"unit-3-dcs": "t3", "unit-4-dcs": "t4"})
+    settings = tuner_settings(PITUNE_API_GATEWAY_TOKENS=tokens)
+    assert gateway_of(settings, "t4") == "unit-4-dcs"
+    assert gateway_of(settings, TOKEN) is None
+    ha = compose_config(
+        (DEPLOY / "docker-compose.ha.yml",),
+        PITUNE_API_TOKEN=TOKEN,
+        PITUNE_POSTGRES_PASSWORD="pw",
+        PITUNE_API_GATEWAY_TOKENS=tokens,
+    )["services"]
+    assert {ha[t]["environment"]["PITUNE_API_GATEWAY_TOKENS"] for t in ("tuner", "tuner2")} == {
+        tokens
+    }
+
+
 def test_example_dcs_gateway_publishes_samples_and_applies_auto_gains(tmp_path):
     """deploy/examples/dcs_gateway.py, the README's gateway, against a live Zenoh peer."""
     from service.procs import Proc
