@@ -725,7 +725,7 @@ def test_dockerfile_copies_exist_and_pass_the_dockerignore():
 HA_FILE = DEPLOY / "docker-compose.ha.yml"
 
 
-def test_ha_compose_runs_two_tuners_on_postgres_with_a_required_password():
+def test_ha_compose_runs_two_tuners_on_postgres_with_a_required_password(monkeypatch):
     refused = run_compose("config", "-q", files=(HA_FILE,), PITUNE_API_TOKEN=TOKEN)
     assert refused.returncode != 0 and "PITUNE_POSTGRES_PASSWORD" in refused.stderr
     ha = compose_config(files=(HA_FILE,), PITUNE_API_TOKEN=TOKEN, PITUNE_POSTGRES_PASSWORD="pw")
@@ -738,11 +738,10 @@ def test_ha_compose_runs_two_tuners_on_postgres_with_a_required_password():
         assert env["PGPASSWORD"] == "pw" and "pw" not in env["PITUNE_DB_PATH"]
         assert {v for v in env if not v.startswith("PITUNE_")} == {"PGPASSWORD"}
         assert tuner["depends_on"]["postgres"]["condition"] == "service_healthy"
-        fields = {
-            k.removeprefix("PITUNE_").lower(): v for k, v in env.items() if k.startswith("PITUNE_")
-        }
-        fields.pop("api_token")
-        settings.append(load_settings(**fields))
+        for name, value in env.items():  # read as the tuner reads them
+            if name.startswith("PITUNE_"):
+                monkeypatch.setenv(name, value)
+        settings.append(load_settings())
     assert all(s.postgres for s in settings)
     assert len({s.instance_id for s in settings}) == 2
     assert [s.cluster_url for s in settings] == ["http://tuner:8750", "http://tuner2:8750"]
