@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import socket
 import threading
 
@@ -197,6 +198,40 @@ def test_a_gateways_token_registers_its_own_loops_and_nothing_else(tmp_path):
             assert r.status_code == 403, (method, path, r.text)
         assert sorted(tuner.loop_ids()) == ["A", "B", "C", "O"]
         assert tuner.view("O").config.guard.kp_max < 1e6
+
+
+def _actors(url: str, loop_id: str) -> dict[str, str]:
+    """Reason -> the actor of the loop's audit rows (JSON detail, or 'actor=' text)."""
+    items = httpx.get(f"{url}/loops/{loop_id}/history").json()["items"]
+    out = {}
+    for row in items:
+        detail = row["detail"] or ""
+        try:
+            out[row["reason"]] = json.loads(detail)["actor"]
+        except (ValueError, KeyError, TypeError):
+            out[row["reason"]] = detail.rpartition("actor=")[2] if "actor=" in detail else ""
+    return out
+
+
+def test_the_audit_log_says_who_registered_identified_and_deleted_a_loop(tmp_path):
+    """Registrations with a gateway's token are told from the admin token's; identify and
+    delete carry the actor as patch and reset do."""
+    gw_token = "gateway-one-token-0123456789"
+    mine = {"Authorization": f"Bearer {gw_token}"}
+    with _served(tmp_path, api_token=TOKEN, api_gateway_tokens={"gw-1": gw_token}) as (_, port):
+        url = f"http://127.0.0.1:{port}"
+        r = httpx.post(f"{url}/loops", json=loop_body("G", gateway="gw-1"), headers=mine)
+        assert r.status_code == 201, r.text
+        pair = [loop_body("H", gateway="gw-1")]
+        assert httpx.post(f"{url}/loops/bulk", headers=mine, json=pair).status_code == 201
+        httpx.post(f"{url}/loops", json=loop_body("L"), headers=AUTH).raise_for_status()
+        httpx.post(f"{url}/loops/L/identify", headers=AUTH).raise_for_status()
+        httpx.delete(f"{url}/loops/L", headers=AUTH).raise_for_status()
+        assert _actors(url, "G") == {"registered": "gateway:gw-1"}
+        assert _actors(url, "H") == {"registered": "gateway:gw-1"}
+        assert _actors(url, "L") == {"registered": "api", "identify": "api", "deleted": "api"}
+        [registered] = httpx.get(f"{url}/loops/G/history").json()["items"]
+        assert json.loads(registered["detail"])["gateway"] == "gw-1"  # the config is kept
 
 
 def test_concurrent_wrong_logins_are_limited_too(tmp_path):

@@ -74,6 +74,15 @@ def test_gains_ring_and_summary():
     assert s["rms_e"][0] == 3.0 and s["rms_e"][1] == 4.0 and np.isnan(s["rms_e"][2])
 
 
+def test_every_published_reason_is_shown_by_its_name():
+    """An accepted proposal and a model's tuning are named (they showed as 'other')."""
+    r = Recent(points=4, gains=len(UpdateReason))
+    for k, reason in enumerate(UpdateReason):
+        r.add_gains(step(["A"], [k], [1.0], [0.1], reason), wall=100.0 + k)
+    assert [g["reason"] for g in r.since("A")["gains"]] == [str(x) for x in UpdateReason]
+    assert {"accepted", "model"} <= {str(x) for x in UpdateReason}
+
+
 def test_size_is_bounded_per_loop_and_forget_frees_the_slot():
     r = Recent(points=256, gains=32, capacity=1)
     ids = [f"L{i}" for i in range(100)]

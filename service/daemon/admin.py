@@ -117,8 +117,9 @@ class LoopAdmin:
         items = [view.parse() for view in raw]
         return LoopsPage(items=items, total=total, offset=offset, limit=limit)
 
-    def register(self, config: LoopConfig) -> LoopView:
-        """OwnedElsewhere in a cluster where another member owns the loop's shard."""
+    def register(self, config: LoopConfig, actor: str = "api") -> LoopView:
+        """OwnedElsewhere in a cluster where another member owns the loop's shard; ``actor``
+        (the admin token's ``api``, or ``gateway:<id>``) in the audit row's detail."""
         wall = self.clock.wall()
         self._claim([config])
         if self.cluster is not None and not self.cluster.owns(shard_of(config.id, config.gateway)):
@@ -126,10 +127,10 @@ class LoopAdmin:
         with self.table.lock:
             if config.id in self.table.slot_of:
                 raise Conflict(f"loop {config.id!r} already registered")
-            self._insert([config], wall)
+            self._insert([config], wall, actor)
             return self.table.view(config.id, wall)
 
-    def register_many(self, configs: list[LoopConfig]) -> list[str]:
+    def register_many(self, configs: list[LoopConfig], actor: str = "api") -> list[str]:
         """Register several loops at once, all or none (Conflict if any id is taken,
         ValueError if one is given twice)."""
         wall = self.clock.wall()
@@ -142,17 +143,17 @@ class LoopAdmin:
             taken = [i for i in ids if i in self.table.slot_of]
             if taken:
                 raise Conflict(f"loops already registered: {taken[:5]!r}")
-            self._insert(configs, wall)
+            self._insert(configs, wall, actor)
         freeze_survivors()
         return ids
 
-    def _insert(self, configs: list[LoopConfig], wall: float) -> None:
+    def _insert(self, configs: list[LoopConfig], wall: float, actor: str) -> None:
         """Store and add new loops, each continuing the seq of an earlier loop of its id.
         In a cluster, loops of shards another member owns are only stored: their owner
         loads them when the commit's notification reaches it."""
         last = self.store.last_seqs([c.id for c in configs])
         seqs = [last.get(c.id, 0) for c in configs]
-        audit = [_registered(c, wall, seq) for c, seq in zip(configs, seqs, strict=True)]
+        audit = [_registered(c, wall, seq, actor) for c, seq in zip(configs, seqs, strict=True)]
         shards = [shard_of(c.id, c.gateway) for c in configs]
         with self._committing(), _taken_in_store(self.store.integrity_errors):
             self.store.insert_loops(configs, audit, seqs)
@@ -189,7 +190,7 @@ class LoopAdmin:
             self.metrics.set_loop_counts(self.table.mode_counts())
             return self.table.view(loop_id, wall)
 
-    def identify(self, loop_id: str) -> LoopView:
+    def identify(self, loop_id: str, actor: str = "api") -> LoopView:
         """``POST /loops/{id}/identify``: identification from scratch (the identified
         scaling is dropped; a hint-free loop stops tuning until a new model is confident).
         StoreUnavailable while commits fail."""
@@ -198,7 +199,7 @@ class LoopAdmin:
             self._known(loop_id)
             if self.store_failure is not None:
                 raise StoreUnavailable(self.store_failure)
-            self.engine.identify(loop_id, wall)
+            self.engine.identify(loop_id, wall, actor)
             self._committed(None)  # its audit row
             self._write_snapshot([loop_id])  # identification state is in the snapshot
             return self.table.view(loop_id, wall)
@@ -214,7 +215,7 @@ class LoopAdmin:
             self._committed(self.engine.reset(loop_id, wall, actor=actor))
             return self.table.view(loop_id, wall)
 
-    def delete(self, loop_id: str) -> None:
+    def delete(self, loop_id: str, actor: str = "api") -> None:
         wall = self.clock.wall()
         with self.table.lock:
             self._known(loop_id)
@@ -227,7 +228,15 @@ class LoopAdmin:
                 self.store.delete_loop(
                     loop_id,
                     audit_row(
-                        loop_id, wall, None, int(self.table.seq[s]), mode, "deleted", gains, None
+                        loop_id,
+                        wall,
+                        None,
+                        int(self.table.seq[s]),
+                        mode,
+                        "deleted",
+                        gains,
+                        None,
+                        _with_actor("{}", actor),
                     ),
                 )
             self.engine.remove(loop_id)
@@ -302,11 +311,12 @@ def _taken_in_store(errors: tuple[type[Exception], ...]):
         ) from None
 
 
-def _registered(config: LoopConfig, wall: float, seq: int) -> AuditRow:
-    """The audit entry of a registration: no old gains, the registered ones as new."""
+def _registered(config: LoopConfig, wall: float, seq: int, actor: str) -> AuditRow:
+    """The audit entry of a registration: no old gains, the registered ones as new, the
+    config and who registered it as the detail."""
     return audit_row(
         config.id, wall, None, seq, config.mode.value, "registered",
-        None, (config.kp, config.ki), config.model_dump_json(),
+        None, (config.kp, config.ki), _with_actor(config.model_dump_json(), actor),
     )  # fmt: skip
 
 

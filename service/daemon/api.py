@@ -116,7 +116,7 @@ Limit = Annotated[int, Query(ge=1, le=MAX_PAGE)]
 def register_loop(config: Registration, tuner: TunerDep, request: Request) -> LoopView:
     """Register a loop; it starts at its registered gains with a fresh agent state."""
     _own_gateway(request, [config])
-    view = tuner.register(config)
+    view = tuner.register(config, actor=_actor(request))
     _event(tuner, request, "registered", "loop %r registered (%s, kp=%.6g ki=%.6g, seq %d)",
            config.id, view.mode, view.kp, view.ki, view.seq)  # fmt: skip
     return view
@@ -134,7 +134,7 @@ def register_loops(
     422 if the request names one twice."""
     _own_gateway(request, configs)
     try:
-        ids = tuner.register_many(configs)
+        ids = tuner.register_many(configs, actor=_actor(request))
     except ValueError as exc:
         raise HTTPException(422, str(exc)) from None
     after.add_task(release_memory)  # once the request's parsed configs are gone
@@ -190,7 +190,7 @@ def reset_loop(loop_id: str, tuner: TunerDep, request: Request) -> LoopView:
 @loops.delete("/{loop_id}", status_code=204, dependencies=mutating, responses={404: {}})
 def delete_loop(loop_id: str, tuner: TunerDep, request: Request) -> None:
     """Unregister a loop; its audit log is kept."""
-    tuner.delete(loop_id)
+    tuner.delete(loop_id, actor=_actor(request))
     _event(tuner, request, "deleted", "loop %r deleted", loop_id)
 
 
@@ -219,7 +219,7 @@ def loop_history_jsonl(loop_id: str, tuner: TunerDep, since_id: Offset = 0) -> R
 def identify_loop(loop_id: str, tuner: TunerDep, request: Request) -> LoopView:
     """Identify the loop's model again from its closed-loop data (drops the identified
     scaling; a loop registered without a hint stops tuning until it is confident)."""
-    view = tuner.identify(loop_id)
+    view = tuner.identify(loop_id, actor=_actor(request))
     _event(tuner, request, "identify", "loop %r: identification restarted", loop_id)
     return view
 
@@ -280,11 +280,20 @@ def release_memory() -> None:
         ctypes.CDLL("libc.so.6").malloc_trim(0)
 
 
+def _actor(request: Request) -> str:
+    """Who makes a REST change, for the audit log: ``gateway:<id>`` with a gateway's token
+    (which may only register that gateway's loops), else ``api`` (the admin token, or an
+    open API)."""
+    gateway = registering_gateway(request.scope)
+    return "api" if gateway is None else f"gateway:{gateway}"
+
+
 def _event(tuner: Tuner, request: Request, kind: str, message: str, *args: object) -> None:
-    """One INFO line per admin change (rate-limited per kind), with the caller's address."""
+    """One INFO line per admin change (rate-limited per kind), with the caller's address
+    and, for a gateway's token, the gateway."""
     client = request.client.host if request.client else "?"
-    tuner.metrics.events.limiter.log(logging.INFO, kind, message + " via the API from %s",
-                                     *args, client)  # fmt: skip
+    tuner.metrics.events.limiter.log(logging.INFO, kind, message + " via the API from %s as %s",
+                                     *args, client, _actor(request))  # fmt: skip
 
 
 ops = APIRouter(tags=["operations"])

@@ -40,12 +40,14 @@ from typing import Any
 
 import numpy as np
 
+from service.wire.protocol import UpdateReason
+
 POINTS = 256
 """Samples kept per loop."""
 GAINS = 32
 """Published gains decisions kept per loop."""
-REASONS = ["agent", "reset", "adopted", "rollback", "approved", "other"]
-"""Reason codes of the gains ring (an unknown reason is 'other')."""
+REASONS = [*map(str, UpdateReason), "other"]
+"""Reason codes of the gains ring: the published reasons (an unknown one is 'other')."""
 _SAMPLE_F32 = ("sp", "e", "op", "kp", "ki")
 POINT = np.dtype(
     {

@@ -152,15 +152,16 @@ class TuningEngine:
             self._due.pop(self.table.slot(loop_id), None)
             return self.table.reset(loop_id, _now(wall), actor=actor)
 
-    def identify(self, loop_id: str, wall: float | None = None) -> None:
+    def identify(self, loop_id: str, wall: float | None = None, actor: str = "") -> None:
         """Identify the loop again from scratch (``POST /loops/{id}/identify``): the
         identified scaling is dropped (a loop registered without a hint is 'identifying'
         again and not tuned until a new model is confident; a hinted loop goes back to its
-        hint), the mismatch and envelope flags are cleared; audit row 'identify'."""
+        hint), the mismatch and envelope flags are cleared; audit row 'identify' (with
+        ``actor=<actor>`` when one is given, as a reset's)."""
         with self.lock:
             s = self.table.slot(loop_id)
             self._due.pop(s, None)
-            watch.restart(self.table, s, _now(wall))
+            watch.restart(self.table, s, _now(wall), actor)
 
     def rollback(self, loop_id: str, wall: float | None = None, actor: str = "") -> StepResult:
         """Restore the last-good gains now (``POST /loops/{id}/rollback``): published in

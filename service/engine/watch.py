@@ -400,13 +400,15 @@ def stop(tb, s: int) -> None:
         tb.ident[s].starts = []
 
 
-def restart(tb, s: int, wall: float) -> None:
+def restart(tb, s: int, wall: float, actor: str = "") -> None:
     """Identify again from scratch (``POST /loops/{id}/identify``): the identified
     scaling is dropped (a hint-free loop is 'identifying' again, a hinted one back on its
-    hint), flags cleared, the open segment discarded."""
+    hint), flags cleared, the open segment discarded; ``actor`` (who asked) in the audit
+    row's detail as a reset's."""
     stop(tb, s)
     tb.ident[s] = IdState(why="identification restarted")
     tb.mismatch[s] = tb.out_env[s] = False
     tb.reconfigure(tb.configs[tb.ids[s]])
     t = tb.last_t[s]
-    model_use.audit(tb, s, None if math.isnan(t) else float(t), wall, "identify", "restarted")
+    detail = f"restarted; actor={actor}" if actor else "restarted"
+    model_use.audit(tb, s, None if math.isnan(t) else float(t), wall, "identify", detail)
