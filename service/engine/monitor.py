@@ -145,24 +145,33 @@ def observe(
     """Take accepted samples of distinct loops (aligned arrays; ``prev_e``, ``last_t``:
     the loop's previous sample, NaN if none; ``moved``: a setpoint move; ``fresh``: no
     usable previous sample). Returns (slots whose response just completed, slots that
-    just started oscillating)."""
+    just started oscillating).
+
+    A sample in manual or saturation (``paused``) ends the open response unjudged, opens
+    none, and starts the oscillation count again: what the loop does there is not the
+    gains' doing (an operator's output, a valve at its limit), so no verdict may come
+    of it (a response ending in manual was judged and rolled back, published in manual).
+    """
+    paused = ~auto | saturated
     dt = np.where(fresh | np.isnan(last_t), 0.0, t - last_t)
-    done = _close(tb, slots, t, moved, fresh)
-    before = np.where(fresh[moved], 0.0, prev_e[moved])
-    move = e[moved] - before
-    allowed = SETTLED_AT_MOVE * np.abs(move) + 3.0 * oscillation.noise_sigma(tb, slots[moved])
+    done = _close(tb, slots, t, moved, fresh | paused)
+    opens = moved & ~paused
+    before = np.where(fresh[opens], 0.0, prev_e[opens])
+    move = e[opens] - before
+    allowed = SETTLED_AT_MOVE * np.abs(move) + 3.0 * oscillation.noise_sigma(tb, slots[opens])
     settled = np.abs(before) <= allowed
-    _open(tb, slots[moved][settled], t[moved][settled], move[settled])
+    _open(tb, slots[opens][settled], t[opens][settled], move[settled])
     _respond(tb, slots, t, e, prev_e, dt, moved)
     _window(tb, slots, e, dt, auto, saturated)
-    osc = oscillation.detect(tb, slots, t, e, prev_e, dt, moved | fresh)
+    osc = oscillation.detect(tb, slots, t, e, prev_e, dt, moved | fresh | paused)
     return done, osc
 
 
 def _close(tb: LoopTable, slots, t, moved, fresh) -> np.ndarray:
     """Close the responses a sample ends; keep the complete ones' figures. A response
-    with a hole (``fresh``: a gap in the samples, or back from manual or saturation) is
-    dropped, as one a new move cuts short: its figures would judge part of it."""
+    with a hole (``fresh``: a gap in the samples, or a sample in (or back from) manual or
+    saturation) is dropped, as one a new move cuts short: its figures would judge part
+    of it."""
     open_ = ~np.isnan(tb.r_t0[slots])
     complete = open_ & (t > tb.r_end[slots]) & ~fresh
     ending = open_ & (complete | moved | fresh)

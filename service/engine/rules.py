@@ -234,7 +234,10 @@ def _excite(tb: LoopTable, slots: np.ndarray, cols: dict[str, np.ndarray], last_
     cols["ramping"] = ramping
     tb.sp_ref[slots] = np.where(has_sp, m.ref, tb.sp_ref[slots])
     tb.sp_anchor[slots], tb.move_t[slots], tb.obs_gain[slots] = m.anchor, m.last_move, m.gain
-    tb.excited_until[slots[m.moved]] = t[m.moved] + tb.exc_window[slots[m.moved]]
+    # a setpoint that moves in manual or saturation (many DCSs track the PV with it)
+    # excites nothing: the loop did not answer it (the references above still follow it)
+    excites = m.moved & cols["auto"] & ~cols["saturated"]
+    tb.excited_until[slots[excites]] = t[excites] + tb.exc_window[slots[excites]]
     return m.moved
 
 

@@ -86,7 +86,7 @@ def step(tb: LoopTable, slots: np.ndarray, wall: float) -> StepResult:
     new = np.clip(bounded, base / grow, base * grow)
     cut = tb.watch[slots] & (tb.ms_max[slots] > 0)
     if cut.any():
-        new, cut = _margin(tb, slots, new, cut)
+        new, cut = _margin(tb, slots, new, cut, lo)
     # the model check: a step the identified model predicts much worse is held (no change,
     # nothing published; the agent's state moves on)
     hold, held_text = model_check.held(tb, slots, base, new)
@@ -201,13 +201,16 @@ def _observe(tb: LoopTable, slots: np.ndarray) -> np.ndarray:
         )
 
 
-def _margin(tb: LoopTable, slots, new, check) -> tuple[np.ndarray, np.ndarray]:
+def _margin(tb: LoopTable, slots, new, check, lo) -> tuple[np.ndarray, np.ndarray]:
     """The robustness guard: where the loop's identified model (the latest confident one,
     else the one in force), seen through the scaling in force, lies outside the agent's
     training box (:func:`service.engine.box.in_box`: where the agent extrapolates; inside
     it the best gains reach Ms 1.35 and the check would only cost time), gains whose
     largest sensitivity on the model is above ``guard.max_sensitivity`` (or unstable) are
-    scaled down together to it. Returns the gains and where the guard cut them."""
+    scaled down together to it, never below the loop's lower bounds ``lo`` (n, 2): the
+    bounds are the user's word (a gain the rate clip left below its bound, walking back
+    into the bounds, is not cut further). Returns the gains and where the guard cut
+    them."""
     rows, models = [], []
     for i in np.flatnonzero(check).tolist():
         s = int(slots[i])
@@ -222,7 +225,7 @@ def _margin(tb: LoopTable, slots, new, check) -> tuple[np.ndarray, np.ndarray]:
     K, tau, theta = np.array(models).T
     scale = margin.robust_factor(new[rows, 0], new[rows, 1], K, tau, theta, tb.ms_max[slots[rows]])
     new = new.copy()
-    new[rows] *= scale[:, None]
+    new[rows] = np.maximum(new[rows] * scale[:, None], np.minimum(new[rows], lo[rows]))
     cut[rows] = scale < 1.0
     return new, cut
 
