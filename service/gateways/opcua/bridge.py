@@ -2,7 +2,9 @@
 
 Samples. Every notification of a loop's PV (its source timestamp) makes one sample:
 ``t`` is that timestamp (seconds since the Unix epoch; the server timestamp if the
-server gives no source timestamp), ``sp``, ``op`` and the rest are the values in force
+server gives no source timestamp; a repeated ``t``, or an older one among a
+(re)connect's first PV values, makes no sample; other older ones do, in the order
+received: the source clock stepped back), ``sp``, ``op`` and the rest are the values in force
 at that time (notifications of one publish are applied in source-timestamp order),
 ``kp``/``ki`` the block's gains converted to the parallel form, ``auto`` whether the mode
 is one of the map's auto values, ``saturated`` whether an output-at-limit flag is set.
@@ -22,14 +24,17 @@ only when all hold at that moment:
 * tuning is enabled (the tuning-enable node is true, or the map's flag): else dropped;
 * the values are within the map's hard limits: else dropped (never clipped);
 * the block's gains convert to the parallel form (a negative gain does not): else dropped;
-* the block's gains are still those it had when the update arrived: else an operator
-  (or the DCS) changed them meanwhile and the update is stale: dropped;
+* the block's gains are still those the update follows (:meth:`LoopRuntime.base`: for a
+  state reply, those of the gateway's last finished update, none after a start): else
+  an operator (or the DCS) changed them meanwhile and the update is stale: dropped;
 * ``min_write_interval_s`` has passed since the loop's last write: else it waits.
 
 A write is one request for all due loops, then a read-back of the same nodes; the
 values read back become the block's gains in force, reported in the next samples.
-A refused write (bad status) or one the block changed (read-back differs) is logged and
-counted; the tuner sees the gains in force in the samples and adopts them.
+A refused write (bad status, or a fault of the whole request) or one the block changed
+(read-back differs) is logged and counted; the tuner sees the gains in force in the
+samples and adopts them. A read-back that is not a Good number is "unverified": the
+gains in force are unknown until notified (:mod:`service.gateways.opcua.writes`).
 
 ``applied_seq`` (protocol revision 2): once the gateway is finished with an update --
 written, found already in force, or refused (by the policy above or by the server) --
