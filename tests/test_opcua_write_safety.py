@@ -1,7 +1,8 @@
 """The OPC UA gateway's write policy where the block changed under it (a real asyncua
 server, real Zenoh on loopback): judged on the block's values read just before the
 write, not on the last notification (a publishing interval old); a pair the server took
-only half of is undone; nothing written while no tuner is up. And mistakes in a site map:
+only half of is undone; nothing written while no tuner is up; a restarted gateway
+never writes the tuner's last gains over an operator's. And mistakes in a site map:
 ``[defaults]`` tables merged key by key, a node id that is not one refused with its key,
 a node the server does not know costing its loop only."""
 
@@ -117,6 +118,46 @@ def test_nothing_is_written_while_no_tuner_is_up():
         assert (await _outcome(gw, 2)).kind == "written"  # the tuner back: its word stands
 
     _run(scenario, min_write_interval_s=1.0)
+
+
+@pytest.mark.parametrize("tuner_first", [True, False])
+def test_a_restarted_gateway_never_writes_the_tuners_last_gains_over_an_operators(tuner_first):
+    """The tuner's last update (seq 5) was written before the gateway stopped, and an
+    operator set other gains since. The restarted gateway learns seq 5 from the state
+    query, before its first read of the block (the tuner up first) or after it (the
+    session first): it cannot tell it from gains newer than the operator's, so it writes
+    nothing, and reports the block's gains with applied_seq 5: the tuner adopts them.
+    (A state reply after an outage, the block still as the gateway left it, is written:
+    tests/test_opcua_gateway.py.)"""
+
+    async def main() -> None:
+        fake = FakeTuner()
+        if not tuner_first:
+            fake._token.undeclare()
+        session = open_session(connect=[fake.endpoint])
+        try:
+            async with SimulatedDcs([tank()], port=free_port()) as dcs:
+                kp0, ki0 = dcs.gains(LOOP)  # the operator's
+                fake.state = (5, kp0 * 1.5, ki0 * 1.5)  # GAIN 1.5x, RESET as it was
+                gw = OpcUaGateway(site_for(dcs, [fake.endpoint]), session, record_events=True)
+                async with running(gw):
+                    if not tuner_first:
+                        await until(lambda: gw.by_id[LOOP].block_gains(), what="the first read")
+                        fake._token = fake.session.liveliness().declare_token(KEYS.tuner("f"))
+                    event = await gw.wait_event(lambda e: e.seq == 5 and e.kind != "received")
+                    assert (event.kind, event.detail) == ("refused", "stale")
+                    await dcs.scan()
+                    assert close(dcs.gains(LOOP), (kp0, ki0)) and gw.stats["written"] == 0
+                    sample = await until(
+                        lambda: (s := fake.drain()) and s[-1].get("applied_seq") == 5 and s[-1],
+                        what="a sample after seq 5",
+                    )
+                    assert close((sample["kp"], sample["ki"]), (kp0, ki0))
+        finally:
+            session.close()
+            fake.close()
+
+    asyncio.run(main())
 
 
 def test_defaults_tables_are_merged_key_by_key():

@@ -2,7 +2,9 @@
 
 Samples. Every notification of a loop's PV (its source timestamp) makes one sample:
 ``t`` is that timestamp (seconds since the Unix epoch; the server timestamp if the
-server gives no source timestamp), ``sp``, ``op`` and the rest are the values in force
+server gives no source timestamp; a repeated ``t``, or an older one among a
+(re)connect's first PV values, makes no sample; other older ones do, in the order
+received: the source clock stepped back), ``sp``, ``op`` and the rest are the values in force
 at that time (notifications of one publish are applied in source-timestamp order),
 ``kp``/``ki`` the block's gains converted to the parallel form, ``auto`` whether the mode
 is one of the map's auto values, ``saturated`` whether an output-at-limit flag is set.
@@ -22,14 +24,17 @@ only when all hold at that moment:
 * tuning is enabled (the tuning-enable node is true, or the map's flag): else dropped;
 * the values are within the map's hard limits: else dropped (never clipped);
 * the block's gains convert to the parallel form (a negative gain does not): else dropped;
-* the block's gains are still those it had when the update arrived: else an operator
-  (or the DCS) changed them meanwhile and the update is stale: dropped;
+* the block's gains are still those the update follows (:meth:`LoopRuntime.base`: for a
+  state reply, those of the gateway's last finished update, none after a start): else
+  an operator (or the DCS) changed them meanwhile and the update is stale: dropped;
 * ``min_write_interval_s`` has passed since the loop's last write: else it waits.
 
 A write is one request for all due loops, then a read-back of the same nodes; the
 values read back become the block's gains in force, reported in the next samples.
-A refused write (bad status) or one the block changed (read-back differs) is logged and
-counted; the tuner sees the gains in force in the samples and adopts them.
+A refused write (bad status, or a fault of the whole request) or one the block changed
+(read-back differs) is logged and counted; the tuner sees the gains in force in the
+samples and adopts them. A read-back that is not a Good number is "unverified": the
+gains in force are unknown until notified (:mod:`service.gateways.opcua.writes`).
 
 ``applied_seq`` (protocol revision 2): once the gateway is finished with an update --
 written, found already in force, or refused (by the policy above or by the server) --
@@ -55,30 +60,30 @@ import zenoh
 
 from service.gateways.base import SAMPLE_CONGESTION, Gateway
 from service.gateways.opcua.client import Change, Item, LinkLost, OpcUaLink, now_epoch
-from service.gateways.opcua.loops import (
-    POLICY_FIELDS,
-    REL_TOL,
-    WAIT,
-    Event,
-    LoopRuntime,
-    Pending,
-    close_to,
-    decide,
-    number,
-)
+from service.gateways.opcua.loops import Event, LoopRuntime, Pending, number
 from service.gateways.opcua.register import register_loops, registration_bodies
 from service.gateways.opcua.sitemap import SiteMap
+from service.gateways.opcua.writes import GainWriter
 from service.gateways.registration import RegistrationError
 from service.wire.protocol import ENCODING, MAX_BATCH, Keys, Mode
 
 log = logging.getLogger("pitune.gateway.opcua")
-Due = tuple[LoopRuntime, tuple[float, float]]
-"""A loop whose pending update is to be written, and the (P, I) to write, block form."""
 TICK_S = 0.02
 """How often gains are taken from the bus and due writes made."""
+SESSION_STABLE_S = 10.0
+"""A session lost sooner than this after it opened (a server that drops it at each write,
+or closes sessions it cannot serve) is one outage with the failed connects: the
+reconnect delay keeps doubling. Each reconnect re-reads and re-monitors every node
+(10-20 s for 1,000 loops), so a server that drops sessions at once must not get one per
+``reconnect_min_s``."""
+REPLAYED_PV_VALUES = 2
+"""A (re)connect's first PV values, its initial read and its monitored item's first
+notification, are the server's current value: one already sent before the loss, or (a
+restarted server) a value stamped before it. Older than the loop's last sample, they
+are not sent; later older ones are (the source clock stepped back)."""
 
 
-class OpcUaGateway:
+class OpcUaGateway(GainWriter):
     """Runs until ``stop`` is set: :meth:`run`. The Zenoh session is the caller's."""
 
     def __init__(
@@ -174,6 +179,8 @@ class OpcUaGateway:
             link = OpcUaLink(server)
 
             async def first_read(changes: list[Change]) -> None:
+                for lr in self.loops:
+                    lr.replays = REPLAYED_PV_VALUES
                 # the gains in force are known now: register before sampling starts
                 self._apply(changes, types=True)
                 if not self._registered:
@@ -197,11 +204,9 @@ class OpcUaGateway:
                 log.warning("OPC UA connect to %s failed (%s: %s); retry in %.1f s",
                             server.url, type(exc).__name__, exc, delay)  # fmt: skip
                 self.emit("connect_failed", detail=f"{type(exc).__name__}: {exc}")
-                with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(stop.wait(), delay)
-                delay = min(delay * 2.0, server.reconnect_max_s)
+                delay = await _back_off(stop, delay, server.reconnect_max_s)
                 continue
-            delay = server.reconnect_min_s
+            up = time.monotonic()
             self.stats["connects"] += 1
             log.info("OPC UA session up: %s, %d nodes monitored", server.url, len(monitored))
             try:
@@ -216,6 +221,12 @@ class OpcUaGateway:
             finally:
                 self.link = None
                 await link.close()
+            if time.monotonic() - up >= SESSION_STABLE_S:
+                delay = server.reconnect_min_s  # reconnect at once
+            else:
+                log.warning("OPC UA session lasted %.1f s; reconnect in %.1f s",
+                            time.monotonic() - up, delay)  # fmt: skip
+                delay = await _back_off(stop, delay, server.reconnect_max_s)
 
     def _apply(self, changes: list[Change], *, types: bool = False) -> None:
         """Apply value changes in source-timestamp order; each PV change is a sample."""
@@ -235,13 +246,19 @@ class OpcUaGateway:
 
     def _sample(self, lr: LoopRuntime, t: float | None) -> None:
         t = now_epoch() if t is None else t
-        if lr.last_t is not None and t <= lr.last_t:
-            self.stats["samples_not_newer"] += 1  # a repeated notification (reconnect)
+        replay, lr.replays = lr.replays > 0, max(lr.replays - 1, 0)
+        last = lr.last_t
+        if last is not None and (t == last or (replay and t < last)):
+            self.stats["samples_not_newer"] += 1  # re-delivered (a reconnect, a repeat)
             return
         sp, pv = number(lr.values.get("sp")), number(lr.values.get("pv"))
         if sp is None or pv is None:
             self.stats["samples_incomplete"] += 1
             return
+        if last is not None and t < last:  # sent on: the tuner takes 10 increasing ones
+            self.stats["samples_older"] += 1  # for a new plant clock (docs/protocol.md)
+            log.warning("%s: source clock stepped back %.3f s (t %.3f after %.3f)",
+                        lr.cfg.id, last - t, t, last)  # fmt: skip
         sample = {"loop_id": lr.cfg.id, "t": float(t), "sp": sp, "pv": pv,
                   "auto": lr.auto, "saturated": lr.saturated}  # fmt: skip
         op = number(lr.values.get("op"))
@@ -278,7 +295,9 @@ class OpcUaGateway:
         return (f"{len(self.loops)} loops, OPC UA {'up' if self.link else 'down'}, tuner "
                 f"{'up' if self.bus.tuner_up else 'down'}; samples {s['samples']} "
                 f"(published {s['published']}, buffered {len(self.outbox)}, dropped "
-                f"{s['samples_dropped']}); writes {s['written']}, refused "
+                f"{s['samples_dropped']}, not newer {s['samples_not_newer']}, older "
+                f"{s['samples_older']}); writes {s['written']}, unverified "
+                f"{s['unverified']}, refused "
                 f"{sum(v for k, v in s.items() if k.startswith('refused'))}")  # fmt: skip
 
     def report(self) -> dict:
@@ -304,131 +323,9 @@ class OpcUaGateway:
                 continue
             if lr.pending is not None:
                 self.stats["superseded"] += 1
-            lr.pending = Pending(update, now, lr.block_gains())
+            lr.pending = Pending(update, now, lr.base(update))
             self.stats["received"] += 1
             self.emit("received", lr.cfg.id, update.seq, update.source.value)
-
-    def _decided(self, loops: list[LoopRuntime], now: float) -> list[Due]:
-        """The policy for each loop's pending update: those finished with (refused, or
-        already in force) are reported and dropped; the (loop, target) to write are
-        returned, their updates still pending."""
-        due = []
-        for lr in loops:
-            if lr.pending is None:
-                continue
-            decision = decide(lr, self.link is not None, now, self.bus.tuner_up)
-            if decision == WAIT:
-                continue
-            if not isinstance(decision, str):
-                due.append((lr, decision))
-                continue
-            pending, lr.pending = lr.pending, None
-            seq = pending.update.seq
-            self.bus.applied(pending.update)  # finished with, nothing written
-            if decision == "applied":
-                self.stats["already_in_force"] += 1
-                self.emit("applied_already", lr.cfg.id, seq)
-            else:
-                self.stats[f"refused_{decision}"] += 1
-                log.info("%s: gains seq %d not written: %s", lr.cfg.id, seq, decision)
-                self.emit("refused", lr.cfg.id, seq, decision)
-        return due
-
-    async def _write_due(self) -> None:
-        now = time.monotonic()
-        due = self._decided(self.loops, now)
-        link = self.link
-        if not due or link is None:
-            return
-        # Judged again on the block's values read now: a notification of a switch to
-        # manual, or of an operator's new gains, may still be a publishing interval away.
-        try:
-            self._apply(await link.read_items(_policy_nodes(lr for lr, _ in due)))
-        except LinkLost as exc:  # the updates stay pending, judged again after a reconnect
-            log.warning("reading %d loops before writing failed: %s", len(due), exc)
-            link.lost.set()
-            return
-        due = self._decided([lr for lr, _ in due], now)
-        if not due:
-            return
-        writes, before = [], []
-        for lr, (p, i) in due:
-            lr.last_write = now
-            before.append(lr.block_gains())
-            writes += [(lr.cfg.p, p, lr.types.get("p")), (lr.cfg.i, i, lr.types.get("i"))]
-        taken = [(lr, lr.pending) for lr, _ in due]
-        for lr, _ in due:
-            lr.pending = None
-        try:
-            codes, back = await link.write(writes)
-        except LinkLost as exc:
-            # Unknown whether it went through: keep each update pending (unless a newer one
-            # came); after the reconnect it is written only if the block still has the
-            # gains it had (else it is stale, or already in force).
-            for lr, pending in taken:
-                if lr.pending is None:
-                    lr.pending = pending
-                lr.last_write = -math.inf
-            self.stats["writes_interrupted"] += len(due)
-            log.warning("write of %d loops interrupted: %s", len(due), exc)
-            link.lost.set()
-            return
-        done = time.monotonic()
-        for k, ((lr, target), (_, pending)) in enumerate(zip(due, taken, strict=True)):
-            seq = pending.update.seq
-            (cp, ci), (bp, bi) = codes[2 * k : 2 * k + 2], back[2 * k : 2 * k + 2]
-            read_back = []
-            for name, dv in (("p", bp), ("i", bi)):
-                good = dv.StatusCode is None or dv.StatusCode.is_good()
-                value = dv.Value.Value if good and dv.Value is not None else None
-                if number(value) is not None:
-                    lr.values[name] = value
-                read_back.append(number(value))
-            # finished with: written, refused or changed by the block; the samples from
-            # now on report the gains read back with applied_seq = seq
-            self.bus.applied(pending.update)
-            if cp.is_good() != ci.is_good():
-                await self._undo_half(link, lr, seq, cp, ci, before[k])
-            elif not cp.is_good():
-                self.stats["refused_by_server"] += 1
-                log.warning("%s: server refused the gains of seq %d: %s", lr.cfg.id, seq, cp.name)
-                self.emit("refused", lr.cfg.id, seq, f"server:{cp.name}")
-            elif not close_to(tuple(read_back), target):  # type: ignore[arg-type]
-                self.stats["refused_read_back"] += 1
-                log.warning("%s: seq %d read back as %s, not %s", lr.cfg.id, seq, read_back, target)
-                self.emit("refused", lr.cfg.id, seq, "read_back")
-            else:
-                self.stats["written"] += 1
-                self.latencies.append(done - pending.received)
-                self.emit("written", lr.cfg.id, seq)
-
-    async def _undo_half(self, link, lr: LoopRuntime, seq: int, cp, ci, before) -> None:
-        """The server took one gain of the pair and refused the other: the one taken is
-        written back, so the block never runs a pair nobody asked for."""
-        name, bad = ("p", ci) if cp.is_good() else ("i", cp)
-        self.stats["refused_partial"] += 1
-        node, old = getattr(lr.cfg, name), before[0 if name == "p" else 1]
-        try:
-            codes, back = await link.write([(node, old, lr.types.get(name))])
-        except LinkLost as exc:
-            codes, back = [], []
-            link.lost.set()
-            log.error("%s: restoring %s after a partial write failed: %s", lr.cfg.id, name, exc)
-        value = number(back[0].Value.Value) if back and back[0].Value is not None else None
-        if value is not None:
-            lr.values[name] = back[0].Value.Value
-        restored = bool(codes) and codes[0].is_good() and value is not None
-        restored = restored and math.isclose(value, old, rel_tol=REL_TOL)
-        (log.warning if restored else log.error)(
-            "%s: server refused %s of seq %d (%s) and took the other; %s",
-            lr.cfg.id, "I" if name == "p" else "P", seq, bad.name,
-            f"{name.upper()} written back to {old:g}" if restored
-            else f"{name.upper()} could NOT be written back to {old:g}: the block holds a "
-            "pair pitune did not ask for",
-        )  # fmt: skip
-        if not restored:
-            self.stats["partial_not_undone"] += 1
-        self.emit("refused", lr.cfg.id, seq, f"server:partial:{bad.name}")
 
     def _flush(self, *, force: bool = False) -> None:
         if not self.outbox or not self.bus.tuner_up or not self._registered:
@@ -456,11 +353,8 @@ class OpcUaGateway:
         self._registered = True
 
 
-def _policy_nodes(loops) -> list[tuple[Item, str]]:
-    """The nodes of the values the write policy judges by, of each loop."""
-    return [
-        (Item(lr.index, f), node)
-        for lr in loops
-        for f, node in lr.cfg.nodes().items()
-        if f in POLICY_FIELDS
-    ]
+async def _back_off(stop: asyncio.Event, delay: float, longest: float) -> float:
+    """Wait ``delay`` (or until ``stop``); the next delay, doubled up to ``longest``."""
+    with contextlib.suppress(TimeoutError):
+        await asyncio.wait_for(stop.wait(), delay)
+    return min(delay * 2.0, longest)

@@ -35,6 +35,47 @@ class LinkLost(ConnectionError):
     """The OPC UA connection is gone (server stopped, network, session closed)."""
 
 
+class RequestFailed(Exception):
+    """The server refused a whole request (a service fault such as BadUserAccessDenied or
+    BadTooManyOperations), or the client could not encode it: the session is fine."""
+
+    def __init__(self, code: int, detail: str = "") -> None:
+        self.code = ua.StatusCode(code)
+        self.reason = self.code.name
+        super().__init__(f"{self.reason} {detail}".strip())
+
+
+LINK_CODES = frozenset(
+    getattr(ua.StatusCodes, name)
+    for name in (
+        "BadSessionClosed", "BadSessionIdInvalid", "BadSessionNotActivated",
+        "BadSecureChannelClosed", "BadSecureChannelIdInvalid", "BadSecureChannelTokenUnknown",
+        "BadConnectionClosed", "BadConnectionRejected", "BadDisconnect", "BadNotConnected",
+        "BadServerNotConnected", "BadCommunicationError", "BadNoCommunication",
+        "BadTimeout", "BadRequestTimeout", "BadServerHalted", "BadShutdown",
+        "BadTcpInternalError",
+    )
+)  # fmt: skip
+"""Service faults that mean the session or its channel is gone: a reconnect is due. Any
+other fault of a request is the server refusing that request (:class:`RequestFailed`):
+reconnecting would only repeat it, re-reading and re-monitoring every node each time."""
+NULL_TIMES = (datetime(1601, 1, 1, tzinfo=UTC), datetime(9999, 12, 31, 23, 59, 59, tzinfo=UTC))
+"""OPC UA's DateTime 0 (null: no timestamp) and its maximum, as asyncua decodes them."""
+
+
+def request_error(exc: Exception) -> Exception:
+    """What a failed request means: :class:`LinkLost` for the transport or the session,
+    :class:`RequestFailed` for a fault of that request only."""
+    if isinstance(exc, TimeoutError | ConnectionError):
+        return LinkLost(str(exc) or type(exc).__name__)
+    if isinstance(exc, ua.UaStatusCodeError):
+        if exc.code in LINK_CODES:
+            return LinkLost(str(exc))
+        return RequestFailed(exc.code)
+    # the client's own error, e.g. a value it cannot encode: the request was never sent
+    return RequestFailed(ua.StatusCodes.BadUnexpectedError, str(exc))
+
+
 @dataclass(frozen=True)
 class Item:
     """One monitored node: which loop and which field of it."""
@@ -57,12 +98,16 @@ class Change:
 
 
 def epoch_seconds(dv: ua.DataValue) -> float | None:
-    ts = dv.SourceTimestamp or dv.ServerTimestamp
-    if ts is None:
-        return None
-    if ts.tzinfo is None:
-        ts = ts.replace(tzinfo=UTC)
-    return ts.timestamp()
+    """The source timestamp, else the server timestamp, else None (a null DateTime, or
+    its maximum, is no timestamp: a server that sends 0 means it has none)."""
+    for ts in (dv.SourceTimestamp, dv.ServerTimestamp):
+        if ts is None:
+            continue
+        if ts.tzinfo is None:
+            ts = ts.replace(tzinfo=UTC)
+        if NULL_TIMES[0] < ts < NULL_TIMES[1]:
+            return ts.timestamp()
+    return None
 
 
 def plain(value: Any) -> Any:
@@ -228,7 +273,7 @@ class OpcUaLink:
                     nodeids[start : start + CHUNK], ua.AttributeIds.Value
                 )
         except (TimeoutError, ConnectionError, ua.UaError) as exc:
-            raise LinkLost(str(exc)) from exc
+            raise request_error(exc) from exc
         return out
 
     async def read_items(self, nodes: list[tuple[Item, str]]) -> list[Change]:
@@ -239,7 +284,9 @@ class OpcUaLink:
     async def write(
         self, writes: Iterable[tuple[str, Any, ua.VariantType]]
     ) -> tuple[list[ua.StatusCode], list[ua.DataValue]]:
-        """Write (node, value, type) in one request, then read them all back in another."""
+        """Write (node, value, type) in one request, then read them all back in another.
+        :class:`LinkLost` if the session is gone, :class:`RequestFailed` if the Write
+        request failed; a failed read-back gives read-backs of its bad status."""
         if self.client is None:
             raise LinkLost("not connected")
         writes = list(writes)
@@ -252,8 +299,11 @@ class OpcUaLink:
                     ids[start : start + CHUNK], dvs[start : start + CHUNK], ua.AttributeIds.Value
                 )
         except (TimeoutError, ConnectionError, ua.UaError) as exc:
-            raise LinkLost(str(exc)) from exc
-        return codes, await self.read(ids)
+            raise request_error(exc) from exc
+        try:
+            return codes, await self.read(ids)
+        except RequestFailed as exc:  # written, not verified
+            return codes, [ua.DataValue(StatusCode=exc.code) for _ in ids]
 
     async def close(self) -> None:
         client, self.client = self.client, None

@@ -8,7 +8,9 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
-from service.gateways.base import Update
+from asyncua import ua
+
+from service.gateways.base import Source, Update
 from service.gateways.opcua.forms import FormError
 from service.gateways.opcua.sitemap import LoopMap
 
@@ -17,10 +19,26 @@ REL_TOL = 1e-5
 WAIT = "wait"
 
 
-def close_to(a: tuple[float, float] | None, b: tuple[float, float] | None) -> bool:
-    if a is None or b is None:
+INTEGER_TYPES = frozenset(
+    getattr(ua.VariantType, name)
+    for name in ("SByte", "Byte", "Int16", "UInt16", "Int32", "UInt32", "Int64", "UInt64")
+)
+
+
+def close_to(a: tuple[float | None, ...] | None, b: tuple[float | None, ...] | None) -> bool:
+    """Equal within REL_TOL; an unknown value (None) is equal to nothing."""
+    if a is None or b is None or None in a or None in b:
         return False
     return all(math.isclose(x, y, rel_tol=REL_TOL, abs_tol=0.0) for x, y in zip(a, b, strict=True))
+
+
+def node_value(value: float, vtype: Any) -> float | int | None:
+    """``value`` as a node of type ``vtype`` takes it: an integer for an integer node, if
+    ``value`` is integral within REL_TOL (a form conversion's rounding), else None."""
+    if vtype not in INTEGER_TYPES:
+        return value
+    whole = round(value)
+    return whole if math.isclose(value, whole, rel_tol=REL_TOL, abs_tol=0.0) else None
 
 
 def number(value: Any) -> float | None:
@@ -37,7 +55,8 @@ class Pending:
     received: float
     """time.monotonic() when the update was taken from the bus."""
     base: tuple[float, float] | None
-    """The block's (P, I) when it arrived: a write goes out only if they still hold."""
+    """The block's (P, I) the update is known to be newer than: a write goes out only if
+    they still hold (None: nothing known, never written). See :meth:`LoopRuntime.base`."""
 
 
 @dataclass
@@ -47,8 +66,14 @@ class LoopRuntime:
     values: dict[str, Any] = field(default_factory=dict)
     types: dict[str, Any] = field(default_factory=dict)
     last_t: float | None = None
+    """The source time of the loop's last sample."""
+    replays: int = 0
+    """PV values still to come that may re-deliver one sent before a (re)connect."""
     pending: Pending | None = None
     last_write: float = -math.inf
+    settled: tuple[float, float] | None = None
+    """The block's (P, I) when the gateway last finished an update (None: none since it
+    started, or the gains were not known then): what the tuner's later updates follow."""
 
     @property
     def auto(self) -> bool:
@@ -72,6 +97,23 @@ class LoopRuntime:
     def block_gains(self) -> tuple[float, float] | None:
         p, i = number(self.values.get("p")), number(self.values.get("i"))
         return None if p is None or i is None else (p, i)
+
+    def base(self, update: Update) -> tuple[float, float] | None:
+        """The gains ``update`` is known to follow (rule 6). A live gains message follows
+        the gains the block has as it arrives. A state reply may be older than them: it
+        may be the update already written before this gateway started, with an operator's
+        change since. It follows only the gains of the gateway's last finished update
+        (the seq rule took the reply as newer than that update); so does a live message
+        arriving while the block's gains are unknown (before the first read, bad quality)."""
+        live = update.source not in (Source.state, Source.state_batch)
+        gains = self.block_gains() if live else None
+        return self.settled if gains is None else gains
+
+    def finish(self) -> None:
+        """The pending update is finished with: the gains in force now are the ones the
+        samples report with its seq."""
+        self.pending = None
+        self.settled = self.block_gains()
 
     def in_force(self) -> tuple[float, float] | None:
         gains = self.block_gains()
@@ -106,6 +148,9 @@ def decide(
         return "invalid"
     if not lr.cfg.limits.allows(*target):
         return "beyond_limits"
+    target = tuple(node_value(v, lr.types.get(n)) for v, n in zip(target, ("p", "i"), strict=True))
+    if None in target:  # an integer node and a fractional value: never rounded
+        return "not_integral"
     current = lr.block_gains()
     if current is None:
         return WAIT
@@ -113,7 +158,7 @@ def decide(
         return "invalid_block_gains"  # never overwritten by pitune's positive one
     if close_to(current, target):
         return "applied"
-    if lr.pending.base is not None and not close_to(current, lr.pending.base):
+    if not close_to(current, lr.pending.base):
         return "stale"
     if now - lr.last_write < lr.cfg.min_write_interval_s:
         return WAIT
