@@ -10,6 +10,7 @@ from __future__ import annotations
 import orjson
 import pytest
 
+from service.daemon.shards import shard_of
 from service.daemon.tuner import Tuner
 from service.engine.config import LoopConfig
 from service.wire.protocol import Mode, RejectReason
@@ -48,6 +49,14 @@ def test_a_single_tuner_takes_a_gateway_s_batches_and_rejects_other_loops(tmp_pa
             assert tuner.engine.rejected == {RejectReason.wrong_gateway: 1}
             assert tuner.table.n_samples[tuner.table.slot_of["A1"]] == 1
             pub.undeclare()
+            # a key whose gateway id is not one is not the shared key: refused whole
+            bad = settings.keys.gateway_samples("g" * 70)
+            session.put(bad, _batch(["A1", "B1"], 11.0))
+            wait_until(lambda: tuner.metrics.value(RECEIVED) == 4, timeout=30.0, what="2 more")
+            assert tuner.engine.rejected == {
+                RejectReason.wrong_gateway: 1, RejectReason.bad_key: 2
+            }  # fmt: skip
+            assert tuner.table.n_samples[tuner.table.slot_of["B1"]] == 0
         finally:
             session.close()
 
@@ -158,3 +167,61 @@ def test_configs_parsed_ahead_of_a_takeover_are_used_only_while_unchanged(pg_url
         assert store.parse_ahead([]) == 0 and store._saved_ahead == {}
     finally:
         store.close()
+
+
+def test_a_gateways_loop_is_left_to_its_owner_by_the_member_owning_its_ids_bucket(tmp_path, pg_url):
+    """A member that does not hold a gateway's loop, but owns the bucket its id hashes to,
+    knows the loop is the gateway's shard's: its per-loop state query gets one answer (the
+    owner's, not also an 'unknown loop' error) and its per-loop samples are no
+    ``unknown_loop`` rejection there (both were, for loops of gateways the other owned)."""
+    gws = [f"gw{g}" for g in range(8)]
+    ids = [f"{g}-L{i}" for g in gws for i in range(3)]
+
+    def member(name: str, **extra) -> Tuner:
+        settings = tuner_settings(
+            tmp_path, db_path=pg_url, instance_id=name, cluster_lease_s=LEASE_S, **extra
+        )
+        return Tuner(settings).start()
+
+    a = member("a")
+    b = session = None
+    try:
+        plain = [LoopConfig(**loop_body(f"S{i}")) for i in range(64)]  # buckets in use
+        a.register_many([LoopConfig(**loop_body(i, gateway=i.split("-")[0])) for i in ids] + plain)
+        b = member("b", zenoh_connect=a.settings.zenoh_listen)
+
+        def shared() -> bool:  # both hold loops, each loop in one member
+            held = [set(t.loop_ids()) for t in (a, b)]
+            return all(held) and not held[0] & held[1] and len(held[0] | held[1]) == 88
+
+        wait_until(shared, timeout=6 * LEASE_S, what="the loops shared out")
+        holder = {i: a if i in a.loop_ids() else b for i in ids}
+        other = {a: b, b: a}
+        crossed = [i for i in ids if other[holder[i]].cluster.owns(shard_of(i, None))]
+        assert crossed, "some loop's id bucket is owned by the member not holding it"
+        session = open_peer([*a.settings.zenoh_listen, *b.settings.zenoh_listen])
+        keys = a.settings.keys
+        for loop_id in crossed:
+            replies = list(session.get(keys.state(loop_id), timeout=5.0))
+            assert [r.ok is not None for r in replies] == [True], loop_id
+            assert (
+                orjson.loads(replies[0].ok.payload.to_bytes())["instance_id"]
+                == holder[loop_id].settings.instance_id
+            )
+        before = {t: t.metrics.value(RECEIVED) for t in (a, b)}
+        for loop_id in crossed:
+            session.put(keys.sample(loop_id), orjson.dumps({"t": 100.0, "e": 0.1}))
+        wait_until(
+            lambda: sum(t.metrics.value(RECEIVED) - before[t] for t in (a, b)) >= len(crossed),
+            timeout=30.0,
+            what="the samples taken",
+        )
+        assert not a.engine.rejected and not b.engine.rejected
+        for loop_id in crossed:
+            assert holder[loop_id].table.n_samples[holder[loop_id].table.slot_of[loop_id]] == 1
+    finally:
+        if session is not None:
+            session.close()
+        if b is not None:
+            b.stop()
+        a.stop()

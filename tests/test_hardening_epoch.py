@@ -267,3 +267,34 @@ def test_an_epoch_far_ahead_of_the_clock_is_no_tuners_and_is_dropped():
     inbox.put_raw(Source.gains, message(now_ms + 3_600_000, 2, 0.6))  # an hour's skew: fine
     assert [(u.seq, u.kp) for u in inbox.drain()] == [(1, 0.5), (2, 0.6)]
     assert inbox.implausible == 1
+
+
+def test_the_overdue_watchdog_expects_no_update_of_a_shadow_loop(tmp_path):
+    """A shadow loop steps (status ``tuning``) but gets no messages: never overdue, where
+    an auto loop with the same samples is (the watchdog re-asked every few RL periods)."""
+    settings = tuner_settings(tmp_path)
+    with Tuner(settings) as tuner:
+        tuner.register(LoopConfig(**loop_body("AU", gateway="gw-1")))
+        tuner.register(LoopConfig(**loop_body("SH", gateway="gw-1", mode="shadow")))
+        session = open_peer(settings.zenoh_listen)
+        try:
+            wait_until(lambda: list(session.liveliness().get(KEYS.all_tuners, timeout=1.0)))
+            for loop_id in ("AU", "SH"):
+                session.put(KEYS.sample(loop_id), json.dumps({"t": 7.0, "e": 0.1}).encode())
+            wait_until(lambda: all(tuner.view(i).counters.samples == 1 for i in ("AU", "SH")))
+            gw = Gateway(session, ["AU", "SH"], KEYS, gateway_id="gw-1")
+            try:
+                wait_until(  # the state batch, taken as gains are
+                    lambda: gw.gains() is not None and len(gw.inbox.supervision) == 2,
+                    what="the state batch",
+                )
+                states = gw.inbox.supervision
+                assert [(states[i].mode, states[i].status) for i in ("AU", "SH")] == [
+                    ("auto", "tuning"), ("shadow", "tuning")
+                ]  # fmt: skip
+                late = 7.0 + 165.0 * 3.5
+                assert gw.overdue("AU", late) and not gw.overdue("SH", late)
+            finally:
+                gw.close()
+        finally:
+            session.close()

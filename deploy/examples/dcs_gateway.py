@@ -58,9 +58,11 @@ class Dcs:
         self.blocks[loop_id].update(kp=kp, ki=ki)
 
 
-def scan(gateway: Gateway, dcs: Dcs) -> int:
+def scan(gateway: Gateway, dcs: Dcs, asked: set[str]) -> int:
     """One DCS scan: apply the ``auto`` updates received since the last scan (the seq rule
-    already applied), then publish a sample per loop. Returns the updates applied."""
+    already applied), then publish a sample per loop. Returns the updates applied.
+    ``asked``: the loops whose state was asked again for an overdue update (kept from
+    scan to scan: still overdue after the tuner's answer is the alarm)."""
     applied = 0
     for update in gateway.gains():
         if update.mode == Mode.auto:
@@ -68,10 +70,14 @@ def scan(gateway: Gateway, dcs: Dcs) -> int:
             gateway.applied(update)  # reported as applied_seq from the next sample on
             applied += 1
     now = time.time()
-    overdue = [loop_id for loop_id in dcs.blocks if gateway.overdue(loop_id, now)]
-    if overdue:
-        log.warning("update overdue for %s: asking the tuner's state", overdue)
+    overdue = {loop_id for loop_id in dcs.blocks if gateway.overdue(loop_id, now)}
+    if overdue - asked:  # a held step or a cooldown publishes nothing: ask before alarming
+        log.info("no update for %s in two RL periods: asking the tuner's state", overdue - asked)
         gateway.query_state()
+    if overdue & asked:  # the fresh state still says an update is due: the tuner lags
+        log.warning("update overdue for %s", sorted(overdue & asked))
+    asked.clear()
+    asked.update(overdue)
     samples = {}
     for loop_id in dcs.blocks:
         sp, pv = dcs.read_loop(loop_id)
@@ -110,8 +116,9 @@ def main() -> None:
         gateway = Gateway(session, dcs.blocks, Keys(args.prefix), gateway_id=args.gateway_id)
         try:
             end = time.monotonic() + args.seconds
+            asked: set[str] = set()
             while time.monotonic() < end:
-                scan(gateway, dcs)
+                scan(gateway, dcs, asked)
                 time.sleep(args.period)
         finally:
             gateway.close()  # a callback subscriber left declared hangs the interpreter

@@ -128,6 +128,7 @@ class Cluster(Suspects):
         can take seconds for large shards) and the ticks (everything else)."""
         self._conn = connect(self.url)
         self._conn.execute(f"LISTEN {CHANNEL}")
+        self.tuner.load_gateway_shards()  # listening first: no change falls in between
         self._beat_conn = connect(self.url)
         self._join()
         self.tuner.bus.on_member = self.token_changed

@@ -32,7 +32,7 @@ import numpy as np
 from service.daemon.shards import gateway_shard, gateways, shard_of
 from service.daemon.store_pg import Fenced
 from service.engine.saved import Saved
-from service.wire.decode import Decoded, Rejection
+from service.wire.decode import Decoded, Rejection, refused
 from service.wire.protocol import RejectReason
 
 log = logging.getLogger("pitune.tuner")
@@ -53,8 +53,17 @@ class Ownership:
     deleted_here: set[str]
     """Loops deleted through this member since :meth:`reload_loops` began its store read
     (in a cluster; under the table's lock)."""
+    gateway_shards: dict[str, str] = {}
+    """Loop id -> shard of the stored loops registered with a gateway, held here or not
+    (in a cluster: :meth:`load_gateway_shards`, kept by :meth:`reload_loops`): a loop not
+    held here is another member's by its gateway's shard, not by its id's bucket."""
 
     # -- called by the cluster's thread -------------------------------------------------
+    def load_gateway_shards(self) -> None:
+        """Read :attr:`gateway_shards` from the store; the cluster calls it once it
+        listens for changes (a change committed later reaches :meth:`reload_loops`)."""
+        self.gateway_shards = self.store.gateway_shards()
+
     def adopt_shards(self, shards: list[str], token: int) -> dict:
         """Load the shards' loops from the store into the engine (they resume from their
         committed gains and seq and their last snapshot); how long each part took.
@@ -136,6 +145,10 @@ class Ownership:
             for loop_id in loop_ids:
                 loop = stored.get(loop_id)
                 shard = None if loop is None else shard_of(loop_id, loop.config.gateway)
+                if loop is not None and loop.config.gateway:
+                    self.gateway_shards[loop_id] = shard
+                else:
+                    self.gateway_shards.pop(loop_id, None)
                 local = loop_id in self.table.slot_of
                 if shard is None or not self.cluster.owns(shard):
                     if local:
@@ -242,20 +255,27 @@ class Ownership:
         return out
 
     def _foreign(self, loop_id: str | None) -> bool:
-        """A loop another member answers for: owned there, or (unknown) in a bucket
-        another member owns. False without a cluster."""
+        """A loop another member answers for: stored with a gateway whose shard another
+        member owns, or else (no gateway, or unknown) in a bucket another member owns.
+        False without a cluster."""
         if self.cluster is None or loop_id is None or loop_id in self.table.slot_of:
             return False
-        return not self.cluster.owns(shard_of(loop_id, None))
+        shard = self.gateway_shards.get(loop_id) or shard_of(loop_id, None)
+        return not self.cluster.owns(shard)
 
-    def _gateway_rows(self, decoded: Decoded, gateway: str | None) -> Decoded:
-        """The decoded samples of a batch from ``gateway``'s samples key (None: the shared
-        key, :meth:`_own_rows`). A loop registered with another gateway (or none) is
-        rejected ``wrong_gateway``: its owner may be another member, which never hears
-        this key. In a cluster, a batch of a gateway this member no longer owns (queued
-        before it released the shard) is left to the new owner, as foreign samples."""
-        if gateway is None:
+    def _gateway_rows(self, decoded: Decoded, key: str) -> Decoded:
+        """The decoded samples of a batch from the shared samples key (:meth:`_own_rows`)
+        or a gateway's. On a gateway's, a loop registered with another gateway (or none)
+        is rejected ``wrong_gateway``: its owner may be another member, which never hears
+        this key; a key whose gateway id is not one (the subscription's wildcard lets any
+        through) is rejected whole, ``bad_key``. In a cluster, a batch of a gateway this
+        member no longer owns (queued before it released the shard) is left to the new
+        owner, as foreign samples."""
+        if key == self.keys.batch:
             return self._own_rows(decoded)
+        gateway = self.keys.gateway_id(key)
+        if gateway is None:
+            return refused(decoded, RejectReason.bad_key, f"not a gateway's samples key: {key}")
         rows = decoded.rows
         if self.cluster is not None and not self.cluster.owns(gateway_shard(gateway)):
             self.foreign_samples += decoded.received

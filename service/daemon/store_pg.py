@@ -37,6 +37,7 @@ import psycopg
 from pydantic import ValidationError
 
 from service.daemon import migrations
+from service.daemon.shards import GATEWAY_SHARD
 from service.daemon.store import JournalEntry, Store, StoredLoop, with_epoch
 from service.engine.audit import AUDIT_COLUMNS, AUDIT_TYPES, AuditRow
 from service.engine.config import LoopConfig
@@ -253,6 +254,16 @@ class PgStore(Store):
                 (str(int(wall * 1000)), int(wall * 1000)),
             ).fetchone()
         return int(value)
+
+    def gateway_shards(self) -> dict[str, str]:
+        """Loop id -> shard of every stored loop registered with a gateway (a cluster
+        member's map of where the loops it does not hold belong:
+        :meth:`~service.daemon.ownership.Ownership.load_gateway_shards`)."""
+        with self._lock:
+            rows = self._fetch(
+                "SELECT id, shard FROM loops WHERE starts_with(shard, ?)", (GATEWAY_SHARD,)
+            )
+        return dict(rows)
 
     # -- writes -------------------------------------------------------------------------
     def insert_loops(

@@ -406,10 +406,7 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
                         decode_singles([(self.keys.loop_id(k), p) for k, p in payload])
                     )
                 else:  # the shared samples key, or one gateway's (revision 4)
-                    decoded = joined(
-                        [self._gateway_rows(decode_batch(p), self.keys.gateway_id(k))
-                         for k, p in payload]
-                    )  # fmt: skip
+                    decoded = joined([self._gateway_rows(decode_batch(p), k) for k, p in payload])
                 self._ingest(decoded, wall)
                 # received last: once it reaches N, those N samples are in their counters
                 self.metrics.samples_received.inc(decoded.received)

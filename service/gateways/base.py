@@ -55,6 +55,7 @@ from pydantic import ValidationError
 from service.wire.protocol import (
     ENCODING,
     MAX_BATCH,
+    PUBLISHED_MODES,
     BatchedSample,
     GainsBatch,
     GainsMessage,
@@ -394,9 +395,12 @@ class Gateway:
         """Whether an update of a loop the tuner last said was ``tuning`` is overdue at
         plant time ``plant_t``: more than ``periods`` RL periods past the later of its
         next due time (state reply) and its last update. Ask the state again then
-        (:meth:`query_state`): a quiet, stale or manual loop gets no updates."""
+        (:meth:`query_state`): a quiet, stale or manual loop gets no updates. A loop in a
+        mode that gets no messages (shadow, frozen) is never overdue."""
         state = self.inbox.supervision.get(loop_id)
         if state is None or state.status != "tuning" or not state.rl_period_s:
+            return False
+        if state.mode not in PUBLISHED_MODES:
             return False
         due = max(
             state.next_due_t if state.next_due_t is not None else -float("inf"),

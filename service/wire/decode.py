@@ -319,6 +319,11 @@ def _lax_loads(payload: bytes):
         return None
 
 
+def refused(decoded: Decoded, reason: RejectReason, detail: str) -> Decoded:
+    """Every sample of ``decoded`` rejected with ``reason``: a message refused whole."""
+    return _whole(decoded.received, reason, detail)
+
+
 def _whole(n: int, reason: RejectReason, detail: str) -> Decoded:
     return Decoded(Columns.empty(), [Rejection(0, None, reason, detail, count=n)] if n else [], n)
 

@@ -85,6 +85,10 @@ class Mode(StrEnum):
     published (revision 3)."""
 
 
+PUBLISHED_MODES = frozenset({Mode.auto, Mode.advisory})
+"""The modes whose loops get gains messages (frozen and shadow loops get none)."""
+
+
 class LoopStatus(StrEnum):
     """What a loop's tuning is doing right now (the safety guard's view)."""
 
