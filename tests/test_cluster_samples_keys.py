@@ -7,6 +7,8 @@ every member, and the subscription follows the shard when it moves."""
 
 from __future__ import annotations
 
+import contextlib
+
 import orjson
 import pytest
 
@@ -31,6 +33,14 @@ def _publisher(session, key: str):
     pub = session.declare_publisher(key)
     wait_until(lambda: pub.matching_status.matching, timeout=10.0, what=f"a subscriber of {key}")
     return pub
+
+
+def _member(tmp_path, pg_url: str, name: str, **extra) -> Tuner:
+    """A started member of a cluster on ``pg_url``."""
+    settings = tuner_settings(
+        tmp_path, db_path=pg_url, instance_id=name, cluster_lease_s=LEASE_S, **extra
+    )
+    return Tuner(settings).start()
 
 
 def test_a_single_tuner_takes_a_gateway_s_batches_and_rejects_other_loops(tmp_path):
@@ -67,17 +77,11 @@ def test_only_the_owner_of_a_gateway_hears_its_samples_and_the_key_follows_the_s
     gws = [f"gw{g}" for g in range(8)]
     configs = [LoopConfig(**loop_body(f"{g}-L{i}", gateway=g)) for g in gws for i in range(3)]
 
-    def member(name: str, **extra) -> Tuner:
-        settings = tuner_settings(
-            tmp_path, db_path=pg_url, instance_id=name, cluster_lease_s=LEASE_S, **extra
-        )
-        return Tuner(settings).start()
-
-    a = member("a")
+    a = _member(tmp_path, pg_url, "a")
     b = session = None
     try:
         a.register_many(configs)
-        b = member("b", zenoh_connect=a.settings.zenoh_listen)
+        b = _member(tmp_path, pg_url, "b", zenoh_connect=a.settings.zenoh_listen)
         session = open_peer([*a.settings.zenoh_listen, *b.settings.zenoh_listen], admin=True)
         zids = {t: str(t.bus.session.info.zid()) for t in (a, b)}
 
@@ -176,19 +180,13 @@ def test_a_gateways_loop_is_left_to_its_owner_by_the_member_owning_its_ids_bucke
     ``unknown_loop`` rejection there (both were, for loops of gateways the other owned)."""
     gws = [f"gw{g}" for g in range(8)]
     ids = [f"{g}-L{i}" for g in gws for i in range(3)]
-
-    def member(name: str, **extra) -> Tuner:
-        settings = tuner_settings(
-            tmp_path, db_path=pg_url, instance_id=name, cluster_lease_s=LEASE_S, **extra
-        )
-        return Tuner(settings).start()
-
-    a = member("a")
-    b = session = None
-    try:
+    with contextlib.ExitStack() as stack:  # stopped in reverse: the peer, b, a
+        a = _member(tmp_path, pg_url, "a")
+        stack.callback(a.stop)
         plain = [LoopConfig(**loop_body(f"S{i}")) for i in range(64)]  # buckets in use
         a.register_many([LoopConfig(**loop_body(i, gateway=i.split("-")[0])) for i in ids] + plain)
-        b = member("b", zenoh_connect=a.settings.zenoh_listen)
+        b = _member(tmp_path, pg_url, "b", zenoh_connect=a.settings.zenoh_listen)
+        stack.callback(b.stop)
 
         def shared() -> bool:  # both hold loops, each loop in one member
             held = [set(t.loop_ids()) for t in (a, b)]
@@ -200,6 +198,7 @@ def test_a_gateways_loop_is_left_to_its_owner_by_the_member_owning_its_ids_bucke
         crossed = [i for i in ids if other[holder[i]].cluster.owns(shard_of(i, None))]
         assert crossed, "some loop's id bucket is owned by the member not holding it"
         session = open_peer([*a.settings.zenoh_listen, *b.settings.zenoh_listen])
+        stack.callback(session.close)
         keys = a.settings.keys
         for loop_id in crossed:
             replies = list(session.get(keys.state(loop_id), timeout=5.0))
@@ -219,9 +218,3 @@ def test_a_gateways_loop_is_left_to_its_owner_by_the_member_owning_its_ids_bucke
         assert not a.engine.rejected and not b.engine.rejected
         for loop_id in crossed:
             assert holder[loop_id].table.n_samples[holder[loop_id].table.slot_of[loop_id]] == 1
-    finally:
-        if session is not None:
-            session.close()
-        if b is not None:
-            b.stop()
-        a.stop()
