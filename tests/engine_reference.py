@@ -11,7 +11,16 @@ import math
 import numpy as np
 import orjson
 
-from service.engine import monitor, oscillation, output_limit, reported, rules, verify, watch
+from service.engine import (
+    monitor,
+    op_law,
+    oscillation,
+    output_limit,
+    reported,
+    rules,
+    verify,
+    watch,
+)
 from service.engine.audit import audit_row
 from service.engine.modes import AUTO, FROZEN
 from service.engine.rules import GAIN_RTOL, MAX_AGENT_ERROR
@@ -113,7 +122,8 @@ def _ingest(tb: LoopTable, s: int, sample: Sample, wall: float) -> bool:
         if moved or math.isnan(ref):
             tb.sp_ref[s] = sample.sp
     if moved:
-        tb.excited_until[s] = t + tb.exc_window[s]
+        if sample.auto and not sample.saturated:  # a move in manual excites nothing
+            tb.excited_until[s] = t + tb.exc_window[s]
         tb.move_t[s] = t
         gain = PAPER_MOVE / (size * tb.e_scale[s])
         tb.obs_gain[s] = min(max(gain, OBS_GAIN_RANGE[0]), OBS_GAIN_RANGE[1])
@@ -312,6 +322,18 @@ def _record(
     foreign = bool(reported.held(tb, s)) and not measured
     broken = anew or (not sample.auto and not measured) or sample.saturated or foreign
     why = watch.broken_why(sample.auto, sample.saturated, measured, foreign)
+    # whether op is the law's output (service.engine.op_law), one sample
+    if broken or not sample.auto or not measured:
+        for name in op_law.F64:
+            getattr(tb, name)[s] = 0.0
+    elif sp == tb.prev_sp[s] and tb.prev_meas[s]:
+        tb.ol_x[s] += kp * (e - tb.last_e[s]) + ki * e * (t - last_t)
+        tb.ol_y[s] += op - tb.prev_op[s]
+        x, y = tb.ol_x[s], tb.ol_y[s]
+        tb.ol_xx[s] += x * x
+        tb.ol_xy[s] += x * y
+        tb.ol_yy[s] += y * y
+        tb.ol_n[s] += 1.0
     row = (t, sp, pv, op)
     if tb.rec[s] >= 0 and broken:
         watch._close(tb, s, t, wall, final=True, why=f"segment ended: {why}")

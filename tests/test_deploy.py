@@ -398,10 +398,13 @@ def step_all_loops(gateway: zenoh.Session) -> None:
 
 
 def state_replies(session: zenoh.Session, key: str) -> list[tuple[bool, bytes]]:
-    return [
-        (r.ok is not None, (r.ok or r.err).payload.to_bytes())
-        for r in session.get(key, timeout=3.0)
-    ]
+    """Every queryable's replies, each kept: by default a query may go to the best matching
+    queryable alone (a session's own, the rogue's) and replies on one key are
+    consolidated to one, so the tuner's reply could be missing (failed once in CI)."""
+    replies = session.get(
+        key, timeout=3.0, target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE
+    )
+    return [(r.ok is not None, (r.ok or r.err).payload.to_bytes()) for r in replies]
 
 
 def test_acl_lets_a_gateway_do_what_the_protocol_says(router, tuner):

@@ -13,7 +13,7 @@ from pydantic import ValidationError
 
 from service.agent import untrained_agent
 from service.daemon.delivery import _within_size
-from service.engine import output_limit, rules
+from service.engine import op_law, output_limit, rules
 from service.engine.config import LoopConfig
 from service.engine.stepping import step
 from service.engine.table import _BOOL, _F64, _I64, _REC, LoopTable
@@ -136,7 +136,8 @@ def test_vectorised_ingest_equals_the_scalar_reference(seed, rate, monkeypatch):
         wall = 100.0 + 0.5 * k
         items = _random_batch(rng, slow, 10.0 + 2.0 * k)
         assert _slow(slow, items, wall) == _fast(fast, items, wall), k
-        for name in (*_F64, *_I64, *_REC, *_BOOL, *output_limit.F64, *output_limit.BOOL):
+        for name in (*_F64, *_I64, *_REC, *_BOOL, *output_limit.F64, *output_limit.BOOL,
+                     *op_law.F64):  # fmt: skip
             np.testing.assert_array_equal(getattr(fast, name), getattr(slow, name), err_msg=name)
         holds += int(fast.oh_held.sum())
         for s in range(N):  # identification: recorded data, events, models

@@ -347,6 +347,9 @@ class TuningEngine:
         failed = verify.judge(tb, done, osc, wall)
         for result in failed:
             self._due.pop(tb.slot(result.loop_ids[0]), None)
+        for s in tb.refuted:  # after the rollback: its gains stay, the model goes
+            watch.restart(tb, s, wall, why=watch.REFUTED)
+        tb.refuted.clear()
         return failed
 
     def _reject(self, rejection: Rejection) -> None:

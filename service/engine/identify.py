@@ -239,13 +239,15 @@ def assess(
     start: tuple[float, float] | None = None,
     last: int = 1,
     op_sent: bool = True,
+    least: float = 0.0,
 ) -> Assessment:
     """Identify from one contiguous segment of data (no gap or saturated sample inside,
     in auto or in manual with the output sent) whose events (setpoint moves, or output
     steps in manual: those whose setpoint is the one before, :func:`_bump`) start at the
     indices ``starts``; the last event runs to the end of the data. Rows may be the
     recorder's means of several samples (:func:`recorded`; ``last``: the samples the last
-    row holds; ``op_sent``: the output is the gateway's, not rebuilt from the PI law).
+    row holds; ``op_sent``: the output is the gateway's, not rebuilt from the PI law;
+    ``least``: no shorter interval is the sample period, :func:`foptd_fit.sample_period`).
 
     One FOPTD model is fitted to the whole segment (one offset, one initial transient:
     far better determined than a fit per event). Each event is then judged by the
@@ -282,7 +284,7 @@ def assess(
     out.why = screen(t, pv, op)
     if out.why:
         return out
-    whole = recorded(t, pv, op, last)
+    whole = recorded(t, pv, op, last, least)
     joint = fit_windows([whole], start)
     pred = joint.model[0]
     lag = joint.tau + joint.theta

@@ -46,6 +46,16 @@ def held(tb: LoopTable, s) -> np.ndarray:
     return adopted & outside(tb, s)
 
 
+def within(tb: LoopTable, s: int, gains) -> tuple[float, float]:
+    """``gains`` (kp, ki) clipped to slot ``s``'s bounds as configured: what a rollback
+    restores. Not to the band a model in force narrows them to, which holds the agent
+    near the model's tuning: a rollback from that tuning clipped to the band stopped at
+    its edge, still unstable when the model was wrong (session 38: 1.5x below a tuning
+    10x too high)."""
+    return (float(np.clip(gains[0], tb.c_kp_min[s], tb.c_kp_max[s])),
+            float(np.clip(gains[1], tb.c_ki_min[s], tb.c_ki_max[s])))  # fmt: skip
+
+
 def outside(tb: LoopTable, s):
     """Where the gains in force lie outside the guard's bounds as configured."""
     kp, ki = tb.kp[s], tb.ki[s]

@@ -25,6 +25,7 @@ from service.agent.model import Agent
 from service.engine import (
     fit_budget,
     monitor,
+    op_law,
     output_limit,
     recorder,
     reported,
@@ -153,10 +154,9 @@ class LoopTable:
         ``pitune evaluate`` measures the agent itself."""
         self.to_judge: list[tuple[np.ndarray, np.ndarray]] = []
         """(responses completed, oscillations started) awaiting :func:`verify.judge`."""
-        self.decided: list[StepResult] = []
-        """Decisions made while taking samples (the first tuning from an identified
-        model: :mod:`service.engine.first_tuning`), to publish."""
+        self.decided: list[StepResult] = []  # model tunings made taking samples: to publish
         self.warming: list = []  # model tunings waiting for a warm run (first_tuning.flush)
+        self.refuted: list[int] = []  # models refuted by verify.fail: TuningEngine._judge
         self.warm_run: tuple | None = None  # the batch under way: slots, keys, WarmRun
         self.mc_turn = 0
         """Where the model check's rotation over the loops to check starts
@@ -174,6 +174,7 @@ class LoopTable:
             (_BOOL, bool),
             (verify.F64, np.float64), (verify.F32, np.float32),
             (output_limit.F64, np.float64), (output_limit.BOOL, bool), (reported.F64, np.float64),
+            (op_law.F64, np.float64),
         ):  # fmt: skip
             for name in names:
                 arr = np.zeros(capacity, dtype)
@@ -290,6 +291,7 @@ class LoopTable:
         self.id_sp[s] = math.nan
         monitor.clear(self, s)
         output_limit.clear(self, s)
+        op_law.clear(self, s)
         verify.init(self, s)
         settings.configure(self, s, configs)
         self._restart(s)

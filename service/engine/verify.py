@@ -59,7 +59,7 @@ from service.engine.fences import FENCED, fence_rollback, unfence
 from service.engine.modes import AUTO, PUBLISHING
 from service.engine.monitor import ABSENT, RESPONSE_PERIODS, put, same_gains
 from service.engine.oscillation import noise_sigma, period
-from service.engine.reported import held, is_detune, no_floor, outside
+from service.engine.reported import held, is_detune, no_floor, outside, within
 from service.engine.updates import MODE_VALUES, StepResult
 from service.wire.protocol import UpdateReason
 
@@ -340,9 +340,9 @@ def fail(
     message to publish (auto: the rollback; advisory: the rollback proposal)."""
     mode = int(tb.mode[s])
     old = (float(tb.kp[s]), float(tb.ki[s]))
-    # the last-good gains within the guard's bounds in force (a PATCH may have narrowed
-    # them since: restored as they were, a rollback went back above kp_max 14 times)
-    good = _within_bounds(tb, s, (tb.g_kp[s], tb.g_ki[s]))
+    # the last-good gains within the configured bounds (a PATCH may have narrowed them
+    # since: restored as they were, a rollback went back above kp_max 14 times)
+    good = within(tb, s, (tb.g_kp[s], tb.g_ki[s]))
     judged = [int(tb.v_seq[s]) + 1, int(tb.seq[s])]
     detail = {
         "why": why, "seqs": judged, "iae": figure,
@@ -363,7 +363,7 @@ def fail(
     if mode in PUBLISHING and not actor and not math.isnan(floor[0]):
         if same_gains(old[0], floor[0]) & same_gains(old[1], floor[1]):
             return _keep(tb, s, old, wall, detail, KEPT_DETUNE)
-        good = _within_bounds(tb, s, floor)
+        good = within(tb, s, floor)
         tb.o_kp[s], tb.o_ki[s] = good  # within the bounds in force, as the gains restored
         detail["to"] = "the operator's detune"
     else:
@@ -392,6 +392,10 @@ def fail(
     else:
         tb.adv_kp[s], tb.adv_ki[s], tb.adv_seq[s] = good[0], good[1], seq
         verdict = "rollback_proposed"
+    ident = tb.ident[s]
+    if why in REFUTING and ident is not None and judged[0] <= ident.tuned_seq <= judged[1]:
+        tb.refuted.append(s)  # the model's tuning rang: the model is wrong
+        detail["model"] = "refuted: identification restarts"
     # gains restored are judged no more, but an operator's detune is not verified yet
     tb.v_seq[s] = seq if floor is None else seq - 1
     _audit(tb, s, wall, "rollback", old, good, {"verdict": verdict, **detail}, t=t)
@@ -399,9 +403,9 @@ def fail(
     return single(tb, s, t, old, good, UpdateReason.rollback, why_text, mode)
 
 
-def _within_bounds(tb: LoopTable, s: int, gains) -> tuple[float, float]:
-    return (float(np.clip(gains[0], tb.kp_min[s], tb.kp_max[s])),
-            float(np.clip(gains[1], tb.ki_min[s], tb.ki_max[s])))  # fmt: skip
+REFUTING = ("oscillation", "overshoot")
+"""Verdicts on a model's tuning (first_tuning.py) that refute the model: the loop rang
+at it; a worse IAE alone is no proof (noise, a load in the judged window)."""
 
 
 def discredited(tb: LoopTable, s: int) -> bool:

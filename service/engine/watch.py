@@ -47,8 +47,8 @@ import math
 
 import numpy as np
 
-from service.engine import identify, model_check, model_use, verify
-from service.engine.foptd_fit import sample_period
+from service.engine import identify, model_check, model_use, op_law, verify
+from service.engine.foptd_fit import SHORTEST, sample_period
 from service.engine.id_state import IdState
 from service.engine.recorder import CAP
 
@@ -125,6 +125,11 @@ def record(tb, slots: np.ndarray, cols: dict, last_t: np.ndarray, gap, fresh, wa
     # gains reported outside the bounds may not be the DCS's: no output from them
     foreign = cols["held"][idx] & ~measured
     broken = anew | (~auto & ~measured) | saturated | foreign
+    # whether the op sent is the law's output in the gains' units (op_law.py)
+    op_law.observe(
+        tb, s, broken | ~auto | ~measured, (sp == tb.prev_sp[s]) & tb.prev_meas[s],
+        kp, ki, e, e_prev, dt, op, tb.prev_op[s],
+    )  # fmt: skip
     recording = tb.rec[s] >= 0
     # rare paths, loop by loop: breaks, moves (open or close an event)
     special = np.flatnonzero((recording & broken) | (moved & ~broken))
@@ -262,7 +267,7 @@ def _compress(tb, s: int) -> None:
     # output misrepresented the input). The mean measurement lags the row's time by
     # half its interval, which the dead time absorbs.
     t = data[0, :n]
-    h = sample_period(t)
+    h = sample_period(t, _least(tb, s))
     w = np.diff(t, append=t[-1] + tb.rec_m[s] * h)
     span = np.concatenate([[0.0], np.cumsum(w)])
     ends = np.append(kept[1:], n)
@@ -323,7 +328,13 @@ def _assess(tb, s: int, t: float, wall: float) -> bool:
     last = int(tb.rec_m[s])  # the samples the last row holds so far
     # a segment starts anew where op comes in the samples: sent now, sent throughout
     op_sent = bool(tb.prev_meas[s])
-    result = identify.assess(data[0], data[1], data[2], data[3], starts, start, last, op_sent)
+    refused = op_law.refusal(tb, s) if op_sent else None
+    if refused is not None:  # a model from this op would be off by its factor
+        st.model, st.why = None, refused
+        return True
+    result = identify.assess(
+        data[0], data[1], data[2], data[3], starts, start, last, op_sent, _least(tb, s)
+    )
     st.events = result.events[-MAX_EVENTS:]
     st.model, st.why = result.model, result.why
     if result.model is not None and model_check.plant_moved(st.fallback, result.model):
@@ -335,6 +346,12 @@ def _assess(tb, s: int, t: float, wall: float) -> bool:
     ):
         model_use.envelope(tb, s, result.model, t, wall, sure=False)
     return True
+
+
+def _least(tb, s: int) -> float:
+    """The shortest interval that may be slot ``s``'s sample period (foptd_fit.SHORTEST
+    of its registered one)."""
+    return SHORTEST * tb.configs[tb.ids[s]].sample_period_s
 
 
 def catch_up(tb, wall: float) -> None:
@@ -400,15 +417,20 @@ def stop(tb, s: int) -> None:
         tb.ident[s].starts = []
 
 
-def restart(tb, s: int, wall: float, actor: str = "") -> None:
-    """Identify again from scratch (``POST /loops/{id}/identify``): the identified
-    scaling is dropped (a hint-free loop is 'identifying' again, a hinted one back on its
-    hint), flags cleared, the open segment discarded; ``actor`` (who asked) in the audit
-    row's detail as a reset's."""
+REFUTED = "the identified model's tuning rang and was rolled back: identification restarted"
+"""Why a loop identifies again after :data:`service.engine.verify.REFUTING` verdicts."""
+
+
+def restart(tb, s: int, wall: float, actor: str = "", why: str = "") -> None:
+    """Identify again from scratch (``POST /loops/{id}/identify``, or ``why`` the engine's
+    own reason): the identified scaling is dropped (a hint-free loop is 'identifying'
+    again, a hinted one back on its hint), flags cleared, the open segment discarded, the
+    bounds back to the configured ones; ``actor`` (who asked) in the audit row's detail
+    as a reset's."""
     stop(tb, s)
-    tb.ident[s] = IdState(why="identification restarted")
+    tb.ident[s] = IdState(why=why or "identification restarted")
     tb.mismatch[s] = tb.out_env[s] = False
     tb.reconfigure(tb.configs[tb.ids[s]])
     t = tb.last_t[s]
-    detail = f"restarted; actor={actor}" if actor else "restarted"
+    detail = f"restarted; actor={actor}" if actor else f"restarted: {why}" if why else "restarted"
     model_use.audit(tb, s, None if math.isnan(t) else float(t), wall, "identify", detail)
