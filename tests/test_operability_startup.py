@@ -64,6 +64,20 @@ def test_missing_weights_and_config_files(tmp_path):
     one_line(proc, daemon.EXIT_NO_INPUT, "Zenoh config file not found")
 
 
+def test_a_config_file_that_is_not_toml_is_a_usage_error(tmp_path):
+    """A typo in the file (or a file that is not text) is status 2, which supervisors do
+    not restart on, not 1: a restart would fail the same way for ever."""
+    broken = tmp_path / "broken.toml"
+    broken.write_text("api_port = \n")
+    proc = start(tmp_path, "--config", str(broken))
+    one_line(proc, daemon.EXIT_USAGE, str(broken), "not valid TOML", "line 1")
+    binary = tmp_path / "binary.toml"
+    binary.write_bytes(b"\xff\xfe\n")
+    proc = start(tmp_path, PITUNE_CONFIG=str(binary))
+    one_line(proc, daemon.EXIT_USAGE, str(binary), "not valid TOML", "utf-8")
+    assert not (tmp_path / "pitune.db").exists()  # nothing was opened
+
+
 def test_db_pointing_at_a_directory(tmp_path):
     proc = start(tmp_path, "--db", str(tmp_path))
     one_line(proc, daemon.EXIT_CANT_CREATE, "is a directory", "--db")

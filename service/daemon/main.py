@@ -26,6 +26,7 @@ import socket
 import sqlite3
 import sys
 import time
+import tomllib
 from pathlib import Path
 
 import uvicorn
@@ -49,7 +50,7 @@ EXIT_CODES = {
     EXIT_OK: "stopped by SIGTERM or SIGINT after a clean shutdown",
     EXIT_FAILED: "an unexpected error (the log has the traceback)",
     EXIT_USAGE: "invalid command line or settings (flag, PITUNE_* variable, config file "
-    "value, Zenoh endpoint syntax)",
+    "value or syntax, Zenoh endpoint syntax)",
     EXIT_NO_INPUT: "a file the settings name is missing or unreadable (config file, "
     "Zenoh config, agent weights)",
     EXIT_UNAVAILABLE: "an address cannot be bound: the API port or a Zenoh listen port "
@@ -196,6 +197,15 @@ def read_settings(args: argparse.Namespace) -> Settings:
     except FileNotFoundError as exc:
         raise StartupError(
             EXIT_NO_INPUT, f"{exc}: fix --config or PITUNE_CONFIG, or leave it unset"
+        ) from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        # a typo in the file is the operator's to fix: status 2, which a supervisor does not
+        # restart on (a restart would fail the same way, forever)
+        where = args.config or os.environ.get("PITUNE_CONFIG")
+        raise StartupError(
+            EXIT_USAGE,
+            f"config file {where} is not valid TOML: {_one_line(exc)}. Fix the file "
+            "(--config or PITUNE_CONFIG)",
         ) from None
 
 
