@@ -78,6 +78,20 @@ def test_a_config_file_that_is_not_toml_is_a_usage_error(tmp_path):
     assert not (tmp_path / "pitune.db").exists()  # nothing was opened
 
 
+def test_retention_settings_that_would_fail_every_pass_are_refused(tmp_path):
+    """An archive that cannot be appended to, or a row limit SQLite cannot hold, would fail
+    every retention pass while the tuner runs, leaving the store unbounded."""
+    for archive in (tmp_path / "nowhere" / "pruned.jsonl", tmp_path):
+        proc = start(tmp_path, PITUNE_HISTORY_ARCHIVE=str(archive))
+        one_line(proc, daemon.EXIT_CANT_CREATE, str(archive), "PITUNE_HISTORY_ARCHIVE")
+    assert not (tmp_path / "pitune.db").exists()  # nothing was opened
+    proc = start(tmp_path, "--db", str(tmp_path), PITUNE_HISTORY_ARCHIVE=str(tmp_path / "a.jsonl"))
+    one_line(proc, daemon.EXIT_CANT_CREATE, "is a directory")  # checked after the archive
+    assert not (tmp_path / "a.jsonl").exists()  # which leaves no file behind
+    proc = start(tmp_path, PITUNE_HISTORY_MAX_ROWS_PER_LOOP=str(10**20))
+    one_line(proc, daemon.EXIT_USAGE, "PITUNE_HISTORY_MAX_ROWS_PER_LOOP", "less than or equal")
+
+
 def test_db_pointing_at_a_directory(tmp_path):
     proc = start(tmp_path, "--db", str(tmp_path))
     one_line(proc, daemon.EXIT_CANT_CREATE, "is a directory", "--db")

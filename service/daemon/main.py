@@ -56,7 +56,8 @@ EXIT_CODES = {
     EXIT_UNAVAILABLE: "an address cannot be bound: the API port or a Zenoh listen port "
     "in use, or an address not on this host",
     EXIT_CANT_CREATE: "the store cannot be opened (--db is a directory, no permission, "
-    "not an SQLite database, PostgreSQL unreachable, a schema of a newer pitune)",
+    "not an SQLite database, PostgreSQL unreachable, a schema of a newer pitune), or the "
+    "history archive cannot be appended to",
     EXIT_STORE_FAILED: "the store failed to commit for store_failure_exit_s while running "
     "(restart it: it resumes from the store)",
     EXIT_LOCKED: "another tuner owns the store (its <db>.lock is held), or runs on the "
@@ -223,12 +224,33 @@ def check_files(settings: Settings) -> None:
             f"Zenoh config file not found: {settings.zenoh_config}. "
             "Fix --zenoh-config (PITUNE_ZENOH_CONFIG)",
         )
+    check_archive(settings.history_archive)
     db = settings.db_path
     if not settings.postgres and str(db) != ":memory:" and db.is_dir():
         raise StartupError(
             EXIT_CANT_CREATE,
             f"--db {db} is a directory: give the database file's path, e.g. {db / 'pitune.db'}",
         )
+
+
+def check_archive(archive: Path | None) -> None:
+    """The retention's archive can be appended to: else every pass would fail, and delete
+    nothing, for as long as the tuner runs (the store unbounded). A file this check
+    creates is removed: a tuner refused later leaves nothing behind."""
+    if archive is None:
+        return
+    existed = archive.exists()
+    try:
+        with open(archive, "ab"):
+            pass
+    except OSError as exc:  # its folder missing, a directory, no permission
+        raise StartupError(
+            EXIT_CANT_CREATE,
+            f"cannot append to the history archive {archive}: {exc.strerror}. Fix "
+            "history_archive (PITUNE_HISTORY_ARCHIVE: an existing folder), or set it to none",
+        ) from None
+    if not existed:
+        archive.unlink()
 
 
 class StoreLock:

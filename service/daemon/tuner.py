@@ -184,6 +184,10 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
                     "Audit rows deleted by the retention policy.",
                     lambda: self.pruned,
                 ),
+                "pitune_audit_prune_failures": (
+                    "Retention passes that failed and pruned nothing (/healthz says why).",
+                    lambda: self.prune_failures,
+                ),
                 "pitune_gains_fenced": (
                     "Committed gains messages not published: this member's leases may have "
                     "run out (it was paused); the loops' new owner publishes from the store.",
