@@ -68,6 +68,15 @@ def _at_least(low: float, *, strict: bool = False):
     return parse
 
 
+def seed(text: str) -> int:
+    """An argparse type: a random seed, an integer >= 0 (numpy refuses a negative one, which
+    would end the run after its processes started)."""
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{text}: must be >= 0")
+    return value
+
+
 def add_loop_arguments(run_p: argparse.ArgumentParser) -> None:
     """``--tank``, ``--foptd`` and the ``simulation`` options, read by :func:`plant_config`
     (and by any other simulator front end)."""
@@ -134,7 +143,7 @@ def add_loop_arguments(run_p: argparse.ArgumentParser) -> None:
         default=SIM.gain_range,
         help="accepted gains lie within initial/R..initial*R (100)",
     )
-    sim.add_argument("--seed", type=int, default=SIM.seed)
+    sim.add_argument("--seed", type=seed, default=SIM.seed)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

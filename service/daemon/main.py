@@ -34,7 +34,13 @@ from pydantic import ValidationError
 from pydantic_settings import SettingsError
 
 from service.daemon import logs
-from service.daemon.settings import Settings, load_settings, setting_variables, unknown_variables
+from service.daemon.settings import (
+    UNTRAINED,
+    Settings,
+    load_settings,
+    setting_variables,
+    unknown_variables,
+)
 
 log = logging.getLogger("pitune.tuner")
 
@@ -212,7 +218,7 @@ def read_settings(args: argparse.Namespace) -> Settings:
 
 def check_files(settings: Settings) -> None:
     weights = settings.agent_weights
-    if weights and weights != "untrained" and not Path(weights).is_file():
+    if weights and weights != UNTRAINED and not Path(weights).is_file():
         raise StartupError(
             EXIT_NO_INPUT,
             f"agent weights file not found: {weights}. Fix --agent-weights "

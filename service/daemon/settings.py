@@ -56,6 +56,8 @@ OTHER_VARIABLES = frozenset(
     }
 )
 POSTGRES_SCHEMES = ("postgresql://", "postgres://")
+UNTRAINED = "untrained"
+"""``agent_weights`` of a random agent (tests only)."""
 SQLITE_INT_MAX = 2**63 - 1
 """Largest integer SQLite stores (a row count beyond it fails every retention pass)."""
 NONE_WORDS = frozenset({"none", "null"})
