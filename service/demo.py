@@ -413,7 +413,7 @@ class Progress:
     def recent_rms(self, log: Path, t: float) -> float | None:
         try:
             traj = read_log(log)
-        except (OSError, ValueError, StopIteration):
+        except (OSError, ValueError):  # not written yet, or a partial first line
             return None
         recent = traj.t > t - self.WINDOW_S
         if not recent.any():

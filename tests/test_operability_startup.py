@@ -112,6 +112,10 @@ def test_zenoh_port_in_use_and_bad_listen_endpoint(tmp_path, listening):
     one_line(proc, daemon.EXIT_USAGE, "Zenoh endpoint", "tcp/127.0.0.1:7447")
     proc = start(tmp_path, "--listen", "bogus")
     one_line(proc, daemon.EXIT_USAGE, "Zenoh endpoint")
+    broken = tmp_path / "zenoh.json5"  # a syntax error: the file's to fix, not the network
+    broken.write_text('{ mode: "peer", listen: { endpoints: [\n')
+    proc = start(tmp_path, "--zenoh-config", str(broken))
+    one_line(proc, daemon.EXIT_USAGE, "invalid Zenoh endpoint or config", "expected")
 
 
 def test_a_second_tuner_on_the_same_store_refuses_to_start(tmp_path):

@@ -20,7 +20,6 @@ import errno
 import fcntl
 import logging
 import os
-import re
 import signal
 import socket
 import sqlite3
@@ -41,6 +40,7 @@ from service.daemon.settings import (
     setting_variables,
     unknown_variables,
 )
+from service.wire.session import join_failure, one_line
 
 log = logging.getLogger("pitune.tuner")
 
@@ -170,12 +170,6 @@ class StartupError(Exception):
         self.message = message
 
 
-def _one_line(text: object) -> str:
-    """An error's text on one line, without Zenoh's Rust source locations."""
-    text = re.sub(r" at /\S+\.rs:\d+\.?", "", str(text))
-    return " ".join(text.split())
-
-
 def _settings_error(exc: ValidationError) -> str:
     parts = []
     for error in exc.errors():
@@ -199,7 +193,7 @@ def read_settings(args: argparse.Namespace) -> Settings:
         ) from None
     except SettingsError as exc:  # an environment variable that is not valid JSON
         cause = f": {exc.__cause__}" if exc.__cause__ else ""
-        message = f"invalid settings: {_one_line(exc)}{_one_line(cause)}"
+        message = f"invalid settings: {one_line(exc)}{one_line(cause)}"
         raise StartupError(EXIT_USAGE, message) from None
     except FileNotFoundError as exc:
         raise StartupError(
@@ -211,7 +205,7 @@ def read_settings(args: argparse.Namespace) -> Settings:
         where = args.config or os.environ.get("PITUNE_CONFIG")
         raise StartupError(
             EXIT_USAGE,
-            f"config file {where} is not valid TOML: {_one_line(exc)}. Fix the file "
+            f"config file {where} is not valid TOML: {one_line(exc)}. Fix the file "
             "(--config or PITUNE_CONFIG)",
         ) from None
 
@@ -328,7 +322,7 @@ def bind_api(settings: Settings) -> socket.socket:
 
 
 def zenoh_failure(exc: Exception, settings: Settings) -> StartupError:
-    text = _one_line(exc)
+    text = one_line(exc)
     endpoints = f"--listen {','.join(settings.zenoh_listen) or '-'} / --connect " + (
         ",".join(settings.zenoh_connect) or "-"
     )
@@ -344,13 +338,8 @@ def zenoh_failure(exc: Exception, settings: Settings) -> StartupError:
             f"cannot join the Zenoh bus: {text}. Listen on an address of this host "
             "(--listen, PITUNE_ZENOH_LISTEN)",
         )
-    if "Endpoints must be" in text or "invalid" in text.lower():
-        return StartupError(
-            EXIT_USAGE,
-            f"invalid Zenoh endpoint or config ({endpoints}): {text}. Endpoints look like "
-            "tcp/127.0.0.1:7447 or tls/router.site:7447",
-        )
-    return StartupError(EXIT_UNAVAILABLE, f"cannot join the Zenoh bus ({endpoints}): {text}")
+    usage, message = join_failure(exc, endpoints)
+    return StartupError(EXIT_USAGE if usage else EXIT_UNAVAILABLE, message)
 
 
 def start_tuner(settings: Settings):
@@ -370,7 +359,7 @@ def start_tuner(settings: Settings):
         raise StartupError(
             EXIT_NO_INPUT,
             f"cannot load the agent weights {settings.agent_weights or '(shipped)'}: "
-            f"{_one_line(exc)}. Fix --agent-weights (PITUNE_AGENT_WEIGHTS)",
+            f"{one_line(exc)}. Fix --agent-weights (PITUNE_AGENT_WEIGHTS)",
         ) from exc
     try:
         tuner.start()
@@ -380,14 +369,14 @@ def start_tuner(settings: Settings):
         location = redacted(settings.db_path) if settings.postgres else settings.db_path
         raise StartupError(
             EXIT_CANT_CREATE,
-            f"cannot open the store {location}: {_one_line(exc)}. Check --db "
+            f"cannot open the store {location}: {one_line(exc)}. Check --db "
             "(PITUNE_DB_PATH): a reachable PostgreSQL server and database, a user allowed "
             "to create tables there, and a pitune at least as new as the one that wrote it",
         ) from exc
     except (sqlite3.Error, OSError) as exc:
         raise StartupError(
             EXIT_CANT_CREATE,
-            f"cannot open the store {settings.db_path}: {_one_line(exc)}. Check --db "
+            f"cannot open the store {settings.db_path}: {one_line(exc)}. Check --db "
             "(PITUNE_DB_PATH): a writable SQLite file, or a new path",
         ) from exc
     return tuner
