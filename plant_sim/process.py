@@ -68,6 +68,26 @@ def _at_least(low: float, *, strict: bool = False):
     return parse
 
 
+def seed(text: str) -> int:
+    """An argparse type: a random seed, an integer >= 0 (numpy refuses a negative one, which
+    would end the run after its processes started)."""
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{text}: must be >= 0")
+    return value
+
+
+def _image_file(text: str) -> Path:
+    """An argparse type: a file name whose suffix matplotlib writes (checked before the
+    logs are read, not by a traceback at the end)."""
+    from matplotlib.backend_bases import FigureCanvasBase
+
+    formats = FigureCanvasBase.get_supported_filetypes()
+    if Path(text).suffix.lower().lstrip(".") not in formats:
+        raise argparse.ArgumentTypeError(f"{text}: give a file ending in .{', .'.join(formats)}")
+    return Path(text)
+
+
 def add_loop_arguments(run_p: argparse.ArgumentParser) -> None:
     """``--tank``, ``--foptd`` and the ``simulation`` options, read by :func:`plant_config`
     (and by any other simulator front end)."""
@@ -134,7 +154,7 @@ def add_loop_arguments(run_p: argparse.ArgumentParser) -> None:
         default=SIM.gain_range,
         help="accepted gains lie within initial/R..initial*R (100)",
     )
-    sim.add_argument("--seed", type=int, default=SIM.seed)
+    sim.add_argument("--seed", type=seed, default=SIM.seed)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -189,7 +209,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     plot_p = sub.add_parser("plot", help="draw trajectory logs (CSV) as a PNG")
     plot_p.add_argument("logs", nargs="+", type=Path, help="logs; the first one's target is drawn")
-    plot_p.add_argument("-o", "--out", type=Path, required=True, help="PNG file")
+    image = "image file: PNG, or another format by its suffix (.svg, .pdf)"
+    plot_p.add_argument("-o", "--out", type=_image_file, required=True, help=image)
     plot_p.add_argument("--title", default="")
 
 
@@ -231,7 +252,11 @@ def plant_argv(loops: tuple[LoopSpec, ...], sim: Simulation) -> list[str]:
 
 def run(args: argparse.Namespace) -> int:
     if args.plant_command == "plot":
-        runs = {path.stem: read_log(path) for path in args.logs}
+        try:
+            runs = {path.stem: read_log(path) for path in args.logs}
+        except ValueError as exc:  # a file that is not a log (a missing one: cli.py's)
+            print(f"pitune plant plot: {exc}", file=sys.stderr)
+            return 1
         print(plot(runs, args.out, title=args.title))
         return 0
     config = plant_config(args)

@@ -22,7 +22,7 @@ from plant_sim.scenario import Scan, SimulatedLoop
 from plant_sim.trajectory import TrajectoryWriter
 from service.gateways.base import Gateway
 from service.wire.protocol import Keys, Mode, Sample
-from service.wire.session import session_config
+from service.wire.session import join_failure, session_config
 
 
 class StopFlag:
@@ -71,14 +71,23 @@ def simulate(config: PlantConfig, loops: list[SimulatedLoop]) -> int:
     stop = StopFlag()
     sim = config.sim
     by_id = {loop.loop_id: loop for loop in loops}
-    session = zenoh.open(
-        session_config(
-            config_file=config.zenoh_config,
-            mode=config.mode,
-            connect=list(config.connect) or None,
-            listen=list(config.listen) or None,
+    try:
+        session = zenoh.open(
+            session_config(
+                config_file=config.zenoh_config,
+                mode=config.mode,
+                connect=list(config.connect) or None,
+                listen=list(config.listen) or None,
+            )
         )
-    )
+    except zenoh.ZError as exc:  # a malformed endpoint or config (2), a port in use (1)
+        where = f"--listen {','.join(config.listen) or '-'} / --connect " + (
+            ",".join(config.connect) or "-"
+        )
+        where += f" / --zenoh-config {config.zenoh_config}" if config.zenoh_config else ""
+        usage, message = join_failure(exc, where)
+        print(f"pitune plant: {message}", file=sys.stderr)
+        return 2 if usage else 1
     try:
         gateway = Gateway(session, list(by_id), Keys(config.prefix), gateway_id=config.gateway_id)
         print(

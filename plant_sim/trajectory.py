@@ -88,11 +88,16 @@ def read_log(path: str | Path) -> Trajectory:
     """Load a CSV log written by :class:`TrajectoryWriter` (a partial last line is dropped)."""
     with Path(path).open(newline="") as f:
         reader = csv.reader(f)
-        header = next(reader)
+        header = next(reader, None)
+        if header is None:
+            raise ValueError(f"{path}: empty, not a trajectory log")
         if tuple(header) != COLUMNS:
             raise ValueError(f"{path}: header {header} is not {list(COLUMNS)}")
         rows = [r for r in reader if len(r) == len(COLUMNS)]
-    data = np.array(rows, dtype=np.float64).reshape(-1, len(COLUMNS))
+    try:
+        data = np.array(rows, dtype=np.float64).reshape(-1, len(COLUMNS))
+    except ValueError as exc:
+        raise ValueError(f"{path}: not a trajectory log: {exc}") from None
     return Trajectory(*data.T)
 
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import os
 import shutil
 import signal
 import sys
@@ -34,11 +35,11 @@ import httpx
 import numpy as np
 
 from plant_sim.config import SP_PERIOD_S, LoopSpec, Simulation, untuned_baseline
-from plant_sim.process import plant_argv
+from plant_sim.process import plant_argv, seed
 from plant_sim.scenario import TANK_FIT, TANK_HINT
 from plant_sim.trajectory import plot, read_log
 from plant_sim.tunings import simc_improved, to_parallel
-from service.procs import Proc, ProcError, Stack
+from service.procs import STORE_NAME, Proc, ProcError, Stack, user_path, weights_path
 
 LOOP = LoopSpec("two_tank", "tank1")
 LOOP_ID = LOOP.loop_id
@@ -101,11 +102,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=0.0,
         help="level measurement noise +-N cm (0; the paper's noisy run uses 1)",
     )
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=seed, default=0)
     parser.add_argument(
-        "--workdir", type=Path, default=None, help="keep the database and logs here (default: temp)"
+        "--workdir",
+        type=user_path,
+        default=None,
+        help="keep the database and logs here (default: temp); a folder without a previous "
+        f"run's {STORE_NAME}: each run starts from the registered gains, as its untuned "
+        "baseline does",
     )
-    parser.add_argument("--agent-weights", default=None, metavar="FILE", help="for the tuner")
+    parser.add_argument(
+        "--agent-weights", type=weights_path, default=None, metavar="FILE", help="for the tuner"
+    )
     parser.add_argument(
         "--no-hint",
         action="store_true",
@@ -123,8 +131,30 @@ def _ended(signum: int, frame) -> None:
     raise SystemExit(128 + signum)
 
 
+def usage_error(args: argparse.Namespace) -> str | None:
+    """Why the run cannot start or could not write its report (None: it can), checked
+    before any process starts, not after minutes of running."""
+    out = args.out
+    if out.exists() and not out.is_dir():
+        return f"--out {out} is a file: give a folder for the report"
+    folder = next(p for p in (out.absolute(), *out.absolute().parents) if p.exists())
+    if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
+        return f"--out {out}: cannot write into {folder}"
+    if args.workdir is not None and (args.workdir / STORE_NAME).exists():
+        # the tuner would resume the previous run's loop, tuned already, and the summary
+        # compare that with an untuned baseline: not the demo's comparison
+        return (
+            f"--workdir {args.workdir} holds a previous run's {STORE_NAME}: give a new "
+            "folder, or remove it for a fresh run"
+        )
+    return None
+
+
 def run(args: argparse.Namespace) -> int:
     started = time.monotonic()
+    if problem := usage_error(args):
+        print(f"pitune demo: {problem}", file=sys.stderr)
+        return 2
     # A terminal closed or a `kill` ends the demo as Ctrl-C does: through the stack's
     # teardown (tuner and plant stopped, the temporary folder removed), never leaving a
     # tuner behind on its ports
@@ -137,6 +167,9 @@ def run(args: argparse.Namespace) -> int:
     except (ProcError, DemoError) as exc:
         print(f"\npitune demo failed: {exc}", file=sys.stderr)
         return 1
+    except KeyboardInterrupt:  # Ctrl-C: the stack stopped its processes on the way out
+        print("\npitune demo: interrupted", file=sys.stderr)
+        return 130
     return 0
 
 
@@ -380,7 +413,7 @@ class Progress:
     def recent_rms(self, log: Path, t: float) -> float | None:
         try:
             traj = read_log(log)
-        except (OSError, ValueError, StopIteration):
+        except (OSError, ValueError):  # not written yet, or a partial first line
             return None
         recent = traj.t > t - self.WINDOW_S
         if not recent.any():

@@ -22,9 +22,12 @@ from pathlib import Path
 
 import httpx
 
+from service.daemon.settings import UNTRAINED
 from service.wire.session import free_port
 
 ROOT = Path(__file__).resolve().parents[1]
+STORE_NAME = "pitune.db"
+"""The tuner's database in a :class:`Stack`'s work folder."""
 
 
 class ProcError(RuntimeError):
@@ -34,6 +37,19 @@ class ProcError(RuntimeError):
 def pitune(*args: str) -> list[str]:
     """argv running a ``pitune`` sub-command with this interpreter, from any install."""
     return [sys.executable, "-m", "service.cli", *args]
+
+
+def user_path(text: str) -> Path:
+    """An argparse type for a path handed to a child process: made absolute against the
+    caller's folder, for the children run in the checkout (ROOT), where a relative path
+    names another file."""
+    return Path(text).expanduser().absolute()
+
+
+def weights_path(text: str) -> str:
+    """An argparse type for ``--agent-weights`` handed to a child tuner: a file (made
+    absolute, :func:`user_path`) or ``untrained``."""
+    return text if text == UNTRAINED else str(user_path(text))
 
 
 def clean_env(**extra: str) -> dict[str, str]:
@@ -207,7 +223,7 @@ class Stack:
         extra = ("--agent-weights", agent_weights) if agent_weights else ()
         # Samples arrive `speed` times faster than the plant's 1 s scan.
         rate = f"{max(50.0, 4.0 * speed):g}"
-        self.tuner = TunerProcess(workdir / "pitune.db", "--max-sample-rate", rate,
+        self.tuner = TunerProcess(workdir / STORE_NAME, "--max-sample-rate", rate,
                                   "--log-level", "warning", *extra, log=workdir / "tuner.log",
                                   token=self.token)  # fmt: skip
         self.api, self.zenoh = self.tuner.api, self.tuner.zenoh

@@ -20,6 +20,10 @@ from service.cli import build_parser, main
         (["plant", "run", "--gain-range", "0.5"], "--gain-range: 0.5: must be > 1"),
         (["plant", "run", "--gain-range", "0"], "--gain-range: 0: must be > 1"),
         (["plant", "run", "--t0", "nan"], "--t0: nan: must be >="),
+        (["demo", "--seed", "-1"], "--seed: -1: must be >= 0"),
+        (["plant", "plot", "x.csv", "-o", "x.xyz"], "x.xyz: give a file ending in .eps,"),
+        (["plant", "run", "--seed", "-1"], "--seed: -1: must be >= 0"),
+        (["plant", "opcua", "--seed", "-1"], "--seed: -1: must be >= 0"),
         (["verify-eval", "--loops", "0"], "--loops: 0: at least 1"),
         (["gateway", "certs", "--out", "x", "--days", "0"], "at least 1 day"),
     ],
@@ -67,3 +71,31 @@ def test_a_file_that_is_not_there_or_not_a_database_is_one_line(tmp_path, capsys
         assert main(argv) == 1
         err = capsys.readouterr().err
         assert says in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
+def test_paths_for_child_processes_are_made_absolute_against_the_callers_folder(
+    tmp_path, monkeypatch
+):
+    """The demo's and the bench's tuner runs in the checkout: a relative path must name
+    the file in the folder the command was run from (tests/test_demo_cli.py runs one)."""
+    monkeypatch.chdir(tmp_path)
+    bench = build_parser("bench").parse_args(["bench", "--agent-weights", "v3.pt"])
+    assert bench.agent_weights == str(tmp_path / "v3.pt")
+    argv = ["demo", "--agent-weights", "untrained", "--workdir", "wd"]
+    demo = build_parser("demo").parse_args(argv)
+    assert (demo.agent_weights, demo.workdir) == ("untrained", tmp_path / "wd")
+
+
+def test_a_file_that_is_not_a_trajectory_log_is_one_line(tmp_path, capsys):
+    empty, other = tmp_path / "empty.csv", tmp_path / "notes.csv"
+    empty.write_text("")
+    other.write_text("hello,world\n")
+    numbers = tmp_path / "bad.csv"
+    numbers.write_text("t,sp,pv,target,kp,ki,op\n0,1,2,3,4,5,x\n")
+    for log, says in ((empty, "empty, not a trajectory log"), (other, "header ['hello'"),
+                      (numbers, "not a trajectory log: could not convert")):  # fmt: skip
+        assert main(["plant", "plot", str(log), "-o", str(tmp_path / "x.png")]) == 1
+        err = capsys.readouterr().err
+        assert err.startswith(f"pitune plant plot: {log}: ") and says in err, err
+        assert len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "x.png").exists()

@@ -6,17 +6,23 @@ the horizon and within the row limit is lost; the file stops growing."""
 from __future__ import annotations
 
 import json
+import os
+import re
 import subprocess
 import sys
 import threading
+from unittest import mock
 
 import pytest
+from pydantic import ValidationError
 
 from service.daemon.bus import Kind
+from service.daemon.settings import load_settings
 from service.daemon.store import Store
 from service.daemon.tuner import Tuner
 from service.engine.audit import audit_row
 from service.engine.config import LoopConfig
+from service.procs import TunerProcess
 from tests.tuner_support import loop_body, tuner_settings, wait_until
 
 pytestmark = pytest.mark.timeout(120)
@@ -150,3 +156,59 @@ def test_export_into_a_reader_that_stops_early_ends_quietly(tmp_path):
     _, err = export.communicate(timeout=60)
     assert json.loads(first)["reason"] == "registered"
     assert export.returncode == 0 and b"Traceback" not in err, err.decode()
+
+
+def test_a_failing_pass_shows_in_health_and_metrics_until_one_goes_through(tmp_path):
+    """The archive's folder goes away under a running tuner: each pass fails and prunes
+    nothing, which /healthz (still 200: a restart would not fix it) and a counter show,
+    until the folder is back and a pass goes through."""
+    folder = tmp_path / "archive"
+    folder.mkdir()
+    env = {
+        "PITUNE_HISTORY_ARCHIVE": str(folder / "pruned.jsonl"),
+        "PITUNE_HISTORY_MAX_ROWS_PER_LOOP": "5",
+        "PITUNE_HISTORY_PRUNE_INTERVAL_S": "0.2",
+    }
+    tuner = TunerProcess(tmp_path / "pitune.db", "--agent-weights", "untrained",
+                         log=tmp_path / "tuner.log", env=env)  # fmt: skip
+    try:
+        tuner.start()  # the folder was there at start-up (main.check_archive)
+        folder.rmdir()
+        with tuner.http() as api:
+            assert api.post("/loops", json=loop_body("LIC-101")).status_code == 201
+            for _ in range(12):
+                assert api.post("/loops/LIC-101/reset").status_code == 200
+            health = wait_until(
+                lambda: (r := api.get("/healthz")).json()["detail"] and r, what="the failure"
+            )
+            assert health.status_code == 200
+            assert health.json()["detail"].startswith("retention pass failed: ")
+            assert "No such file or directory" in health.json()["detail"]
+            failures = re.search(r"^pitune_audit_prune_failures_total (\S+)$",
+                                 api.get("/metrics").text, re.M)  # fmt: skip
+            assert failures and float(failures[1]) >= 1
+            assert api.get("/loops/LIC-101/history").json()["total"] == 13  # nothing pruned
+            folder.mkdir()
+            wait_until(lambda: api.get("/loops/LIC-101/history").json()["total"] == 5,
+                       what="the prune")  # fmt: skip
+            wait_until(lambda: not api.get("/healthz").json()["detail"], what="health clear")
+    finally:
+        tuner.stop()
+    assert "retention pass failed" in tuner.log.read_text()
+    assert len((folder / "pruned.jsonl").read_text().splitlines()) == 8
+
+
+@pytest.mark.parametrize("value", ["none", "NULL", " None "])
+def test_no_row_or_age_limit_is_none_in_the_environment_and_the_config_file(tmp_path, value):
+    env = {"PITUNE_HISTORY_MAX_ROWS_PER_LOOP": value, "PITUNE_HISTORY_MAX_AGE_DAYS": value}
+    with mock.patch.dict(os.environ, env):
+        settings = load_settings()
+    assert (settings.history_max_rows_per_loop, settings.history_max_age_days) == (None, None)
+    config = tmp_path / "tuner.toml"
+    config.write_text(f'history_max_rows_per_loop = "{value}"\nhistory_archive = "none"\n')
+    settings = load_settings(config)
+    assert (settings.history_max_rows_per_loop, settings.history_archive) == (None, None)
+    assert settings.history_max_age_days == 365.0  # the default, unless set
+    empty = mock.patch.dict(os.environ, {"PITUNE_HISTORY_MAX_ROWS_PER_LOOP": ""})
+    with empty, pytest.raises(ValidationError):  # an unfilled template does not lift the bound
+        load_settings()

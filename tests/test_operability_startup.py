@@ -64,6 +64,34 @@ def test_missing_weights_and_config_files(tmp_path):
     one_line(proc, daemon.EXIT_NO_INPUT, "Zenoh config file not found")
 
 
+def test_a_config_file_that_is_not_toml_is_a_usage_error(tmp_path):
+    """A typo in the file (or a file that is not text) is status 2, which supervisors do
+    not restart on, not 1: a restart would fail the same way for ever."""
+    broken = tmp_path / "broken.toml"
+    broken.write_text("api_port = \n")
+    proc = start(tmp_path, "--config", str(broken))
+    one_line(proc, daemon.EXIT_USAGE, str(broken), "not valid TOML", "line 1")
+    binary = tmp_path / "binary.toml"
+    binary.write_bytes(b"\xff\xfe\n")
+    proc = start(tmp_path, PITUNE_CONFIG=str(binary))
+    one_line(proc, daemon.EXIT_USAGE, str(binary), "not valid TOML", "utf-8")
+    assert not (tmp_path / "pitune.db").exists()  # nothing was opened
+
+
+def test_retention_settings_that_would_fail_every_pass_are_refused(tmp_path):
+    """An archive that cannot be appended to, or a row limit SQLite cannot hold, would fail
+    every retention pass while the tuner runs, leaving the store unbounded."""
+    for archive in (tmp_path / "nowhere" / "pruned.jsonl", tmp_path):
+        proc = start(tmp_path, PITUNE_HISTORY_ARCHIVE=str(archive))
+        one_line(proc, daemon.EXIT_CANT_CREATE, str(archive), "PITUNE_HISTORY_ARCHIVE")
+    assert not (tmp_path / "pitune.db").exists()  # nothing was opened
+    proc = start(tmp_path, "--db", str(tmp_path), PITUNE_HISTORY_ARCHIVE=str(tmp_path / "a.jsonl"))
+    one_line(proc, daemon.EXIT_CANT_CREATE, "is a directory")  # checked after the archive
+    assert not (tmp_path / "a.jsonl").exists()  # which leaves no file behind
+    proc = start(tmp_path, PITUNE_HISTORY_MAX_ROWS_PER_LOOP=str(10**20))
+    one_line(proc, daemon.EXIT_USAGE, "PITUNE_HISTORY_MAX_ROWS_PER_LOOP", "less than or equal")
+
+
 def test_db_pointing_at_a_directory(tmp_path):
     proc = start(tmp_path, "--db", str(tmp_path))
     one_line(proc, daemon.EXIT_CANT_CREATE, "is a directory", "--db")
@@ -84,6 +112,10 @@ def test_zenoh_port_in_use_and_bad_listen_endpoint(tmp_path, listening):
     one_line(proc, daemon.EXIT_USAGE, "Zenoh endpoint", "tcp/127.0.0.1:7447")
     proc = start(tmp_path, "--listen", "bogus")
     one_line(proc, daemon.EXIT_USAGE, "Zenoh endpoint")
+    broken = tmp_path / "zenoh.json5"  # a syntax error: the file's to fix, not the network
+    broken.write_text('{ mode: "peer", listen: { endpoints: [\n')
+    proc = start(tmp_path, "--zenoh-config", str(broken))
+    one_line(proc, daemon.EXIT_USAGE, "invalid Zenoh endpoint or config", "expected")
 
 
 def test_a_second_tuner_on_the_same_store_refuses_to_start(tmp_path):

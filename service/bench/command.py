@@ -20,7 +20,7 @@ from service.bench.load import drive
 from service.bench.probes import machine_info
 from service.bench.report import judge, table, write
 from service.engine.config import guard_option
-from service.procs import TunerProcess
+from service.procs import TunerProcess, weights_path
 
 D = BenchConfig()
 """The defaults, which the options' defaults are."""
@@ -51,7 +51,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--tick", type=float, default=D.tick, help="spacing of the phase groups, seconds")
     a("--tau", type=float, nargs=2, default=D.tau, metavar=("MIN", "MAX"),
       help="range of plant time constants, seconds (RL period = 5.5 tau)")  # fmt: skip
-    a("--agent-weights", default=None, help="weights file for the daemon (default: shipped)")
+    a("--agent-weights", type=weights_path, default=None,
+      help="weights file for the daemon (default: shipped)")  # fmt: skip
     a(
         "--inference-threads",
         type=int,

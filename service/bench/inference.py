@@ -11,6 +11,7 @@ import torch
 from service.agent import load_agent, untrained_agent
 from service.agent.fast import FastPolicy
 from service.bench.config import BenchConfig
+from service.daemon.settings import UNTRAINED
 from service.units import DEFAULT_FORGETTING
 
 
@@ -19,7 +20,7 @@ def inference_bench(config: BenchConfig, n: int) -> dict:
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        if config.agent_weights == "untrained":
+        if config.agent_weights == UNTRAINED:
             agent = untrained_agent(0)
         else:
             agent = load_agent(config.agent_weights) if config.agent_weights else load_agent()

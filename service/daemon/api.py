@@ -306,9 +306,11 @@ def healthz(tuner: TunerDep) -> Health:
         return _unhealthy("failing", "worker thread not running")
     if tuner.store_failure is not None:
         return _unhealthy("failing", tuner.store_failure)
-    if others := sorted(tuner.bus.other_tuners if tuner.bus else ()):
-        return Health(status="ok", detail=f"another tuner on this key prefix: {', '.join(others)}")
-    return Health(status="ok")
+    # still ok (200): a restart fixes neither, the detail says what the operator must
+    others = sorted(tuner.bus.other_tuners if tuner.bus else ())
+    details = [f"another tuner on this key prefix: {', '.join(others)}"] if others else []
+    details += [tuner.retention_failure] if tuner.retention_failure else []
+    return Health(status="ok", detail="; ".join(details))
 
 
 @ops.get("/readyz", responses={503: {"model": Health}})

@@ -20,12 +20,12 @@ import errno
 import fcntl
 import logging
 import os
-import re
 import signal
 import socket
 import sqlite3
 import sys
 import time
+import tomllib
 from pathlib import Path
 
 import uvicorn
@@ -33,7 +33,14 @@ from pydantic import ValidationError
 from pydantic_settings import SettingsError
 
 from service.daemon import logs
-from service.daemon.settings import Settings, load_settings, setting_variables, unknown_variables
+from service.daemon.settings import (
+    UNTRAINED,
+    Settings,
+    load_settings,
+    setting_variables,
+    unknown_variables,
+)
+from service.wire.session import join_failure, one_line
 
 log = logging.getLogger("pitune.tuner")
 
@@ -49,13 +56,14 @@ EXIT_CODES = {
     EXIT_OK: "stopped by SIGTERM or SIGINT after a clean shutdown",
     EXIT_FAILED: "an unexpected error (the log has the traceback)",
     EXIT_USAGE: "invalid command line or settings (flag, PITUNE_* variable, config file "
-    "value, Zenoh endpoint syntax)",
+    "value or syntax, Zenoh endpoint syntax)",
     EXIT_NO_INPUT: "a file the settings name is missing or unreadable (config file, "
     "Zenoh config, agent weights)",
     EXIT_UNAVAILABLE: "an address cannot be bound: the API port or a Zenoh listen port "
     "in use, or an address not on this host",
     EXIT_CANT_CREATE: "the store cannot be opened (--db is a directory, no permission, "
-    "not an SQLite database, PostgreSQL unreachable, a schema of a newer pitune)",
+    "not an SQLite database, PostgreSQL unreachable, a schema of a newer pitune), or the "
+    "history archive cannot be appended to",
     EXIT_STORE_FAILED: "the store failed to commit for store_failure_exit_s while running "
     "(restart it: it resumes from the store)",
     EXIT_LOCKED: "another tuner owns the store (its <db>.lock is held), or runs on the "
@@ -162,12 +170,6 @@ class StartupError(Exception):
         self.message = message
 
 
-def _one_line(text: object) -> str:
-    """An error's text on one line, without Zenoh's Rust source locations."""
-    text = re.sub(r" at /\S+\.rs:\d+\.?", "", str(text))
-    return " ".join(text.split())
-
-
 def _settings_error(exc: ValidationError) -> str:
     parts = []
     for error in exc.errors():
@@ -191,17 +193,26 @@ def read_settings(args: argparse.Namespace) -> Settings:
         ) from None
     except SettingsError as exc:  # an environment variable that is not valid JSON
         cause = f": {exc.__cause__}" if exc.__cause__ else ""
-        message = f"invalid settings: {_one_line(exc)}{_one_line(cause)}"
+        message = f"invalid settings: {one_line(exc)}{one_line(cause)}"
         raise StartupError(EXIT_USAGE, message) from None
     except FileNotFoundError as exc:
         raise StartupError(
             EXIT_NO_INPUT, f"{exc}: fix --config or PITUNE_CONFIG, or leave it unset"
         ) from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        # a typo in the file is the operator's to fix: status 2, which a supervisor does not
+        # restart on (a restart would fail the same way, forever)
+        where = args.config or os.environ.get("PITUNE_CONFIG")
+        raise StartupError(
+            EXIT_USAGE,
+            f"config file {where} is not valid TOML: {one_line(exc)}. Fix the file "
+            "(--config or PITUNE_CONFIG)",
+        ) from None
 
 
 def check_files(settings: Settings) -> None:
     weights = settings.agent_weights
-    if weights and weights != "untrained" and not Path(weights).is_file():
+    if weights and weights != UNTRAINED and not Path(weights).is_file():
         raise StartupError(
             EXIT_NO_INPUT,
             f"agent weights file not found: {weights}. Fix --agent-weights "
@@ -213,12 +224,33 @@ def check_files(settings: Settings) -> None:
             f"Zenoh config file not found: {settings.zenoh_config}. "
             "Fix --zenoh-config (PITUNE_ZENOH_CONFIG)",
         )
+    check_archive(settings.history_archive)
     db = settings.db_path
     if not settings.postgres and str(db) != ":memory:" and db.is_dir():
         raise StartupError(
             EXIT_CANT_CREATE,
             f"--db {db} is a directory: give the database file's path, e.g. {db / 'pitune.db'}",
         )
+
+
+def check_archive(archive: Path | None) -> None:
+    """The retention's archive can be appended to: else every pass would fail, and delete
+    nothing, for as long as the tuner runs (the store unbounded). A file this check
+    creates is removed: a tuner refused later leaves nothing behind."""
+    if archive is None:
+        return
+    existed = archive.exists()
+    try:
+        with open(archive, "ab"):
+            pass
+    except OSError as exc:  # its folder missing, a directory, no permission
+        raise StartupError(
+            EXIT_CANT_CREATE,
+            f"cannot append to the history archive {archive}: {exc.strerror}. Fix "
+            "history_archive (PITUNE_HISTORY_ARCHIVE: an existing folder), or set it to none",
+        ) from None
+    if not existed:
+        archive.unlink()
 
 
 class StoreLock:
@@ -290,7 +322,7 @@ def bind_api(settings: Settings) -> socket.socket:
 
 
 def zenoh_failure(exc: Exception, settings: Settings) -> StartupError:
-    text = _one_line(exc)
+    text = one_line(exc)
     endpoints = f"--listen {','.join(settings.zenoh_listen) or '-'} / --connect " + (
         ",".join(settings.zenoh_connect) or "-"
     )
@@ -306,13 +338,8 @@ def zenoh_failure(exc: Exception, settings: Settings) -> StartupError:
             f"cannot join the Zenoh bus: {text}. Listen on an address of this host "
             "(--listen, PITUNE_ZENOH_LISTEN)",
         )
-    if "Endpoints must be" in text or "invalid" in text.lower():
-        return StartupError(
-            EXIT_USAGE,
-            f"invalid Zenoh endpoint or config ({endpoints}): {text}. Endpoints look like "
-            "tcp/127.0.0.1:7447 or tls/router.site:7447",
-        )
-    return StartupError(EXIT_UNAVAILABLE, f"cannot join the Zenoh bus ({endpoints}): {text}")
+    usage, message = join_failure(exc, endpoints)
+    return StartupError(EXIT_USAGE if usage else EXIT_UNAVAILABLE, message)
 
 
 def start_tuner(settings: Settings):
@@ -332,7 +359,7 @@ def start_tuner(settings: Settings):
         raise StartupError(
             EXIT_NO_INPUT,
             f"cannot load the agent weights {settings.agent_weights or '(shipped)'}: "
-            f"{_one_line(exc)}. Fix --agent-weights (PITUNE_AGENT_WEIGHTS)",
+            f"{one_line(exc)}. Fix --agent-weights (PITUNE_AGENT_WEIGHTS)",
         ) from exc
     try:
         tuner.start()
@@ -342,14 +369,14 @@ def start_tuner(settings: Settings):
         location = redacted(settings.db_path) if settings.postgres else settings.db_path
         raise StartupError(
             EXIT_CANT_CREATE,
-            f"cannot open the store {location}: {_one_line(exc)}. Check --db "
+            f"cannot open the store {location}: {one_line(exc)}. Check --db "
             "(PITUNE_DB_PATH): a reachable PostgreSQL server and database, a user allowed "
             "to create tables there, and a pitune at least as new as the one that wrote it",
         ) from exc
     except (sqlite3.Error, OSError) as exc:
         raise StartupError(
             EXIT_CANT_CREATE,
-            f"cannot open the store {settings.db_path}: {_one_line(exc)}. Check --db "
+            f"cannot open the store {settings.db_path}: {one_line(exc)}. Check --db "
             "(PITUNE_DB_PATH): a writable SQLite file, or a new path",
         ) from exc
     return tuner

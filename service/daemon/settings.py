@@ -56,6 +56,14 @@ OTHER_VARIABLES = frozenset(
     }
 )
 POSTGRES_SCHEMES = ("postgresql://", "postgres://")
+UNTRAINED = "untrained"
+"""``agent_weights`` of a random agent (tests only)."""
+SQLITE_INT_MAX = 2**63 - 1
+"""Largest integer SQLite stores (a row count beyond it fails every retention pass)."""
+NONE_WORDS = frozenset({"none", "null"})
+"""What an optional history setting takes for "no limit" / "no archive" (any case): the
+environment has no null, nor has TOML (``history_max_age_days = "none"`` in the file).
+Not the empty text: a template left unfilled must not lift the store's bound."""
 Endpoints = Annotated[list[str], NoDecode]
 """Zenoh endpoints: a list, or in the environment JSON or a comma-separated list."""
 
@@ -230,6 +238,16 @@ class Settings(BaseSettings):
         raw = value.get_secret_value() if isinstance(value, SecretStr) else value
         return None if isinstance(raw, str) and not raw.strip() else value
 
+    @field_validator(
+        "history_max_rows_per_loop", "history_max_age_days", "history_archive", mode="before"
+    )
+    @classmethod
+    def _none_word(cls, value: object) -> object:
+        """``none`` or ``null`` (:data:`NONE_WORDS`) is no limit / no archive."""
+        if isinstance(value, str) and value.strip().lower() in NONE_WORDS:
+            return None
+        return value
+
     @field_validator("key_prefix")
     @classmethod
     def _valid_prefix(cls, value: str) -> str:
@@ -262,24 +280,24 @@ class Settings(BaseSettings):
         return sources
 
     # -- retention of the audit (gains) history: see service/daemon/store.py ----------
-    history_max_rows_per_loop: Annotated[int, Field(ge=1)] | None = Field(
+    history_max_rows_per_loop: Annotated[int, Field(ge=1, le=SQLITE_INT_MAX)] | None = Field(
         10_000,
         description="Audit rows kept per registered loop, newest first (~130 bytes each; "
-        "10,000 is ~19 days of a loop stepped every 165 s); none: no row limit.",
+        "10,000 is ~19 days of a loop stepped every 165 s); 'none': no row limit.",
     )
     history_max_age_days: Annotated[float, Field(gt=0.0)] | None = Field(
         365.0,
         description="Audit rows older than this are pruned (the newest of each loop "
-        "is kept); none: no age limit.",
+        "is kept); 'none': no age limit.",
     )
-    history_max_rows_deleted: Annotated[int, Field(ge=1)] = Field(
+    history_max_rows_deleted: Annotated[int, Field(ge=1, le=SQLITE_INT_MAX)] = Field(
         100, description="Audit rows kept of a deleted loop (its newest, with its last seq)."
     )
     history_archive: Path | None = Field(
         None,
         description="JSON-lines file the pruned audit rows are appended to (fsynced) "
-        "before they are deleted; none: pruned rows are gone (export them first with "
-        "'pitune store export').",
+        "before they are deleted; 'none' (the default): pruned rows are gone (export them "
+        "first with 'pitune store export'). Its folder must exist.",
     )
     history_prune_interval_s: Annotated[float, Field(gt=0.0)] = Field(
         3600.0, description="Seconds between two retention passes over the audit history."

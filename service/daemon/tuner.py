@@ -54,7 +54,7 @@ from service.daemon.ownership import Ownership
 from service.daemon.pacing import LINGER_BYTES, LINGER_S, Pacer
 from service.daemon.queries import StateQueries
 from service.daemon.recent import Recent
-from service.daemon.settings import Settings
+from service.daemon.settings import UNTRAINED, Settings
 from service.daemon.slotmemo import SlotMemo
 from service.daemon.snapwriter import SnapshotWriter
 from service.daemon.store import Store
@@ -79,7 +79,7 @@ _RANGE_ERRORS = {"less_than_equal", "greater_than_equal", "less_than", "greater_
 
 def load_configured_agent(settings: Settings) -> Agent:
     """The agent the settings ask for; the untrained one only with a loud warning."""
-    if settings.agent_weights == "untrained":
+    if settings.agent_weights == UNTRAINED:
         log.warning("using an UNTRAINED agent (agent_weights=untrained): updates are noise")
         return untrained_agent(0)
     if settings.agent_weights:
@@ -183,6 +183,10 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
                 "pitune_audit_pruned": (
                     "Audit rows deleted by the retention policy.",
                     lambda: self.pruned,
+                ),
+                "pitune_audit_prune_failures": (
+                    "Retention passes that failed and pruned nothing (/healthz says why).",
+                    lambda: self.prune_failures,
                 ),
                 "pitune_gains_fenced": (
                     "Committed gains messages not published: this member's leases may have "

@@ -65,6 +65,11 @@ class Upkeep:
     _snapshot_pace = 0.0
     """Seconds between its chunks."""
 
+    retention_failure: str | None = None
+    """Why the last retention pass failed, until a pass goes through (``/healthz``)."""
+    prune_failures = 0
+    """Retention passes failed since start."""
+
     _snapshot_turn = 0
     """Periodic snapshots started (the rotation of :data:`SNAPSHOT_ROTATION`)."""
 
@@ -132,13 +137,28 @@ class Upkeep:
             self._prune_todo = self.store.audit_ids()
         chunk, self._prune_todo = self._prune_todo[:PRUNE_CHUNK], self._prune_todo[PRUNE_CHUNK:]
         max_age_days = getattr(st, "history_max_age_days", None)
-        self.pruned += self.store.prune(
-            chunk,
-            older_than=None if max_age_days is None else self.clock.wall() - max_age_days * 86400.0,
-            keep_rows=getattr(st, "history_max_rows_per_loop", None),
-            keep_rows_deleted=getattr(st, "history_max_rows_deleted", None),
-            archive=getattr(st, "history_archive", None),
-        )
+        horizon = None if max_age_days is None else self.clock.wall() - max_age_days * 86400.0
+        try:
+            self.pruned += self.store.prune(
+                chunk,
+                older_than=horizon,
+                keep_rows=getattr(st, "history_max_rows_per_loop", None),
+                keep_rows_deleted=getattr(st, "history_max_rows_deleted", None),
+                archive=getattr(st, "history_archive", None),
+            )
+        except Exception as exc:
+            # The pass is dropped whole and tried again at the next interval: its other
+            # chunks would fail alike (the archive's disk full or gone). Shown in /healthz
+            # and counted, for the store is no longer bounded while it lasts.
+            self._prune_todo = []
+            self.prune_failures += 1
+            self.retention_failure = f"retention pass failed: {exc}"
+            retry_s = self.clock.until(self._next_prune)
+            debug = log.isEnabledFor(logging.DEBUG)  # the traceback
+            log.error("%s; next try in %.0f s", self.retention_failure, retry_s, exc_info=debug)
+            return
+        if not self._prune_todo:
+            self.retention_failure = None  # a whole pass went through
 
     def _apply_journal(self) -> None:
         """A chunk of the journal into the store's tables, when no message waits (or the

@@ -87,21 +87,26 @@ async def serve(site, status_interval: float, report: Path | None = None) -> int
 
     from service.gateways.opcua.bridge import OpcUaGateway
     from service.gateways.registration import RegistrationError
-    from service.wire.session import session_config
+    from service.wire.session import join_failure, session_config
 
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
     bus = site.bus
-    session = zenoh.open(
-        session_config(
-            config_file=bus.zenoh_config,
-            mode=bus.mode,
-            connect=bus.connect or None,
-            listen=bus.listen or None,
+    try:
+        session = zenoh.open(
+            session_config(
+                config_file=bus.zenoh_config,
+                mode=bus.mode,
+                connect=bus.connect or None,
+                listen=bus.listen or None,
+            )
         )
-    )
+    except zenoh.ZError as exc:  # the map's [bus] is wrong (2), or a port in use (1)
+        usage, message = join_failure(exc, "the map's [bus] section")
+        print(f"pitune gateway opcua: {message}", file=sys.stderr)
+        return 2 if usage else 1
     try:
         gateway = OpcUaGateway(site, session, status_interval_s=status_interval)
         print(f"gateway: {len(site.loops)} loops from {site.server.url} "

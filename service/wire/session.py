@@ -9,6 +9,7 @@ depends on ``service.wire.protocol``).
 from __future__ import annotations
 
 import json
+import re
 import socket
 from collections.abc import Sequence
 from pathlib import Path
@@ -21,6 +22,27 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def one_line(text: object) -> str:
+    """An error's text on one line, without Zenoh's Rust source locations."""
+    text = re.sub(r" at /\S+\.rs:\d+\.?", "", str(text))
+    return " ".join(text.split())
+
+
+def join_failure(exc: Exception, where: str) -> tuple[bool, str]:
+    """A Zenoh session that did not open (``where``: the endpoints' options): whether the
+    command line or config is at fault (a malformed endpoint or config file: fixing it is
+    the user's, trying again does not help), and the failure on one line. The tuner, the
+    plant simulator and the gateways say it alike."""
+    text = one_line(exc)
+    lowered = text.lower()
+    if any(word in lowered for word in ("endpoints must be", "invalid", "expected")):
+        return True, (
+            f"invalid Zenoh endpoint or config ({where}): {text}. Endpoints look like "
+            "tcp/127.0.0.1:7447 or tls/router.site:7447"
+        )
+    return False, f"cannot join the Zenoh bus ({where}): {text}"
 
 
 def session_config(
