@@ -193,6 +193,8 @@ class Cluster(Suspects):
             if self._conn.closed or self._conn.broken:
                 self._conn = connect(self.url)
                 self._conn.execute(f"LISTEN {CHANNEL}")
+                # changes made while not listening came with no notification
+                self.tuner.load_gateway_shards()
 
     def _beat(self) -> None:
         """Renew the member row and the leases every tick, whatever else is going on."""

@@ -410,7 +410,7 @@ def _sst(w: Window) -> float:
     return float(((y - mean * s) ** 2).sum())
 
 
-def recorded(t, pv, op, last: int = 1, least: float = 0.0) -> Window:
+def recorded(t, pv, op, last: int = 1, registered: float = 0.0) -> Window:
     """The data as the fit sees them. Where the recorder halved its resolution
     (``service.engine.watch``: the rows around each move kept, the others each the mean
     measurement and output of the samples they stand for) a row spans ``count`` samples
@@ -425,7 +425,7 @@ def recorded(t, pv, op, last: int = 1, least: float = 0.0) -> Window:
     dt = np.diff(t)
     if last <= 1 and (dt.size == 0 or dt.max() - dt.min() <= 1e-6 * float(np.median(dt))):
         return Window.of(t, pv, op)
-    h = sample_period(t, least)  # (``least``: see sample_period)
+    h = sample_period(t, registered)  # (``registered``: see sample_period)
     count = np.maximum(np.rint(np.append(dt / h, last)), 1).astype(np.int64)
     count[-1] = max(int(last), 1)
     rows = np.concatenate([[0], np.cumsum(count[:-1])])
@@ -434,19 +434,22 @@ def recorded(t, pv, op, last: int = 1, least: float = 0.0) -> Window:
 
 
 SHORTEST = 0.5
-"""Share of a loop's registered sample period below which an interval between two rows is
-not its sample period (:func:`sample_period`'s ``least``)."""
+"""Share of the usual interval (:func:`sample_period`) below which an interval between
+two rows is not the sample period."""
 
 
-def sample_period(t, least: float = 0.0) -> float:
+def sample_period(t, registered: float = 0.0) -> float:
     """The sample period of recorded rows' times ``t`` (some rows the means of several
     samples): the median of the intervals below 1.5x the shortest (a gateway's jitter is
-    not a row of two samples), intervals below ``least`` left out: one sample sent right
-    after another made h that interval, and every row as many samples as it would hold
-    (session 38's review: one interval of 0.01 s in rows of 4 s cost a fit 46 s of CPU
-    and 0.9 GB, and read the noise 20x too high)."""
+    not a row of two samples). Given the loop's ``registered`` sample period, intervals
+    below :data:`SHORTEST` of the lesser of it and the recorded intervals' lower quartile
+    (a gateway may sample faster than registered; a move's first rows are single
+    samples) are left out: one sample sent right after another made h that interval,
+    and every row as many samples as it would hold (session 38's review: one interval of
+    0.01 s in rows of 4 s cost a fit 46 s of CPU and 0.9 GB, and read the noise 20x too
+    high)."""
     dt = np.diff(np.asarray(t, np.float64))
-    dt = dt[dt >= least]
-    if not dt.size:
-        return float(least)
+    if registered > 0.0 and dt.size:
+        kept = dt[dt >= SHORTEST * min(registered, float(np.quantile(dt, 0.25)))]
+        dt = kept if kept.size else dt
     return float(np.median(dt[dt < 1.5 * dt.min()]))

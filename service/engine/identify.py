@@ -239,7 +239,7 @@ def assess(
     start: tuple[float, float] | None = None,
     last: int = 1,
     op_sent: bool = True,
-    least: float = 0.0,
+    registered: float = 0.0,
 ) -> Assessment:
     """Identify from one contiguous segment of data (no gap or saturated sample inside,
     in auto or in manual with the output sent) whose events (setpoint moves, or output
@@ -247,7 +247,7 @@ def assess(
     indices ``starts``; the last event runs to the end of the data. Rows may be the
     recorder's means of several samples (:func:`recorded`; ``last``: the samples the last
     row holds; ``op_sent``: the output is the gateway's, not rebuilt from the PI law;
-    ``least``: no shorter interval is the sample period, :func:`foptd_fit.sample_period`).
+    ``registered``: the loop's registered sample period, :func:`foptd_fit.sample_period`).
 
     One FOPTD model is fitted to the whole segment (one offset, one initial transient:
     far better determined than a fit per event). Each event is then judged by the
@@ -284,7 +284,7 @@ def assess(
     out.why = screen(t, pv, op)
     if out.why:
         return out
-    whole = recorded(t, pv, op, last, least)
+    whole = recorded(t, pv, op, last, registered)
     joint = fit_windows([whole], start)
     pred = joint.model[0]
     lag = joint.tau + joint.theta

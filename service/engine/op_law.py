@@ -7,17 +7,21 @@ first tuning off by it too (session 38's review: ``op`` 10x the law's, K fitted 
 
 In auto, each sample's change of ``op`` is set against the law's change over the same
 interval, ``kp (e - e_prev) + ki e dt`` (the bumpless increment form, so a change of the
-gains between samples costs nothing), both summed from where the check (re)started;
-``op`` = ``a`` x the law's output gives the running sums in the ratio ``a``. A sample
-that moves the setpoint adds to neither: a DCS whose proportional term acts on the PV
-alone (no kick at a setpoint step; a common default) differs from the law on the error
-there only. The check starts again at every sample in manual, without ``op``, saturated
-or after a gap.
+gains between samples costs nothing), both summed over the segment identification
+records; ``op`` = ``a`` x the law's output gives the running sums in the ratio ``a``. A
+sample that moves the setpoint adds to neither: a DCS whose proportional term acts on
+the PV alone (no kick at a setpoint step; a common default) differs from the law on the
+error there only; nor does a sample in manual, saturated or without ``op`` (the sums
+are of changes, so one left out leaves them consistent, and a segment's manual output
+steps are fitted with the auto data the sums judged). They start again with the
+segment.
 
 :func:`refusal` is identification's: once the sums hold :data:`MIN_SAMPLES` samples and
 the law explains ``op`` (:data:`MIN_R2`), a ratio outside 1/:data:`MAX_RATIO` to
 :data:`MAX_RATIO` (or negative) refuses the segment, saying why. A law that does not
-explain ``op`` (derivative action, a filtered PV in the DCS, noise) refuses nothing.
+explain ``op`` (derivative action, a filtered PV in the DCS, noise) refuses nothing, and
+neither does a ratio near -1: the loop registered with the other controller action,
+which identification names (its model's gain has the wrong sign).
 """
 
 from __future__ import annotations
@@ -49,9 +53,9 @@ def clear(tb: LoopTable, s) -> None:
 
 def observe(tb: LoopTable, s, restart, use, kp, ki, e, e_prev, dt, op, op_prev) -> None:
     """One sample of each loop ``s`` (distinct slots, aligned arrays, engineering units):
-    ``restart`` where the check starts again (manual, no ``op``, saturated, a gap: the
-    sample's change is not the law's), ``use`` where the sample's change counts (in auto
-    with ``op`` sent now and before, the setpoint unmoved); a setpoint move neither."""
+    ``restart`` where the check starts again (a new segment), ``use`` where the sample's
+    change counts (in auto, not saturated, ``op`` sent now and before, the setpoint
+    unmoved)."""
     clear(tb, s[restart])
     use = use & ~restart
     law = kp * (e - e_prev) + ki * e * dt
@@ -70,8 +74,8 @@ def refusal(tb: LoopTable, s: int) -> str | None:
     if tb.ol_n[s] < MIN_SAMPLES or not (xx > 0.0 and yy > 0.0):
         return None
     ratio = xy / xx
-    if xy * xy < MIN_R2 * xx * yy or 1.0 / MAX_RATIO <= ratio <= MAX_RATIO:
-        return None
+    if xy * xy < MIN_R2 * xx * yy or 1.0 / MAX_RATIO <= abs(ratio) <= MAX_RATIO:
+        return None  # (near -1: the other action, identification's message)
     if ratio < 0.0:
         what = f"op moves against the PI law's output (x{ratio:.2g}): op inverted"
     else:

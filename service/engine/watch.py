@@ -48,7 +48,7 @@ import math
 import numpy as np
 
 from service.engine import identify, model_check, model_use, op_law, verify
-from service.engine.foptd_fit import SHORTEST, sample_period
+from service.engine.foptd_fit import sample_period
 from service.engine.id_state import IdState
 from service.engine.recorder import CAP
 
@@ -127,7 +127,7 @@ def record(tb, slots: np.ndarray, cols: dict, last_t: np.ndarray, gap, fresh, wa
     broken = anew | (~auto & ~measured) | saturated | foreign
     # whether the op sent is the law's output in the gains' units (op_law.py)
     op_law.observe(
-        tb, s, broken | ~auto | ~measured, (sp == tb.prev_sp[s]) & tb.prev_meas[s],
+        tb, s, anew, ~broken & auto & measured & (sp == tb.prev_sp[s]) & tb.prev_meas[s],
         kp, ki, e, e_prev, dt, op, tb.prev_op[s],
     )  # fmt: skip
     recording = tb.rec[s] >= 0
@@ -267,7 +267,7 @@ def _compress(tb, s: int) -> None:
     # output misrepresented the input). The mean measurement lags the row's time by
     # half its interval, which the dead time absorbs.
     t = data[0, :n]
-    h = sample_period(t, _least(tb, s))
+    h = sample_period(t, _registered(tb, s))
     w = np.diff(t, append=t[-1] + tb.rec_m[s] * h)
     span = np.concatenate([[0.0], np.cumsum(w)])
     ends = np.append(kept[1:], n)
@@ -333,7 +333,7 @@ def _assess(tb, s: int, t: float, wall: float) -> bool:
         st.model, st.why = None, refused
         return True
     result = identify.assess(
-        data[0], data[1], data[2], data[3], starts, start, last, op_sent, _least(tb, s)
+        data[0], data[1], data[2], data[3], starts, start, last, op_sent, _registered(tb, s)
     )
     st.events = result.events[-MAX_EVENTS:]
     st.model, st.why = result.model, result.why
@@ -348,10 +348,9 @@ def _assess(tb, s: int, t: float, wall: float) -> bool:
     return True
 
 
-def _least(tb, s: int) -> float:
-    """The shortest interval that may be slot ``s``'s sample period (foptd_fit.SHORTEST
-    of its registered one)."""
-    return SHORTEST * tb.configs[tb.ids[s]].sample_period_s
+def _registered(tb, s: int) -> float:
+    """Slot ``s``'s registered sample period, s (foptd_fit.sample_period's check)."""
+    return tb.configs[tb.ids[s]].sample_period_s
 
 
 def catch_up(tb, wall: float) -> None:
