@@ -323,10 +323,10 @@ def _record(
     broken = anew or (not sample.auto and not measured) or sample.saturated or foreign
     why = watch.broken_why(sample.auto, sample.saturated, measured, foreign)
     # whether op is the law's output (service.engine.op_law), one sample
-    if broken or not sample.auto or not measured:
+    if anew:  # a new segment: the sums start again
         for name in op_law.F64:
             getattr(tb, name)[s] = 0.0
-    elif sp == tb.prev_sp[s] and tb.prev_meas[s]:
+    elif not broken and sample.auto and measured and sp == tb.prev_sp[s] and tb.prev_meas[s]:
         tb.ol_x[s] += kp * (e - tb.last_e[s]) + ki * e * (t - last_t)
         tb.ol_y[s] += op - tb.prev_op[s]
         x, y = tb.ol_x[s], tb.ol_y[s]
