@@ -17,9 +17,10 @@ steps are fitted with the auto data the sums judged). They start again with the
 segment.
 
 :func:`refusal` is identification's: once the sums hold :data:`MIN_SAMPLES` samples and
-the law explains ``op`` (:data:`MIN_R2`), a ratio outside 1/:data:`MAX_RATIO` to
-:data:`MAX_RATIO` (or negative) refuses the segment, saying why. A law that does not
-explain ``op`` (derivative action, a filtered PV in the DCS, noise) refuses nothing, and
+the law explains ``op`` (:data:`MIN_R2`), a ratio whose size is outside 1/:data:`MAX_RATIO`
+to :data:`MAX_RATIO` refuses the segment, saying why (a negative one: ``op`` inverted).
+A law that does not explain ``op`` (derivative action, a filtered PV in the DCS, noise)
+refuses nothing, and
 neither does a ratio near -1: the loop registered with the other controller action,
 which identification names (its model's gain has the wrong sign).
 """
