@@ -1,5 +1,6 @@
 """Wire models, key expressions, rejection classification and the generated protocol doc."""
 
+import re
 from pathlib import Path
 
 import pytest
@@ -7,7 +8,16 @@ from pydantic import ValidationError
 
 from service.wire.decode import classify
 from service.wire.doc import generated_block, render_schemas
-from service.wire.protocol import GainsMessage, Keys, Mode, RejectReason, Sample, SampleBatch
+from service.wire.protocol import (
+    SCHEMA_REVISION,
+    SCHEMA_VERSION,
+    GainsMessage,
+    Keys,
+    Mode,
+    RejectReason,
+    Sample,
+    SampleBatch,
+)
 
 pytestmark = pytest.mark.timeout(30)
 DOC = Path(__file__).resolve().parents[1] / "docs" / "protocol.md"
@@ -17,6 +27,16 @@ def test_protocol_doc_schemas_are_in_sync_with_the_models():
     assert generated_block(DOC.read_text()) == render_schemas().strip("\n"), (
         "docs/protocol.md is stale: run python -m service.wire.doc docs/protocol.md"
     )
+
+
+def test_protocol_doc_names_the_revision_the_code_speaks():
+    """The title and the versioning table (written by hand) follow SCHEMA_REVISION: a
+    gateway's author reads the revision off the title and its changes off the table."""
+    text = DOC.read_text()
+    title = text.splitlines()[0]
+    assert title.endswith(f"(schema version {SCHEMA_VERSION}, revision {SCHEMA_REVISION})")
+    rows = re.findall(rf"^\| {SCHEMA_VERSION}\.(\d+) \| (.+) \|$", text, re.M)
+    assert [int(r) for r, _ in rows] == list(range(1, SCHEMA_REVISION + 1))
 
 
 def test_sample_error_from_e_or_sp_pv():

@@ -42,13 +42,9 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 SCHEMA_VERSION = 1
 SCHEMA_REVISION = 8
-"""Additive revisions within :data:`SCHEMA_VERSION` (optional fields only, ``v`` unchanged):
-1 the original; 2 ``Sample.applied_seq``, ``epoch`` in gains and state messages, the
-supervision fields of :class:`StateReply`, :class:`StateBatch` and ``after_t``; 3
-``GainsMessage.why``, the reasons ``rollback`` and ``accepted``, the mode ``shadow`` in
-state replies; 4 the key ``{prefix}/gateways/{gateway}/samples`` and the reason
-``wrong_gateway``; 5 the update reason ``model``; 6 :class:`SampleColumns` (docs/protocol.md,
-Versioning)."""
+"""Additive revisions within :data:`SCHEMA_VERSION` (optional fields and new enum values
+only, ``v`` unchanged). What each revision added: the table in docs/protocol.md,
+Versioning (tests/test_tuner_protocol.py holds its title and table to this number)."""
 DEFAULT_PREFIX = "pitune"
 ENCODING = "application/json"
 MAX_MAGNITUDE = 1e12
