@@ -192,7 +192,8 @@ class LoopAdmin:
 
     def identify(self, loop_id: str, actor: str = "api") -> LoopView:
         """``POST /loops/{id}/identify``: identification from scratch (the identified
-        scaling is dropped; a hint-free loop stops tuning until a new model is confident).
+        scaling is dropped; a hint-free loop stops tuning until a new model is confident;
+        the models refuted on it forgotten).
         StoreUnavailable while commits fail."""
         wall = self.clock.wall()
         with self.table.lock:

@@ -218,7 +218,8 @@ def loop_history_jsonl(loop_id: str, tuner: TunerDep, since_id: Offset = 0) -> R
 @loops.post("/{loop_id}/identify", dependencies=mutating, responses={404: {}, 503: {}})
 def identify_loop(loop_id: str, tuner: TunerDep, request: Request) -> LoopView:
     """Identify the loop's model again from its closed-loop data (drops the identified
-    scaling; a loop registered without a hint stops tuning until it is confident)."""
+    scaling; a loop registered without a hint stops tuning until it is confident; the
+    models refuted on it, whose tuning rang, may be used again)."""
     view = tuner.identify(loop_id, actor=_actor(request))
     _event(tuner, request, "identify", "loop %r: identification restarted", loop_id)
     return view

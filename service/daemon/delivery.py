@@ -32,10 +32,11 @@ COMMIT_RETRY_S = 1.0
 EXIT_STORE_FAILED = 74
 """Exit status after ``store_failure_exit_s`` of failing commits (EX_IOERR)."""
 IDENTIFICATION_OUTCOMES = frozenset(
-    {"identified", "rescaled", "mismatch", "out_of_envelope", "in_envelope", "identify", "model"}
-)
+    {"identified", "rescaled", "mismatch", "out_of_envelope", "in_envelope", "identify", "model",
+     "refuted"}
+)  # fmt: skip
 """Audit reasons of the engine's identification (counted per outcome; 'model': the first
-tuning from an identified model)."""
+tuning from an identified model; 'refuted': a model like one whose tuning rang, not used)."""
 
 
 class Delivery:

@@ -26,7 +26,7 @@ AuditReason = Literal[
     "registered", "agent", "reset", "adopted", "patched", "deleted", "fault",
     "verified", "rollback", "verdict", "accepted", "rejected",
     "identify", "identified", "rescaled", "mismatch", "out_of_envelope", "in_envelope",
-    "model", "oscillating", "output_held",
+    "refuted", "model", "oscillating", "output_held",
 ]  # fmt: skip
 
 

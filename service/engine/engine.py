@@ -41,6 +41,7 @@ from service.engine import first_tuning, monitor, proposals, rules, stepping, ve
 from service.engine.audit import AuditRow
 from service.engine.config import LoopConfig, LoopView
 from service.engine.modes import PUBLISHING
+from service.engine.refuted import remembered
 from service.engine.saved import Saved
 from service.engine.site import SiteDefaults
 from service.engine.table import LoopTable
@@ -156,7 +157,8 @@ class TuningEngine:
         """Identify the loop again from scratch (``POST /loops/{id}/identify``): the
         identified scaling is dropped (a loop registered without a hint is 'identifying'
         again and not tuned until a new model is confident; a hinted loop goes back to its
-        hint), the mismatch and envelope flags are cleared; audit row 'identify' (with
+        hint), the mismatch and envelope flags are cleared, the models refuted on the loop
+        forgotten (:mod:`service.engine.refuted`); audit row 'identify' (with
         ``actor=<actor>`` when one is given, as a reset's)."""
         with self.lock:
             s = self.table.slot(loop_id)
@@ -347,8 +349,9 @@ class TuningEngine:
         failed = verify.judge(tb, done, osc, wall)
         for result in failed:
             self._due.pop(tb.slot(result.loop_ids[0]), None)
-        for s in tb.refuted:  # after the rollback: its gains stay, the model goes
-            watch.restart(tb, s, wall, why=watch.REFUTED)
+        for s in tb.refuted:  # after the rollback: its gains stay, the model goes (kept
+            # in mind: a model like it is not used again)
+            watch.restart(tb, s, wall, why=watch.REFUTED, keep=remembered(tb, s))
         tb.refuted.clear()
         return failed
 

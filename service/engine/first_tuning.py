@@ -148,7 +148,7 @@ def apply(tb, s: int, m, wall: float, why: str) -> None:
     # rollback): one change judged at a time
     tb.cool_until[s] = t + tb.v_cool[s]
     fences.unfence(tb, s)  # a fence of gains tuned for the plant as it was before
-    tb.ident[s].tuned_seq = seq
+    tb.ident[s].tuned_seq, tb.ident[s].tuned = seq, m
     if mode == AUTO:
         tb.prev_kp[s], tb.prev_ki[s] = old
         tb.kp[s], tb.ki[s] = new

@@ -1,6 +1,6 @@
 """A loop's identification state beyond the table's arrays: the events of its segment,
-its latest and its in-force models, why it is where it is (:mod:`service.engine.watch`
-keeps it; the runtime snapshot stores it)."""
+its latest and its in-force models, the models refuted on it, why it is where it is
+(:mod:`service.engine.watch` keeps it; the runtime snapshot stores it)."""
 
 from __future__ import annotations
 
@@ -9,6 +9,25 @@ from dataclasses import dataclass
 
 from service.engine import identify
 from service.units import Scaling
+
+
+@dataclass(slots=True)
+class Refuted:
+    """A model whose tuning rang and was rolled back on the loop
+    (:mod:`service.engine.refuted`)."""
+
+    model: identify.Model
+    t: float | None
+    """Plant time of the rollback (None: before the loop's first sample)."""
+    told: bool = False
+    """A model like it came back and was declined: its audit row is written (once)."""
+
+    def dump(self) -> dict:
+        return {"model": self.model.as_dict(), "t": self.t, "told": self.told}
+
+    @classmethod
+    def load(cls, d: dict) -> Refuted:
+        return cls(identify.Model.from_dict(d["model"]), d.get("t"), d.get("told", False))
 
 
 @dataclass(slots=True)
@@ -30,6 +49,11 @@ class IdState:
     tuned_seq: int = -1
     """The seq of a first tuning from a model that holds the agent until it is verified
     (:mod:`service.engine.first_tuning`; -1: none)."""
+    tuned: identify.Model | None = None
+    """The model whose tuning ``tuned_seq`` put in force (what a verdict that rolls it
+    back refutes; None with -1)."""
+    refuted: Sequence[Refuted] = ()
+    """The models refuted on the loop, oldest first (:mod:`service.engine.refuted`)."""
     hint_model: identify.Model | None = None
     """A hinted loop's latest confident model while none is in force
     (:func:`service.engine.model_check.hint_checked`)."""
@@ -52,6 +76,8 @@ class IdState:
             "in_force_t": self.in_force_t,
             "scaling": None if self.scaling is None else self.scaling.model_dump(),
             "tuned_seq": self.tuned_seq,
+            "tuned": None if self.tuned is None else self.tuned.as_dict(),
+            "refuted": [r.dump() for r in self.refuted],
             "hint_model": None if self.hint_model is None else self.hint_model.as_dict(),
             "hint_base": None if self.hint_base is None else self.hint_base.as_dict(),
         }
@@ -66,6 +92,8 @@ class IdState:
             in_force_t=d.get("in_force_t"),
             scaling=None if d.get("scaling") is None else Scaling(**d["scaling"]),
             tuned_seq=d.get("tuned_seq", -1),
+            tuned=identify.Model.load(d.get("tuned")),
+            refuted=[Refuted.load(r) for r in d.get("refuted", ())],
             hint_model=identify.Model.load(d.get("hint_model")),
             hint_base=identify.Model.load(d.get("hint_base")),
         )

@@ -70,7 +70,10 @@ class Identification(BaseModel):
         description="'identifying' (no scaling yet), 'checking' (a scaling in force, "
         "identification running), 'off'."
     )
-    why: str = Field(description="Why the latest assessment is not confident ('' if it is).")
+    why: str = Field(
+        description="Why the latest assessment is not confident ('' if it is), or why its "
+        "confident model is not used (one like a model in 'refuted')."
+    )
     model: IdentifiedModel | None = Field(description="The latest assessment's model.")
     in_force: IdentifiedModel | None = Field(
         description="The identified model the scaling in force comes from (None: the hint)."
@@ -85,3 +88,9 @@ class Identification(BaseModel):
     )
     mismatch: bool
     out_of_envelope: bool
+    refuted: list[IdentifiedModel] = Field(
+        [],
+        description="Models whose tuning rang and was rolled back, oldest first: a model "
+        "like one is not used again until POST /loops/{id}/identify "
+        "(docs/identification.md, Data identification does not take).",
+    )

@@ -64,10 +64,11 @@ are checked rotates from pass to pass (``tb.mc_turn``), so none is starved."""
 def agent_model(tb, s: int) -> tuple[float, float, float] | None:
     """The model slot ``s`` is checked on, (K, tau, theta) in agent units: its latest
     confident model, else the one in force (the robustness guard's choice: a plant on
-    the move is followed), else a hinted loop's last (:func:`hint_checked`); None without
-    any, with an integrating one, or when the latest assessment shows the plant has left
-    the fallback (:func:`stale`: the agent adapts unchecked until a confident model
-    comes). A hinted loop has no model in force (unless
+    the move is followed; not one like a model refuted on the loop, :func:`refuted_like`:
+    its predictions were shown wrong), else a hinted loop's last (:func:`hint_checked`);
+    None without any, with an integrating one, or when the latest assessment shows the
+    plant has left the fallback (:func:`stale`: the agent adapts unchecked until a
+    confident model comes). A hinted loop has no model in force (unless
     rescaled) but is checked too: unchecked, the agent took the grid's loops under load
     steps at the plant input to 0.5-2x the best integral gain (issue 12's load
     condition: worst 0.11, docs/tuner.md), and there the latest assessment is often not
@@ -76,7 +77,7 @@ def agent_model(tb, s: int) -> tuple[float, float, float] | None:
     if st is None:
         return None
     latest = st.model
-    if latest is not None and latest.confident:
+    if latest is not None and latest.confident and refuted_like(tb, s, latest) is None:
         m = latest
     else:
         m = st.fallback
@@ -192,6 +193,33 @@ def moved(m, known) -> bool:
     return (k > max(MOVED * math.hypot(m.k_rse, known.k_rse), math.log1p(MOVED_K))) or (
         tau > MOVED * math.hypot(m.tau_rse, known.tau_rse)
     )
+
+
+def refuted_like(tb, s: int, m):
+    """The model refuted on slot ``s`` (``IdState.refuted``: :mod:`service.engine.refuted`)
+    that confident model ``m`` is like, else None: ``m`` has not :func:`moved` from it (the
+    data do not tell the two plants apart), or ``m``'s tuning is within
+    ``guard.model_band`` of its tuning either way (the change would be the one that rang,
+    within the band the agent is kept in around a model's tuning; band off: moved alone).
+    The band catches precise models of one plant: they differ by a few % beyond their
+    standard errors (:data:`MOVED_K`'s lesson), and tau has no such floor. The models of
+    ``tests/test_identify_refuted.py``'s ringing plant identified after its refutation
+    (K 1.93-2.05, tau 37-43 s for 40.7 s) had not moved; their tunings were 1-11 % off."""
+    refuted = tb.ident[s].refuted
+    if not refuted or m.integrating or not m.k > 0:
+        return None
+    band = tb.configs[tb.ids[s]].guard.model_band
+    for r in refuted:
+        if not moved(m, r.model) or (band is not None and _tunings_within(m, r.model, band)):
+            return r
+    return None
+
+
+def _tunings_within(m, other, factor: float) -> bool:
+    """Whether models ``m`` and ``other``'s tunings are within ``factor`` either way."""
+    mine, its = model_gains(m.k, m.tau, m.theta), model_gains(other.k, other.tau, other.theta)
+    ratios = np.divide(mine, its)
+    return bool((np.abs(np.log(ratios)) < math.log(factor)).all())
 
 
 PROVISIONAL = 0.1

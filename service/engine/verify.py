@@ -212,7 +212,7 @@ def judge(tb: LoopTable, done: np.ndarray, osc: np.ndarray, wall: float) -> list
             continue
         ident = tb.ident[s]
         if ident is not None and first <= ident.tuned_seq <= seq:  # a model's tuning held
-            ident.tuned_seq = -1  # the agent until its verdict (first_tuning.py)
+            ident.tuned_seq, ident.tuned = -1, None  # the agent until its verdict
             tb.cool_until[s] = min(tb.cool_until[s], float(tb.last_t[s]))
         _audit(tb, s, wall, "verified", cand, cand, {
             "verdict": "verified", "seqs": [first, seq], "iae": figure,

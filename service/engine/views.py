@@ -243,4 +243,5 @@ def identification(tb: LoopTable, s: int) -> Identification | None:
         events=[ev.as_dict() for ev in st.events],
         mismatch=bool(tb.mismatch[s]),
         out_of_envelope=bool(tb.out_env[s]),
+        refuted=[r.model.as_dict() for r in st.refuted],
     )

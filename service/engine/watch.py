@@ -35,7 +35,8 @@ accepted sample; stated one sample at a time in ``tests/engine_reference.py``):
   integrating) pauses it (audit 'out_of_envelope'). Both set the gains to the model's
   tuning (:mod:`service.engine.first_tuning`), but for an integrating process, which
   keeps its gains (no tuning of it is trusted: docs/identification.md, Integrating
-  processes).
+  processes). A confident model like one whose tuning rang on the loop is not used
+  (:mod:`service.engine.refuted`).
 
 The recorder buffers are shared by all loops of a table (a pool of rows, one per open
 segment), so memory goes only to loops that are recording.
@@ -44,12 +45,13 @@ segment), so memory goes only to loops that are recording.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 
-from service.engine import identify, model_check, model_use, op_law, verify
+from service.engine import identify, model_check, model_use, op_law, refuted, verify
 from service.engine.foptd_fit import sample_period
-from service.engine.id_state import IdState
+from service.engine.id_state import IdState, Refuted
 from service.engine.recorder import CAP
 
 MIN_EVENT_SAMPLES = 8
@@ -340,7 +342,8 @@ def _assess(tb, s: int, t: float, wall: float) -> bool:
     if result.model is not None and model_check.plant_moved(st.fallback, result.model):
         verify.forget_figures(tb, s)  # they are the plant of before's
     if result.model is not None and result.model.confident:
-        model_use.use(tb, s, result.model, t, wall)
+        if not refuted.declines(tb, s, result.model, t, wall):
+            model_use.use(tb, s, result.model, t, wall)
     elif tb.scaled[s] and result.why.startswith(
         (identify.IMPRECISE, identify.DISAGREE, identify.INTEGRATING)
     ):
@@ -416,18 +419,25 @@ def stop(tb, s: int) -> None:
         tb.ident[s].starts = []
 
 
-REFUTED = "the identified model's tuning rang and was rolled back: identification restarted"
+REFUTED = (
+    "the identified model's tuning rang and was rolled back: identification restarted "
+    "(a model like it is not used again)"
+)
 """Why a loop identifies again after :data:`service.engine.verify.REFUTING` verdicts."""
 
 
-def restart(tb, s: int, wall: float, actor: str = "", why: str = "") -> None:
+def restart(
+    tb, s: int, wall: float, actor: str = "", why: str = "", keep: Sequence[Refuted] = ()
+) -> None:
     """Identify again from scratch (``POST /loops/{id}/identify``, or ``why`` the engine's
     own reason): the identified scaling is dropped (a hint-free loop is 'identifying'
     again, a hinted one back on its hint), flags cleared, the open segment discarded, the
-    bounds back to the configured ones; ``actor`` (who asked) in the audit row's detail
-    as a reset's."""
+    bounds back to the configured ones, the models refuted on the loop forgotten but
+    ``keep`` (the engine's restart after a refutation keeps them:
+    :mod:`service.engine.refuted`); ``actor`` (who asked) in the audit row's detail as a
+    reset's."""
     stop(tb, s)
-    tb.ident[s] = IdState(why=why or "identification restarted")
+    tb.ident[s] = IdState(why=why or "identification restarted", refuted=keep)
     tb.mismatch[s] = tb.out_env[s] = False
     tb.reconfigure(tb.configs[tb.ids[s]])
     t = tb.last_t[s]
