@@ -183,3 +183,25 @@ def test_stream_sends_only_new_samples_says_bye_and_resumes_from_last_event_id(t
             assert httpx.get(f"{daemon.url}/ui/api/loops/nope/stream").status_code == 404
         finally:
             plant.close()
+
+
+def test_the_overview_a_loops_live_data_and_its_view_say_what_holds_it(client):
+    """An operator's raise rolled back on demand: the agent is held for the cool-down
+    (the status may still read tuning); the overview's row, the loop page's live data and
+    the REST view name the hold, the live data and the view until when."""
+    client.post("/loops", json=loop_body("L1"), headers=BEARER)
+    client.post("/loops", json=loop_body("L2"), headers=BEARER)
+    engine = client.app.state.tuner.engine
+    for t, kp in ((1.0, 0.5), (2.0, 0.8)):  # the operator's kp 0.8 adopted: a change pending
+        engine.ingest([{"loop_id": "L1", "t": t, "sp": 50.0, "pv": 49.0, "kp": kp, "ki": 0.01}])
+    engine.rollback("L1")
+    until = 2.0 + 8 * client.get("/loops/L1").json()["rl_period_s"]
+    items = {i["id"]: i for i in client.get("/ui/api/loops").json()["items"]}
+    assert items["L1"]["hold"] == "cooldown" and items["L2"]["hold"] is None
+    live = client.get("/ui/api/loops/L1/recent").json()["live"]
+    assert live["hold"]["guard"] == "cooldown"
+    assert live["hold"]["until_t"] == pytest.approx(until, rel=1e-6)  # (float32 periods)
+    assert live["oscillating"] is False
+    view = client.get("/loops/L1").json()
+    assert view["hold"] == live["hold"] and view["oscillating"] is False
+    assert client.get("/loops/L2").json()["hold"] is None

@@ -217,8 +217,8 @@ def test_ten_thousand_loops_render_and_filter_within_two_seconds(daemon, new_pag
 def test_approve_a_proposal_roll_back_and_shadow_from_the_loop_page(daemon, new_page):
     """Log in, see an advisory loop's pending proposal, approve it and see the gains
     change on the plant, roll back (advisory: a rollback proposal, approved too: the
-    last-good gains back on the plant, and the fence shown), reject the next proposal,
-    switch to shadow."""
+    last-good gains back on the plant, and the fence shown), reject the next proposal
+    (the cool-down shown), switch to shadow."""
     loop = SimLoop(id="TIC-3", k=1.0, tau=6.0, theta=1.0, kp=0.3, ki=0.03, sp_period=20.0)
     body = loop.body(1.0, mode="advisory", guard={"excitation_periods": 0.0})
     assert httpx.post(f"{daemon.url}/loops", json=body, headers=BEARER).status_code == 201
@@ -275,6 +275,13 @@ def test_approve_a_proposal_roll_back_and_shadow_from_the_loop_page(daemon, new_
         )  # the agent's next proposal
         page.click("#reject")
         page.wait_for_selector('#history tbody tr[data-reason="rejected"]')
+        # the agent held for the cool-down after the reject: the title bar says until when
+        # (the status may still read tuning: the gains stay and nothing else says why)
+        page.wait_for_selector('#hold[data-guard="cooldown"]:not([hidden])')
+        assert page.locator("#hold").inner_text().startswith("held: cool-down until t = ")
+        assert "the cool-down after a change of the tuner's own" in page.locator(
+            "#hold"
+        ).get_attribute("title")
 
         page.click("#mode-shadow")
         page.wait_for_selector('#mode[data-mode="shadow"]')

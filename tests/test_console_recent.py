@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
-from service.daemon.recent import Recent
+from service.daemon.recent import REASONS, Recent
 from service.engine.updates import StepResult
 from service.wire.decode import Columns, Decoded
 from service.wire.protocol import UpdateReason
@@ -70,7 +71,8 @@ def test_gains_ring_and_summary():
     assert r.since("A", gains_seen=4)["gains"][0]["kp"] == 5.0
     s = r.summary(["A", "B", "C"])
     assert s["last_wall"][0] == 104.0 and s["last_wall"][1] == 50.0 and np.isnan(s["last_wall"][2])
-    assert abs(s["dkp"][0] - (5.0 / 4.0 - 1)) < 1e-12 and np.isnan(s["dkp"][1])
+    # each decision's change from the gains it replaced (step(): 0.9 times its own)
+    assert s["dkp"][:2] == pytest.approx([1 / 0.9 - 1] * 2) and np.isnan(s["dkp"][2])
     assert s["rms_e"][0] == 3.0 and s["rms_e"][1] == 4.0 and np.isnan(s["rms_e"][2])
 
 
@@ -136,3 +138,44 @@ def test_table_slots_find_each_loops_own_ring_also_after_a_slot_is_reused():
     add(["B", "C"], [4, 4])
     assert r.since("C")["t"] == [3.0, 4.0] and r.since("A")["n"] == 0
     assert r.since("B")["t"] == [1.0, 2.0, 3.0, 4.0]
+
+
+def test_an_accepted_proposal_shows_the_change_it_made_to_the_gains_in_force():
+    """An advisory loop's proposals walk from the gains in force (each step adds a tenth
+    of them on its track); accepting the third publishes the same gains again: its change
+    is the one the acceptance made on the plant (1.3 / 1 - 1 = +30 %), not 0 against the
+    proposal published before it (before: 0.0)."""
+    from service.engine.config import LoopConfig
+    from service.engine.engine import TuningEngine
+    from service.learn.verification import StillAgent
+    from service.wire.decode import decode_values
+
+    class Raising(StillAgent):
+        def act(self, obs, state, forgetting):  # a tenth of the gains observed a step
+            return obs[:, :2] * 0.1, state
+
+    engine = TuningEngine(Raising())
+    engine.register(LoopConfig(
+        id="A", kp=1.0, ki=0.1, sample_period_s=1.0, mode="advisory",
+        scaling={"k_hat": 1.0, "tau_hat": 10.0, "pv_scale": 1.0},
+        guard={"identify": False, "excitation_periods": 0.0, "verify": False},
+    ), wall=0.0)  # fmt: skip
+    r = Recent(known=engine.table.slot_of)
+    proposals = []
+    for k in range(200):
+        sample = {"loop_id": "A", "t": float(k), "sp": 1.0, "pv": 0.5, "kp": 1.0, "ki": 0.1}
+        results = engine.ingest_decoded(decode_values([sample]), wall=float(k))
+        results.append(engine.flush(float(k)))
+        for result in filter(None, results):
+            r.add_gains(result, wall=float(k))
+            proposals.append(result)
+        if len(proposals) == 3:
+            break
+    assert [round(p.new[0, 0], 6) for p in proposals] == [1.1, 1.2, 1.3]
+    s = r.summary(["A"])
+    assert s["dkp"][0] == pytest.approx(0.3)  # a proposal: against the gains in force too
+    seq = engine.view("A", wall=200.0).proposal.seq
+    r.add_gains(engine.accept("A", seq, wall=200.0), wall=200.0)
+    s = r.summary(["A"])
+    assert REASONS[s["reason"][0]] == "accepted"
+    assert s["dkp"][0] == pytest.approx(0.3) and s["dki"][0] == pytest.approx(0.3)

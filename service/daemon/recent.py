@@ -13,7 +13,7 @@ pages the OS maps as they are first written):
 * samples: ``t`` float64 + ``sp``, ``e``, ``op``, ``kp``, ``ki`` float32 = 28 bytes a point
   (one record, :data:`POINT`, padded to 32), x :data:`POINTS` (256) = 8 KB per loop;
 * gains: ``wall``, ``t``, ``kp``, ``ki`` float64 + reason code = 33 bytes, x :data:`GAINS`
-  (32) = 1 KB per loop;
+  (32) = 1 KB per loop, and the gains the last decision replaced (16 bytes);
 
 so about 9 KB per loop: 90 MB at 10,000 loops (``Recent(points=..., gains=...)`` to
 change it; ``nbytes`` says what is allocated). 256 points are 4 minutes of a loop
@@ -125,6 +125,9 @@ class Recent:
         self.g_ki = grown(getattr(self, "g_ki", None), (capacity, g), np.float64, np.nan)
         self.g_reason = grown(getattr(self, "g_reason", None), (capacity, g), np.uint8, 0)
         self.g_n = grown(getattr(self, "g_n", None), (capacity,), np.int64, 0)
+        self.g_from = grown(getattr(self, "g_from", None), (capacity, 2), np.float64, np.nan)
+        """The gains in force the last decision changed (a proposal: would change), kp
+        and ki: what its change is measured against (:meth:`summary`)."""
         self._free.extend(range(capacity - 1, old - 1, -1))
         self._cap = capacity
 
@@ -137,7 +140,7 @@ class Recent:
     @property
     def nbytes(self) -> int:
         """Bytes held by the rings."""
-        names = ("ring", "n", "g_wall", "g_t", "g_kp", "g_ki", "g_reason", "g_n")
+        names = ("ring", "n", "g_wall", "g_t", "g_kp", "g_ki", "g_reason", "g_n", "g_from")
         return sum(getattr(self, name).nbytes for name in names)
 
     def _slots(self, ids: list[str]) -> np.ndarray:
@@ -181,7 +184,7 @@ class Recent:
 
     def _clear(self, s: int) -> None:
         self.n[s] = 0  # its points are unwritten again
-        self.g_wall[s] = self.g_t[s] = self.g_kp[s] = self.g_ki[s] = np.nan
+        self.g_wall[s] = self.g_t[s] = self.g_kp[s] = self.g_ki[s] = self.g_from[s] = np.nan
         self.g_n[s] = 0
 
     def forget(self, loop_id: str) -> None:
@@ -239,7 +242,7 @@ class Recent:
 
     def add_gains(self, result: Any, wall: float | None = None) -> None:
         """A published decision (:class:`service.engine.updates.StepResult`:
-        ``loop_ids``, ``t``, ``new`` (n, 2), ``reason``)."""
+        ``loop_ids``, ``t``, ``old`` and ``new`` (n, 2), ``reason``)."""
         ids = result.loop_ids
         if not len(ids):
             return
@@ -247,6 +250,7 @@ class Recent:
         reason = getattr(result.reason, "value", result.reason)
         code = REASONS.index(reason) if reason in REASONS else len(REASONS) - 1
         new = np.asarray(result.new, np.float64).reshape(-1, 2)
+        old = np.asarray(result.old, np.float64).reshape(-1, 2)
         t = np.asarray(result.t, np.float64)
         with self.lock:
             slots = self._slots(list(ids))
@@ -257,6 +261,7 @@ class Recent:
                 self.g_t[s, pos] = t[k]
                 self.g_kp[s, pos], self.g_ki[s, pos] = new[k]
                 self.g_reason[s, pos] = code
+                self.g_from[s] = old[k]
                 self.g_n[s] += 1
 
     def safely(self, add, data) -> None:
@@ -320,8 +325,10 @@ class Recent:
     def summary(self, loop_ids: list[str]) -> dict[str, np.ndarray]:
         """Per loop of ``loop_ids``, vectorised: ``last_wall`` of the last published gains
         (NaN: none since start), its ``reason`` code, ``dkp``/``dki`` (relative change of
-        that decision against the one before, NaN if unknown), ``rms_e`` (rms error over
-        the ring, NaN without samples)."""
+        that decision against the gains in force it changed, or a proposal would change:
+        what an accepted proposal changed on the plant, where the proposal published
+        before it showed 0; NaN if unknown), ``rms_e`` (rms error over the ring, NaN
+        without samples)."""
         m = len(loop_ids)
         out = {k: np.full(m, np.nan) for k in ("last_wall", "dkp", "dki", "rms_e")}
         out["reason"] = np.full(m, -1, np.int64)
@@ -334,16 +341,12 @@ class Recent:
             gn = self.g_n[s]
             got = gn > 0
             last = (gn - 1) % self.gains_n
-            prev = (gn - 2) % self.gains_n
             rows, k = has[got], s[got]
             out["last_wall"][rows] = self.g_wall[k, last[got]]
             out["reason"][rows] = self.g_reason[k, last[got]]
             with np.errstate(divide="ignore", invalid="ignore"):
-                two = gn[got] > 1
-                pk = np.where(two, self.g_kp[k, prev[got]], np.nan)
-                pi = np.where(two, self.g_ki[k, prev[got]], np.nan)
-                out["dkp"][rows] = self.g_kp[k, last[got]] / pk - 1.0
-                out["dki"][rows] = self.g_ki[k, last[got]] / pi - 1.0
+                out["dkp"][rows] = self.g_kp[k, last[got]] / self.g_from[k, 0] - 1.0
+                out["dki"][rows] = self.g_ki[k, last[got]] / self.g_from[k, 1] - 1.0
             e = self.ring["e"][s]
             e = np.where(np.arange(self.points) < self.n[s][:, None], e, np.nan)  # written
             with np.errstate(invalid="ignore"), _quiet():

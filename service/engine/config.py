@@ -12,7 +12,7 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from service.engine.figures import Proposal, Verification
+from service.engine.figures import Hold, Proposal, Verification
 from service.engine.id_view import Identification
 from service.units import (
     AGENT_GAIN_RANGE,
@@ -422,6 +422,17 @@ class LoopView(BaseModel):
     )
     proposal: Proposal | None = Field(
         None, description="An advisory loop's pending proposal (accept or reject it by seq)."
+    )
+    hold: Hold | None = Field(
+        None,
+        description="What holds the agent's steps while the status may still read "
+        "'tuning': the cool-down after a change of the tuner's own, or the model check "
+        "(None: neither).",
+    )
+    oscillating: bool = Field(
+        False,
+        description="The oscillation detector flags the loop now, whatever its status "
+        "(one held for gains out of bounds, in manual, quiet, ...; performance.window).",
     )
 
 

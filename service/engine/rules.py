@@ -81,6 +81,7 @@ CLOCKED = (
     "cool_until", "x_until", "osc_until", "osc_seen", "g_osc",  # holds, oscillations seen
     "o_tc", "o_seen", "o_z", "o_zs",  # the oscillation detector
     "f_t", "ps_t0",  # the last response's end, the PV rule's block
+    "mc_since",  # the model check's run of held steps (views.hold)
 )  # fmt: skip
 """The plant times a loop keeps (beyond the one sample before), moved with a new plant
 clock (a gateway restarted from 0): a hold left on the old clock would last as long as the

@@ -96,6 +96,8 @@ def step(tb: LoopTable, slots: np.ndarray, wall: float) -> StepResult:
     if hold.any():
         new = np.where(hold[:, None], base, new)
         tb.n_model_holds[slots[hold]] += 1
+    # the view's hold (views.hold): since when the model check has held the loop's steps
+    tb.mc_since[slots] = np.where(hold, np.fmin(tb.mc_since[slots], tb.last_t[slots]), np.nan)
     go = ~hold
 
     applied = (mode == AUTO) & go

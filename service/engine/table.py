@@ -67,8 +67,9 @@ _F64 = (
     # settling (service.engine.stepping): the setting, the agent's steps in the episode and
     # the decayed sum of the log changes it asked for, kp and ki
     "settle", "settle_n", "settle_kp", "settle_ki",
-    # the model check's factor (service.engine.model_check; 0: off)
-    "mc_factor",
+    # the model check's factor (service.engine.model_check; 0: off) and the plant time its
+    # run of held steps began (NaN: the last step was not held; views.hold)
+    "mc_factor", "mc_since",
     # excitation gate: smallest setpoint step (engineering units), window after one (s;
     # inf: gate off), setpoint at the last step, end of the current window
     "exc_step", "exc_window", "sp_ref", "excited_until",
@@ -320,8 +321,7 @@ class LoopTable:
         self.last_t[s] = self.next_due[s] = self.sp_ref[s] = self.win_due[s] = math.nan
         self.excited_until[s] = self.move_t[s] = self.ramp_t[s] = self.ramp_from[s] = -math.inf
         self.sp_last[s], self.sp_way[s], self.sp_since[s] = math.nan, math.nan, 0.0
-        self.obs_gain[s] = 1.0
-        self.sp_anchor[s] = math.nan
+        self.obs_gain[s], self.sp_anchor[s], self.mc_since[s] = 1.0, math.nan, math.nan
         self.back_n[s] = 0.0
         self.last_wall[s] = -math.inf
         self.pending[s] = self.manual[s] = self.saturated[s] = False

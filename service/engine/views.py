@@ -14,6 +14,7 @@ from service.engine import box, monitor, oscillation, verify
 from service.engine.config import Counters, LoopConfig, LoopView
 from service.engine.figures import (
     Fence,
+    Hold,
     Performance,
     Proposal,
     ResponseFigures,
@@ -48,6 +49,8 @@ class RawView:
     identification: Identification | None = None
     verification: Verification | None = None
     proposal: Proposal | None = None
+    hold: Hold | None = None
+    oscillating: bool = False
 
     def parse(self) -> LoopView:
         config = LoopConfig.model_validate_json(self.config)
@@ -68,6 +71,8 @@ class RawView:
             counters=self.counters,
             verification=self.verification,
             proposal=self.proposal,
+            hold=self.hold,
+            oscillating=self.oscillating,
         )
 
 
@@ -100,7 +105,49 @@ def raw_view(tb: LoopTable, s: int, config: bytes, wall: float) -> RawView:
         identification=identification(tb, s),
         verification=verification(tb, s),
         proposal=proposal(tb, s),
+        hold=hold(tb, s),
+        oscillating=bool(tb.o_osc[s]),
     )
+
+
+HOLDS = (None, "cooldown", "model_check")
+"""A loop's hold (:class:`Hold`) by its code from :func:`holds` (0: none)."""
+
+
+def cooling(tb: LoopTable, s):
+    """Where the agent is held for the cool-down at the loop's last sample (``s`` a slot
+    or slots): rules.ingest steps it again at the first due sample at or after it."""
+    return tb.cool_until[s] > tb.last_t[s]
+
+
+def holds(tb: LoopTable, s):
+    """Each loop's hold as a code into :data:`HOLDS` (``s`` a slot or slots; vectorised
+    for the console's overview): the cool-down first (it holds every step), then a run
+    of steps the model check held (``mc_since``, set by stepping.step)."""
+    return np.where(cooling(tb, s), 1, np.where(np.isnan(tb.mc_since[s]), 0, 2))
+
+
+def hold(tb: LoopTable, s: int) -> Hold | None:
+    """What holds the agent's steps of slot ``s`` that its status may not say."""
+    guard = HOLDS[int(holds(tb, s))]
+    if guard == "cooldown":
+        until = float(tb.cool_until[s])
+        return Hold(guard=guard, until_t=until, why=(
+            f"the agent is held until t = {until:.10g} (plant time): the cool-down after a "
+            "change of the tuner's own, a rollback, a rejected proposal or a model's tuning "
+            "until its verdict (guard.cooldown_periods; the audit log says which)"
+        ))  # fmt: skip
+    if guard == "model_check":
+        since = float(tb.mc_since[s])
+        return Hold(guard=guard, since_t=since, why=(
+            f"the model check has held the agent's steps since t = {since:.10g} (plant "
+            "time): the identified model predicts the gains they proposed to track worse "
+            "than guard.model_check times the model's tuning and worse than the gains in "
+            "force (or deferred them: more loops due in one pass than it checks), which "
+            "stay until a step passes (counters.model_holds; the audit rows with "
+            "guard=model give the predictions)"
+        ))  # fmt: skip
+    return None
 
 
 def _num(x: float) -> float | None:
@@ -119,7 +166,7 @@ def verification(tb: LoopTable, s: int) -> Verification:
         last_good_seq=int(tb.g_seq[s]),
         judged_seq=int(tb.v_seq[s]),
         pending=bool(verify.changed(tb, s)),
-        held_until_t=_num(tb.cool_until[s]) if tb.cool_until[s] > tb.last_t[s] else None,
+        held_until_t=_num(tb.cool_until[s]) if cooling(tb, s) else None,
         fence=_fence(tb, s),
         paused_until_t=_num(tb.osc_until[s]) if verify.paused(tb, s, tb.last_t[s]) else None,
         detune_floor_kp=_num(tb.o_kp[s]),
@@ -196,7 +243,7 @@ def monitor_summary(tb: LoopTable) -> tuple[dict[str, int], dict[str, float]]:
         "output_held": int(tb.oh_held[used].sum()),
         "pv_stalled": int(tb.ps_held[used].sum()),
         "change_pending": int(pending.sum()),
-        "held": int((tb.cool_until[used] > tb.last_t[used]).sum()),
+        "held": int(cooling(tb, used).sum()),
         "proposal_pending": int(((tb.mode[used] == ADVISORY) & ~np.isnan(tb.adv_seq[used])).sum()),
     }
     ratio = tb.f_iae[used] / verify.reference(tb, used)

@@ -49,7 +49,7 @@ from service.daemon.console.sessions import (
 from service.daemon.console.tuner_view import Rates, tuner_figures
 from service.daemon.gate import LOGIN_BODY_BYTES, token_matches
 from service.daemon.recent import REASONS
-from service.engine import verify
+from service.engine import verify, views
 from service.engine.status import STATUSES
 from service.wire.protocol import Mode
 
@@ -218,6 +218,7 @@ def _columns(tuner) -> dict[str, Any]:
             "pending": verify.changed(tb, slots),
             "oscillating": tb.o_osc[slots],
             "iae": tb.f_iae[slots],
+            "hold": views.holds(tb, slots),
         }
         gateways = [tb.gateways[s] or "" for s in slots.tolist()]
     cols["ids"] = ids
@@ -300,6 +301,7 @@ def overview_data(
             {
                 "id": ids[i],
                 "status": STATUS_NAMES[int(c["status"][i])],
+                "hold": views.HOLDS[int(c["hold"][i])],
                 "mode": MODES[int(c["mode"][i])].value,
                 "kp": float(c["kp"][i]),
                 "ki": float(c["ki"][i]),

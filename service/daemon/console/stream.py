@@ -15,6 +15,7 @@ from fastapi import APIRouter, HTTPException, Query, Request
 from fastapi.responses import JSONResponse, StreamingResponse
 
 from service.daemon.console.context import MODES, STATUS_NAMES, finite, recent_of, tuner_of
+from service.engine import views
 
 router = APIRouter()
 
@@ -53,6 +54,9 @@ def _live(tuner, loop_id: str) -> dict | None:
             "updates": int(tb.n_updates[s]),
             "rejected": int(tb.n_rejected[s]),
             "quiet": int(tb.n_quiet[s]),
+            # what the status may not say: a hold of the agent, an oscillation
+            "hold": None if (hold := views.hold(tb, s)) is None else hold.model_dump(),
+            "oscillating": bool(tb.o_osc[s]),
         }
 
 

@@ -110,6 +110,15 @@
     if (!live) return;
     const st = $("status");
     st.textContent = live.status; st.className = `badge s-${live.status}`;
+    // what the status may not say: the agent held (a tuning loop whose gains stay), and
+    // an oscillation under another status (a loop held for gains out of bounds)
+    const h = live.hold, hd = $("hold");
+    hd.hidden = !h;
+    hd.dataset.guard = h ? h.guard : "";
+    hd.textContent = !h ? "" : h.guard === "cooldown" ? `held: cool-down until t = ${pitune.num(h.until_t, 7)}` :
+      `held by the model check since t = ${pitune.num(h.since_t, 7)}`;
+    hd.title = h ? h.why : "";
+    $("oscillating").hidden = !live.oscillating || live.status === "oscillating";
     const md = $("mode");
     md.textContent = live.mode; md.className = `badge m-${live.mode}`;
     md.dataset.mode = live.mode;
