@@ -15,13 +15,14 @@ of +-20 every 5 tau) under a DCS PI (plant_sim), driven through :class:`TuningEn
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import pytest
 
 from plant_sim import FOPTDBatch, PIBatch
 from plant_sim.tunings import simc_paper, to_parallel
 from service.agent import untrained_agent
-from service.engine import LoopConfig, TuningEngine, model_check, refuted, watch
+from service.engine import LoopConfig, TuningEngine, model_check, refuted, verify, watch
 from service.engine.id_state import Refuted
 from service.engine.identify import Model
 
@@ -201,6 +202,21 @@ def test_a_model_that_differs_from_the_refuted_one_is_used():
     assert after[0][2] / updates[0][2] == pytest.approx(4.0, rel=0.2)
     assert abs(view.identification.in_force.k / (K / 4) - 1) < 0.1
     assert view.status == "tuning"
+
+
+@pytest.mark.parametrize("hint", [None, HINT], ids=["hint-free", "hinted"])
+def test_the_tail_of_the_ringing_a_rollback_ends_does_not_discredit_the_gains_restored(hint):
+    """The detector flagged the decaying tail of the model's ringing at the gains rolled
+    back to (t 740-808 s hint-free, 892-948 s hinted), as if they oscillated in force:
+    they were discredited (``verify.discredited``), and a later change failing on
+    overshoot was kept, not rolled back (a second model's tuning, 436 % overshoot, left
+    the loop ringing). Its lobes go with the failed gains (``oscillation.forget_lobes``)."""
+    engine, updates, _ = _run(12, k_after_model=RINGING, ringing=True, hint=hint)
+    assert _decisions(updates)[:2] == ["model", "rollback"], updates
+    tb = engine.table
+    assert tb.g_osc[tb.slot("L")] == -math.inf and not verify.discredited(tb, tb.slot("L"))
+    kept = [r for r in engine.drain_changes()[1] if "kept" in str(r[10])]
+    assert kept == []
 
 
 def test_the_refuted_models_survive_a_restore_from_the_snapshot():

@@ -125,6 +125,20 @@ def clear(tb: LoopTable, s: int) -> None:
     tb.o_n[s], tb.o_k[s], tb.o_osc[s] = 0, 0, False
 
 
+def forget_lobes(tb: LoopTable, s) -> None:
+    """The count of lobes starts again (``s`` a slot or slots; the noise estimate stays):
+    at a setpoint move or a gap (a setpoint toggled regularly makes the error a regular
+    square wave, which is no oscillation of the loop), and at a rollback
+    (:func:`service.engine.verify.fail`): the lobes on record are then the failed gains',
+    whose ringing decays at the gains restored. Judged as theirs, that tail flagged the
+    restored gains, which were then discredited (:func:`service.engine.verify.
+    discredited`), and a later change failing on overshoot was kept, the loop left
+    ringing. A sustained oscillation at the restored gains is flagged again after
+    :data:`OSC_LOBES` lobes of its own."""
+    tb.o_sign[s], tb.o_n[s], tb.o_osc[s] = 0.0, 0, False
+    tb.o_tc[s] = tb.o_z[s] = math.nan
+
+
 def noise_sigma(tb: LoopTable, slots, cold: bool | np.ndarray = False) -> np.ndarray:
     """The noise estimate's sigma (engineering units); 0 until it has its first
     :data:`NOISE_WARM` samples unless ``cold`` (per loop). The excitation gate's noise
@@ -172,12 +186,8 @@ def detect(tb: LoopTable, slots, t, e, prev_e, dt, jumped) -> np.ndarray:
     if zc.any():
         ez, pz = e[zc], prev_e[zc]
         tb.o_z[slots[zc]] = t[zc] - dt[zc] * ez / (ez - pz)
-    # a setpoint move (or a gap) starts the count again: a setpoint toggled regularly
-    # makes the error a regular square wave, which is no oscillation of the loop
     if jumped.any():
-        j = slots[jumped]
-        tb.o_sign[j], tb.o_n[j], tb.o_osc[j], tb.o_tc[j] = 0.0, 0, False, math.nan
-        tb.o_z[j] = math.nan
+        forget_lobes(tb, slots[jumped])
     cur = tb.o_sign[slots]
     # the error leaves the band again on its lobe's side
     again = (sign == cur) & (sign != 0) & ~jumped & (np.abs(prev_e) <= h)

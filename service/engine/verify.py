@@ -58,7 +58,7 @@ from service.engine.audit import audit_row
 from service.engine.fences import FENCED, fence_rollback, unfence
 from service.engine.modes import AUTO, PUBLISHING
 from service.engine.monitor import ABSENT, RESPONSE_PERIODS, put, same_gains
-from service.engine.oscillation import noise_sigma, period
+from service.engine.oscillation import forget_lobes, noise_sigma, period
 from service.engine.reported import held, is_detune, no_floor, outside, within
 from service.engine.updates import MODE_VALUES, StepResult
 from service.wire.protocol import UpdateReason
@@ -383,8 +383,9 @@ def fail(
         tb.prev_kp[s], tb.prev_ki[s] = old
         tb.kp[s], tb.ki[s] = good
         tb.pending[s], tb.auto_seq[s] = True, seq
-        tb.hidden[s] = 0.0  # the agent's memory of the failed gains goes with them
+        tb.hidden[s] = 0.0  # the agent's memory of the failed gains goes with them,
         tb.unsettle(s)
+        forget_lobes(tb, s)  # the detector's of their ringing too
         if why in FENCED:
             fence_rollback(tb, s, old, good, t)
         restart_track(tb, s)
@@ -409,9 +410,9 @@ at it; a worse IAE alone is no proof (noise, a load in the judged window)."""
 
 
 def discredited(tb: LoopTable, s: int) -> bool:
-    """The last-good gains oscillated in force since they became last-good: the plant
-    they were verified on has changed (or the oscillation comes from outside), and
-    restoring them is no rollback to safety."""
+    """The last-good gains oscillated in force since they became last-good (not the tail
+    of a rollback's ringing: :func:`forget_lobes`): the plant they were verified on has
+    changed (or the oscillation comes from outside); restoring them is no safety."""
     return bool(tb.g_osc[s] > -math.inf)
 
 
@@ -454,8 +455,7 @@ def reset(tb: LoopTable, s: int) -> None:
 
 
 def restart_track(tb: LoopTable, s) -> None:
-    """No proposal pending: the track restarts from the gains in force (``s`` a slot or
-    slots)."""
+    """No proposal pending: the track restarts from the gains in force (``s``: slots)."""
     tb.adv_kp[s] = tb.adv_ki[s] = tb.adv_seq[s] = math.nan
 
 
