@@ -255,6 +255,13 @@ class PgStore(Store):
             ).fetchone()
         return int(value)
 
+    def wall_now(self) -> float:
+        """The database's wall clock (seconds since the epoch): the one clock of a
+        cluster, as for the leases (a retention pass's horizon, :mod:`service.daemon.upkeep`)."""
+        with self._lock:
+            (now,) = self._db.execute("SELECT extract(epoch FROM clock_timestamp())").fetchone()
+        return float(now)
+
     def gateway_shards(self) -> dict[str, str]:
         """Loop id -> shard of every stored loop registered with a gateway (a cluster
         member's map of where the loops it does not hold belong:
