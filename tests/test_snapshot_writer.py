@@ -98,3 +98,21 @@ def test_a_queued_chunk_never_overwrites_a_newer_snapshot_or_outlives_a_delete(m
     # (nor by the registration's NOTIFY if its store read came before the delete:
     # tests/test_cluster_reload.py)
     assert "L4" not in member.loop_ids()
+
+
+def test_a_chunk_after_the_database_dropped_the_connection_is_written_at_once(member, pg_url):
+    """A server restart (here: the snapshots' backend terminated, as a restart does) is
+    found only by the statement sent on the dead connection: the chunk goes again on a
+    new one, not a snapshot interval or more later."""
+    member.store.snapshot(member.table.snapshot(["L0"]))  # the snapshots' connection open
+    pid = member.store._snap_conn.info.backend_pid
+    with psycopg.connect(pg_url, autocommit=True) as conn:
+        conn.execute("DELETE FROM snapshots WHERE id IN ('L1', 'L2')")
+        assert conn.execute("SELECT pg_terminate_backend(%s)", (pid,)).fetchone() == (True,)
+        gone = "SELECT count(*) = 0 FROM pg_stat_activity WHERE pid = %s"
+        wait_until(lambda: conn.execute(gone, (pid,)).fetchone()[0], 10.0, what="its end")
+    member._snapshot_todo = ["L1", "L2"]
+    member._snapshot_some()  # on the worker's thread in the tuner: here, the test's
+    assert member.snapshot_writer.drain(10.0)
+    assert {"L1", "L2"} <= set(_runtime(pg_url))
+    assert member.store._snap_conn.info.backend_pid != pid

@@ -1,8 +1,9 @@
 """The tuner's clock: real time, or time running ``speed`` times faster (accelerated runs).
 
 Every reading of the wall clock that the tuner keeps or acts on goes through
-:class:`Clock`: the audit rows' ``wall_time``, the retention horizon and the interval
-between retention passes, the engine's flood limit and status. An accelerated clock
+:class:`Clock`: the audit rows' ``wall_time``, the retention horizon (but a cluster's,
+on the database's clock: :mod:`service.daemon.upkeep`) and the interval between
+retention passes, the engine's flood limit and status. An accelerated clock
 (``clock_speed`` > 1, :mod:`service.bench.retention`) therefore makes a day of the
 tuner's bookkeeping pass in ``86400 / speed`` real seconds without any other change of
 behaviour; the plant clock is the gateways' own (the ``t`` of the samples), so the load

@@ -305,8 +305,8 @@ class Settings(BaseSettings):
     clock_speed: Annotated[float, Field(gt=0.0, le=1e5)] = Field(
         1.0,
         description="Benchmarks only: the tuner's clock (audit wall_time, retention horizon "
-        "and passes) runs this many times faster than real time (pitune bench retention); "
-        "1: real time.",
+        "and passes; a cluster's horizon is the database's clock) runs this many times "
+        "faster than real time (pitune bench retention); 1: real time.",
     )
     monitoring: bool = Field(
         True,

@@ -362,10 +362,12 @@ class Store:
         )
 
     # -- retention ----------------------------------------------------------------------
-    def audit_ids(self) -> list[str]:
-        """Every loop id with audit rows (deleted loops included)."""
+    def audit_ids(self, *, deleted_only: bool = False) -> list[str]:
+        """Every loop id with audit rows (deleted loops included); ``deleted_only``: those
+        of no registered loop."""
+        where = " WHERE loop_id NOT IN (SELECT id FROM loops)" if deleted_only else ""
         with self._lock:
-            return [r[0] for r in self._db.execute("SELECT DISTINCT loop_id FROM audit")]
+            return [r[0] for r in self._db.execute(f"SELECT DISTINCT loop_id FROM audit{where}")]
 
     def prune(
         self,

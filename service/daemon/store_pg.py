@@ -20,7 +20,8 @@ differs from a file:
   when they commit (see :mod:`service.daemon.cluster`).
 - A lost connection (server restart, failover of the database) is reopened at the
   next transaction; the failed one raises, and the tuner retries it like any failing
-  commit.
+  commit. A snapshot chunk that finds its connection lost goes again at once on a new
+  one (:meth:`PgStore.snapshot`).
 """
 
 from __future__ import annotations
@@ -255,6 +256,13 @@ class PgStore(Store):
             ).fetchone()
         return int(value)
 
+    def wall_now(self) -> float:
+        """The database's wall clock (seconds since the epoch): the one clock of a
+        cluster, as for the leases (a retention pass's horizon, :mod:`service.daemon.upkeep`)."""
+        with self._lock:
+            (now,) = self._db.execute("SELECT extract(epoch FROM clock_timestamp())").fetchone()
+        return float(now)
+
     def gateway_shards(self) -> dict[str, str]:
         """Loop id -> shard of every stored loop registered with a gateway (a cluster
         member's map of where the loops it does not hold belong:
@@ -351,17 +359,28 @@ class PgStore(Store):
             return
         ids, hidden, runtime = (list(c) for c in zip(*rows, strict=True))
         member, tokens = fence if fence is not None else ("", {})
+        params = (list(tokens), list(tokens.values()), member, len(tokens), ids, hidden, runtime)
         with self._snap_lock:
-            conn = self._snap_conn
-            if conn is None or conn.closed or conn.broken:
-                conn = self._snap_conn = connect(self.url)
-                conn.execute("SET synchronous_commit = off")
-            (held,) = conn.execute(
-                SNAPSHOT_SQL,
-                (list(tokens), list(tokens.values()), member, len(tokens), ids, hidden, runtime),
-            ).fetchone()
+            try:
+                (held,) = self._snap_connection().execute(SNAPSHOT_SQL, params).fetchone()
+            except psycopg.OperationalError:
+                if not self._snap_conn.broken:  # the statement failed, not the connection
+                    raise
+                # A lost connection (the server restarted, the backend was terminated) is
+                # found lost only by the statement sent on it: once more on a new one,
+                # or the chunk's loops would wait a snapshot interval or more. (The
+                # statement is an upsert: whatever of it got through, it is written once.)
+                (held,) = self._snap_connection().execute(SNAPSHOT_SQL, params).fetchone()
         if len(held or ()) != len(tokens):
             raise Fenced(sorted(set(tokens) - set(held or ())))
+
+    def _snap_connection(self) -> psycopg.Connection:
+        """The snapshots' connection, opened again if it was found lost."""
+        conn = self._snap_conn
+        if conn is None or conn.closed or conn.broken:
+            conn = self._snap_conn = connect(self.url)
+            conn.execute("SET synchronous_commit = off")
+        return conn
 
     @staticmethod
     def _audit(db: Adapter, rows: list[AuditRow]) -> None:

@@ -3,7 +3,9 @@ state, the journal applied to the store's tables, and the retention policy.
 
 Retention: in idle time (or, when a pass is a whole interval late, on a busy worker
 too) the worker prunes the audit history by the settings'
-``history_*`` policy (:meth:`Store.prune`), PRUNE_CHUNK loops per iteration.
+``history_*`` policy (:meth:`Store.prune`), PRUNE_CHUNK loops per iteration; a
+cluster's member prunes only its own loops (and one member the deleted loops'), ages
+on the database's clock (:meth:`Upkeep._retention_ids`).
 """
 
 from __future__ import annotations
@@ -129,19 +131,21 @@ class Upkeep:
         """The retention policy, PRUNE_CHUNK loop ids per idle worker iteration, a pass
         every ``history_prune_interval_s`` (see :meth:`Store.prune`)."""
         st = self.settings
-        if not self._prune_todo:
-            now = self.clock.monotonic()
-            if now < self._next_prune:
-                return
-            self._next_prune = now + getattr(st, "history_prune_interval_s", 3600.0)
-            self._prune_todo = self.store.audit_ids()
-        chunk, self._prune_todo = self._prune_todo[:PRUNE_CHUNK], self._prune_todo[PRUNE_CHUNK:]
         max_age_days = getattr(st, "history_max_age_days", None)
-        horizon = None if max_age_days is None else self.clock.wall() - max_age_days * 86400.0
         try:
+            if not self._prune_todo:
+                now = self.clock.monotonic()
+                if now < self._next_prune:
+                    return
+                self._next_prune = now + getattr(st, "history_prune_interval_s", 3600.0)
+                self._prune_todo = self._retention_ids()
+            chunk, self._prune_todo = self._prune_todo[:PRUNE_CHUNK], self._prune_todo[PRUNE_CHUNK:]
+            # a cluster's ages go by the database's clock, the one its members share: a
+            # member whose clock ran ahead (a bad NTP or RTC step) would prune young rows
+            wall = self.clock.wall() if self.cluster is None else self.store.wall_now()
             self.pruned += self.store.prune(
                 chunk,
-                older_than=horizon,
+                older_than=None if max_age_days is None else wall - max_age_days * 86400.0,
                 keep_rows=getattr(st, "history_max_rows_per_loop", None),
                 keep_rows_deleted=getattr(st, "history_max_rows_deleted", None),
                 archive=getattr(st, "history_archive", None),
@@ -159,6 +163,19 @@ class Upkeep:
             return
         if not self._prune_todo:
             self.retention_failure = None  # a whole pass went through
+
+    def _retention_ids(self) -> list[str]:
+        """The loop ids of a retention pass: every id with audit rows; in a cluster, the
+        loops this member owns, and the deleted loops' ids on the first of the live
+        members only. So each loop's rows are pruned (and archived) by one member, not
+        by every member every interval, and a member's pass cannot touch the loops of
+        another (a loop that moves during a pass is pruned by both, by the same rule)."""
+        if self.cluster is None:
+            return self.store.audit_ids()
+        ids = self.loop_ids()
+        if self.cluster.members[:1] == [self.cluster.member]:
+            ids += self.store.audit_ids(deleted_only=True)
+        return ids
 
     def _apply_journal(self) -> None:
         """A chunk of the journal into the store's tables, when no message waits (or the
