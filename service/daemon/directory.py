@@ -4,12 +4,18 @@ loop, :mod:`service.daemon.forward`): who owns a loop or a shard, and ``GET /clu
 Each opens a connection of its own (the API's threads never wait for the worker's or
 the cluster thread's) and reads only small tables or one loop's row by its key: the
 admin API must answer on a member that is loaded, and a query over every loop's row
-(300,000 at a large site) took seconds on a loaded server.
+(300,000 at a large site) took seconds on a loaded server. At most :data:`LOOKUPS` of
+them are open at once (:func:`_connection`).
 """
 
 from __future__ import annotations
 
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import TYPE_CHECKING
+
+import psycopg
 
 from service.daemon.store_pg import connect
 from service.daemon.survey import SHARDS_SQL
@@ -17,12 +23,27 @@ from service.daemon.survey import SHARDS_SQL
 if TYPE_CHECKING:
     from service.daemon.cluster import Cluster
 
+LOOKUPS = 4
+"""Look-ups of a member's admin API open at once; the others wait their turn. Reads need
+no token, and every read of a loop another member holds is a look-up: unbounded, a flood
+of them opened a connection each, up to the API's 40 threads per member, and PostgreSQL's
+``max_connections`` (100 by default) is shared with every member's commits and leases,
+which fail when it runs out (the tuner exits after ``store_failure_exit_s``)."""
+_lookups = threading.BoundedSemaphore(LOOKUPS)
+
+
+@contextmanager
+def _connection(url: str) -> Iterator[psycopg.Connection]:
+    """A connection to the store for one look-up, once fewer than LOOKUPS are open."""
+    with _lookups, connect(url) as conn:
+        yield conn
+
 
 def view(cluster: Cluster) -> dict:
     """``GET /cluster``: the members with their URLs, whether live, their loop counts
     (as of their last renewal, within a tick: 0 once not live) and shards (their live
     leases), and the loops of shards no live member holds (a failover in progress)."""
-    with connect(cluster.url) as conn:
+    with _connection(cluster.url) as conn:
         rows = conn.execute(
             "SELECT m.instance_id, m.api_url, m.expires > clock_timestamp(), m.loops, "
             "(SELECT count(*) FROM leases l WHERE l.owner = m.instance_id "
@@ -52,7 +73,7 @@ def view(cluster: Cluster) -> dict:
 
 def shard_owner_url(url: str, shard: str) -> str | None:
     """The API URL of the live member holding ``shard``'s lease (None: nobody)."""
-    with connect(url) as conn:
+    with _connection(url) as conn:
         row = conn.execute(
             "SELECT m.api_url FROM leases l JOIN members m ON m.instance_id = l.owner "
             "WHERE l.shard = %s AND l.expires > clock_timestamp()",
@@ -63,14 +84,14 @@ def shard_owner_url(url: str, shard: str) -> str | None:
 
 def stored(url: str, loop_id: str) -> bool:
     """Whether the loop is in the store (registered through any member)."""
-    with connect(url) as conn:
+    with _connection(url) as conn:
         return conn.execute("SELECT 1 FROM loops WHERE id = %s", (loop_id,)).fetchone() is not None
 
 
 def owner_url(url: str, loop_id: str) -> str | None:
     """The API URL of the member owning a stored loop (None: not stored, or no live
     owner right now)."""
-    with connect(url) as conn:
+    with _connection(url) as conn:
         row = conn.execute(
             "SELECT m.api_url FROM loops p JOIN leases l ON l.shard = p.shard "
             "JOIN members m ON m.instance_id = l.owner "
