@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from plant_sim.config import LoopSpec
-from service.gateways.registration import RegistrationError, TunerApi
+from service.gateways.registration import RegistrationError, TunerApi, check_not_foreign
 
 
 def register(
@@ -16,14 +16,16 @@ def register(
     gateway: str | None = None,
 ) -> dict[str, dict]:
     """Register each loop with the tuner (``POST /loops``); return the views of loops the
-    tuner already had (HTTP 409), which a restarted simulator resumes. Calls retry while
-    the tuner may still be starting, for up to ``timeout`` s (:class:`TunerApi`)."""
+    tuner already had (HTTP 409), which a restarted simulator resumes; a RegistrationError
+    when another gateway's loop has the id. Calls retry while the tuner may still be
+    starting, for up to ``timeout`` s (:class:`TunerApi`)."""
     known = {}
     with TunerApi(url, token, timeout=timeout, request_timeout=10.0) as api:
         for spec in specs:
             what = f"registering {spec.loop_id}"
             response = api.call("POST", "/loops", what=what, json=spec.registration(scan, gateway))
             if response.status_code == 409:
+                check_not_foreign(response, spec.loop_id, gateway)
                 response = api.call("GET", f"/loops/{spec.loop_id}", what=what)
                 if response.is_success:
                     known[spec.loop_id] = response.json()

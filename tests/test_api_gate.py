@@ -14,6 +14,8 @@ import httpx
 import pytest
 import uvicorn
 
+from plant_sim.config import LoopSpec
+from plant_sim.registration import register
 from service.daemon.api import create_app
 from service.daemon.gate import (
     BODY_BYTES,
@@ -24,6 +26,9 @@ from service.daemon.gate import (
 )
 from service.daemon.settings import load_settings
 from service.daemon.store_pg import redacted
+from service.gateways.opcua.register import register_loops
+from service.gateways.opcua.sitemap import parse_map
+from service.gateways.registration import RegistrationError
 from service.wire.session import free_port
 from tests.tuner_support import loop_body, tuner_settings, wait_until
 
@@ -34,11 +39,16 @@ AUTH = {"Authorization": f"Bearer {TOKEN}"}
 
 @contextlib.contextmanager
 def _served(tmp_path, **settings):
-    """The app under uvicorn on loopback with the default allowed hosts."""
+    """The app under uvicorn on loopback (by default with the default allowed hosts),
+    believing proxy headers from ``api_trusted_proxies`` only, as ``pitune tuner`` does."""
     port = free_port()
-    app = create_app(tuner_settings(tmp_path, api_port=port, api_allowed_hosts=None, **settings))
-    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, lifespan="on",
-                                           log_config=None, access_log=False))  # fmt: skip
+    settings = tuner_settings(tmp_path, **{"api_port": port, "api_allowed_hosts": None, **settings})
+    app = create_app(settings)
+    config = uvicorn.Config(
+        app, host="127.0.0.1", port=port, lifespan="on", log_config=None, access_log=False,
+        forwarded_allow_ips=settings.api_trusted_proxies,
+    )  # fmt: skip
+    server = uvicorn.Server(config)
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
     try:
@@ -156,7 +166,7 @@ def test_a_client_guessing_tokens_is_locked_out_and_logged(tmp_path, caplog):
             r = httpx.post(f"{url}/loops/L{k}/reset", headers={"Authorization": f"Bearer {k}"})
             assert r.status_code == 401
         r = httpx.post(f"{url}/ui/login", data={"token": "guess"})  # the tenth, at the console
-        assert r.status_code == 303 and "wrong+token" in r.headers["location"]
+        assert r.status_code == 303 and "error=wrong_token" in r.headers["location"]
         for attempt in ({"headers": AUTH, "json": loop_body("L1")}, {"headers": {}}):
             r = httpx.post(f"{url}/loops", **attempt)
             assert r.status_code == 429, r.text
@@ -213,6 +223,21 @@ def _actors(url: str, loop_id: str) -> dict[str, str]:
     return out
 
 
+def test_a_short_gateway_token_is_warned_about_at_start_up(tmp_path, caplog):
+    """As a short admin token is (it took 1 character without a word), and an open API
+    with gateway tokens, which restrict nothing there; no token in the log."""
+    short = "gw-tok-1234"
+    with _served(tmp_path, api_token=TOKEN, api_gateway_tokens={"gw-1": short}):
+        pass
+    with _served(tmp_path / "open", api_gateway_tokens={"gw-2": GW_A}):
+        pass
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert "the API token of gateway 'gw-1' has 11 characters: guessable" in "\n".join(warnings)
+    assert any("gateway tokens are set but no admin token" in w for w in warnings)
+    assert not [w for w in warnings if short in w or GW_A in w or TOKEN in w]
+    assert not any("'gw-2' has" in w for w in warnings)  # a long one
+
+
 def test_the_audit_log_says_who_registered_identified_and_deleted_a_loop(tmp_path):
     """Registrations with a gateway's token are told from the admin token's; identify and
     delete carry the actor as patch and reset do."""
@@ -258,3 +283,113 @@ def test_a_malformed_host_or_origin_is_refused_not_a_server_error(tmp_path):
         assert httpx.get(f"{url}/loops", headers={"Host": "[::1"}).status_code == 400
         r = httpx.post(f"{url}/loops/X/reset", headers={"Origin": "http://[evil"})
         assert r.status_code == 403
+
+
+GW_A, GW_B = "gateway-A-token-0123456789", "gateway-B-token-0123456789"
+SQUATTED = "unitB-FIC-101"
+"""gw-B's loop, whose id gw-A's token registered first as gw-A's (a security review)."""
+
+
+@contextlib.contextmanager
+def _squatted(tmp_path):
+    """The API with gateways gw-A and gw-B, gw-B's loop id taken by gw-A's token with
+    wide limits: the tuner, the URL."""
+    tokens = {"gw-A": GW_A, "gw-B": GW_B}
+    with _served(tmp_path, api_token=TOKEN, api_gateway_tokens=tokens) as (tuner, port):
+        url = f"http://127.0.0.1:{port}"
+        wide = loop_body(SQUATTED, gateway="gw-A", guard={"kp_max": 1000.0, "ki_max": 1000.0})
+        r = httpx.post(f"{url}/loops", json=wide, headers={"Authorization": f"Bearer {GW_A}"})
+        assert r.status_code == 201, r.text
+        yield tuner, url
+
+
+def test_a_taken_id_is_refused_naming_the_gateway_of_its_loop(tmp_path):
+    """gw-B's registration of an id gw-A's loop holds is a 409 that names gw-A (so gw-B's
+    client can tell it from its own loop registered before), and nothing else of it."""
+    with _squatted(tmp_path) as (tuner, url):
+        b = {"Authorization": f"Bearer {GW_B}"}
+        httpx.post(f"{url}/loops", json=loop_body("OPEN"), headers=AUTH).raise_for_status()
+        mine = loop_body("unitB-FIC-102", gateway="gw-B")
+        httpx.post(f"{url}/loops", json=mine, headers=b).raise_for_status()
+        r = httpx.post(f"{url}/loops", json=loop_body(SQUATTED, gateway="gw-B"), headers=b)
+        assert r.status_code == 409
+        assert r.json() == {
+            "detail": f"loop already registered: '{SQUATTED}' (gateway 'gw-A')",
+            "gateways": {SQUATTED: "gw-A"},
+        }
+        bulk = [loop_body(i, gateway="gw-B") for i in ("NEW", SQUATTED, "unitB-FIC-102")]
+        r = httpx.post(f"{url}/loops/bulk", json=bulk, headers=b)
+        assert r.status_code == 409
+        assert r.json()["gateways"] == {SQUATTED: "gw-A", "unitB-FIC-102": "gw-B"}
+        r = httpx.post(f"{url}/loops", json=loop_body("OPEN"), headers=AUTH)
+        assert r.status_code == 409 and r.json()["gateways"] == {"OPEN": None}
+        assert "1000" not in r.text  # no config of the loop
+        assert sorted(tuner.loop_ids()) == ["OPEN", SQUATTED, "unitB-FIC-102"]
+        assert tuner.view(SQUATTED).config.gateway == "gw-A"
+
+
+def test_a_gateways_client_refuses_an_id_another_gateways_loop_took(tmp_path, monkeypatch):
+    """The OPC UA gateway's and the plant simulator's registrations took any 409 for
+    "known, carry on": gw-B's loop, whose id gw-A held, was then never tuned (its samples
+    rejected wrong_gateway), unreported. Now a RegistrationError names both gateways; a
+    loop of its own registered before still carries on."""
+    monkeypatch.setenv("PITUNE_TEST_GW_TOKEN", GW_B)
+    with _squatted(tmp_path) as (tuner, url):
+        site = parse_map({
+            "server": {"url": "opc.tcp://127.0.0.1:4840", "security": "None",
+                       "allow_insecure": True},
+            "bus": {"gateway_id": "gw-B"},
+            "tuner": {"register_url": url, "token_env": "PITUNE_TEST_GW_TOKEN",
+                      "timeout_s": 10.0},
+            "loops": [{"id": "L", "sp": "ns=2;s=sp", "pv": "ns=2;s=pv", "p": "ns=2;s=p",
+                       "i": "ns=2;s=i", "limits": {"p": [0.1, 10.0], "i": [0.1, 10.0]}}],
+        })  # fmt: skip
+        own = [loop_body(i, gateway="gw-B") for i in ("unitB-FIC-102", "unitB-FIC-103")]
+        assert register_loops(site, own) == 2
+        assert register_loops(site, own) == 0  # a restart: its own loops, known
+        both = f"'{SQUATTED}' is already registered with gateway 'gw-A', not this gateway 'gw-B'"
+        with pytest.raises(RegistrationError, match=both):
+            register_loops(site, [*own, loop_body(SQUATTED, gateway="gw-B")])
+        specs = (LoopSpec("two_tank", "unitB-FIC-104"), LoopSpec("two_tank", SQUATTED))
+        with pytest.raises(RegistrationError, match=both):
+            register(url, specs, scan=1.0, token=GW_B, timeout=10.0, gateway="gw-B")
+        assert sorted(register(url, specs[:1], scan=1.0, token=GW_B, timeout=10.0,
+                               gateway="gw-B")) == ["unitB-FIC-104"]  # fmt: skip
+        assert tuner.view(SQUATTED).config.gateway == "gw-A"
+
+
+def test_behind_a_tls_proxy_the_browsers_origin_is_the_apis_by_its_allowed_host(tmp_path):
+    """nginx's proxy_pass passes its upstream's Host (127.0.0.1:PORT): the browser's
+    Origin https://tuner.plant.example was refused (403) at the console's login. It is
+    the API's own when its host is an allowed host set by name and its scheme is the one
+    a trusted proxy forwarded; a wildcard host lets no other page through."""
+    proxy = {"X-Forwarded-Proto": "https", "X-Forwarded-For": "10.0.0.5"}
+    hosts = ["127.0.0.1", "tuner.plant.example", "*"]
+    login = {"token": TOKEN, "next": "/ui"}
+
+    def answers(url: str, *origins: str, headers=proxy) -> list[int]:
+        return [
+            httpx.post(f"{url}/ui/login", data=login, headers={**headers, "Origin": o}).status_code
+            for o in origins
+        ]  # fmt: skip
+
+    trusted = {"api_trusted_proxies": ["127.0.0.1"], "api_allowed_hosts": hosts}
+    with _served(tmp_path, api_token=TOKEN, **trusted) as (_, port):
+        url = f"http://127.0.0.1:{port}"
+        r = httpx.post(f"{url}/ui/login", data=login,
+                       headers={**proxy, "Origin": "https://tuner.plant.example"})  # fmt: skip
+        assert r.status_code == 303 and r.headers["location"] == "/ui", r.text
+        assert "secure" in r.headers["set-cookie"].lower()  # the https the proxy reported
+        assert answers(url, "https://tuner.plant.example:8443") == [303]  # the proxy's port
+        refused = ("http://tuner.plant.example", "https://evil.example", "https://*", "null")
+        assert answers(url, *refused) == [403] * 4
+        # no forwarded scheme: not through the proxy
+        assert answers(url, "https://tuner.plant.example", headers={}) == [403]
+        r = httpx.post(
+            f"{url}/loops/X/reset", headers={**AUTH, **proxy, "Origin": "https://evil.example"}
+        )
+        assert r.status_code == 403
+    # the same from a proxy not named in api_trusted_proxies: its scheme is not believed
+    untrusted = {"api_allowed_hosts": hosts}
+    with _served(tmp_path / "b", api_token=TOKEN, **untrusted) as (_, port):
+        assert answers(f"http://127.0.0.1:{port}", "https://tuner.plant.example") == [403]

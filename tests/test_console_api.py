@@ -56,7 +56,7 @@ def test_actions_need_a_session_and_its_csrf_token_and_record_the_actor(client):
     client.post("/loops", json=loop_body("L1"), headers=BEARER)
     assert client.post("/ui/api/loops/L1/patch", json={"mode": "advisory"}).status_code == 401
     r = client.post("/ui/login", data={"token": "wrong"}, follow_redirects=False)
-    assert r.status_code == 303 and "error=wrong+token" in r.headers["location"]
+    assert r.status_code == 303 and "error=wrong_token" in r.headers["location"]
     r = client.post("/ui/login", data={"token": TOKEN, "name": "alice"}, follow_redirects=False)
     cookie = r.headers["set-cookie"]
     assert "HttpOnly" in cookie and "SameSite=strict" in cookie and "Path=/ui" in cookie
@@ -103,6 +103,26 @@ def test_logout_needs_the_csrf_token_and_login_refuses_foreign_origins_and_redir
     assert stale != csrf
     assert client.post("/ui/logout", data={"csrf": csrf}, follow_redirects=False).status_code == 303
     assert "id='login-link'" in client.get("/ui").text
+
+
+def login_error(page: str) -> str:
+    return re.search(r'<p class="error" id="login-error">(.*?)</p>', page, re.S).group(1)
+
+
+def test_the_login_page_shows_its_own_error_texts_never_the_urls(client):
+    """A link to the console's real login page put any text of its ``error`` parameter
+    on it (a phisher's "re-enter the token at http://evil.example"); the page shows the
+    text of a known code only."""
+    r = client.post("/ui/login", data={"token": "wrong", "next": "/ui/tuner"},
+                    follow_redirects=False)  # fmt: skip
+    assert r.status_code == 303
+    assert r.headers["location"] == "/ui/login?next=%2Fui%2Ftuner&error=wrong_token"
+    assert login_error(client.get(r.headers["location"]).text) == "Wrong token."
+    bait = "Session expired. Re-enter the token at http://evil.example/ui/login"
+    for error in (bait, "wrong token", "<b>x</b>", ""):
+        page = client.get("/ui/login", params={"error": error}).text
+        assert login_error(page) == "", error
+        assert "evil.example" not in page
 
 
 def test_overview_filters_sorts_searches_and_pages_on_the_server(client):

@@ -55,6 +55,20 @@ def test_invalid_settings_are_one_line_naming_flag_and_variable(tmp_path):
     one_line(proc, daemon.EXIT_USAGE, "zenoh_connect", "JSON")
 
 
+def test_gateway_tokens_that_cannot_work_are_one_line_without_the_secret(tmp_path):
+    """A gateway id that is none, and the admin token given to a gateway: accepted before
+    (the one useless, the other an admin); now the settings' usage error, the secret in
+    neither line."""
+    secret = "TOPSECRET-0123456789abcdef"
+    proc = start(tmp_path, PITUNE_API_GATEWAY_TOKENS=f'{{"gw 1": "{secret}"}}')
+    line = one_line(proc, daemon.EXIT_USAGE, "PITUNE_API_GATEWAY_TOKENS", "'gw 1' is not")
+    assert secret not in proc.stderr, line
+    proc = start(tmp_path, PITUNE_API_TOKEN=secret,
+                 PITUNE_API_GATEWAY_TOKENS=f'{{"gw-1": "{secret}"}}')  # fmt: skip
+    line = one_line(proc, daemon.EXIT_USAGE, "the token of gateway 'gw-1' is the admin token")
+    assert secret not in proc.stderr, line
+
+
 def test_missing_weights_and_config_files(tmp_path):
     proc = start(tmp_path, "--agent-weights", str(tmp_path / "nope.pt"))
     one_line(proc, daemon.EXIT_NO_INPUT, "agent weights file not found", "--agent-weights")

@@ -81,6 +81,8 @@ def test_postgres_store_round_trip(pg_url):
         store.insert_loops(configs, [_registered(c) for c in configs], [0, 0, 5, 0])
         with pytest.raises(store.integrity_errors):
             store.insert_loops(configs[:1], [_registered(configs[0])], [0])
+        # what a registration's 409 names, read right after the failed insert
+        assert store.gateways_of(["nope", "G1", "L0"]) == {"G1": "gw1", "L0": None}
         store.record_gains(
             [(0.6, 0.02, 1, "L0"), (0.7, 0.03, 6, "L2")],
             [audit_row("L0", 2.0, 1.0, 1, "auto", "agent", (0.5, 0.01), (0.6, 0.02))],

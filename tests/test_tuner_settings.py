@@ -122,3 +122,42 @@ def test_flags_take_choices_in_any_case():
     daemon.add_arguments(parser)
     args = parser.parse_args(["--log-level", "DEBUG", "--zenoh-mode", "Client"])
     assert (args.log_level, args.zenoh_mode) == ("debug", "client")
+
+
+SECRET = "S3cret-gateway-token-0123456789"
+
+
+@pytest.mark.parametrize(
+    ("settings", "message"),
+    [
+        ({"api_gateway_tokens": {"gw 1": SECRET}}, "'gw 1' is not a gateway id"),
+        ({"api_gateway_tokens": {"gw/1": SECRET}}, "'gw/1' is not a gateway id"),
+        ({"api_gateway_tokens": {"gw-1": ""}}, "gateway 'gw-1' has an empty token"),
+        ({"api_gateway_tokens": {"gw-1": "  "}}, "gateway 'gw-1' has an empty token"),
+        (
+            {"api_gateway_tokens": {"gw-1": SECRET, "gw-2": SECRET}},
+            "gateways 'gw-1' and 'gw-2' have the same token",
+        ),
+        (
+            {"api_token": SECRET, "api_gateway_tokens": {"gw-1": SECRET}},
+            "the token of gateway 'gw-1' is the admin token",
+        ),
+    ],
+)
+def test_gateway_tokens_that_cannot_work_as_meant_are_refused(monkeypatch, settings, message):
+    """Accepted before: a key no registration can name (its token useless), an empty
+    token, one token for two gateways (the gate took it for one of them), and the admin
+    token as a gateway's (checked first: that gateway was an admin). Refused, the message
+    naming the gateway and never the token, from the environment too."""
+    with pytest.raises(ValidationError) as refused:
+        load_settings(**settings)
+    [error] = refused.value.errors()
+    assert error["loc"] == ("api_gateway_tokens",) and message in error["msg"]
+    assert SECRET not in error["msg"]
+    tokens = {"gw-1": SECRET, "gw_2.b": SECRET + "-2"}  # ids, tokens of their own
+    assert load_settings(api_token="admin-0123456789ab", api_gateway_tokens=tokens)
+    if "api_token" in settings:
+        monkeypatch.setenv("PITUNE_API_TOKEN", settings["api_token"])
+    monkeypatch.setenv("PITUNE_API_GATEWAY_TOKENS", json.dumps(settings["api_gateway_tokens"]))
+    with pytest.raises(ValidationError, match=message):
+        load_settings()

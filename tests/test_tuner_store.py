@@ -61,6 +61,7 @@ def test_a_stored_row_that_fails_to_parse_is_skipped_loudly_and_kept(tmp_path, c
         assert "pitune_loops_unloadable 1.0" in client.get("/metrics").text
         r = client.post("/loops", json=loop_body("BAD"))
         assert r.status_code == 409 and "failed to load" in r.json()["detail"]
+        assert r.json()["gateways"] == {"BAD": None}  # its stored shard: no gateway
     assert any("'BAD' NOT LOADED" in r.getMessage() for r in caplog.records)
     with sqlite3.connect(settings.db_path) as db:
         assert db.execute("SELECT config FROM loops WHERE id = 'BAD'").fetchone() == (

@@ -25,9 +25,17 @@ from service.engine.figures import Performance
 from service.engine.patch import LoopPatch
 from service.engine.updates import StepResult
 
+NAMED_TAKEN = 5
+"""Taken ids a registration's 409 names at most (with their gateways)."""
+
 
 class Conflict(Exception):
-    """The loop already exists."""
+    """The loop already exists, or the operation conflicts with the loop's state
+    (``gateways``: a registration's taken ids -> their loops' gateways, :func:`_taken`)."""
+
+    def __init__(self, detail: str, gateways: dict[str, str | None] | None = None) -> None:
+        super().__init__(detail)
+        self.gateways = gateways or {}
 
 
 class UnknownLoop(LookupError):
@@ -126,7 +134,7 @@ class LoopAdmin:
             raise OwnedElsewhere(config.id)
         with self.table.lock:
             if config.id in self.table.slot_of:
-                raise Conflict(f"loop {config.id!r} already registered")
+                raise _taken(self._gateways([config.id]))
             self._insert([config], wall, actor)
             return self.table.view(config.id, wall)
 
@@ -142,10 +150,14 @@ class LoopAdmin:
         with self.table.lock:
             taken = [i for i in ids if i in self.table.slot_of]
             if taken:
-                raise Conflict(f"loops already registered: {taken[:5]!r}")
+                raise _taken(self._gateways(taken[:NAMED_TAKEN]))
             self._insert(configs, wall, actor)
         freeze_survivors()
         return ids
+
+    def _gateways(self, ids: list[str]) -> dict[str, str | None]:
+        """The gateway of each of these registered loops (None: registered without one)."""
+        return {i: self.table.gateways[self.table.slot_of[i]] or None for i in ids}
 
     def _insert(self, configs: list[LoopConfig], wall: float, actor: str) -> None:
         """Store and add new loops, each continuing the seq of an earlier loop of its id.
@@ -155,7 +167,7 @@ class LoopAdmin:
         seqs = [last.get(c.id, 0) for c in configs]
         audit = [_registered(c, wall, seq, actor) for c, seq in zip(configs, seqs, strict=True)]
         shards = [shard_of(c.id, c.gateway) for c in configs]
-        with self._committing(), _taken_in_store(self.store.integrity_errors):
+        with self._committing(), _taken_in_store(self.store, [c.id for c in configs]):
             self.store.insert_loops(configs, audit, seqs)
         owned = [
             i for i, shard in enumerate(shards) if self.cluster is None or self.cluster.owns(shard)
@@ -299,17 +311,30 @@ class LoopAdmin:
             return self.table.view(loop_id, wall)
 
 
+def _taken(gateways: dict[str, str | None], where: str = "") -> Conflict:
+    """The 409 of a registration whose ids are taken: each with its loop's gateway, for a
+    gateway to tell its own loop from another gateway's (:class:`~service.daemon.schemas.
+    Taken`)."""
+    named = ", ".join(
+        f"{i!r} (gateway {g!r})" if g else f"{i!r} (no gateway)" for i, g in gateways.items()
+    )
+    where = where or ("loop" if len(gateways) == 1 else "loops") + " already registered"
+    return Conflict(f"{where}: {named}" if named else where, gateways)
+
+
 @contextlib.contextmanager
-def _taken_in_store(errors: tuple[type[Exception], ...]):
+def _taken_in_store(store, ids: list[str]):
     """An id free in the table but taken in the store is a row that failed to load (or,
     in a cluster, a loop another member owns)."""
     try:
         yield
-    except errors:
-        raise Conflict(
+    except store.integrity_errors:
+        where = (
             "loop id taken in the store: by a stored loop that failed to load (see the "
             "log), or, in a cluster, by a loop another member owns"
-        ) from None
+        )
+        taken = list(store.gateways_of(ids).items())[:NAMED_TAKEN]
+        raise _taken(dict(taken), where) from None
 
 
 def _registered(config: LoopConfig, wall: float, seq: int, actor: str) -> AuditRow:

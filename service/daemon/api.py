@@ -62,6 +62,7 @@ from service.daemon.schemas import (
     Health,
     HistoryPage,
     LoopsPage,
+    Taken,
 )
 from service.daemon.settings import Settings
 from service.daemon.tuner import Tuner
@@ -112,7 +113,7 @@ Offset = Annotated[int, Query(ge=0, le=MAX_OFFSET)]
 Limit = Annotated[int, Query(ge=1, le=MAX_PAGE)]
 
 
-@loops.post("", status_code=201, dependencies=mutating, responses={409: {}})
+@loops.post("", status_code=201, dependencies=mutating, responses={409: {"model": Taken}})
 def register_loop(config: Registration, tuner: TunerDep, request: Request) -> LoopView:
     """Register a loop; it starts at its registered gains with a fresh agent state."""
     _own_gateway(request, [config])
@@ -122,7 +123,7 @@ def register_loop(config: Registration, tuner: TunerDep, request: Request) -> Lo
     return view
 
 
-@loops.post("/bulk", status_code=201, dependencies=mutating, responses={409: {}},
+@loops.post("/bulk", status_code=201, dependencies=mutating, responses={409: {"model": Taken}},
             max_body_size=BULK_BODY_BYTES)  # fmt: skip
 def register_loops(
     configs: Annotated[list[Registration], Body(min_length=1, max_length=MAX_BULK)],
@@ -345,12 +346,21 @@ client out for a minute after 10 tries, which slows a search, not stops it)."""
 
 def _warn_if_open(settings: Settings) -> None:
     token = settings.api_token
-    chars = 0 if token is None else len(token.get_secret_value())
-    if token is not None and chars < MIN_TOKEN_CHARS:
+    named = [("the API token", token)] if token is not None else []
+    gateways = settings.api_gateway_tokens
+    named += [(f"the API token of gateway {g!r}", t) for g, t in gateways.items()]
+    for name, secret in named:
+        chars = len(secret.get_secret_value())
+        if chars < MIN_TOKEN_CHARS:
+            log.warning(
+                "%s has %d characters: guessable. Use a long random one "
+                "(openssl rand -hex 32).",
+                name, chars,
+            )  # fmt: skip
+    if token is None and settings.api_gateway_tokens:
         log.warning(
-            "the API token has %d characters: guessable. Use a long random one "
-            "(openssl rand -hex 32).",
-            chars,
+            "gateway tokens are set but no admin token (PITUNE_API_TOKEN): the API is open, "
+            "any token may make any change, a gateway's too"
         )
     if token is None and not is_loopback(settings.api_host):
         log.warning(
@@ -474,6 +484,8 @@ def create_app(
 
     @app.exception_handler(Conflict)
     async def conflict(request: Request, exc: Conflict) -> JSONResponse:
+        if exc.gateways:  # a registration's taken ids
+            return JSONResponse(Taken(detail=str(exc), gateways=exc.gateways).model_dump(), 409)
         return JSONResponse({"detail": str(exc)}, status_code=409)
 
     return app

@@ -13,6 +13,11 @@ app (:class:`Gate`, an ASGI middleware), in order:
    another origin (an ``Origin`` header naming another host, or ``null``): refused, 403.
    A web page's cross-site POST reached a loopback API without a token; gateways and
    scripts send no ``Origin``. With the Host checked, the Origin is worth comparing.
+   Behind a reverse proxy that passes its upstream's ``Host`` (nginx's default:
+   ``127.0.0.1:8750``) the browser's Origin names the proxy's host instead: it is this
+   API's too when it names one of the ``api_allowed_hosts`` set by name, with the scheme
+   a trusted proxy forwarded (:func:`proxied_origin`). Only names set explicitly, never
+   a ``*``, and only with a forwarded scheme: any other page's Origin is still refused.
 3. **Token**: a change to the REST API (``/loops``; the console has its sessions)
    without the bearer token, when one is set: refused, 401, before its body is read.
    A gateway's token (``api_gateway_tokens``) may only register loops: any other change
@@ -177,16 +182,48 @@ def host_name(host: str) -> str:
     return (name or "").lower()
 
 
-def same_origin(headers: Headers) -> bool:
-    """No ``Origin`` (not a browser), or one naming the host and port the request is to."""
+def origin_hosts(settings: Settings) -> frozenset[str]:
+    """The host names a proxied browser's Origin may name (:func:`proxied_origin`): the
+    allowed hosts set by name. Not the loopback default, not "any", and no name with a
+    ``*`` (a wildcard would make every page's Origin this API's: CSRF)."""
+    names = settings.api_allowed_hosts or []
+    return frozenset(h.lower() for h in names if "*" not in h)
+
+
+def same_origin(scope: Scope, headers: Headers, proxied_hosts: frozenset[str]) -> bool:
+    """No ``Origin`` (not a browser), one naming the host and port the request is to, or
+    one a trusted proxy forwarded (:func:`proxied_origin`)."""
     origin = headers.get("origin")
     if origin is None:
         return True
     try:
-        netloc = urllib.parse.urlsplit(origin).netloc
+        parts = urllib.parse.urlsplit(origin)
+        name = (parts.hostname or "").lower()
     except ValueError:  # not a URL ("http://[evil"): not this origin
         return False
-    return origin != "null" and netloc == headers.get("host", "")
+    if origin == "null":
+        return False
+    if parts.netloc == headers.get("host", ""):
+        return True
+    return proxied_origin(scope, headers, parts.scheme, name, proxied_hosts)
+
+
+def proxied_origin(
+    scope: Scope, headers: Headers, scheme: str, name: str, proxied_hosts: frozenset[str]
+) -> bool:
+    """An Origin of ``scheme://name[:port]`` behind a reverse proxy: ``name`` one of
+    :func:`origin_hosts`, ``scheme`` the ``X-Forwarded-Proto`` of the request as the
+    server took it. uvicorn takes that header only from ``api_trusted_proxies``
+    (``forwarded_allow_ips``): from anyone else the request's scheme stays the
+    connection's, http, so an https Origin is refused. A browser's cross-site request
+    cannot set the header itself (a custom header: CORS, which the API does not allow),
+    and its Origin is the page's own, whatever the header."""
+    forwarded = headers.get("x-forwarded-proto", "").strip().lower()
+    return (
+        bool(forwarded)
+        and scope.get("scheme") == forwarded == scheme.lower()
+        and name in proxied_hosts
+    )
 
 
 class Gate:
@@ -196,6 +233,7 @@ class Gate:
         self.app = app
         self.settings = settings
         self.hosts = allowed_hosts(settings)
+        self.origin_hosts = origin_hosts(settings)
         self.failures = failures
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
@@ -214,7 +252,7 @@ class Gate:
         if self.hosts is not None and host_name(headers.get("host", "")) not in self.hosts:
             return 400, "unknown host (set PITUNE_API_ALLOWED_HOSTS to answer to it)", None
         change = scope["method"] not in SAFE_METHODS
-        if change and not same_origin(headers):
+        if change and not same_origin(scope, headers, self.origin_hosts):
             return 403, "cross-origin request refused", None
         rest = scope["path"] == "/loops" or scope["path"].startswith("/loops/")
         if change and (rest or scope["path"] == "/ui/login"):

@@ -22,6 +22,19 @@ class BulkRegistered(BaseModel):
     registered: list[str] = Field(description="Ids of the loops registered, in request order.")
 
 
+class Taken(BaseModel):
+    """Reply of a registration (``POST /loops``, ``/loops/bulk``) whose ids are taken (409)."""
+
+    detail: str
+    gateways: dict[str, str | None] = Field(
+        description="Each taken id (the first 5 of a bulk) -> the gateway its loop is "
+        "registered with (null: none): a gateway tells its own loop, registered before a "
+        "restart, from another gateway's of the same id (under which its own would never "
+        "be tuned: its samples on its gateway's key are rejected wrong_gateway). The "
+        "gateway's id is all a gateway's token learns here of another gateway's loop."
+    )
+
+
 AuditReason = Literal[
     "registered", "agent", "reset", "adopted", "patched", "deleted", "fault",
     "verified", "rollback", "verdict", "accepted", "rejected",

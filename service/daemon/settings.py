@@ -22,7 +22,7 @@ from contextvars import ContextVar
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import Field, SecretStr, field_validator
+from pydantic import Field, SecretStr, ValidationInfo, field_validator
 from pydantic.fields import FieldInfo
 from pydantic_settings import (
     BaseSettings,
@@ -32,7 +32,7 @@ from pydantic_settings import (
     TomlConfigSettingsSource,
 )
 
-from service.wire.protocol import DEFAULT_PREFIX, LOOP_ID_PATTERN, Keys
+from service.wire.protocol import DEFAULT_PREFIX, LOOP_ID_PATTERN, Keys, is_valid_id
 
 _config_file: ContextVar[Path | None] = ContextVar("pitune_config_file", default=None)
 ENV_PREFIX = "PITUNE_"
@@ -86,13 +86,16 @@ class Settings(BaseSettings):
         {},
         description="Gateway id -> a token that may only register loops of that gateway "
         "(POST /loops and /loops/bulk, every loop's 'gateway' that id): what a gateway "
-        "host holds instead of the admin token. In the environment a JSON object.",
+        "host holds instead of the admin token, each its own (not another gateway's, not "
+        "the admin token). In the environment a JSON object.",
     )
     api_allowed_hosts: list[str] | None = Field(
         None,
         description="Host names the admin API answers to (the Host header, without its "
         "port); others get a 400 (DNS rebinding). Default: the loopback names when api_host "
-        "is loopback, any otherwise. In the environment a JSON list.",
+        "is loopback, any otherwise. Behind a trusted proxy (api_trusted_proxies) that "
+        "forwards its scheme (X-Forwarded-Proto), a browser's Origin naming one of them "
+        "is the API's own. In the environment a JSON list.",
     )
     api_trusted_proxies: list[str] = Field(
         [],
@@ -237,6 +240,39 @@ class Settings(BaseSettings):
         open, as when it is unset, and says so at start-up (see :mod:`service.daemon.api`)."""
         raw = value.get_secret_value() if isinstance(value, SecretStr) else value
         return None if isinstance(raw, str) and not raw.strip() else value
+
+    @field_validator("api_gateway_tokens")
+    @classmethod
+    def _own_tokens(
+        cls, tokens: dict[str, SecretStr], info: ValidationInfo
+    ) -> dict[str, SecretStr]:
+        """Each key a gateway id (no registration could name another: its token would be
+        useless), each token a gateway's own: not empty, not another gateway's (the gate
+        would take it for one of them), not the admin token (the gate checks that first:
+        the gateway would be an admin). The messages name gateways, never a token."""
+        owner: dict[str, str] = {}
+        admin = info.data.get("api_token")
+        for gateway, token in tokens.items():
+            secret = token.get_secret_value()
+            if not is_valid_id(gateway):
+                raise ValueError(
+                    f"{gateway!r} is not a gateway id (1-64 letters, digits, '_', '.', '-', "
+                    "the first a letter or digit)"
+                )
+            if not secret.strip():
+                raise ValueError(f"gateway {gateway!r} has an empty token")
+            if secret in owner:
+                raise ValueError(
+                    f"gateways {owner[secret]!r} and {gateway!r} have the same token: give "
+                    "each gateway its own"
+                )
+            if admin is not None and secret == admin.get_secret_value():
+                raise ValueError(
+                    f"the token of gateway {gateway!r} is the admin token (PITUNE_API_TOKEN), "
+                    "which may do anything: give the gateway a token of its own"
+                )
+            owner[secret] = gateway
+        return tokens
 
     @field_validator(
         "history_max_rows_per_loop", "history_max_age_days", "history_archive", mode="before"

@@ -40,7 +40,12 @@ def gateway_shard(gateway: str) -> str:
 def gateways(shards: Iterable[str]) -> set[str]:
     """The gateways of the gateway shards among ``shards`` (their samples keys are what
     the member owning them subscribes to)."""
-    return {s[len(GATEWAY_SHARD) :] for s in shards if s.startswith(GATEWAY_SHARD)}
+    return {g for s in shards if (g := shard_gateway(s)) is not None}
+
+
+def shard_gateway(shard: str) -> str | None:
+    """The gateway whose shard ``shard`` is (None: a bucket of loops without one)."""
+    return shard[len(GATEWAY_SHARD) :] if shard.startswith(GATEWAY_SHARD) else None
 
 
 def _weight(member: str, shard: str) -> int:

@@ -38,7 +38,7 @@ from pydantic import ValidationError
 
 from service.daemon import migrations
 from service.daemon.schemas import AuditEntry
-from service.daemon.shards import shard_of
+from service.daemon.shards import shard_gateway, shard_of
 from service.engine.audit import AUDIT_COLUMNS, AuditRow
 from service.engine.config import LoopConfig
 from service.engine.saved import Saved
@@ -303,6 +303,21 @@ class Store:
                     )
                 )
         return found
+
+    def gateways_of(self, ids: list[str]) -> dict[str, str | None]:
+        """The gateway of each stored loop among ``ids`` (None: registered without one),
+        by its shard: a row that failed to load, or another member's, has one too."""
+        found = {}
+        with self._lock:
+            for i in range(0, len(ids), 500):
+                chunk = ids[i : i + 500]
+                found.update(
+                    self._db.execute(
+                        f"SELECT id, shard FROM loops WHERE id IN ({', '.join('?' * len(chunk))})",
+                        chunk,
+                    )
+                )
+        return {i: shard_gateway(found[i]) for i in ids if i in found}
 
     def insert_loops(
         self, configs: list[LoopConfig], audit: list[AuditRow], seqs: list[int]

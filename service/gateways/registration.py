@@ -23,6 +23,28 @@ class RegistrationError(RuntimeError):
     """The loops could not be registered (the message says why and what to do)."""
 
 
+def check_not_foreign(response: httpx.Response, loop_id: str, gateway: str | None) -> None:
+    """After a 409 of registering ``loop_id`` for ``gateway``: raise a
+    :class:`RegistrationError` when the id is taken by a loop of another gateway (the
+    reply's ``gateways``, :class:`~service.daemon.schemas.Taken`). That loop is not this
+    one: its samples on this gateway's key are rejected (``wrong_gateway``) and its
+    gains go to the other gateway, so this loop would never be tuned. A loop of this
+    gateway is this one registered before (a restart), and one of none is tuned from the
+    samples this gateway sends on the loop's own key: both carry on."""
+    try:
+        taken = response.json().get("gateways") or {}
+    except (ValueError, AttributeError):  # not the tuner's JSON (a proxy's page)
+        return
+    other = taken.get(loop_id) if isinstance(taken, dict) else None
+    if other is not None and other != gateway:
+        mine = f"this gateway {gateway!r}" if gateway else "this client, without a gateway"
+        raise RegistrationError(
+            f"loop {loop_id!r} is already registered with gateway {other!r}, not {mine}: "
+            "this loop would never be tuned. Another gateway took the id: an admin must "
+            f"delete that loop (DELETE /loops/{loop_id}), or one of the two must get another id"
+        )
+
+
 class TunerApi:
     """An admin-API client whose calls retry until ``timeout`` seconds after it was made;
     ``with TunerApi(...) as api: api.call("POST", "/loops", json=body)``."""

@@ -143,9 +143,16 @@ def tuner_page(request: Request) -> HTMLResponse:
     return _page(request, "Tuner", "tuner.html", "tuner.js")
 
 
+LOGIN_ERRORS = {"wrong_token": "Wrong token."}
+"""The login page's error texts, by the code a failed login's redirect names: the page
+shows no text from its URL (a link to the console's own login page would otherwise show
+a phisher's words there); an unknown code shows nothing."""
+
+
 @router.get("/login", response_class=HTMLResponse)
 def login_page(request: Request, next: str = "/ui", error: str = "") -> HTMLResponse:
-    return _page(request, "Log in", "login.html", "", next=safe_next(next), error=error)
+    text = LOGIN_ERRORS.get(error, "")
+    return _page(request, "Log in", "login.html", "", next=safe_next(next), error=text)
 
 
 @router.post("/login", max_body_size=LOGIN_BODY_BYTES)
@@ -163,7 +170,7 @@ async def login(request: Request) -> Response:
     if not token_matches(request.app.state.settings, token):
         failures.failed(client, "console login")
         await asyncio.sleep(LOGIN_PENALTY_S)  # slows guessing down
-        query = urllib.parse.urlencode({"next": target, "error": "wrong token"})
+        query = urllib.parse.urlencode({"next": target, "error": "wrong_token"})
         return RedirectResponse(f"/ui/login?{query}", status_code=303)
     actor = f"ui:{name}" if name else "ui"
     sessions = sessions_of(request)

@@ -8,7 +8,7 @@ import os
 
 from service.gateways.opcua.loops import LoopRuntime
 from service.gateways.opcua.sitemap import SiteMap
-from service.gateways.registration import RegistrationError, TunerApi
+from service.gateways.registration import RegistrationError, TunerApi, check_not_foreign
 
 log = logging.getLogger("pitune.gateway.opcua")
 BULK_CHUNK = 10_000
@@ -41,8 +41,9 @@ def registration_bodies(site: SiteMap, loops: list[LoopRuntime]) -> list[dict]:
 
 
 def register_loops(site: SiteMap, bodies: list[dict]) -> int:
-    """``POST /loops/bulk``; if some ids are taken, each loop alone (409: already known).
-    Retries while the tuner may be starting, for ``timeout_s``. Returns how many were new."""
+    """``POST /loops/bulk``; if some ids are taken, each loop alone (409: already known,
+    unless another gateway's loop took the id: a RegistrationError). Retries while the
+    tuner may be starting, for ``timeout_s``. Returns how many were new."""
     url = site.tuner.register_url
     token = os.environ.get(site.tuner.token_env)
     new = 0
@@ -56,6 +57,8 @@ def register_loops(site: SiteMap, bodies: list[dict]) -> int:
                     one = api.call("POST", "/loops", what=what, json=body)
                     if one.status_code not in (201, 409):
                         raise RegistrationError(f"{what}: HTTP {one.status_code} {one.text[:300]}")
+                    if one.status_code == 409:
+                        check_not_foreign(one, body["id"], body.get("gateway"))
                     new += one.status_code == 201
             elif not r.is_success:
                 raise RegistrationError(f"bulk registration: HTTP {r.status_code} {r.text[:300]}")
