@@ -33,6 +33,7 @@ import zenoh
 
 from service.wire.protocol import Keys
 from service.wire.session import free_port, session_config
+from tests.tuner_support import wait_until
 
 ROOT = Path(__file__).resolve().parents[1]
 DEPLOY = ROOT / "deploy"
@@ -41,12 +42,16 @@ KEYS = Keys()
 
 
 @contextmanager
-def python_router(tmp_path: Path, config: Path = ZENOH / "router.json5") -> Iterator[str]:
+def python_router(
+    tmp_path: Path,
+    config: Path = ZENOH / "router.json5",
+    credentials: Path = ZENOH / "credentials.txt",
+) -> Iterator[str]:
     """deploy/zenoh_router.py from ``config`` on a free loopback port (the example
-    credentials); yields the endpoint clients connect to."""
+    credentials by default); yields the endpoint clients connect to."""
     port = free_port()
     log = tmp_path / "router.log"
-    credentials = json.dumps(str(ZENOH / "credentials.txt"))
+    credentials = json.dumps(str(credentials))
     argv = [sys.executable, str(DEPLOY / "zenoh_router.py"), "--config", str(config),
             "--set", f'listen/endpoints=["tcp/127.0.0.1:{port}"]',
             "--set", f"transport/auth/usrpwd/dictionary_file={credentials}"]  # fmt: skip
@@ -239,6 +244,21 @@ def pitune(*args: str) -> list[str]:
     return [sys.executable, "-m", "service.cli", *args]
 
 
+def compose_tuner(endpoint: str, api_port: int, db: Path) -> dict[str, str]:
+    """The compose file's PITUNE_* settings of ``pitune tuner``: the router's client as
+    the tuner user (tuner.json5), here on ``endpoint`` with its API on ``api_port``."""
+    return {
+        "PITUNE_ZENOH_MODE": "client",
+        "PITUNE_ZENOH_CONFIG": str(ZENOH / "tuner.json5"),
+        "PITUNE_ZENOH_CONNECT": json.dumps([endpoint]),
+        "PITUNE_ZENOH_LISTEN": "[]",
+        "PITUNE_API_HOST": "127.0.0.1",
+        "PITUNE_API_PORT": str(api_port),
+        "PITUNE_DB_PATH": str(db),
+        "PITUNE_LOG_LEVEL": "warning",
+    }
+
+
 def test_tuner_and_plant_commands_tune_through_the_router_with_the_shipped_acl(tmp_path):
     """The compose stack without containers: ``pitune tuner`` with the compose file's
     PITUNE_* settings and tuner.json5, ``pitune plant run`` with gateway.json5 (declared
@@ -250,17 +270,7 @@ def test_tuner_and_plant_commands_tune_through_the_router_with_the_shipped_acl(t
     env = {k: v for k, v in os.environ.items() if not k.startswith("PITUNE_")}
     env.update(PYTHONPATH=str(ROOT), PITUNE_API_TOKEN=token)
     with python_router(tmp_path) as endpoint:
-        tuner_env = {
-            **env,
-            "PITUNE_ZENOH_MODE": "client",
-            "PITUNE_ZENOH_CONFIG": str(ZENOH / "tuner.json5"),
-            "PITUNE_ZENOH_CONNECT": json.dumps([endpoint]),
-            "PITUNE_ZENOH_LISTEN": "[]",
-            "PITUNE_API_HOST": "127.0.0.1",
-            "PITUNE_API_PORT": str(api_port),
-            "PITUNE_DB_PATH": str(tmp_path / "pitune.db"),
-            "PITUNE_LOG_LEVEL": "warning",
-        }
+        tuner_env = {**env, **compose_tuner(endpoint, api_port, tmp_path / "pitune.db")}
         plant_argv = pitune("plant", "run", "--tank", "tank1", "--speed", "60", "--noise", "1",
                             "--sp-period", "120", "--register", api,
                             "--zenoh-config", str(ZENOH / "gateway.json5"),
@@ -304,3 +314,82 @@ def test_tuner_and_plant_commands_tune_through_the_router_with_the_shipped_acl(t
         plant_log = (tmp_path / "plant.log").read_text()
         applied = [line for line in plant_log.splitlines() if "gain updates applied" in line]
         assert applied and not applied[-1].startswith("plant stopped: 0 gain"), plant_log[-2000:]
+
+
+def test_tuners_watch_each_others_tokens_through_the_shipped_acl(router):
+    """The tuner user may watch and query pitune/tuners/*: what a tuner's start-up check
+    (one tuner per key prefix), its watch for a tuner that comes later, and a cluster
+    member's crash detection (a member's token gone at once) are made of. The other
+    tuner's token comes, a query finds it, and it goes with its session; a gateway user's
+    token there never reaches them (before the fix the tuner user saw nothing at all)."""
+    events: queue.SimpleQueue = queue.SimpleQueue()
+    samples: queue.SimpleQueue = queue.SimpleQueue()
+    users = ("tuner", "tuner", "gateway")
+    member, other, gateway = (client(u, router) for u in users)
+    entities = []
+
+    def tokens() -> list[str]:
+        replies = member.liveliness().get(KEYS.all_tuners, timeout=5.0)
+        return [str(r.ok.key_expr) for r in replies if r.ok is not None]
+
+    try:
+        entities = [
+            member.liveliness().declare_subscriber(
+                KEYS.all_tuners, lambda s: events.put((str(s.key_expr), s.kind)), history=True
+            ),
+            member.declare_subscriber(KEYS.all_samples, lambda s: samples.put(1)),
+            gateway.liveliness().declare_token(KEYS.tuner("impostor")),
+        ]
+        # the gateway's puts reach the member after the router handled its token
+        first_through(lambda: gateway.put(KEYS.sample("tank1"), b"{}"), samples)
+        _token = other.liveliness().declare_token(KEYS.tuner("other"))  # dropped: undeclared
+        put, gone = zenoh.SampleKind.PUT, zenoh.SampleKind.DELETE
+        assert received(events, 1, timeout=10.0) == [(KEYS.tuner("other"), put)]
+        # (a query right after the token's event came back empty now and then: asked again)
+        wait_until(lambda: tokens() == [KEYS.tuner("other")], what="a query finding it")
+        other.close()  # as a crash does: its connection closes, its token goes at once
+        assert received(events, 1, timeout=10.0) == [(KEYS.tuner("other"), gone)]
+        assert tokens() == []
+    finally:
+        for entity in reversed(entities):
+            entity.undeclare()
+        for session in (gateway, other, member):
+            session.close()
+
+
+def test_a_second_tuner_on_the_prefix_refuses_to_start_through_the_router(tmp_path, caplog):
+    """Two tuners with one key prefix, both clients of the router loaded from router.json5
+    as the compose file runs them: the second finds the first's token, waits out a lease
+    and exits with EXIT_LOCKED; the first sees the second's token come and go. Before the
+    fix the ACL gave the tuner user no liveliness subscriber or query: both ran, /healthz
+    ok, tuning the same loops."""
+    from service.daemon.main import EXIT_LOCKED
+    from service.daemon.tuner import Tuner
+    from tests.tuner_support import tuner_settings
+
+    with python_router(tmp_path) as endpoint:
+        settings = tuner_settings(tmp_path, zenoh_config=ZENOH / "tuner.json5",
+                                  zenoh_mode="client", zenoh_connect=[endpoint],
+                                  zenoh_listen=[], instance_id="first")  # fmt: skip
+        first = Tuner(settings).start()
+        try:
+            env = {k: v for k, v in os.environ.items() if not k.startswith("PITUNE_")}
+            env.update(compose_tuner(endpoint, free_port(), tmp_path / "second.db"))
+            env.update(PYTHONPATH=str(ROOT), PITUNE_API_TOKEN="x" * 32,
+                       PITUNE_INSTANCE_ID="second", PITUNE_AGENT_WEIGHTS="untrained")  # fmt: skip
+            try:  # it exits after PREFIX_LEASE_S (12 s) plus its start-up
+                second = subprocess.run(
+                    pitune("tuner"), env=env, capture_output=True, text=True, timeout=90
+                )
+            except subprocess.TimeoutExpired as exc:  # killed by run()
+                raise AssertionError(f"it ran beside the first: {exc.stderr}") from None
+            refusal = [line for line in second.stderr.splitlines() if "cannot start" in line]
+            assert second.returncode == EXIT_LOCKED, second.stderr[-3000:]
+            assert "another tuner runs on the bus with key prefix 'pitune' " \
+                "(pitune/tuners/first)" in refusal[-1]  # fmt: skip
+            wait_until(lambda: "the other tuner pitune/tuners/second left" in caplog.text,
+                       timeout=15.0, what="the second tuner's token gone")  # fmt: skip
+            assert "another tuner appeared on the bus with key prefix 'pitune': " \
+                "pitune/tuners/second" in caplog.text  # fmt: skip
+        finally:
+            first.stop()

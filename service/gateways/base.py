@@ -239,6 +239,8 @@ class Gateway:
         self._entities: list = []
         self._batches = None
         """Publisher of this gateway's samples key (with a ``gateway_id``)."""
+        self._unheard: set[str] = set()
+        """Loops whose samples went on their own keys with no subscriber known there."""
         try:
             for loop_id in loop_ids:
                 self._publishers[loop_id] = session.declare_publisher(
@@ -357,14 +359,47 @@ class Gateway:
         ours = {} if batches is None or not batches.matching_status.matching else {
             loop_id: sample for loop_id, sample in samples.items() if self._ours(loop_id)
         }  # fmt: skip
-        for loop_id in samples.keys() - ours.keys():
+        solo = samples.keys() - ours.keys()
+        for loop_id in solo:
             self.publish(loop_id, samples[loop_id])
+        if batches is not None:
+            self._check_heard(solo)
         items = [
             BatchedSample(loop_id=loop_id, **self._reported(loop_id, sample).model_dump())
             for loop_id, sample in ours.items()
         ]
         for i in range(0, len(items), MAX_BATCH):
             batches.put(encode(SampleColumns.of(items[i : i + MAX_BATCH])))
+
+    def _check_heard(self, solo: set[str]) -> None:
+        """Log when samples sent on their loops' own keys start (and stop) going unheard
+        while a tuner is up: a declared publisher with no subscriber known drops them on
+        this side, silently. That is how a Zenoh user confined to its gateway's keys (no
+        per-loop keys: docs/deploy.md) loses them; with the shared user the tuner
+        subscribes there and nothing is logged. Once per change, not per scan."""
+        if not self.tuners:
+            return  # nothing is heard then, as its own warning says
+        unheard = {i for i in solo if not self._publishers[i].matching_status.matching}
+        new = sorted(unheard - self._unheard)
+        if new:
+            log.warning(
+                "samples of %d loop(s) dropped (%s): sent on their own keys %s (%s), where "
+                "this gateway's Zenoh user knows no subscriber: a user confined to gateway "
+                "%s's keys may not use them (docs/deploy.md, Zenoh passwords)",
+                len(new), ", ".join(new[:5]) + (", ..." if len(new) > 5 else ""),
+                self.keys.sample("{id}"), self._why_solo(), self.gateway_id,
+            )  # fmt: skip
+        elif self._unheard and not unheard:
+            log.info("samples heard again: every loop's key has a subscriber or is batched")
+        self._unheard = unheard
+
+    def _why_solo(self) -> str:
+        if not self._batches.matching_status.matching:
+            return f"no tuner subscribes to {self.keys.gateway_samples(self.gateway_id)}"
+        return (
+            f"no state reply names them as gateway {self.gateway_id}'s: not yet, or they "
+            "are registered without it"
+        )
 
     def _ours(self, loop_id: str) -> bool:
         """The tuner's state reply says the loop is registered with this gateway (until
