@@ -81,26 +81,31 @@ class GainsLog:
 
     def regressions(self) -> list[tuple[Heard, int]]:
         """Messages whose seq is at or below one already heard for the same loop, with
-        that earlier seq."""
-        top: dict[str, int] = {}
+        that earlier seq; not a repeat of the highest (same seq and epoch: a takeover
+        sends each loop's last message again, which gateways drop)."""
+        top: dict[str, tuple[int, int | None]] = {}
         bad = []
         for h in self.snapshot():
-            before = top.get(h.loop_id, 0)
-            if h.seq <= before:
-                bad.append((h, before))
-            top[h.loop_id] = max(before, h.seq)
+            before = top.get(h.loop_id, (0, None))
+            if h.seq <= before[0] and (h.seq, h.epoch) != before:
+                bad.append((h, before[0]))
+            top[h.loop_id] = max(before, (h.seq, h.epoch), key=lambda k: k[0])
         return bad
 
 
 def failover_delays(
     log: GainsLog, victim: str, loops: list[str], since: float
 ) -> dict[str, float | None]:
-    """Seconds from ``since`` until each loop's first message from another member than
+    """Seconds from ``since`` until each loop's first new message (a seq not heard
+    before: not its last one sent again on the takeover) from another member than
     ``victim`` (None: not yet)."""
     first: dict[str, float] = {}
     wanted = set(loops)
+    top: dict[str, int] = {}
     for h in log.snapshot():
-        if h.at >= since and h.loop_id in wanted and h.instance_id != victim:
+        new = h.seq > top.get(h.loop_id, 0)
+        top[h.loop_id] = max(top.get(h.loop_id, 0), h.seq)
+        if new and h.at >= since and h.loop_id in wanted and h.instance_id != victim:
             first.setdefault(h.loop_id, h.at - since)
     return {loop_id: first.get(loop_id) for loop_id in loops}
 

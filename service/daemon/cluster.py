@@ -20,13 +20,17 @@ every ``lease_s / 5`` seconds (:data:`TICKS_PER_LEASE`):
 
 Fencing: every commit carries the tokens of the shards it touches (:meth:`Cluster.fence`); the
 store refuses it unless this member still holds each lease unexpired
-(:class:`~service.daemon.store_pg.Fenced`). Publishing is allowed only while the leases are
-valid by this process's monotonic clock (:meth:`Cluster.may_publish`): from the start of the
-last successful renewal plus ``lease_s`` minus :data:`SAFETY_S`. A member paused past its lease
-(SIGSTOP, a VM freeze) finds on waking that it may no longer publish, its commits fail, and its
-next renewal finds the leases gone: it drops those loops and, still a member, gets shards again
-by the hashing. Gains messages carry the shard's token as their ``epoch``, so a gateway orders
-the new owner's messages after any of the old owner's.
+(:class:`~service.daemon.store_pg.Fenced`); refused, the member renews its leases at once
+(:meth:`Cluster.revive`) and drops only the loops of those another member took. Publishing
+is allowed only while the leases are valid by this process's monotonic clock
+(:meth:`Cluster.may_publish`): from the start of the last successful renewal plus
+``lease_s`` minus :data:`SAFETY_S`. A member paused past its lease (SIGSTOP, a VM freeze)
+finds on waking that it may no longer publish, its commits fail, and its renewal finds the
+leases gone: it drops those loops and, still a member, gets shards again by the hashing.
+Gains messages carry the shard's token as their ``epoch``, so a gateway orders the new
+owner's messages after any of the old owner's; the new owner sends each loop's last
+committed message again, which the old owner may have left unpublished
+(:meth:`Ownership.adopt_shards <service.daemon.ownership.Ownership.adopt_shards>`).
 
 A dead member's leases are taken before they expire when the database and the bus agree that it
 is dead: its Zenoh liveliness token is gone (a crashed process's connections close at once; a
@@ -38,6 +42,10 @@ about 2-3 s after a crash plus the load (the last renewal was up to a tick befor
 Otherwise (a token still there: a host that lost power or its network keeps it at the peers
 until Zenoh's transport lease, 10 s by default, runs out) they take the leases when they
 expire, ``lease_s`` after the last renewal.
+
+The store unreachable for every member (a restart of PostgreSQL) lets every lease run out:
+once it is back, each member renews its own (nobody took them) and takes none for a while
+(:mod:`service.daemon.outage`), so the cluster stays as it was.
 """
 
 from __future__ import annotations
@@ -52,6 +60,8 @@ from typing import TYPE_CHECKING
 import psycopg
 
 from service.daemon import shards as sharding
+from service.daemon.notifies import Notifies
+from service.daemon.outage import SETTLE_TICKS, StoreOutage
 from service.daemon.store_pg import CHANNEL, Fenced, connect
 from service.daemon.survey import survey
 from service.daemon.suspects import DEAD_AFTER_TICKS, Suspects
@@ -62,9 +72,6 @@ if TYPE_CHECKING:
 log = logging.getLogger("pitune.cluster")
 TICKS_PER_LEASE = 5
 ADOPTIONS_KEPT = 16
-WAKE_POLL_S = 0.1
-"""The longest a tick waits, once a member's token has gone, before it comes (the
-wait for notifications is cut in slices this long to look)."""
 EXPIRY_MARGIN_S = 0.05
 """A tick timed to another member's expiry comes this long after it (a member's leases
 expire a few milliseconds after its row: renewed in the same transaction, later)."""
@@ -73,7 +80,7 @@ SAFETY_S = 0.5
 differences between the hosts, the time a put takes)."""
 
 
-class Cluster(Suspects):
+class Cluster(Suspects, Notifies):
     """This tuner's membership of the cluster sharing its PostgreSQL store."""
 
     def __init__(self, tuner: Tuner, url: str) -> None:
@@ -121,6 +128,7 @@ class Cluster(Suspects):
         """Member -> monotonic time its liveliness token went (events of the bus)."""
         self._wake = threading.Event()
         """Set when a member's token goes: the tick comes at once, not up to a tick later."""
+        self.outage = StoreOutage(SETTLE_TICKS * self.tick_s)
 
     # -- lifecycle --------------------------------------------------------------------
     def start(self) -> None:
@@ -179,11 +187,14 @@ class Cluster(Suspects):
             until = started + self.tick_s
             try:
                 due = self.tick()
+                self.outage.worked("tick")
                 if due is not None:  # a member stopped renewing: be there when it ends
                     until = min(until, time.monotonic() + due + EXPIRY_MARGIN_S)
-            except Exception:  # the database unreachable: retried next tick
-                log.exception("cluster tick failed; retrying")
+            except psycopg.Error as exc:  # the database unreachable: retried next tick
+                self.outage.failed("tick", exc)
                 self._reconnect()
+            except Exception:
+                log.exception("cluster tick failed; retrying")
             finally:
                 self.ready.set()
             self._wait_notifies(until)
@@ -202,17 +213,19 @@ class Cluster(Suspects):
             started = time.monotonic()
             try:
                 lost = self._renew(started)
+                self.outage.worked("renewal")
                 if lost:
                     with self._lock:
                         self._lost |= lost
                 took = time.monotonic() - started
                 if took > self.tick_s:  # the leases survive a delay of lease_s - tick_s only
                     log.warning("lease renewal took %.1f s (tick %.1f s)", took, self.tick_s)
-            except Exception:  # the database unreachable: the leases run out meanwhile
-                log.exception("lease renewal failed; retrying")
-                with contextlib.suppress(psycopg.Error):
-                    if self._beat_conn.closed or self._beat_conn.broken:
+            except psycopg.Error as exc:  # the database unreachable: the leases run out
+                self.outage.failed("renewal", exc)
+                if self._beat_conn.closed or self._beat_conn.broken:
+                    with contextlib.suppress(psycopg.Error):
                         self._beat_conn = connect(self.url)
+                        continue  # reconnected: renew now, not a tick later (others wait)
             self._stop.wait(max(0.0, started + self.tick_s - time.monotonic()))
 
     # -- one tick ---------------------------------------------------------------------
@@ -233,6 +246,9 @@ class Cluster(Suspects):
         gone = self._gone(live)
         dead = {m for m in gone if live[m] < self.lease_s - DEAD_AFTER_TICKS * self.tick_s}
         self.members = sorted(set(live) - dead)
+        settling = self.outage.settling()
+        if settling is not None:  # after a store outage every row ran out: none is taken
+            return settling
         wins = {s for s, m in sharding.assign(stored, self.members).items() if m == self.member}
         with self._lock:
             held = set(self.held)
@@ -248,6 +264,17 @@ class Cluster(Suspects):
     def _renew(self, started: float) -> set[str]:
         with self._leasing:
             return self._renew_held(started)
+
+    def revive(self, shards: set[str]) -> set[str]:
+        """Those of ``shards`` (leases a commit found not held) that another member took,
+        after renewing the leases now: the others only ran out (the store was unreachable
+        longer than the lease, or the renewals late), and the renewal extends a lease
+        still this member's with its token whether or not it ran out (a lease taken has
+        another token: lost). Raises psycopg.Error if the store fails."""
+        lost = self._renew(time.monotonic())
+        with self._lock:
+            self._lost |= lost - shards  # (for the tick to drop; the caller drops these)
+            return {shard for shard in shards if shard not in self.held}
 
     def _renew_held(self, started: float) -> set[str]:
         with self._lock:
@@ -309,7 +336,9 @@ class Cluster(Suspects):
     def claim(self, shards: set[str]) -> None:
         """Acquire now those of ``shards`` no member holds (a registration through this
         member of loops in a new shard); the hashing moves them later if another member
-        wins them."""
+        wins them. Just after a store outage, none (the tick takes them once it settles)."""
+        if self.outage.settling() is not None:
+            return
         with connect(self.url) as conn:
             self._acquire(shards - set(self.held), conn)
 
@@ -393,34 +422,6 @@ class Cluster(Suspects):
             for shard in taken:
                 self.held[shard] = token
         return taken
-
-    def _wait_notifies(self, until: float) -> None:
-        """Until the next tick (or a member's token going, :meth:`token_changed`): reload
-        the loops other members changed."""
-        while not self._stop.is_set():
-            left = until - time.monotonic()
-            if left <= 0 or self._wake.is_set():
-                self._wake.clear()
-                return
-            changed: set[str] = set()
-            try:
-                wait = min(left, WAKE_POLL_S)
-                for note in self._conn.notifies(timeout=wait, stop_after=1):
-                    changed.update(note.payload.split(","))
-                # take the rest queued meanwhile without waiting
-                for note in self._conn.notifies(timeout=0.0):
-                    changed.update(note.payload.split(","))
-            except psycopg.Error:
-                self._stop.wait(max(0.0, until - time.monotonic()))
-                return
-            changed |= self._reload_todo  # a reload that failed: again until it works
-            if changed:
-                try:
-                    self.tuner.reload_loops(sorted(changed))
-                    self._reload_todo = set()
-                except Exception:
-                    self._reload_todo = changed
-                    log.exception("reloading %d changed loops failed; retried", len(changed))
 
     # -- for the tuner ----------------------------------------------------------------
     def owns(self, shard: str) -> bool:

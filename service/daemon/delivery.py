@@ -71,9 +71,15 @@ class Delivery:
                     fence = self._fence({g[3] for g in gains} | {a[0] for a in audit})
                     self.store.record_gains(rows, audit, fence)
             except Fenced as exc:
-                self._fenced(exc, gains, audit)
+                try:
+                    self._fenced(exc, gains, audit)
+                except Exception as err:  # noqa: BLE001 - the renewal failed: as below
+                    self.table.requeue(gains, audit)
+                    self.table.requeue_verify_dirty(dirty)
+                    self._store_failed(err)
+                    return
                 self.table.requeue_verify_dirty(dirty)  # of the loops still ours
-                self._commit(None)
+                self._commit(None)  # (leases renewed: the fence lets it through now)
                 return
             except Exception as exc:  # sqlite3.Error, OSError, MemoryError: all the same
                 self.table.requeue(gains, audit)
@@ -92,8 +98,16 @@ class Delivery:
             rows = self.table.snapshot(dirty)
             try:
                 self.store.snapshot(rows, None if self.cluster is None else self._fence(dirty))
-            except Fenced as exc:  # leases lost since the commit: those loops are dropped
-                self._fenced(exc, [], [])
+            except Fenced as exc:  # leases run out or lost since the commit: as above
+                try:
+                    self._fenced(exc, [], [])
+                except Exception as err:  # noqa: BLE001 - as above
+                    self.table.requeue_verify_dirty(dirty)
+                    self._store_failed(err)
+                    return
+                self.table.requeue_verify_dirty(dirty)
+                self._commit(None)
+                return
             except Exception as exc:  # noqa: BLE001 - as above
                 self.table.requeue_verify_dirty(dirty)
                 self._store_failed(exc)
@@ -157,7 +171,17 @@ class Delivery:
         """A lane's blocking part, on its own thread: no lock of the tuner is held. In a
         cluster, nothing goes out once the leases may have run out (a paused member),
         checked before each put: a member paused in the middle of a batch of single
-        messages had published the rest of it after its lease (a CI run, session 37)."""
+        messages had published the rest of it after its lease (a CI run, session 37).
+        Nor do the messages of loops whose shards this member no longer holds: a renewal
+        that found their leases taken (by the member waking, or by a commit refused,
+        :meth:`_fenced`) took the shards off before it made the leases valid again; their
+        new owner sends each loop's last message again (:meth:`_resend`)."""
+        if self.cluster is not None and self.cluster.may_publish():
+            mine = [m for m in messages if self.cluster.token(m["loop_id"]) is not None]
+            self.gains_fenced += len(messages) - len(mine)
+            messages = mine
+        if not messages:
+            return
         if gateway is None:
             puts = [(self.keys.gains(m["loop_id"]), orjson.dumps(m)) for m in messages]
         else:

@@ -6,9 +6,10 @@ a cluster (an SQLite store) every method is a no-op or lets everything through, 
 single tuner behaves as before. With one (see :mod:`service.daemon.cluster`):
 
 - the cluster's thread calls :meth:`adopt_shards` when it acquires shards (their loops
-  are loaded from the store: gains, seq, last snapshot), :meth:`drop_shards` when it
-  releases or loses them, and :meth:`reload_loops` for loops changed through another
-  member;
+  are loaded from the store: gains, seq, last snapshot; each loop's last committed
+  message the plant applies is sent again, as it may never have gone out),
+  :meth:`drop_shards` when it releases or loses them, and :meth:`reload_loops` for
+  loops changed through another member;
 - every commit and snapshot carries the lease tokens of its loops' shards
   (:meth:`_fence`); a commit the store refuses (:class:`Fenced`: a lease lost) drops the
   lost shards' loops and commits the rest;
@@ -33,7 +34,7 @@ from service.daemon.shards import gateway_shard, gateways, shard_of
 from service.daemon.store_pg import Fenced
 from service.engine.saved import Saved
 from service.wire.decode import Decoded, Rejection, refused
-from service.wire.protocol import RejectReason
+from service.wire.protocol import PUBLISHED_MODES, SCHEMA_VERSION, Mode, RejectReason
 
 log = logging.getLogger("pitune.tuner")
 ADOPT_CHUNK = 5000
@@ -50,6 +51,9 @@ class Ownership:
     """Samples of loops another member owns, left to it."""
     gains_fenced = 0
     """Committed gains messages not published: the leases may have run out."""
+    gains_resent = 0
+    """Committed gains messages sent again by this member when it took their loops over
+    (:meth:`_resend`)."""
     deleted_here: set[str]
     """Loops deleted through this member since :meth:`reload_loops` began its store read
     (in a cluster; under the table's lock)."""
@@ -66,7 +70,8 @@ class Ownership:
 
     def adopt_shards(self, shards: list[str], token: int) -> dict:
         """Load the shards' loops from the store into the engine (they resume from their
-        committed gains and seq and their last snapshot); how long each part took.
+        committed gains and seq and their last snapshot) and send their last messages
+        again (:meth:`_resend`); how long each part took.
 
         Shard by shard: its loops loaded, then inserted a chunk at a time under the
         table's lock (the worker runs between chunks), then its gateway's samples
@@ -77,6 +82,7 @@ class Ownership:
         for shard in sorted(shards):
             loading = time.perf_counter()
             stored = self.store.load([shard])
+            last = self.store.last_messages([shard])
             load_s += time.perf_counter() - loading
             loops += len(stored)
             for start in range(0, len(stored), ADOPT_CHUNK):
@@ -89,6 +95,7 @@ class Ownership:
                     fresh = [k for k, loop in enumerate(chunk) if loop.config.id not in slot_of]
                     self._restore_many([chunk[k] for k in fresh], wall, [saved[k] for k in fresh])
                     self.cluster.adopted(shard, token, [loop.config.id for loop in chunk])
+                    self._resend([chunk[k] for k in fresh], last)  # before any step of theirs
             if stored:
                 with self.table.lock:
                     self.metrics.set_loop_counts(self.table.mode_counts())
@@ -100,6 +107,35 @@ class Ownership:
             "insert_s": time.perf_counter() - began - load_s,
             "lock_wait_s": wait_s,  # (of insert_s: the turns at the table's lock awaited)
         }
+
+    def _resend(self, stored: list, last: dict[str, tuple]) -> None:
+        """Send again, as committed, the last message of each adopted loop that is one the
+        plant applies (``last``: :meth:`PgStore.last_messages
+        <service.daemon.store_pg.PgStore.last_messages>`): ``auto``, an accepted proposal,
+        a rollback or reset in ``auto``. Its previous owner committed it, but may have been
+        paused between the commit and the put and then lost its leases, and so dropped it
+        (:attr:`gains_fenced`); the new owner's next messages are computed from those gains.
+        It goes out under its recorded ``(epoch, seq)``, so a gateway that took it already
+        drops it (docs/protocol.md, Sequence rule), and ahead of the loop's next message in
+        its lane (the worker is held while this runs). Frozen and shadow loops get none."""
+        batches: dict[str | None, list[dict]] = {}
+        for loop in stored:
+            found = last.get(loop.config.id)
+            if found is None or loop.config.mode not in PUBLISHED_MODES:
+                continue
+            t, reason, kp_old, ki_old = found
+            batches.setdefault(loop.config.gateway, []).append(
+                {
+                    "v": SCHEMA_VERSION, "loop_id": loop.config.id, "seq": loop.seq,
+                    "t": 0.0 if t is None else t, "dkp": loop.kp - kp_old, "dki": loop.ki - ki_old,
+                    "kp": loop.kp, "ki": loop.ki, "mode": Mode.auto.value, "reason": reason,
+                    "instance_id": self.settings.instance_id, "epoch": loop.epoch,
+                    "why": f"reason={reason} resent=takeover",
+                }
+            )  # fmt: skip
+        for gateway, batch in batches.items():
+            self._lane(gateway).submit(batch)
+            self.gains_resent += len(batch)
 
     def drop_shards(self, shards: set[str], *, commit: bool) -> None:
         """Take the shards' loops out of the engine. ``commit``: their pending changes
@@ -212,10 +248,19 @@ class Ownership:
         return self.cluster.fence(loop_ids)
 
     def _fenced(self, exc: Fenced, gains: list, audit: list) -> None:
-        """A commit refused for lost leases: drop the lost shards' loops, put the other
-        loops' changes back to be committed."""
-        log.warning("commit fenced: %s; dropping those loops", exc)
-        lost = {s for s in exc.shards if not s.startswith("loop:")}
+        """A commit refused for leases the store did not find held: renew them now, and
+        drop the loops of the shards another member took; put the other loops' changes
+        back to be committed again. Leases that only ran out (the store was unreachable
+        for longer than the lease, nobody took them) are renewed as they are, same token:
+        the worker's first commit after an outage came before the renewal and dropped
+        every loop, which the member then loaded again from older snapshots. (Raises
+        psycopg.Error if the renewal fails: nothing done, a failing commit.)"""
+        shards = {s for s in exc.shards if not s.startswith("loop:")}
+        lost = self.cluster.revive(shards) if shards else set()
+        if lost or len(shards) < len(exc.shards):
+            log.warning("commit fenced: %s; dropping those loops", exc)
+        else:
+            log.info("leases had run out (%s), nobody took them: renewed, committing again", exc)
         self.cluster.lose(lost)
         ids = set(self.cluster.shard_of)
         self.table.requeue([g for g in gains if g[3] in ids], [a for a in audit if a[0] in ids])

@@ -43,6 +43,7 @@ from service.daemon.store import JournalEntry, Store, StoredLoop, with_epoch
 from service.engine.audit import AUDIT_COLUMNS, AUDIT_TYPES, AuditRow
 from service.engine.config import LoopConfig
 from service.engine.saved import Saved
+from service.wire.protocol import UpdateReason
 
 CHANNEL = "pitune_loops"
 """The NOTIFY channel of loop changes; the payload is comma-separated loop ids."""
@@ -137,6 +138,30 @@ SNAPSHOT_SQL = (
 )
 """A chunk of snapshots as one fenced statement, as :data:`RECORD_SQL` (binary
 parameters: the text form's escaping of the JSON cost 4 times as much)."""
+
+LAST_MESSAGE_ROWS = 8
+"""A loop's newest audit rows in which :data:`LAST_MESSAGE_SQL` looks for its last
+message: one its owner committed but never published before a failover is the loop's
+last commit, followed at most by a verdict or two at its seq; one further back went out
+long ago."""
+LAST_MESSAGE_SQL = (
+    "SELECT l.id, m.t, m.reason, m.kp_old, m.ki_old FROM loops l CROSS JOIN LATERAL ("
+    "SELECT w.* FROM (SELECT r.*, lead(r.seq) OVER (ORDER BY r.id DESC) AS before, "
+    "bool_or(r.reason = 'registered' AND r.seq = l.seq) OVER () AS registered FROM ("
+    "SELECT id, seq, t, mode, reason, kp_old, ki_old, kp_new, ki_new FROM audit "
+    "WHERE loop_id = l.id ORDER BY id DESC LIMIT %s) AS r) AS w "
+    "WHERE w.seq = l.seq ORDER BY w.id LIMIT 1) AS m "
+    "WHERE l.shard = ANY(%s) AND l.seq > 0 AND l.epoch IS NOT NULL AND m.before < l.seq "
+    "AND NOT m.registered AND m.reason = ANY(%s) AND (m.mode = 'auto' OR m.reason = %s) "
+    "AND m.kp_new = l.kp AND m.ki_new = l.ki"
+)
+"""Of each loop of some shards whose last message (its ``seq``) is one the plant applies:
+the message's audit row (``t``, reason, the gains before). That row is the first at the
+loop's ``seq`` (the row before it has a lower one: later rows at the same seq are
+verdicts, faults, a step the model check held), written by an update (a registration
+again at that seq is a new loop, nothing sent), in ``auto`` or an accepted proposal, and
+its gains are still those in force (gains adopted from the gateway since: the plant has
+them, nothing to send)."""
 
 
 def _typed(values, kind: type) -> list:
@@ -272,6 +297,18 @@ class PgStore(Store):
                 "SELECT id, shard FROM loops WHERE starts_with(shard, ?)", (GATEWAY_SHARD,)
             )
         return dict(rows)
+
+    def last_messages(self, shards: list[str]) -> dict[str, tuple]:
+        """Loop id -> (t, reason, kp before, ki before) of the loops of ``shards`` whose
+        last committed message is one the plant applies (:data:`LAST_MESSAGE_SQL`); its
+        gains, ``seq`` and epoch are the loop's stored ones."""
+        reasons = [reason.value for reason in UpdateReason]
+        with self._lock:
+            rows = self._fetch(
+                LAST_MESSAGE_SQL,
+                (LAST_MESSAGE_ROWS, shards, reasons, UpdateReason.accepted.value),
+            )
+        return {row[0]: row[1:] for row in rows}
 
     # -- writes -------------------------------------------------------------------------
     def insert_loops(

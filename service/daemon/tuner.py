@@ -190,8 +190,15 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
                 ),
                 "pitune_gains_fenced": (
                     "Committed gains messages not published: this member's leases may have "
-                    "run out (it was paused); the loops' new owner publishes from the store.",
+                    "run out (it was paused); the loops' new owner sends each loop's last "
+                    "committed message again if the plant applies it (pitune_gains_resent).",
                     lambda: self.gains_fenced,
+                ),
+                "pitune_gains_resent": (
+                    "Committed gains messages sent again when this member took their loops "
+                    "over: each loop's last, if the plant applies it (its previous owner may "
+                    "not have published it); gateways that had it drop it by (epoch, seq).",
+                    lambda: self.gains_resent,
                 ),
                 "pitune_samples_foreign": (
                     "Samples of loops another member of the cluster owns, left to it.",

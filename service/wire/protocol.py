@@ -290,7 +290,8 @@ class GainsMessage(BaseModel):
         description="Short machine-readable reason, space-separated key=value pairs: "
         "reason, basis (model: identified, hint), dkp/dki (relative change, %), guard "
         "(none, rate, bounds), verdict (pending, rolled_back, rollback_proposed), why "
-        "(of a rollback: iae, oscillation, operator) (revision 3).",
+        "(of a rollback: iae, oscillation, operator), resent (takeover: a message sent again "
+        "by a cluster member taking the loop over) (revision 3).",
     )
 
 
