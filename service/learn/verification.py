@@ -227,7 +227,8 @@ def run_scenario(
                 kp, ki = pi.kp.copy(), pi.ki.copy()
                 kp[i], ki[i] = u.kp, u.ki
                 pi.set_gains(kp, ki)
-        flagged |= engine.table.o_osc[slots]
+        # the period is measured when the detector flags (a rollback forgets the flag)
+        flagged |= np.isfinite(engine.table.o_per[slots])
         plant.step(pi.step(sp - pv))
     if "period" in sc:  # oscillation periods from the oscillation's onset
         at = change_at * DT
