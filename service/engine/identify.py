@@ -3,30 +3,32 @@
 An *event* is a window of one loop's closed-loop data (sample times, setpoint,
 measurement and controller output) that starts at a setpoint move, or at an operator's
 step of the output in manual (open-loop data, a bump test), and ends at the next one
-(or when it grows too long). :func:`fit_event` fits a first-order-plus-dead-time
-model from the controller output to the measurement over the window::
+(or when it grows too long). :func:`assess` fits one first-order-plus-dead-time model
+from the controller output to the measurement over a segment of consecutive events::
 
-    pv(t) = b + K x(t),    tau x'(t) = u(t - theta) - u(t0) - x(t),    x(t0) = 0
+    pv(t_k) = b + K x_k + c a^k,    tau x'(t) = u(t - theta) - u(t0) - x(t),    x(t0) = 0
 
-(the plant at steady state when the window opens: the offset ``b`` absorbs the
-operating point and, when the output is reconstructed from the PI law, the unknown
-integral term). The fit is an output-error fit: the model is simulated from the
-controller output alone, so measurement noise does not bias it as it would an
-equation-error (ARX) fit, and the controller's reaction to noise is small where the
-move is large against the noise (which the acceptance rules require).
+(a = exp(-h / tau), h the sample period: the offset ``b`` absorbs the operating point
+and, when the output is reconstructed from the PI law, the unknown integral term; the
+free transient ``c a^k``, one per segment, a plant not yet at rest when it opens). The
+fit is an output-error fit: the model is simulated from the controller output alone,
+so measurement noise does not bias it as it would an equation-error (ARX) fit, and the
+controller's reaction to noise is small where the move is large against the noise
+(which the acceptance rules require).
 
-Two steps: a grid over (tau, theta), each point linear in (K, b) and solved in closed
+Two steps: a grid over (tau, theta), each point linear in (b, K, c) and solved in closed
 form, vectorised over the grid; then :func:`scipy.optimize.least_squares` refines the
-best point over (K, log tau, theta, b). An integrating model ``K/s e^{-theta s}``
-is fitted the same way and compared.
+best point over (K, log tau, theta, b, c). An integrating model
+``K/s e^{-theta s}`` is fitted the same way and compared.
 
-:func:`combine` turns the recent accepted events into one model with a confidence:
-events must each fit well, see the response above the noise, pin down K and tau
-(standard errors from the Jacobian), and agree with each other.
+The model is confident when it explains the segment, enough of its events show the
+response above the noise, K and tau are pinned down (standard errors from the Jacobian)
+and the model fitted without the last event predicts it (:func:`assess`).
 
 The fit itself (the data as it sees them, grid search, refinement, the integrating
-alternative) is :mod:`service.engine.foptd_fit`. Sampling assumption: the samples are
-(near) uniform in time (the recorder's rows may each be the mean of several:
+alternative) is :mod:`service.engine.foptd_fit`. Sampling assumption: the samples
+follow a uniform clock, give or take a gateway's jitter (each row placed at the grid
+sample nearest its time; the recorder's rows may each be the mean of several:
 :func:`~service.engine.foptd_fit.recorded`).
 """
 

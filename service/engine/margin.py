@@ -20,6 +20,8 @@ GRID = np.geomspace(1e-3, np.pi, 256)
 """w theta at which the phase is evaluated (the first crossing of -pi lies below pi)."""
 WGRID = np.geomspace(1e-2, 1e2, 128)
 """w (tau + theta) at which the sensitivity is evaluated."""
+PEAK = np.geomspace(0.8, 1.25, 33)
+"""w over the gain crossover at which the sensitivity is also evaluated."""
 BISECTIONS = 12
 """Halvings of the factor's interval (a precision of 2.4e-4 of the gains)."""
 
@@ -50,15 +52,37 @@ def gain_margin(kp, ki, K, tau, theta) -> np.ndarray:
 
 
 def sensitivity(kp, ki, K, tau, theta) -> np.ndarray:
-    """Largest sensitivity max_w 1 / |1 + L(jw)| (n,); meaningful for stable loops only."""
+    """Largest sensitivity max_w 1 / |1 + L(jw)| (n,); meaningful for stable loops only.
+    Evaluated on :data:`WGRID` and around the gain crossover (:func:`_crossover`), where
+    a lightly damped loop's narrow peak lies: the grid alone read 0.11 for 313 (kp 0.01,
+    ki 1e5 on K 1, tau 1 s, no dead time: its peak at 316 rad/s, beyond the grid's top)
+    and 6.27 for 6.82 (kp 0.05, ki 50: between two of its points)."""
     kp, ki, K, tau, theta = _arrays(kp, ki, K, tau, theta)
-    w = WGRID[None, :] / (tau + theta)[:, None]
+    w = np.concatenate(
+        [
+            WGRID[None, :] / (tau + theta)[:, None],
+            _crossover(kp, ki, K, tau, theta)[:, None] * PEAK,
+        ],
+        axis=1,
+    )
     s = 1j * w
     loop = (
         (kp[:, None] + ki[:, None] / s) * K[:, None] * np.exp(-theta[:, None] * s)
         / (tau[:, None] * s + 1.0)
     )  # fmt: skip
     return (1.0 / np.abs(1.0 + loop)).max(axis=1)
+
+
+def _crossover(kp, ki, K, tau, theta) -> np.ndarray:
+    """The frequency at which |L(jw)| = 1 (n,) (the dead time leaves the magnitude alone):
+    the positive root w^2 of tau^2 w^4 + b w^2 - K^2 ki^2 = 0, b = 1 - K^2 kp^2 (in the
+    form without cancellation for either sign of b); where |L| stays below 1 (ki 0 and
+    K kp below 1), :data:`WGRID`'s lowest frequency, which is evaluated anyway."""
+    b = 1.0 - (K * kp) ** 2
+    root = np.sqrt(b * b + 4.0 * (tau * K * ki) ** 2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w2 = np.where(b > 0.0, 2.0 * (K * ki) ** 2 / (root + b), (root - b) / (2.0 * tau * tau))
+    return np.where(w2 > 0.0, np.sqrt(np.maximum(w2, 0.0)), WGRID[0] / (tau + theta))
 
 
 def robust_factor(kp, ki, K, tau, theta, ms_max) -> np.ndarray:
