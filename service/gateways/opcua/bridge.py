@@ -8,9 +8,14 @@ received: the source clock stepped back), ``sp``, ``op`` and the rest are the va
 at that time (notifications of one publish are applied in source-timestamp order),
 ``kp``/``ki`` the block's gains converted to the parallel form, ``auto`` whether the mode
 is one of the map's auto values, ``saturated`` whether an output-at-limit flag is set.
-Samples go out batched (``SampleBatch`` on ``{prefix}/samples``, every
-``batch_interval_s``) with ``CongestionControl.BLOCK``. While no tuner's liveliness token
-is present (tuner down, Zenoh router or link down) they are held in a buffer of at most
+Samples go out batched (``SampleBatch`` every ``batch_interval_s``) with
+``CongestionControl.BLOCK``, on ``{prefix}/gateways/{gateway_id}/samples`` with a
+``gateway_id`` (protocol revision 4: a per-gateway Zenoh user may publish there only;
+:func:`~service.gateways.opcua.register.prepare` checks at start that the loops are
+registered with it), else (or with ``shared_samples_key``) on ``{prefix}/samples``.
+While no tuner's liveliness token is present (tuner down, Zenoh router or link down),
+and on the gateway's key while no tuner subscribes to it (a cluster between two owners
+of the gateway, a tuner before revision 4), they are held in a buffer of at most
 ``buffer_max_samples`` (the oldest are dropped beyond, and counted) and sent when a tuner
 is back, still in order per loop.
 
@@ -61,7 +66,7 @@ import zenoh
 from service.gateways.base import SAMPLE_CONGESTION, Gateway
 from service.gateways.opcua.client import Change, Item, LinkLost, OpcUaLink, now_epoch
 from service.gateways.opcua.loops import Event, LoopRuntime, Pending, number
-from service.gateways.opcua.register import register_loops, registration_bodies
+from service.gateways.opcua.register import prepare
 from service.gateways.opcua.sitemap import SiteMap
 from service.gateways.opcua.writes import GainWriter
 from service.gateways.registration import RegistrationError
@@ -76,6 +81,10 @@ or closes sessions it cannot serve) is one outage with the failed connects: the
 reconnect delay keeps doubling. Each reconnect re-reads and re-monitors every node
 (10-20 s for 1,000 loops), so a server that drops sessions at once must not get one per
 ``reconnect_min_s``."""
+UNHEARD_WARN_S = 10.0
+"""Samples held this long for want of a subscriber on the gateway's samples key, while a
+tuner is up, are logged as a WARNING: a cluster's owner change takes a second or two,
+a tuner of revision 3 or earlier never subscribes."""
 REPLAYED_PV_VALUES = 2
 """A (re)connect's first PV values, its initial read and its monitored item's first
 notification, are the server's current value: one already sent before the loss, or (a
@@ -110,10 +119,15 @@ class OpcUaGateway(GainWriter):
         self.status_interval_s = status_interval_s
         self._registered = site.tuner.register_url is None
         self._last_flush = 0.0
+        gateway = site.bus.samples_gateway
+        self.samples_key = self.keys.gateway_samples(gateway) if gateway else self.keys.batch
+        self._unheard_since: float | None = None
+        """Since when samples wait for a subscriber on the gateway's key (tuner up)."""
+        self._unheard_told = False
         self.bus = Gateway(session, list(self.by_id), self.keys, gateway_id=site.bus.gateway_id)
         try:
             self.publisher = session.declare_publisher(
-                self.keys.batch, encoding=ENCODING, congestion_control=SAMPLE_CONGESTION
+                self.samples_key, encoding=ENCODING, congestion_control=SAMPLE_CONGESTION
             )
         except BaseException:
             self.bus.close()
@@ -292,8 +306,10 @@ class OpcUaGateway(GainWriter):
 
     def status_line(self) -> str:
         s = self.stats
+        tuner = "down" if not self.bus.tuner_up else "up" if self._unheard_since is None else (
+            f"up, none subscribed to {self.samples_key}")  # fmt: skip
         return (f"{len(self.loops)} loops, OPC UA {'up' if self.link else 'down'}, tuner "
-                f"{'up' if self.bus.tuner_up else 'down'}; samples {s['samples']} "
+                f"{tuner}; samples {s['samples']} "
                 f"(published {s['published']}, buffered {len(self.outbox)}, dropped "
                 f"{s['samples_dropped']}, not newer {s['samples_not_newer']}, older "
                 f"{s['samples_older']}); writes {s['written']}, unverified "
@@ -330,6 +346,8 @@ class OpcUaGateway(GainWriter):
     def _flush(self, *, force: bool = False) -> None:
         if not self.outbox or not self.bus.tuner_up or not self._registered:
             return  # held: no tuner to take them, or it does not know the loops yet
+        if not self._heard():
+            return  # held: no owner of the gateway subscribes (a cluster's handover)
         now = time.monotonic()
         if not force and now - self._last_flush < self.site.bus.batch_interval_s:
             return
@@ -345,11 +363,30 @@ class OpcUaGateway(GainWriter):
                 return
             self.stats["published"] += n
 
+    def _heard(self) -> bool:
+        """Whether a tuner subscribes to the samples key. Always on ``{prefix}/samples``
+        (every tuner subscribes there; nothing changed for it). On the gateway's key only
+        the member of a cluster owning the gateway does, once it has the loops: before,
+        Zenoh would drop the batch on this side, so it stays in the buffer."""
+        if self.site.bus.samples_gateway is None or self.publisher.matching_status.matching:
+            if self._unheard_told:
+                log.warning("samples flow again on %s", self.samples_key)
+            self._unheard_since, self._unheard_told = None, False
+            return True
+        now = time.monotonic()
+        if self._unheard_since is None:
+            self._unheard_since = now
+        elif not self._unheard_told and now - self._unheard_since >= UNHEARD_WARN_S:
+            self._unheard_told = True
+            log.warning("samples held for %.0f s: a tuner is up but none subscribes to %s "
+                        "(a cluster with no member owning gateway %s yet, or a tuner before "
+                        "protocol revision 4)", now - self._unheard_since, self.samples_key,
+                        self.site.bus.samples_gateway)  # fmt: skip
+        return False
+
     # -- registration ----------------------------------------------------------------
     async def _register(self) -> None:
-        bodies = registration_bodies(self.site, self.loops)
-        if bodies:
-            await asyncio.to_thread(register_loops, self.site, bodies)
+        await asyncio.to_thread(prepare, self.site, self.loops)
         self._registered = True
 
 

@@ -145,10 +145,22 @@ class BusMap(BaseModel):
     zenoh_config: Path | None = None
     prefix: str = DEFAULT_PREFIX
     gateway_id: GatewayId | None = Field(
-        None, description="Receive batched gains on {prefix}/gateways/{id}/gains."
-    )
+        None, description="Receive batched gains on {prefix}/gateways/{id}/gains and "
+        "publish the samples on {prefix}/gateways/{id}/samples (its loops must be "
+        "registered with this gateway id)."
+    )  # fmt: skip
+    shared_samples_key: bool = Field(
+        False, description="With a gateway_id, publish the samples on {prefix}/samples "
+        "anyway: for loops registered without the gateway id (a per-gateway Zenoh user "
+        "may not publish there)."
+    )  # fmt: skip
     batch_interval_s: Annotated[float, Field(gt=0.0, le=10.0)] = 0.05
     buffer_max_samples: Annotated[int, Field(ge=1, le=10_000_000)] = 100_000
+
+    @property
+    def samples_gateway(self) -> str | None:
+        """The gateway whose samples key carries the samples (None: ``{prefix}/samples``)."""
+        return None if self.shared_samples_key else self.gateway_id
 
 
 class TunerMap(BaseModel):
