@@ -291,32 +291,24 @@ class Store:
         a delete): a loop registered again continues from it, since gateways drop a gains
         message whose seq is not above the last one from the same tuner."""
         self.apply_journal()
+        return self._pairs_in(
+            "SELECT loop_id, MAX(seq) FROM audit WHERE loop_id IN ({}) GROUP BY loop_id", ids
+        )
+
+    def _pairs_in(self, sql: str, ids: list[str]) -> dict:
+        """The (key, value) rows of ``sql`` whose ``IN ({})`` takes ``ids``, 500 at a time
+        (SQLite's limit on a statement's parameters), as a dict."""
         found = {}
         with self._lock:
             for i in range(0, len(ids), 500):
                 chunk = ids[i : i + 500]
-                found.update(
-                    self._db.execute(
-                        "SELECT loop_id, MAX(seq) FROM audit WHERE loop_id IN "
-                        f"({', '.join('?' * len(chunk))}) GROUP BY loop_id",
-                        chunk,
-                    )
-                )
+                found.update(self._db.execute(sql.format(", ".join("?" * len(chunk))), chunk))
         return found
 
     def gateways_of(self, ids: list[str]) -> dict[str, str | None]:
         """The gateway of each stored loop among ``ids`` (None: registered without one),
         by its shard: a row that failed to load, or another member's, has one too."""
-        found = {}
-        with self._lock:
-            for i in range(0, len(ids), 500):
-                chunk = ids[i : i + 500]
-                found.update(
-                    self._db.execute(
-                        f"SELECT id, shard FROM loops WHERE id IN ({', '.join('?' * len(chunk))})",
-                        chunk,
-                    )
-                )
+        found = self._pairs_in("SELECT id, shard FROM loops WHERE id IN ({})", ids)
         return {i: shard_gateway(found[i]) for i in ids if i in found}
 
     def insert_loops(
