@@ -64,8 +64,9 @@ def test_the_model_card_names_the_averaged_actors(tmp_path):
         ("missing", "not found"),
         ("not an agent", "is not an agent file"),
         ("no actor", "is not an agent file"),
-        ("other architecture", "differ in architecture"),
+        ("other architecture", "architecture hidden 20 differs from hidden 100"),
         ("nan", "non-finite"),
+        ("out is a folder", "is a folder: give the agent file"),
     ],
 )
 def test_bad_inputs_are_refused_and_nothing_is_written(tmp_path, capsys, case, says):
@@ -87,12 +88,18 @@ def test_bad_inputs_are_refused_and_nothing_is_written(tmp_path, capsys, case, s
         small = Actor(replace(untrained_agent(3).cfg, hidden=20))
         save_actor(small, tmp_path / "small.pt")
         args = [a, tmp_path / "small.pt"]
+    elif case == "out is a folder":
+        args = [a, b]
     else:
         blob = torch.load(b, weights_only=True)
         blob["actor"]["head.0.bias"][0] = float("nan")
         torch.save(blob, b)
         args = [a, b]
     out = tmp_path / "mean.pt"
-    assert main(["average", *map(str, args), "--out", str(out)]) == 2
-    assert says in capsys.readouterr().out
-    assert not out.exists() and not (tmp_path / "mean.pt.tmp").exists()
+    if case == "out is a folder":  # written as out/ it left out.tmp behind and exited 1
+        out.mkdir()
+    assert main(["average", *map(str, args), "--out", f"{out}/"]) == 2
+    err = capsys.readouterr().err  # one line on stderr
+    assert says in err and len(err.strip().splitlines()) == 1
+    assert not any(out.iterdir()) if out.is_dir() else not out.exists()
+    assert not (tmp_path / "mean.pt.tmp").exists()
