@@ -22,7 +22,7 @@ import sqlite3
 import sys
 import textwrap
 
-from service import __version__
+from service import UsageError, __version__
 
 COMMANDS: dict[str, tuple[str, str]] = {
     "train": ("service.learn.train", "train the meta-RL agent offline (recurrent PPO)"),
@@ -42,7 +42,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
 EPILOG = """\
 Quick start: `pitune demo` runs a tuner and a simulated two-tank plant for an hour of
 plant time; `pitune tuner` runs the daemon (docs/tuner.md), `pitune plant run` a
-simulated plant behind a gateway. Exit status 0 on success, 2 for a bad command line;
+simulated plant behind a gateway. Exit status 0 on success, 2 for a bad command line
+(or a value a command refuses), 1 for a file that is missing or unreadable;
 `pitune tuner --help` lists the daemon's other exit statuses."""
 
 
@@ -136,22 +137,30 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(module.run(args) or 0)
     except Exception as exc:
-        if not _users_mistake(exc):
+        status = _users_mistake(exc)
+        if status is None:
             raise
         print(f"pitune {args.command}: {exc}", file=sys.stderr)
-        return 1
+        return status
 
 
-def _users_mistake(exc: Exception) -> bool:
-    """A file or database the command was pointed at that is not there, not readable or
-    not what it should be: one line for the user, not a traceback (a defect still has
-    its traceback)."""
-    mistakes = (FileNotFoundError, NotADirectoryError, IsADirectoryError, PermissionError,
-                 sqlite3.DatabaseError)  # fmt: skip
+def _users_mistake(exc: Exception) -> int | None:
+    """The exit status of a user's mistake, None for a defect (which keeps its
+    traceback); the user gets one line. 2 for input the command refuses (a
+    :class:`~service.UsageError`: a flag's value, a file that is not what the flag takes),
+    as argparse exits for a bad command line; 1 for a file or database the command was
+    pointed at that is not there (or is where a folder should be), not readable or not what
+    it should be."""
+    if isinstance(exc, UsageError):
+        return 2
+    mistakes = (FileNotFoundError, FileExistsError, NotADirectoryError, IsADirectoryError,
+                PermissionError, sqlite3.DatabaseError)  # fmt: skip
     if isinstance(exc, mistakes):
-        return True
+        return 1
     kind = type(exc)  # psycopg's connection errors, without importing psycopg here
-    return kind.__module__.startswith("psycopg") and kind.__name__ == "OperationalError"
+    if kind.__module__.startswith("psycopg") and kind.__name__ == "OperationalError":
+        return 1
+    return None
 
 
 if __name__ == "__main__":

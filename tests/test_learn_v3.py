@@ -128,14 +128,19 @@ def test_sampled_conditions_leave_the_core_share_untouched():
 
 
 @pytest.mark.skipif(not sample_loop.KERNEL, reason="the C sample loop is not built")
-def test_the_c_sample_loop_equals_the_numpy_loop_bit_for_bit(monkeypatch):
+@pytest.mark.parametrize(("u_limit", "push", "saturating"), [(100, 0.05, False), (1.5, 3, True)])
+def test_the_c_sample_loop_equals_the_numpy_loop_bit_for_bit(
+    monkeypatch, u_limit, push, saturating
+):
     """Every real-loop condition at once (noise white and low-pass, load steps and walk,
     random moves and ramps, second lags, drift, quiet starts): observations, costs, MSEs
-    and the plants' states after 40 RL periods are the same doubles on both paths."""
+    and the plants' states after 40 RL periods are the same doubles on both paths. The
+    second case drives the outputs onto the +-limit with large gains, where the
+    anti-windup (PIBatch._limited) decides the integral."""
     cfg = EnvConfig(drift_prob=0.5, sp_jitter=0.3, core_share=0.3, noise_prob=0.6,
                     load_prob=0.4, load_walk_prob=0.3, sp_random_prob=0.4, sp_amp_prob=0.3,
                     sp_long_prob=0.2, lag2_prob=0.3, quiet_prob=0.2, wide_prob=0.4,
-                    ratio_prob=0.3)  # fmt: skip
+                    ratio_prob=0.3, u_limit=u_limit)  # fmt: skip
 
     def run() -> list[np.ndarray]:
         rng = np.random.default_rng(5)
@@ -143,15 +148,20 @@ def test_the_c_sample_loop_equals_the_numpy_loop_bit_for_bit(monkeypatch):
         K, tau, theta, tau2, core = sample_tasks_v3(200, rng, cfg)
         cond = sample_conditions(200, rng, cfg, core)
         out = [env.reset(K, tau, theta, horizon=40, tau2=tau2, conditions=cond)]
+        saturated = np.zeros(200, dtype=bool)
         for t in range(40):
-            out += env.step(0.05 * np.sin(np.arange(400).reshape(200, 2) + t))
-        return out + [env.plant.x, env.plant._buf, env.pi.integral, env.target.x, env.int_e]
+            out += env.step(push * np.sin(np.arange(400).reshape(200, 2) + t))
+            saturated |= env.pi.saturated
+        out += [env.plant.x, env.plant._buf, env.pi.integral, env.target.x, env.int_e]
+        return out + [saturated]
 
     fast = run()
     monkeypatch.setattr(sample_loop, "KERNEL", False)
     slow = run()
     assert all(np.array_equal(a, b, equal_nan=True) for a, b in zip(fast, slow, strict=True))
-    assert np.ptp(fast[-5]) > 0.5  # the plants moved
+    assert np.ptp(fast[-6]) > 0.5  # the plants moved
+    # the limits held some loops' outputs at the ends of periods (or none, far off)
+    assert (fast[-1].mean() > 0.2) if saturating else not fast[-1].any()
 
 
 def test_default_configs_are_the_paper_mdp(tmp_path):

@@ -33,6 +33,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from service import UsageError
+
 MODELS_DIR = Path(__file__).resolve().parents[1] / "models"
 DEFAULT_WEIGHTS = MODELS_DIR / "pitune_agent.pt"
 V2_WEIGHTS = MODELS_DIR / "pitune_agent_v2.pt"
@@ -189,15 +191,36 @@ def save_actor(actor: Actor, path: str | Path, meta: dict | None = None) -> None
     )
 
 
-def load_agent(path: str | Path | None = None) -> Agent:
-    """Load the shipped agent, or the agent stored at ``path``."""
+def load_agent(path: str | Path | None = None, architecture: AgentConfig | None = None) -> Agent:
+    """Load the shipped agent, or the agent stored at ``path`` (checked to be of
+    ``architecture`` if given). FileNotFoundError for a missing file; a
+    :class:`~service.UsageError` (a ValueError) for a file that is not an agent file
+    (:func:`save_actor`'s) or one of another architecture."""
     path = Path(path) if path is not None else DEFAULT_WEIGHTS
     if not path.exists():
         raise FileNotFoundError(f"agent weights not found at {path}")
-    blob = torch.load(path, map_location="cpu", weights_only=True)
-    actor = Actor(AgentConfig(**blob["config"]))
-    actor.load_state_dict(blob["actor"])
-    return Agent(actor, json.loads(blob.get("meta", "{}")))
+    try:
+        blob = torch.load(path, map_location="cpu", weights_only=True)
+    except OSError:
+        raise  # unreadable: the file system's own error
+    except Exception as err:  # torch raises pickle, zip and runtime errors alike
+        raise UsageError(f"{path} is not an agent file ({type(err).__name__})") from None
+    if isinstance(blob, dict) and "opt_bc" in blob:
+        raise UsageError(f"{path} is a training checkpoint, not an agent file (its best.pt is)")
+    try:
+        config, meta = AgentConfig(**blob["config"]), json.loads(blob.get("meta", "{}"))
+        actor = Actor(config)
+        actor.load_state_dict(blob["actor"])
+    except (TypeError, KeyError, AttributeError, ValueError, RuntimeError) as err:
+        raise UsageError(f"{path} is not an agent file ({type(err).__name__})") from None
+    if architecture is not None and config != architecture:
+        theirs, ours = asdict(config), asdict(architecture)
+        differ = [k for k in ours if theirs[k] != ours[k]]
+        raise UsageError(
+            f"{path}: architecture {', '.join(f'{k} {theirs[k]}' for k in differ)} differs "
+            f"from {', '.join(f'{k} {ours[k]}' for k in differ)} (required here)"
+        )
+    return Agent(actor, meta)
 
 
 def untrained_agent(seed: int = 0) -> Agent:

@@ -13,7 +13,8 @@
  *   err = target.x - plant.x;      sq += min(err^2, err_cap)
  *   y = plant.x (+ noise: ns = a_n ns + w_n[j]; y = y + ns);   e[j] = sp[j] - y
  *   int_e += e dt
- *   PI (parallel, conditional integration, clamped): u
+ *   PI (parallel, clamped; conditional integration: the integral moves at most to the
+ *   value that puts the output on a limit, as plant_sim.pi.PIBatch._limited): u
  *   load walk: lw = a_w lw + w_w[j];   plant input u + (load[j] + lw)
  *   FOPTD plant with its dead-time ring buffer (and an optional second lag), then the
  *   target filter (an FOPTD of gain 1) driven by sp[j].
@@ -51,6 +52,11 @@ static inline double clip(double v, double lo, double hi) {
     v = v < lo ? lo : v; /* np.clip: NaN passes through */
     return v > hi ? hi : v;
 }
+
+/* np.minimum / np.maximum: a NaN in either operand is the result; a tie gives the second
+ * operand, as numpy's loops do (so signed zeros come out the same) */
+static inline double np_min(double a, double b) { return (a < b || a != a) ? a : b; }
+static inline double np_max(double a, double b) { return (a > b || a != a) ? a : b; }
 
 #define PTR(T, v) ((T *)(intptr_t)(v))
 
@@ -104,14 +110,15 @@ static PyObject *py_run(PyObject *self, PyObject *args) {
             const double e = Sp[k] - y;
             E[k] = e;
             Int_e[i] = Int_e[i] + e * dt;
-            /* PIBatch.step */
-            const double integ = I[i] + Ki[i] * e * dt;
-            const double raw = Bias[i] + Kp[i] * e + integ;
-            const int high = raw > u_max, low = raw < u_min;
-            if (!((high && e > 0) || (low && e < 0))) I[i] = integ;
-            Sat[i] = (uint8_t)(high || low);
+            /* PIBatch.step: the integral advanced as far as PIBatch._limited lets it */
+            const double on_high = u_max - Bias[i] - Kp[i] * e;
+            const double on_low = u_min - Bias[i] - Kp[i] * e;
+            const double integ = np_min(I[i] + Ki[i] * e * dt, np_max(I[i], on_high));
+            I[i] = np_max(integ, np_min(I[i], on_low));
+            const double raw = Bias[i] + Kp[i] * e + I[i];
+            Sat[i] = (uint8_t)(raw >= u_max || raw <= u_min);
             E_last[i] = e;
-            double u = clip(Bias[i] + Kp[i] * e + I[i], u_min, u_max);
+            double u = clip(raw, u_min, u_max);
             if (Load) {
                 if (W_w) Lw[i] = a_w * Lw[i] + W_w[k];
                 u = u + (Load[k] + Lw[i]);

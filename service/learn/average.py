@@ -22,40 +22,30 @@ from pathlib import Path
 
 import torch
 
-from service.agent.model import Actor, Agent, load_agent, save_actor
-
-
-def _load(path: Path) -> Agent:
-    """:func:`load_agent`, with anything that is not an agent file a ValueError."""
-    try:
-        return load_agent(path)
-    except FileNotFoundError:
-        raise
-    except Exception as err:  # torch raises pickle, zip, key and runtime errors alike
-        raise ValueError(f"{path} is not an agent file: {err!r}") from err
+from service import UsageError
+from service.agent.model import Actor, load_agent, save_actor
 
 
 def average_actors(paths: list[Path]) -> tuple[Actor, dict]:
     """The actor with the mean weights of the agent files at ``paths`` and its meta.
 
     The last input gives the meta, so list the lineage's latest actor last (a run's
-    ``wall_s`` counts from that run's start, so the files cannot tell). Raises ValueError
+    ``wall_s`` counts from that run's start, so the files cannot tell). Raises UsageError
     for fewer than two distinct files, a file that is not an agent, different
     architectures or non-finite weights; FileNotFoundError for a missing file.
     """
     paths = [Path(p) for p in paths]
     if len({p.resolve() for p in paths}) != len(paths) or len(paths) < 2:
-        raise ValueError("give at least two distinct agent files to average")
-    agents = [_load(p) for p in paths]
-    configs = {a.cfg for a in agents}
-    if len(configs) != 1:  # one config, one set of parameters (the actor derives them)
-        raise ValueError(f"the agent files differ in architecture: {sorted(map(str, configs))}")
+        raise UsageError("give at least two distinct agent files to average")
+    lead = load_agent(paths[0])
+    # one architecture, one set of parameters (the actor derives them from its config)
+    agents = [lead, *(load_agent(p, lead.cfg) for p in paths[1:])]
     states = [a.actor.state_dict() for a in agents]
     mean = {}
     for key, first in states[0].items():
         stack = torch.stack([s[key].to(torch.float64) for s in states])
         if not torch.isfinite(stack).all():
-            raise ValueError(f"non-finite weights in {key}")
+            raise UsageError(f"non-finite weights in {key}")
         mean[key] = stack.mean(0).to(first.dtype)
     actor = Actor(agents[0].cfg)
     actor.load_state_dict(mean)
@@ -79,11 +69,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.out.is_dir():
+        raise UsageError(f"--out {args.out} is a folder: give the agent file to write")
     try:
         actor, meta = average_actors(args.actors)
-    except (ValueError, FileNotFoundError) as err:
-        print(f"pitune average: {err}")
-        return 2
+    except FileNotFoundError as err:  # a listed input: a bad command line, not a lost file
+        raise UsageError(str(err)) from None
     args.out.parent.mkdir(parents=True, exist_ok=True)
     tmp = args.out.with_name(args.out.name + ".tmp")
     save_actor(actor, tmp, meta)

@@ -19,6 +19,7 @@ from typing import Literal, get_args
 
 import numpy as np
 
+from service import UsageError
 from service.agent.fast import FastPolicy
 from service.agent.model import load_agent
 from service.engine.config import guard_option
@@ -203,11 +204,11 @@ def evaluate_only(agent: Policy, out: Path, parts: tuple[str, ...], quick: bool 
 def main(cfg: EvalConfig) -> int:
     """Evaluate, print the report, write the card; exit code 1 if a bar is not met (full run)."""
     if cfg.robust and cfg.only:
-        raise SystemExit("--only selects among the paper's experiments; not with --robust")
+        raise UsageError("--only selects among the paper's experiments; not with --robust")
     if cfg.guard is not None and not cfg.robust:
-        raise SystemExit("--guard sets the robustness suite's loops; only with --robust")
+        raise UsageError("--guard sets the robustness suite's loops; only with --robust")
     if cfg.integrating and (cfg.robust or cfg.only):
-        raise SystemExit("--integrating is a measurement of its own: not with --robust or --only")
+        raise UsageError("--integrating is a measurement of its own: not with --robust or --only")
     agent = load_agent(cfg.weights)
     policy = agent if cfg.precision == "reference" else FastPolicy(agent, precision=cfg.precision)
     if cfg.robust:

@@ -7,13 +7,16 @@ an agent.
 from __future__ import annotations
 
 import json
+import textwrap
 from pathlib import Path
 
 import numpy as np
 
 from plant_sim.loop import step_test
 from service.agent.model import Agent
+from service.learn.env import EnvConfig
 from service.learn.experiments import PAPER
+from service.learn.validation import VAL_DRIFT_BAR, VAL_MSE_BAR, VAL_SETTLED_TIME
 from service.units import AGENT_KI0, AGENT_KP0, DEFAULT_FORGETTING, RL_STEP_AGENT_UNITS
 
 
@@ -264,23 +267,11 @@ CHANGES_FROM_PAPER = """\
   introduced: worst 0.0027 -> 0.0012, median 0.00034 -> 0.00020). One implementation
   (`service.units.error_window`) for the engine and the training environment;
   docs/tuner.md, Robustness measures 5.
-- **Training distribution.** A quarter of the episodes have drifting dynamics (K step or
-  tau ramp) and 30% run with the forgetting factor 0.99 used online; warm-start episodes
-  are 60-120 RL steps (the paper: 40) so the hidden state stays calibrated over long
-  runs. The setpoint period is drawn per episode from 11 time units +-30% with a random
-  phase (the paper: exactly every 4 RL steps), because a real loop's setpoint does not
-  move on the agent's clock; agents trained on the fixed clock score 50x worse when it
-  moves at other times.
+{distribution}
 - **Imitation label.** In the later stages the label is half the log-distance to the
   oracle's gains (still clipped to one step's reach): a gentler approach that lost less
   precision when the setpoint timing varies.
-- **Epoch selection.** The kept epoch minimises the worse of (worst step-test MSE / 0.003)
-  and (largest gain drift after 140 time units / 10%) on a fixed validation set, with
-  and without setpoint jitter, so that it is both precise and settled. That set shares
-  8 plants with the paper grid, and the choice among kept epochs and weight averages was
-  made on the paper grid, its adaptation runs and the robustness conditions themselves
-  (`TRAINING.md`, sessions 22-23): those numbers are in-sample. The held-out plants of
-  `reports/report.md` are not.
+{selection}
 - **PPO details.** Advantage normalisation, value targets scaled by 1/10, gradient-norm
   clipping 0.5, critic learning rate 1e-3, 20 value-only warm-up epochs before the
   policy is updated, exploration std reset to exp(-2.5) at the start of PPO.
@@ -289,6 +280,70 @@ CHANGES_FROM_PAPER = """\
 - **Controller output limit.** +-100 (far outside any sane tuning of the box) so an
   unstable trial stays finite.
 """
+"""The model card's changes from the paper; ``{distribution}`` and ``{selection}`` are
+stated from the weights' own training config (:func:`_distribution`, :func:`_selection`)."""
+
+
+def _distribution(cfg: dict) -> str:
+    """The training distribution of the run that made the weights (``cfg``: its config)."""
+    if not cfg:
+        return "- **Training distribution.** Not recorded with these weights."
+    text = (
+        f"- **Training distribution.** In the run that made these weights,"
+        f" {100 * cfg['drift_prob']:.0f}% of the episodes have drifting dynamics (K step or"
+        f" tau ramp) and {100 * cfg['forgetting_prob']:.0f}% run with the forgetting factor"
+        f" {cfg['forgetting']:g} used online (earlier runs of the lineage: `TRAINING.md`);"
+        f" warm-start episodes are {cfg['bc_horizon']} RL steps (the paper: 40) so the"
+        " hidden state stays calibrated over long runs."
+    )
+    period = EnvConfig().sp_period
+    if not cfg["sp_jitter"]:
+        return _bullet(text + f" The setpoint moves every {period:g} time units, as in the paper.")
+    return _bullet(
+        text
+        + (
+            f" The setpoint period is drawn per episode from {period:g} time units"
+            f" +-{100 * cfg['sp_jitter']:.0f}% with a random phase (the paper: exactly every"
+            f" {period / RL_STEP_AGENT_UNITS:g} RL steps), because a real loop's setpoint does"
+            " not move on the agent's clock; agents trained on the fixed clock score 50x worse"
+            " when it moves at other times."
+        )
+    )
+
+
+def _selection(cfg: dict, averaged: bool) -> str:
+    """How the weights were kept: the validation score's terms in their run's config
+    (``val_robust``, ``val_adapt``), and whether they are a weight average instead."""
+    terms = [
+        f"(worst step-test MSE / {VAL_MSE_BAR:g})",
+        f"(largest gain drift after {VAL_SETTLED_TIME:g} time units / {VAL_DRIFT_BAR:.0%})",
+    ]
+    if cfg.get("val_robust"):
+        terms.append("(the robustness conditions' worst and median MSE / their bars)")
+    if cfg.get("val_adapt"):
+        terms.append("(the tau ramp's and the K step's adaptive MSE / v2's)")
+    worst = "worse" if len(terms) == 2 else "worst"
+    text = (
+        f"- **Epoch selection.** The kept epoch minimises the {worst} of"
+        f" {', '.join(terms[:-1])} and {terms[-1]} on a fixed validation set, with and"
+        " without setpoint jitter, so that it is both precise and settled."
+    )
+    if averaged:
+        text += (
+            " These weights are not one kept epoch but the element-wise mean of the kept"
+            " actors named above, which no validation scored."
+        )
+    return _bullet(
+        text + " The validation set shares 8 plants with the paper grid, and the choice among kept"
+        " epochs and weight averages was made on the paper grid, its adaptation runs and the"
+        " robustness conditions themselves (`TRAINING.md`, sessions 22-23): those numbers"
+        " are in-sample. The held-out plants of `reports/report.md` are not."
+    )
+
+
+def _bullet(text: str) -> str:
+    """A list item wrapped as the card's fixed ones are."""
+    return textwrap.fill(text, width=88, subsequent_indent="  ", break_on_hyphens=False)
 
 
 def write_model_card(path: Path, agent: Agent, metrics: dict) -> None:
@@ -348,7 +403,10 @@ def write_model_card(path: Path, agent: Agent, metrics: dict) -> None:
         "",
         "## Changes from the paper",
         "",
-        CHANGES_FROM_PAPER,
+        CHANGES_FROM_PAPER.format(
+            distribution=_distribution(cfg),
+            selection=_selection(cfg, bool(meta.get("average_of"))),
+        ),
         "## Evaluation (`pitune evaluate`)",
         "",
         render_report(metrics).split("\n", 2)[2],

@@ -24,10 +24,13 @@ Departures from the paper (Appendix A), recorded in the model card:
 from __future__ import annotations
 
 import argparse
+import copy
 import csv
 import json
 import math
+import signal
 import subprocess
+import sys
 import time
 from dataclasses import asdict, fields
 from pathlib import Path
@@ -37,12 +40,14 @@ import torch
 from torch import nn
 from torch.distributions import Normal
 
+from service import UsageError
 from service.agent.model import (
     MAX_LOG_STEP,
     Actor,
     AgentConfig,
     Critic,
     forget,
+    load_agent,
     relative_to_delta,
     save_actor,
 )
@@ -60,9 +65,11 @@ from service.learn.oracle import (
     oracle_table3,
 )
 from service.learn.ppo import gae, ppo_policy_loss, unroll
-from service.learn.train_config import RunOptions, TrainConfig
+from service.learn.train_config import RunOptions, TrainConfig, add_arguments, flag
 from service.learn.validation import validate
 from service.units import AGENT_KI0, AGENT_KP0
+
+__all__ = ["Trainer", "add_arguments", "main", "run"]  # pitune train's flags live in train_config
 
 
 class Trainer:
@@ -70,7 +77,6 @@ class Trainer:
 
     def __init__(self, cfg: TrainConfig, out: Path, device: str = "cpu") -> None:
         self.cfg, self.out, self.device = cfg, out, torch.device(device)
-        out.mkdir(parents=True, exist_ok=True)
         torch.set_num_threads(cfg.threads)
         torch.manual_seed(cfg.seed)
         self.rng = np.random.default_rng(cfg.seed)
@@ -85,8 +91,10 @@ class Trainer:
         self.env_cfg = EnvConfig(
             drift_prob=cfg.drift_prob, sp_jitter=cfg.sp_jitter, **{k: getattr(cfg, k) for k in v3}
         )
-        if cfg.excitation_gate and cfg.epochs > 0:
-            raise ValueError("excitation_gate applies to the imitation warm start: --epochs 0")
+        try:  # the environment's own rule on the jitter, before the run writes anything
+            TuningEnv(self.env_cfg, self.rng)
+        except ValueError as err:
+            raise UsageError(f"--sp-jitter {cfg.sp_jitter}: {err}") from None
         self.real = cfg.core_share < 1.0  # v3: real-loop conditions and the widened oracle
         self.table = oracle_table3() if self.real else oracle_table()
         self.epoch = 0
@@ -117,23 +125,41 @@ class Trainer:
         torch.save(self.state(), tmp)
         tmp.replace(self.out / name)
 
-    @classmethod
-    def resume(cls, out: Path, device: str = "cpu") -> Trainer:
-        blob = torch.load(out / "checkpoint.pt", map_location=device, weights_only=True)
-        trainer = cls(TrainConfig(**blob["config"]), out, device)
+    def restore(self, blob: dict) -> None:
+        """Take up the state :meth:`state` gave (the run's config aside)."""
         for key in ("actor", "critic", "opt_bc", "opt_pi", "opt_v"):
-            getattr(trainer, key).load_state_dict(blob[key])
-        trainer.epoch, trainer.elapsed, trainer.best = blob["epoch"], blob["elapsed"], blob["best"]
-        trainer.init_from = json.loads(blob.get("init_from", "null"))
-        trainer.rng.bit_generator.state = json.loads(blob["rng"])
+            getattr(self, key).load_state_dict(blob[key])
+        self.epoch, self.elapsed, self.best = blob["epoch"], blob["elapsed"], blob["best"]
+        self.init_from = json.loads(blob.get("init_from", "null"))
+        self.rng.bit_generator.state = json.loads(blob["rng"])
         torch.set_rng_state(blob["torch_rng"].cpu())
+
+    @classmethod
+    def resume(cls, out: Path, device: str = "cpu", given: dict | None = None) -> Trainer:
+        """The run in ``out`` as of its checkpoint, its log cut back to it. ``given``:
+        config values the user gave now; any that differ from the run's own are refused
+        (a run keeps the config it was started with)."""
+        if not (out / "checkpoint.pt").exists():
+            raise UsageError(f"{out} holds no run to resume (no checkpoint.pt)")
+        blob = torch.load(out / "checkpoint.pt", map_location=device, weights_only=True)
+        saved = blob["config"]
+        for name, value in (given or {}).items():
+            if value != saved[name]:
+                raise UsageError(
+                    f"{flag(name)} {value}: the run in {out} has {saved[name]}, and a resumed "
+                    "run keeps its config (drop the flag, or start a new run)"
+                )
+        trainer = cls(TrainConfig(**saved), out, device)
+        trainer.restore(blob)
+        _cut_log(out / "metrics.csv", trainer.epoch)
         return trainer
 
     def init_actor_from(self, path: Path) -> None:
-        """Warm-start the actor from an exported agent (recorded in the model card)."""
-        blob = torch.load(path, map_location=self.device, weights_only=True)
-        self.actor.load_state_dict(blob["actor"])
-        self.init_from = {"path": str(path), "meta": json.loads(blob.get("meta", "{}"))}
+        """Warm-start the actor from an exported agent (recorded in the model card); a
+        UsageError for a file that is not an agent of this architecture."""
+        agent = load_agent(path, self.actor.cfg)
+        self.actor.load_state_dict(agent.actor.state_dict())
+        self.init_from = {"path": str(path), "meta": agent.meta}
 
     # -- rollouts ---------------------------------------------------------------------
     def _episode_forgetting(self, n: int) -> np.ndarray:
@@ -289,6 +315,7 @@ class Trainer:
         total = cfg.bc_epochs + cfg.value_warmup + cfg.epochs
         stop_epoch = total if max_epochs is None else min(total, self.epoch + max_epochs)
         deadline = None if max_minutes is None else time.monotonic() + 60 * max_minutes
+        self.out.mkdir(parents=True, exist_ok=True)
         log_path = self.out / "metrics.csv"
         columns = [
             "epoch", "phase", "wall_s", "mean_cost", "final_mse", "bc_loss", "kl",
@@ -302,55 +329,73 @@ class Trainer:
                 columns = head.readline().strip().split(",")
         last_ckpt = time.monotonic()
         bar = tqdm(total=total, initial=self.epoch, desc="train", dynamic_ncols=True)
-        with log_path.open("a", newline="") as fh:
-            writer = csv.DictWriter(fh, fieldnames=columns, extrasaction="ignore")
-            if new_log:
-                writer.writeheader()
-            while self.epoch < stop_epoch and (deadline is None or time.monotonic() < deadline):
-                start = time.monotonic()
-                if self.epoch < cfg.bc_epochs:
-                    row = self.bc_epoch()
-                else:
-                    if self.epoch == cfg.bc_epochs:
-                        # BC never trains log_std; PPO fine-tuning starts from a narrow policy
-                        with torch.no_grad():
-                            self.actor.log_std.fill_(cfg.ppo_log_std)
-                    row = self.ppo_epoch(self.epoch >= cfg.bc_epochs + cfg.value_warmup)
-                self.epoch += 1
-                if self.epoch % cfg.eval_every == 0 or self.epoch == total:
-                    row.update(
-                        validate(
-                            self.actor,
-                            cfg.eval_plants,
-                            cfg.eval_steps,
-                            cfg.sp_jitter,
-                            cfg.val_robust,
-                            cfg.val_adapt,
-                        )
-                    )
-                    if cfg.keep_validated:  # every validated actor, for a final pick
-                        save_actor(
-                            self.actor, self.out / f"val_{self.epoch:04d}.pt", self.card_meta(row)
-                        )
-                    if row["val_score"] < self.best:
-                        self.best = row["val_score"]
-                        save_actor(self.actor, self.out / "best.pt", self.card_meta(row))
-                self.elapsed += time.monotonic() - start
-                row.update(epoch=self.epoch, wall_s=round(self.elapsed, 1))
-                writer.writerow(row)
-                fh.flush()
-                bar.set_postfix(
-                    phase=row["phase"], cost=f"{row['mean_cost']:.3f}",
-                    kl=f"{row.get('kl', 0.0):.4f}", best=f"{self.best:.4f}",
-                )  # fmt: skip
-                bar.update(1)
-                if time.monotonic() - last_ckpt > 60 * cfg.checkpoint_minutes:
-                    self.save()
-                    last_ckpt = time.monotonic()
-        bar.close()
+        # the state at the last whole epoch: a stop between epochs checkpoints it, so the
+        # resumed run redoes the cut epoch exactly as the run would have done it
+        boundary = copy.deepcopy(self.state())
+        try:
+            with log_path.open("a", newline="") as fh:
+                writer = csv.DictWriter(fh, fieldnames=columns, extrasaction="ignore")
+                if new_log:
+                    writer.writeheader()
+                while self.epoch < stop_epoch and (deadline is None or time.monotonic() < deadline):
+                    self._epoch(writer, total, bar)
+                    fh.flush()
+                    boundary = copy.deepcopy(self.state())
+                    if time.monotonic() - last_ckpt > 60 * cfg.checkpoint_minutes:
+                        self.save()
+                        last_ckpt = time.monotonic()
+        except KeyboardInterrupt:  # Ctrl-C, or SIGTERM through main()
+            self.restore(boundary)
+            self.save()
+            raise
+        finally:
+            bar.close()
         self.save()
         save_actor(self.actor, self.out / "last.pt", self.card_meta({}))
         return self.epoch >= total
+
+    def _epoch(self, writer: csv.DictWriter, total: int, bar) -> None:
+        """One epoch: train, validate when due (keeping best.pt), log its row."""
+        cfg, start = self.cfg, time.monotonic()
+        if self.epoch < cfg.bc_epochs:
+            row = self.bc_epoch()
+        else:
+            if self.epoch == cfg.bc_epochs:
+                # BC never trains log_std; PPO fine-tuning starts from a narrow policy
+                with torch.no_grad():
+                    self.actor.log_std.fill_(cfg.ppo_log_std)
+            row = self.ppo_epoch(self.epoch >= cfg.bc_epochs + cfg.value_warmup)
+        self.epoch += 1
+        validated = self.epoch % cfg.eval_every == 0 or self.epoch == total
+        if validated:
+            row.update(
+                validate(
+                    self.actor,
+                    cfg.eval_plants,
+                    cfg.eval_steps,
+                    cfg.sp_jitter,
+                    cfg.val_robust,
+                    cfg.val_adapt,
+                )
+            )
+        # before the agent files are written: their wall_s is the log's, this epoch in
+        self.elapsed += time.monotonic() - start
+        row.update(epoch=self.epoch, wall_s=round(self.elapsed, 1))
+        if validated:
+            meta = self.card_meta(row)
+            if cfg.keep_validated:  # every validated actor, for a final pick
+                save_actor(self.actor, self.out / f"val_{self.epoch:04d}.pt", meta)
+            # the first validated actor is kept whatever its score (inf: a loop went
+            # unstable), so a run always has a best.pt to export
+            if row["val_score"] < self.best or not (self.out / "best.pt").exists():
+                self.best = min(self.best, row["val_score"])
+                save_actor(self.actor, self.out / "best.pt", meta)
+        writer.writerow(row)
+        bar.set_postfix(
+            phase=row["phase"], cost=f"{row['mean_cost']:.3f}",
+            kl=f"{row.get('kl', 0.0):.4f}", best=f"{self.best:.4f}",
+        )  # fmt: skip
+        bar.update(1)
 
     def card_meta(self, row: dict) -> dict:
         return {
@@ -366,26 +411,67 @@ class Trainer:
 
 
 def _git_commit() -> str:
+    """The commit of the checkout this package runs from ("unknown" outside one), whatever
+    the current directory."""
     try:
-        return subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=5
-        ).stdout.strip()
-    except OSError:
+        done = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=5,
+            cwd=Path(__file__).resolve().parent,
+        )  # fmt: skip
+    except (OSError, subprocess.SubprocessError):
         return "unknown"
+    return done.stdout.strip() if done.returncode == 0 and done.stdout.strip() else "unknown"
 
 
-def main(cfg: TrainConfig, opts: RunOptions) -> int:
-    """Start (or resume) a run, train it within ``opts.max_minutes``, export when finished."""
+def _cut_log(path: Path, epoch: int) -> None:
+    """Drop the log's rows after checkpoint ``epoch`` (a run stopped between checkpoints,
+    or in the middle of a row), so that the resumed run logs those epochs once."""
+    if not path.exists():
+        return
+    lines = path.read_text().splitlines(keepends=True)
+    at = next(csv.reader(lines[:1])).index("epoch")
+    keep = 1
+    while keep < len(lines) and lines[keep].endswith("\n"):
+        if int(next(csv.reader([lines[keep]]))[at]) > epoch:
+            break
+        keep += 1
+    if keep < len(lines):
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.write_text("".join(lines[:keep]))
+        tmp.replace(path)
+
+
+INTERRUPTED = 130
+"""Exit status of a run stopped by Ctrl-C or SIGTERM (checkpointed), as a shell's 128 + SIGINT."""
+
+
+def main(cfg: TrainConfig, opts: RunOptions, given: tuple[str, ...] = ()) -> int:
+    """Start (or resume) a run, train it within ``opts.max_minutes``, export when finished.
+    ``given``: the config fields set on the command line (a resumed run refuses any that
+    differ from its own). Ctrl-C or SIGTERM checkpoints the last whole epoch and exits
+    with :data:`INTERRUPTED`."""
     if opts.resume:
-        trainer = Trainer.resume(opts.out, opts.device)
+        trainer = Trainer.resume(opts.out, opts.device, {k: getattr(cfg, k) for k in given})
         print(f"resumed {opts.out} at epoch {trainer.epoch}")
     else:
         if (opts.out / "checkpoint.pt").exists():
-            raise SystemExit(f"{opts.out} already holds a run: use --resume or another --out")
+            raise UsageError(f"{opts.out} already holds a run: use --resume or another --out")
         trainer = Trainer(cfg, opts.out, opts.device)
         if opts.init_from is not None:
             trainer.init_actor_from(opts.init_from)
-    if not trainer.run(max_minutes=opts.max_minutes):
+    previous = signal.signal(signal.SIGTERM, _stop)
+    try:
+        finished = trainer.run(max_minutes=opts.max_minutes)
+    except KeyboardInterrupt:
+        print(
+            f"interrupted: checkpointed at epoch {trainer.epoch}; continue with "
+            f"pitune train --out {opts.out} --resume",
+            file=sys.stderr,
+        )
+        return INTERRUPTED
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    if not finished:
         print(f"stopped at epoch {trainer.epoch}; continue with --resume")
         return 0
     if opts.export is not None:
@@ -394,28 +480,13 @@ def main(cfg: TrainConfig, opts: RunOptions) -> int:
     return 0
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--out", type=Path, default=RunOptions.out, help="run directory")
-    p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
-    p.add_argument(
-        "--init-from", type=Path, default=None, help="start the actor from this agent file"
-    )
-    p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    p.add_argument(
-        "--max-minutes", type=float, default=None, help="checkpoint and stop after this long"
-    )
-    p.add_argument(
-        "--export", type=Path, default=None, help="after training, copy OUT/best.pt to this path"
-    )
-    for f in fields(TrainConfig):
-        kind = type(f.default)
-        if kind is bool:
-            kind = lambda v: v.lower() in ("1", "true", "yes")  # noqa: E731
-        p.add_argument(f"--{f.name.replace('_', '-')}", type=kind, default=f.default)
+def _stop(signum: int, frame: object) -> None:
+    """SIGTERM (a service manager's stop, ``kill``) as Ctrl-C: checkpoint and exit."""
+    raise KeyboardInterrupt
 
 
 def run(args: argparse.Namespace) -> int:
     def pick(config):
         return config(**{f.name: getattr(args, f.name) for f in fields(config)})
 
-    return main(pick(TrainConfig), pick(RunOptions))
+    return main(pick(TrainConfig), pick(RunOptions), getattr(args, "given", ()))

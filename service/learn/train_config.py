@@ -1,11 +1,17 @@
 """The hyperparameters of one ``pitune train`` run (:class:`TrainConfig`, checkpointed with
-it; every field is a ``--flag``) and what one call does with the run (:class:`RunOptions`)."""
+it; every field is a ``--flag``), what one call does with the run (:class:`RunOptions`),
+their ranges, and the command's flags (:func:`add_arguments`)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import argparse
+import math
+from dataclasses import dataclass, fields
 from pathlib import Path
 
+import torch
+
+from service import UsageError
 from service.units import DEFAULT_FORGETTING
 
 
@@ -123,6 +129,58 @@ class TrainConfig:
     threads: int = 1
     """Torch intra-op threads."""
 
+    def __post_init__(self) -> None:
+        """Every value in its range (a flag's value or a checkpoint's config), else a
+        UsageError naming the flag."""
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, bool):
+                continue
+            low, high, open_low = _limits(f.name)
+            inside = low < value if open_low else low <= value
+            if not (math.isfinite(value) and inside and value <= high):
+                raise UsageError(f"{flag(f.name)} {value}: must be {_say(low, high, open_low)}")
+        if self.excitation_gate and self.epochs > 0:
+            raise UsageError("--excitation-gate applies to the imitation warm start: --epochs 0")
+
+
+_COUNT, _AT_LEAST_1, _POSITIVE = (0, math.inf, False), (1, math.inf, False), (0, math.inf, True)
+_SHARE = (0, 1, False)
+_LIMITS = {
+    "seed": _COUNT, "bc_epochs": _COUNT, "bc_horizon": _AT_LEAST_1, "bc_updates": _AT_LEAST_1,
+    "bc_minibatch": _AT_LEAST_1, "bc_explore": _COUNT, "bc_lr": _POSITIVE,
+    "bc_label_gain": _POSITIVE, "bc_hold_weight": _COUNT, "epochs": _COUNT,
+    "episodes": _AT_LEAST_1, "horizon": _AT_LEAST_1, "gamma": _SHARE, "gae_lambda": _SHARE,
+    "clip": _POSITIVE, "pi_lr": _POSITIVE, "v_lr": _POSITIVE, "pi_iters": _COUNT,
+    "v_iters": _AT_LEAST_1, "target_kl": _POSITIVE, "value_warmup": _COUNT,
+    "value_scale": _POSITIVE, "max_grad_norm": _POSITIVE, "forgetting": (0, 1, True),
+    "eval_every": _AT_LEAST_1, "eval_plants": _COUNT, "eval_steps": _AT_LEAST_1,
+    "checkpoint_minutes": _COUNT, "threads": _AT_LEAST_1,
+    # sp_jitter's upper bound depends on the setpoint and RL periods: TuningEnv checks it
+    "sp_jitter": _COUNT,
+}  # fmt: skip
+"""TrainConfig's ranges: (low, high, low excluded). Shares (``*_prob``, ``*_share``) lie
+in [0, 1]; any other field takes any finite value."""
+
+
+def _limits(name: str) -> tuple[float, float, bool]:
+    if name.endswith(("_prob", "_share")):
+        return _SHARE
+    return _LIMITS.get(name, (-math.inf, math.inf, False))
+
+
+def _say(low: float, high: float, open_low: bool) -> str:
+    if math.isinf(low):
+        return "finite"
+    if math.isinf(high):
+        return f"> {low:g}" if open_low else f"at least {low:g}"
+    return f"in {'(' if open_low else '['}{low:g}, {high:g}]"
+
+
+def flag(name: str) -> str:
+    """The ``pitune train`` flag of a TrainConfig or RunOptions field."""
+    return "--" + name.replace("_", "-")
+
 
 @dataclass(frozen=True)
 class RunOptions:
@@ -140,3 +198,55 @@ class RunOptions:
     """Checkpoint and stop after this much wall time (continue with ``resume``)."""
     export: Path | None = None
     """When the run has finished, copy ``out/best.pt`` here."""
+
+    def __post_init__(self) -> None:
+        """A UsageError for options that cannot run, before anything is written."""
+        if self.max_minutes is not None and not (0 < self.max_minutes < math.inf):
+            raise UsageError(f"--max-minutes {self.max_minutes}: must be > 0")
+        if self.resume and self.init_from is not None:
+            raise UsageError("--init-from starts a new run: not with --resume")
+        try:
+            torch.empty(0, device=self.device)
+        except (RuntimeError, AssertionError, NotImplementedError) as err:
+            # torch says so in a paragraph; its first line names the reason
+            raise UsageError(f"--device {self.device}: {str(err).splitlines()[0]}") from None
+
+
+def switch(value: str) -> bool:
+    """A boolean flag's value; anything but these words is a bad command line."""
+    words = {"true": True, "1": True, "yes": True, "false": False, "0": False, "no": False}
+    if value.lower() not in words:
+        raise argparse.ArgumentTypeError(f"{value!r}: give true/false, 1/0 or yes/no")
+    return words[value.lower()]
+
+
+class _Given(argparse.Action):
+    """Stores a config flag's value and notes that it was given (``main``'s ``given``)."""
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        setattr(namespace, self.dest, values)
+        namespace.given = (*getattr(namespace, "given", ()), self.dest)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """``pitune train``'s flags: RunOptions', then one for each TrainConfig field (its
+    type; booleans by :func:`switch`)."""
+    p.add_argument("--out", type=Path, default=RunOptions.out, help="run directory")
+    p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
+    p.add_argument(
+        "--init-from", type=Path, default=None, help="start the actor from this agent file"
+    )
+    p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    p.add_argument(
+        "--max-minutes", type=float, default=None, help="checkpoint and stop after this long"
+    )
+    p.add_argument(
+        "--export",
+        type=Path,
+        default=None,
+        help="after training, copy OUT/best.pt to this path: the best-scoring validated "
+        "actor, or the first validated one if no validation scored finite",
+    )
+    for f in fields(TrainConfig):
+        kind = switch if type(f.default) is bool else type(f.default)
+        p.add_argument(flag(f.name), type=kind, default=f.default, action=_Given)
