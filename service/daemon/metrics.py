@@ -82,7 +82,9 @@ class Metrics:
         PlatformCollector(registry=r)
         GCCollector(registry=r)
         self.samples_received = Counter(
-            "pitune_samples_received", "Sample messages received on the bus.", registry=r
+            "pitune_samples_received",
+            "Samples received on the bus (each sample of a batch counts).",
+            registry=r,
         )
         self.samples_rejected = Counter(
             "pitune_samples_rejected", "Samples rejected, by reason.", ["reason"], registry=r
@@ -141,14 +143,15 @@ class Metrics:
         self._rejections = RateLimitedLog(log)
         self.identification = Counter(
             "pitune_identification",
-            "Identification outcomes (identified, mismatch, rescaled, out_of_envelope, ...).",
+            "Identification outcomes: identified, rescaled, mismatch, out_of_envelope, "
+            "in_envelope, identify, model (a first tuning from a model), refuted.",
             ["outcome"],
             registry=r,
         )
         self.verdicts = Counter(
             "pitune_verdicts",
             "Verdicts of gain changes (verified, rolled_back, rollback_proposed, worse), "
-            "by what judged them (iae, oscillation, operator; '' for verified).",
+            "by what judged them (iae, overshoot, oscillation, operator; '' for verified).",
             ["verdict", "why"],
             registry=r,
         )
