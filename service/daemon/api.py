@@ -317,10 +317,13 @@ def healthz(tuner: TunerDep) -> Health:
 
 @ops.get("/readyz", responses={503: {"model": Health}})
 def readyz(tuner: TunerDep) -> Health:
-    """Readiness: worker running, Zenoh session open, store committing."""
-    if not tuner.ready:
-        why = "worker not up" if not tuner.alive else "bus not connected: no router or peer"
-        return _unhealthy("starting", why)
+    """Readiness: worker running, Zenoh session open, store committing. Cut off from the
+    bus after having been connected is "disconnected" (the link went), not "starting"."""
+    if not tuner.alive:
+        return _unhealthy("starting", "worker not up")
+    if not tuner.bus_ready:
+        state = "disconnected" if tuner.bus is not None and tuner.bus.was_connected else "starting"
+        return _unhealthy(state, "bus not connected: no router or peer")
     if tuner.store_failure is not None:
         return _unhealthy("failing", tuner.store_failure)
     return Health(status="ok")

@@ -22,6 +22,10 @@ one of them.
 A callback subscriber still declared when the interpreter exits hangs it (zenoh 1.10),
 so :meth:`Bus.close` undeclares everything and closes the session; the tuner calls it
 on every shutdown path.
+
+Zenoh reports each transport to a router or peer opening and closing: the bus logs a
+WARNING when the last one goes (the tuner is cut off: no samples in, no gains out) and an
+INFO when one is back, and reports each change to ``on_link`` (``pitune_bus_connected``).
 """
 
 from __future__ import annotations
@@ -193,12 +197,21 @@ class Bus:
         settings: Settings,
         inbox: Inbox,
         on_overload: Callable[[Item, str], None],
+        on_link: Callable[[bool], None] = lambda connected: None,
     ) -> None:
         self.settings = settings
         self.keys: Keys = settings.keys
         self.inbox = inbox
         self._on_overload = on_overload
         """Called with an item not queued and why ("overload" or "too_large")."""
+        self._on_link = on_link
+        """Called with :attr:`connected` whenever it changes (on Zenoh's thread)."""
+        self._link: bool | None = None
+        self._link_lock = threading.Lock()
+        self._link_listener = None
+        self.was_connected = False
+        """The bus was connected once: not connected now means the link went (``/readyz``
+        says "disconnected", not "starting")."""
         self.session: zenoh.Session | None = None
         self._entities: list = []
         self._token = None
@@ -234,6 +247,10 @@ class Bus:
             self._entities.append(
                 s.liveliness().declare_subscriber(k.all_tuners, on_tuner, history=False)
             )
+            self._link_listener = s.info.declare_transport_events_listener(
+                lambda _event: self._link_changed()
+            )
+            self._link_changed()  # the state at start (a transport may open meanwhile)
         except BaseException:
             self.close()
             raise
@@ -258,6 +275,32 @@ class Bus:
             return bool(info.routers_zid()) or bool(info.peers_zid())
         except zenoh.ZError:  # closed meanwhile
             return False
+
+    def _link_changed(self) -> None:
+        """A transport opened or closed (or the bus opened): log and report a change of
+        :attr:`connected`. Not at start-up: a tuner not yet connected is "starting"."""
+        with self._link_lock:
+            now = self.connected
+            if now == self._link:
+                return
+            if now and self.was_connected:
+                log.info("bus connected again (routers %s, peers %s)", *self._zids())
+            elif not now and self._link is not None:
+                log.warning(
+                    "bus disconnected: no router or peer reachable (connect %s); no samples "
+                    "arrive and no gains leave until one is back",
+                    self.settings.zenoh_connect,
+                )
+            self.was_connected |= now
+            self._link = now
+            self._on_link(now)
+
+    def _zids(self) -> tuple[list[str], list[str]]:
+        try:
+            info = self.session.info
+            return [str(z) for z in info.routers_zid()], [str(z) for z in info.peers_zid()]
+        except (zenoh.ZError, AttributeError):  # closed meanwhile
+            return [], []
 
     def _must_connect(self) -> bool:
         if self.settings.zenoh_mode == "client" or self.settings.zenoh_connect:
@@ -380,6 +423,9 @@ class Bus:
     def close(self) -> None:
         """Undeclare subscribers, queryables and token, then close the session (idempotent)."""
         self.stop_receiving()
+        if self._link_listener is not None:  # first: closing the session is no lost link
+            _undeclare(self._link_listener)
+            self._link_listener = None
         if self._token is not None:
             _undeclare(self._token)
             self._token = None

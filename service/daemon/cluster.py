@@ -60,6 +60,7 @@ from typing import TYPE_CHECKING
 import psycopg
 
 from service.daemon import shards as sharding
+from service.daemon.metrics import cluster_totals
 from service.daemon.notifies import Notifies
 from service.daemon.outage import SETTLE_TICKS, StoreOutage
 from service.daemon.store_pg import CHANNEL, Fenced, connect
@@ -107,6 +108,8 @@ class Cluster(Suspects, Notifies):
         self.members: list[str] = []
         self.moves = 0
         """Shards acquired since start (after a failover or a rebalance)."""
+        self.takeovers = 0
+        """Shards the ticks acquired after the first (``pitune_cluster_takeovers_total``)."""
         self.adoptions: collections.deque[dict] = collections.deque(maxlen=ADOPTIONS_KEPT)
         """The last acquisitions: wall time begun, shards, loops, store load and engine
         insert seconds, and of those the turns at the table's lock awaited (``GET /cluster``:
@@ -129,6 +132,7 @@ class Cluster(Suspects, Notifies):
         self._wake = threading.Event()
         """Set when a member's token goes: the tick comes at once, not up to a tick later."""
         self.outage = StoreOutage(SETTLE_TICKS * self.tick_s)
+        tuner.metrics.totals(cluster_totals(self))
 
     # -- lifecycle --------------------------------------------------------------------
     def start(self) -> None:
@@ -362,6 +366,8 @@ class Cluster(Suspects, Notifies):
             raise
         self._count_loops(conn or self._conn)
         self.moves += len(taken)
+        if conn is None and self.ready.is_set():  # a tick's, not the start's or a claim's
+            self.takeovers += len(taken)
         self.adoptions.append({"at": started, "shards": len(taken), **timing})
         log.info(
             "acquired %d shards (token %d): %d loops, store load %.2f s, engine insert %.2f s "

@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import orjson
 from prometheus_client import (
@@ -30,11 +31,14 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 from service.daemon.logs import EventLog
 from service.wire.protocol import LoopStatus, Mode, RejectReason
 
+if TYPE_CHECKING:
+    from service.daemon.cluster import Cluster
+
 log = logging.getLogger("pitune.tuner")
 disable_created_metrics()  # process-wide: no `_created` series beside any counter
 
 
-GAUGES = ("_bytes", "_waiting")
+GAUGES = ("_bytes", "_waiting", "_members", "_owned")
 """Name endings of :meth:`Metrics.totals` numbers that are levels (gauges), not counts."""
 
 
@@ -50,6 +54,26 @@ class _Totals:
             yield family(name, text, value=float(value()))
 
 
+def cluster_totals(cluster: Cluster) -> dict[str, tuple[str, Callable[[], float]]]:
+    """A cluster member's numbers (:meth:`Metrics.totals`), as its tick left them."""
+    return {
+        "pitune_cluster_members": (
+            "Live members of the cluster, this one included, at the last tick (fewer than "
+            "deployed: one is missing).",
+            lambda: len(cluster.members),
+        ),
+        "pitune_cluster_shards_owned": (
+            "Shards whose leases this member holds.",
+            lambda: len(cluster.held),
+        ),
+        "pitune_cluster_takeovers": (
+            "Shards this member's ticks acquired after its first tick: from a member that "
+            "died or left, or released to it in a rebalance.",
+            lambda: cluster.takeovers,
+        ),
+    }
+
+
 class Metrics:
     def __init__(self) -> None:
         self.registry = CollectorRegistry()
@@ -58,7 +82,9 @@ class Metrics:
         PlatformCollector(registry=r)
         GCCollector(registry=r)
         self.samples_received = Counter(
-            "pitune_samples_received", "Sample messages received on the bus.", registry=r
+            "pitune_samples_received",
+            "Samples received on the bus (each sample of a batch counts).",
+            registry=r,
         )
         self.samples_rejected = Counter(
             "pitune_samples_rejected", "Samples rejected, by reason.", ["reason"], registry=r
@@ -86,6 +112,12 @@ class Metrics:
             registry=r,
         )
         self.queue_depth = Gauge("pitune_queue_depth", "Bus messages waiting.", registry=r)
+        self.bus_connected = Gauge(
+            "pitune_bus_connected",
+            "1 while samples can arrive and gains leave (a router or peer connected, or the "
+            "tuner only listens), 0 while cut off.",
+            registry=r,
+        )
         self.store_commit_failures = Counter(
             "pitune_store_commit_failures",
             "Failed commits of gains and audit rows (nothing was published for them).",
@@ -111,14 +143,15 @@ class Metrics:
         self._rejections = RateLimitedLog(log)
         self.identification = Counter(
             "pitune_identification",
-            "Identification outcomes (identified, mismatch, rescaled, out_of_envelope, ...).",
+            "Identification outcomes: identified, rescaled, mismatch, out_of_envelope, "
+            "in_envelope, identify, model (a first tuning from a model), refuted.",
             ["outcome"],
             registry=r,
         )
         self.verdicts = Counter(
             "pitune_verdicts",
             "Verdicts of gain changes (verified, rolled_back, rollback_proposed, worse), "
-            "by what judged them (iae, oscillation, operator; '' for verified).",
+            "by what judged them (iae, overshoot, oscillation, operator; '' for verified).",
             ["verdict", "why"],
             registry=r,
         )

@@ -85,5 +85,5 @@ class HistoryPage(BaseModel):
 
 
 class Health(BaseModel):
-    status: Literal["ok", "starting", "failing"]
+    status: Literal["ok", "starting", "disconnected", "failing"]
     detail: str = ""

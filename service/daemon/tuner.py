@@ -259,7 +259,7 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
         # Everything allocated so far (modules, torch, the restored table) lives as long as
         # the process: keep it out of the cyclic GC's full collections (~100 ms each).
         freeze_survivors()
-        self.bus = Bus(self.settings, self.inbox, self._overload)
+        self.bus = Bus(self.settings, self.inbox, self._overload, self.metrics.bus_connected.set)
         try:
             self.bus.open()
         except BaseException:
