@@ -27,6 +27,8 @@ from service.engine.updates import StepResult
 
 NAMED_TAKEN = 5
 """Taken ids a registration's 409 names at most (with their gateways)."""
+METRICS_LOCK_WAIT_S = 1.0
+"""Longest a scrape waits for the loop table (the worker holds it for milliseconds)."""
 
 
 class Conflict(Exception):
@@ -105,10 +107,17 @@ class LoopAdmin:
             raise UnknownLoop(loop_id)
 
     def refresh_status_counts(self) -> None:
-        """Loops per status into the metrics (statuses change with time: done per scrape)."""
-        with self.table.lock:
+        """Loops per status into the metrics (statuses change with time: done per scrape).
+        Waits at most METRICS_LOCK_WAIT_S for the table: a worker stuck holding it (a
+        blocked store statement) must not hang the scrape that would show it stuck; the
+        gauges keep their last values then."""
+        if not self.table.lock.acquire(timeout=METRICS_LOCK_WAIT_S):
+            return
+        try:
             counts = self.table.status_counts(self.clock.wall())
             monitor = views.monitor_summary(self.table)
+        finally:
+            self.table.lock.release()
         self.metrics.set_status_counts(counts)
         self.metrics.set_monitor(*monitor)
 

@@ -303,11 +303,17 @@ ops = APIRouter(tags=["operations"])
 
 @ops.get("/healthz", responses={503: {"model": Health}})
 def healthz(tuner: TunerDep) -> Health:
-    """Liveness: the worker thread runs and the store commits."""
+    """Liveness: the worker thread runs and is not stuck, and the store commits and
+    writes."""
     if not tuner.alive:
         return _unhealthy("failing", "worker thread not running")
     if tuner.store_failure is not None:
         return _unhealthy("failing", tuner.store_failure)
+    stuck = tuner.worker_stuck
+    if stuck is not None:
+        return _unhealthy("failing", stuck)
+    if tuner.write_failure is not None:
+        return _unhealthy("failing", tuner.write_failure)
     # still ok (200): a restart fixes neither, the detail says what the operator must
     others = sorted(tuner.bus.other_tuners if tuner.bus else ())
     details = [f"another tuner on this key prefix: {', '.join(others)}"] if others else []
@@ -333,7 +339,8 @@ def readyz(tuner: TunerDep) -> Health:
     "/metrics", response_class=Response, responses={200: {"content": {CONTENT_TYPE_LATEST: {}}}}
 )
 def metrics(tuner: TunerDep) -> Response:
-    """Prometheus exposition."""
+    """Prometheus exposition (the loops' status and monitor gauges as last computed
+    while the worker holds the loop table, see :meth:`Tuner.refresh_status_counts`)."""
     tuner.refresh_status_counts()
     return Response(tuner.metrics.render(), media_type=CONTENT_TYPE_LATEST)
 

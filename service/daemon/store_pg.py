@@ -35,6 +35,7 @@ from contextlib import contextmanager
 from urllib.parse import urlsplit
 
 import psycopg
+from psycopg.conninfo import conninfo_to_dict
 from pydantic import ValidationError
 
 from service.daemon import migrations
@@ -77,8 +78,37 @@ def redacted(url: str) -> str:
     return head + mark + re.sub(r"(^|&)password=[^&#]*", r"\1password=***", query)
 
 
+LOCK_TIMEOUT_S = 5
+"""Longest a statement of the store's connections (the commits', the snapshots') waits
+for a lock: a table locked by another session (VACUUM FULL, ALTER TABLE, a LOCK TABLE)
+blocked the worker's commit, and the worker with it, for as long as the lock was held,
+with nothing failing. Past it the commit fails like any store error: retried every
+COMMIT_RETRY_S, ``/healthz`` 503, the tuner exits after ``store_failure_exit_s`` (60 s
+by default). Row locks between members (the leases' fence) last milliseconds."""
+STATEMENT_TIMEOUT_S = 60
+"""Longest a statement of the store's connections runs (a bulk registration, a load of a
+takeover's loops: seconds): no longer than the default ``store_failure_exit_s``, after
+which ``/healthz`` calls a worker still in one iteration stuck anyway."""
+KEEPALIVES = {"keepalives": 1, "keepalives_idle": 10, "keepalives_interval": 5,
+              "keepalives_count": 3}  # fmt: skip
+"""TCP keepalives of the store's connections: a server that vanished without closing
+them (a host down, a network cut) is found in ~25 s, not the kernel's two hours;
+settings in the URL win."""
+
+
 def connect(url: str) -> psycopg.Connection:
     return psycopg.connect(url, autocommit=True, connect_timeout=CONNECT_TIMEOUT_S)
+
+
+def store_connect(url: str) -> psycopg.Connection:
+    """A connection of the store's own (not the cluster's nor its LISTEN's): a statement
+    on it fails rather than blocks (LOCK_TIMEOUT_S, STATEMENT_TIMEOUT_S, KEEPALIVES)."""
+    given = conninfo_to_dict(url)
+    keepalives = {k: v for k, v in KEEPALIVES.items() if k not in given}
+    conn = psycopg.connect(url, autocommit=True, connect_timeout=CONNECT_TIMEOUT_S, **keepalives)
+    conn.execute(f"SET lock_timeout = '{LOCK_TIMEOUT_S}s'")
+    conn.execute(f"SET statement_timeout = '{STATEMENT_TIMEOUT_S}s'")
+    return conn
 
 
 class Adapter:
@@ -183,8 +213,10 @@ class PgStore(Store):
         self.location = redacted(url)
         self.path = None
         self._lock = threading.RLock()
-        self._adapter = Adapter(connect(url))
+        self._adapter = Adapter(connect(url))  # no statement timeout: a migration may be long
         self.migrated_from = migrations.migrate("postgresql", self._db.execute, self.transaction)
+        self._adapter.conn.close()
+        self._adapter = Adapter(store_connect(url))
         self._journal: collections.deque[JournalEntry] = collections.deque()  # stays empty
         self._snap_lock = threading.Lock()
         self._snap_conn: psycopg.Connection | None = None
@@ -254,7 +286,7 @@ class PgStore(Store):
         failed; the next one runs on a new connection)."""
         conn = self._adapter.conn
         if conn.closed or conn.broken:
-            self._adapter = Adapter(connect(self.url))
+            self._adapter = Adapter(store_connect(self.url))
         return self._adapter
 
     def close(self) -> None:
@@ -415,7 +447,7 @@ class PgStore(Store):
         """The snapshots' connection, opened again if it was found lost."""
         conn = self._snap_conn
         if conn is None or conn.closed or conn.broken:
-            conn = self._snap_conn = connect(self.url)
+            conn = self._snap_conn = store_connect(self.url)
             conn.execute("SET synchronous_commit = off")
         return conn
 

@@ -48,6 +48,7 @@ from service.daemon.bus import Bus, Inbox, Item, Kind
 from service.daemon.clock import Clock
 from service.daemon.delivery import Delivery
 from service.daemon.handoff import Handoff
+from service.daemon.heartbeat import Heartbeat
 from service.daemon.lanes import LANE_DRAIN_S, Lane
 from service.daemon.metrics import Metrics, RateLimitedLog
 from service.daemon.ownership import Ownership
@@ -63,9 +64,7 @@ from service.engine.engine import TuningEngine
 from service.engine.site import SiteDefaults
 from service.engine.updates import StepResult
 from service.wire.decode import Rejection, decode_batch, decode_singles, joined
-from service.wire.protocol import (
-    RejectReason,
-)
+from service.wire.protocol import RejectReason
 
 log = logging.getLogger("pitune.tuner")
 _STOP = (None, "", None)
@@ -74,7 +73,6 @@ _WAKE = (None, "wake", None)
 the worker, asleep until its next snapshot, retries within COMMIT_RETRY_S instead)."""
 FLUSH_AFTER_S = 0.002
 """Longest a due loop waits for more due loops to join its batch while a backlog drains."""
-_RANGE_ERRORS = {"less_than_equal", "greater_than_equal", "less_than", "greater_than"}
 
 
 def load_configured_agent(settings: Settings) -> Agent:
@@ -132,6 +130,7 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
         """Every wall time the tuner keeps or acts on (see :mod:`service.daemon.clock`)."""
         self.keys = settings.keys
         self.metrics = Metrics()
+        self.heartbeat = Heartbeat(self.metrics.registry)
         self.agent = agent if agent is not None else load_configured_agent(settings)
         self.engine = TuningEngine(
             self.agent,
@@ -180,14 +179,7 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
                     "Gains messages replaced in a blocked lane by a newer one of their loop.",
                     lambda: self.superseded,
                 ),
-                "pitune_audit_pruned": (
-                    "Audit rows deleted by the retention policy.",
-                    lambda: self.pruned,
-                ),
-                "pitune_audit_prune_failures": (
-                    "Retention passes that failed and pruned nothing (/healthz says why).",
-                    lambda: self.prune_failures,
-                ),
+                **self.upkeep_totals(),
                 "pitune_gains_fenced": (
                     "Committed gains messages not published: this member's leases may have "
                     "run out (it was paused); the loops' new owner sends each loop's last "
@@ -245,7 +237,7 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
             self.store = PgStore(self.settings.db_path)
             self.cluster = Cluster(self, self.settings.db_path)
             self.deleted_here = set()
-            self.snapshot_writer = SnapshotWriter(self.store.snapshot)
+            self.snapshot_writer = SnapshotWriter(self._writer_snapshot)
         else:
             self.store = Store(self.settings.db_path)
         wall = self.clock.wall()
@@ -324,6 +316,14 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
         return self._worker is not None and self._worker.is_alive()
 
     @property
+    def worker_stuck(self) -> str | None:
+        """Why the worker looks stuck: in one iteration past ``store_failure_exit_s``."""
+        age, bound = self.heartbeat.age(), self.settings.store_failure_exit_s
+        if age <= bound:
+            return None
+        return f"worker stuck in one iteration for {age:.0f} s (> store_failure_exit_s {bound:g} s)"
+
+    @property
     def bus_ready(self) -> bool:
         """Samples can arrive and gains can leave: the session is open and, if this tuner
         connects to routers or peers, one is connected (see :attr:`Bus.connected`)."""
@@ -343,14 +343,17 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
         interval = self.settings.snapshot_interval_s
         next_snapshot = time.monotonic() + interval
         while True:
+            self.heartbeat.idle()
             try:
                 if self._store_failing_since is not None:  # until the next retry
                     wait = self._retry_at - time.monotonic()
-                elif self.store.journal_rows or self._prune_todo:
+                elif self._prune_todo:
                     wait = 0.0
                 else:  # the next snapshot, or its next chunk (paced), or retention pass
                     at = self._snapshot_at if self._snapshot_todo else next_snapshot
                     wait = min(at - time.monotonic(), self.clock.until(self._next_prune))
+                    if self.store.journal_rows:  # now, unless its writes fail (retry_at)
+                        wait = min(wait, self._write_retry_at - time.monotonic())
                 if self._parked:  # the earliest after_t query to answer anyway
                     first = min(d for q in self._parked.values() for _, d, _ in q)
                     wait = min(wait, first - time.monotonic())
@@ -360,6 +363,7 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
                 items = [self.inbox.get(timeout=max(0.0, wait))]
             except queue.Empty:
                 items = []
+            self.heartbeat.busy()
             if items:
                 linger = LINGER_S if self.pacer.lingering else 0.0
                 self.inbox.more(items, self.settings.max_batch, linger, LINGER_BYTES)

@@ -6,14 +6,26 @@ too) the worker prunes the audit history by the settings'
 ``history_*`` policy (:meth:`Store.prune`), PRUNE_CHUNK loops per iteration; a
 cluster's member prunes only its own loops (and one member the deleted loops'), ages
 on the database's clock (:meth:`Upkeep._retention_ids`).
+
+A snapshot or journal write that fails (disk full, database locked) is not a failed
+commit (no step is lost: it is written again later) but it is no less a broken store,
+one a tuner whose loops rarely step would otherwise show nowhere: ``/healthz`` answers
+503 with :attr:`Upkeep.write_failure` until a write of each kind that failed goes
+through (a journal chunk rewriting pages the file has may pass while a snapshot that
+grows it fails: not a recovery), ``pitune_store_write_failures`` counts them, and the
+log has one error when the first fails (tracebacks at debug level) and one warning
+when they work again. The journal is retried COMMIT_RETRY_S after a failure, snapshots
+at their next chunk.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
 
 from service.daemon.admin import freeze_survivors
+from service.daemon.delivery import COMMIT_RETRY_S
 from service.daemon.snapwriter import SnapshotWriter
 from service.daemon.store_pg import Fenced
 
@@ -72,8 +84,35 @@ class Upkeep:
     prune_failures = 0
     """Retention passes failed since start."""
 
+    write_failure: str | None = None
+    """Why the last snapshot or journal write failed, until one goes through (``/healthz``)."""
+    write_failures = 0
+    """Snapshot and journal writes failed since start."""
+    _write_failing: dict[str, float] = {}
+    """Kind of write ('snapshot', 'journal') -> monotonic time its failures began."""
+    _write_retry_at = 0.0
+    """Monotonic time before which the journal is not applied again (after a failure)."""
+
     _snapshot_turn = 0
     """Periodic snapshots started (the rotation of :data:`SNAPSHOT_ROTATION`)."""
+
+    def upkeep_totals(self) -> dict:
+        """Its counters, for :meth:`Metrics.totals`."""
+        return {
+            "pitune_store_write_failures": (
+                "Snapshot and journal writes that failed (/healthz says why until one goes "
+                "through); their loops are written again later.",
+                lambda: self.write_failures,
+            ),
+            "pitune_audit_pruned": (
+                "Audit rows deleted by the retention policy.",
+                lambda: self.pruned,
+            ),
+            "pitune_audit_prune_failures": (
+                "Retention passes that failed and pruned nothing (/healthz says why).",
+                lambda: self.prune_failures,
+            ),
+        }
 
     def _start_snapshot(self, interval: float) -> None:
         """The loops to snapshot this turn (``LoopTable.snapshot_turn``), a chunk now and
@@ -95,7 +134,8 @@ class Upkeep:
         )
         self._snapshot_at = time.monotonic() + self._snapshot_pace
         if self.snapshot_writer is None:
-            self._write_snapshot(chunk)
+            with self._store_write("snapshot" if chunk else ""):
+                self._write_snapshot(chunk)
         else:  # the rows read here, written by the writer's thread (snapwriter.py)
             with self.table.lock:
                 rows = self.table.snapshot(chunk)
@@ -180,5 +220,39 @@ class Upkeep:
     def _apply_journal(self) -> None:
         """A chunk of the journal into the store's tables, when no message waits (or the
         backlog grew large): off the path from a sample to its gains message."""
+        if time.monotonic() < self._write_retry_at:
+            return
         if self.inbox.empty() or self.store.journal_rows > JOURNAL_BACKLOG:
-            self.store.apply_journal(JOURNAL_CHUNK)
+            with self._store_write("journal" if self.store.journal_rows else ""):
+                self.store.apply_journal(JOURNAL_CHUNK)
+
+    def _writer_snapshot(self, rows: list, fence: object) -> None:
+        """The snapshot writer's write, on its thread (:mod:`service.daemon.snapwriter`)."""
+        with self._store_write("snapshot"):
+            self.store.snapshot(rows, fence)
+
+    @contextlib.contextmanager
+    def _store_write(self, what: str):
+        """A write of kind ``what`` ('': one with nothing to write, no proof the store
+        works): a store error is recorded, not raised (see the module's docstring)."""
+        try:
+            yield
+        except self.store.commit_errors as exc:
+            now = time.monotonic()
+            first = not self._write_failing
+            self._write_failing = {what: now, **self._write_failing}  # (a copy: 2 threads)
+            self.write_failures += 1
+            self._write_retry_at = now + COMMIT_RETRY_S
+            since = min(self._write_failing.values())
+            self.write_failure = f"store writes failing for {now - since:.0f} s ({what}): {exc!r}"
+            if first:
+                log.error("%s; retried until writes work", self.write_failure)
+            log.debug("%s write failed", what, exc_info=True)
+            return
+        failing = self._write_failing
+        if what in failing:
+            self._write_failing = {k: v for k, v in failing.items() if k != what}
+            if not self._write_failing:
+                lasted = time.monotonic() - min(failing.values())
+                self.write_failure = None
+                log.warning("store writes work again after %.1f s of failures", lasted)
