@@ -303,8 +303,7 @@ ops = APIRouter(tags=["operations"])
 
 @ops.get("/healthz", responses={503: {"model": Health}})
 def healthz(tuner: TunerDep) -> Health:
-    """Liveness: the worker thread runs and is not stuck, and the store commits and
-    writes."""
+    """Liveness: the worker thread runs and is not stuck; the store commits and writes."""
     if not tuner.alive:
         return _unhealthy("failing", "worker thread not running")
     if tuner.store_failure is not None:
