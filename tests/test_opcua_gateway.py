@@ -124,6 +124,7 @@ class FakeTuner:
         )
         self._queryable = self.session.declare_queryable(KEYS.all_states, self._on_query)
         self._token = self.session.liveliness().declare_token(KEYS.tuner("fake"))
+        self._gains = self.session.declare_publisher(KEYS.gains(LOOP))
 
     def _on_query(self, query: zenoh.Query) -> None:
         try:
@@ -144,12 +145,18 @@ class FakeTuner:
                 return self.seen
 
     def send(self, seq: int, kp: float, ki: float, mode: Mode = Mode.auto) -> None:
+        """Publish a gains message once the gateway's subscriber is known here: a Zenoh 1.x
+        publisher sends only to the subscribers it knows of, and a message put before the
+        gateway's declaration reached this session was lost (CI, a loaded machine)."""
         msg = GainsMessage(loop_id=LOOP, seq=seq, t=0.0, dkp=0.0, dki=0.0, kp=kp, ki=ki,
                            mode=mode, instance_id="fake")  # fmt: skip
-        self.session.put(KEYS.gains(LOOP), encode(msg))
+        deadline = time.monotonic() + 10.0
+        while not self._gains.matching_status.matching and time.monotonic() < deadline:
+            time.sleep(0.01)
+        self._gains.put(encode(msg))
 
     def close(self) -> None:
-        for entity in (self._token, self._queryable, self._sub):
+        for entity in (self._gains, self._token, self._queryable, self._sub):
             with contextlib.suppress(zenoh.ZError):
                 entity.undeclare()
         self.session.close()

@@ -208,6 +208,7 @@ class Bus:
         """Called with :attr:`connected` whenever it changes (on Zenoh's thread)."""
         self._link: bool | None = None
         self._link_lock = threading.Lock()
+        self._remote: set[str] = set()  # routers and peers with a transport open
         self._link_listener = None
         self.was_connected = False
         """The bus was connected once: not connected now means the link went (``/readyz``
@@ -247,10 +248,11 @@ class Bus:
             self._entities.append(
                 s.liveliness().declare_subscriber(k.all_tuners, on_tuner, history=False)
             )
+            # history: the transports open already come first, so none is missed
             self._link_listener = s.info.declare_transport_events_listener(
-                lambda _event: self._link_changed()
+                self._transport_event, history=True
             )
-            self._link_changed()  # the state at start (a transport may open meanwhile)
+            self._link_changed()  # the state at start (not yet connected: "starting")
         except BaseException:
             self.close()
             raise
@@ -268,13 +270,22 @@ class Bus:
         session = self.session
         if session is None or session.is_closed():
             return False
-        if not self._must_connect():
-            return True
-        try:
-            info = session.info
-            return bool(info.routers_zid()) or bool(info.peers_zid())
-        except zenoh.ZError:  # closed meanwhile
-            return False
+        return not self._must_connect() or bool(self._remote)
+
+    def _transport_event(self, event) -> None:
+        """A transport to a router or peer opened or closed. The routers and peers are
+        counted from these events: asked of the session in the close event's callback,
+        they still listed the closing router (CI, a loaded machine), and the loss was
+        never seen. A client (a gateway connecting to this tuner) is no route out."""
+        remote = event.transport
+        if remote.whatami == zenoh.WhatAmI.CLIENT:
+            return
+        with self._link_lock:
+            if event.kind == zenoh.SampleKind.PUT:
+                self._remote.add(str(remote.zid))
+            else:
+                self._remote.discard(str(remote.zid))
+        self._link_changed()
 
     def _link_changed(self) -> None:
         """A transport opened or closed (or the bus opened): log and report a change of
