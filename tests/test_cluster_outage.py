@@ -77,6 +77,8 @@ def test_a_store_outage_longer_than_the_lease_moves_no_loop(tmp_path):
         # renewal's start plus the lease, less SAFETY_S), the database's a little later
         wait_until(lambda: not a.cluster.may_publish() and not b.cluster.may_publish(),
                    2 * LEASE_S, "the leases running out")  # fmt: skip
+        # the outage's length, not a wait for something to propagate: the halted database
+        # gives no signal, and its own expiry comes SAFETY_S after the members' clocks say
         time.sleep(SAFETY_S + 0.5)
         server.resume()
         back = time.monotonic()

@@ -14,6 +14,7 @@ import asyncio
 import contextlib
 import math
 import queue
+import threading
 import time
 
 import orjson
@@ -125,6 +126,10 @@ class FakeTuner:
         self._queryable = self.session.declare_queryable(KEYS.all_states, self._on_query)
         self._token = self.session.liveliness().declare_token(KEYS.tuner("fake"))
         self._gains = self.session.declare_publisher(KEYS.gains(LOOP))
+        self._matched = threading.Event()  # the gateway's gains subscriber is known here
+        self._matching = self._gains.declare_matching_listener(
+            lambda status: self._matched.set() if status.matching else self._matched.clear()
+        )
 
     def _on_query(self, query: zenoh.Query) -> None:
         try:
@@ -150,13 +155,12 @@ class FakeTuner:
         gateway's declaration reached this session was lost (CI, a loaded machine)."""
         msg = GainsMessage(loop_id=LOOP, seq=seq, t=0.0, dkp=0.0, dki=0.0, kp=kp, ki=ki,
                            mode=mode, instance_id="fake")  # fmt: skip
-        deadline = time.monotonic() + 10.0
-        while not self._gains.matching_status.matching and time.monotonic() < deadline:
-            time.sleep(0.01)
+        if not self._gains.matching_status.matching:
+            self._matched.wait(10.0)
         self._gains.put(encode(msg))
 
     def close(self) -> None:
-        for entity in (self._gains, self._token, self._queryable, self._sub):
+        for entity in (self._matching, self._gains, self._token, self._queryable, self._sub):
             with contextlib.suppress(zenoh.ZError):
                 entity.undeclare()
         self.session.close()
