@@ -14,7 +14,6 @@ from service.engine import box, monitor, oscillation, verify
 from service.engine.config import Counters, LoopConfig, LoopView
 from service.engine.figures import (
     Fence,
-    Hold,
     Performance,
     Proposal,
     ResponseFigures,
@@ -24,6 +23,7 @@ from service.engine.figures import (
 from service.engine.id_view import Identification
 from service.engine.modes import ADVISORY
 from service.engine.monitor import same_gains
+from service.wire.protocol import Hold
 
 if TYPE_CHECKING:
     from service.engine.table import LoopTable
