@@ -55,6 +55,7 @@ def test_a_loop_whose_steps_the_model_check_holds_says_so_and_since_when():
         hold = view.hold
         if view.verification.held_until_t is not None:  # after the model's tuning
             assert hold.guard == "cooldown" and hold.until_t > t, t
+            assert "cool-down after a model's tuning, until its verdict" in hold.why, t
             cooled += 1
         elif last is None or not last[1]:
             assert hold is None, t
@@ -72,11 +73,12 @@ def test_the_cooldown_after_a_rollback_is_shown_with_its_end():
     (8 RL periods) with the status still ``tuning``; the view's hold says until when, and
     is gone at the first sample past it."""
     engine = TuningEngine(StillAgent())
-    engine.register(LoopConfig(
+    config = LoopConfig(
         id="L", kp=2.5, ki=0.25, sample_period_s=1.0,
         scaling={"k_hat": 1.0, "tau_hat": 10.0, "pv_scale": 1.0},
         guard={"identify": False, "excitation_periods": 0.0},
-    ), wall=0.0)  # fmt: skip
+    )  # fmt: skip
+    engine.register(config, wall=0.0)
     gains = {"kp": 2.5, "ki": 0.25}
 
     def sample(k: int):
@@ -95,6 +97,12 @@ def test_the_cooldown_after_a_rollback_is_shown_with_its_end():
     assert view.hold.guard == "cooldown" and view.hold.since_t is None
     assert view.hold.until_t == pytest.approx(until) == view.verification.held_until_t
     assert f"until t = {until:.10g}" in view.hold.why
+    assert "the cool-down after a rollback (or its proposal)" in view.hold.why  # its cause
+    ((_, hidden, runtime),) = engine.snapshot(["L"])  # a restarted tuner says the same
+    other = TuningEngine(StillAgent())
+    other.restore(config, kp=2.5, ki=0.25, seq=view.seq, hidden=hidden,
+                  runtime=runtime, wall=20.0)  # fmt: skip
+    assert other.view("L", wall=20.0).hold == view.hold
     k = 21
     while k < until:
         engine.ingest([sample(k)], wall=float(k))
@@ -140,3 +148,20 @@ def test_a_loop_held_for_gains_out_of_bounds_that_oscillates_says_it_oscillates(
     # (a setpoint move, at 880 s, restarts the detector: 3 half-periods to flag again)
     assert sum(osc for _, osc in late) >= 0.9 * len(late) and late[-1][1]
     assert engine.performance("L").window.oscillating
+
+
+def test_the_cooldown_after_a_rejected_proposal_names_the_rejection():
+    """An advisory loop's proposal rejected by an operator: the hold names that cause (as
+    the rollback's and the model's tuning's above name theirs)."""
+    engine = TuningEngine(_Pushing())
+    engine.register(LoopConfig(
+        id="A", kp=1.0, ki=0.05, sample_period_s=1.0, mode="advisory",
+        scaling={"k_hat": 1.0, "tau_hat": 10.0, "pv_scale": 1.0},
+        guard={"identify": False, "excitation_periods": 0.0},
+    ), wall=0.0)  # fmt: skip
+    ups = engine.ingest([{"loop_id": "A", "t": float(t), "e": 0.1} for t in range(100)], wall=0.0)
+    assert ups and engine.view("A", wall=0.0).hold is None
+    engine.reject("A", ups[-1].seq, wall=0.0)
+    hold = engine.view("A", wall=0.0).hold
+    assert hold.guard == "cooldown" and hold.until_t == pytest.approx(99.0 + 8 * 55.0)
+    assert "the cool-down after an operator's rejection of a proposal" in hold.why

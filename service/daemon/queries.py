@@ -16,6 +16,7 @@ import zenoh
 
 from service.daemon.bus import JSON, reply
 from service.daemon.shards import shard_of
+from service.engine.views import hold
 from service.wire.protocol import ErrorReply, StateBatch, StateReply, encode
 
 AFTER_T_WAIT_S = 1.0
@@ -127,6 +128,8 @@ class StateQueries:
             rl_period_s=_finite(tb.period[s]),
             next_due_t=_finite(tb.next_due[s]),
             gateway=tb.gateways[s],
+            hold=hold(tb, s),
+            oscillating=bool(tb.o_osc[s]),
         )
 
 

@@ -12,7 +12,7 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from service.engine.figures import Hold, Proposal, Verification
+from service.engine.figures import Proposal, Verification
 from service.engine.id_view import Identification
 from service.units import (
     AGENT_GAIN_RANGE,
@@ -22,7 +22,15 @@ from service.units import (
     Scaling,
     ScalingSpec,
 )
-from service.wire.protocol import MAX_MAGNITUDE, Gain, GatewayId, LoopId, LoopStatus, Mode
+from service.wire.protocol import (
+    MAX_MAGNITUDE,
+    Gain,
+    GatewayId,
+    Hold,
+    LoopId,
+    LoopStatus,
+    Mode,
+)
 
 Fraction = Annotated[float, Field(strict=True, gt=0.0, le=10.0, allow_inf_nan=False)]
 ExcitationPeriods = Annotated[float, Field(strict=True, ge=0.0, le=1e6, allow_inf_nan=False)]

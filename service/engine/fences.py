@@ -1,7 +1,9 @@
-"""Fences: after a rollback, the agent's steps stop short of the gains that failed.
+"""What holds the agent after a change of the tuner's own: the cool-down (no step until
+a plant time, :func:`cool`) and fences (after a rollback, the agent's steps stop short of
+the gains that failed).
 
-:mod:`service.engine.verify` puts a fence up at a rollback (the per-loop ``x_*`` arrays
-are allocated with its own); the stepping clips the agent's gains to it.
+:mod:`service.engine.verify` puts a fence up at a rollback (the per-loop ``x_*`` and
+``cool_*`` arrays are allocated with its own); the stepping clips the agent's gains to it.
 """
 
 from __future__ import annotations
@@ -19,6 +21,22 @@ FENCED = ("overshoot", "oscillation", "operator")
 an operator said they were wrong. Not ``iae``: a load step or noise inside the judged
 window fails good changes on loaded loops now and then, and a fence after those held the
 agent off the gains it needed (robustness suite, load steps: worst 0.027 -> 0.037)."""
+COOLED = {
+    1.0: "a rollback (or its proposal)",
+    2.0: "an operator's rejection of a proposal",
+    3.0: "a model's tuning, until its verdict",
+}
+"""What started a loop's cool-down, by its code in ``tb.cool_why`` (NaN: a snapshot from
+before session 40, which did not say)."""
+ROLLBACK, REJECTED, MODEL = COOLED
+
+
+def cool(tb: LoopTable, s: int, t: float, why: float) -> None:
+    """Hold the agent of slot ``s`` for the guard's cool-down from plant time ``t``, after
+    the change ``why`` (a key of :data:`COOLED`): one change judged at a time."""
+    tb.cool_until[s], tb.cool_why[s] = t + tb.v_cool[s], why
+
+
 FENCE_SHORT = 0.8
 """A fence stands at this share of the failed gain (its inverse for a lowered one), or at
 the midpoint when that is nearer to it: the midpoint alone, after a rollback to a

@@ -8,8 +8,6 @@ Figures are computed by :mod:`service.engine.monitor`; verdicts by
 
 from __future__ import annotations
 
-from typing import Literal
-
 from pydantic import BaseModel, Field
 
 
@@ -113,25 +111,6 @@ class Verification(BaseModel):
         "judged: no automatic rollback goes past it (None: none; docs/tuner.md, Verdicts).",
     )
     detune_floor_ki: float | None = None
-
-
-class Hold(BaseModel):
-    """What holds the agent's steps of a loop whose status does not say it (a loop held
-    this way reads ``tuning`` while its gains stay as they are; docs/tuner.md, Status and
-    holds)."""
-
-    guard: Literal["cooldown", "model_check"] = Field(
-        description="'cooldown': the agent is not stepped until until_t, after a change of "
-        "the tuner's own (a rollback, a rejected proposal, a model's tuning until its "
-        "verdict); 'model_check': the model check has held the agent's steps since since_t "
-        "(the identified model predicted them worse than guard.model_check times the "
-        "model's tuning, and worse than the gains in force)."
-    )
-    since_t: float | None = Field(
-        None, description="Plant time of the first step of the run the model check held."
-    )
-    until_t: float | None = Field(None, description="Plant time the cool-down ends.")
-    why: str = Field(description="The same in words, with where to look further.")
 
 
 class Proposal(BaseModel):

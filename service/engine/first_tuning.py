@@ -145,8 +145,8 @@ def apply(tb, s: int, m, wall: float, why: str) -> None:
     tb._gains_dirty.add(s)
     tb._verify_dirty.add(s)
     # the agent is held until the change is verified (at most the cool-down after a
-    # rollback): one change judged at a time
-    tb.cool_until[s] = t + tb.v_cool[s]
+    # rollback)
+    fences.cool(tb, s, t, fences.MODEL)
     fences.unfence(tb, s)  # a fence of gains tuned for the plant as it was before
     tb.ident[s].tuned_seq, tb.ident[s].tuned = seq, m
     if mode == AUTO:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING
 
-from service.engine.fences import fence_rollback
+from service.engine.fences import REJECTED, cool, fence_rollback
 from service.engine.modes import ADVISORY, AUTO
 from service.engine.monitor import same_gains
 from service.engine.updates import StepResult
@@ -52,7 +52,7 @@ def reject(tb: LoopTable, s: int, seq: int, wall: float, actor: str) -> None:
     gains, proposed = (float(tb.kp[s]), float(tb.ki[s])), (float(tb.adv_kp[s]), float(tb.adv_ki[s]))
     restart_track(tb, s)
     t = float(tb.last_t[s]) if math.isfinite(tb.last_t[s]) else 0.0
-    tb.cool_until[s] = t + tb.v_cool[s]
+    cool(tb, s, t, REJECTED)
     tb._verify_dirty.add(s)
     _audit(tb, s, wall, "rejected", gains, gains, {
         "proposal": seq, "kp": proposed[0], "ki": proposed[1], "actor": actor,

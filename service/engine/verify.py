@@ -55,7 +55,7 @@ import numpy as np
 import orjson
 
 from service.engine.audit import audit_row
-from service.engine.fences import FENCED, fence_rollback, unfence
+from service.engine.fences import FENCED, ROLLBACK, cool, fence_rollback, unfence
 from service.engine.modes import AUTO, PUBLISHING
 from service.engine.monitor import ABSENT, RESPONSE_PERIODS, put, same_gains
 from service.engine.oscillation import forget_lobes, noise_sigma, period
@@ -69,8 +69,8 @@ if TYPE_CHECKING:
 F64 = [
     # last-good gains (restored exactly by a rollback) and their seq
     "g_kp", "g_ki", "g_seq",
-    # changes up to this seq are judged; the agent is held until this plant time
-    "v_seq", "cool_until",
+    # changes up to this seq are judged; the agent is held until this plant time (why)
+    "v_seq", "cool_until", "cool_why",
     # the proposal track of advisory and shadow loops (NaN: none) and its seq
     "adv_kp", "adv_ki", "adv_seq",
     # the fence after a rollback: bounds of the agent's gains (NaN: none) until a plant time
@@ -376,7 +376,7 @@ def fail(
         _audit(tb, s, wall, "verdict", old, old, {"verdict": "worse", **detail})
         return None
     tb.seq[s] += 1
-    tb.cool_until[s] = t + tb.v_cool[s]
+    cool(tb, s, t, ROLLBACK)
     seq = int(tb.seq[s])
     tb._gains_dirty.add(s)
     if mode == AUTO:

@@ -12,9 +12,9 @@ import numpy as np
 
 from service.engine import box, monitor, oscillation, verify
 from service.engine.config import Counters, LoopConfig, LoopView
+from service.engine.fences import COOLED
 from service.engine.figures import (
     Fence,
-    Hold,
     Performance,
     Proposal,
     ResponseFigures,
@@ -24,6 +24,7 @@ from service.engine.figures import (
 from service.engine.id_view import Identification
 from service.engine.modes import ADVISORY
 from service.engine.monitor import same_gains
+from service.wire.protocol import Hold
 
 if TYPE_CHECKING:
     from service.engine.table import LoopTable
@@ -132,10 +133,16 @@ def hold(tb: LoopTable, s: int) -> Hold | None:
     guard = HOLDS[int(holds(tb, s))]
     if guard == "cooldown":
         until = float(tb.cool_until[s])
+        cause = COOLED.get(float(tb.cool_why[s]))
+        after = (
+            f"after {cause}"
+            if cause
+            else "after a change of the tuner's own, a rollback, "
+            "a rejected proposal or a model's tuning until its verdict"
+        )
         return Hold(guard=guard, until_t=until, why=(
-            f"the agent is held until t = {until:.10g} (plant time): the cool-down after a "
-            "change of the tuner's own, a rollback, a rejected proposal or a model's tuning "
-            "until its verdict (guard.cooldown_periods; the audit log says which)"
+            f"the agent is held until t = {until:.10g} (plant time): the cool-down {after} "
+            "(guard.cooldown_periods; the audit log has the change)"
         ))  # fmt: skip
     if guard == "model_check":
         since = float(tb.mc_since[s])

@@ -41,7 +41,7 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 SCHEMA_VERSION = 1
-SCHEMA_REVISION = 8
+SCHEMA_REVISION = 9
 """Additive revisions within :data:`SCHEMA_VERSION` (optional fields and new enum values
 only, ``v`` unchanged). What each revision added: the table in docs/protocol.md,
 Versioning (tests/test_tuner_protocol.py holds its title and table to this number)."""
@@ -308,6 +308,27 @@ class GainsBatch(BaseModel):
     gains: list[GainsMessage] = Field(max_length=MAX_BATCH)
 
 
+class Hold(BaseModel):
+    """What holds the agent's steps of a loop whose status does not say it (a loop held
+    this way reads ``tuning`` while its gains stay as they are; docs/tuner.md, Status and
+    holds). In :class:`StateReply` since revision 9, and in the REST loop view."""
+
+    model_config = _WIRE
+
+    guard: Literal["cooldown", "model_check"] = Field(
+        description="'cooldown': the agent is not stepped until until_t, after a change of "
+        "the tuner's own (a rollback, a rejected proposal, a model's tuning until its "
+        "verdict); 'model_check': the model check has held the agent's steps since since_t "
+        "(the identified model predicted them worse than guard.model_check times the "
+        "model's tuning, and worse than the gains in force)."
+    )
+    since_t: float | None = Field(
+        None, description="Plant time of the first step of the run the model check held."
+    )
+    until_t: float | None = Field(None, description="Plant time the cool-down ends.")
+    why: str = Field(description="The same in words, with where to look further.")
+
+
 class StateReply(BaseModel):
     """Reply of the ``state`` queryable: a loop's current gains and status."""
 
@@ -337,6 +358,16 @@ class StateReply(BaseModel):
         None,
         description="The gateway whose GainsBatch carries this loop's gains (None: "
         "its own gains key).",
+    )
+    hold: Hold | None = Field(
+        None,
+        description="What holds the agent's steps while the status may still read "
+        "'tuning' (None: nothing; revision 9).",
+    )
+    oscillating: bool = Field(
+        False,
+        description="The oscillation detector flags the loop now, whatever its status "
+        "(revision 9).",
     )
 
 
