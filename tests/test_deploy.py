@@ -663,6 +663,40 @@ def test_compose_gives_the_tuner_the_gateway_tokens_of_the_env_file(monkeypatch)
     }
 
 
+def test_compose_gives_the_tuner_the_proxy_settings_of_the_env_file(monkeypatch):
+    """PITUNE_API_ALLOWED_HOSTS and PITUNE_API_TRUSTED_PROXIES of deploy/.env reach the
+    tuner (and the HA file's second tuner), for a TLS reverse proxy in front of it; unset
+    or empty, the tuner answers to any name and believes no proxy, as before."""
+    from service.daemon.gate import allowed_hosts, origin_hosts
+    from service.daemon.settings import load_settings
+
+    def tuner_settings(files=(), **env):
+        services = compose_config(files, PITUNE_API_TOKEN=TOKEN, **env)["services"]
+        environments = [services[t]["environment"] for t in ("tuner", "tuner2") if t in services]
+        found = []
+        for environment in environments:
+            for name, value in environment.items():
+                monkeypatch.setenv(name, value)
+            found.append(load_settings())
+        return found
+
+    for unset in ({}, {"PITUNE_API_ALLOWED_HOSTS": "", "PITUNE_API_TRUSTED_PROXIES": ""}):
+        (settings,) = tuner_settings(**unset)
+        assert (settings.api_allowed_hosts, settings.api_trusted_proxies) == (None, [])
+        assert allowed_hosts(settings) is None, "0.0.0.0 in the container: any name"
+    proxy = {
+        "PITUNE_API_ALLOWED_HOSTS": '["127.0.0.1", "tuner.plant.example"]',
+        "PITUNE_API_TRUSTED_PROXIES": '["10.0.0.9"]',
+    }
+    ha = (DEPLOY / "docker-compose.ha.yml",)
+    both = tuner_settings(ha, PITUNE_POSTGRES_PASSWORD="pw", **proxy)
+    assert len(both) == 2
+    for settings in [*tuner_settings(**proxy), *both]:
+        assert allowed_hosts(settings) == {"127.0.0.1", "tuner.plant.example"}
+        assert origin_hosts(settings) == {"127.0.0.1", "tuner.plant.example"}
+        assert settings.api_trusted_proxies == ["10.0.0.9"]
+
+
 def test_example_dcs_gateway_publishes_samples_and_applies_auto_gains(tmp_path):
     """deploy/examples/dcs_gateway.py, the README's gateway, against a live Zenoh peer."""
     from service.procs import Proc
