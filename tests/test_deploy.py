@@ -16,7 +16,6 @@ import os
 import queue
 import re
 import shutil
-import stat
 import subprocess
 import sys
 import time
@@ -115,25 +114,6 @@ def test_compose_refuses_to_start_without_zenoh_secrets():
     result = run_compose("config", "-q", PITUNE_API_TOKEN=TOKEN, PITUNE_ZENOH_SECRETS="")
     assert result.returncode != 0
     assert "set PITUNE_ZENOH_SECRETS in deploy/.env" in result.stderr
-
-
-def test_secrets_sh_makes_fresh_passwords_in_a_private_directory(tmp_path):
-    target = tmp_path / "secrets"
-    script = DEPLOY / "secrets.sh"
-    made = subprocess.run(["bash", str(script), str(target)], capture_output=True, text=True)
-    assert made.returncode == 0, made.stderr
-    assert stat.S_IMODE(target.stat().st_mode) == 0o700
-    users = dict(line.split(":") for line in (target / "credentials.txt").read_text().split())
-    assert set(users) == {"tuner", "gateway"} and len(set(users.values())) == 2
-    for user, password in users.items():
-        config = (target / f"{user}.json5").read_text()
-        assert password in config and "change-me" not in config
-        assert len(password) == 32
-    again = subprocess.run(["bash", str(script), str(target)], capture_output=True, text=True)
-    assert again.returncode == 1 and "not empty" in again.stderr
-    assert (
-        dict(line.split(":") for line in (target / "credentials.txt").read_text().split()) == users
-    )
 
 
 def test_compose_binds_and_secrets_come_from_the_environment():
