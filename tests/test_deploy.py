@@ -16,7 +16,6 @@ import os
 import queue
 import re
 import shutil
-import stat
 import subprocess
 import sys
 import time
@@ -115,25 +114,6 @@ def test_compose_refuses_to_start_without_zenoh_secrets():
     result = run_compose("config", "-q", PITUNE_API_TOKEN=TOKEN, PITUNE_ZENOH_SECRETS="")
     assert result.returncode != 0
     assert "set PITUNE_ZENOH_SECRETS in deploy/.env" in result.stderr
-
-
-def test_secrets_sh_makes_fresh_passwords_in_a_private_directory(tmp_path):
-    target = tmp_path / "secrets"
-    script = DEPLOY / "secrets.sh"
-    made = subprocess.run(["bash", str(script), str(target)], capture_output=True, text=True)
-    assert made.returncode == 0, made.stderr
-    assert stat.S_IMODE(target.stat().st_mode) == 0o700
-    users = dict(line.split(":") for line in (target / "credentials.txt").read_text().split())
-    assert set(users) == {"tuner", "gateway"} and len(set(users.values())) == 2
-    for user, password in users.items():
-        config = (target / f"{user}.json5").read_text()
-        assert password in config and "change-me" not in config
-        assert len(password) == 32
-    again = subprocess.run(["bash", str(script), str(target)], capture_output=True, text=True)
-    assert again.returncode == 1 and "not empty" in again.stderr
-    assert (
-        dict(line.split(":") for line in (target / "credentials.txt").read_text().split()) == users
-    )
 
 
 def test_compose_binds_and_secrets_come_from_the_environment():
@@ -661,6 +641,40 @@ def test_compose_gives_the_tuner_the_gateway_tokens_of_the_env_file(monkeypatch)
     assert {ha[t]["environment"]["PITUNE_API_GATEWAY_TOKENS"] for t in ("tuner", "tuner2")} == {
         tokens
     }
+
+
+def test_compose_gives_the_tuner_the_proxy_settings_of_the_env_file(monkeypatch):
+    """PITUNE_API_ALLOWED_HOSTS and PITUNE_API_TRUSTED_PROXIES of deploy/.env reach the
+    tuner (and the HA file's second tuner), for a TLS reverse proxy in front of it; unset
+    or empty, the tuner answers to any name and believes no proxy, as before."""
+    from service.daemon.gate import allowed_hosts, origin_hosts
+    from service.daemon.settings import load_settings
+
+    def tuner_settings(files=(), **env):
+        services = compose_config(files, PITUNE_API_TOKEN=TOKEN, **env)["services"]
+        environments = [services[t]["environment"] for t in ("tuner", "tuner2") if t in services]
+        found = []
+        for environment in environments:
+            for name, value in environment.items():
+                monkeypatch.setenv(name, value)
+            found.append(load_settings())
+        return found
+
+    for unset in ({}, {"PITUNE_API_ALLOWED_HOSTS": "", "PITUNE_API_TRUSTED_PROXIES": ""}):
+        (settings,) = tuner_settings(**unset)
+        assert (settings.api_allowed_hosts, settings.api_trusted_proxies) == (None, [])
+        assert allowed_hosts(settings) is None, "0.0.0.0 in the container: any name"
+    proxy = {
+        "PITUNE_API_ALLOWED_HOSTS": '["127.0.0.1", "tuner.plant.example"]',
+        "PITUNE_API_TRUSTED_PROXIES": '["10.0.0.9"]',
+    }
+    ha = (DEPLOY / "docker-compose.ha.yml",)
+    both = tuner_settings(ha, PITUNE_POSTGRES_PASSWORD="pw", **proxy)
+    assert len(both) == 2
+    for settings in [*tuner_settings(**proxy), *both]:
+        assert allowed_hosts(settings) == {"127.0.0.1", "tuner.plant.example"}
+        assert origin_hosts(settings) == {"127.0.0.1", "tuner.plant.example"}
+        assert settings.api_trusted_proxies == ["10.0.0.9"]
 
 
 def test_example_dcs_gateway_publishes_samples_and_applies_auto_gains(tmp_path):

@@ -85,6 +85,21 @@ def test_security_none_needs_an_explicit_allow():
     assert site.server.security.value == "None"
 
 
+def test_a_user_with_security_none_needs_an_explicit_allow_of_a_readable_password():
+    insecure = {"url": "opc.tcp://dcs:4840", "security": "None", "allow_insecure": True}
+    with pytest.raises(MapError) as refused:
+        parse_map({"server": {**insecure, "user": "pitune"}, "loops": [LOOP]})
+    assert str(refused.value) == (
+        "map: invalid map: server: Value error, security \"None\" with user 'pitune' sends "
+        "its password in clear text: use security Basic256Sha256, or set "
+        "allow_plaintext_password = true in [server] to accept that"
+    )
+    opted = {**insecure, "user": "pitune", "allow_plaintext_password": True}
+    assert parse_map({"server": opted, "loops": [LOOP]}).server.user == "pitune"
+    secure = parse_map({"server": {**SECURE, "user": "pitune"}, "loops": [LOOP]})
+    assert not secure.server.allow_plaintext_password  # encrypted: nothing to allow
+
+
 def test_secure_by_default_and_certificates_required():
     with pytest.raises(MapError, match="certificate"):
         parse_map({"server": {"url": "opc.tcp://dcs:4840"}, "loops": [LOOP]})

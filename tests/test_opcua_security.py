@@ -6,6 +6,9 @@ refused by a server that trusts only the gateway's certificate."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import subprocess
+import sys
 
 import pytest
 from asyncua import ua
@@ -15,6 +18,7 @@ from service.cli import main as pitune
 from service.gateways.opcua.certs import generate_pair
 from service.gateways.opcua.client import Item, OpcUaLink
 from service.gateways.opcua.sitemap import parse_map
+from service.procs import ROOT, clean_env
 from service.wire.session import free_port
 from tests.test_opcua_gateway import LOOP, tank
 
@@ -70,7 +74,8 @@ def test_encrypted_session_works_and_strangers_are_refused(tmp_path, monkeypatch
                 "BadCertificateUntrusted": server(certificate="intruder-cert.der",
                                                   private_key="intruder-key.pem"),
                 "BadUserAccessDenied": server(password_env="PITUNE_TEST_NO_SUCH_VAR"),
-                "No matching endpoints": server(security="None", allow_insecure=True),
+                "No matching endpoints": server(security="None", allow_insecure=True,
+                                                allow_plaintext_password=True),
             }  # fmt: skip
             for reason, srv in refused.items():
                 with pytest.raises(Exception, match=reason):  # asyncua raises several kinds
@@ -97,3 +102,72 @@ def test_certs_never_replace_a_pair_unasked_and_the_key_is_private(tmp_path, cap
     with pytest.raises(SystemExit) as exit_:  # expired on arrival
         pitune([*out, "--force", "--days", "0"])
     assert exit_.value.code == 2
+
+
+def test_a_password_in_clear_text_needs_an_explicit_opt_in(tmp_path, monkeypatch):
+    """Security None with a user: asyncua sends the password as it is (a server offering
+    security None, here the simulated DCS, names no encryption for it), readable by anyone
+    on the path, as a relay between the gateway and the server records. The gateway
+    refuses that map at start-up, one line, unless allow_plaintext_password = true."""
+    import tomli_w
+
+    monkeypatch.setenv(PASSWORD_ENV, PLAIN)
+    security = DcsSecurity(allow_insecure=True, users={"pitune": PLAIN}, allow_anonymous=False)
+
+    async def scenario() -> tuple[dict, bytes]:
+        async with SimulatedDcs([tank()], port=free_port(), security=security) as dcs:
+            site = dcs.site_map(security="None", allow_insecure=True, user="pitune",
+                                password_env=PASSWORD_ENV)  # fmt: skip
+            async with recording_relay(dcs.url) as (url, seen):
+                opted = {**site["server"], "url": url, "allow_plaintext_password": True}
+                link = OpcUaLink(parse_map({**site, "server": opted}).server)
+                try:
+                    nodes = [(Item(0, "pv"), dcs.blocks[LOOP].node("PV"))]
+                    changes = await link.open(nodes, sampling_ms={0: 100.0}, queue_size={0: 1},
+                                              publishing_ms=100.0)  # fmt: skip
+                    assert changes[0].good
+                finally:
+                    await link.close()
+            return site, bytes(seen)
+
+    site, seen = asyncio.run(scenario())
+    assert PLAIN.encode() in seen, "what allow_plaintext_password accepts"
+    refused = tmp_path / "site.toml"
+    refused.write_text(tomli_w.dumps(site))
+    argv = [sys.executable, "-m", "service.cli", "gateway", "opcua", "--map", str(refused)]
+    proc = subprocess.run(argv, cwd=ROOT, env=clean_env(**{PASSWORD_ENV: PLAIN}),
+                          capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1, proc.stderr
+    assert "security \"None\" with user 'pitune' sends its password in clear text" in proc.stderr
+    assert "allow_plaintext_password = true" in proc.stderr and PLAIN not in proc.stderr
+
+
+PLAIN = "clear-text-marker-7f3a9c"
+
+
+@contextlib.asynccontextmanager
+async def recording_relay(url: str):
+    """A loopback TCP relay to the server at ``url``: yields its own URL and the bytes
+    the client sent through it."""
+    host, port = url.split("//")[1].split("/")[0].rsplit(":", 1)
+    seen = bytearray()
+
+    async def pipe(reader, writer, record: bool) -> None:
+        while data := await reader.read(65536):
+            if record:
+                seen.extend(data)
+            writer.write(data)
+            await writer.drain()
+        writer.close()
+
+    async def relay(reader, writer) -> None:
+        up_reader, up_writer = await asyncio.open_connection(host, int(port))
+        await asyncio.gather(pipe(reader, up_writer, True), pipe(up_reader, writer, False),
+                             return_exceptions=True)  # fmt: skip
+
+    server = await asyncio.start_server(relay, "127.0.0.1", 0)
+    mine = server.sockets[0].getsockname()[1]
+    try:
+        yield url.replace(f":{port}/", f":{mine}/"), seen
+    finally:
+        server.close()

@@ -275,3 +275,41 @@ def test_gain_changes_and_adoptions_reach_the_log(tmp_path, caplog):
     messages = [r.getMessage() for r in caplog.records]
     assert any(m.startswith("loop 'AUTO' gains kp=0.5 ki=0.01 -> ") for m in messages)
     assert any("adopted the gateway's gains kp=0.9 ki=0.02" in m for m in messages)
+
+
+@pytest.mark.parametrize("level", ["info", "debug"])
+def test_probes_and_scrapes_stay_out_of_the_access_log_at_info(tmp_path, level):
+    """A liveness probe every 2 s wrote 43,200 access lines a day: /healthz, /readyz and
+    /metrics answered are DEBUG lines (shown at --log-level debug only); any other
+    request, and a probe refused (HEAD on /healthz: 405), stays an INFO line."""
+    tuner = TunerProcess(tmp_path / "pitune.db", "--agent-weights", "untrained",
+                         "--log-format", "json", "--log-level", level,
+                         log=tmp_path / "tuner.log")  # fmt: skip
+    try:
+        tuner.start()
+        with tuner.http() as api:
+            for _ in range(3):
+                for path in ("/healthz", "/readyz", "/metrics", "/metrics?name[]=x"):
+                    assert api.get(path).status_code == 200, path
+            assert api.get("/loops").status_code == 200
+            assert api.head("/healthz").status_code == 405
+            assert api.get("/nope").status_code == 404
+    finally:
+        tuner.stop()
+    entries = [json.loads(line) for line in tuner.log.read_text().splitlines()]
+    access = [(e["level"], e["message"].split(" - ", 1)[1]) for e in entries
+              if e["logger"] == "uvicorn.access"]  # fmt: skip
+    shown = [line for line in access if line[0] == "INFO"]
+    assert shown == [
+        ("INFO", '"GET /loops HTTP/1.1" 200'),
+        ("INFO", '"HEAD /healthz HTTP/1.1" 405'),
+        ("INFO", '"GET /nope HTTP/1.1" 404'),
+    ]
+    probes = [message for lvl, message in access if lvl == "DEBUG"]
+    if level == "info":
+        assert probes == []
+    else:  # the 12 above and the start-up's readiness polls
+        assert len(probes) >= 12
+        assert all(
+            re.fullmatch(r'"GET /(healthz|readyz|metrics)\S* HTTP/1.1" 200', m) for m in probes
+        )

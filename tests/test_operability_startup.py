@@ -222,3 +222,26 @@ def test_a_tuner_token_that_appears_later_shows_in_the_running_tuners_health(tmp
         assert "the other tuner pitune/tuners/late left the bus" in log
     finally:
         first.stop()
+
+
+def test_a_cluster_lease_longer_than_the_zenoh_transport_lease_is_refused(tmp_path):
+    """A member paused (SIGSTOP, a frozen VM) longer than its Zenoh transport lease (10 s
+    by default) loses its liveliness token, and the others take its leases at three
+    ticks, while, waking, it still counts its own lease valid: cluster_lease_s above the
+    transport lease is refused, naming both ways out. At or below it, or with the Zenoh
+    lease raised, start-up goes on (here to the store: no PostgreSQL listens)."""
+    from service.daemon.leasecheck import lease_mismatch
+    from service.daemon.settings import load_settings
+
+    url = f"postgresql://pitune@127.0.0.1:{free_port()}/pitune"
+    proc = start(tmp_path, "--db", url, PITUNE_CLUSTER_LEASE_S="30")
+    one_line(proc, daemon.EXIT_USAGE, "cluster_lease_s (30 s) is longer than",
+             "Zenoh transport lease (10 s, transport/link/tx/lease)",
+             "PITUNE_CLUSTER_LEASE_S) to at most 10", "to at least 30000 (ms)")  # fmt: skip
+    longer = tmp_path / "zenoh.json5"
+    longer.write_text("{ transport: { link: { tx: { lease: 30000 } } } }")
+    for extra, lease in [((), "10"), (("--zenoh-config", str(longer)), "30")]:
+        proc = start(tmp_path, "--db", url, *extra, PITUNE_CLUSTER_LEASE_S=lease)
+        one_line(proc, daemon.EXIT_CANT_CREATE, "PostgreSQL")
+    # one tuner on SQLite has no cluster lease to keep
+    assert lease_mismatch(load_settings(db_path=tmp_path / "x.db", cluster_lease_s=30)) is None

@@ -286,3 +286,59 @@ def test_identify_history_export_and_tuner_totals(client):
     for name in ("pitune_state_queries_dropped_total", "pitune_gains_superseded_total",
                  "pitune_audit_pruned_total", "pitune_queue_bytes"):  # fmt: skip
         assert f"\n{name} " in text, name
+
+
+def monitor_series(text: str) -> dict[str, float]:
+    """``name{label}`` -> value of the aggregate loop gauges in a /metrics text."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    names = {"pitune_loops", "pitune_loops_by_status", "pitune_loops_monitor",
+             "pitune_loops_monitor_mean"}  # fmt: skip
+    return {
+        f"{s.name}{{{','.join(s.labels.values())}}}": s.value
+        for family in text_string_to_metric_families(text)
+        if family.name in names
+        for s in family.samples
+    }
+
+
+def test_the_aggregate_gauges_say_what_holds_once_the_last_loop_is_deleted(tmp_path):
+    """A loop in manual lifts pitune_loops_monitor_mean's manual_share; once it is deleted,
+    and no loop is left, no gauge keeps its numbers (they were left as the last scrape
+    with a loop set them): the counts are 0 and the means NaN (a mean over no loop)."""
+    import math
+
+    from tests.tuner_support import connected_gateway, wait_until
+
+    settings = tuner_settings(tmp_path, api_token=TOKEN)
+    with TestClient(create_app(settings)) as client:
+        assert client.post("/loops", json=loop_body("L1"), headers=AUTH).status_code == 201
+        gw = connected_gateway(settings)
+        try:
+            t = iter(range(1, 10**6))
+
+            def metrics() -> dict[str, float]:
+                return monitor_series(client.get("/metrics").text)
+
+            def manual_share() -> float:
+                for _ in range(5):  # the samples of a loop in manual lift its manual share
+                    gw.send("L1", {"t": float(next(t)), "e": 0.5, "auto": False})
+                return metrics()["pitune_loops_monitor_mean{manual_share}"] > 0.05
+
+            wait_until(manual_share, 20.0, "a manual share")
+            held = metrics()
+            assert held["pitune_loops_by_status{manual}"] == 1.0
+            assert held["pitune_loops_monitor_mean{rejected_share}"] == 0.0
+        finally:
+            gw.close()
+        assert client.delete("/loops/L1", headers=AUTH).status_code == 204
+        after = metrics()
+    means = {k: v for k, v in after.items() if k.startswith("pitune_loops_monitor_mean")}
+    assert sorted(means) == sorted(
+        f"pitune_loops_monitor_mean{{{f}}}"
+        for f in ("manual_share", "saturated_share", "rejected_share", "iae_ratio")
+    )
+    assert all(math.isnan(v) for v in means.values()), means
+    counts = {k: v for k, v in after.items() if k not in means}
+    assert set(counts.values()) == {0.0}, counts
+    assert len(counts) == len(held) - len(means)

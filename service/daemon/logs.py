@@ -31,6 +31,8 @@ import numpy as np
 
 TEXT_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 UVICORN_LOGGERS = ("uvicorn", "uvicorn.error", "uvicorn.access", "uvicorn.asgi")
+PROBE_PATHS = frozenset({"/healthz", "/readyz", "/metrics"})
+"""What supervisors and Prometheus poll: their answered requests are DEBUG lines."""
 log = logging.getLogger("pitune.events")
 
 
@@ -76,6 +78,31 @@ def configure(level: str = "info", fmt: str = "text", stream: TextIO | None = No
         logger = logging.getLogger(name)
         logger.handlers.clear()
         logger.propagate = True
+    access = logging.getLogger("uvicorn.access")
+    if not any(isinstance(f, QuietProbes) for f in access.filters):
+        access.addFilter(QuietProbes())
+
+
+class QuietProbes(logging.Filter):
+    """uvicorn's access line of a probe or scrape (:data:`PROBE_PATHS`) answered below
+    400 is a DEBUG line, not INFO: a probe every 2 s would write 43,200 lines a day that
+    say nothing. Any other request, and a probe that failed, stays at INFO."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        args = record.args
+        if not (isinstance(args, tuple) and len(args) == 5):  # not an access line
+            return True
+        _client, method, path, _version, status = args
+        if method not in ("GET", "HEAD") or str(path).split("?", 1)[0] not in PROBE_PATHS:
+            return True
+        if not isinstance(status, int) or status >= 400:
+            return True
+        # uvicorn sets its access logger's level (--log-level): a DEBUG line is written
+        # only at debug; the root handler takes what the logger passes on
+        if not logging.getLogger(record.name).isEnabledFor(logging.DEBUG):
+            return False
+        record.levelno, record.levelname = logging.DEBUG, "DEBUG"
+        return True
 
 
 class Limiter:

@@ -33,6 +33,7 @@ from pydantic import ValidationError
 from pydantic_settings import SettingsError
 
 from service.daemon import logs
+from service.daemon.leasecheck import lease_mismatch
 from service.daemon.settings import (
     UNTRAINED,
     Settings,
@@ -443,6 +444,8 @@ def run(args: argparse.Namespace) -> int:
 
 def serve(settings: Settings) -> int:
     check_files(settings)
+    if (mismatch := lease_mismatch(settings)) is not None:
+        raise StartupError(EXIT_USAGE, mismatch)
     # a PostgreSQL store is shared by a cluster: its leases (service.daemon.cluster) keep
     # two members off the same loops, where an SQLite file has one owner
     lock = (

@@ -128,7 +128,9 @@ class Settings(BaseSettings):
     cluster_lease_s: Annotated[float, Field(ge=2.0, le=60.0)] = Field(
         5.0,
         description="With a PostgreSQL store: seconds a member's leases last without "
-        "renewal (renewed every lease/5); a dead member's loops move after at most this.",
+        "renewal (renewed every lease/5); a dead member's loops move after at most this. "
+        "At most the Zenoh session's transport lease (transport/link/tx/lease, 10 s by "
+        "default), or the tuner refuses to start (service/daemon/leasecheck.py).",
     )
     cluster_url: str | None = Field(
         None,

@@ -242,8 +242,8 @@ def performance(tb: LoopTable, s: int) -> Performance:
 def monitor_summary(tb: LoopTable) -> tuple[dict[str, int], dict[str, float]]:
     """Counts and means over all loops for the metrics (vectorised: no per-loop series)."""
     used = np.fromiter(tb.slot_of.values(), np.int64, len(tb.slot_of))
-    if not used.size:
-        return dict.fromkeys(_STATES, 0), {}
+    if not used.size:  # no loop (the last one deleted): no mean, not the last loop's
+        return dict.fromkeys(_STATES, 0), dict.fromkeys(_FIGURES, math.nan)
     pending = verify.changed(tb, used)
     counts = {
         "oscillating": int(tb.o_osc[used].sum()),
@@ -267,6 +267,8 @@ def monitor_summary(tb: LoopTable) -> tuple[dict[str, int], dict[str, float]]:
 _STATES = (
     "oscillating", "output_held", "pv_stalled", "change_pending", "held", "proposal_pending",
 )  # fmt: skip
+_FIGURES = ("manual_share", "saturated_share", "rejected_share", "iae_ratio")
+"""The means of :func:`monitor_summary`: every one is set at each scrape."""
 
 
 def identification(tb: LoopTable, s: int) -> Identification | None:

@@ -91,6 +91,10 @@ class ServerMap(BaseModel):
     )
     user: str | None = Field(None, description="User name; absent: anonymous.")
     password_env: str = "PITUNE_OPCUA_PASSWORD"
+    allow_plaintext_password: bool = Field(
+        False, description="Must be true to log in as user with security None: the password "
+        "then crosses the network readable (commissioning on a closed bench)."
+    )  # fmt: skip
     timeout_s: PositiveS = 4.0
     watchdog_s: PositiveS = Field(
         5.0, description="Keep-alive probe period and timeout: a busy server that answers "
@@ -110,6 +114,14 @@ class ServerMap(BaseModel):
                 raise ValueError(
                     'security "None" sends gains unauthenticated: set allow_insecure = true '
                     "in [server] to run like that anyway"
+                )
+            # asyncua sends the password as it is unless the server's user token policy
+            # names an encryption, and then to a server certificate nothing verified
+            if self.user is not None and not self.allow_plaintext_password:
+                raise ValueError(
+                    f'security "None" with user {self.user!r} sends its password in clear '
+                    "text: use security Basic256Sha256, or set allow_plaintext_password = "
+                    "true in [server] to accept that"
                 )
         elif self.certificate is None or self.private_key is None:
             raise ValueError(
@@ -320,7 +332,9 @@ def parse_map(data: dict, *, base: Path = Path("."), source: str = "map") -> Sit
         return SiteMap.model_validate(data).resolve_paths(base)
     except ValidationError as exc:
         lines = [
-            f"  {'.'.join(str(p) for p in err['loc']) or '(top)'}: {err['msg']}"
+            f"{'.'.join(str(p) for p in err['loc']) or '(top)'}: {err['msg']}"
             for err in exc.errors()
         ]
-        raise MapError(f"{source}: invalid map:\n" + "\n".join(lines)) from None
+        if len(lines) == 1:  # one line for one fault
+            raise MapError(f"{source}: invalid map: {lines[0]}") from None
+        raise MapError(f"{source}: invalid map:\n" + "\n".join(f"  {x}" for x in lines)) from None

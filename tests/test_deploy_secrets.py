@@ -1,0 +1,98 @@
+"""deploy/secrets.sh: the compose deployment's Zenoh passwords, fresh and random, with a
+user of its own for each gateway named (the ACL's per-gateway users), checked live in the
+router the deployment runs (deploy/zenoh_router.py with deploy/zenoh/router.json5)."""
+
+from __future__ import annotations
+
+import queue
+import re
+import stat
+import subprocess
+from pathlib import Path
+
+import zenoh
+
+from service.wire.protocol import LOOP_ID_PATTERN, Keys
+from service.wire.session import session_config
+from tests.test_deploy_acl_live import DEPLOY, first_through, python_router
+
+SCRIPT = DEPLOY / "secrets.sh"
+KEYS = Keys()
+
+
+def secrets(target: Path, *gateways: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        ["bash", str(SCRIPT), str(target), *gateways], capture_output=True, text=True
+    )
+
+
+def users_of(target: Path) -> dict[str, str]:
+    return dict(line.split(":") for line in (target / "credentials.txt").read_text().split())
+
+
+def test_secrets_sh_makes_fresh_passwords_in_a_private_directory(tmp_path):
+    target = tmp_path / "secrets"
+    made = secrets(target)
+    assert made.returncode == 0, made.stderr
+    assert stat.S_IMODE(target.stat().st_mode) == 0o700
+    users = users_of(target)
+    assert set(users) == {"tuner", "gateway"} and len(set(users.values())) == 2
+    for user, password in users.items():
+        config = (target / f"{user}.json5").read_text()
+        assert password in config and "change-me" not in config
+        assert len(password) == 32
+    again = secrets(target)
+    assert again.returncode == 1 and "not empty" in again.stderr
+    assert users_of(target) == users
+
+
+def client(config: Path, endpoint: str) -> zenoh.Session:
+    return zenoh.open(session_config(config_file=config, connect=[endpoint]))
+
+
+def test_secrets_sh_makes_the_per_gateway_users_the_acl_names(tmp_path):
+    """``secrets.sh DIR gw-1``: the ACL's example per-gateway user gets a password and a
+    client config; through the router, on that directory's credentials, it logs in and
+    its gateway's samples reach the tuner user."""
+    target = tmp_path / "secrets"
+    made = secrets(target, "gw-1")
+    assert made.returncode == 0, made.stderr
+    users = users_of(target)
+    assert set(users) == {"tuner", "gateway", "gateway-gw-1"}
+    assert len(set(users.values())) == 3 and {len(pw) for pw in users.values()} == {32}
+    config = (target / "gateway-gw-1.json5").read_text()
+    assert f'user: "gateway-gw-1", password: "{users["gateway-gw-1"]}"' in config
+    assert stat.S_IMODE((target / "gateway-gw-1.json5").stat().st_mode) == 0o644
+    key = KEYS.gateway_samples("gw-1")
+    got: queue.SimpleQueue = queue.SimpleQueue()
+    with (
+        python_router(tmp_path, credentials=target / "credentials.txt") as endpoint,
+        client(target / "tuner.json5", endpoint) as tuner,
+        client(target / "gateway-gw-1.json5", endpoint) as gateway,
+        tuner.declare_subscriber(key, lambda s: got.put(s.payload.to_bytes())),
+    ):
+        first_through(lambda: gateway.put(key, b"{}"), got)
+
+
+def test_secrets_sh_refuses_a_gateway_the_acl_does_not_name_and_makes_nothing(tmp_path):
+    """A user the ACL does not grant would log in and be allowed nothing (default deny):
+    refused, as are an id that is not one and an id given twice; no directory is made."""
+    target = tmp_path / "secrets"
+    for gateways, message in [
+        (("gw-1", "unit-7"), "the router's ACL"),
+        (("gw-1", "a/b"), "'a/b' is not a gateway id"),
+        (("-x",), "'-x' is not a gateway id"),
+        (("gw-1", "gw-1"), "gateway 'gw-1' is given twice"),
+    ]:
+        refused = secrets(target, *gateways)
+        assert refused.returncode == 1, gateways
+        assert message in refused.stderr and refused.stderr.count("\n") == 1, refused.stderr
+        assert not target.exists(), gateways
+    assert "no user gateway-unit-7" in secrets(target, "unit-7").stderr
+
+
+def test_secrets_sh_takes_the_gateway_ids_the_tuner_takes():
+    """The script's id rule is the protocol's (one rule, two languages)."""
+    pattern = re.search(r"^ID_PATTERN='(.*)'$", SCRIPT.read_text(), re.M)
+    assert pattern is not None
+    assert pattern.group(1) == LOOP_ID_PATTERN.replace("\\-", "-")
