@@ -91,8 +91,9 @@ def envelope(tb, s: int, m: identify.Model, t: float, wall: float, *, sure: bool
     if not tb.env_guard[s]:
         return
     app = box.apparent(tb.scaling_of(s), m)
-    if sure:
-        out = m.integrating or not box.in_envelope(app)
+    if sure:  # a paused loop resumes only well inside (hysteresis: box.RESUME_MARGIN)
+        margin = box.RESUME_MARGIN if tb.out_env[s] else box.ENVELOPE_MARGIN
+        out = m.integrating or not box.in_envelope(app, margin)
     else:
         if not (m.r2 >= identify.MIN_R2 and m.events >= identify.MIN_EVENTS):
             return

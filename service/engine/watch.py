@@ -32,7 +32,8 @@ accepted sample; stated one sample at a time in ``tests/engine_reference.py``):
   it is compared: a disagreement beyond ``guard.hint_tolerance`` flags the loop (audit
   'mismatch') and, with ``guard.auto_rescale``, rescales it (audit 'rescaled');
   outside the training box by :data:`service.engine.box.ENVELOPE_MARGIN` (or
-  integrating) pauses it (audit 'out_of_envelope'). Both set the gains to the model's
+  integrating) pauses it (audit 'out_of_envelope'; it resumes within
+  :data:`~service.engine.box.RESUME_MARGIN`). Both set the gains to the model's
   tuning (:mod:`service.engine.first_tuning`), but for an integrating process, which
   keeps its gains (no tuning of it is trusted: docs/identification.md, Integrating
   processes). A confident model like one whose tuning rang on the loop is not used
