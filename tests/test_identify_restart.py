@@ -28,30 +28,32 @@ KP0, KI0 = 0.125, 0.003125
 IDENTIFY_AT = 3010.0
 
 
-def _reidentified() -> tuple[TuningEngine, list, dict, object]:
-    """The loop through the engine for 3500 s, identified again at :data:`IDENTIFY_AT`;
-    returns the engine, the audit rows from then on (as dicts), the loop's largest
-    overshoot past the setpoint per 200 s of setpoint (share of the move) after it, and
-    the view just before the identify."""
+def _reidentified(
+    end: float = 3500.0, identify_at: float = IDENTIFY_AT, **config
+) -> tuple[TuningEngine, list, dict, object]:
+    """The loop (``config``: more of its LoopConfig) through the engine until ``end`` s,
+    identified again at ``identify_at``; returns the engine, the audit rows from then on
+    (as dicts), the loop's largest overshoot past the setpoint per 200 s of setpoint
+    (share of the move) after it, and the view just before the identify."""
     engine = TuningEngine(max_rate_hz=1e6)
-    engine.register(LoopConfig(id="X", kp=KP0, ki=KI0, sample_period_s=1.0), wall=0.0)
+    engine.register(LoopConfig(id="X", kp=KP0, ki=KI0, sample_period_s=1.0, **config), wall=0.0)
     settings = LoopSettings(kp=KP0, ki=KI0, sp_low=-1, sp_high=1, sp_period=200.0, noise=0.01)
     sim = FoptdLoop("X", settings, K=2.0, tau=20.0, theta=4.0, dt=1.0, seed=0)
     over: dict[int, float] = {}
     rows, before = [], None
-    for _ in range(3500):
+    for _ in range(int(end)):
         sc = sim.scan()
         sample = {"loop_id": "X", "t": sc.t, "sp": sc.sp, "pv": sc.pv, "kp": sc.kp,
                   "ki": sc.ki, "op": sc.op}  # fmt: skip
         for up in engine.ingest([sample], wall=sc.t):
             sim.apply_gains(up.kp, up.ki)
-        if sc.t >= IDENTIFY_AT:
+        if sc.t >= identify_at:
             part = int(sc.t // 200)
             over[part] = max(over.get(part, 0.0), (sc.pv - sc.sp) * (1 if sc.sp > 0 else -1) / 2)
-        if sc.t == IDENTIFY_AT:
+        if sc.t == identify_at:
             before = engine.view("X", wall=sc.t)
             engine.identify("X", wall=sc.t, actor="test")
-        rows += [r for r in engine.drain_changes()[1] if r[2] is not None and r[2] >= IDENTIFY_AT]
+        rows += [r for r in engine.drain_changes()[1] if r[2] is not None and r[2] >= identify_at]
     names = ("loop_id", "wall", "t", "seq", "mode", "reason", "kp_old", "ki_old", "kp_new",
              "ki_new", "detail")  # fmt: skip
     return engine, [dict(zip(names, r, strict=True)) for r in rows], over, before
@@ -83,3 +85,19 @@ def test_a_restart_after_a_refuted_model_faults_nothing():
     rows = engine.drain_changes()[1]
     assert [r[5] for r in rows if r[5] in ("rollback", "identify")] == ["rollback", "identify"]
     assert [r for r in rows if r[5] == "fault"] == [] and view.counters.faults == 0
+
+
+def test_a_hinted_loop_back_on_its_hint_starts_a_fresh_episode():
+    """A hinted loop (tau_hat 3x the plant's) rescaled by its model (RL period 110 s),
+    identified again at 2010 s: back on its hint (RL period 330 s), its first step falls
+    one hint period after the identify, at 2340 s; it fell at 2035 s, the old window's
+    end, with a window of the old scaling's sums."""
+    hint = {"k_hat": 2.0, "tau_hat": 60.0, "pv_scale": 1.0}
+    engine, rows, _, before = _reidentified(
+        2500.0, 2010.0, scaling=hint, guard={"auto_rescale": True}
+    )
+    assert before.scaling.time_unit_s == pytest.approx(40.0, rel=0.02)  # rescaled: tau 20 s
+    assert engine.view("X", wall=2500.0).scaling.time_unit_s == pytest.approx(120.0)
+    steps = [r["t"] for r in rows if r["reason"] == "agent"]
+    assert steps[0] == pytest.approx(2010.0 + 330.0)
+    assert [r for r in rows if r["reason"] in ("fault", "rollback")] == []
