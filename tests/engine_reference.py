@@ -170,7 +170,7 @@ def _ingest(tb: LoopTable, s: int, sample: Sample, wall: float) -> bool:
     tb.obs_e[s] = tb.win_sum[s] / tb.win_n[s] if tb.win_n[s] and not mixed else e_agent
     period = tb.period[s]
     tb.next_due[s] += period * (math.floor((t - tb.next_due[s]) / period) + 1.0)
-    if tb.mode[s] == FROZEN or not sample.auto or saturated or tb.out_env[s]:
+    if tb.mode[s] == FROZEN or not sample.auto or saturated or tb.out_env[s] or not tb.scaled[s]:
         return False
     if reported.held(tb, s):  # gains reported outside the bounds
         return False

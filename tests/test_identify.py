@@ -182,6 +182,18 @@ def test_a_hint_free_loop_is_identified_then_tuned_and_survives_a_restart():
     assert again.view("L", wall=0.0).status in (LoopStatus.identifying, LoopStatus.stale)
 
 
+def test_a_loop_that_never_sent_a_sample_waits_for_samples():
+    """Status ``waiting``, and identification says so (it said "waiting for a setpoint
+    move"); its first sample, without a move, leaves it waiting for one."""
+    engine = TuningEngine(untrained_agent(0))
+    engine.register(hint_free(), wall=0.0)
+    view = engine.view("L", wall=0.0)
+    assert view.status == LoopStatus.waiting
+    assert view.identification.why.startswith("waiting for samples: none received")
+    engine.ingest([{"loop_id": "L", "t": 0.0, "sp": 50.0, "pv": 50.0}], wall=0.0)
+    assert engine.view("L", wall=0.0).identification.why.startswith("waiting for a setpoint move")
+
+
 def test_hint_free_loop_takes_no_step_and_publishes_nothing_while_identifying():
     engine = TuningEngine(untrained_agent(0))
     engine.register(hint_free(), wall=0.0)

@@ -35,7 +35,7 @@ REGISTERED = tuple(0.5 * g for g in to_parallel(*simc_paper(K, TAU, THETA)))
 
 def _run(
     moves: int, *, op_scale=None, k_after_model=None, t_of=None, manual=0, ringing=False,
-    changed=None, hint=None, restore_at=None, identify_at=None,
+    changed=None, hint=None, restore_at=None, identify_at=None, guard=None,
 ):  # fmt: skip
     """The loop through the engine for ``moves`` setpoint moves; ``op_scale``: op sent as
     that factor x the PI's output (None: no op); ``k_after_model``: the plant's gain from
@@ -51,8 +51,9 @@ def _run(
     then on for good (the plant really changed); ``hint``: the loop registered with that
     scaling; ``restore_at``, ``identify_at``: at that sample the engine is replaced by
     one restored from its snapshot (a tuner's restart), or asked to identify again
-    (``POST /loops/{id}/identify``)."""
-    config = LoopConfig(id="L", kp=REGISTERED[0], ki=REGISTERED[1], sample_period_s=H, scaling=hint)
+    (``POST /loops/{id}/identify``); ``guard``: the loop's guard settings."""
+    config = LoopConfig(id="L", kp=REGISTERED[0], ki=REGISTERED[1], sample_period_s=H,
+                        scaling=hint, guard=guard or {})  # fmt: skip
     engine = TuningEngine(untrained_agent(0))
     engine.register(config)
     plant = FOPTDBatch(K, TAU / H, THETA / H, dt=1.0, noise_std=1.0, seed=0, max_theta=THETA / H)

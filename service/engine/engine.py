@@ -159,7 +159,9 @@ class TuningEngine:
         again and not tuned until a new model is confident; a hinted loop goes back to its
         hint), the mismatch and envelope flags are cleared, the models refuted on the loop
         forgotten (:mod:`service.engine.refuted`); audit row 'identify' (with
-        ``actor=<actor>`` when one is given, as a reset's)."""
+        ``actor=<actor>`` when one is given, as a reset's). A change pending stays
+        pending, judged under the scaling then in force (:func:`watch.restart
+        <service.engine.watch.restart>`)."""
         with self.lock:
             s = self.table.slot(loop_id)
             self._due.pop(s, None)

@@ -30,6 +30,14 @@ class Refuted:
         return cls(identify.Model.from_dict(d["model"]), d.get("t"), d.get("told", False))
 
 
+NO_SAMPLES = (
+    "waiting for samples: none received since registration (then for a setpoint move, or "
+    "an output step in manual with op in the samples)"
+)
+"""Why, in the view, of a loop that never sent a sample (status ``waiting``): the default
+:attr:`IdState.why` would have it wait for a setpoint move."""
+
+
 @dataclass(slots=True)
 class IdState:
     """A loop's identification state beyond its arrays (Python objects; one per loop, so

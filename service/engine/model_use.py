@@ -91,8 +91,9 @@ def envelope(tb, s: int, m: identify.Model, t: float, wall: float, *, sure: bool
     if not tb.env_guard[s]:
         return
     app = box.apparent(tb.scaling_of(s), m)
-    if sure:
-        out = m.integrating or not box.in_envelope(app)
+    if sure:  # a paused loop resumes only well inside (hysteresis: box.RESUME_MARGIN)
+        margin = box.RESUME_MARGIN if tb.out_env[s] else box.ENVELOPE_MARGIN
+        out = m.integrating or not box.in_envelope(app, margin)
     else:
         if not (m.r2 >= identify.MIN_R2 and m.events >= identify.MIN_EVENTS):
             return
@@ -132,17 +133,28 @@ def _put_in_force(tb, s, m, scaling: Scaling, t, wall, reason: str, detail: str)
     st: IdState = tb.ident[s]
     st.scaling, st.in_force, st.in_force_t = scaling, m, t
     tb.reconfigure(tb.configs[tb.ids[s]])
-    # a fresh episode from the gains in force, a decimation window from now
-    tb.hidden[s] = 0.0
-    tb.unsettle(s)
-    tb.int_e[s] = 0.0
-    tb.next_due[s] = t + tb.period[s]
+    new_scaling(tb, s, t)
     if tb.exc_window[s] < math.inf:
         tb.excited_until[s] = t + tb.exc_window[s]
     tb.out_env[s] = False
     tb.n_identified[s] += 1
     audit(tb, s, t, wall, reason, detail)
     first_tuning.apply(tb, s, m, wall, reason)
+
+
+def new_scaling(tb, s: int, t: float) -> None:
+    """The scaling in force changed (or went: identifying again) at plant time ``t``: what
+    was measured in the old one's units and RL period starts again. A fresh episode from
+    the gains in force (the hidden state and the error integral are in the old agent
+    units), a decimation window from ``t`` (NaN without a scaling: never due), and no open
+    setpoint response: it was to be judged over two of the old RL periods, and without a
+    scaling no move ends it (the excitation gate sees none), so it ran on past the next
+    move and counted that move's error as overshoot (a false rollback)."""
+    tb.hidden[s] = 0.0
+    tb.unsettle(s)
+    tb.int_e[s] = 0.0
+    tb.next_due[s] = t + tb.period[s]
+    tb.r_t0[s] = math.nan
 
 
 def audit(tb, s: int, t: float, wall: float, reason: str, detail: str) -> None:

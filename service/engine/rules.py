@@ -16,9 +16,9 @@ for an RL step (:mod:`service.engine.stepping` then steps it).
   Nor is the error integrated while in manual or saturated (training never saw an
   integral wound up by an error nobody controls), and the decimation window restarts
   at the first sample back in auto, so a step sees a full RL period of control.
-* ``frozen`` loops are never stepped, nor loops without a scaling yet (identifying:
-  their RL period is unknown, so they never fall due) or paused as out of the agent's
-  envelope.
+* ``frozen`` loops are never stepped, nor loops without a scaling (identifying: their
+  RL period is unknown, so they never fall due, nor on a window left from before
+  identification restarted) or paused as out of the agent's envelope.
 * Identification (:mod:`service.engine.watch`): samples with sp and pv are recorded in
   segments that open at setpoint moves; each move closes an event and assesses the
   segment, which may put a model in force (see that module).
@@ -195,6 +195,7 @@ def ingest(
     )
     tb.next_due[slots] = next_due
     due_ok = reached & (tb.mode[slots] != FROZEN) & auto & ~saturated & ~tb.out_env[slots]
+    due_ok &= tb.scaled[slots]  # (a window from before a restart of identification)
     due_ok &= ~verify.paused(tb, slots, t)  # the loop oscillates: neither stepped nor quiet
     due_ok &= ~cols["held"]  # gains reported outside the bounds: not ours to step
     ramp = ramp_gated(t, period, tb.ramp_t[slots], tb.ramp_from[slots], tb.sp_since[slots])

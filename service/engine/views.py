@@ -21,6 +21,7 @@ from service.engine.figures import (
     Verification,
     WindowFigures,
 )  # fmt: skip
+from service.engine.id_state import NO_SAMPLES
 from service.engine.id_view import Identification
 from service.engine.modes import ADVISORY
 from service.engine.monitor import same_gains
@@ -279,7 +280,7 @@ def identification(tb: LoopTable, s: int) -> Identification | None:
     scaling = tb.scaling_of(s)
     state = "off" if not tb.watch[s] else "checking" if tb.scaled[s] else "identifying"
     why = (
-        st.why
+        (st.why if tb.n_samples[s] else NO_SAMPLES)
         if tb.watch[s]
         else (
             "identification off (guard.identify; by default on, for hinted loops as the "

@@ -32,7 +32,8 @@ accepted sample; stated one sample at a time in ``tests/engine_reference.py``):
   it is compared: a disagreement beyond ``guard.hint_tolerance`` flags the loop (audit
   'mismatch') and, with ``guard.auto_rescale``, rescales it (audit 'rescaled');
   outside the training box by :data:`service.engine.box.ENVELOPE_MARGIN` (or
-  integrating) pauses it (audit 'out_of_envelope'). Both set the gains to the model's
+  integrating) pauses it (audit 'out_of_envelope'; it resumes within
+  :data:`~service.engine.box.RESUME_MARGIN`). Both set the gains to the model's
   tuning (:mod:`service.engine.first_tuning`), but for an integrating process, which
   keeps its gains (no tuning of it is trusted: docs/identification.md, Integrating
   processes). A confident model like one whose tuning rang on the loop is not used
@@ -435,11 +436,24 @@ def restart(
     bounds back to the configured ones, the models refuted on the loop forgotten but
     ``keep`` (the engine's restart after a refutation keeps them:
     :mod:`service.engine.refuted`); ``actor`` (who asked) in the audit row's detail as a
-    reset's."""
+    reset's.
+
+    Where the scaling in force changes, what was measured in it starts again
+    (:func:`~service.engine.model_use.new_scaling`: the episode, the decimation window,
+    the open setpoint response) and the last-good gains' figures go (they were measured
+    over the old RL periods, maybe on a plant that changed: the next response is a
+    baseline, as after registration). A change pending stays pending: no response is
+    judged while the loop has no scaling, and the first complete one under the scaling
+    then in force judges it with the changes made since (a hint-free loop's tuning from
+    its new model); an oscillation still fails it at once."""
+    before = tb.scaling_of(s)
     stop(tb, s)
     tb.ident[s] = IdState(why=why or "identification restarted", refuted=keep)
     tb.mismatch[s] = tb.out_env[s] = False
     tb.reconfigure(tb.configs[tb.ids[s]])
     t = tb.last_t[s]
+    if tb.scaling_of(s) != before:
+        model_use.new_scaling(tb, s, float(t))
+        verify.forget_figures(tb, s)
     detail = f"restarted; actor={actor}" if actor else f"restarted: {why}" if why else "restarted"
     model_use.audit(tb, s, None if math.isnan(t) else float(t), wall, "identify", detail)
