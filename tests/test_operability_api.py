@@ -139,12 +139,15 @@ def test_event_lines_per_change_rate_limited(caplog):
     clock = Clock()
     events = logs.EventLog(logging.getLogger("pitune.events"), burst=3, interval_s=10.0)
     events.limiter.clock = clock
-    rows = [
-        audit_row(f"L{i}", 0.0, 5.0, 1, "auto", "agent", (1.0, 0.1), (1.5, 0.15)) for i in range(10)
-    ]
+    messages = [
+        {"loop_id": f"L{i}", "seq": 1, "t": 5.0, "kp": 1.5, "ki": 0.15, "dkp": 0.5, "dki": 0.05,
+         "mode": "auto", "reason": "agent"}
+        for i in range(10)
+    ]  # fmt: skip
     adopted = audit_row("L0", 0.0, 6.0, 1, "auto", "adopted", (1.5, 0.15), (2.0, 0.2))
     with caplog.at_level(logging.INFO, "pitune.events"):
-        events.audit(rows + [adopted])
+        events.published(messages)
+        events.audit([adopted])
         messages = [r.getMessage() for r in caplog.records]
         assert len(messages) == 4  # 3 agent lines, then the adoption (its own kind)
         assert messages[0] == (
@@ -261,20 +264,30 @@ def test_gain_changes_and_adoptions_reach_the_log(tmp_path, caplog):
 
     if "events.audit" not in inspect.getsource(Tuner._commit):
         pytest.xfail("Tuner._commit does not call metrics.events.audit yet")
+
+    def logged(text: str) -> bool:
+        return any(text in r.getMessage() for r in caplog.records)
+
     with caplog.at_level(logging.INFO, "pitune.events"), Tuner(tuner_settings(tmp_path)) as t:
         t.register(LoopConfig(**loop_body("AUTO")))
+        t.register(LoopConfig(**loop_body("SHADOW", mode="shadow")))
         gw = connected_gateway(t.settings)
         try:
             for i in range(170):
-                gw.send("AUTO", {"t": float(i), "e": 1.0})
+                for loop_id in ("AUTO", "SHADOW"):
+                    gw.send(loop_id, {"t": float(i), "e": 1.0})
             gw.next_gains()
-            gw.send("AUTO", {"t": 170.0, "e": 1.0, "kp": 0.9, "ki": 0.02})  # an operator's
-            wait_until(lambda: t.view("AUTO").kp == 0.9)
+            wait_until(lambda: t.view("SHADOW").counters.steps >= 1)
+            for loop_id in ("AUTO", "SHADOW"):  # an operator's change, committed after
+                gw.send(loop_id, {"t": 170.0, "e": 1.0, "kp": 0.9, "ki": 0.02})
+            wait_until(lambda: logged("'AUTO' adopted") and logged("'SHADOW' adopted"))
         finally:
             gw.close()
     messages = [r.getMessage() for r in caplog.records]
     assert any(m.startswith("loop 'AUTO' gains kp=0.5 ki=0.01 -> ") for m in messages)
     assert any("adopted the gateway's gains kp=0.9 ki=0.02" in m for m in messages)
+    # a shadow loop's steps publish nothing: no gains line (each wrote one)
+    assert not any(m.startswith("loop 'SHADOW' gains") for m in messages), messages
 
 
 @pytest.mark.parametrize("level", ["info", "debug"])

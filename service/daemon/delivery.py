@@ -87,8 +87,8 @@ class Delivery:
                 self._store_failed(exc)
                 return
             self.epochs.update((row[3], (row[4], row[2])) for row in rows if row[4] is not None)
-            # INFO per gain change / adoption, rate-limited (the API logs resets with their caller)
-            self.metrics.events.audit(row for row in audit if row[5] != "reset")
+            # INFO per adoption, verdict, ..., rate-limited (gains: when published, below)
+            self.metrics.events.audit(audit)
             self.metrics.verdict(audit)
         if dirty:
             # last-good gains, verdicts and proposals on disk before what follows from
@@ -152,6 +152,7 @@ class Delivery:
             by_gateway[gateway].append(message)
         for gateway, batch in by_gateway.items():
             self._lane(gateway).submit(batch)
+        self.metrics.events.published(messages)  # INFO per update, rate-limited
         # counted when handed to the publishers (committed, to go out in order): a reader
         # of the metrics after a reset or a step sees it; a message a newer one of its
         # loop replaced in a blocked lane is in `superseded`

@@ -7,10 +7,11 @@ logger: message``) or JSON lines (``{"ts", "level", "logger", "message"}``, plus
 ``exc`` with a traceback); uvicorn runs with ``log_config=None`` so its loggers
 propagate to that handler instead of printing their own format.
 
-:class:`EventLog` turns audit rows into one INFO line each, at most ``burst`` lines per
-kind (registered, agent, adopted, reset, ...) and ``interval_s``; the rest are counted
-and summed up in one line once the interval is over, so a 10,000-loop site stepping
-every RL period writes a few lines per interval, not 10,000. :class:`StatusWatch`
+:class:`EventLog` turns gains messages published and the other audit rows into one INFO
+line each, at most ``burst`` lines per kind (registered, agent, adopted, ...) and
+``interval_s``; the rest are counted and summed up in one line once the interval is
+over, so a 10,000-loop site stepping every RL period writes a few lines per interval,
+not 10,000. :class:`StatusWatch`
 logs the loops whose status (tuning, quiet, stale, manual, ...) changed since the last
 check, through the same limiter.
 """
@@ -29,11 +30,15 @@ from typing import TextIO
 
 import numpy as np
 
+from service.wire.protocol import UpdateReason
+
 TEXT_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 UVICORN_LOGGERS = ("uvicorn", "uvicorn.error", "uvicorn.access", "uvicorn.asgi")
 PROBE_PATHS = frozenset({"/healthz", "/readyz", "/metrics"})
 """What supervisors and Prometheus poll: their answered requests are DEBUG lines."""
 log = logging.getLogger("pitune.events")
+GAINS_REASONS = frozenset(r.value for r in UpdateReason)
+"""Audit reasons of the decisions a gains message carries (:meth:`EventLog.published`)."""
 
 
 def _timestamp(record: logging.LogRecord) -> str:
@@ -162,22 +167,44 @@ def _gains(kp: float | None, ki: float | None) -> str:
 
 
 class EventLog:
-    """One INFO line per change of a loop (from its audit row), rate-limited per kind."""
+    """One INFO line per change of a loop, rate-limited per kind: a gains message from the
+    message published (:meth:`published`), any other change from its audit row
+    (:meth:`audit`)."""
 
     def __init__(self, logger: logging.Logger = log, burst: int = 20, interval_s: float = 10.0):
         self.limiter = Limiter(logger, burst, interval_s)
 
+    def published(self, messages: Iterable[dict]) -> None:
+        """Log gains messages handed to the publishers (GainsMessage dicts), but resets:
+        the API logs those with their caller. A step held or a shadow loop's has an audit
+        row and no message: it is not logged as an update."""
+        self._log((m["reason"], m) for m in messages if m["reason"] != UpdateReason.reset)
+
     def audit(self, rows: Iterable[tuple]) -> None:
-        """Log audit rows (:data:`service.engine.audit.AUDIT_COLUMNS` order): agent
-        updates, adoptions, resets, registrations, patches, deletions."""
+        """Log audit rows (:data:`service.engine.audit.AUDIT_COLUMNS` order) but those of
+        gains decisions (agent, model, rollback, accepted, reset), which
+        :meth:`published` logs when (and only if) their message goes out: adoptions,
+        registrations, patches, deletions, verdicts, identification outcomes, ..."""
+        self._log((row[5], row) for row in rows if row[5] not in GAINS_REASONS)
+
+    def _log(self, items: Iterable[tuple[str, object]]) -> None:
         if not self.limiter.logger.isEnabledFor(logging.INFO):
             return
-        by_reason: dict[str, list[tuple]] = collections.defaultdict(list)
-        for row in rows:  # the worker calls this per step: format only what is logged
-            by_reason[row[5]].append(row)
-        for reason, group in by_reason.items():
-            for row in group[: self.limiter.take(str(reason), len(group))]:
-                self.limiter.logger.info("%s", self._message(row))
+        by_kind: dict[str, list] = collections.defaultdict(list)
+        for kind, item in items:  # the worker calls this per step: format only what is logged
+            by_kind[kind].append(item)
+        for kind, group in by_kind.items():
+            for item in group[: self.limiter.take(str(kind), len(group))]:
+                text = self._update(item) if isinstance(item, dict) else self._message(item)
+                self.limiter.logger.info("%s", text)
+
+    @staticmethod
+    def _update(m: dict) -> str:
+        old = _gains(m["kp"] - m["dkp"], m["ki"] - m["dki"])
+        return (
+            f"loop {m['loop_id']!r} gains {old} -> {_gains(m['kp'], m['ki'])} "
+            f"({m['reason']}, {m['mode']}, seq {m['seq']}) at t={m['t']:g}"
+        )
 
     @staticmethod
     def _message(row: tuple) -> str:
@@ -194,10 +221,8 @@ class EventLog:
                 f"loop {loop_id!r} adopted the gateway's gains {_gains(kp1, ki1)} "
                 f"(were {_gains(kp0, ki0)}){at}: an operator's change"
             )
-        return (  # agent, reset, ...: gains published
-            f"loop {loop_id!r} gains {_gains(kp0, ki0)} -> {_gains(kp1, ki1)} "
-            f"({reason}, {mode}, seq {seq}){at}"
-        )
+        # verdicts, identification outcomes, faults, ...: no gains published
+        return f"loop {loop_id!r} {reason} ({mode}, {_gains(kp1, ki1)}, seq {seq}){at}: {detail}"
 
     def flush(self) -> None:
         self.limiter.flush()

@@ -174,8 +174,9 @@ class Metrics:
             registry=r,
         )
         self.events = EventLog()
-        """INFO lines of loop changes: call ``events.audit(rows)`` with the audit rows
-        committed (see :mod:`service.daemon.logs`)."""
+        """INFO lines of loop changes: ``events.audit(rows)`` with the audit rows committed,
+        ``events.published(messages)`` with the gains messages published (see
+        :mod:`service.daemon.logs`)."""
 
     def flush_logs(self) -> None:
         """Sum up rejection bursts and suppressed event lines whose interval is over."""

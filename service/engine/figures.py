@@ -123,7 +123,10 @@ class Proposal(BaseModel):
     dki: float
     kp_in_force: float
     ki_in_force: float
-    reason: str = Field(description="'agent' or 'rollback' (back to the last-good gains).")
+    reason: str = Field(
+        description="What made it: 'agent' (the agent's steps), 'model' (the tuning from "
+        "an identified model) or 'rollback' (back to the last-good gains)."
+    )
 
 
 class Performance(BaseModel):

@@ -49,6 +49,7 @@ import numpy as np
 from plant_sim.tunings import simc_improved, to_parallel
 from service.engine import box, fences, predict, reported, verify, warm
 from service.engine.modes import AUTO, FROZEN, PUBLISHING
+from service.engine.updates import REASON_CODE
 from service.wire.protocol import UpdateReason
 
 RULE = "simc_improved tau_c=2tau"
@@ -156,7 +157,8 @@ def apply(tb, s: int, m, wall: float, why: str) -> None:
         verify.restart_track(tb, s)
     else:  # a proposal: the track goes on from it
         tb.adv_kp[s], tb.adv_ki[s], tb.adv_seq[s] = new[0], new[1], seq
-    (predicted,) = predict.predictions(tb, [s], np.array([old]), np.array([new]))
+        tb.adv_why[s] = REASON_CODE[UpdateReason.model]
+    (predicted,) = predict.predictions(tb, [s], np.array([old]), np.array([new]), [m])
     detail = {
         "rule": RULE, "after": why, "k": m.k, "tau": m.tau, "theta": m.theta,
         "model_kp": target[0], "model_ki": target[1], "predicted": predicted,

@@ -22,14 +22,20 @@ STEPS = 400
 """Simulation steps over the judging window (2 RL periods)."""
 
 
-def predictions(tb: LoopTable, slots: list[int], old: np.ndarray, new: np.ndarray) -> list[str]:
+def predictions(
+    tb: LoopTable, slots: list[int], old: np.ndarray, new: np.ndarray, models: list | None = None
+) -> list[str]:
     """For each slot a ``key=value`` text: ``pred_iae=<old>-><new> pred_change=<%>`` (IAE
-    per unit move, s), or ``prediction=none(no identified model)``."""
+    per unit move, s), or ``prediction=none(no identified model)``. ``models``: the model
+    each decision was made on (a model's tuning: the identified one, which on a hinted
+    loop whose hint it contradicts is not the one in force); default the one in force."""
+    if models is None:
+        models = [tb.ident[s].in_force for s in slots]
     out = ["prediction=none(no identified model)"] * len(slots)
-    rows = [i for i, s in enumerate(slots) if tb.ident[s].in_force is not None]
+    rows = [i for i, m in enumerate(models) if m is not None]
     if not rows:
         return out
-    models = [tb.ident[slots[i]].in_force for i in rows]
+    models = [models[i] for i in rows]
     K = np.array([m.k for m in models])
     tau = np.array([m.tau for m in models])
     theta = np.array([m.theta for m in models])

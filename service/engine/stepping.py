@@ -28,7 +28,8 @@ from service.engine.audit import audit_row
 from service.engine.modes import ADVISORY, AUTO, SHADOW
 from service.engine.rules import GAIN_RTOL
 from service.engine.table import LoopTable
-from service.engine.updates import MODE_VALUES, StepResult
+from service.engine.updates import MODE_VALUES, REASON_CODE, StepResult, published
+from service.wire.protocol import UpdateReason
 
 OBS_LIMIT = 1e30
 """Largest magnitude of an observation the agent is given: it computes in float32
@@ -108,13 +109,13 @@ def step(tb: LoopTable, slots: np.ndarray, wall: float) -> StepResult:
     moved = slots[go]
     tb.seq[moved] += 1
     tb.n_steps[slots] += 1
-    tb.n_updates[moved] += 1
     tb._gains_dirty.update(moved.tolist())
     track &= go
     if track.any():
         tracked = slots[track]
         tb.adv_kp[tracked], tb.adv_ki[tracked] = new[track, 0], new[track, 1]
         tb.adv_seq[tracked] = tb.seq[tracked]
+        tb.adv_why[tracked] = REASON_CODE[UpdateReason.agent]
         tb._verify_dirty.update(tracked.tolist())
 
     ids, gateways, listed = tb.ids, tb.gateways, slots.tolist()
@@ -157,7 +158,9 @@ def step(tb: LoopTable, slots: np.ndarray, wall: float) -> StepResult:
         )
     )  # fmt: skip
     unpublished = np.flatnonzero((mode == SHADOW) | hold)
-    return result.without(unpublished) if unpublished.size else result
+    if unpublished.size:
+        result, slots = result.without(unpublished), np.delete(slots, unpublished)
+    return published(tb, slots, result)
 
 
 def _why(tb, slots, mode, old, proposed, fenced, bounded, new, cut, hold) -> list[str]:

@@ -390,18 +390,9 @@ class LoopTable:
         self._audit.append(
             audit_row(loop_id, wall, t, int(self.seq[s]), MODE_VALUES[mode], "reset", old, new, who)
         )
-        return StepResult(
-            [loop_id],
-            np.array([0.0 if t is None else t]),
-            self.seq[[s]].copy(),
-            self.mode[[s]].copy(),
-            np.array([old]),
-            np.array([new]),
-            np.array([new]),
-            [self.gateways[s]],
-            UpdateReason.reset,
-            why=["reason=reset basis=registered verdict=pending"],
-        )
+        why = "reason=reset basis=registered verdict=pending"
+        return verify.single(self, s, 0.0 if t is None else t, old, new, UpdateReason.reset, why,
+                             int(mode))  # fmt: skip
 
     # -- samples ----------------------------------------------------------------------
     def gate_closed(self, s, t):

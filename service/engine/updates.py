@@ -11,6 +11,9 @@ from service.wire.protocol import SCHEMA_VERSION, Mode, UpdateReason
 
 MODE_VALUES = [m.value for m in Mode]
 """Mode names by their codes in the engine's arrays (the order of :class:`Mode`)."""
+REASONS = list(UpdateReason)
+"""Update reasons by their codes in the engine's arrays (a proposal's, ``adv_why``)."""
+REASON_CODE = {reason: code for code, reason in enumerate(REASONS)}
 
 
 @dataclass(frozen=True)
@@ -99,3 +102,12 @@ class StepResult:
             GainUpdate(**{k: m[k] for k in GainUpdate.__dataclass_fields__})
             for m in self.messages("")
         ]
+
+
+def published(tb, slots: np.ndarray, result: StepResult) -> StepResult:
+    """``result``, the decision of the loops at ``slots`` (aligned, distinct) to publish,
+    counted in their ``counters.updates``: the one place it grows, so it counts every
+    gains message published (agent steps, model tunings, rollbacks, accepted proposals,
+    resets) and nothing held or shadow."""
+    tb.n_updates[slots] += 1
+    return result

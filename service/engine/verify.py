@@ -60,7 +60,7 @@ from service.engine.modes import AUTO, PUBLISHING
 from service.engine.monitor import ABSENT, RESPONSE_PERIODS, put, same_gains
 from service.engine.oscillation import forget_lobes, noise_sigma, period
 from service.engine.reported import held, is_detune, no_floor, outside, within
-from service.engine.updates import MODE_VALUES, StepResult
+from service.engine.updates import MODE_VALUES, REASON_CODE, StepResult, published
 from service.wire.protocol import UpdateReason
 
 if TYPE_CHECKING:
@@ -71,8 +71,8 @@ F64 = [
     "g_kp", "g_ki", "g_seq",
     # changes up to this seq are judged; the agent is held until this plant time (why)
     "v_seq", "cool_until", "cool_why",
-    # the proposal track of advisory and shadow loops (NaN: none) and its seq
-    "adv_kp", "adv_ki", "adv_seq",
+    # the proposal track of advisory and shadow loops (NaN: none), its seq and reason code
+    "adv_kp", "adv_ki", "adv_seq", "adv_why",
     # the fence after a rollback: bounds of the agent's gains (NaN: none) until a plant time
     "x_kp_lo", "x_kp_hi", "x_ki_lo", "x_ki_hi", "x_until",
     # tuning paused until this plant time (the loop oscillates), and the last plant time
@@ -344,11 +344,8 @@ def fail(
     # since: restored as they were, a rollback went back above kp_max 14 times)
     good = within(tb, s, (tb.g_kp[s], tb.g_ki[s]))
     judged = [int(tb.v_seq[s]) + 1, int(tb.seq[s])]
-    detail = {
-        "why": why, "seqs": judged, "iae": figure,
-        "good_iae": _num(reference(tb, s)),
-        "oscillation_index": _num(tb.o_index[s]),
-    }  # fmt: skip
+    detail = {"why": why, "seqs": judged, "iae": figure, "good_iae": _num(reference(tb, s)),
+              "oscillation_index": _num(tb.o_index[s])}  # fmt: skip
     if why == "oscillation":
         detail["period_s"] = period(tb, s)
     if overshoot is not None:
@@ -392,13 +389,16 @@ def fail(
         verdict = "rolled_back"
     else:
         tb.adv_kp[s], tb.adv_ki[s], tb.adv_seq[s] = good[0], good[1], seq
+        tb.adv_why[s] = REASON_CODE[UpdateReason.rollback]
         verdict = "rollback_proposed"
     ident = tb.ident[s]
     if why in REFUTING and ident is not None and judged[0] <= ident.tuned_seq <= judged[1]:
         tb.refuted.append(s)  # the model's tuning rang: the model is wrong
         detail["model"] = "refuted: identification restarts"
-    # gains restored are judged no more, but an operator's detune is not verified yet
-    tb.v_seq[s] = seq if floor is None else seq - 1
+    # gains restored are judged no more; an operator's detune, or last-good gains clipped
+    # to bounds a PATCH narrowed, are new gains: judged from this seq (a verdict's seqs)
+    kept = same_gains(good[0], tb.g_kp[s]) & same_gains(good[1], tb.g_ki[s])
+    tb.v_seq[s] = seq if floor is None and kept else seq - 1
     _audit(tb, s, wall, "rollback", old, good, {"verdict": verdict, **detail}, t=t)
     why_text = f"reason=rollback why={why} verdict={verdict}"
     return single(tb, s, t, old, good, UpdateReason.rollback, why_text, mode)
@@ -456,15 +456,15 @@ def reset(tb: LoopTable, s: int) -> None:
 
 def restart_track(tb: LoopTable, s) -> None:
     """No proposal pending: the track restarts from the gains in force (``s``: slots)."""
-    tb.adv_kp[s] = tb.adv_ki[s] = tb.adv_seq[s] = math.nan
+    tb.adv_kp[s] = tb.adv_ki[s] = tb.adv_seq[s] = tb.adv_why[s] = math.nan
 
 
 def single(tb, s, t, old, new, reason: UpdateReason, why: str, mode: int) -> StepResult:
-    """A one-loop decision to publish (rollback, accepted proposal)."""
-    return StepResult(
+    """A one-loop decision to publish (rollback, accepted proposal, model tuning, reset)."""
+    return published(tb, np.array([s]), StepResult(
         [tb.ids[s]], np.array([t]), tb.seq[[s]].copy(), np.array([mode]), np.array([old]),
         np.array([new]), np.array([new]), [tb.gateways[s]], reason, why=[why],
-    )  # fmt: skip
+    ))  # fmt: skip
 
 
 def _audit(tb, s, wall, reason, old, new, detail: dict, t: float | None = None) -> None:

@@ -25,7 +25,8 @@ from service.engine.id_state import NO_SAMPLES
 from service.engine.id_view import Identification
 from service.engine.modes import ADVISORY
 from service.engine.monitor import same_gains
-from service.wire.protocol import Hold
+from service.engine.updates import REASONS
+from service.wire.protocol import Hold, UpdateReason
 
 if TYPE_CHECKING:
     from service.engine.table import LoopTable
@@ -194,11 +195,14 @@ def proposal(tb: LoopTable, s: int) -> Proposal | None:
     if tb.mode[s] != ADVISORY or math.isnan(tb.adv_seq[s]):
         return None
     kp, ki = float(tb.adv_kp[s]), float(tb.adv_ki[s])
-    back = bool(same_gains(kp, tb.g_kp[s]) & same_gains(ki, tb.g_ki[s]))
+    if math.isnan(tb.adv_why[s]):  # a proposal of a snapshot of before session 40: no reason
+        back = bool(same_gains(kp, tb.g_kp[s]) & same_gains(ki, tb.g_ki[s]))
+        reason = UpdateReason.rollback if back else UpdateReason.agent
+    else:  # the reason it was made for
+        reason = REASONS[int(tb.adv_why[s])]
     return Proposal(
         seq=int(tb.adv_seq[s]), kp=kp, ki=ki, dkp=kp - float(tb.kp[s]), dki=ki - float(tb.ki[s]),
-        kp_in_force=float(tb.kp[s]), ki_in_force=float(tb.ki[s]),
-        reason="rollback" if back else "agent",
+        kp_in_force=float(tb.kp[s]), ki_in_force=float(tb.ki[s]), reason=reason.value,
     )  # fmt: skip
 
 
