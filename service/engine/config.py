@@ -426,6 +426,11 @@ class LoopView(BaseModel):
     ki: float
     mode: Mode
     status: LoopStatus
+    status_why: str | None = Field(
+        None,
+        description="For any status but tuning: what holds the loop, with the numbers, and "
+        "the operator's next step (docs/tuner.md, Status and holds).",
+    )
     seq: int
     last_sample_t: float | None
     int_e: float = Field(description="Integral of the error since reset, agent units.")

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from service.engine import box, monitor, oscillation, verify
+from service.engine import box, monitor, oscillation, status, verify
 from service.engine.config import Counters, LoopConfig, LoopView
 from service.engine.fences import COOLED
 from service.engine.figures import (
@@ -52,6 +52,7 @@ class RawView:
     proposal: Proposal | None = None
     hold: Hold | None = None
     oscillating: bool = False
+    status_why: str | None = None
 
     def parse(self) -> LoopView:
         config = LoopConfig.model_validate_json(self.config)
@@ -65,6 +66,7 @@ class RawView:
             kp=self.kp,
             ki=self.ki,
             status=self.status,
+            status_why=self.status_why,
             seq=self.seq,
             last_sample_t=self.last_sample_t,
             int_e=self.int_e,
@@ -79,11 +81,12 @@ class RawView:
 
 def raw_view(tb: LoopTable, s: int, config: bytes, wall: float) -> RawView:
     """A loop's view with its config still JSON (``config``), copied from the table."""
+    st = tb.status(s, wall)
     return RawView(
         config,
         float(tb.kp[s]),
         float(tb.ki[s]),
-        tb.status(s, wall),
+        st,
         int(tb.seq[s]),
         None if math.isnan(tb.last_t[s]) else float(tb.last_t[s]),
         float(tb.int_e[s]),
@@ -108,6 +111,7 @@ def raw_view(tb: LoopTable, s: int, config: bytes, wall: float) -> RawView:
         proposal=proposal(tb, s),
         hold=hold(tb, s),
         oscillating=bool(tb.o_osc[s]),
+        status_why=status.why(tb, s, st, wall),
     )
 
 

@@ -110,6 +110,10 @@
     if (!live) return;
     const st = $("status");
     st.textContent = live.status; st.className = `badge s-${live.status}`;
+    // what holds a loop that is not tuning, with the numbers, and the next step
+    st.title = live.status_why || "";
+    const sw = $("status-why");
+    sw.hidden = !live.status_why; sw.textContent = live.status_why || "";
     // what the status may not say: the agent held (a tuning loop whose gains stay), and
     // an oscillation under another status (a loop held for gains out of bounds)
     const h = live.hold, hd = $("hold");
