@@ -86,6 +86,9 @@ F32 = [
     # window: error mean and mean square, shares of time in manual / saturated, share of
     # samples rejected
     "w_mean", "w_sq", "w_manual", "w_sat", "w_rej",
+    # responses a move cut short since the last complete one, and how long the last ran
+    # (s): the verification view says why no change is judged (setpoints moving faster)
+    "c_cut", "c_cut_s",
 ]  # fmt: skip
 """Per-loop float32 arrays of the monitor: figures and running sums (a figure needs 3
 digits; 7 hold a few hundred samples' sum)."""
@@ -112,8 +115,9 @@ def clear(tb: LoopTable, s: int) -> None:
     """A new loop (or a reset): no response open, figures unknown, windows empty."""
     for name in ("r_t0", "r_end", *_FIGURES):
         getattr(tb, name)[s] = math.nan
-    for name in ("w_mean", "w_sq", "w_manual", "w_sat", "w_rej"):
+    for name in ("w_mean", "w_sq", "w_manual", "w_sat", "w_rej", "c_cut"):
         getattr(tb, name)[s] = 0.0
+    tb.c_cut_s[s] = math.nan
     tb.f_hist_n[s] = 0
     oscillation.clear(tb, s)
 
@@ -179,10 +183,14 @@ def _close(tb: LoopTable, slots, t, moved, fresh) -> np.ndarray:
         return slots[:0]
     # a response during which the gains changed judges no gains alone: its figures
     # are kept, but it neither refreshes the last-good figure nor verifies (verify.py)
+    cut = slots[ending & moved & ~complete & ~fresh]
+    tb.c_cut[cut] += 1.0
+    tb.c_cut_s[cut] = t[ending & moved & ~complete & ~fresh] - tb.r_t0[cut]
     end = slots[ending]
     tb.r_mixed[end] = ~(same_gains(tb.kp[end], tb.r_kp[end]) & same_gains(tb.ki[end], tb.r_ki[end]))
     done = slots[complete]
     if done.size:
+        tb.c_cut[done] = 0.0
         move = np.abs(tb.r_move[done])
         t0, end = tb.r_t0[done], tb.r_end[done]
         # the ring's times are offsets from the newest response's end (float32 holds
@@ -259,15 +267,17 @@ def rejected(tb: LoopTable, s: int) -> None:
 
 
 def dumps(tb: LoopTable, slots: np.ndarray) -> list[dict]:
-    """The last response's figures and the history ring of the loops at ``slots``, for
-    the runtime snapshot (the open response and the windows restart after a restart: a
-    gap ends them anyway), one dict each (NaN stays: the snapshot's orjson writes null);
-    each array read once for all of them, the history only of loops that have one."""
+    """The last response's figures, the history ring and the responses cut short (count,
+    the last one's length) of the loops at ``slots``, for the runtime snapshot (the open
+    response and the windows restart after a restart: a gap ends them anyway), one dict
+    each (NaN stays: the snapshot's orjson writes null); each array read once for all of
+    them, the history only of loops that have one."""
     last = np.stack([getattr(tb, name)[slots] for name in _FIGURES], axis=1).tolist()
     kept = (tb.f_hist_n[slots] > 0).tolist()
+    cut = np.stack([tb.c_cut[slots], tb.c_cut_s[slots]], axis=1).tolist()
     return [
-        {"last": row, "hist": history(tb, s) if has else []}
-        for row, s, has in zip(last, slots.tolist(), kept, strict=True)
+        {"last": row, "hist": history(tb, s) if has else [], "cut": c}
+        for row, s, has, c in zip(last, slots.tolist(), kept, cut, strict=True)
     ]
 
 
@@ -288,6 +298,9 @@ def load(tb: LoopTable, slots: np.ndarray, dicts: list[dict]) -> None:
         columns = zip(*(lasts[i] + [None] * (width - len(lasts[i])) for i in has), strict=True)
         for name, values in zip(_FIGURES, columns, strict=True):
             put(getattr(tb, name), slots[has], list(values), math.nan)
+    cut = [d.get("cut") or (0.0, None) for d in dicts]  # (none before session 40)
+    put(tb.c_cut, slots, [c[0] for c in cut], 0.0)
+    put(tb.c_cut_s, slots, [c[1] for c in cut], math.nan)
     tb.f_hist_n[slots] = 0
     for s, d in zip(slots.tolist(), dicts, strict=True):
         hist = d.get("hist")

@@ -167,6 +167,7 @@ def _num(x: float) -> float | None:
 
 def verification(tb: LoopTable, s: int) -> Verification:
     margin = _num(tb.v_margin[s])
+    pending = bool(verify.changed(tb, s))
     return Verification(
         enabled=margin is not None,
         margin=margin,
@@ -176,12 +177,35 @@ def verification(tb: LoopTable, s: int) -> Verification:
         last_good_iae_down=_num(tb.g_iae_dn[s]),
         last_good_seq=int(tb.g_seq[s]),
         judged_seq=int(tb.v_seq[s]),
-        pending=bool(verify.changed(tb, s)),
+        pending=pending,
         held_until_t=_num(tb.cool_until[s]) if cooling(tb, s) else None,
         fence=_fence(tb, s),
         paused_until_t=_num(tb.osc_until[s]) if verify.paused(tb, s, tb.last_t[s]) else None,
         detune_floor_kp=_num(tb.o_kp[s]),
         detune_floor_ki=_num(tb.o_ki[s]),
+        cut_short=int(tb.c_cut[s]),
+        why=_waits(tb, s) if pending and margin is not None else None,
+    )
+
+
+def _waits(tb: LoopTable, s: int) -> str:
+    """What the verdict of the change pending at slot ``s`` waits for."""
+    span = monitor.RESPONSE_PERIODS * float(tb.period[s])
+    since = f"the changes after seq {int(tb.v_seq[s])} (up to seq {int(tb.seq[s])})"
+    n = int(tb.c_cut[s])
+    if not n:
+        return (
+            f"{since} wait for the next complete setpoint response: a move of at least "
+            f"guard.excitation_min_step pv_scales on a settled loop, then {span:.4g} s "
+            f"({monitor.RESPONSE_PERIODS:g} RL periods) without another move"
+        )
+    return (
+        f"{n} setpoint responses in a row were cut short by the next move, the last after "
+        f"{float(tb.c_cut_s[s]):.4g} s of the {span:.4g} s ({monitor.RESPONSE_PERIODS:g} RL "
+        f"periods) a response is judged over: no change is judged while the setpoint moves "
+        f"that often, and {since} wait for a verdict (a rollback goes back to the last-good "
+        f"gains of seq {int(tb.g_seq[s])}). Next: let the setpoint stand {span:.4g} s after "
+        "a move now and then, or stop the automatic changes (PATCH mode advisory or frozen)"
     )
 
 
