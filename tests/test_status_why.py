@@ -91,6 +91,15 @@ def test_the_other_statuses_say_why_with_their_numbers():
     st, why = one(_loop(), [_sample(0.0)], 100.0)
     assert st == LoopStatus.stale and why.startswith("no sample for 100 s, more than ")
     assert "(5 s)" in why  # guard.stale_periods 5 x 1 s
+    engine.register(_loop(), wall=0.0)  # restored after a restart: no sample since
+    engine.ingest([_sample(0.0)], wall=0.0)
+    ((_, hidden, runtime),) = engine.snapshot()
+    engine.remove("L")
+    engine.restore(_loop(), kp=0.5, ki=0.01, seq=0, hidden=hidden, runtime=runtime, wall=9.0)
+    view = engine.view("L", wall=10.0)
+    engine.remove("L")
+    assert view.status == LoopStatus.stale
+    assert view.status_why.startswith("no sample since the tuner started, more than ")
     st, why = one(_loop(), [_sample(0.0, kp=100.0)], 0.0)
     assert st == LoopStatus.gains_out_of_bounds
     assert why.startswith(

@@ -3,6 +3,7 @@ order of precedence (what the safety guard is doing with the loop right now)."""
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -71,8 +72,9 @@ def _waiting(tb, s, wall) -> str:
 
 def _stale(tb, s, wall) -> str:
     gap, limit = wall - float(tb.last_wall[s]), float(tb.stale_gap[s])
+    since = f"for {_g(gap)} s" if math.isfinite(gap) else "since the tuner started"
     return (
-        f"no sample for {_g(gap)} s, more than guard.stale_periods sample periods "
+        f"no sample {since}, more than guard.stale_periods sample periods "
         f"({_g(limit)} s): tuning pauses. Next: check the gateway and its link to the DCS; "
         "tuning resumes with the next sample"
     )
