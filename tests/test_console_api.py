@@ -228,8 +228,9 @@ def test_the_overview_a_loops_live_data_and_its_view_say_what_holds_it(client):
 
 
 def test_the_loop_pages_live_data_and_the_view_say_why_a_loop_is_not_tuning(client):
-    """A loop its gateway reports in manual: the loop page's live data and the REST view
-    give the same status_why (the share in manual, the next step); a tuning loop none."""
+    """A loop its gateway reports in manual: the loop page's live data, the overview's row
+    and the REST view give the same status_why (the share in manual, the next step); a
+    tuning loop none."""
     client.post("/loops", json=loop_body("L1"), headers=BEARER)
     client.post("/loops", json=loop_body("L2"), headers=BEARER)
     engine = client.app.state.tuner.engine
@@ -246,6 +247,8 @@ def test_the_loop_pages_live_data_and_the_view_say_why_a_loop_is_not_tuning(clie
         live["status_why"],
     )
     assert client.get("/loops/L1").json()["status_why"] == live["status_why"]
+    items = {i["id"]: i for i in client.get("/ui/api/loops").json()["items"]}  # tooltip
+    assert items["L1"]["status_why"] == live["status_why"] and items["L2"]["status_why"] is None
     other = client.get("/ui/api/loops/L2/recent").json()["live"]
     assert other["status"] == "tuning" and other["status_why"] is None
     assert client.get("/loops/L2").json()["status_why"] is None
