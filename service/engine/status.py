@@ -152,8 +152,8 @@ def _out_of_envelope(tb, s, wall) -> str:
         f"the identified dynamics lie outside the agent's envelope (gain "
         f"{_g(lo_g)}..{_g(hi_g)}, tau {_g(lo_t)}..{_g(hi_t)}, theta/tau up to {_g(th)}){where}"
         f"{'; ' + seen if seen else ''}: tuning pauses. Next: {rescale}after a change of "
-        "the plant, POST /loops/{id}/identify; a process the agent was not trained for (a "
-        "dead time beyond 1.5 tau): tune it by hand and freeze it (PATCH mode frozen)"
+        f"the plant, POST /loops/{{id}}/identify; a process the agent was not trained for "
+        f"(theta/tau beyond {_g(th)}): tune it by hand and freeze it (PATCH mode frozen)"
     )
 
 
@@ -196,7 +196,8 @@ def _hint_mismatch(tb, s, wall) -> str:
     return (
         f"the identified model disagrees with the scaling in force (the hint, or a model "
         f"identified before) by more than guard.hint_tolerance ({_g(tol)}x): "
-        f"{_seen(tb, s)}; tuning continues on that scaling. Next: PATCH "
+        f"{_seen(tb, s) or 'the model that flagged it is no longer the latest'}; tuning "
+        "continues on that scaling. Next: PATCH "
         "guard.auto_rescale true (the next confident model rescales the loop), or register "
         "it again with the identified K and tau as k_hat and tau_hat"
     )
