@@ -59,13 +59,15 @@ def test_changes_pending_because_every_response_is_cut_short_say_so_and_survive_
     vf = view.verification
     assert view.counters.updates >= 10 and vf.pending and vf.judged_seq == 0
     assert vf.cut_short == 11  # the responses opened at moves 1..11, each cut by the next
+    assert vf.unsettled_moves == 0  # (settled at every move: each opened one)
     m = re.fullmatch(
-        r"11 setpoint responses in a row were cut short by the next move, the last after "
-        r"80 s of the 110 s \(2 RL periods\) a response is judged over: no change is judged "
-        r"while the setpoint moves that often, and the changes after seq 0 \(up to seq "
-        r"(\d+)\) wait for a verdict \(a rollback goes back to the last-good gains of seq "
-        r"0\)\. Next: let the setpoint stand 110 s after a move now and then, or stop the "
-        r"automatic changes \(PATCH mode advisory or frozen\)",
+        r"since the last complete setpoint response 11 responses were cut short by the next "
+        r"move \(the last after 80 s of the 110 s \(2 RL periods\) a response is judged "
+        r"over\): no change is judged while the setpoint moves that often, and the changes "
+        r"after seq 0 \(up to seq (\d+)\) wait for a verdict \(a rollback goes back to the "
+        r"last-good gains of seq 0\)\. Next: let the loop settle and the setpoint stand 110 s "
+        r"after a move now and then, or stop the automatic changes \(PATCH mode advisory or "
+        r"frozen\)",
         vf.why,
     )
     assert m and int(m[1]) == view.seq
@@ -80,3 +82,26 @@ def test_changes_pending_because_every_response_is_cut_short_say_so_and_survive_
     after = engine.view("L", wall=13 * every + 209).verification
     assert after.cut_short == 0
     assert after.why is None or after.why.startswith("the changes after seq")
+
+
+def test_moves_that_come_before_the_loop_settles_open_no_response_and_say_so():
+    """The setpoint toggled every 15 s (1.5 tau; the loop is sluggish): no move finds the
+    loop but the first within 20 % of it, none opens a response; the view counts them
+    and says what share of its move the last one found left."""
+    engine = TuningEngine(_Nudging())
+    engine.register(LoopConfig(
+        id="L", kp=0.5, ki=0.05, sample_period_s=1.0,
+        scaling={"k_hat": K, "tau_hat": TAU, "pv_scale": 1.0}, guard={"identify": False},
+    ), wall=0.0)  # fmt: skip
+    _run(engine, [15.0 * i for i in range(1, 41)], 40 * 15 + 5)
+    view = engine.view("L", wall=604.0)
+    vf = view.verification
+    assert vf.pending and vf.judged_seq == 0 and view.counters.updates >= 5
+    # the first move found it settled and opened the one response, which the next cut
+    assert (vf.cut_short, vf.unsettled_moves) == (1, 39)
+    left = re.search(r"1 response was cut short by the next move \(the last after 15 s of "
+                     r"the 110 s \(2 RL periods\) a response is judged over\) and 39 moves "
+                     r"opened none, the loop not settled from the move before "
+                     r"\(the last found (\d+) % of its move left; a response opens within "
+                     r"20 % plus the noise\)", vf.why)  # fmt: skip
+    assert left and int(left[1]) > 20

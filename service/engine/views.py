@@ -184,6 +184,7 @@ def verification(tb: LoopTable, s: int) -> Verification:
         detune_floor_kp=_num(tb.o_kp[s]),
         detune_floor_ki=_num(tb.o_ki[s]),
         cut_short=int(tb.c_cut[s]),
+        unsettled_moves=int(tb.c_early[s]),
         why=_waits(tb, s) if pending and margin is not None else None,
     )
 
@@ -192,20 +193,34 @@ def _waits(tb: LoopTable, s: int) -> str:
     """What the verdict of the change pending at slot ``s`` waits for."""
     span = monitor.RESPONSE_PERIODS * float(tb.period[s])
     since = f"the changes after seq {int(tb.v_seq[s])} (up to seq {int(tb.seq[s])})"
-    n = int(tb.c_cut[s])
-    if not n:
+    cut, early = int(tb.c_cut[s]), int(tb.c_early[s])
+    window = f"{span:.4g} s ({monitor.RESPONSE_PERIODS:g} RL periods)"
+    if not cut and not early:
         return (
             f"{since} wait for the next complete setpoint response: a move of at least "
-            f"guard.excitation_min_step pv_scales on a settled loop, then {span:.4g} s "
-            f"({monitor.RESPONSE_PERIODS:g} RL periods) without another move"
+            f"guard.excitation_min_step pv_scales on a settled loop, then {window} without "
+            "another move"
+        )
+    parts = []
+    if cut:
+        last = float(tb.c_cut_s[s])
+        parts.append(
+            f"{cut} response{'s were' if cut > 1 else ' was'} cut short by the next move "
+            f"(the last after {last:.4g} s of the {window} a response is judged over)"
+        )
+    if early:
+        left, limit = 100 * float(tb.c_left[s]), 100 * monitor.SETTLED_AT_MOVE
+        parts.append(
+            f"{early} move{'s' if early > 1 else ''} opened none, the loop not settled from "
+            f"the move before (the last found {left:.0f} % of its move left; a response "
+            f"opens within {limit:.0f} % plus the noise)"
         )
     return (
-        f"{n} setpoint responses in a row were cut short by the next move, the last after "
-        f"{float(tb.c_cut_s[s]):.4g} s of the {span:.4g} s ({monitor.RESPONSE_PERIODS:g} RL "
-        f"periods) a response is judged over: no change is judged while the setpoint moves "
-        f"that often, and {since} wait for a verdict (a rollback goes back to the last-good "
-        f"gains of seq {int(tb.g_seq[s])}). Next: let the setpoint stand {span:.4g} s after "
-        "a move now and then, or stop the automatic changes (PATCH mode advisory or frozen)"
+        f"since the last complete setpoint response {' and '.join(parts)}: no change is "
+        f"judged while the setpoint moves that often, and {since} wait for a verdict (a "
+        f"rollback goes back to the last-good gains of seq {int(tb.g_seq[s])}). Next: let "
+        f"the loop settle and the setpoint stand {span:.4g} s after a move now and then, or "
+        "stop the automatic changes (PATCH mode advisory or frozen)"
     )
 
 

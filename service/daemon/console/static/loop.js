@@ -176,7 +176,7 @@
       ["last-good IAE (s)", pitune.num(vf.last_good_iae)],
       ["change pending", vf.pending ? "<b>yes</b>" : "no"], ["judged up to seq", vf.judged_seq],
       // responses the next move cut short judge nothing: why a change stays pending
-      ["responses cut short", pitune.int(vf.cut_short)],
+      ["responses cut short", pitune.int(vf.cut_short)], ["moves on an unsettled loop", pitune.int(vf.unsettled_moves)],
       ...(vf.why ? [["verdict waits", `<span id="verify-why">${pitune.esc(vf.why)}</span>`]] : []),
       ["agent held until t", pitune.num(vf.held_until_t, 7)],
       ["fence after a rollback", fenceText(vf.fence)],
