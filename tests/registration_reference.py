@@ -152,6 +152,9 @@ def _restore_runtime(tb: LoopTable, s: int, saved: Saved) -> None:
             names = ("f_t", "f_iae", "f_over", "f_rise", "f_settle", "f_mse", "f_move")
             for name, v in zip(names, last, strict=False):  # (f_move: since session 35)
                 getattr(tb, name)[s] = math.nan if v is None else v
+        cut = figures.get("cut") or (0.0, None, 0.0, None)  # (since session 40)
+        tb.c_cut[s], tb.c_cut_s[s] = cut[0], math.nan if cut[1] is None else cut[1]
+        tb.c_early[s], tb.c_left[s] = cut[2], math.nan if cut[3] is None else cut[3]
         hist = figures.get("hist") or []
         n = min(len(hist), monitor.HISTORY)
         if n:

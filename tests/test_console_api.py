@@ -225,3 +225,30 @@ def test_the_overview_a_loops_live_data_and_its_view_say_what_holds_it(client):
     view = client.get("/loops/L1").json()
     assert view["hold"] == live["hold"] and view["oscillating"] is False
     assert client.get("/loops/L2").json()["hold"] is None
+
+
+def test_the_loop_pages_live_data_and_the_view_say_why_a_loop_is_not_tuning(client):
+    """A loop its gateway reports in manual: the loop page's live data, the overview's row
+    and the REST view give the same status_why (the share in manual, the next step); a
+    tuning loop none."""
+    client.post("/loops", json=loop_body("L1"), headers=BEARER)
+    client.post("/loops", json=loop_body("L2"), headers=BEARER)
+    engine = client.app.state.tuner.engine
+    for t in range(4):
+        engine.ingest([{"loop_id": "L1", "t": float(t), "sp": 50.0, "pv": 50.0, "kp": 0.5,
+                        "ki": 0.01, "auto": False}])  # fmt: skip
+        engine.ingest([{"loop_id": "L2", "t": float(t), "sp": 50.0, "pv": 50.0, "kp": 0.5,
+                        "ki": 0.01}])  # fmt: skip
+    live = client.get("/ui/api/loops/L1/recent").json()["live"]
+    assert live["status"] == "manual"
+    assert re.fullmatch(
+        r"the gateway reports the loop in manual \([0-9.]+ % of the recent window\): "
+        r"tuning pauses\. Next: put the loop back in auto in the DCS",
+        live["status_why"],
+    )
+    assert client.get("/loops/L1").json()["status_why"] == live["status_why"]
+    items = {i["id"]: i for i in client.get("/ui/api/loops").json()["items"]}  # tooltip
+    assert items["L1"]["status_why"] == live["status_why"] and items["L2"]["status_why"] is None
+    other = client.get("/ui/api/loops/L2/recent").json()["live"]
+    assert other["status"] == "tuning" and other["status_why"] is None
+    assert client.get("/loops/L2").json()["status_why"] is None

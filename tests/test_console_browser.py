@@ -333,7 +333,8 @@ def test_a_hint_free_loop_is_identified_on_its_page(daemon, new_page):
 
 def test_a_hint_off_by_3x_is_flagged_on_the_loop_page(daemon, new_page):
     """A loop registered with tau_hat 3x the plant's: its identification flags the hint
-    (the REST view's ``mismatch``), and the page shows the mismatch beside the hint."""
+    (the REST view's ``mismatch``), and the page shows the mismatch beside the hint and,
+    under the title, the hint's factor and the next step."""
     loop = SimLoop(id="TIC-8", k=0.8, tau=8.0, theta=2.0, kp=0.2, ki=0.02, sp_period=40.0)
     body = loop.body(1.0)
     body["scaling"]["tau_hat"] = 3.0 * loop.tau
@@ -355,6 +356,15 @@ def test_a_hint_off_by_3x_is_flagged_on_the_loop_page(daemon, new_page):
         )
         shown = page.locator("#scaling").inner_text()
         assert f"τ {3.0 * loop.tau:g} s" in shown  # the hint, beside its verdict
+        # and under the title why the loop is flagged (or paused) and what to do
+        page.wait_for_function(
+            "!document.getElementById('status-why').hidden && document.getElementById("
+            "'status-why').textContent.includes('PATCH guard.auto_rescale true')"
+        )
+        why = page.locator("#status-why").inner_text()
+        view = httpx.get(f"{daemon.url}/loops/TIC-8").json()
+        assert view["status"] in ("hint_mismatch", "out_of_envelope")
+        assert "x), tau = 24 s (0.3" in why, why  # the hint's tau 3x the identified one
     finally:
         plant.close()
 

@@ -6,6 +6,7 @@ integrators through the engine."""
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -116,6 +117,9 @@ def test_a_hinted_loop_on_an_integrating_process_is_paused_with_its_model(noise)
     assert view.status == LoopStatus.out_of_envelope
     assert view.counters.envelope_pauses == 1 and view.identification.out_of_envelope
     assert view.identification.why.startswith("integrating"), view.identification.why
+    why = view.status_why  # the integrator's K and the next step
+    k_per_s = float(re.match(r"the process looks integrating \(K = ([0-9.e-]+) PV units", why)[1])
+    assert k_per_s == pytest.approx(0.01, rel=0.05) and "PATCH mode frozen" in why
     _, audit = engine.drain_changes()
     (row,) = [r for r in audit if r[5] == "out_of_envelope"]
     detail = json.loads(row[10])

@@ -342,3 +342,19 @@ def test_the_aggregate_gauges_say_what_holds_once_the_last_loop_is_deleted(tmp_p
     counts = {k: v for k, v in after.items() if k not in means}
     assert set(counts.values()) == {0.0}, counts
     assert len(counts) == len(held) - len(means)
+
+
+def test_patch_bound_below_the_registered_gain_is_one_clear_line(client):
+    """kp_max below the registered kp (0.5): a 422 whose detail is one line naming the
+    gain and the bounds, not pydantic's dump (input repr, docs URL); nothing changed."""
+    client.post("/loops", json=loop_body("LIC-101"), headers=AUTH)
+    before = client.get("/loops/LIC-101").json()["config"]
+    r = client.patch("/loops/LIC-101", json={"kp_max": 0.25}, headers=AUTH)
+    assert r.status_code == 422
+    detail = r.json()["detail"]
+    assert detail.startswith("the registered gains must lie within the bounds: kp = 0.5 in ")
+    assert "..0.25, ki = 0.01 in " in detail and detail.endswith("(nothing changed)")
+    assert "\n" not in detail and "pydantic" not in detail and "input_value" not in detail
+    assert client.get("/loops/LIC-101").json()["config"] == before
+    r = client.patch("/loops/LIC-101", json={"kp_min": 1.0, "kp_max": 0.5}, headers=AUTH)
+    assert r.json()["detail"].startswith("bounds must satisfy min < max: kp 1..0.5, ki ")

@@ -6,6 +6,7 @@ the same with 1,000 changes per kind).
 """
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -527,6 +528,10 @@ def test_tuning_pauses_while_the_loop_oscillates_at_last_good_gains_that_were_ca
     assert max(steps) < paused[2]  # stepped every RL period (55 s) until then
     end = t0 + 399.0
     assert view.verification.paused_until_t == pytest.approx(end + 80.0, abs=2.0)
+    m = re.match(r"the loop oscillates at its last-good gains \(period ([0-9.]+) s\): tuning "
+                 r"pauses until t = ([0-9.]+) \(plant time\)", view.status_why)  # fmt: skip
+    assert float(m[1]) == pytest.approx(40.0, rel=0.1)
+    assert float(m[2]) == view.verification.paused_until_t
     # a restarted daemon keeps the pause
     ((_, hidden, runtime),) = engine.snapshot(["S"])
     other = TuningEngine(Pushing())

@@ -368,9 +368,16 @@ def check_given_bounds(guard: Guard, kp: float, ki: float) -> None:
 
 def check_bounds(guard: Guard, kp: float, ki: float) -> None:
     if not guard.kp_min < guard.kp_max or not guard.ki_min < guard.ki_max:
-        raise ValueError("bounds must satisfy min < max")
+        raise ValueError(
+            f"bounds must satisfy min < max: kp {guard.kp_min:.4g}..{guard.kp_max:.4g}, "
+            f"ki {guard.ki_min:.4g}..{guard.ki_max:.4g}"
+        )
     if not (guard.kp_min <= kp <= guard.kp_max and guard.ki_min <= ki <= guard.ki_max):
-        raise ValueError("the registered gains must lie within the bounds")
+        raise ValueError(
+            f"the registered gains must lie within the bounds: kp = {kp:.4g} in "
+            f"{guard.kp_min:.4g}..{guard.kp_max:.4g}, ki = {ki:.4g} in "
+            f"{guard.ki_min:.4g}..{guard.ki_max:.4g}"
+        )
 
 
 class Counters(BaseModel):
@@ -419,6 +426,11 @@ class LoopView(BaseModel):
     ki: float
     mode: Mode
     status: LoopStatus
+    status_why: str | None = Field(
+        None,
+        description="For any status but tuning: what holds the loop, with the numbers, and "
+        "the operator's next step (docs/tuner.md, Status and holds).",
+    )
     seq: int
     last_sample_t: float | None
     int_e: float = Field(description="Integral of the error since reset, agent units.")

@@ -111,6 +111,22 @@ class Verification(BaseModel):
         "judged: no automatic rollback goes past it (None: none; docs/tuner.md, Verdicts).",
     )
     detune_floor_ki: float | None = None
+    cut_short: int = Field(
+        0,
+        description="Setpoint responses the next move cut short (before the 2 RL periods a "
+        "response is judged over) since the last complete one: none of them judges a change.",
+    )
+    unsettled_moves: int = Field(
+        0,
+        description="Setpoint moves since the last complete response that opened none: the "
+        "loop had not settled from the move before (within 20 % of the move plus the noise).",
+    )
+    why: str | None = Field(
+        None,
+        description="While a change is pending: what its verdict waits for (responses cut "
+        "short, moves on an unsettled loop, with their numbers, and the next step); None "
+        "otherwise.",
+    )
 
 
 class Proposal(BaseModel):

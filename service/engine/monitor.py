@@ -63,6 +63,8 @@ HISTORY = 8
 """Complete responses kept per loop for ``GET /loops/{id}/performance``."""
 HIST_FIELDS = ("t", "iae", "overshoot_pct", "rise_s", "settle_s", "mse")
 """Columns of the history ring (the ``f_`` arrays: t, iae, over, rise, settle, mse)."""
+_UNJUDGED = ("c_cut", "c_cut_s", "c_early", "c_left")
+"""The moves since the last complete response that judged nothing (counts, then figures)."""
 _FIGURES = ("f_t", "f_iae", "f_over", "f_rise", "f_settle", "f_mse", "f_move")
 """The last complete response's figures (the history ring's columns, in order)."""
 F64 = [
@@ -86,6 +88,11 @@ F32 = [
     # window: error mean and mean square, shares of time in manual / saturated, share of
     # samples rejected
     "w_mean", "w_sq", "w_manual", "w_sat", "w_rej",
+    # since the last complete response: responses a move cut short and how long the last
+    # ran (s); moves that opened none, the loop not settled from the one before, and the
+    # share of its move the last one found left: the verification view says why no
+    # change is judged (setpoints moving faster than the loop settles or is judged)
+    "c_cut", "c_cut_s", "c_early", "c_left",
 ]  # fmt: skip
 """Per-loop float32 arrays of the monitor: figures and running sums (a figure needs 3
 digits; 7 hold a few hundred samples' sum)."""
@@ -112,8 +119,9 @@ def clear(tb: LoopTable, s: int) -> None:
     """A new loop (or a reset): no response open, figures unknown, windows empty."""
     for name in ("r_t0", "r_end", *_FIGURES):
         getattr(tb, name)[s] = math.nan
-    for name in ("w_mean", "w_sq", "w_manual", "w_sat", "w_rej"):
+    for name in ("w_mean", "w_sq", "w_manual", "w_sat", "w_rej", "c_cut", "c_early"):
         getattr(tb, name)[s] = 0.0
+    tb.c_cut_s[s] = tb.c_left[s] = math.nan
     tb.f_hist_n[s] = 0
     oscillation.clear(tb, s)
 
@@ -160,6 +168,10 @@ def observe(
     move = e[opens] - before
     allowed = SETTLED_AT_MOVE * np.abs(move) + 3.0 * oscillation.noise_sigma(tb, slots[opens])
     settled = np.abs(before) <= allowed
+    early = slots[opens][~settled]
+    tb.c_early[early] += 1.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tb.c_left[early] = np.abs(before[~settled] / move[~settled])
     _open(tb, slots[opens][settled], t[opens][settled], move[settled])
     _respond(tb, slots, t, e, prev_e, dt, moved)
     _window(tb, slots, e, dt, auto, saturated)
@@ -179,10 +191,14 @@ def _close(tb: LoopTable, slots, t, moved, fresh) -> np.ndarray:
         return slots[:0]
     # a response during which the gains changed judges no gains alone: its figures
     # are kept, but it neither refreshes the last-good figure nor verifies (verify.py)
+    cut = slots[ending & moved & ~complete & ~fresh]
+    tb.c_cut[cut] += 1.0
+    tb.c_cut_s[cut] = t[ending & moved & ~complete & ~fresh] - tb.r_t0[cut]
     end = slots[ending]
     tb.r_mixed[end] = ~(same_gains(tb.kp[end], tb.r_kp[end]) & same_gains(tb.ki[end], tb.r_ki[end]))
     done = slots[complete]
     if done.size:
+        tb.c_cut[done] = tb.c_early[done] = 0.0
         move = np.abs(tb.r_move[done])
         t0, end = tb.r_t0[done], tb.r_end[done]
         # the ring's times are offsets from the newest response's end (float32 holds
@@ -259,15 +275,17 @@ def rejected(tb: LoopTable, s: int) -> None:
 
 
 def dumps(tb: LoopTable, slots: np.ndarray) -> list[dict]:
-    """The last response's figures and the history ring of the loops at ``slots``, for
-    the runtime snapshot (the open response and the windows restart after a restart: a
-    gap ends them anyway), one dict each (NaN stays: the snapshot's orjson writes null);
-    each array read once for all of them, the history only of loops that have one."""
+    """The last response's figures, the history ring and the moves left unjudged
+    (:data:`_UNJUDGED`) of the loops at ``slots``, for the runtime snapshot (the open
+    response and the windows restart after a restart: a gap ends them anyway), one dict
+    each (NaN stays: the snapshot's orjson writes null); each array read once for all of
+    them, the history only of loops that have one."""
     last = np.stack([getattr(tb, name)[slots] for name in _FIGURES], axis=1).tolist()
     kept = (tb.f_hist_n[slots] > 0).tolist()
+    cut = np.stack([getattr(tb, name)[slots] for name in _UNJUDGED], axis=1).tolist()
     return [
-        {"last": row, "hist": history(tb, s) if has else []}
-        for row, s, has in zip(last, slots.tolist(), kept, strict=True)
+        {"last": row, "hist": history(tb, s) if has else [], "cut": c}
+        for row, s, has, c in zip(last, slots.tolist(), kept, cut, strict=True)
     ]
 
 
@@ -288,6 +306,9 @@ def load(tb: LoopTable, slots: np.ndarray, dicts: list[dict]) -> None:
         columns = zip(*(lasts[i] + [None] * (width - len(lasts[i])) for i in has), strict=True)
         for name, values in zip(_FIGURES, columns, strict=True):
             put(getattr(tb, name), slots[has], list(values), math.nan)
+    cut = [d.get("cut") or [0.0, None, 0.0, None] for d in dicts]  # (since session 40)
+    for i, name in enumerate(_UNJUDGED):
+        put(getattr(tb, name), slots, [c[i] for c in cut], 0.0 if i % 2 == 0 else math.nan)
     tb.f_hist_n[slots] = 0
     for s, d in zip(slots.tolist(), dicts, strict=True):
         hist = d.get("hist")

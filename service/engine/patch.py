@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from service.engine.config import (
     NEEDS_IDENTIFICATION,
@@ -78,4 +78,8 @@ class LoopPatch(BaseModel):
         guard = config.guard.model_dump() | given
         if config.scaling is None and guard["identify"] is False:
             raise ValueError(NEEDS_IDENTIFICATION)
-        return LoopConfig.model_validate(config.model_dump() | top | {"guard": guard})
+        try:
+            return LoopConfig.model_validate(config.model_dump() | top | {"guard": guard})
+        except ValidationError as exc:  # one line for the operator, not pydantic's dump
+            rules = "; ".join(e["msg"].removeprefix("Value error, ") for e in exc.errors())
+            raise ValueError(f"{rules} (nothing changed)") from None

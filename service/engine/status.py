@@ -3,12 +3,14 @@ order of precedence (what the safety guard is doing with the loop right now)."""
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from service.engine import reported, verify
+from service.engine import box, reported, verify
 from service.engine.modes import FROZEN
+from service.units import AGENT_GAIN, AGENT_TAU
 from service.wire.protocol import LoopStatus
 
 if TYPE_CHECKING:
@@ -42,3 +44,181 @@ def statuses(tb: LoopTable, slots: np.ndarray, wall: float) -> np.ndarray:
         np.ones(slots.size, bool),
     ]
     return np.argmax(np.stack(conditions), axis=0)
+
+
+def why(tb: LoopTable, s: int, status: LoopStatus, wall: float) -> str | None:
+    """What holds a loop of any status but ``tuning`` (None for it), with the numbers,
+    and the operator's next step: the view's ``status_why``."""
+    return None if status == LoopStatus.tuning else _WHY[status](tb, s, wall)
+
+
+def _g(x: float) -> str:
+    return f"{x:.3g}"
+
+
+def _frozen(tb, s, wall) -> str:
+    return (
+        "mode frozen: the tuner steps, proposes and publishes nothing for the loop. Next: "
+        "PATCH mode auto (or advisory, shadow) to tune it again"
+    )
+
+
+def _waiting(tb, s, wall) -> str:
+    return (
+        "no sample received since the loop was registered (or reset). Next: check that its "
+        "gateway runs and publishes samples for this loop id"
+    )
+
+
+def _stale(tb, s, wall) -> str:
+    gap, limit = wall - float(tb.last_wall[s]), float(tb.stale_gap[s])
+    since = f"for {_g(gap)} s" if math.isfinite(gap) else "since the tuner started"
+    return (
+        f"no sample {since}, more than guard.stale_periods sample periods "
+        f"({_g(limit)} s): tuning pauses. Next: check the gateway and its link to the DCS; "
+        "tuning resumes with the next sample"
+    )
+
+
+def _out_of_bounds(tb, s, wall) -> str:
+    return (
+        f"the gateway reports kp = {_g(tb.a_kp[s])}, ki = {_g(tb.a_ki[s])}, outside the "
+        f"guard's bounds (kp {_g(tb.c_kp_min[s])}..{_g(tb.c_kp_max[s])}, ki "
+        f"{_g(tb.c_ki_min[s])}..{_g(tb.c_ki_max[s])}): tuning is held. Next: set gains within "
+        "the bounds in the DCS, PATCH the bounds to hold them if they are meant, or reset the "
+        "loop; check that the gateway reports ki per second, not an integral time"
+    )
+
+
+def _identifying(tb, s, wall) -> str:
+    st = tb.ident[s]
+    now = f" ({st.why})" if st is not None and st.why else ""
+    return (
+        f"no model hint: the tuner identifies the loop's model from its data and tunes it "
+        f"once a model is confident{now}. Next: move the setpoint in auto, by at least a "
+        "few times the measurement noise, and let each response settle"
+    )
+
+
+def _model(tb, s):
+    """The latest model identified, else the one in force (None: none)."""
+    st = tb.ident[s]
+    if st is None:
+        return None
+    return st.model if st.model is not None else st.in_force
+
+
+def _seen(tb, s) -> str:
+    """The model seen through the scaling in force: identified vs hinted K and tau."""
+    m, sc = _model(tb, s), tb.scaling_of(s)
+    if m is None or sc is None:
+        return ""
+    k_in_force = sc.u_scale / sc.e_scale * AGENT_GAIN
+    tau_in_force = sc.time_unit_s * AGENT_TAU
+    return (
+        f"identified K = {_g(m.k)}, tau = {_g(m.tau)} s, theta = {_g(m.theta)} s against "
+        f"the scaling in force's K = {_g(k_in_force)} ({_g(m.k / k_in_force)}x), tau = "
+        f"{_g(tau_in_force)} s ({_g(m.tau / tau_in_force)}x)"
+    )
+
+
+def _out_of_envelope(tb, s, wall) -> str:
+    m = _model(tb, s)
+    if m is not None and m.integrating:
+        return (
+            f"the process looks integrating (K = {_g(m.slope)} PV units per output unit per "
+            f"second, dead time {_g(m.theta_i)} s): the agent does not tune integrators and "
+            "tuning pauses. Next: tune the loop by hand and freeze it (PATCH mode frozen), or "
+            "POST /loops/{id}/identify if the process does not integrate"
+        )
+    lo_g, hi_g = (x * f for x, f in zip(box.TRAINING_BOX["gain"], _EDGES, strict=True))
+    lo_t, hi_t = (x * f for x, f in zip(box.TRAINING_BOX["tau"], _EDGES, strict=True))
+    th = box.TRAINING_BOX["theta_ratio"][1] * box.ENVELOPE_MARGIN
+    sc = tb.scaling_of(s)
+    app = "" if m is None or sc is None else box.apparent(sc, m)
+    where = "" if not app else (
+        f"; in the agent's units gain {_g(app['gain'])}, tau {_g(app['tau'])}, theta/tau "
+        f"{_g(app['theta_ratio'])}"
+    )  # fmt: skip
+    seen = _seen(tb, s)
+    rescale = (
+        "the hint is off: PATCH guard.auto_rescale true (the next confident model "
+        "rescales the loop) or register it again with the identified K and tau as k_hat "
+        "and tau_hat; "
+        if tb.mismatch[s]
+        else ""
+    )
+    return (
+        f"the identified dynamics lie outside the agent's envelope (gain "
+        f"{_g(lo_g)}..{_g(hi_g)}, tau {_g(lo_t)}..{_g(hi_t)}, theta/tau up to {_g(th)}){where}"
+        f"{'; ' + seen if seen else ''}: tuning pauses. Next: {rescale}after a change of "
+        f"the plant, POST /loops/{{id}}/identify; a process the agent was not trained for "
+        f"(theta/tau beyond {_g(th)}): tune it by hand and freeze it (PATCH mode frozen)"
+    )
+
+
+_EDGES = (1.0 / box.ENVELOPE_MARGIN, box.ENVELOPE_MARGIN)
+"""The envelope's factors on the training box's lower and upper edges."""
+
+
+def _manual(tb, s, wall) -> str:
+    return (
+        f"the gateway reports the loop in manual ({_g(100 * tb.w_manual[s])} % of the "
+        "recent window): tuning pauses. Next: put the loop back in auto in the DCS"
+    )
+
+
+def _saturated(tb, s, wall) -> str:
+    if tb.oh_held[s]:
+        what = f"the data show the output held at {_g(tb.oh_op[s])}"
+    elif tb.ps_held[s]:
+        what = "the PV has not followed the output the PI law gives (no op in the samples)"
+    else:
+        what = "the gateway reports the output saturated"
+    return (
+        f"{what} ({_g(100 * tb.w_sat[s])} % of the recent window saturated): tuning "
+        "pauses. Next: check the valve, its limits and the transmitter; tuning resumes "
+        "once the output moves within its range"
+    )
+
+
+def _oscillating(tb, s, wall) -> str:
+    return (
+        f"the loop oscillates at its last-good gains (period {_g(tb.o_per[s])} s): tuning "
+        f"pauses until t = {tb.osc_until[s]:.10g} (plant time), extended while it does. "
+        "Next: look for a cause outside the gains (a sticking valve, an oscillating load "
+        "or upstream loop, a changed plant); detune the loop if it persists"
+    )
+
+
+def _hint_mismatch(tb, s, wall) -> str:
+    tol = tb.configs[tb.ids[s]].guard.hint_tolerance
+    return (
+        f"the identified model disagrees with the scaling in force (the hint, or a model "
+        f"identified before) by more than guard.hint_tolerance ({_g(tol)}x): "
+        f"{_seen(tb, s) or 'the model that flagged it is no longer the latest'}; tuning "
+        "continues on that scaling. Next: PATCH "
+        "guard.auto_rescale true (the next confident model rescales the loop), or register "
+        "it again with the identified K and tau as k_hat and tau_hat"
+    )
+
+
+def _quiet(tb, s, wall) -> str:
+    guard = tb.configs[tb.ids[s]].guard
+    return (
+        f"no setpoint move of at least guard.excitation_min_step "
+        f"({_g(guard.excitation_min_step)} pv_scales) in the last guard.excitation_periods "
+        f"({_g(guard.excitation_periods)}) RL periods ({_g(tb.exc_window[s])} s): the agent "
+        "waits for one (it learns from setpoint responses). Next: move the setpoint, or "
+        "PATCH guard.excitation_periods"
+    )
+
+
+_WHY = {
+    LoopStatus.frozen: _frozen, LoopStatus.waiting: _waiting, LoopStatus.stale: _stale,
+    LoopStatus.gains_out_of_bounds: _out_of_bounds, LoopStatus.identifying: _identifying,
+    LoopStatus.out_of_envelope: _out_of_envelope, LoopStatus.manual: _manual,
+    LoopStatus.saturated: _saturated, LoopStatus.oscillating: _oscillating,
+    LoopStatus.hint_mismatch: _hint_mismatch, LoopStatus.quiet: _quiet,
+}  # fmt: skip
+"""The ``status_why`` of each status but ``tuning``."""

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from service.engine import box, monitor, oscillation, verify
+from service.engine import box, monitor, oscillation, status, verify
 from service.engine.config import Counters, LoopConfig, LoopView
 from service.engine.fences import COOLED
 from service.engine.figures import (
@@ -54,6 +54,7 @@ class RawView:
     proposal: Proposal | None = None
     hold: Hold | None = None
     oscillating: bool = False
+    status_why: str | None = None
 
     def parse(self) -> LoopView:
         config = LoopConfig.model_validate_json(self.config)
@@ -67,6 +68,7 @@ class RawView:
             kp=self.kp,
             ki=self.ki,
             status=self.status,
+            status_why=self.status_why,
             seq=self.seq,
             last_sample_t=self.last_sample_t,
             int_e=self.int_e,
@@ -81,11 +83,12 @@ class RawView:
 
 def raw_view(tb: LoopTable, s: int, config: bytes, wall: float) -> RawView:
     """A loop's view with its config still JSON (``config``), copied from the table."""
+    st = tb.status(s, wall)
     return RawView(
         config,
         float(tb.kp[s]),
         float(tb.ki[s]),
-        tb.status(s, wall),
+        st,
         int(tb.seq[s]),
         None if math.isnan(tb.last_t[s]) else float(tb.last_t[s]),
         float(tb.int_e[s]),
@@ -110,6 +113,7 @@ def raw_view(tb: LoopTable, s: int, config: bytes, wall: float) -> RawView:
         proposal=proposal(tb, s),
         hold=hold(tb, s),
         oscillating=bool(tb.o_osc[s]),
+        status_why=status.why(tb, s, st, wall),
     )
 
 
@@ -165,6 +169,7 @@ def _num(x: float) -> float | None:
 
 def verification(tb: LoopTable, s: int) -> Verification:
     margin = _num(tb.v_margin[s])
+    pending = bool(verify.changed(tb, s))
     return Verification(
         enabled=margin is not None,
         margin=margin,
@@ -174,12 +179,50 @@ def verification(tb: LoopTable, s: int) -> Verification:
         last_good_iae_down=_num(tb.g_iae_dn[s]),
         last_good_seq=int(tb.g_seq[s]),
         judged_seq=int(tb.v_seq[s]),
-        pending=bool(verify.changed(tb, s)),
+        pending=pending,
         held_until_t=_num(tb.cool_until[s]) if cooling(tb, s) else None,
         fence=_fence(tb, s),
         paused_until_t=_num(tb.osc_until[s]) if verify.paused(tb, s, tb.last_t[s]) else None,
         detune_floor_kp=_num(tb.o_kp[s]),
         detune_floor_ki=_num(tb.o_ki[s]),
+        cut_short=int(tb.c_cut[s]),
+        unsettled_moves=int(tb.c_early[s]),
+        why=_waits(tb, s) if pending and margin is not None else None,
+    )
+
+
+def _waits(tb: LoopTable, s: int) -> str:
+    """What the verdict of the change pending at slot ``s`` waits for."""
+    span = monitor.RESPONSE_PERIODS * float(tb.period[s])
+    since = f"the changes after seq {int(tb.v_seq[s])} (up to seq {int(tb.seq[s])})"
+    cut, early = int(tb.c_cut[s]), int(tb.c_early[s])
+    window = f"{span:.4g} s ({monitor.RESPONSE_PERIODS:g} RL periods)"
+    if not cut and not early:
+        return (
+            f"{since} wait for the next complete setpoint response: a move of at least "
+            f"guard.excitation_min_step pv_scales on a settled loop, then {window} without "
+            "another move"
+        )
+    parts = []
+    if cut:
+        last = float(tb.c_cut_s[s])
+        parts.append(
+            f"{cut} response{'s were' if cut > 1 else ' was'} cut short by the next move "
+            f"(the last after {last:.4g} s of the {window} a response is judged over)"
+        )
+    if early:
+        left, limit = 100 * float(tb.c_left[s]), 100 * monitor.SETTLED_AT_MOVE
+        parts.append(
+            f"{early} move{'s' if early > 1 else ''} opened none, the loop not settled from "
+            f"the move before (the last found {left:.0f} % of its move left; a response "
+            f"opens within {limit:.0f} % plus the noise)"
+        )
+    return (
+        f"since the last complete setpoint response {' and '.join(parts)}: no change is "
+        f"judged while the setpoint moves that often, and {since} wait for a verdict (a "
+        f"rollback goes back to the last-good gains of seq {int(tb.g_seq[s])}). Next: let "
+        f"the loop settle and the setpoint stand {span:.4g} s after a move now and then, or "
+        "stop the automatic changes (PATCH mode advisory or frozen)"
     )
 
 

@@ -49,7 +49,7 @@ from service.daemon.console.sessions import (
 from service.daemon.console.tuner_view import Rates, tuner_figures
 from service.daemon.gate import LOGIN_BODY_BYTES, token_matches
 from service.daemon.recent import REASONS
-from service.engine import verify, views
+from service.engine import status, verify, views
 from service.engine.status import STATUSES
 from service.wire.protocol import Mode
 
@@ -234,6 +234,18 @@ def _columns(tuner) -> dict[str, Any]:
     return cols
 
 
+def _whys(tuner, ids: list[str], codes: np.ndarray, wall: float) -> list[str | None]:
+    """The page's rows' status_why (the status badge's tooltip): one lock for the page's
+    rows only (a page is at most PAGE_MAX), None for a loop deleted meanwhile."""
+    tb = tuner.table
+    with tuner.engine.lock:
+        slots = [tb.slot_of.get(i) for i in ids]
+        return [
+            None if s is None else status.why(tb, s, STATUSES[int(code)], wall)
+            for s, code in zip(slots, codes.tolist(), strict=True)
+        ]
+
+
 @router.get("/api/loops")
 def overview_data(
     request: Request,
@@ -294,8 +306,9 @@ def overview_data(
     elif desc:
         rows = rows[::-1]
     page = rows[offset : offset + limit]
+    whys = _whys(tuner, [ids[i] for i in page.tolist()], c["status"][page], c["wall"])
     items = []
-    for i in page.tolist():
+    for i, why in zip(page.tolist(), whys, strict=True):
         last_change = None
         if summary is not None and math.isfinite(summary["last_wall"][i]):
             last_change = {
@@ -308,6 +321,7 @@ def overview_data(
             {
                 "id": ids[i],
                 "status": STATUS_NAMES[int(c["status"][i])],
+                "status_why": why,
                 "hold": views.HOLDS[int(c["hold"][i])],
                 "mode": MODES[int(c["mode"][i])].value,
                 "kp": float(c["kp"][i]),

@@ -15,7 +15,8 @@ from fastapi import APIRouter, HTTPException, Query, Request
 from fastapi.responses import JSONResponse, StreamingResponse
 
 from service.daemon.console.context import MODES, STATUS_NAMES, finite, recent_of, tuner_of
-from service.engine import views
+from service.engine import status, views
+from service.engine.status import STATUSES
 
 router = APIRouter()
 
@@ -42,8 +43,10 @@ def _live(tuner, loop_id: str) -> dict | None:
         s = tb.slot_of.get(loop_id)
         if s is None:
             return None
+        code = int(tb.statuses(np.array([s]), wall)[0])
         return {
-            "status": STATUS_NAMES[int(tb.statuses(np.array([s]), wall)[0])],
+            "status": STATUS_NAMES[code],
+            "status_why": status.why(tb, s, STATUSES[code], wall),
             "mode": MODES[int(tb.mode[s])].value,
             "kp": float(tb.kp[s]),
             "ki": float(tb.ki[s]),

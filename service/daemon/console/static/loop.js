@@ -110,6 +110,10 @@
     if (!live) return;
     const st = $("status");
     st.textContent = live.status; st.className = `badge s-${live.status}`;
+    // what holds a loop that is not tuning, with the numbers, and the next step
+    st.title = live.status_why || "";
+    const sw = $("status-why");
+    sw.hidden = !live.status_why; sw.textContent = live.status_why || "";
     // what the status may not say: the agent held (a tuning loop whose gains stay), and
     // an oscillation under another status (a loop held for gains out of bounds)
     const h = live.hold, hd = $("hold");
@@ -171,6 +175,9 @@
       ["last-good kp", pitune.num(vf.last_good_kp, 6)], ["last-good ki", pitune.num(vf.last_good_ki, 6)],
       ["last-good IAE (s)", pitune.num(vf.last_good_iae)],
       ["change pending", vf.pending ? "<b>yes</b>" : "no"], ["judged up to seq", vf.judged_seq],
+      // responses the next move cut short judge nothing: why a change stays pending
+      ["responses cut short", pitune.int(vf.cut_short)], ["moves on an unsettled loop", pitune.int(vf.unsettled_moves)],
+      ...(vf.why ? [["verdict waits", `<span id="verify-why">${pitune.esc(vf.why)}</span>`]] : []),
       ["agent held until t", pitune.num(vf.held_until_t, 7)],
       ["fence after a rollback", fenceText(vf.fence)],
     ]);

@@ -31,7 +31,7 @@
     // the agent held while the status may read tuning (the loop page says until when)
     const hold = l.hold ? ` <span class="badge hold">${l.hold === "cooldown" ? "held: cool-down" : "held: model check"}</span>` : "";
     return `<tr data-id="${pitune.esc(l.id)}"><td><a href="${href}">${pitune.esc(l.id)}</a></td>` +
-      `<td><span class="badge s-${l.status}">${l.status}</span>${hold}</td><td><span class="badge m-${l.mode}">${l.mode}</span></td>` +
+      `<td><span class="badge s-${l.status}" title="${pitune.esc(l.status_why || "")}">${l.status}</span>${hold}</td><td><span class="badge m-${l.mode}">${l.mode}</span></td>` +
       `<td class="num">${pitune.num(l.kp)}</td><td class="num">${pitune.num(l.ki)}</td><td>${change}${verdict}</td>` +
       `<td class="num">${pitune.num(l.rms_e, 3)}</td><td class="num">${pitune.num(l.last_sample_t, 6)}</td>` +
       `<td class="num">${pitune.int(l.counters.samples)}</td><td class="num">${pitune.int(l.counters.steps)}</td>` +

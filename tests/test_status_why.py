@@ -1,0 +1,120 @@
+"""Every status but ``tuning`` says in the loop's view what holds the loop, with the
+numbers, and the operator's next step (``status_why``): each status driven through
+:class:`TuningEngine` with real samples (a simulated loop for the hint checks)."""
+
+from __future__ import annotations
+
+import re
+
+import pytest
+
+from service.agent import untrained_agent
+from service.engine import LoopConfig, TuningEngine
+from service.wire.protocol import LoopStatus
+from tests.test_identify import K, drive, hinted
+
+pytestmark = pytest.mark.timeout(120)
+SCALING = {"k_hat": 1.2, "tau_hat": 30.0, "pv_scale": 10.0}
+
+
+def _loop(**over) -> LoopConfig:
+    body = {"id": "L", "kp": 0.5, "ki": 0.01, "sample_period_s": 1.0, "scaling": SCALING,
+            "guard": {"identify": False}, **over}  # fmt: skip
+    return LoopConfig.model_validate(body)
+
+
+def _sample(t: float, **over) -> dict:
+    return {"loop_id": "L", "t": t, "sp": 50.0, "pv": 50.0, "kp": 0.5, "ki": 0.01,
+            "auto": True, "saturated": False, **over}  # fmt: skip
+
+
+def _factor(why: str, what: str) -> float:
+    """The ``(N x)`` the why gives after the scaling in force's ``what`` (K or tau)."""
+    return float(
+        re.search(rf"against the scaling in force's.*?{what} = [^(]*\(([0-9.e+-]+)x\)", why)[1]
+    )
+
+
+def test_a_hint_off_beyond_the_tolerance_says_by_how_much_and_what_to_do():
+    """k_hat 2.5x the plant's K: flagged hint_mismatch (tolerance 2x), tuning goes on;
+    the why gives the identified K against the hint's and the next step."""
+    engine = TuningEngine(untrained_agent(0))
+    engine.register(hinted(k_hat=2.5 * K), wall=0.0)
+    drive(engine, moves=6)
+    view = engine.view("L", wall=349.0)
+    assert view.status == LoopStatus.hint_mismatch
+    why = view.status_why
+    assert why.startswith("the identified model disagrees with the scaling in force")
+    assert "guard.hint_tolerance (2x)" in why
+    assert _factor(why, "K") == pytest.approx(1 / 2.5, rel=0.25)
+    assert _factor(why, "tau") == pytest.approx(1.0, rel=0.3)
+    assert "Next: PATCH guard.auto_rescale true" in why and "k_hat and tau_hat" in why
+
+
+def test_a_hint_so_far_off_the_loop_leaves_the_envelope_says_where_and_what_to_do():
+    """k_hat 4x the plant's K: the model appears at gain 0.125, below the envelope's
+    0.167: out_of_envelope (tuning pauses); the why gives the envelope, where the model
+    lies in it, the hint's factor, and the rescale as the next step (the hint mismatches)."""
+    engine = TuningEngine(untrained_agent(0))
+    engine.register(hinted(k_hat=4.0 * K), wall=0.0)
+    drive(engine, moves=6)
+    view = engine.view("L", wall=349.0)
+    assert view.status == LoopStatus.out_of_envelope and view.identification.why == ""
+    why = view.status_why
+    assert (
+        "outside the agent's envelope (gain 0.167..1.5, tau 0.167..1.5, theta/tau up to 1.5)" in why
+    )
+    gain = float(re.search(r"in the agent's units gain ([0-9.e+-]+)", why)[1])
+    assert gain == pytest.approx(0.5 / 4, rel=0.25) and gain < 0.5 / 1.5 / 2
+    assert _factor(why, "K") == pytest.approx(1 / 4, rel=0.25)
+    assert (
+        "Next: the hint is off: PATCH guard.auto_rescale true" in why
+        and "POST /loops/{id}/identify" in why
+    )
+
+
+def test_the_other_statuses_say_why_with_their_numbers():
+    engine = TuningEngine(untrained_agent(0))
+
+    def one(config: LoopConfig, samples: list[dict], wall: float) -> tuple[LoopStatus, str]:
+        engine.register(config, wall=0.0)
+        for s in samples:
+            engine.ingest([s], wall=s["t"])
+        view = engine.view("L", wall=wall)
+        engine.remove("L")
+        return view.status, view.status_why
+
+    st, why = one(_loop(), [], 0.0)
+    assert st == LoopStatus.waiting and why.startswith("no sample received")
+    st, why = one(_loop(mode="frozen"), [_sample(0.0)], 0.0)
+    assert st == LoopStatus.frozen and "PATCH mode auto" in why
+    st, why = one(_loop(), [_sample(0.0)], 100.0)
+    assert st == LoopStatus.stale and why.startswith("no sample for 100 s, more than ")
+    assert "(5 s)" in why  # guard.stale_periods 5 x 1 s
+    engine.register(_loop(), wall=0.0)  # restored after a restart: no sample since
+    engine.ingest([_sample(0.0)], wall=0.0)
+    ((_, hidden, runtime),) = engine.snapshot()
+    engine.remove("L")
+    engine.restore(_loop(), kp=0.5, ki=0.01, seq=0, hidden=hidden, runtime=runtime, wall=9.0)
+    view = engine.view("L", wall=10.0)
+    engine.remove("L")
+    assert view.status == LoopStatus.stale
+    assert view.status_why.startswith("no sample since the tuner started, more than ")
+    st, why = one(_loop(), [_sample(0.0, kp=100.0)], 0.0)
+    assert st == LoopStatus.gains_out_of_bounds
+    assert why.startswith(
+        "the gateway reports kp = 100, ki = 0.01, outside the guard's bounds (kp "
+    )
+    st, why = one(_loop(scaling=None, guard={}), [_sample(0.0)], 0.0)
+    assert st == LoopStatus.identifying and "move the setpoint in auto" in why
+    st, why = one(_loop(), [_sample(float(t), auto=t < 5) for t in range(10)], 9.0)
+    assert st == LoopStatus.manual and "in manual (" in why and "back in auto" in why
+    st, why = one(_loop(), [_sample(0.0, saturated=True)], 0.0)
+    assert st == LoopStatus.saturated and why.startswith("the gateway reports the output saturated")
+    quiet = _loop(guard={"identify": False, "excitation_periods": 2.0})
+    st, why = one(quiet, [_sample(float(t)) for t in range(0, 400, 5)], 395.0)
+    assert st == LoopStatus.quiet
+    assert "guard.excitation_periods (2) RL periods (330 s)" in why  # RL period 165 s
+    st, why = one(_loop(guard={"identify": False, "excitation_periods": 0.0}),
+                  [_sample(0.0)], 0.0)  # fmt: skip
+    assert st == LoopStatus.tuning and why is None
