@@ -160,6 +160,7 @@ class Ownership:
                     self.recent.forget(loop_id)
                 self.epochs.pop(loop_id, None)
             self.cluster.forget(ids)
+            self.cluster.dropped(shards)
             self.metrics.set_loop_counts(self.table.mode_counts())
 
     def reload_loops(self, loop_ids: list[str]) -> None:
