@@ -5,7 +5,8 @@ in ``leases`` for every shard it owns (see :mod:`service.daemon.shards`). A memb
 every ``lease_s / 5`` seconds (:data:`TICKS_PER_LEASE`):
 
 1. renews its member row and its leases (one transaction, the database's clock); a
-   lease it no longer finds (another member took it) is lost: its loops are dropped;
+   lease it no longer finds (another member took it) is lost: its loops are dropped
+   (by the tick; the shard is not taken again before);
 2. reads the live members and the shards of the stored loops, and computes who wins
    each shard (rendezvous hashing);
 3. releases the shards it holds but no longer wins (a member joined): it commits and
@@ -123,7 +124,10 @@ class Cluster(Suspects, Notifies):
         self._parsing: tuple[threading.Thread, threading.Event] | None = None
         """The thread parsing them, and the event that stops it."""
         self._lost: set[str] = set()
-        """Shards the renewal found taken, for the tick to drop their loops."""
+        """Shards a renewal found taken whose loops are still in the engine: the tick drops
+        them (:meth:`Ownership.drop_shards
+        <service.daemon.ownership.Ownership.drop_shards>` takes them off this set), and
+        none is taken again before (:meth:`_acquire`)."""
         self._reload_todo: set[str] = set()  # loops whose reload failed: again until it works
         self.ready = threading.Event()
         """Set after the first tick (this member holds what it wins, as far as free)."""
@@ -216,11 +220,8 @@ class Cluster(Suspects, Notifies):
         while not self._stop.is_set():
             started = time.monotonic()
             try:
-                lost = self._renew(started)
+                self._renew(started)
                 self.outage.worked("renewal")
-                if lost:
-                    with self._lock:
-                        self._lost |= lost
                 took = time.monotonic() - started
                 if took > self.tick_s:  # the leases survive a delay of lease_s - tick_s only
                     log.warning("lease renewal took %.1f s (tick %.1f s)", took, self.tick_s)
@@ -237,7 +238,7 @@ class Cluster(Suspects, Notifies):
         """One tick (see the module doc); seconds until the next expiry of another
         member's row or lease (None: none live)."""
         with self._lock:
-            lost, self._lost = self._lost, set()
+            lost = set(self._lost)  # (off the set once dropped, not before: see _acquire)
         if lost:
             log.warning("leases lost (taken by another member): %s", ", ".join(sorted(lost)))
             self.tuner.drop_shards(lost, commit=False)
@@ -265,9 +266,9 @@ class Cluster(Suspects, Notifies):
         self._parse_ahead(live, stored, held, gone)  # after the acquisitions, which use them
         return self._next_due(lasts, gone)
 
-    def _renew(self, started: float) -> set[str]:
+    def _renew(self, started: float) -> None:
         with self._leasing:
-            return self._renew_held(started)
+            self._renew_held(started)
 
     def revive(self, shards: set[str]) -> set[str]:
         """Those of ``shards`` (leases a commit found not held) that another member took,
@@ -275,12 +276,13 @@ class Cluster(Suspects, Notifies):
         longer than the lease, or the renewals late), and the renewal extends a lease
         still this member's with its token whether or not it ran out (a lease taken has
         another token: lost). Raises psycopg.Error if the store fails."""
-        lost = self._renew(time.monotonic())
+        self._renew(time.monotonic())
         with self._lock:
-            self._lost |= lost - shards  # (for the tick to drop; the caller drops these)
             return {shard for shard in shards if shard not in self.held}
 
-    def _renew_held(self, started: float) -> set[str]:
+    def _renew_held(self, started: float) -> None:
+        """Renew the member row and the held leases; a lease found taken is held no more
+        and its shard waits in :attr:`_lost` for its loops to be dropped."""
         with self._lock:
             held = dict(self.held)
             loops = len(self.shard_of)  # for GET /cluster (service.daemon.directory)
@@ -303,13 +305,17 @@ class Cluster(Suspects, Notifies):
             }
         if not renewed:  # our row was deleted (we were taken for dead): join again
             self._join()
-        lost = set(held) - kept
         with self._lock:
-            for shard in lost:
-                if self.held.get(shard) == held[shard]:  # not re-acquired meanwhile
+            for shard in set(held) - kept:
+                if self.held.get(shard) == held[shard]:  # (not lost to a commit meanwhile)
                     self.held.pop(shard)
+                    # at once, as it stops being held: a tick that read the lost shards
+                    # before this renewal took them again, wakening from a pause, with the
+                    # loops from before it still in the engine (a takeover keeps a loop it
+                    # has): it stepped them under the new lease, then dropped them and kept
+                    # the leases, loading nothing (a CI run, session 40)
+                    self._lost.add(shard)
             self.valid_until = started + self.lease_s - SAFETY_S
-        return lost
 
     def _release(self, shards: set[str]) -> None:
         """Hand shards to the member that now wins them: commit and snapshot their loops
@@ -353,8 +359,10 @@ class Cluster(Suspects, Notifies):
             return
         started = time.time()
         token = self.tuner.store.next_epoch(started)
-        with self._leasing:
-            taken = self._take(shards, token, conn or self._conn, dead)
+        with self._leasing:  # (a renewal's finding a lease taken comes before or after)
+            with self._lock:
+                shards = shards - self._lost  # their old loops out of the engine first
+            taken = self._take(shards, token, conn or self._conn, dead) if shards else []
         if not taken:
             return
         if conn is None:  # (the cluster's thread: the parsing ahead's owner)
@@ -447,6 +455,11 @@ class Cluster(Suspects, Notifies):
                 self.shard_of[loop_id] = shard
                 if floor is not None:
                     self.floors[loop_id] = floor
+
+    def dropped(self, shards: set[str]) -> None:
+        """The shards' loops are out of the engine: lost ones may be taken again."""
+        with self._lock:
+            self._lost -= shards
 
     def forget(self, loop_ids: list[str]) -> None:
         with self._lock:

@@ -176,30 +176,34 @@ class Delivery:
         Nor do the messages of loops whose shards this member no longer holds: a renewal
         that found their leases taken (by the member waking, or by a commit refused,
         :meth:`_fenced`) took the shards off before it made the leases valid again; their
-        new owner sends each loop's last message again (:meth:`_resend`)."""
-        if self.cluster is not None and self.cluster.may_publish():
-            mine = [m for m in messages if self.cluster.token(m["loop_id"]) is not None]
-            self.gains_fenced += len(messages) - len(mine)
-            messages = mine
-        if not messages:
-            return
-        if gateway is None:
-            puts = [(self.keys.gains(m["loop_id"]), orjson.dumps(m)) for m in messages]
-        else:
-            key = self.keys.gateway_gains(gateway)
-            puts = [
-                (key, payload)
-                for i in range(0, len(messages), MAX_BATCH)
-                for payload in _within_size(messages[i : i + MAX_BATCH])
-            ]
-        for n, (key, payload) in enumerate(puts):
-            if self.cluster is not None and not self.cluster.may_publish():
-                # rare: the messages left, counted (a batch's from its payload)
-                self.gains_fenced += sum(
-                    1 if gateway is None else len(orjson.loads(p)["gains"]) for _, p in puts[n:]
-                )
-                return
-            self.bus.publish(key, payload)
+        new owner sends each loop's last message again (:meth:`_resend`). Each put checks
+        that its loops' shards are still held under the tokens they were held under at
+        the start: a member woken in the middle of a batch had its renewal make the
+        leases valid again (for the shards still held) before the rest went out, and it
+        may hold a lost shard again, under a new token, before the rest goes out (their
+        loops' messages waiting in a lane are dropped with the loops,
+        :meth:`~service.daemon.ownership.Ownership.drop_shards`)."""
+        cluster = self.cluster
+        if cluster is not None:
+            tokens = {m["loop_id"]: cluster.token(m["loop_id"]) for m in messages}
+        step = 1 if gateway is None else MAX_BATCH
+        for i in range(0, len(messages), step):
+            chunk = messages[i : i + step]
+            if cluster is not None:
+                if not cluster.may_publish():  # the messages left, counted
+                    self.gains_fenced += len(messages) - i
+                    return
+                held = [m for m in chunk if tokens[m["loop_id"]] is not None]
+                held = [m for m in held if cluster.token(m["loop_id"]) == tokens[m["loop_id"]]]
+                self.gains_fenced += len(chunk) - len(held)
+                chunk = held
+            if gateway is None:
+                for m in chunk:
+                    self.bus.publish(self.keys.gains(m["loop_id"]), orjson.dumps(m))
+            elif chunk:
+                key = self.keys.gateway_gains(gateway)
+                for payload in _within_size(chunk):
+                    self.bus.publish(key, payload)
 
     @property
     def superseded(self) -> int:

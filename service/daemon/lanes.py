@@ -61,6 +61,15 @@ class Lane:
                 self._pending = kept
             self._cond.notify_all()
 
+    def discard(self, loop_ids: set[str]) -> int:
+        """Take the waiting messages of ``loop_ids`` out (their loops left this member's
+        engine); how many."""
+        with self._cond:
+            kept = [m for m in self._pending if m["loop_id"] not in loop_ids]
+            gone = len(self._pending) - len(kept)
+            self._pending = kept
+        return gone
+
     def _run(self) -> None:
         while True:
             with self._cond:

@@ -50,7 +50,9 @@ class Ownership:
     foreign_samples = 0
     """Samples of loops another member owns, left to it."""
     gains_fenced = 0
-    """Committed gains messages not published: the leases may have run out."""
+    """Committed gains messages not published: the leases may have run out, or their
+    loops' leases were taken (:meth:`Delivery._send
+    <service.daemon.delivery.Delivery._send>`, :meth:`drop_shards`)."""
     gains_resent = 0
     """Committed gains messages sent again by this member when it took their loops over
     (:meth:`_resend`)."""
@@ -154,12 +156,19 @@ class Ownership:
                 self.table.requeue(
                     [g for g in gains if g[3] not in gone], [a for a in audit if a[0] not in gone]
                 )
+                # and their committed messages not out yet, which the new owner sends again
+                # (their loops' last, _resend): they must not go out under a new token of
+                # the shard, should this member take it back before its lanes get to them
+                # (a lane's batch on its way is checked put by put: Delivery._send)
+                lanes = list(self.lanes.values())
+                self.gains_fenced += sum(lane.discard(gone) for lane in lanes)
             for loop_id in ids:
                 if loop_id in self.table.slot_of:
                     self.engine.remove(loop_id)
                     self.recent.forget(loop_id)
                 self.epochs.pop(loop_id, None)
             self.cluster.forget(ids)
+            self.cluster.dropped(shards)
             self.metrics.set_loop_counts(self.table.mode_counts())
 
     def reload_loops(self, loop_ids: list[str]) -> None:
