@@ -237,6 +237,10 @@ def test_the_reference_gateway_reports_applied_seq_and_reset_t(tmp_path):
             wait_until(reset_heard, what="a reset")
             update = got[-1]
             assert update.epoch == tuner.epoch
+            # taken, not applied yet (a write lock, an approval window): 0, not left out,
+            # so the tuner takes the old gains for lag, not for an operator's change
+            gw.publish("LIC-101", Sample(t=1.5, e=0.1))
+            assert Sample.model_validate_json(samples.get(timeout=5)).applied_seq == 0
             gw.applied(update)
             gw.publish("LIC-101", Sample(t=2.0, e=0.1))
             assert Sample.model_validate_json(samples.get(timeout=5)).applied_seq == update.seq

@@ -104,3 +104,39 @@ def test_after_t_of_a_sample_that_never_comes_answers_after_the_wait(tmp_path):
             assert state["last_t"] == 5.0 and AFTER_T_WAIT_S <= waited < AFTER_T_WAIT_S + 1.0
         finally:
             gw.close()
+
+
+def _error(session, key: str) -> dict:
+    """The one reply to ``key``, which must be an error reply (reply.err)."""
+    replies = list(session.get(key, timeout=5.0))
+    assert len(replies) == 1 and replies[0].err is not None, replies
+    return json.loads(replies[0].err.payload.to_bytes())
+
+
+def test_a_malformed_after_t_is_an_error_reply_at_once_and_ids_are_the_keys_chunk(tmp_path):
+    """An after_t that is no finite number (a typo, a decimal comma, an overflow) was
+    ignored and the state answered at once, as if it reflected the awaited sample; it is
+    an ErrorReply now. An ErrorReply's loop_id is the key's id chunk, valid or not."""
+    settings = tuner_settings(tmp_path)
+    with Tuner(settings) as tuner:
+        tuner.register(LoopConfig(**loop_body("PROBE")))
+        gw = connected_gateway(settings)
+        try:
+            gw.send("PROBE", {"t": 5.0, "e": 0.1})
+            key = settings.keys.state("PROBE")
+            assert _state(gw.session, f"{key}?after_t=5.0")["last_t"] == 5.0
+            for raw in ("abc", "nan", "1e400", "5,5", "-inf"):
+                asked = time.monotonic()
+                error = _error(gw.session, f"{key}?after_t={raw}")
+                assert time.monotonic() - asked < AFTER_T_WAIT_S
+                assert error["loop_id"] == "PROBE", error
+                assert error["error"].startswith(f"bad after_t: '{raw}'"), error
+            unknown = _error(gw.session, settings.keys.state("NOPE"))
+            assert (unknown["loop_id"], unknown["error"]) == ("NOPE", "unknown loop")
+            bad_id = _error(gw.session, settings.keys.state("-x"))
+            assert (bad_id["loop_id"], bad_id["error"]) == ("-x", "unknown loop")
+            bad_gw = _error(gw.session, settings.keys.gateway_state("-g"))
+            assert bad_gw["loop_id"] == "-g", bad_gw
+            assert tuner.view("PROBE").counters.samples == 1  # nothing changed
+        finally:
+            gw.close()

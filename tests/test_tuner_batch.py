@@ -287,6 +287,8 @@ def test_a_gateways_columns_are_taken_whole_and_bad_shapes_rejected_whole():
         ({"columns": [columns]}, 1, "not an object of lists"),
         ({"columns": {"loop_id": "L0", "t": 1.0}}, 1, "not an object of lists"),
         ({"columns": {"loop_id": ["L0"] * (MAX_BATCH + 1)}}, MAX_BATCH + 1, "at most"),
+        # both forms: the columns were taken and the samples counted nowhere (review 40)
+        ({"columns": columns, "samples": [{"loop_id": "L9", "t": 1.0, "e": 0.1}]}, 4, "both"),
     ]:
         bad = decode_batch(orjson.dumps(message))
         # rejected whole: one rejection standing for every sample
@@ -315,6 +317,22 @@ def test_one_bad_sample_does_not_take_its_batch_with_it():
     assert len(big.rows) == 0 and len(big.rejected) == 1
     assert big.received == big.rejected[0].count == MAX_BATCH + 1
     assert {r.reason for r in big.rejected} == {RejectReason.schema}
+
+
+def test_reject_reasons_of_a_negative_applied_seq_and_of_v_below_1_are_the_documented():
+    """docs/protocol.md, Accounting: an applied_seq below 0 is out_of_range, a v below 1
+    unsupported_version, in a sample and on a batch (an integrator met both undocumented)."""
+    sample = {"loop_id": "L0", "t": 1.0, "e": 0.5}
+    for extra, reason in [
+        ({"applied_seq": -1}, RejectReason.out_of_range),
+        ({"v": 0}, RejectReason.unsupported_version),
+        ({"v": 2}, RejectReason.unsupported_version),
+    ]:
+        decoded = decode_batch(orjson.dumps({"samples": [sample, {**sample, **extra}]}))
+        assert decoded.rows.loop_ids == ["L0"] and decoded.received == 2
+        assert [(r.index, r.reason) for r in decoded.rejected] == [(1, reason)]
+    whole = decode_batch(orjson.dumps({"v": 0, "samples": [sample, sample]}))
+    assert [(r.reason, r.count) for r in whole.rejected] == [(RejectReason.unsupported_version, 2)]
 
 
 def test_plain_batch_is_columnar():

@@ -6,8 +6,9 @@ It follows docs/protocol.md through :class:`service.gateways.base.Gateway`:
 * a gains message is applied only if its ``(epoch, seq)`` is above the last one taken
   for that loop (duplicates, late arrivals and late messages of a replaced tuner are
   dropped), and only if its mode is ``auto`` (``advisory`` ones are for a human to judge);
-* each sample reports ``applied_seq``, the last update written to the PID block, so the
-  tuner tells a gateway lagging behind from an operator's change;
+* each sample reports ``applied_seq``, the last update written to the PID block (0 once
+  an update of the tuner's epoch is taken and none written yet), so the tuner tells a
+  gateway lagging behind from an operator's change;
 * whenever a tuner's liveliness token appears (tuner started, or this gateway
   (re)connected), it asks the tuner for the loops' state and applies the gains it
   missed meanwhile (same rule); it says when no tuner is up;

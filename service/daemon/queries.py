@@ -41,7 +41,11 @@ class StateQueries:
         key = str(query.key_expr)
         loop_id = self.keys.loop_id(key)
         if loop_id is not None and loop_id in self.table.slot_of:
-            after_t = _after_t(query)
+            try:
+                after_t = _after_t(query)
+            except ValueError as exc:  # answered at once, it would pass for the awaited state
+                reply(query, encode(ErrorReply(loop_id=loop_id, error=str(exc))), error=True)
+                return
             if after_t is not None and not self._reflects(loop_id, after_t):
                 deadline = time.monotonic() + AFTER_T_WAIT_S
                 self._parked.setdefault(loop_id, []).append((after_t, deadline, query))
@@ -59,7 +63,8 @@ class StateQueries:
         if self._foreign(loop_id):  # another member of the cluster answers
             query.drop()
             return
-        reply(query, encode(ErrorReply(loop_id=loop_id or key, error="unknown loop")), error=True)
+        error = ErrorReply(loop_id=_chunk(key, f"{self.keys.prefix}/loops/"), error="unknown loop")
+        reply(query, encode(error), error=True)
 
     def _reflects(self, loop_id: str, after_t: float) -> bool:
         t = self.table.last_t[self.table.slot(loop_id)]
@@ -93,7 +98,11 @@ class StateQueries:
         """One StateBatch with every loop registered with the gateway in the key."""
         gateway = self.keys.gateway_id(str(query.key_expr))
         if gateway is None:
-            error = ErrorReply(loop_id=str(query.key_expr), error="not a gateway's state key")
+            key = str(query.key_expr)
+            error = ErrorReply(
+                loop_id=_chunk(key, f"{self.keys.prefix}/gateways/"),
+                error="not a gateway's state key",
+            )
             reply(query, encode(error), error=True)
             return
         if self.cluster is not None and not self.cluster.owns(shard_of("", gateway)):
@@ -137,8 +146,16 @@ def _finite(x: float) -> float | None:
     return None if math.isnan(x) else float(x)
 
 
+def _chunk(key: str, head: str) -> str:
+    """The id chunk of ``key`` after ``head`` (``{prefix}/loops/``), valid or not, for an
+    ErrorReply's ``loop_id``; the whole key where it has none."""
+    rest = key[len(head) :] if key.startswith(head) else ""
+    return rest.split("/")[0] or key
+
+
 def _after_t(query: zenoh.Query) -> float | None:
-    """The query's ``after_t`` parameter (None: absent or not a finite number)."""
+    """The query's ``after_t`` parameter (None: absent); ValueError if it is not a
+    finite number."""
     try:
         raw = query.parameters.get("after_t")
     except Exception:  # noqa: BLE001 - a malformed selector is no parameter
@@ -148,5 +165,7 @@ def _after_t(query: zenoh.Query) -> float | None:
     try:
         value = float(raw)
     except ValueError:
-        return None
-    return value if math.isfinite(value) else None
+        value = math.nan
+    if not math.isfinite(value):
+        raise ValueError(f"bad after_t: {raw!r} (a finite number of plant seconds)")
+    return value

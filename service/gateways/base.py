@@ -27,8 +27,9 @@ A gateway (the plant simulator here, a real DCS gateway in
   gateway, are asked one by one; a tuner without that queryable is asked
   ``{prefix}/loops/*/state``); without, ``{prefix}/loops/*/state``;
 * it reports in each sample ``applied_seq``, the seq of the last update the DCS applied
-  to the loop in the current epoch (:meth:`Gateway.applied`), so the tuner never takes
-  a gateway lagging behind its updates for an operator's change;
+  to the loop in the current epoch (:meth:`Gateway.applied`; 0 while it applied none of
+  it), so the tuner never takes a gateway lagging behind its updates for an operator's
+  change;
 * it keeps each loop's RL period and next due time from the state replies, for an
   "update overdue" watchdog (:meth:`Gateway.overdue`).
 
@@ -419,12 +420,17 @@ class Gateway:
         self._applied[update.loop_id] = (update.epoch, update.seq)
 
     def applied_seq(self, loop_id: str) -> int | None:
-        """The seq of the last update applied to the loop, if it is of the epoch of the
-        newest update taken (seqs of another epoch mean nothing to the tuner now)."""
+        """The seq of the last update applied to the loop within the epoch of the newest
+        update taken (seqs of another epoch mean nothing to the tuner now); 0 if none of
+        that epoch is applied yet: left out, a gateway lagging behind its first update
+        would report the old gains as an operator's change (an integrator's review,
+        session 40); None before any update is taken (or, from a tuner of revision 1,
+        whose messages carry no epoch, before one is applied)."""
+        epoch = self.inbox.current_epoch(loop_id)
         applied = self._applied.get(loop_id)
-        if applied is None or applied[0] != self.inbox.current_epoch(loop_id):
-            return None
-        return applied[1]
+        if applied is not None and applied[0] == epoch:
+            return applied[1]
+        return None if epoch is None else 0
 
     def overdue(self, loop_id: str, plant_t: float, periods: float = 2.0) -> bool:
         """Whether an update of a loop the tuner last said was ``tuning`` is overdue at

@@ -256,6 +256,11 @@ def decode_batch(payload: bytes) -> Decoded:
         if message is None:
             return _whole(1, RejectReason.malformed_json, f"batch: {exc}")
         lax = True
+    if isinstance(message, dict) and "columns" in message and "samples" in message:
+        # which form holds the samples is ambiguous: taking one would count the other's
+        # samples nowhere ("every sample received ends in exactly one counter")
+        n = _held(message["columns"]) + _held(message["samples"])
+        return _whole(n, RejectReason.schema, "both 'columns' and 'samples'")
     if isinstance(message, dict) and "columns" in message:
         return decode_columns(message, strict_json=not lax)
     items = message.get("samples") if isinstance(message, dict) else None
@@ -309,6 +314,14 @@ def decode_columns(message: dict, *, strict_json: bool = True) -> Decoded:
 def _speaks(version) -> bool:
     """Whether a batch message's ``v`` is a schema version this tuner reads."""
     return type(version) is int and 1 <= version <= SCHEMA_VERSION
+
+
+def _held(part) -> int:
+    """Samples a batch's ``samples`` or ``columns`` counts as: a list's length, the
+    longest column's (as :func:`decode_columns`), else 1."""
+    if isinstance(part, dict) and all(type(c) is list for c in part.values()):
+        return max(map(len, part.values()), default=0)
+    return len(part) if type(part) is list else 1
 
 
 def _lax_loads(payload: bytes):

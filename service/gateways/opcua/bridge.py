@@ -46,8 +46,8 @@ written, found already in force, or refused (by the policy above or by the serve
 the loop's samples carry its seq, so the gains they report are known to be the block's
 after that update: equal to it, the update is confirmed; different, they are an
 operator's or the block's choice and the tuner adopts them. While an update waits (no
-session, rate limit) the samples carry the previous seq, and the tuner, seeing the
-gateway lag, takes nothing for an operator's change.
+session, rate limit) the samples carry the previous seq (0 if none of the epoch), and
+the tuner, seeing the gateway lag, takes nothing for an operator's change.
 """
 
 from __future__ import annotations
