@@ -6,6 +6,7 @@ No fixed sleeps: every wait is on a condition of the page (or of the daemon)."""
 
 from __future__ import annotations
 
+import contextlib
 import inspect
 import json
 import math
@@ -37,6 +38,29 @@ def logged_in(page, url: str, name: str):
 
 def points(page) -> int:
     return int(page.locator("#trend-count").get_attribute("data-points") or 0)
+
+
+@contextlib.contextmanager
+def settled(daemon, plant, loop_id: str):
+    """The plant held (:meth:`SimPlant.held`) and the tuner done with its last sample:
+    the loop's proposal stays until the operator's decision (at 20x, the agent's next
+    one would otherwise replace it every RL period, a fraction of a second: a click on
+    the one the page shows was refused as stale under load). Yields the loop's view."""
+    with plant.held() as t:
+        yield wait_until(
+            lambda: (
+                (v := httpx.get(f"{daemon.url}/loops/{loop_id}").json())["last_sample_t"] == t and v
+            ),
+            timeout=20.0,
+            what="the tuner at the plant's last sample",
+        )
+
+
+def shown(page, view: dict) -> int:
+    """The seq of ``view``'s proposal, once the page shows it."""
+    seq = view["proposal"]["seq"]
+    page.locator(f'#proposal-box[data-seq="{seq}"]:not([hidden])').wait_for()
+    return seq
 
 
 def test_operator_session_end_to_end(daemon, new_page):
@@ -109,7 +133,11 @@ def test_operator_session_end_to_end(daemon, new_page):
 def test_auto_loop_gains_reach_the_plant_and_the_trend(daemon, new_page):
     """Gains the tuner publishes are applied by the plant and drawn as published steps."""
     loop = SimLoop(id="FIC-1", k=0.8, tau=8.0, theta=1.0, kp=0.3, ki=0.03, sp_period=20.0)
-    body = loop.body(1.0, guard={"excitation_periods": 0.0})
+    # the agent alone changes the gains: no identification (its model's tuning, reason
+    # 'model', replaced the agent's as the last change under load) and no verification
+    # (a rollback of the untrained agent's noise)
+    guard = {"excitation_periods": 0.0, "identify": False, "verify": False}
+    body = loop.body(1.0, guard=guard)
     assert httpx.post(f"{daemon.url}/loops", json=body, headers=BEARER).status_code == 201
     plant = SimPlant(daemon.settings, [loop], dt=1.0, speed=20.0).start()
     try:
@@ -220,7 +248,10 @@ def test_approve_a_proposal_roll_back_and_shadow_from_the_loop_page(daemon, new_
     last-good gains back on the plant, and the fence shown), reject the next proposal
     (the cool-down shown), switch to shadow."""
     loop = SimLoop(id="TIC-3", k=1.0, tau=6.0, theta=1.0, kp=0.3, ki=0.03, sp_period=20.0)
-    body = loop.body(1.0, mode="advisory", guard={"excitation_periods": 0.0})
+    # no identification: its model's tuning (reason 'model') is proposed at any time and
+    # holds the agent for a cool-down of its own
+    guard = {"excitation_periods": 0.0, "identify": False}
+    body = loop.body(1.0, mode="advisory", guard=guard)
     assert httpx.post(f"{daemon.url}/loops", json=body, headers=BEARER).status_code == 201
     plant = SimPlant(daemon.settings, [loop], dt=1.0, speed=20.0).start()
     try:
@@ -228,9 +259,10 @@ def test_approve_a_proposal_roll_back_and_shadow_from_the_loop_page(daemon, new_
         page.goto(f"{daemon.url}/ui/loops/TIC-3")
         page.wait_for_selector("#proposal-box:not([hidden])")
 
-        seq = int(page.locator("#proposal-box").get_attribute("data-seq"))
-        page.click("#approve")
-        applied = plant.applied.get(timeout=20.0)  # the plant applies the accepted gains
+        with settled(daemon, plant, "TIC-3") as now:
+            seq = shown(page, now)
+            page.click("#approve")
+            applied = plant.applied.get(timeout=20.0)  # the plant applies the accepted gains
         view = httpx.get(f"{daemon.url}/loops/TIC-3").json()
         assert applied[0] == "TIC-3" and applied[1] > seq
         assert (applied[2], applied[3]) == pytest.approx((view["kp"], view["ki"]))
@@ -246,17 +278,18 @@ def test_approve_a_proposal_roll_back_and_shadow_from_the_loop_page(daemon, new_
             timeout=20.0,
             what="the operator's kp adopted",
         )
-        page.once("dialog", lambda d: d.accept())
-        page.click("#rollback")  # advisory: the last-good gains come back as a proposal
-        page.wait_for_function(
-            "document.getElementById('proposal-text').textContent.includes('(rollback)')"
-        )
-        page.click("#approve")
-        wait_until(
-            lambda: any(a[2:] == pytest.approx((0.3, 0.03)) for a in _drain(plant.applied)),
-            timeout=20.0,
-            what="the last-good gains on the plant",
-        )
+        with settled(daemon, plant, "TIC-3"):
+            page.once("dialog", lambda d: d.accept())
+            page.click("#rollback")  # advisory: the last-good gains come back as a proposal
+            page.wait_for_function(
+                "document.getElementById('proposal-text').textContent.includes('(rollback)')"
+            )
+            page.click("#approve")
+            wait_until(
+                lambda: any(a[2:] == pytest.approx((0.3, 0.03)) for a in _drain(plant.applied)),
+                timeout=20.0,
+                what="the last-good gains on the plant",
+            )
         page.wait_for_selector('#history tbody tr[data-reason="rollback"]')
         # the rollback taken fences the agent's next proposals short of the kp undone
         # (ki, moved by less than 5 %, is not fenced)
@@ -273,15 +306,18 @@ def test_approve_a_proposal_roll_back_and_shadow_from_the_loop_page(daemon, new_
             "!document.getElementById('proposal-text').textContent.includes('(rollback)')"
             " && !document.getElementById('proposal-box').hidden"
         )  # the agent's next proposal
-        page.click("#reject")
-        page.wait_for_selector('#history tbody tr[data-reason="rejected"]')
-        # the agent held for the cool-down after the reject: the title bar says until when
-        # (the status may still read tuning: the gains stay and nothing else says why)
-        page.wait_for_selector('#hold[data-guard="cooldown"]:not([hidden])')
-        assert page.locator("#hold").inner_text().startswith("held: cool-down until t = ")
-        assert "the cool-down after a change of the tuner's own" in page.locator(
-            "#hold"
-        ).get_attribute("title")
+        with settled(daemon, plant, "TIC-3") as now:
+            shown(page, now)
+            page.click("#reject")
+            page.wait_for_selector('#history tbody tr[data-reason="rejected"]')
+            # the agent held for the cool-down after the reject: the title bar says until
+            # when and why (the status may still read tuning: the gains stay and nothing
+            # else says why)
+            page.wait_for_selector('#hold[data-guard="cooldown"]:not([hidden])')
+            assert page.locator("#hold").inner_text().startswith("held: cool-down until t = ")
+            assert "the cool-down after an operator's rejection of a proposal" in page.locator(
+                "#hold"
+            ).get_attribute("title")
 
         page.click("#mode-shadow")
         page.wait_for_selector('#mode[data-mode="shadow"]')

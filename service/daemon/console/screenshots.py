@@ -160,6 +160,8 @@ class SimPlant:
             self.keys.all_gains, lambda s: self._gains.put(s.payload.to_bytes())
         )
         self._stop = threading.Event()
+        self._holding = threading.Event()
+        self._held = threading.Event()
         self._thread: threading.Thread | None = None
 
     def start(self) -> SimPlant:
@@ -169,6 +171,21 @@ class SimPlant:
 
     def add(self, loop: SimLoop) -> None:
         self.loops[loop.id] = loop
+
+    @contextlib.contextmanager
+    def held(self, timeout: float = 30.0) -> Iterator[float]:
+        """Inside it the plant sends no sample (its time stands still) but still applies
+        gains: no agent step nor verdict, which samples drive, changes a loop meanwhile, so
+        a test's operator decides on the proposal the page shows, not on one the next
+        sample replaced. Yields the time of the last sample sent."""
+        self._held.clear()
+        self._holding.set()
+        try:
+            if not self._held.wait(timeout):
+                raise TimeoutError(f"the plant did not stop within {timeout} s")
+            yield self.t
+        finally:
+            self._holding.clear()
 
     def _apply_gains(self) -> None:
         while True:
@@ -187,10 +204,13 @@ class SimPlant:
         next_at = time.monotonic()
         while not self._stop.is_set():
             self._apply_gains()
-            self.t += self.dt
-            for loop in list(self.loops.values()):
-                sample = loop.step(self.t, self.dt, self.rng)
-                self.session.put(self.keys.sample(loop.id), json.dumps(sample).encode())
+            if self._holding.is_set():
+                self._held.set()
+            else:
+                self.t += self.dt
+                for loop in list(self.loops.values()):
+                    sample = loop.step(self.t, self.dt, self.rng)
+                    self.session.put(self.keys.sample(loop.id), json.dumps(sample).encode())
             next_at += period
             self._stop.wait(max(0.0, next_at - time.monotonic()))
 
