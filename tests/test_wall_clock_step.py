@@ -32,10 +32,11 @@ def test_a_dead_gateways_loop_is_stale_after_the_gap_though_the_wall_clock_stepp
 
     _fed(engine, walls)
     died = W + 19
-    seen = {}
+    seen, whys = {}, {}
     for real_s in (0, 60, 1800, 3500, 3700):
         steady[0] = died + real_s
-        seen[real_s] = engine.view("A", wall=died + STEP_S + real_s).status
+        view = engine.view("A", wall=died + STEP_S + real_s)
+        seen[real_s], whys[real_s] = view.status, view.status_why
     # (the wall clock alone said tuning at +60, +1,800 and +3,500 s: stale only at +3,700)
     assert seen == {
         0: LoopStatus.tuning,
@@ -44,6 +45,7 @@ def test_a_dead_gateways_loop_is_stale_after_the_gap_though_the_wall_clock_stepp
         3500: LoopStatus.stale,
         3700: LoopStatus.stale,
     }
+    assert whys[1800].startswith("no sample for 1.8e+03 s, more than guard.stale_periods")
     # what is recorded keeps the wall clock, stepped or not
     engine.reset("A", wall=died + STEP_S + 60)
     (row,) = [r for r in engine.drain_changes()[1] if r[5] == "reset"]
