@@ -18,6 +18,7 @@ from service.engine import (
     output_limit,
     reported,
     rules,
+    steady,
     verify,
     watch,
 )
@@ -60,8 +61,9 @@ def reference_ingest(table: LoopTable, s: int, sample: Sample, wall: float) -> b
 
 
 def _ingest(tb: LoopTable, s: int, sample: Sample, wall: float) -> bool:
-    tokens = min(tb.burst, tb.tokens[s] + max(wall - tb.token_wall[s], 0.0) * tb.rate)
-    tb.token_wall[s] = wall
+    now = steady.now(tb, wall)
+    tokens = min(tb.burst, tb.tokens[s] + max(now - tb.token_wall[s], 0.0) * tb.rate)
+    tb.token_wall[s] = now
     if tokens < 1.0:
         tb.tokens[s] = tokens
         raise Rejected(RejectReason.flood, f"over {tb.rate:g} samples/s")
@@ -129,7 +131,7 @@ def _ingest(tb: LoopTable, s: int, sample: Sample, wall: float) -> bool:
         tb.obs_gain[s] = min(max(gain, OBS_GAIN_RANGE[0]), OBS_GAIN_RANGE[1])
 
     tb.n_samples[s] += 1
-    tb.last_wall[s] = wall
+    tb.last_wall[s] = now
     gap = math.isnan(last_t) or t - last_t > tb.stale_gap[s]
     saturated = _held(tb, s, sample, e, last_t, gap, wall) or sample.saturated
     paused = not sample.auto or saturated

@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 import sys
 
-from service.engine import first_tuning, monitor, verify
+from service.engine import first_tuning, monitor, steady, verify
 from service.engine.config import LoopConfig, resolve_bounds
 from service.engine.id_state import IdState
 from service.engine.modes import _CODE
@@ -35,7 +35,7 @@ def add_one(tb: LoopTable, config: LoopConfig, *, kp, ki, seq, saved: Saved | No
     tb.seq[s] = tb.auto_seq[s] = seq
     for name in _COUNTERS:
         getattr(tb, name)[s] = 0
-    tb.tokens[s], tb.token_wall[s] = tb.burst, wall
+    tb.tokens[s], tb.token_wall[s] = tb.burst, steady.now(tb, wall)
     restored = None if saved is None else saved.ident
     tb.ident[s] = IdState() if restored is None else restored
     tb.rec[s], tb.rec_n[s], tb.rec_k[s], tb.rec_stride[s] = -1, 0, 0, 1

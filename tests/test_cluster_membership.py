@@ -1,7 +1,7 @@
 """Membership changes of a cluster, in-process (real PostgreSQL, real Zenoh sessions): a
 member joining takes its share of the shards within a tick (the holder releases them,
-no lease has to run out), one leaving cleanly hands its loops over within a tick, and a
-loop is never in two members' engines."""
+no lease has to run out), one leaving cleanly hands its loops over within a tick, a
+loop is never in two members' engines, and members killed long ago are forgotten."""
 
 from __future__ import annotations
 
@@ -10,6 +10,8 @@ import time
 import pytest
 
 from service.daemon.directory import view
+from service.daemon.store_pg import connect
+from service.daemon.survey import FORGET_S
 from service.daemon.tuner import Tuner
 from service.engine.config import LoopConfig
 from tests.tuner_support import loop_body, tuner_settings, wait_until
@@ -63,6 +65,43 @@ def test_members_joining_and_leaving_move_shards_within_a_tick(tmp_path, pg_url)
         assert view(a.cluster)["unowned_loops"] == 0
         a.delete("G0")
         wait_until(lambda: view(a.cluster)["members"][0]["loops"] == 49, timeout=LEASE_S)
+    finally:
+        a.stop()
+
+
+def test_members_dead_long_ago_are_forgotten_by_a_members_tick(tmp_path, pg_url):
+    """Killed incarnations (host-pid ids, no clean leave) left their rows; a live member's
+    tick deletes those whose row and every lease expired over FORGET_S ago, and keeps
+    the recently dead (a failover may still be under way) and their leases' owners."""
+    a = _member(tmp_path, pg_url, "a")
+    try:
+        dead = {  # instance id: (row expired, lease expired) seconds ago
+            "host-101": (2 * FORGET_S, None),
+            "host-102": (600.0, None),
+            "host-103": (2 * FORGET_S, 1800.0),
+            "host-104": (2 * FORGET_S, 2 * FORGET_S),
+        }
+        with connect(pg_url) as conn:
+            for shard, (member, (row_s, lease_s)) in enumerate(dead.items()):
+                conn.execute(
+                    "INSERT INTO members (instance_id, api_url, started, expires) VALUES "
+                    "(%s, 'http://x', 0, clock_timestamp() - make_interval(secs => %s))",
+                    (member, row_s),
+                )
+                if lease_s is not None:
+                    conn.execute(
+                        "INSERT INTO leases (shard, owner, token, expires) VALUES "
+                        "(%s, %s, 1, clock_timestamp() - make_interval(secs => %s))",
+                        (f"gone-{shard}", member, lease_s),
+                    )
+        wait_until(
+            lambda: (
+                [m["instance_id"] for m in view(a.cluster)["members"]]
+                == ["a", "host-102", "host-103"]
+            ),
+            timeout=3 * LEASE_S,
+        )
+        assert [m["live"] for m in view(a.cluster)["members"]] == [True, False, False]
     finally:
         a.stop()
 

@@ -19,7 +19,8 @@ arrival order. A loop falls due when a sample's plant time reaches the end of it
 period; due loops are stepped together in one agent call at the end of :meth:`ingest`
 (or earlier, when a due loop receives another sample, so each step sees exactly the data
 up to its own due sample). The result is deterministic for the same samples and wall
-times (``wall`` only drives the flood limit and staleness).
+times (``wall`` drives the flood limit and staleness, unless the engine has a step-free
+``clock``: :mod:`service.engine.steady`; and it is the audit rows' ``wall_time``).
 
 All methods take the engine's :attr:`lock` themselves (re-entrant: a caller may hold it
 across several calls, as the daemon does).
@@ -70,6 +71,7 @@ class TuningEngine:
         verifying: bool = True,
         monitoring: bool = True,
         site: SiteDefaults | None = None,
+        clock: Callable[[], float] | None = None,
     ) -> None:
         self.agent = agent if agent is not None else load_agent()
         self.table = LoopTable(
@@ -81,6 +83,7 @@ class TuningEngine:
         )
         self.lock = self.table.lock
         self.table.monitoring = monitoring
+        self.table.clock = clock  # step-free: staleness and rates (service.engine.steady)
         self.on_reject = on_reject
         self.rejected: collections.Counter[RejectReason] = collections.Counter()
         """Samples rejected so far, by reason."""

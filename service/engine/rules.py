@@ -48,7 +48,16 @@ import math
 
 import numpy as np
 
-from service.engine import first_tuning, monitor, oscillation, output_limit, reported, verify, watch
+from service.engine import (
+    first_tuning,
+    monitor,
+    oscillation,
+    output_limit,
+    reported,
+    steady,
+    verify,
+    watch,
+)
 from service.engine.audit import audit_row
 from service.engine.modes import _MODES, AUTO, FROZEN
 from service.engine.table import LoopTable
@@ -115,10 +124,11 @@ def ingest(
     seqs = rows.applied_seq
     cols["applied_seq"] = seqs if seqs is not None else np.full(len(rows), -1, np.int64)
     t, e = cols["t"], cols["e"]
-    # a wall clock stepped back (NTP) refills nothing, and locks no loop out either
-    elapsed = np.maximum(wall - tb.token_wall[slots], 0.0)
+    now = steady.now(tb, wall)  # (a wall clock stepped back: see service.engine.steady)
+    # a clock stepped back (no step-free one) refills nothing, and locks no loop out either
+    elapsed = np.maximum(now - tb.token_wall[slots], 0.0)
     tokens = np.minimum(tb.burst, tb.tokens[slots] + elapsed * tb.rate)
-    tb.token_wall[slots] = wall
+    tb.token_wall[slots] = now
     flood = tokens < 1.0
     tb.tokens[slots] = np.where(flood, tokens, tokens - 1.0)
     last_t = tb.last_t[slots]
@@ -157,7 +167,7 @@ def ingest(
     moved = _excite(tb, slots, cols, last_t)
 
     tb.n_samples[slots] += 1
-    tb.last_wall[slots] = wall
+    tb.last_wall[slots] = now
     gap = np.isnan(last_t) | (t - last_t > tb.stale_gap[slots])
     cols["saturated"] = cols["saturated"] | output_limit.observe(tb, slots, cols, last_t, gap, wall)
     auto, saturated = cols["auto"], cols["saturated"]

@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from service.engine import box, reported, verify
+from service.engine import box, reported, steady, verify
 from service.engine.modes import FROZEN
 from service.units import AGENT_GAIN, AGENT_TAU
 from service.wire.protocol import LoopStatus
@@ -32,7 +32,7 @@ def statuses(tb: LoopTable, slots: np.ndarray, wall: float) -> np.ndarray:
     conditions = [
         tb.mode[slots] == FROZEN,
         np.isnan(t),
-        wall - tb.last_wall[slots] > tb.stale_gap[slots],
+        steady.now(tb, wall) - tb.last_wall[slots] > tb.stale_gap[slots],
         reported.held(tb, slots),
         ~tb.scaled[slots],
         tb.out_env[slots],
@@ -71,7 +71,7 @@ def _waiting(tb, s, wall) -> str:
 
 
 def _stale(tb, s, wall) -> str:
-    gap, limit = wall - float(tb.last_wall[s]), float(tb.stale_gap[s])
+    gap, limit = steady.now(tb, wall) - float(tb.last_wall[s]), float(tb.stale_gap[s])
     since = f"for {_g(gap)} s" if math.isfinite(gap) else "since the tuner started"
     return (
         f"no sample {since}, more than guard.stale_periods sample periods "

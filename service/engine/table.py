@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 import threading
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from typing import Literal
 
 import numpy as np
@@ -31,6 +31,7 @@ from service.engine import (
     reported,
     settings,
     status,
+    steady,
     verify,
     views,
     watch,
@@ -147,6 +148,7 @@ class LoopTable:
         self._verify_dirty: set[int] = set()
         """Loops whose verification state moved: to snapshot before publishing."""
         self._audit: list[AuditRow] = []
+        self.clock: Callable[[], float] | None = None  # step-free: service.engine.steady
         self.monitoring = True
         """False: no figures, no oscillation detector, hence no verdicts (benchmarks only:
         the setting ``monitoring`` measures what they cost)."""
@@ -279,7 +281,7 @@ class LoopTable:
         self.seq[s] = self.auto_seq[s] = 0 if seq is None else seq  # (unknown: the seq)
         for name in _COUNTERS:
             getattr(self, name)[s] = 0
-        self.tokens[s], self.token_wall[s] = self.burst, wall
+        self.tokens[s], self.token_wall[s] = self.burst, steady.now(self, wall)
         saved = [None] * n if saved is None else saved
         # a restored identification first: the configuration follows its scaling
         for slot, x in zip(picked, saved, strict=True):
@@ -322,8 +324,7 @@ class LoopTable:
         self.excited_until[s] = self.move_t[s] = self.ramp_t[s] = self.ramp_from[s] = -math.inf
         self.sp_last[s], self.sp_way[s], self.sp_since[s] = math.nan, math.nan, 0.0
         self.obs_gain[s], self.sp_anchor[s], self.mc_since[s] = 1.0, math.nan, math.nan
-        self.back_n[s] = 0.0
-        self.last_wall[s] = -math.inf
+        self.back_n[s], self.last_wall[s] = 0.0, -math.inf  # (last_wall: steady.now's clock)
         self.pending[s] = self.manual[s] = self.saturated[s] = False
         output_limit.end_runs(self, s)
         self.unsettle(s)
@@ -369,8 +370,7 @@ class LoopTable:
         who = f"actor={actor}" if actor else ""
         old = (float(self.kp[s]), float(self.ki[s]))
         new = (float(self.reg_kp[s]), float(self.reg_ki[s]))
-        t = self.last_t[s]
-        t = None if math.isnan(t) else float(t)
+        t = None if math.isnan(self.last_t[s]) else float(self.last_t[s])
         self._restart(s)
         verify.reset(self, s)
         mode = self.mode[s]

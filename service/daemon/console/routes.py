@@ -49,7 +49,7 @@ from service.daemon.console.sessions import (
 from service.daemon.console.tuner_view import Rates, tuner_figures
 from service.daemon.gate import LOGIN_BODY_BYTES, token_matches
 from service.daemon.recent import REASONS
-from service.engine import status, verify, views
+from service.engine import status, steady, verify, views
 from service.engine.status import STATUSES
 from service.wire.protocol import Mode
 
@@ -230,7 +230,7 @@ def _columns(tuner) -> dict[str, Any]:
         gateways = [tb.gateways[s] or "" for s in slots.tolist()]
     cols["ids"] = ids
     cols["gateway"] = gateways
-    cols["wall"] = wall
+    cols["wall"], cols["now"] = wall, steady.now(tb, wall)  # (now: last_wall's clock)
     return cols
 
 
@@ -329,7 +329,7 @@ def overview_data(
                 "seq": int(c["seq"][i]),
                 "gateway": c["gateway"][i] or None,
                 "last_sample_t": finite(c["last_sample"][i]),
-                "last_sample_age_s": finite(c["wall"] - c["last_wall"][i])
+                "last_sample_age_s": finite(c["now"] - c["last_wall"][i])
                 if c["samples"][i]
                 else None,
                 "last_change": last_change,
