@@ -24,12 +24,11 @@ still follow the order of events.
 from __future__ import annotations
 
 import collections
+import contextlib
 import logging
-import os
 import sqlite3
 import threading
 from collections.abc import Iterable, Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -37,6 +36,7 @@ import orjson
 from pydantic import ValidationError
 
 from service.daemon import migrations
+from service.daemon.retention_store import Retention
 from service.daemon.schemas import AuditEntry
 from service.daemon.shards import shard_gateway, shard_of
 from service.engine.audit import AUDIT_COLUMNS, AuditRow
@@ -81,7 +81,7 @@ class JournalEntry:
         return len(self.gains) + len(self.audit)
 
 
-class Store:
+class Store(Retention):
     """One SQLite connection shared by the worker and the API threads (serialised by a lock).
 
     The queries are written for SQLite (``?`` placeholders) and shared with
@@ -134,7 +134,7 @@ class Store:
         with self._lock:
             self._db.close()
 
-    @contextmanager
+    @contextlib.contextmanager
     def transaction(self, durable: bool = True) -> Iterator[sqlite3.Connection]:
         """``durable``: the commit reaches the disk (fsync, ``synchronous=FULL``) before it
         returns; else it survives a killed process but maybe not a power cut."""
@@ -150,7 +150,7 @@ class Store:
                 raise
             self._db.execute("COMMIT")
 
-    @contextmanager
+    @contextlib.contextmanager
     def _ordered(self) -> Iterator[sqlite3.Connection]:
         """A transaction that applies the whole journal first (audit ids in event order)."""
         with self._lock:
@@ -368,82 +368,6 @@ class Store:
             f"INSERT INTO audit ({AUDIT_COLUMNS}) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)", rows
         )
 
-    # -- retention ----------------------------------------------------------------------
-    def audit_ids(self, *, deleted_only: bool = False) -> list[str]:
-        """Every loop id with audit rows (deleted loops included); ``deleted_only``: those
-        of no registered loop."""
-        where = " WHERE loop_id NOT IN (SELECT id FROM loops)" if deleted_only else ""
-        with self._lock:
-            return [r[0] for r in self._db.execute(f"SELECT DISTINCT loop_id FROM audit{where}")]
-
-    def prune(
-        self,
-        loop_ids: Iterable[str],
-        *,
-        older_than: float | None,
-        keep_rows: int | None,
-        keep_rows_deleted: int | None,
-        archive: Path | None = None,
-    ) -> int:
-        """Delete the audit rows of ``loop_ids`` that the retention policy lets go: those
-        written before the wall time ``older_than``, and those beyond the newest
-        ``keep_rows`` of a registered loop (``keep_rows_deleted`` of a deleted one). The
-        newest row of every id is always kept: it carries the id's last ``seq``, from
-        which a loop registered again under that id continues. With ``archive``, the rows
-        are appended to that JSON-lines file (fsynced) before they are deleted. Returns
-        the rows deleted."""
-        self.apply_journal()
-        deleted = 0
-        with self._lock:
-            registered = {r[0] for r in self._db.execute("SELECT id FROM loops")}
-            doomed: list[tuple[str, int, float]] = []  # (loop id, below id, before wall)
-            for loop_id in loop_ids:
-                keep = keep_rows if loop_id in registered else keep_rows_deleted
-                newest = self._db.execute(
-                    "SELECT id FROM audit WHERE loop_id = ? ORDER BY id DESC LIMIT 1", (loop_id,)
-                ).fetchone()
-                if newest is None:
-                    continue
-                below = newest[0]
-                if keep is not None:
-                    row = self._db.execute(
-                        "SELECT id FROM audit WHERE loop_id = ? ORDER BY id DESC LIMIT 1 OFFSET ?",
-                        (loop_id, max(keep, 1) - 1),
-                    ).fetchone()
-                    cut = row[0] if row else None
-                else:
-                    cut = None
-                # rows below `cut` go whatever their age; rows below `below` if old
-                doomed.append((loop_id, cut or 0, below if older_than is not None else 0))
-            if not doomed:
-                return 0
-            where = "loop_id = ? AND (id < ? OR (id < ? AND wall_time < ?))"
-            params = [(i, cut, below, older_than or 0.0) for i, cut, below in doomed]
-            if archive is not None:
-                names = ("id", *AUDIT_COLUMNS.replace(" ", "").split(","))
-                with open(archive, "ab") as out:
-                    for p in params:
-                        for row in self._db.execute(
-                            f"SELECT id, {AUDIT_COLUMNS} FROM audit WHERE {where} ORDER BY id", p
-                        ):
-                            out.write(orjson.dumps(dict(zip(names, row, strict=True))) + b"\n")
-                    out.flush()
-                    os.fsync(out.fileno())
-            # a transaction per loop: a loop's rows are spread over the whole table, so one
-            # transaction for all would write most of its pages to the write-ahead log at
-            # once (the log keeps its largest size: 100+ MB in the retention run)
-            for p in params:
-                with self.transaction(durable=False) as db:
-                    deleted += db.execute(f"DELETE FROM audit WHERE {where}", p).rowcount
-        return deleted
-
-    def export(self, out, loop_id: str | None = None, since_id: int = 0) -> int:
-        """Write audit rows (all, or one loop's) after ``since_id``, oldest first, as JSON
-        lines to the binary file ``out``; returns how many."""
-        self.apply_journal()
-        with self._lock:
-            return export_audit(self._db, out, loop_id, since_id)
-
     def history(self, loop_id: str, offset: int, limit: int) -> tuple[int, list[AuditEntry]]:
         """(total, entries newest first) of one loop's audit log."""
         self.apply_journal()
@@ -458,19 +382,3 @@ class Store:
             ).fetchall()
         names = ("id", *AUDIT_COLUMNS.replace(" ", "").split(","))
         return total, [AuditEntry(**dict(zip(names, row, strict=True))) for row in rows]
-
-
-def export_audit(db: sqlite3.Connection, out, loop_id: str | None = None, since_id: int = 0) -> int:
-    """Audit rows after ``since_id`` (all loops, or one), oldest first, as JSON lines (one
-    object per row: id, loop_id, wall_time, t, seq, mode, reason, gains, detail)."""
-    names = ("id", *AUDIT_COLUMNS.replace(" ", "").split(","))
-    query = f"SELECT id, {AUDIT_COLUMNS} FROM audit WHERE id > ?"
-    params: tuple = (since_id,)
-    if loop_id is not None:
-        query += " AND loop_id = ?"
-        params += (loop_id,)
-    n = 0
-    for row in db.execute(query + " ORDER BY id", params):
-        out.write(orjson.dumps(dict(zip(names, row, strict=True))) + b"\n")
-        n += 1
-    return n

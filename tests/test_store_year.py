@@ -1,0 +1,80 @@
+"""A store over a year (session 40): a start with the clock ahead does not leave an epoch
+every gateway drops; retention prunes by id ranges, in a time budget, and by age only
+an unbroken run of a loop's oldest rows (rows written while the clock was set back
+stay); the write-ahead log is bounded; a gateway's memory of tuner instances is not."""
+
+from __future__ import annotations
+
+import pytest
+
+from service.daemon.store import Store
+from service.engine.audit import audit_row
+from service.engine.config import LoopConfig
+from tests.tuner_support import loop_body
+
+pytestmark = pytest.mark.timeout(120)
+DAY = 86400.0
+NOW = 1_790_000_000.0
+"""A wall time (2026) the tests' rows are written around."""
+
+
+def _row(loop_id: str, wall: float, seq: int, reason: str = "agent"):
+    return audit_row(loop_id, wall, float(seq), seq, "auto", reason, (0.5, 0.01), (0.5, 0.01), "{}")
+
+
+def _register(store: Store, ids: list[str], wall: float) -> None:
+    configs = [LoopConfig(**loop_body(i)) for i in ids]
+    store.insert_loops(configs, [_row(i, wall, 0, "registered") for i in ids], [0] * len(ids))
+
+
+def _seqs(store: Store, loop_id: str) -> list[int]:
+    return sorted(e.seq for e in store.history(loop_id, 0, 100_000)[1])
+
+
+def test_rows_written_while_the_clock_was_set_back_are_not_pruned_as_old(tmp_path):
+    """A host booted at 2000-01-01 (no RTC) until NTP fixed it 2 h later: the 120 rows of
+    those 2 h are minutes old, far under the cap, and stay; they go by age only once the
+    rows written before them are older than the horizon (an id prefix)."""
+    store = Store(tmp_path / "s.db")
+    _register(store, ["A"], NOW - DAY)
+    wrong = 946_684_800.0  # 2000-01-01
+    store.record_gains([], [_row("A", wrong + 60 * k, k) for k in range(1, 121)])
+    store.record_gains([], [_row("A", NOW + k, 200 + k) for k in range(3)])
+    policy = {"keep_rows": 10_000, "keep_rows_deleted": 100}
+    assert store.prune(["A"], older_than=NOW - 365 * DAY, **policy) == 0
+    assert len(_seqs(store, "A")) == 124  # was 4: every row of the wrong clock pruned
+    # a year on, the registration row is older than the horizon, and so the rows after it
+    # written by the wrong clock: the prefix goes up to the first row of the right clock
+    assert store.prune(["A"], older_than=NOW - DAY + 1, **policy) == 121
+    assert _seqs(store, "A") == [200, 201, 202]
+    store.close()
+
+
+def test_age_and_row_cap_cut_each_loop_at_one_id_and_keep_its_newest_row(tmp_path):
+    store = Store(tmp_path / "s.db")
+    _register(store, ["R", "D"], 0.0)
+    for k in range(1, 61):  # a row a day for 60 days, the two loops interleaved
+        store.record_gains([], [_row("R", k * DAY, k), _row("D", k * DAY, k)])
+    store.delete_loop("D", _row("D", 61 * DAY, 60, "deleted"))
+    n = store.prune(["R", "D"], older_than=40 * DAY + 1, keep_rows=30, keep_rows_deleted=3)
+    assert _seqs(store, "R") == list(range(41, 61))  # younger than the horizon
+    assert _seqs(store, "D") == [59, 60, 60]  # the newest 3 of a deleted loop
+    assert n == 41 + 59
+    assert store.prune(["R"], older_than=1e12, keep_rows=None, keep_rows_deleted=None) == 19
+    assert _seqs(store, "R") == [60]  # the age never takes the newest row
+    assert store.prune(["R", "D"], older_than=1e12, keep_rows=1, keep_rows_deleted=1) == 2
+    store.close()
+
+
+def test_a_budgeted_prune_takes_only_the_ids_it_gets_to(tmp_path):
+    """The worker prunes for PRUNE_BUDGET_S an iteration: the ids it did not get to stay
+    in the iterator for the next one (a budget of 0: one id a call)."""
+    store = Store(tmp_path / "s.db")
+    ids = [f"L{i}" for i in range(5)]
+    _register(store, ids, NOW)
+    store.record_gains([], [_row(i, NOW + k, k) for k in range(1, 11) for i in ids])
+    todo = iter(ids)
+    done = [store.prune(todo, older_than=None, keep_rows=4, keep_rows_deleted=1, budget_s=0.0)]
+    assert done == [7] and next(todo) == "L1"  # L0 pruned, L1 not taken from the iterator
+    assert [len(_seqs(store, i)) for i in ids] == [4, 11, 11, 11, 11]
+    store.close()
