@@ -5,11 +5,17 @@ stay); the write-ahead log is bounded; a gateway's memory of tuner instances is 
 
 from __future__ import annotations
 
+import logging
+import time
+
 import pytest
 
 from service.daemon.store import Store
+from service.daemon.store_pg import PgStore
 from service.engine.audit import audit_row
 from service.engine.config import LoopConfig
+from service.gateways.base import GainsInbox, Source
+from service.wire.protocol import EPOCH_AHEAD_MS, GainsMessage
 from tests.tuner_support import loop_body
 
 pytestmark = pytest.mark.timeout(120)
@@ -78,3 +84,57 @@ def test_a_budgeted_prune_takes_only_the_ids_it_gets_to(tmp_path):
     assert done == [7] and next(todo) == "L1"  # L0 pruned, L1 not taken from the iterator
     assert [len(_seqs(store, i)) for i in ids] == [4, 11, 11, 11, 11]
     store.close()
+
+
+def test_an_epoch_far_ahead_of_the_clock_is_not_continued(tmp_path, caplog):
+    """A start with the clock 3 days ahead stored its epoch; with the clock fixed, epoch + 1
+    would be dropped by every gateway until real time caught up (72 h of gains lost):
+    the next start takes the clock again, with an ERROR. Within the gateways' bound the
+    epoch still only grows (a clock stepped back an hour)."""
+    store = Store(tmp_path / "s.db")
+    ahead = store.next_epoch(NOW + 3 * DAY)
+    assert ahead == int((NOW + 3 * DAY) * 1000)
+    with caplog.at_level(logging.ERROR, logger="pitune.store"):
+        assert store.next_epoch(NOW) == int(NOW * 1000)
+    assert "EPOCH RESET" in caplog.text and "72.0 h ahead" in caplog.text
+    assert store.next_epoch(NOW - 3600.0) == int(NOW * 1000) + 1
+    inbox = GainsInbox()  # a gateway on the right clock takes the new epoch
+    msg = GainsMessage(loop_id="L", seq=1, t=0.0, dkp=0.0, dki=0.0, kp=0.5, ki=0.02,
+                       mode="auto", instance_id="x", epoch=int(time.time() * 1000))  # fmt: skip
+    inbox.put_raw(Source.gains, msg.model_dump_json().encode())
+    assert len(inbox.drain()) == 1
+    store.close()
+
+
+def test_an_epoch_far_ahead_is_not_continued_on_postgresql(pg_url, caplog):
+    store = PgStore(pg_url)
+    try:
+        store.next_epoch(NOW + 3 * DAY)
+        with caplog.at_level(logging.ERROR, logger="pitune.store"):
+            assert store.next_epoch(NOW) == int(NOW * 1000)
+        assert "EPOCH RESET" in caplog.text
+        assert store.next_epoch(NOW - 60.0) == int(NOW * 1000) + 1
+        just_within = NOW * 1000 + EPOCH_AHEAD_MS  # a day ahead: still continued
+        store.next_epoch(just_within / 1000)
+        assert store.next_epoch(NOW) == int(just_within) + 1
+    finally:
+        store.close()
+
+
+def _put(inbox: GainsInbox, loop_id: str, epoch: int | None, seq: int, instance: str) -> None:
+    msg = GainsMessage(loop_id=loop_id, seq=seq, t=0.0, dkp=0.0, dki=0.0, kp=0.5, ki=0.02,
+                       mode="auto", instance_id=instance, epoch=epoch)  # fmt: skip
+    inbox.put_raw(Source.gains, msg.model_dump_json().encode())
+
+
+def test_a_gateway_logs_implausible_epochs_once_a_minute(caplog):
+    """Gains dropped for an epoch ahead of the gateway's clock were only counted: the
+    loops went untuned with nothing in any log."""
+    inbox = GainsInbox()
+    with caplog.at_level(logging.ERROR, logger="pitune.gateway"):
+        for seq in range(1, 4):
+            _put(inbox, "L", int(time.time() * 1000) + 3 * 86_400_000, seq, "ahead")
+        assert inbox.drain() == []
+    assert inbox.implausible == 3
+    assert len([r for r in caplog.records if "DROPPED" in r.message]) == 1
+    assert "72.0 h ahead" in caplog.text

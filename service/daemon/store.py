@@ -42,6 +42,7 @@ from service.daemon.shards import shard_gateway, shard_of
 from service.engine.audit import AUDIT_COLUMNS, AuditRow
 from service.engine.config import LoopConfig
 from service.engine.saved import Saved
+from service.wire.protocol import EPOCH_AHEAD_MS
 
 log = logging.getLogger("pitune.store")
 UPDATE_GAINS = "UPDATE loops SET kp = ?1, ki = ?2, seq = ?3, epoch = ?5 WHERE id = ?4"
@@ -91,6 +92,8 @@ class Store(Retention):
     dialect = "sqlite"
     ORDER = "l.rowid"
     """The registration order of the loops table."""
+    LOCK_ROW = ""
+    """What locks a row read for update (SQLite: the transaction locks the database)."""
     integrity_errors: tuple[type[Exception], ...] = (sqlite3.IntegrityError,)
     commit_errors: tuple[type[Exception], ...] = (sqlite3.Error, OSError)
     """What a commit raises when the store cannot take it (locked, disk full, gone)."""
@@ -167,16 +170,33 @@ class Store(Retention):
         in milliseconds: a tuner started later on a fresh store (a replaced tuner) has a
         larger epoch than the one it replaced, as long as the clocks of the two hosts
         agree to within the time between the two starts. Gateways order a loop's updates
-        by (epoch, seq).
+        by (epoch, seq), and drop an epoch more than EPOCH_AHEAD_MS ahead of their clock.
+        So a stored epoch that far ahead of ``wall`` (written by a start with the clock
+        ahead, since fixed) is not continued: every gateway with a right clock dropped
+        what it ordered, and would drop epoch + 1 until real time caught up. The epoch
+        starts again from ``wall``, with an ERROR in the log: a gateway whose clock was
+        ahead too and took the old epoch drops the new one as older; restart it
+        (docs/deploy.md, Clocks).
         """
+        wall_ms = int(wall * 1000)
         with self.transaction() as db:
-            row = db.execute("SELECT value FROM meta WHERE key = 'epoch'").fetchone()
-            epoch = max(int(row[0]) + 1 if row else 1, int(wall * 1000))
-            db.execute(
-                "INSERT INTO meta (key, value) VALUES ('epoch', ?) "
-                "ON CONFLICT(key) DO UPDATE SET value = excluded.value",
-                (str(epoch),),
-            )
+            db.execute("INSERT INTO meta (key, value) VALUES ('epoch', '0') ON CONFLICT DO NOTHING")
+            (prev,) = db.execute(
+                f"SELECT value FROM meta WHERE key = 'epoch'{self.LOCK_ROW}"
+            ).fetchone()
+            prev = int(prev)
+            if prev > wall_ms + EPOCH_AHEAD_MS:
+                log.error(
+                    "EPOCH RESET: the stored epoch %d is %.1f h ahead of this host's clock "
+                    "(a start with the clock ahead), beyond what gateways take; starting "
+                    "again from the clock. A gateway that took the old epoch (its clock "
+                    "ahead too) drops the new updates until restarted (docs/deploy.md)",
+                    prev, (prev - wall_ms) / 3.6e6,
+                )  # fmt: skip
+                epoch = wall_ms
+            else:
+                epoch = max(prev + 1, wall_ms)
+            db.execute("UPDATE meta SET value = ? WHERE key = 'epoch'", (str(epoch),))
         return epoch
 
     # -- journal ----------------------------------------------------------------------
