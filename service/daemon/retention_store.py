@@ -9,6 +9,7 @@ seconds of the worker's time per 200 loops, session 40).
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sqlite3
 import time
@@ -18,6 +19,11 @@ from pathlib import Path
 import orjson
 
 from service.engine.audit import AUDIT_COLUMNS
+
+EXPORT_CHUNK = 10_000
+"""Audit rows an export reads per query: each its own read transaction, so an export of
+a large history holds no snapshot that keeps the write-ahead log growing meanwhile, nor
+(the tuner's) the store's lock for long."""
 
 
 class Retention:
@@ -122,25 +128,48 @@ class Retention:
             out.flush()
             os.fsync(out.fileno())
 
+    def checkpoint(self) -> None:
+        """Copy the write-ahead log into the database and empty it, if no reader holds an
+        older snapshot (else it does what it can without waiting: the worker calls it)."""
+        with self._lock:
+            (waits,) = self._db.execute("PRAGMA busy_timeout").fetchone()
+            self._db.execute("PRAGMA busy_timeout=0")
+            try:
+                self._db.execute("PRAGMA wal_checkpoint(TRUNCATE)").fetchall()
+            finally:
+                self._db.execute(f"PRAGMA busy_timeout={int(waits)}")
+
     def export(self, out, loop_id: str | None = None, since_id: int = 0) -> int:
         """Write audit rows (all, or one loop's) after ``since_id``, oldest first, as JSON
         lines to the binary file ``out``; returns how many."""
         self.apply_journal()
-        with self._lock:
-            return export_audit(self._db, out, loop_id, since_id)
+        return export_audit(self._db, out, loop_id, since_id, self._lock)
 
 
-def export_audit(db: sqlite3.Connection, out, loop_id: str | None = None, since_id: int = 0) -> int:
+def export_audit(
+    db: sqlite3.Connection,
+    out,
+    loop_id: str | None = None,
+    since_id: int = 0,
+    lock: contextlib.AbstractContextManager | None = None,
+) -> int:
     """Audit rows after ``since_id`` (all loops, or one), oldest first, as JSON lines (one
-    object per row: id, loop_id, wall_time, t, seq, mode, reason, gains, detail)."""
+    object per row: id, loop_id, wall_time, t, seq, mode, reason, gains, detail), read
+    EXPORT_CHUNK rows at a time, each chunk under ``lock`` (the store's, if given)."""
+    lock = lock or contextlib.nullcontext()
     names = ("id", *AUDIT_COLUMNS.replace(" ", "").split(","))
     query = f"SELECT id, {AUDIT_COLUMNS} FROM audit WHERE id > ?"
-    params: tuple = (since_id,)
     if loop_id is not None:
         query += " AND loop_id = ?"
-        params += (loop_id,)
+    query += " ORDER BY id LIMIT ?"
     n = 0
-    for row in db.execute(query + " ORDER BY id", params):
-        out.write(orjson.dumps(dict(zip(names, row, strict=True))) + b"\n")
-        n += 1
-    return n
+    while True:
+        params = (since_id,) if loop_id is None else (since_id, loop_id)
+        with lock:
+            rows = db.execute(query, (*params, EXPORT_CHUNK)).fetchall()
+        for row in rows:
+            out.write(orjson.dumps(dict(zip(names, row, strict=True))) + b"\n")
+        n += len(rows)
+        if len(rows) < EXPORT_CHUNK:
+            return n
+        since_id = rows[-1][0]

@@ -45,6 +45,11 @@ from service.engine.saved import Saved
 from service.wire.protocol import EPOCH_AHEAD_MS
 
 log = logging.getLogger("pitune.store")
+WAL_LIMIT_BYTES = 64 << 20
+"""What the write-ahead log is cut back to when it restarts (``journal_size_limit``): a
+reader holding a snapshot (a backup, an sqlite3 shell) keeps every write since in it,
+and the file kept its peak size after (241 MB, session 40). :meth:`Store.checkpoint`
+empties it when a retention pass ends."""
 UPDATE_GAINS = "UPDATE loops SET kp = ?1, ki = ?2, seq = ?3, epoch = ?5 WHERE id = ?4"
 """A gains row (kp, ki, seq, id, epoch) applied (:func:`with_epoch`)."""
 
@@ -107,6 +112,7 @@ class Store(Retention):
         self._db = sqlite3.connect(str(path), check_same_thread=False, isolation_level=None)
         self._lock = threading.RLock()  # re-entered to update the journal after a commit
         self._db.execute("PRAGMA journal_mode=WAL")
+        self._db.execute(f"PRAGMA journal_size_limit={WAL_LIMIT_BYTES}")
         self._durable = True
         self._db.execute("PRAGMA synchronous=FULL")
         self._db.execute("PRAGMA foreign_keys=ON")

@@ -305,6 +305,9 @@ class PgStore(Store):
                 self._db.execute("SET LOCAL synchronous_commit = off")
             yield self._db
 
+    def checkpoint(self) -> None:
+        """Nothing: PostgreSQL recycles its write-ahead log itself."""
+
     def wall_now(self) -> float:
         """The database's wall clock (seconds since the epoch): the one clock of a
         cluster, as for the leases (a retention pass's horizon, :mod:`service.daemon.upkeep`)."""

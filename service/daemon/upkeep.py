@@ -212,6 +212,7 @@ class Upkeep:
             return
         if not self._prune_todo:
             self.retention_failure = None  # a whole pass went through
+            self.store.checkpoint()  # the write-ahead log back to empty (store.py)
 
     def _retention_ids(self) -> list[str]:
         """The loop ids of a retention pass: every id with audit rows; in a cluster, the
