@@ -204,3 +204,20 @@ def test_an_export_reads_in_chunks_of_ids_and_holds_no_snapshot(tmp_path, monkey
     assert store.export(out, "B", since_id=10) == 16
     assert {orjson.loads(line)["loop_id"] for line in out.getvalue().splitlines()} == {"B"}
     store.close()
+
+
+def test_a_gateway_forgets_the_instances_of_tuners_with_epochs():
+    inbox = GainsInbox()
+    now_ms = int(time.time() * 1000)
+
+    def put(loop_id: str, epoch: int | None, seq: int, instance: str) -> None:
+        _put(inbox, loop_id, epoch, seq, instance)
+
+    for restart in range(100):  # 100 tuner restarts of 20 loops, each a new instance id
+        for i in range(20):
+            put(f"L{i}", now_ms + restart, 1, f"tuner-{restart}")
+        assert len(inbox.drain()) == 20
+    assert len(inbox._last) == 0  # was 2,000: an entry per (loop, instance) for ever
+    put("L0", None, 1, "rev1")  # a tuner of revision 1 (no epoch): judged by its seqs
+    put("L0", None, 1, "rev1")
+    assert len(inbox.drain()) == 1 and inbox.stale == 1
