@@ -49,7 +49,8 @@ def _pass_with_clock_ahead(member: Tuner) -> None:
         try:
             return prune(*args, **kwargs)
         finally:
-            done.set()  # a pass of fewer than PRUNE_CHUNK ids is one call
+            if not member._prune_todo:  # the pass's last call (PRUNE_BUDGET_S each)
+                done.set()
 
     real = time.time
     member.store.prune, member.clock.wall = pruned, lambda: real() + 400 * DAY
