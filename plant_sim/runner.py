@@ -108,7 +108,8 @@ def simulate(config: PlantConfig, loops: list[SimulatedLoop]) -> int:
         gateway.close()
         print(
             f"plant stopped: {applied} gain updates applied, {ignored} advisory ignored, "
-            f"{gateway.inbox.invalid} invalid and {gateway.inbox.stale} stale messages dropped",
+            f"{gateway.inbox.invalid} invalid, {gateway.inbox.stale} stale and "
+            f"{gateway.inbox.implausible} implausible (epoch ahead) messages dropped",
             flush=True,
         )
     finally:

@@ -30,9 +30,10 @@ agent step's row holds ~170 bytes of data; measured per row on disk:
 reports/retention.json, ``size.audit_bytes_per_row``: 190-215 until session 17, 368 in
 ``tests/test_retention_run.py`` since hinted loops' steps are model-checked and a held
 step's row carries the check's three predictions)."""
-BYTES_PER_LOOP = 4096
+BYTES_PER_LOOP = 6144
 """Disk per registered loop beside its audit rows: the loops row (config JSON, ~0.8 KB)
-and the runtime snapshot (hidden state and counters, ~2 KB with the shipped agent)."""
+and the runtime snapshot (hidden state, counters, operating point and identification
+events: 4.0-4.1 KB measured for a loop with 6 events, session 40)."""
 WAL_ALLOWANCE = 128 << 20
 """The write-ahead log, which keeps the size of its largest transaction: a registration
 or deletion applies the whole journal first (up to JOURNAL_BACKLOG = 100,000 rows under

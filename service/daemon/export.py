@@ -21,8 +21,8 @@ import sqlite3
 import sys
 from pathlib import Path
 
+from service.daemon.retention_store import export_audit
 from service.daemon.settings import POSTGRES_SCHEMES
-from service.daemon.store import export_audit
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -24,12 +24,11 @@ still follow the order of events.
 from __future__ import annotations
 
 import collections
+import contextlib
 import logging
-import os
 import sqlite3
 import threading
 from collections.abc import Iterable, Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -37,13 +36,20 @@ import orjson
 from pydantic import ValidationError
 
 from service.daemon import migrations
+from service.daemon.retention_store import Retention
 from service.daemon.schemas import AuditEntry
 from service.daemon.shards import shard_gateway, shard_of
 from service.engine.audit import AUDIT_COLUMNS, AuditRow
 from service.engine.config import LoopConfig
 from service.engine.saved import Saved
+from service.wire.protocol import EPOCH_AHEAD_MS
 
 log = logging.getLogger("pitune.store")
+WAL_LIMIT_BYTES = 64 << 20
+"""What the write-ahead log is cut back to when it restarts (``journal_size_limit``): a
+reader holding a snapshot (a backup, an sqlite3 shell) keeps every write since in it,
+and the file kept its peak size after (241 MB, session 40). :meth:`Store.checkpoint`
+empties it when a retention pass ends."""
 UPDATE_GAINS = "UPDATE loops SET kp = ?1, ki = ?2, seq = ?3, epoch = ?5 WHERE id = ?4"
 """A gains row (kp, ki, seq, id, epoch) applied (:func:`with_epoch`)."""
 
@@ -81,7 +87,7 @@ class JournalEntry:
         return len(self.gains) + len(self.audit)
 
 
-class Store:
+class Store(Retention):
     """One SQLite connection shared by the worker and the API threads (serialised by a lock).
 
     The queries are written for SQLite (``?`` placeholders) and shared with
@@ -91,6 +97,8 @@ class Store:
     dialect = "sqlite"
     ORDER = "l.rowid"
     """The registration order of the loops table."""
+    LOCK_ROW = ""
+    """What locks a row read for update (SQLite: the transaction locks the database)."""
     integrity_errors: tuple[type[Exception], ...] = (sqlite3.IntegrityError,)
     commit_errors: tuple[type[Exception], ...] = (sqlite3.Error, OSError)
     """What a commit raises when the store cannot take it (locked, disk full, gone)."""
@@ -104,6 +112,7 @@ class Store:
         self._db = sqlite3.connect(str(path), check_same_thread=False, isolation_level=None)
         self._lock = threading.RLock()  # re-entered to update the journal after a commit
         self._db.execute("PRAGMA journal_mode=WAL")
+        self._db.execute(f"PRAGMA journal_size_limit={WAL_LIMIT_BYTES}")
         self._durable = True
         self._db.execute("PRAGMA synchronous=FULL")
         self._db.execute("PRAGMA foreign_keys=ON")
@@ -134,7 +143,7 @@ class Store:
         with self._lock:
             self._db.close()
 
-    @contextmanager
+    @contextlib.contextmanager
     def transaction(self, durable: bool = True) -> Iterator[sqlite3.Connection]:
         """``durable``: the commit reaches the disk (fsync, ``synchronous=FULL``) before it
         returns; else it survives a killed process but maybe not a power cut."""
@@ -150,7 +159,7 @@ class Store:
                 raise
             self._db.execute("COMMIT")
 
-    @contextmanager
+    @contextlib.contextmanager
     def _ordered(self) -> Iterator[sqlite3.Connection]:
         """A transaction that applies the whole journal first (audit ids in event order)."""
         with self._lock:
@@ -167,16 +176,33 @@ class Store:
         in milliseconds: a tuner started later on a fresh store (a replaced tuner) has a
         larger epoch than the one it replaced, as long as the clocks of the two hosts
         agree to within the time between the two starts. Gateways order a loop's updates
-        by (epoch, seq).
+        by (epoch, seq), and drop an epoch more than EPOCH_AHEAD_MS ahead of their clock.
+        So a stored epoch that far ahead of ``wall`` (written by a start with the clock
+        ahead, since fixed) is not continued: every gateway with a right clock dropped
+        what it ordered, and would drop epoch + 1 until real time caught up. The epoch
+        starts again from ``wall``, with an ERROR in the log: a gateway whose clock was
+        ahead too and took the old epoch drops the new one as older; restart it
+        (docs/deploy.md, Clocks).
         """
+        wall_ms = int(wall * 1000)
         with self.transaction() as db:
-            row = db.execute("SELECT value FROM meta WHERE key = 'epoch'").fetchone()
-            epoch = max(int(row[0]) + 1 if row else 1, int(wall * 1000))
-            db.execute(
-                "INSERT INTO meta (key, value) VALUES ('epoch', ?) "
-                "ON CONFLICT(key) DO UPDATE SET value = excluded.value",
-                (str(epoch),),
-            )
+            db.execute("INSERT INTO meta (key, value) VALUES ('epoch', '0') ON CONFLICT DO NOTHING")
+            (prev,) = db.execute(
+                f"SELECT value FROM meta WHERE key = 'epoch'{self.LOCK_ROW}"
+            ).fetchone()
+            prev = int(prev)
+            if prev > wall_ms + EPOCH_AHEAD_MS:
+                log.error(
+                    "EPOCH RESET: the stored epoch %d is %.1f h ahead of this host's clock "
+                    "(a start with the clock ahead), beyond what gateways take; starting "
+                    "again from the clock. A gateway that took the old epoch (its clock "
+                    "ahead too) drops the new updates until restarted (docs/deploy.md)",
+                    prev, (prev - wall_ms) / 3.6e6,
+                )  # fmt: skip
+                epoch = wall_ms
+            else:
+                epoch = max(prev + 1, wall_ms)
+            db.execute("UPDATE meta SET value = ? WHERE key = 'epoch'", (str(epoch),))
         return epoch
 
     # -- journal ----------------------------------------------------------------------
@@ -368,82 +394,6 @@ class Store:
             f"INSERT INTO audit ({AUDIT_COLUMNS}) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)", rows
         )
 
-    # -- retention ----------------------------------------------------------------------
-    def audit_ids(self, *, deleted_only: bool = False) -> list[str]:
-        """Every loop id with audit rows (deleted loops included); ``deleted_only``: those
-        of no registered loop."""
-        where = " WHERE loop_id NOT IN (SELECT id FROM loops)" if deleted_only else ""
-        with self._lock:
-            return [r[0] for r in self._db.execute(f"SELECT DISTINCT loop_id FROM audit{where}")]
-
-    def prune(
-        self,
-        loop_ids: Iterable[str],
-        *,
-        older_than: float | None,
-        keep_rows: int | None,
-        keep_rows_deleted: int | None,
-        archive: Path | None = None,
-    ) -> int:
-        """Delete the audit rows of ``loop_ids`` that the retention policy lets go: those
-        written before the wall time ``older_than``, and those beyond the newest
-        ``keep_rows`` of a registered loop (``keep_rows_deleted`` of a deleted one). The
-        newest row of every id is always kept: it carries the id's last ``seq``, from
-        which a loop registered again under that id continues. With ``archive``, the rows
-        are appended to that JSON-lines file (fsynced) before they are deleted. Returns
-        the rows deleted."""
-        self.apply_journal()
-        deleted = 0
-        with self._lock:
-            registered = {r[0] for r in self._db.execute("SELECT id FROM loops")}
-            doomed: list[tuple[str, int, float]] = []  # (loop id, below id, before wall)
-            for loop_id in loop_ids:
-                keep = keep_rows if loop_id in registered else keep_rows_deleted
-                newest = self._db.execute(
-                    "SELECT id FROM audit WHERE loop_id = ? ORDER BY id DESC LIMIT 1", (loop_id,)
-                ).fetchone()
-                if newest is None:
-                    continue
-                below = newest[0]
-                if keep is not None:
-                    row = self._db.execute(
-                        "SELECT id FROM audit WHERE loop_id = ? ORDER BY id DESC LIMIT 1 OFFSET ?",
-                        (loop_id, max(keep, 1) - 1),
-                    ).fetchone()
-                    cut = row[0] if row else None
-                else:
-                    cut = None
-                # rows below `cut` go whatever their age; rows below `below` if old
-                doomed.append((loop_id, cut or 0, below if older_than is not None else 0))
-            if not doomed:
-                return 0
-            where = "loop_id = ? AND (id < ? OR (id < ? AND wall_time < ?))"
-            params = [(i, cut, below, older_than or 0.0) for i, cut, below in doomed]
-            if archive is not None:
-                names = ("id", *AUDIT_COLUMNS.replace(" ", "").split(","))
-                with open(archive, "ab") as out:
-                    for p in params:
-                        for row in self._db.execute(
-                            f"SELECT id, {AUDIT_COLUMNS} FROM audit WHERE {where} ORDER BY id", p
-                        ):
-                            out.write(orjson.dumps(dict(zip(names, row, strict=True))) + b"\n")
-                    out.flush()
-                    os.fsync(out.fileno())
-            # a transaction per loop: a loop's rows are spread over the whole table, so one
-            # transaction for all would write most of its pages to the write-ahead log at
-            # once (the log keeps its largest size: 100+ MB in the retention run)
-            for p in params:
-                with self.transaction(durable=False) as db:
-                    deleted += db.execute(f"DELETE FROM audit WHERE {where}", p).rowcount
-        return deleted
-
-    def export(self, out, loop_id: str | None = None, since_id: int = 0) -> int:
-        """Write audit rows (all, or one loop's) after ``since_id``, oldest first, as JSON
-        lines to the binary file ``out``; returns how many."""
-        self.apply_journal()
-        with self._lock:
-            return export_audit(self._db, out, loop_id, since_id)
-
     def history(self, loop_id: str, offset: int, limit: int) -> tuple[int, list[AuditEntry]]:
         """(total, entries newest first) of one loop's audit log."""
         self.apply_journal()
@@ -458,19 +408,3 @@ class Store:
             ).fetchall()
         names = ("id", *AUDIT_COLUMNS.replace(" ", "").split(","))
         return total, [AuditEntry(**dict(zip(names, row, strict=True))) for row in rows]
-
-
-def export_audit(db: sqlite3.Connection, out, loop_id: str | None = None, since_id: int = 0) -> int:
-    """Audit rows after ``since_id`` (all loops, or one), oldest first, as JSON lines (one
-    object per row: id, loop_id, wall_time, t, seq, mode, reason, gains, detail)."""
-    names = ("id", *AUDIT_COLUMNS.replace(" ", "").split(","))
-    query = f"SELECT id, {AUDIT_COLUMNS} FROM audit WHERE id > ?"
-    params: tuple = (since_id,)
-    if loop_id is not None:
-        query += " AND loop_id = ?"
-        params += (loop_id,)
-    n = 0
-    for row in db.execute(query + " ORDER BY id", params):
-        out.write(orjson.dumps(dict(zip(names, row, strict=True))) + b"\n")
-        n += 1
-    return n

@@ -205,6 +205,8 @@ class PgStore(Store):
 
     dialect = "postgresql"
     ORDER = "l.ord"
+    LOCK_ROW = " FOR UPDATE"
+    """The epoch's row, locked: :meth:`Store.next_epoch` is atomic between members."""
     integrity_errors = (psycopg.errors.IntegrityError,)
     commit_errors = (psycopg.Error, OSError)
 
@@ -303,15 +305,8 @@ class PgStore(Store):
                 self._db.execute("SET LOCAL synchronous_commit = off")
             yield self._db
 
-    def next_epoch(self, wall: float) -> int:
-        """As :meth:`Store.next_epoch`, atomic between members (one row lock)."""
-        with self.transaction() as db:
-            (value,) = db.execute(
-                "INSERT INTO meta (key, value) VALUES ('epoch', ?) ON CONFLICT (key) DO UPDATE "
-                "SET value = GREATEST(meta.value::bigint + 1, ?)::text RETURNING value",
-                (str(int(wall * 1000)), int(wall * 1000)),
-            ).fetchone()
-        return int(value)
+    def checkpoint(self) -> None:
+        """Nothing: PostgreSQL recycles its write-ahead log itself."""
 
     def wall_now(self) -> float:
         """The database's wall clock (seconds since the epoch): the one clock of a

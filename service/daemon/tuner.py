@@ -166,7 +166,6 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
         [(after_t, monotonic deadline, query)]."""
         self.queries_dropped = 0
         """State queries dropped unanswered because the inbox was full."""
-        self._prune_todo: list[str] = []
         self._next_prune = self.clock.monotonic()  # a first pass when the worker is idle
         self.pruned = 0
         """Audit rows deleted by the retention policy since start."""

@@ -3,7 +3,7 @@ state, the journal applied to the store's tables, and the retention policy.
 
 Retention: in idle time (or, when a pass is a whole interval late, on a busy worker
 too) the worker prunes the audit history by the settings'
-``history_*`` policy (:meth:`Store.prune`), PRUNE_CHUNK loops per iteration; a
+``history_*`` policy (:meth:`Store.prune`), PRUNE_BUDGET_S per iteration; a
 cluster's member prunes only its own loops (and one member the deleted loops'), ages
 on the database's clock (:meth:`Upkeep._retention_ids`).
 
@@ -20,9 +20,11 @@ at their next chunk.
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import logging
 import time
+from collections.abc import Iterator
 
 from service.daemon.admin import freeze_survivors
 from service.daemon.delivery import COMMIT_RETRY_S
@@ -54,8 +56,12 @@ JOURNAL_CHUNK = 1000
 """Journal rows applied to the store's tables per idle worker iteration (~5 ms)."""
 JOURNAL_BACKLOG = 100_000
 """Journal rows pending above which they are applied even while messages wait."""
-PRUNE_CHUNK = 200
-"""Loop ids whose audit history is pruned per idle worker iteration."""
+PRUNE_BUDGET_S = 0.05
+"""Worker time a retention pass takes per iteration (the store's lock held meanwhile):
+the loop ids it gets through in that time. A fixed count of ids cost the worker ~4 s an
+iteration at the row cap when a loop's rows were scanned (p99 sample latency 3.7 s,
+session 40); by id ranges a loop costs what it deletes: 25 ms for 500 rows, 0.8 ms for none
+(docs/tuner.md, Retention and disk use)."""
 
 
 class Upkeep:
@@ -79,6 +85,9 @@ class Upkeep:
     _snapshot_pace = 0.0
     """Seconds between its chunks."""
 
+    _prune_todo: collections.deque[str] = collections.deque()
+    """The loop ids the retention pass under way has yet to prune (a new deque per pass:
+    this empty one is never added to)."""
     retention_failure: str | None = None
     """Why the last retention pass failed, until a pass goes through (``/healthz``)."""
     prune_failures = 0
@@ -168,8 +177,8 @@ class Upkeep:
         return self.clock.monotonic() >= self._next_prune + interval
 
     def _retain(self) -> None:
-        """The retention policy, PRUNE_CHUNK loop ids per idle worker iteration, a pass
-        every ``history_prune_interval_s`` (see :meth:`Store.prune`)."""
+        """The retention policy, PRUNE_BUDGET_S of loop ids per idle worker iteration, a
+        pass every ``history_prune_interval_s`` (see :meth:`Store.prune`)."""
         st = self.settings
         max_age_days = getattr(st, "history_max_age_days", None)
         try:
@@ -178,23 +187,23 @@ class Upkeep:
                 if now < self._next_prune:
                     return
                 self._next_prune = now + getattr(st, "history_prune_interval_s", 3600.0)
-                self._prune_todo = self._retention_ids()
-            chunk, self._prune_todo = self._prune_todo[:PRUNE_CHUNK], self._prune_todo[PRUNE_CHUNK:]
+                self._prune_todo = collections.deque(self._retention_ids())
             # a cluster's ages go by the database's clock, the one its members share: a
             # member whose clock ran ahead (a bad NTP or RTC step) would prune young rows
             wall = self.clock.wall() if self.cluster is None else self.store.wall_now()
             self.pruned += self.store.prune(
-                chunk,
+                _popping(self._prune_todo),
                 older_than=None if max_age_days is None else wall - max_age_days * 86400.0,
                 keep_rows=getattr(st, "history_max_rows_per_loop", None),
                 keep_rows_deleted=getattr(st, "history_max_rows_deleted", None),
                 archive=getattr(st, "history_archive", None),
+                budget_s=PRUNE_BUDGET_S,
             )
         except Exception as exc:
             # The pass is dropped whole and tried again at the next interval: its other
             # chunks would fail alike (the archive's disk full or gone). Shown in /healthz
             # and counted, for the store is no longer bounded while it lasts.
-            self._prune_todo = []
+            self._prune_todo = collections.deque()
             self.prune_failures += 1
             self.retention_failure = f"retention pass failed: {exc}"
             retry_s = self.clock.until(self._next_prune)
@@ -203,6 +212,7 @@ class Upkeep:
             return
         if not self._prune_todo:
             self.retention_failure = None  # a whole pass went through
+            self.store.checkpoint()  # the write-ahead log back to empty (store.py)
 
     def _retention_ids(self) -> list[str]:
         """The loop ids of a retention pass: every id with audit rows; in a cluster, the
@@ -256,3 +266,10 @@ class Upkeep:
                 lasted = time.monotonic() - min(failing.values())
                 self.write_failure = None
                 log.warning("store writes work again after %.1f s of failures", lasted)
+
+
+def _popping(todo: collections.deque) -> Iterator[str]:
+    """The ids of ``todo``, each taken off it only when asked for: those a budgeted
+    :meth:`Store.prune` did not get to stay for the next iteration."""
+    while todo:
+        yield todo.popleft()

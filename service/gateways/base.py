@@ -55,6 +55,7 @@ from pydantic import ValidationError
 
 from service.wire.protocol import (
     ENCODING,
+    EPOCH_AHEAD_MS,
     MAX_BATCH,
     PUBLISHED_MODES,
     BatchedSample,
@@ -73,6 +74,8 @@ log = logging.getLogger("pitune.gateway")
 SAMPLE_CONGESTION = zenoh.CongestionControl.BLOCK
 """Samples are never dropped under congestion (docs/protocol.md, Samples)."""
 STATE_QUERY_TIMEOUT_S = 10.0
+IMPLAUSIBLE_LOG_S = 60.0
+"""Least time between two log lines about gains dropped for an implausible epoch."""
 
 
 class Source(Enum):
@@ -102,14 +105,6 @@ class Update:
     epoch: int | None = None
 
 
-EPOCH_AHEAD_MS = 86_400_000.0
-"""How far ahead of this host's wall clock (ms) an epoch may be: a tuner's epoch is its
-start's wall clock in ms, plus one per start within the same ms (docs/protocol.md), so a
-day covers clock differences between hosts. A message with an epoch beyond that is no
-tuner's: taken, it would order above every real update of its loop for ever (a forged
-epoch of 2**62 blocked a loop's updates in a security review, session 36)."""
-
-
 @dataclass
 class GainsInbox:
     """Raw gains payloads in, validated updates out, duplicates and late ones dropped.
@@ -128,11 +123,21 @@ class GainsInbox:
     invalid: int = 0
     stale: int = 0
     implausible: int = 0
-    """Messages dropped for an epoch far ahead of this host's clock (:data:`EPOCH_AHEAD_MS`)."""
+    """Messages dropped for an epoch far ahead of this host's clock (:data:`EPOCH_AHEAD_MS`);
+    logged as an error at most every IMPLAUSIBLE_LOG_S."""
+    _implausible_log_at: float = 0.0
+    """Monotonic time before which no further drop for an implausible epoch is logged."""
     _raw: queue.SimpleQueue = field(default_factory=queue.SimpleQueue)
     _last: dict[tuple[str, str], int] = field(default_factory=dict)
+    """Per (loop, instance), the highest seq taken of messages without an epoch (their
+    rule); messages with one need only :attr:`_order` and :attr:`_newest`, an entry per
+    loop, so tuner restarts add nothing (an entry per restart and loop was 22 MB after
+    100 restarts of 2,000 loops)."""
     _order: dict[str, tuple[int, int]] = field(default_factory=dict)
     """Per loop, the highest (epoch, seq) taken."""
+    _newest: dict[str, tuple[str, int]] = field(default_factory=dict)
+    """Per loop, the instance and seq of the newest message with an epoch taken: a
+    message without one from that instance is judged against it too."""
     supervision: dict[str, StateReply] = field(default_factory=dict)
     """The last state reply of each loop (RL period, next due time, status, gateway)."""
     batch_replies: list[StateBatch] = field(default_factory=list)
@@ -180,27 +185,48 @@ class GainsInbox:
             if msg.seq == 0 or msg.mode is not Mode.auto:
                 return None  # no gains published yet, or none to apply (docs/protocol.md)
         if msg.epoch is not None and msg.epoch > time.time() * 1000.0 + EPOCH_AHEAD_MS:
-            self.implausible += 1  # taken, it would put every real update below it
+            self._implausible(msg)  # taken, it would put every real update below it
             return None
         state = source in (Source.state, Source.state_batch)
         key = (msg.loop_id, msg.instance_id)
-        last = self._last.get(key)
         if msg.epoch is not None:
             newer = (msg.epoch, msg.seq) > self._order.get(msg.loop_id, (0, 0))
         else:
+            last = self._last.get(key)
+            instance, seq = self._newest.get(msg.loop_id, (None, 0))
+            if instance == msg.instance_id:
+                last = max(seq, last or 0)
             newer = last is None or msg.seq > last
         if not newer:
             if not state:  # a state reply of known gains is no news
                 self.stale += 1
             return None
-        self._last[key] = msg.seq
+        if msg.epoch is None:
+            self._last[key] = msg.seq
         if isinstance(msg, GainsMessage) and msg.reason == "agent":
             self.update_t[msg.loop_id] = msg.t
         if msg.epoch is not None:
             self._order[msg.loop_id] = (msg.epoch, msg.seq)
+            self._newest[msg.loop_id] = (msg.instance_id, msg.seq)
         return Update(
             msg.loop_id, msg.kp, msg.ki, Mode(msg.mode), msg.seq, msg.instance_id, source,
             msg.epoch,
+        )  # fmt: skip
+
+    def _implausible(self, msg: GainsMessage | StateReply) -> None:
+        """Count a message dropped for its epoch; an error in the log at most every
+        IMPLAUSIBLE_LOG_S: while it lasts, the loops' gains are not applied."""
+        self.implausible += 1
+        now = time.monotonic()
+        if now < self._implausible_log_at:
+            return
+        self._implausible_log_at = now + IMPLAUSIBLE_LOG_S
+        log.error(
+            "gains of %s from %s DROPPED: epoch %d is %.1f h ahead of this host's clock "
+            "(%d dropped so far); is this host's clock behind, or was the tuner's ahead "
+            "(docs/deploy.md, Clocks)?",
+            msg.loop_id, msg.instance_id, msg.epoch,
+            (msg.epoch - time.time() * 1000.0) / 3.6e6, self.implausible,
         )  # fmt: skip
 
     def current_epoch(self, loop_id: str) -> int | None:

@@ -54,6 +54,14 @@ MAX_BATCH = 100_000
 MAX_MESSAGE_BYTES = 32 * 1024 * 1024
 """Largest sample message (single or batch) a tuner reads: 100,000 samples of up to ~330
 bytes each. A bigger one is refused unread (``too_large``)."""
+EPOCH_AHEAD_MS = 86_400_000.0
+"""How far ahead of a host's wall clock (ms) an epoch may be: a tuner's epoch is its
+start's wall clock in ms, plus one per start within the same ms (docs/protocol.md), so a
+day covers clock differences between hosts. A gateway drops a message with an epoch
+beyond that: no tuner's, taken it would order above every real update of its loop for
+ever (a forged epoch of 2**62 blocked a loop's updates in a security review, session
+36). A tuner whose stored epoch is further ahead of its clock than that starts again
+from its clock (:meth:`service.daemon.store.Store.next_epoch`)."""
 
 LOOP_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$"
 """Loop and instance ids are single key-expression chunks: no '/', no wildcards."""

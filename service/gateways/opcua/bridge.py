@@ -314,7 +314,8 @@ class OpcUaGateway(GainWriter):
                 f"{s['samples_dropped']}, not newer {s['samples_not_newer']}, older "
                 f"{s['samples_older']}); writes {s['written']}, unverified "
                 f"{s['unverified']}, refused "
-                f"{sum(v for k, v in s.items() if k.startswith('refused'))}")  # fmt: skip
+                f"{sum(v for k, v in s.items() if k.startswith('refused'))}; gains dropped "
+                f"for an epoch ahead of this clock {self.bus.inbox.implausible}")  # fmt: skip
 
     def report(self) -> dict:
         """Counters and write latencies (s, update taken off the bus to verified write)."""
@@ -323,7 +324,8 @@ class OpcUaGateway(GainWriter):
         def pct(q: float) -> float | None:
             return lat[min(len(lat) - 1, int(q * len(lat)))] if lat else None
 
-        return {"loops": len(self.loops), "counters": dict(self.stats),
+        counters = {**self.stats, "implausible_epochs": self.bus.inbox.implausible}
+        return {"loops": len(self.loops), "counters": counters,
                 "buffered": len(self.outbox), "write_latency_s": {
                     "n": len(lat), "p50": pct(0.5), "p99": pct(0.99),
                     "max": lat[-1] if lat else None}}  # fmt: skip
