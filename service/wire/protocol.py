@@ -55,13 +55,9 @@ MAX_MESSAGE_BYTES = 32 * 1024 * 1024
 """Largest sample message (single or batch) a tuner reads: 100,000 samples of up to ~330
 bytes each. A bigger one is refused unread (``too_large``)."""
 EPOCH_AHEAD_MS = 86_400_000.0
-"""How far ahead of a host's wall clock (ms) an epoch may be: a tuner's epoch is its
-start's wall clock in ms, plus one per start within the same ms (docs/protocol.md), so a
-day covers clock differences between hosts. A gateway drops a message with an epoch
-beyond that: no tuner's, taken it would order above every real update of its loop for
-ever (a forged epoch of 2**62 blocked a loop's updates in a security review, session
-36). A tuner whose stored epoch is further ahead of its clock than that starts again
-from its clock (:meth:`service.daemon.store.Store.next_epoch`)."""
+"""How far ahead of a host's wall clock (ms) an epoch (its tuner's start, ms) may be: a
+gateway drops a message beyond it (a forged 2**62 would order above every real update for
+ever), and a tuner whose stored epoch is that far ahead starts from its clock again."""
 
 LOOP_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$"
 """Loop and instance ids are single key-expression chunks: no '/', no wildcards."""
@@ -459,13 +455,7 @@ class Keys:
 
     def gateway_id(self, key: str) -> str | None:
         """The gateway in ``{prefix}/gateways/{gateway}/{kind}``, or None."""
-        head = f"{self.prefix}/gateways/"
-        if not key.startswith(head):
-            return None
-        parts = key[len(head) :].split("/")
-        if len(parts) != 2 or not is_valid_id(parts[0]):
-            return None
-        return parts[0]
+        return self._id_in(key, "gateways")
 
     def tuner(self, instance_id: str) -> str:
         return f"{self.prefix}/tuners/{instance_id}"
@@ -492,13 +482,13 @@ class Keys:
 
     def loop_id(self, key: str) -> str | None:
         """The loop id in ``{prefix}/loops/{loop_id}/{kind}``, or None if ``key`` is not one."""
-        head = f"{self.prefix}/loops/"
-        if not key.startswith(head):
-            return None
-        parts = key[len(head) :].split("/")
-        if len(parts) != 2 or not is_valid_id(parts[0]):
-            return None
-        return parts[0]
+        return self._id_in(key, "loops")
+
+    def _id_in(self, key: str, kind: str) -> str | None:
+        """The id chunk of ``{prefix}/{kind}/{id}/{what}``, or None if ``key`` is not one."""
+        head = f"{self.prefix}/{kind}/"
+        parts = key[len(head) :].split("/") if key.startswith(head) else []
+        return parts[0] if len(parts) == 2 and is_valid_id(parts[0]) else None
 
 
 def encode(message: BaseModel) -> bytes:
