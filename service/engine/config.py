@@ -12,7 +12,7 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from service.engine.figures import Proposal, Verification
+from service.engine.figures import Proposal, Refused, Verification
 from service.engine.id_view import Identification
 from service.units import (
     AGENT_GAIN_RANGE,
@@ -436,6 +436,9 @@ class LoopView(BaseModel):
     int_e: float = Field(description="Integral of the error since reset, agent units.")
     hidden_norm: float = Field(description="Norm of the agent's hidden state (0 after reset).")
     counters: Counters
+    refused: Refused | None = Field(
+        None, description="The samples last refused, and why (None: none since the start)."
+    )
     identification: Identification | None = None
     verification: Verification | None = Field(
         None, description="Last-good gains and the verification state (verify-or-rollback)."

@@ -41,6 +41,7 @@ from service.agent.model import Agent, load_agent
 from service.engine import first_tuning, monitor, proposals, rules, stepping, verify, views, watch
 from service.engine.audit import AuditRow
 from service.engine.config import LoopConfig, LoopView
+from service.engine.figures import Refused
 from service.engine.modes import PUBLISHING
 from service.engine.refuted import remembered
 from service.engine.saved import Saved
@@ -237,7 +238,7 @@ class TuningEngine:
         with self.lock:
             self.received += decoded.received
             for rejection in decoded.rejected:
-                self._reject(rejection)
+                self._reject(rejection, wall)
             rows = decoded.rows
             if not len(rows):
                 return results
@@ -255,7 +256,8 @@ class TuningEngine:
                             rows.loop_ids[i],
                             RejectReason.unknown_loop,
                             "not registered",
-                        )
+                        ),
+                        wall,
                     )
                 rows, slots = rows.take(~unknown), slots[~unknown]
             for run in self._segments(rows, slots):
@@ -267,7 +269,8 @@ class TuningEngine:
                 part, part_slots = run
                 due, rejections = rules.ingest(self.table, part_slots, part, wall)
                 for i, reason, detail in rejections:
-                    self._reject(Rejection(int(part.index[i]), part.loop_ids[i], reason, detail))
+                    rejection = Rejection(int(part.index[i]), part.loop_ids[i], reason, detail)
+                    self._reject(rejection, wall)
                 for s in part_slots[due].tolist():
                     self._due[s] = None
                 if self.table.decided:  # first tunings from models put in force
@@ -360,12 +363,19 @@ class TuningEngine:
         tb.refuted.clear()
         return failed
 
-    def _reject(self, rejection: Rejection) -> None:
+    def _reject(self, rejection: Rejection, wall: float) -> None:
         self.rejected[rejection.reason] += rejection.count
         slot = self.table.slot_of.get(rejection.loop_id)
         if slot is not None:
             self.table.n_rejected[slot] += rejection.count
             monitor.rejected(self.table, slot)
+            run = self.table.refused.get(slot)
+            same = run is not None and run.reason == rejection.reason
+            self.table.refused[slot] = Refused.model_construct(  # (no validation: per sample)
+                reason=rejection.reason, detail=rejection.detail, last_wall=wall,
+                count=(run.count if same else 0) + rejection.count,
+                since_wall=run.since_wall if same else wall,
+            )  # fmt: skip
         if self.on_reject is not None:
             self.on_reject(rejection)
 

@@ -1,6 +1,6 @@
 """What the monitor and verification show: performance figures, verification state, an
 advisory loop's pending proposal and what holds the agent (``GET /loops/{id}``,
-``/performance``).
+``/performance``); and the loop's samples last refused.
 
 Figures are computed by :mod:`service.engine.monitor`; verdicts by
 :mod:`service.engine.verify`. docs/tuner.md (Performance and verification) explains each.
@@ -154,3 +154,18 @@ class Performance(BaseModel):
     history: list[ResponseFigures] = Field(description="Recent complete responses, newest first.")
     window: WindowFigures
     verification: Verification
+
+
+class Refused(BaseModel):
+    """A loop's samples last refused, and why: the run of refusals for one reason up to
+    now (a gateway's integrator sees here what the tuner's log and the global
+    ``pitune_samples_rejected_total{reason}`` say of every loop at once)."""
+
+    reason: str = Field(description="The reject reason (docs/protocol.md, Accounting).")
+    detail: str = Field(description="The last refusal's detail, e.g. the sample's t.")
+    count: int = Field(
+        description="Samples refused for this reason since the run's first refusal (one "
+        "for another reason starts a new run; samples taken between do not)."
+    )
+    since_wall: float = Field(description="Wall time (Unix s) of the run's first refusal.")
+    last_wall: float = Field(description="Wall time (Unix s) of its last.")

@@ -38,6 +38,7 @@ from service.engine import (
 )  # fmt: skip
 from service.engine.audit import AuditRow, audit_row
 from service.engine.config import Configs, LoopConfig, LoopView
+from service.engine.figures import Refused
 from service.engine.id_state import IdState
 from service.engine.modes import _CODE, _MODES, AUTO, FROZEN, SHADOW
 from service.engine.saved import Saved, restore_runtimes, runtimes_of
@@ -160,6 +161,7 @@ class LoopTable:
         self.decided: list[StepResult] = []  # model tunings made taking samples: to publish
         self.warming: list = []  # model tunings waiting for a warm run (first_tuning.flush)
         self.refuted: list[int] = []  # models refuted by verify.fail: TuningEngine._judge
+        self.refused: dict[int, Refused] = {}  # by slot: the last samples refused (views)
         self.warm_run: tuple | None = None  # the batch under way: slots, keys, WarmRun
         self.mc_turn = 0
         """Where the model check's rotation over the loops to check starts
@@ -347,6 +349,7 @@ class LoopTable:
         self.ident[s] = None
         del self.slot_of[loop_id]
         del self.configs[loop_id]
+        self.refused.pop(s, None)
         self.ids[s] = None
         self.version += 1
         self._gains_dirty.discard(s)

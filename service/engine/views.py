@@ -17,6 +17,7 @@ from service.engine.figures import (
     Fence,
     Performance,
     Proposal,
+    Refused,
     ResponseFigures,
     Verification,
     WindowFigures,
@@ -54,6 +55,7 @@ class RawView:
     proposal: Proposal | None = None
     hold: Hold | None = None
     oscillating: bool = False
+    refused: Refused | None = None
     status_why: str | None = None
 
     def parse(self) -> LoopView:
@@ -78,6 +80,7 @@ class RawView:
             proposal=self.proposal,
             hold=self.hold,
             oscillating=self.oscillating,
+            refused=self.refused,
         )
 
 
@@ -114,6 +117,7 @@ def raw_view(tb: LoopTable, s: int, config: bytes, wall: float) -> RawView:
         hold=hold(tb, s),
         oscillating=bool(tb.o_osc[s]),
         status_why=status.why(tb, s, st, wall),
+        refused=tb.refused.get(s),
     )
 
 
