@@ -194,7 +194,19 @@ def verification(tb: LoopTable, s: int) -> Verification:
 def _waits(tb: LoopTable, s: int) -> str:
     """What the verdict of the change pending at slot ``s`` waits for."""
     span = monitor.RESPONSE_PERIODS * float(tb.period[s])
-    since = f"the changes after seq {int(tb.v_seq[s])} (up to seq {int(tb.seq[s])})"
+    v_seq = int(tb.v_seq[s])
+    since = (
+        f"the changes after seq {v_seq} (up to seq {int(tb.seq[s])})"
+        if v_seq >= 0  # -1: an operator's change to the gains registered (seq 0)
+        else f"the adopted gains (seq {int(tb.seq[s])})"
+    )
+    if math.isnan(span):  # no scaling: no RL period to judge a response over
+        return (
+            f"{since} wait for identification to put a model in force (the loop has no "
+            "scaling yet: a response is judged over RL periods of its model), then for the "
+            "next complete setpoint response. Next: move the setpoint in auto and let each "
+            "response settle"
+        )
     cut, early = int(tb.c_cut[s]), int(tb.c_early[s])
     window = f"{span:.4g} s ({monitor.RESPONSE_PERIODS:g} RL periods)"
     if not cut and not early:
