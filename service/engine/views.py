@@ -250,11 +250,12 @@ def proposal(tb: LoopTable, s: int) -> Proposal | None:
     if tb.mode[s] != ADVISORY or math.isnan(tb.adv_seq[s]):
         return None
     kp, ki = float(tb.adv_kp[s]), float(tb.adv_ki[s])
-    if math.isnan(tb.adv_why[s]):  # a proposal of a snapshot of before session 40: no reason
+    code = float(tb.adv_why[s])  # the reason it was made for
+    reason = REASONS.get(int(code)) if math.isfinite(code) else None
+    if reason is None:  # none stored (a snapshot of before session 40), or a code of a
+        # later version's (a snapshot restored by an older tuner): told from the gains
         back = bool(same_gains(kp, tb.g_kp[s]) & same_gains(ki, tb.g_ki[s]))
         reason = UpdateReason.rollback if back else UpdateReason.agent
-    else:  # the reason it was made for
-        reason = REASONS[int(tb.adv_why[s])]
     return Proposal(
         seq=int(tb.adv_seq[s]), kp=kp, ki=ki, dkp=kp - float(tb.kp[s]), dki=ki - float(tb.ki[s]),
         kp_in_force=float(tb.kp[s]), ki_in_force=float(tb.ki[s]), reason=reason.value,
