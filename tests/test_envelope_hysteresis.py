@@ -74,3 +74,25 @@ def test_a_model_that_moves_across_pauses_and_resumes():
     assert paused == [True, True, True, False, False, True]
     rows = [r[5] for r in engine.drain_changes()[1] if r[5].endswith("_envelope")]
     assert rows == ["out_of_envelope", "in_envelope", "out_of_envelope"]
+
+
+def test_theta_ratio_resumes_within_the_leaving_edge():
+    """An exact hint (apparent gain and tau 0.5) on a plant at theta/tau 1.40, inside the
+    envelope: one model at 1.55 pauses it, the next at the true 1.40 resumes it (with
+    the resume margin on theta/tau too it stayed paused for good: no rescaling moves
+    theta/tau, and only a model at 1.36 would have resumed it)."""
+    engine = TuningEngine(max_rate_hz=1e6)
+    engine.register(LoopConfig(id="D", kp=0.05, ki=0.001, sample_period_s=1.0,
+                               scaling={"k_hat": 2.0, "tau_hat": 20.0, "pv_scale": 1.0}),
+                    wall=0.0)  # fmt: skip
+    tb = engine.table
+    s = tb.slot("D")
+    paused = []
+    for t, ratio in enumerate([1.40, 1.55, 1.40, 1.40, 1.55]):
+        m = Model(k=2.0, tau=20.0, theta=20.0 * ratio, noise=0.01, move=2.0, r2=0.999,
+                  k_rse=0.005, tau_rse=0.005, events=4, confident=True)  # fmt: skip
+        model_use.envelope(tb, s, m, float(t), float(t), sure=True)
+        paused.append(bool(tb.out_env[s]))
+    assert paused == [False, True, False, False, True]
+    rows = [r[5] for r in engine.drain_changes()[1] if r[5].endswith("_envelope")]
+    assert rows == ["out_of_envelope", "in_envelope", "out_of_envelope"]

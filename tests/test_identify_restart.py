@@ -101,3 +101,18 @@ def test_a_hinted_loop_back_on_its_hint_starts_a_fresh_episode():
     steps = [r["t"] for r in rows if r["reason"] == "agent"]
     assert steps[0] == pytest.approx(2010.0 + 330.0)
     assert [r for r in rows if r["reason"] in ("fault", "rollback")] == []
+
+
+def test_a_change_pending_through_a_restart_waits_for_a_model_and_counts_afresh():
+    """Just after the identify (changes pending, no scaling): the verification's why
+    said "12 responses were cut short ... (the last after 200 s of the nan s ...) ...
+    let the setpoint stand nan s after a move": the counts of the old scaling, and its
+    RL period gone. It says the verdict waits for a model in force, and counts nothing."""
+    engine, _, _, before = _reidentified(end=3012.0)
+    assert before.verification.cut_short == 12
+    view = engine.view("X", wall=3012.0)
+    assert view.scaling is None and view.verification.pending
+    assert view.verification.cut_short == 0 and view.verification.unsettled_moves == 0
+    why = view.verification.why
+    assert why.startswith("the changes after seq 0 (up to seq 8) wait for identification")
+    assert "nan" not in why

@@ -9,7 +9,8 @@ import re
 import pytest
 
 from service.agent import untrained_agent
-from service.engine import LoopConfig, TuningEngine
+from service.engine import LoopConfig, TuningEngine, model_use
+from service.engine.identify import Model
 from service.wire.protocol import LoopStatus
 from tests.test_identify import K, drive, hinted
 
@@ -62,15 +63,47 @@ def test_a_hint_so_far_off_the_loop_leaves_the_envelope_says_where_and_what_to_d
     assert view.status == LoopStatus.out_of_envelope and view.identification.why == ""
     why = view.status_why
     assert (
-        "outside the agent's envelope (gain 0.167..1.5, tau 0.167..1.5, theta/tau up to 1.5)" in why
+        "outside the agent's envelope (gain 0.1667..1.5, tau 0.1667..1.5, theta/tau up to 1.5)"
+        in why
     )
-    gain = float(re.search(r"in the agent's units gain ([0-9.e+-]+)", why)[1])
+    place = re.search(r"in the agent's units: gain ([0-9.e+-]+) \(([0-9.e+-]+) % beyond", why)
+    gain = float(place[1])
     assert gain == pytest.approx(0.5 / 4, rel=0.25) and gain < 0.5 / 1.5 / 2
+    assert float(place[2]) == pytest.approx(100 * (1 - gain * 1.5 / 0.25), abs=0.5)
+    assert "resumes when a confident model lies within gain 0.1833..1.364, tau 0.1833" in why
     assert _factor(why, "K") == pytest.approx(1 / 4, rel=0.25)
     assert (
         "Next: the hint is off: PATCH guard.auto_rescale true" in why
         and "POST /loops/{id}/identify" in why
     )
+
+
+def test_a_loop_paused_inside_the_hysteresis_band_says_what_resumes_it():
+    """A model at apparent tau 0.1658 (19.9 s on a 60 s hint) pauses the loop; the next
+    at 0.1792 (21.5 s) is back inside the envelope but not within the resume edge
+    0.1833: still paused, and the why says so with that edge (it said "outside the
+    agent's envelope (... tau 0.167..1.5 ...)" and "tau 0.179", inside that range)."""
+    engine = TuningEngine(untrained_agent(0))
+    engine.register(LoopConfig(id="C", kp=0.125, ki=0.003125, sample_period_s=1.0,
+                               scaling={"k_hat": 2.0, "tau_hat": 60.0, "pv_scale": 1.0},
+                               guard={"auto_rescale": False}), wall=0.0)  # fmt: skip
+    engine.ingest([{"loop_id": "C", "t": 0.0, "sp": 1.0, "pv": 0.0, "kp": 0.125,
+                    "ki": 0.003125}], wall=0.0)  # fmt: skip
+    tb = engine.table
+    s = tb.slot("C")
+    why = []
+    for t, tau in [(1.0, 19.9), (2.0, 21.5)]:
+        m = Model(k=2.0, tau=tau, theta=4.0, noise=0.01, move=2.0, r2=0.999, k_rse=0.005,
+                  tau_rse=0.005, events=4, confident=True)  # fmt: skip
+        tb.ident[s].model = m
+        model_use.use(tb, s, m, t, t)
+        view = engine.view("C", wall=t)
+        assert view.status == LoopStatus.out_of_envelope
+        why.append(view.status_why)
+    assert "tau 0.1658 (0.5 % beyond the envelope's edge 0.1667)" in why[0]
+    assert "tau 0.1792 (inside the envelope, beyond the resume edge 0.1833)" in why[1]
+    assert "gain 0.5, " in why[1] and "theta/tau 0.186" in why[1]
+    assert "It resumes when a confident model lies within gain 0.1833..1.364, tau " in why[1]
 
 
 def test_the_other_statuses_say_why_with_their_numbers():

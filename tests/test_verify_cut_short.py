@@ -105,3 +105,20 @@ def test_moves_that_come_before_the_loop_settles_open_no_response_and_say_so():
                      r"\(the last found (\d+) % of its move left; a response opens within "
                      r"20 % plus the noise\)", vf.why)  # fmt: skip
     assert left and int(left[1]) > 20
+
+
+def test_an_operators_change_on_a_loop_without_a_model_says_what_it_waits_for():
+    """A hint-free loop (no scaling yet) whose operator changed kp at t = 2: the why said
+    "the changes after seq -1 (up to seq 0) ... then nan s (2 RL periods)"."""
+    engine = TuningEngine(max_rate_hz=1e6)
+    engine.register(LoopConfig(id="H", kp=0.1, ki=0.01, sample_period_s=1.0), wall=0.0)
+    for t in range(5):
+        sample = {"loop_id": "H", "t": float(t), "sp": 1.0, "pv": 0.9,
+                  "kp": 0.1 if t < 2 else 0.2, "ki": 0.01}  # fmt: skip
+        engine.ingest([sample], wall=float(t))
+    view = engine.view("H", wall=5.0)
+    assert view.kp == pytest.approx(0.2) and view.verification.pending
+    assert view.verification.why.startswith(
+        "the adopted gains (seq 0) wait for identification to put a model in force"
+    )
+    assert "nan" not in view.verification.why

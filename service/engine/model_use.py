@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 import math
 
-from service.engine import box, first_tuning, identify, model_check
+from service.engine import box, first_tuning, identify, model_check, monitor
 from service.engine.audit import audit_row
 from service.engine.id_state import IdState
 from service.units import AGENT_GAIN, AGENT_TAU, Scaling
@@ -149,12 +149,15 @@ def new_scaling(tb, s: int, t: float) -> None:
     units), a decimation window from ``t`` (NaN without a scaling: never due), and no open
     setpoint response: it was to be judged over two of the old RL periods, and without a
     scaling no move ends it (the excitation gate sees none), so it ran on past the next
-    move and counted that move's error as overshoot (a false rollback)."""
+    move and counted that move's error as overshoot (a false rollback). The moves that
+    judged nothing are forgotten too: counted against the old RL period, the verification's
+    why gave them under the new one's (12 cut short "after 200 s of the nan s")."""
     tb.hidden[s] = 0.0
     tb.unsettle(s)
     tb.int_e[s] = 0.0
     tb.next_due[s] = t + tb.period[s]
     tb.r_t0[s] = math.nan
+    monitor.forget_unjudged(tb, s)
 
 
 def audit(tb, s: int, t: float, wall: float, reason: str, detail: str) -> None:

@@ -119,11 +119,18 @@ def clear(tb: LoopTable, s: int) -> None:
     """A new loop (or a reset): no response open, figures unknown, windows empty."""
     for name in ("r_t0", "r_end", *_FIGURES):
         getattr(tb, name)[s] = math.nan
-    for name in ("w_mean", "w_sq", "w_manual", "w_sat", "w_rej", "c_cut", "c_early"):
+    for name in ("w_mean", "w_sq", "w_manual", "w_sat", "w_rej"):
         getattr(tb, name)[s] = 0.0
-    tb.c_cut_s[s] = tb.c_left[s] = math.nan
+    forget_unjudged(tb, s)
     tb.f_hist_n[s] = 0
     oscillation.clear(tb, s)
+
+
+def forget_unjudged(tb: LoopTable, s: int) -> None:
+    """No moves that judged nothing (:data:`_UNJUDGED`): a new loop, or a new scaling (they
+    were counted against the old one's RL period)."""
+    tb.c_cut[s] = tb.c_early[s] = 0.0
+    tb.c_cut_s[s] = tb.c_left[s] = math.nan
 
 
 def configure(tb: LoopTable, s, tau_s, theta_s) -> None:

@@ -131,14 +131,11 @@ def _out_of_envelope(tb, s, wall) -> str:
             "tuning pauses. Next: tune the loop by hand and freeze it (PATCH mode frozen), or "
             "POST /loops/{id}/identify if the process does not integrate"
         )
-    lo_g, hi_g = (x * f for x, f in zip(box.TRAINING_BOX["gain"], _EDGES, strict=True))
-    lo_t, hi_t = (x * f for x, f in zip(box.TRAINING_BOX["tau"], _EDGES, strict=True))
-    th = box.TRAINING_BOX["theta_ratio"][1] * box.ENVELOPE_MARGIN
     sc = tb.scaling_of(s)
-    app = "" if m is None or sc is None else box.apparent(sc, m)
-    where = "" if not app else (
-        f"; in the agent's units gain {_g(app['gain'])}, tau {_g(app['tau'])}, theta/tau "
-        f"{_g(app['theta_ratio'])}"
+    app = None if m is None or sc is None else box.apparent(sc, m)
+    leave, back = box.edges(), box.edges(box.RESUME_MARGIN)
+    where = "" if app is None else (
+        f"; the latest model in the agent's units: {_placed(app, leave, back)}"
     )  # fmt: skip
     seen = _seen(tb, s)
     rescale = (
@@ -148,17 +145,41 @@ def _out_of_envelope(tb, s, wall) -> str:
         if tb.mismatch[s]
         else ""
     )
+    th = _g(leave["theta_ratio"][1])
     return (
-        f"the identified dynamics lie outside the agent's envelope (gain "
-        f"{_g(lo_g)}..{_g(hi_g)}, tau {_g(lo_t)}..{_g(hi_t)}, theta/tau up to {_g(th)}){where}"
-        f"{'; ' + seen if seen else ''}: tuning pauses. Next: {rescale}after a change of "
-        f"the plant, POST /loops/{{id}}/identify; a process the agent was not trained for "
-        f"(theta/tau beyond {_g(th)}): tune it by hand and freeze it (PATCH mode frozen)"
+        f"a model identified outside the agent's envelope ({_ranges(leave)}) paused "
+        f"tuning{where}{'; ' + seen if seen else ''}. It resumes when a confident model "
+        f"lies within {_ranges(back)}. Next: {rescale}after a change of the plant, POST "
+        f"/loops/{{id}}/identify; a process the agent was not trained for (theta/tau beyond "
+        f"{th}): tune it by hand and freeze it (PATCH mode frozen)"
     )
 
 
-_EDGES = (1.0 / box.ENVELOPE_MARGIN, box.ENVELOPE_MARGIN)
-"""The envelope's factors on the training box's lower and upper edges."""
+_NAMES = {"gain": "gain", "tau": "tau", "theta_ratio": "theta/tau"}
+
+
+def _ranges(edges: dict[str, tuple[float, float]]) -> str:
+    """Envelope edges (:func:`box.edges <service.engine.box.edges>`) as text, to 4 digits:
+    the apparent values near them are told apart at the per mille (0.1663 vs 0.1667)."""
+    g, t, th = edges["gain"], edges["tau"], edges["theta_ratio"][1]
+    return f"gain {g[0]:.4g}..{g[1]:.4g}, tau {t[0]:.4g}..{t[1]:.4g}, theta/tau up to {th:.4g}"
+
+
+def _placed(app: dict[str, float], leave: dict, back: dict) -> str:
+    """Each apparent value (4 digits), and where it lies: beyond the envelope's edge (by
+    how much), or inside it but beyond the edge a paused loop resumes within."""
+    parts = []
+    for key, name in _NAMES.items():
+        x, (lo, hi), (b_lo, b_hi) = app[key], leave[key], back[key]
+        if x < lo or x > hi:
+            edge = lo if x < lo else hi
+            where = f"{abs(x / edge - 1) * 100:.2g} % beyond the envelope's edge {edge:.4g}"
+        elif x < b_lo or x > b_hi:
+            where = f"inside the envelope, beyond the resume edge {b_lo if x < b_lo else b_hi:.4g}"
+        else:
+            where = ""
+        parts.append(f"{name} {x:.4g}" + (f" ({where})" if where else ""))
+    return ", ".join(parts)
 
 
 def _manual(tb, s, wall) -> str:

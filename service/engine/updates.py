@@ -11,9 +11,16 @@ from service.wire.protocol import SCHEMA_VERSION, Mode, UpdateReason
 
 MODE_VALUES = [m.value for m in Mode]
 """Mode names by their codes in the engine's arrays (the order of :class:`Mode`)."""
-REASONS = list(UpdateReason)
-"""Update reasons by their codes in the engine's arrays (a proposal's, ``adv_why``)."""
-REASON_CODE = {reason: code for code, reason in enumerate(REASONS)}
+REASON_CODE = {
+    UpdateReason.agent: 0, UpdateReason.reset: 1, UpdateReason.rollback: 2,
+    UpdateReason.accepted: 3, UpdateReason.model: 4,
+}  # fmt: skip
+"""Update reasons' codes in the engine's arrays (a proposal's, ``adv_why``, which runtime
+snapshots store): fixed, so that a reason added to :class:`UpdateReason`, or a reordering,
+moves no stored code (a new reason takes the next free one). 0-4 are the positions in
+:class:`UpdateReason` the snapshots of session 40 stored."""
+REASONS = {code: reason for reason, code in REASON_CODE.items()}
+"""Update reasons by their codes (:data:`REASON_CODE`)."""
 
 
 @dataclass(frozen=True)

@@ -198,7 +198,19 @@ def verification(tb: LoopTable, s: int) -> Verification:
 def _waits(tb: LoopTable, s: int) -> str:
     """What the verdict of the change pending at slot ``s`` waits for."""
     span = monitor.RESPONSE_PERIODS * float(tb.period[s])
-    since = f"the changes after seq {int(tb.v_seq[s])} (up to seq {int(tb.seq[s])})"
+    v_seq = int(tb.v_seq[s])
+    since = (
+        f"the changes after seq {v_seq} (up to seq {int(tb.seq[s])})"
+        if v_seq >= 0  # -1: an operator's change to the gains registered (seq 0)
+        else f"the adopted gains (seq {int(tb.seq[s])})"
+    )
+    if math.isnan(span):  # no scaling: no RL period to judge a response over
+        return (
+            f"{since} wait for identification to put a model in force (the loop has no "
+            "scaling yet: a response is judged over RL periods of its model), then for the "
+            "next complete setpoint response. Next: move the setpoint in auto and let each "
+            "response settle"
+        )
     cut, early = int(tb.c_cut[s]), int(tb.c_early[s])
     window = f"{span:.4g} s ({monitor.RESPONSE_PERIODS:g} RL periods)"
     if not cut and not early:
@@ -242,11 +254,12 @@ def proposal(tb: LoopTable, s: int) -> Proposal | None:
     if tb.mode[s] != ADVISORY or math.isnan(tb.adv_seq[s]):
         return None
     kp, ki = float(tb.adv_kp[s]), float(tb.adv_ki[s])
-    if math.isnan(tb.adv_why[s]):  # a proposal of a snapshot of before session 40: no reason
+    code = float(tb.adv_why[s])  # the reason it was made for
+    reason = REASONS.get(int(code)) if math.isfinite(code) else None
+    if reason is None:  # none stored (a snapshot of before session 40), or a code of a
+        # later version's (a snapshot restored by an older tuner): told from the gains
         back = bool(same_gains(kp, tb.g_kp[s]) & same_gains(ki, tb.g_ki[s]))
         reason = UpdateReason.rollback if back else UpdateReason.agent
-    else:  # the reason it was made for
-        reason = REASONS[int(tb.adv_why[s])]
     return Proposal(
         seq=int(tb.adv_seq[s]), kp=kp, ki=ki, dkp=kp - float(tb.kp[s]), dki=ki - float(tb.ki[s]),
         kp_in_force=float(tb.kp[s]), ki_in_force=float(tb.ki[s]), reason=reason.value,
