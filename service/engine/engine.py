@@ -365,7 +365,10 @@ class TuningEngine:
 
     def _reject(self, rejection: Rejection, wall: float) -> None:
         self.rejected[rejection.reason] += rejection.count
-        slot = self.table.slot_of.get(rejection.loop_id)
+        # wrong_gateway names a loop of ANOTHER gateway: booked on it, any gateway could
+        # fill that loop's counters and refused view and hide its own gateway's problems
+        foreign = rejection.reason is RejectReason.wrong_gateway
+        slot = None if foreign else self.table.slot_of.get(rejection.loop_id)
         if slot is not None:
             self.table.n_rejected[slot] += rejection.count
             monitor.rejected(self.table, slot)
