@@ -329,7 +329,7 @@ class Ownership:
             return self._own_rows(decoded)
         gateway = self.keys.gateway_id(key)
         if gateway is None:
-            return refused(decoded, RejectReason.bad_key, f"not a gateway's samples key: {key}")
+            return refused(decoded, RejectReason.bad_key, f"not a gateway's samples key: {key!r}")
         rows = decoded.rows
         if self.cluster is not None and not self.cluster.owns(gateway_shard(gateway)):
             self.foreign_samples += decoded.received

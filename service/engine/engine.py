@@ -49,6 +49,7 @@ from service.engine.site import SiteDefaults
 from service.engine.table import LoopTable
 from service.engine.updates import GainUpdate, StepResult
 from service.engine.views import RawView
+from service.wire.clip import clipped
 from service.wire.decode import Columns, Decoded, Rejection, decode_values
 from service.wire.protocol import LoopStatus, Mode, RejectReason
 
@@ -375,7 +376,7 @@ class TuningEngine:
             run = self.table.refused.get(slot)
             same = run is not None and run.reason == rejection.reason
             self.table.refused[slot] = Refused.model_construct(  # (no validation: per sample)
-                reason=rejection.reason, detail=rejection.detail, last_wall=wall,
+                reason=rejection.reason, detail=clipped(rejection.detail), last_wall=wall,
                 count=(run.count if same else 0) + rejection.count,
                 since_wall=run.since_wall if same else wall,
             )  # fmt: skip
