@@ -14,6 +14,7 @@ import time
 import orjson
 import pytest
 
+from service.daemon.settings import default_instance_id
 from service.daemon.store import WAL_LIMIT_BYTES, EpochAheadError, Store
 from service.daemon.store_pg import PgStore
 from service.engine.audit import audit_row
@@ -269,3 +270,19 @@ def test_a_gateway_forgets_the_instances_of_tuners_with_epochs():
     put("L0", None, 1, "rev1")  # a tuner of revision 1 (no epoch): judged by its seqs
     put("L0", None, 1, "rev1")
     assert len(inbox.drain()) == 1 and inbox.stale == 1
+
+
+def test_a_forged_instance_id_is_invalid_and_forges_no_gateway_log_line(caplog):
+    """The gateway's implausible-epoch ERROR named the message's instance_id raw: one with
+    a newline forged a line of the gateway host's log. Instance ids are ids now (the
+    tuner's own, host-pid, are), and the line shows the id with repr."""
+    evil = "t1\n2026-12-05 06:00:00,000 INFO pitune.gateway: all gains applied"
+    body = dict(loop_id="L1", seq=1, t=0.0, dkp=0.0, dki=0.0, kp=1.0, ki=1.0, mode="auto")
+    inbox = GainsInbox()
+    with caplog.at_level(logging.ERROR, logger="pitune.gateway"):
+        inbox.put_raw(Source.gains, orjson.dumps({**body, "instance_id": evil, "epoch": 2**62}))
+        inbox.put_raw(Source.gains, orjson.dumps({**body, "instance_id": "t-2", "epoch": 2**62}))
+        assert inbox.drain() == [] and (inbox.invalid, inbox.implausible) == (1, 1)
+    (line,) = [r.getMessage() for r in caplog.records]
+    assert "from 't-2' DROPPED" in line and "\n" not in line
+    assert GainsMessage(**body, instance_id=default_instance_id()).instance_id
