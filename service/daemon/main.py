@@ -368,7 +368,7 @@ def start_tuner(settings: Settings):
     except zenoh.ZError as exc:
         raise zenoh_failure(exc, settings) from exc
     except EpochAheadError as exc:
-        raise StartupError(EXIT_USAGE, f"refusing to start: {exc}") from exc
+        raise StartupError(EXIT_USAGE, str(exc)) from exc
     except (psycopg.Error, SchemaTooNew) as exc:
         location = redacted(settings.db_path) if settings.postgres else settings.db_path
         raise StartupError(
