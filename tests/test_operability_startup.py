@@ -4,14 +4,17 @@ what failed and what to do, with the documented exit status; one tuner per store
 import signal
 import socket
 import subprocess
+import time
 from pathlib import Path
 
 import pytest
 
 from service.daemon import main as daemon
+from service.daemon.store import EpochAheadError, Store
+from service.daemon.tuner import Tuner
 from service.procs import ROOT, TunerProcess, clean_env, pitune
 from service.wire.session import free_port
-from tests.tuner_support import open_peer, wait_until
+from tests.tuner_support import open_peer, tuner_settings, wait_until
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -245,3 +248,32 @@ def test_a_cluster_lease_longer_than_the_zenoh_transport_lease_is_refused(tmp_pa
         one_line(proc, daemon.EXIT_CANT_CREATE, "PostgreSQL")
     # one tuner on SQLite has no cluster lease to keep
     assert lease_mismatch(load_settings(db_path=tmp_path / "x.db", cluster_lease_s=30)) is None
+
+
+def test_a_start_with_the_store_s_epoch_a_day_ahead_is_refused(tmp_path):
+    """A start whose clock is 2 days behind the stored epoch took the clock as a lower
+    epoch, which every gateway dropped as stale; it is refused in one line (status 2)
+    naming both remedies, and the stored epoch stays."""
+    store = Store(tmp_path / "pitune.db")
+    ahead = store.next_epoch(time.time() + 2 * 86400.0)
+    store.close()
+    proc = start(tmp_path)
+    one_line(proc, daemon.EXIT_USAGE, f"stored epoch {ahead} is 48.0 h ahead", "NTP",
+             "PITUNE_EPOCH_RESET=1")  # fmt: skip
+    store = Store(tmp_path / "pitune.db")
+    assert store.next_epoch(time.time(), "keep") == ahead + 1
+    store.close()
+
+
+def test_the_operator_s_epoch_reset_starts_again_from_the_clock(tmp_path, caplog):
+    """PITUNE_EPOCH_RESET (after fixing a clock that was ahead): the tuner starts from
+    its clock, with an ERROR naming the reset; unset it is refused as above."""
+    store = Store(tmp_path / "pitune.db")
+    ahead = store.next_epoch(time.time() + 3 * 86400.0)
+    store.close()
+    with pytest.raises(EpochAheadError):
+        Tuner(tuner_settings(tmp_path)).start()
+    before = time.time() * 1000
+    with Tuner(tuner_settings(tmp_path, epoch_reset=True)) as tuner:
+        assert before <= tuner.epoch < ahead - 2 * 86_400_000
+    assert "EPOCH RESET (PITUNE_EPOCH_RESET)" in caplog.text

@@ -1,7 +1,8 @@
-"""A store over a year (session 40): a start with the clock ahead does not leave an epoch
-every gateway drops; retention prunes by id ranges, in a time budget, and by age only
-an unbroken run of a loop's oldest rows (rows written while the clock was set back
-stay); the write-ahead log is bounded; a gateway's memory of tuner instances is not."""
+"""A store over a year (session 40): the epoch never goes backwards by itself, and one
+stored by a start with the clock ahead is reset only on the operator's word; retention
+prunes by id ranges, in a time budget, and by age only an unbroken run of a loop's
+oldest rows (rows written while the clock was set back stay); the write-ahead log is
+bounded; a gateway's memory of tuner instances is not."""
 
 from __future__ import annotations
 
@@ -13,12 +14,13 @@ import time
 import orjson
 import pytest
 
-from service.daemon.store import WAL_LIMIT_BYTES, Store
+from service.daemon.settings import default_instance_id
+from service.daemon.store import WAL_LIMIT_BYTES, EpochAheadError, Store
 from service.daemon.store_pg import PgStore
 from service.engine.audit import audit_row
 from service.engine.config import LoopConfig
 from service.gateways.base import GainsInbox, Source
-from service.wire.protocol import EPOCH_AHEAD_MS, GainsMessage
+from service.wire.protocol import GainsMessage
 from tests.tuner_support import loop_body
 
 pytestmark = pytest.mark.timeout(120)
@@ -107,37 +109,66 @@ def test_a_pass_lists_its_loop_ids_by_a_step_per_loop_not_per_row(tmp_path):
     store.close()
 
 
-def test_an_epoch_far_ahead_of_the_clock_is_not_continued(tmp_path, caplog):
-    """A start with the clock 3 days ahead stored its epoch; with the clock fixed, epoch + 1
-    would be dropped by every gateway until real time caught up (72 h of gains lost):
-    the next start takes the clock again, with an ERROR. Within the gateways' bound the
-    epoch still only grows (a clock stepped back an hour)."""
+def _gateway_takes(epoch: int) -> bool:
+    """Whether a gateway on the right clock that took an update at NOW takes ``epoch``'s."""
+    inbox = GainsInbox()
+    for seq, e in ((5, int(NOW * 1000)), (1, epoch)):
+        msg = GainsMessage(loop_id="L", seq=seq, t=0.0, dkp=0.0, dki=0.0, kp=0.5, ki=0.02,
+                           mode="auto", instance_id="x", epoch=e)  # fmt: skip
+        inbox.put_raw(Source.gains, msg.model_dump_json().encode())
+    return [u.seq for u in inbox.drain()] == [5, 1]
+
+
+def test_a_start_with_the_clock_behind_never_lowers_the_epoch(tmp_path, caplog):
+    """A start with the host clock 2 days behind (RTC reset, NTP not synced) took the
+    clock (a lower epoch) and every gateway dropped its gains as stale: it is refused
+    now, leaving the epoch as it was; a running member's lease continues the epoch."""
     store = Store(tmp_path / "s.db")
-    ahead = store.next_epoch(NOW + 3 * DAY)
-    assert ahead == int((NOW + 3 * DAY) * 1000)
-    with caplog.at_level(logging.ERROR, logger="pitune.store"):
-        assert store.next_epoch(NOW) == int(NOW * 1000)
-    assert "EPOCH RESET" in caplog.text and "72.0 h ahead" in caplog.text
-    assert store.next_epoch(NOW - 3600.0) == int(NOW * 1000) + 1
-    inbox = GainsInbox()  # a gateway on the right clock takes the new epoch
-    msg = GainsMessage(loop_id="L", seq=1, t=0.0, dkp=0.0, dki=0.0, kp=0.5, ki=0.02,
-                       mode="auto", instance_id="x", epoch=int(time.time() * 1000))  # fmt: skip
-    inbox.put_raw(Source.gains, msg.model_dump_json().encode())
-    assert len(inbox.drain()) == 1
+    first = store.next_epoch(NOW)
+    with pytest.raises(EpochAheadError, match="48.0 h ahead of the clock"):
+        store.next_epoch(NOW - 2 * DAY)
+    assert store.next_epoch(NOW - 2 * DAY, "keep") == first + 1
+    assert store.next_epoch(NOW - 3600.0) == first + 2  # within a day: still only grows
+    assert _gateway_takes(first + 2)
+    assert "EPOCH RESET" not in caplog.text
     store.close()
 
 
-def test_an_epoch_far_ahead_is_not_continued_on_postgresql(pg_url, caplog):
+def test_an_epoch_far_ahead_is_reset_only_on_the_operator_s_word(tmp_path, caplog):
+    """A start with the clock 3 days ahead stored its epoch, which every gateway on a
+    right clock drops: only the operator's PITUNE_EPOCH_RESET starts again from the
+    clock (with an ERROR); after it the epoch grows again."""
+    store = Store(tmp_path / "s.db")
+    assert store.next_epoch(NOW + 3 * DAY) == int((NOW + 3 * DAY) * 1000)
+    with pytest.raises(EpochAheadError, match="72.0 h ahead"):
+        store.next_epoch(NOW)
+    with caplog.at_level(logging.ERROR, logger="pitune.store"):
+        assert store.next_epoch(NOW, "reset") == int(NOW * 1000)
+    assert "EPOCH RESET (PITUNE_EPOCH_RESET)" in caplog.text and "72.0 h ahead" in caplog.text
+    assert store.next_epoch(NOW - 3600.0) == int(NOW * 1000) + 1
+    assert _gateway_takes(int(NOW * 1000) + 1)
+    store.close()
+
+
+def test_a_cluster_s_epoch_follows_the_database_clock(pg_url, caplog):
+    """One member's wrong clock (2 days behind, 10 days ahead) moves the shared epoch
+    neither back nor far ahead: the epoch is taken on the database's clock."""
     store = PgStore(pg_url)
     try:
-        store.next_epoch(NOW + 3 * DAY)
+        first = store.next_epoch(time.time())
+        assert store.next_epoch(time.time() - 2 * DAY) > first  # a member's clock behind
+        epoch = store.next_epoch(time.time() + 10 * DAY)  # a member's clock ahead
+        assert epoch < (store.wall_now() + 60.0) * 1000
+        with store.transaction() as db:  # an epoch stored 3 days ahead of the database
+            db.execute(
+                "UPDATE meta SET value = %s WHERE key = 'epoch'", (str(epoch + 3 * 86_400_000),)
+            )
+        with pytest.raises(EpochAheadError, match="72.0 h ahead"):
+            store.next_epoch(time.time() + 10 * DAY)  # no member's clock lets it through
         with caplog.at_level(logging.ERROR, logger="pitune.store"):
-            assert store.next_epoch(NOW) == int(NOW * 1000)
+            reset = store.next_epoch(0.0, "reset")
+        assert epoch < reset < (store.wall_now() + 60.0) * 1000
         assert "EPOCH RESET" in caplog.text
-        assert store.next_epoch(NOW - 60.0) == int(NOW * 1000) + 1
-        just_within = NOW * 1000 + EPOCH_AHEAD_MS  # a day ahead: still continued
-        store.next_epoch(just_within / 1000)
-        assert store.next_epoch(NOW) == int(just_within) + 1
     finally:
         store.close()
 
@@ -239,3 +270,19 @@ def test_a_gateway_forgets_the_instances_of_tuners_with_epochs():
     put("L0", None, 1, "rev1")  # a tuner of revision 1 (no epoch): judged by its seqs
     put("L0", None, 1, "rev1")
     assert len(inbox.drain()) == 1 and inbox.stale == 1
+
+
+def test_a_forged_instance_id_is_invalid_and_forges_no_gateway_log_line(caplog):
+    """The gateway's implausible-epoch ERROR named the message's instance_id raw: one with
+    a newline forged a line of the gateway host's log. Instance ids are ids now (the
+    tuner's own, host-pid, are), and the line shows the id with repr."""
+    evil = "t1\n2026-12-05 06:00:00,000 INFO pitune.gateway: all gains applied"
+    body = dict(loop_id="L1", seq=1, t=0.0, dkp=0.0, dki=0.0, kp=1.0, ki=1.0, mode="auto")
+    inbox = GainsInbox()
+    with caplog.at_level(logging.ERROR, logger="pitune.gateway"):
+        inbox.put_raw(Source.gains, orjson.dumps({**body, "instance_id": evil, "epoch": 2**62}))
+        inbox.put_raw(Source.gains, orjson.dumps({**body, "instance_id": "t-2", "epoch": 2**62}))
+        assert inbox.drain() == [] and (inbox.invalid, inbox.implausible) == (1, 1)
+    (line,) = [r.getMessage() for r in caplog.records]
+    assert "from 't-2' DROPPED" in line and "\n" not in line
+    assert GainsMessage(**body, instance_id=default_instance_id()).instance_id

@@ -15,6 +15,7 @@ from service.daemon.bus import Kind
 from service.daemon.tuner import Tuner
 from service.engine.config import LoopConfig
 from service.engine.patch import LoopPatch
+from service.wire.decode import Rejection
 from service.wire.protocol import GainsBatch, GainsMessage, Mode, RejectReason, UpdateReason
 from tests.tuner_support import connected_gateway, loop_body, tuner_settings, wait_until
 
@@ -365,3 +366,28 @@ def test_loop_ids_from_the_wire_cannot_forge_log_lines(tmp_path, caplog):
         tuner._handle([(Kind.batch, tuner.keys.batch, batch)])
     (record,) = [r for r in caplog.records if "sample rejected" in r.getMessage()]
     assert "\n" not in record.getMessage() and repr(forged) in record.getMessage()
+
+
+def test_wire_text_in_a_rejection_is_escaped_and_clipped(tmp_path, caplog):
+    """A samples key's gateway chunk with a newline and a terminal escape forged a
+    CRITICAL line, a 5,000-char one made a 5,137-char line, and a batch whose "v" is a
+    4 MB string one 4 MB WARNING line; a loop's refused view kept any detail whole."""
+    caplog.set_level(logging.WARNING, logger="pitune.tuner")
+    forged = "gw\n2026-12-05 06:00:00 CRITICAL pitune.admin: guard off\x1b[2J"
+    with Tuner(tuner_settings(tmp_path)) as tuner:
+        tuner.metrics._rejections.interval_s = 0.0  # every line, none suppressed
+        tuner.register(LoopConfig(**loop_body("L1")))
+        keys = tuner.keys
+        for chunk in (forged, "A" * 5000):
+            tuner._handle([(Kind.batch, f"{keys.prefix}/gateways/{chunk}/samples", b"{}")])
+        big = b'{"v": "' + b"X" * 4_000_000 + b'", "samples": [{}]}'
+        tuner._handle([(Kind.batch, keys.batch, big)])
+        wire = "Y\n" * 3000  # a detail as long as a sender likes, on a registered loop
+        tuner.engine._reject(Rejection(0, "L1", RejectReason.schema, wire), 1.0)
+        refused = tuner.engine.view("L1").refused
+    lines = [r.getMessage() for r in caplog.records if "sample rejected" in r.getMessage()]
+    assert len(lines) == 4 and tuner.engine.rejected[RejectReason.bad_key] == 2
+    assert all("\n" not in m and "\x1b" not in m and len(m) < 500 for m in lines)
+    assert "gw\\\\n2026" in lines[0] and "[2J" in lines[0]  # on one line, escaped
+    assert "(5,055 chars)" in lines[1] and "unsupported_version" in lines[2]
+    assert refused.detail == wire[:200] + "... (6,000 chars)"

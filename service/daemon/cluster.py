@@ -358,7 +358,7 @@ class Cluster(Suspects, Notifies):
         if not shards:
             return
         started = time.time()
-        token = self.tuner.store.next_epoch(started)
+        token = self.tuner.store.next_epoch(started, "keep")  # checked at the start
         with self._leasing:  # (a renewal's finding a lease taken comes before or after)
             with self._lock:
                 shards = shards - self._lost  # their old loops out of the engine first

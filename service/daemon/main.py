@@ -57,7 +57,7 @@ EXIT_CODES = {
     EXIT_OK: "stopped by SIGTERM or SIGINT after a clean shutdown",
     EXIT_FAILED: "an unexpected error (the log has the traceback)",
     EXIT_USAGE: "invalid command line or settings (flag, PITUNE_* variable, config file "
-    "value or syntax, Zenoh endpoint syntax)",
+    "value or syntax, Zenoh endpoint syntax), or a stored epoch a day ahead of the clock",
     EXIT_NO_INPUT: "a file the settings name is missing or unreadable (config file, "
     "Zenoh config, agent weights)",
     EXIT_UNAVAILABLE: "an address cannot be bound: the API port or a Zenoh listen port "
@@ -350,6 +350,7 @@ def start_tuner(settings: Settings):
     import zenoh
 
     from service.daemon.migrations import SchemaTooNew
+    from service.daemon.store import EpochAheadError
     from service.daemon.store_pg import redacted
     from service.daemon.tuner import Tuner
 
@@ -366,6 +367,8 @@ def start_tuner(settings: Settings):
         tuner.start()
     except zenoh.ZError as exc:
         raise zenoh_failure(exc, settings) from exc
+    except EpochAheadError as exc:
+        raise StartupError(EXIT_USAGE, str(exc)) from exc
     except (psycopg.Error, SchemaTooNew) as exc:
         location = redacted(settings.db_path) if settings.postgres else settings.db_path
         raise StartupError(

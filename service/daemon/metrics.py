@@ -29,6 +29,7 @@ from prometheus_client import (
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 
 from service.daemon.logs import EventLog
+from service.wire.clip import clipped
 from service.wire.protocol import LoopStatus, Mode, RejectReason
 
 if TYPE_CHECKING:
@@ -186,11 +187,13 @@ class Metrics:
     def reject(self, reason: RejectReason, loop_id: str | None, detail: str, n: int = 1) -> None:
         """Count ``n`` rejected samples and log it (at most once per interval and reason).
 
-        ``loop_id`` may come straight from the wire: logged with repr, so that no id can
-        forge log lines (a newline) or terminal escapes."""
+        ``loop_id`` and ``detail`` may come straight from the wire (a loop id, a samples
+        key): logged clipped and with repr, so that none forges log lines (a newline) or
+        terminal escapes, or makes one megabytes long."""
         self.samples_rejected.labels(reason.value).inc(n)
+        shown = None if loop_id is None else clipped(loop_id)
         self._rejections.warning(
-            reason.value, f"sample rejected ({reason}) loop={loop_id!r}: {detail}"
+            reason.value, f"sample rejected ({reason}) loop={shown!r}: {clipped(detail)!r}"
         )
 
     def set_status_counts(self, counts: dict[LoopStatus, int]) -> None:

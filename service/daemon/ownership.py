@@ -230,7 +230,7 @@ class Ownership:
         """The least epoch of the messages of loops come from another shard: a fresh one,
         above the token they went out under (:meth:`Cluster.token
         <service.daemon.cluster.Cluster.token>`); None without such loops."""
-        return self.store.next_epoch(time.time()) if loop_ids else None
+        return self.store.next_epoch(time.time(), "keep") if loop_ids else None
 
     def _restore_many(self, stored: list, wall: float, saved: list[Saved | None] | None = None):
         """Stored loops into the engine at once (``saved``: their snapshots, parsed ahead;
@@ -329,7 +329,7 @@ class Ownership:
             return self._own_rows(decoded)
         gateway = self.keys.gateway_id(key)
         if gateway is None:
-            return refused(decoded, RejectReason.bad_key, f"not a gateway's samples key: {key}")
+            return refused(decoded, RejectReason.bad_key, f"not a gateway's samples key: {key!r}")
         rows = decoded.rows
         if self.cluster is not None and not self.cluster.owns(gateway_shard(gateway)):
             self.foreign_samples += decoded.received

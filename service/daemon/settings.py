@@ -191,6 +191,12 @@ class Settings(BaseSettings):
         description="Seconds of failing store commits after which the daemon exits "
         "(status 74) for its supervisor to restart it from the store.",
     )
+    epoch_reset: bool = Field(
+        False,
+        description="Start again from the clock when the store's epoch is more than a day "
+        "ahead of it (else the start is refused, status 2). Only for one start after "
+        "fixing a clock that WAS ahead; then restart the gateways (docs/deploy.md, Clocks).",
+    )
     log_level: Literal["debug", "info", "warning", "error"] = Field(
         "info", description="Least severe log level written (any case)."
     )

@@ -28,9 +28,11 @@ import contextlib
 import logging
 import sqlite3
 import threading
+import time
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import orjson
 from pydantic import ValidationError
@@ -50,6 +52,22 @@ WAL_LIMIT_BYTES = 64 << 20
 reader holding a snapshot (a backup, an sqlite3 shell) keeps every write since in it,
 and the file kept its peak size after (241 MB, session 40). :meth:`Store.checkpoint`
 empties it when a retention pass ends."""
+EpochAhead = Literal["refuse", "reset", "keep"]
+"""What :meth:`Store.next_epoch` does with a stored epoch far ahead of the clock."""
+
+
+class EpochAheadError(RuntimeError):
+    """The stored epoch is more than EPOCH_AHEAD_MS ahead of the clock (a start refused)."""
+
+    def __init__(self, epoch: int, hours: float) -> None:
+        super().__init__(
+            f"the stored epoch {epoch} is {hours:.1f} h ahead of the clock: fix this host's "
+            "clock if it is behind (NTP) and start again; if instead an earlier start had "
+            "its clock ahead, set PITUNE_EPOCH_RESET=1 for one start and then restart every "
+            "gateway that took the old epoch (docs/deploy.md, Clocks)"
+        )
+
+
 UPDATE_GAINS = "UPDATE loops SET kp = ?1, ki = ?2, seq = ?3, epoch = ?5 WHERE id = ?4"
 """A gains row (kp, ki, seq, id, epoch) applied (:func:`with_epoch`)."""
 
@@ -169,7 +187,7 @@ class Store(Retention):
             self._advance(progress)
 
     # -- epoch ------------------------------------------------------------------------
-    def next_epoch(self, wall: float) -> int:
+    def next_epoch(self, wall: float, ahead: EpochAhead = "refuse") -> int:
         """Start a new epoch of this store and return it (committed, fsynced).
 
         The epoch is above every earlier epoch of this store, and at least the wall clock
@@ -177,12 +195,15 @@ class Store(Retention):
         larger epoch than the one it replaced, as long as the clocks of the two hosts
         agree to within the time between the two starts. Gateways order a loop's updates
         by (epoch, seq), and drop an epoch more than EPOCH_AHEAD_MS ahead of their clock.
-        So a stored epoch that far ahead of ``wall`` (written by a start with the clock
-        ahead, since fixed) is not continued: every gateway with a right clock dropped
-        what it ordered, and would drop epoch + 1 until real time caught up. The epoch
-        starts again from ``wall``, with an ERROR in the log: a gateway whose clock was
-        ahead too and took the old epoch drops the new one as older; restart it
-        (docs/deploy.md, Clocks).
+        A stored epoch that far ahead of ``wall`` means one of two clocks is wrong: this
+        host's now (behind: continuing is right, and a lower epoch would make every
+        gateway drop the new updates as older), or the one of an earlier start (ahead,
+        since fixed: every gateway with a right clock drops what it ordered). Nothing
+        here tells the two apart, so the epoch never goes backwards by itself:
+        ``ahead`` "refuse" (a start) raises :class:`EpochAheadError` for the operator,
+        "reset" (the operator's PITUNE_EPOCH_RESET, after fixing a clock that was ahead)
+        starts again from ``wall`` with an ERROR in the log, "keep" (a running cluster
+        member's lease) continues it (docs/deploy.md, Clocks).
         """
         wall_ms = int(wall * 1000)
         with self.transaction() as db:
@@ -191,19 +212,26 @@ class Store(Retention):
                 f"SELECT value FROM meta WHERE key = 'epoch'{self.LOCK_ROW}"
             ).fetchone()
             prev = int(prev)
-            if prev > wall_ms + EPOCH_AHEAD_MS:
+            epoch = max(prev + 1, wall_ms)
+            if prev > wall_ms + EPOCH_AHEAD_MS and ahead != "keep":
+                hours = (prev - wall_ms) / 3.6e6
+                if ahead == "refuse":
+                    raise EpochAheadError(prev, hours)
                 log.error(
-                    "EPOCH RESET: the stored epoch %d is %.1f h ahead of this host's clock "
-                    "(a start with the clock ahead), beyond what gateways take; starting "
-                    "again from the clock. A gateway that took the old epoch (its clock "
-                    "ahead too) drops the new updates until restarted (docs/deploy.md)",
-                    prev, (prev - wall_ms) / 3.6e6,
+                    "EPOCH RESET (PITUNE_EPOCH_RESET): the stored epoch %d, %.1f h ahead of "
+                    "this host's clock, is not continued; starting again from the clock. "
+                    "Restart every gateway that took the old epoch: until then it drops "
+                    "the new updates as older (docs/deploy.md, Clocks)",
+                    prev, hours,
                 )  # fmt: skip
                 epoch = wall_ms
-            else:
-                epoch = max(prev + 1, wall_ms)
             db.execute("UPDATE meta SET value = ? WHERE key = 'epoch'", (str(epoch),))
         return epoch
+
+    def wall_now(self) -> float:
+        """This host's wall clock (seconds since the epoch); a cluster's store has its
+        database's, the one clock of the members (:class:`PgStore`)."""
+        return time.time()
 
     # -- journal ----------------------------------------------------------------------
     def apply_journal(self, max_rows: int | None = None) -> int:

@@ -40,7 +40,7 @@ from pydantic import ValidationError
 
 from service.daemon import migrations
 from service.daemon.shards import GATEWAY_SHARD
-from service.daemon.store import JournalEntry, Store, StoredLoop, with_epoch
+from service.daemon.store import EpochAhead, JournalEntry, Store, StoredLoop, with_epoch
 from service.engine.audit import AUDIT_COLUMNS, AUDIT_TYPES, AuditRow
 from service.engine.config import LoopConfig
 from service.engine.saved import Saved
@@ -307,6 +307,11 @@ class PgStore(Store):
 
     def checkpoint(self) -> None:
         """Nothing: PostgreSQL recycles its write-ahead log itself."""
+
+    def next_epoch(self, wall: float, ahead: EpochAhead = "refuse") -> int:
+        """:meth:`Store.next_epoch` on the database's clock, not ``wall``: the epoch is
+        shared, and one member's wrong clock must not move it."""
+        return super().next_epoch(self.wall_now(), ahead)
 
     def wall_now(self) -> float:
         """The database's wall clock (seconds since the epoch): the one clock of a

@@ -240,7 +240,7 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
         else:
             self.store = Store(self.settings.db_path)
         wall = self.clock.wall()
-        self.epoch = self.store.next_epoch(wall)
+        self.epoch = self.store.next_epoch(wall, "reset" if self.settings.epoch_reset else "refuse")
         if self.cluster is None:
             with self.table.lock:
                 self._restore_many(self.store.load(), wall)

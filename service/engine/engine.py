@@ -49,6 +49,7 @@ from service.engine.site import SiteDefaults
 from service.engine.table import LoopTable
 from service.engine.updates import GainUpdate, StepResult
 from service.engine.views import RawView
+from service.wire.clip import clipped
 from service.wire.decode import Columns, Decoded, Rejection, decode_values
 from service.wire.protocol import LoopStatus, Mode, RejectReason
 
@@ -365,14 +366,17 @@ class TuningEngine:
 
     def _reject(self, rejection: Rejection, wall: float) -> None:
         self.rejected[rejection.reason] += rejection.count
-        slot = self.table.slot_of.get(rejection.loop_id)
+        # wrong_gateway names a loop of ANOTHER gateway: booked on it, any gateway could
+        # fill that loop's counters and refused view and hide its own gateway's problems
+        foreign = rejection.reason is RejectReason.wrong_gateway
+        slot = None if foreign else self.table.slot_of.get(rejection.loop_id)
         if slot is not None:
             self.table.n_rejected[slot] += rejection.count
             monitor.rejected(self.table, slot)
             run = self.table.refused.get(slot)
             same = run is not None and run.reason == rejection.reason
             self.table.refused[slot] = Refused.model_construct(  # (no validation: per sample)
-                reason=rejection.reason, detail=rejection.detail, last_wall=wall,
+                reason=rejection.reason, detail=clipped(rejection.detail), last_wall=wall,
                 count=(run.count if same else 0) + rejection.count,
                 since_wall=run.since_wall if same else wall,
             )  # fmt: skip

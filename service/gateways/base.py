@@ -222,7 +222,7 @@ class GainsInbox:
             return
         self._implausible_log_at = now + IMPLAUSIBLE_LOG_S
         log.error(
-            "gains of %s from %s DROPPED: epoch %d is %.1f h ahead of this host's clock "
+            "gains of %s from %r DROPPED: epoch %d is %.1f h ahead of this host's clock "
             "(%d dropped so far); is this host's clock behind, or was the tuner's ahead "
             "(docs/deploy.md, Clocks)?",
             msg.loop_id, msg.instance_id, msg.epoch,

@@ -269,7 +269,7 @@ def decode_batch(payload: bytes) -> Decoded:
     n = len(items)
     version = message.get("v", SCHEMA_VERSION)
     if not _speaks(version):
-        return _whole(n, RejectReason.unsupported_version, f"batch v={version!r}")
+        return _whole(n, RejectReason.unsupported_version, f"batch v={version!r:.40}")
     if n > MAX_BATCH:
         return _whole(n, RejectReason.schema, f"batch of {n} samples (at most {MAX_BATCH})")
     return decode_objects(items, strict_json=not lax)
@@ -294,7 +294,7 @@ def decode_columns(message: dict, *, strict_json: bool = True) -> Decoded:
         return _whole(n, RejectReason.schema, f"columns of unequal lengths {sorted(lengths)}")
     version = message.get("v", SCHEMA_VERSION)
     if not _speaks(version):
-        return _whole(n, RejectReason.unsupported_version, f"columns v={version!r}")
+        return _whole(n, RejectReason.unsupported_version, f"columns v={version!r:.40}")
     if n > MAX_BATCH:
         return _whole(n, RejectReason.schema, f"columns of {n} samples (at most {MAX_BATCH})")
     if strict_json and n and "loop_id" in cols:

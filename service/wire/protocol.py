@@ -68,6 +68,7 @@ Number = Annotated[float, Field(ge=-MAX_MAGNITUDE, le=MAX_MAGNITUDE)]
 Gain = Annotated[float, Field(strict=True, gt=0.0, le=MAX_MAGNITUDE)]
 LoopId = Annotated[str, Field(pattern=LOOP_ID_PATTERN, examples=["LIC-101"])]
 GatewayId = Annotated[str, Field(pattern=LOOP_ID_PATTERN, examples=["gw-north"])]
+InstanceId = Annotated[str, Field(pattern=LOOP_ID_PATTERN, examples=["tuner-a"])]  # gateways log it
 Version = Annotated[int, Field(ge=1, le=SCHEMA_VERSION, description="Schema version.")]
 
 
@@ -282,7 +283,7 @@ class GainsMessage(BaseModel):
         description="'advisory' updates are suggestions: the tuner never assumes them applied."
     )
     reason: UpdateReason = UpdateReason.agent
-    instance_id: str = Field(description="The tuner instance that published the update.")
+    instance_id: InstanceId = Field(description="The tuner instance that published the update.")
     epoch: int | None = Field(
         None,
         ge=1,
@@ -347,7 +348,7 @@ class StateReply(BaseModel):
     status: LoopStatus
     seq: int = Field(ge=0, description="Sequence number of the last gains message (0: none).")
     last_t: float | None = Field(description="Plant time (s) of the last accepted sample.")
-    instance_id: str
+    instance_id: InstanceId
     epoch: int | None = Field(
         None, ge=1, description="The epoch the last gains message (seq) went out under."
     )
@@ -384,7 +385,7 @@ class StateBatch(BaseModel):
 
     v: Version = SCHEMA_VERSION
     gateway: GatewayId
-    instance_id: str
+    instance_id: InstanceId
     epoch: int | None = Field(None, ge=1)
     states: list[StateReply]
 
