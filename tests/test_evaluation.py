@@ -92,7 +92,7 @@ def test_model_card_lists_training_and_results(quick_report, tmp_path):
     write_model_card(card, agent, metrics)
     text = card.read_text()
     assert "Changes from the paper" in text and "Asymptotic MSE, worst" in text
-    assert f"Epochs: {agent.meta['epoch']}" in text
+    assert f"Epochs run: {agent.meta['epoch']}" in text
 
 
 def test_robust_suite_runs_through_the_engine_and_reports(tmp_path):

@@ -225,7 +225,11 @@ def render_report(m: dict) -> str:
     lines += [f"- {name}: {v:.3f}" for name, v in m["two_tank"].items()]
     lines += ["", "## Bar", ""]
     lines += [f"- {k}: {'met' if v else 'NOT met'}" for k, v in m["bar"].items()]
-    lines += ["", "Figures (in `reports/`): " + ", ".join(sorted(f"`{f}`" for f in FIGURES)), ""]
+    lines += [
+        "",
+        "Figures (beside this report): " + ", ".join(sorted(f"`{f}`" for f in FIGURES)),
+        "",
+    ]
     return "\n".join(lines)
 
 
@@ -272,9 +276,10 @@ CHANGES_FROM_PAPER = """\
   oracle's gains (still clipped to one step's reach): a gentler approach that lost less
   precision when the setpoint timing varies.
 {selection}
-- **PPO details.** Advantage normalisation, value targets scaled by 1/10, gradient-norm
-  clipping 0.5, critic learning rate 1e-3, 20 value-only warm-up epochs before the
-  policy is updated, exploration std reset to exp(-2.5) at the start of PPO.
+- **PPO details** (of a stage with a PPO phase: `epochs` > 0 in its configuration; see
+  the epochs above for this one). Advantage normalisation, value targets scaled by 1/10,
+  gradient-norm clipping 0.5, critic learning rate 1e-3, 20 value-only warm-up epochs
+  before the policy is updated, exploration std reset to exp(-2.5) at the start of PPO.
 - **Cost aggregation.** The squared tracking error in the cost is the mean over the 275
   controller samples of each RL step, so it has the scale of the step-test MSE.
 - **Controller output limit.** +-100 (far outside any sane tuning of the box) so an
@@ -385,9 +390,11 @@ def write_model_card(path: Path, agent: Agent, metrics: dict) -> None:
             if meta.get("average_of")
             else []
         ),
-        f"- Epochs: {meta.get('epoch', '?')} ({cfg.get('bc_epochs', '?')} imitation, then"
-        f" {cfg.get('value_warmup', '?')} value warm-up and up to {cfg.get('epochs', '?')} PPO);"
-        f" episodes: {meta.get('episodes', '?')}; wall time of this run:"
+        f"- Epochs run: {meta.get('epoch', '?')} (the configuration allowed up to"
+        f" {cfg.get('bc_epochs', '?')} imitation epochs, then {cfg.get('value_warmup', '?')}"
+        f" value warm-up and {cfg.get('epochs', '?')} PPO epochs"
+        + ("; no PPO phase" if cfg.get("epochs") == 0 else "")
+        + f"); episodes: {meta.get('episodes', '?')}; wall time of this run:"
         f" {meta.get('wall_s', '?')} s on 2 CPU cores (1 torch thread)",
         f"- Validation at export (64 random plants + 8 corners,"
         f" {cfg.get('eval_steps', 80)} RL steps): "
