@@ -3,9 +3,9 @@
 Every reading of the wall clock that the tuner keeps or acts on goes through
 :class:`Clock`: the audit rows' ``wall_time``, the retention horizon (but a cluster's,
 on the database's clock: :mod:`service.daemon.upkeep`) and the interval between
-retention passes, the engine's flood limit and status (those two, and the
-identification budget, on :meth:`Clock.steady`, which a step of the wall clock does not
-move: :mod:`service.engine.steady`). An accelerated clock
+retention passes, the engine's flood limit and status (those two on
+:meth:`Clock.steady`, which a step of the wall clock does not move:
+:mod:`service.engine.steady`). An accelerated clock
 (``clock_speed`` > 1, :mod:`service.bench.retention`) therefore makes a day of the
 tuner's bookkeeping pass in ``86400 / speed`` real seconds without any other change of
 behaviour; the plant clock is the gateways' own (the ``t`` of the samples), so the load
@@ -40,7 +40,7 @@ class Clock:
     def steady(self) -> float:
         """Seconds since the epoch as :meth:`wall` read at construction, advanced by
         :meth:`monotonic`: a clock that a step of the wall clock (NTP, ``date``) does not
-        move, for elapsed-time rules (the engine's staleness, flood limit and fit budget:
+        move, for elapsed-time rules (the engine's staleness and flood limit:
         :mod:`service.engine.steady`)."""
         return self._wall0 + self.speed * (time.monotonic() - self._mono0)
 

@@ -356,7 +356,7 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
                 if self._parked:  # the earliest after_t query to answer anyway
                     first = min(d for q in self._parked.values() for _, d, _ in q)
                     wait = min(wait, first - time.monotonic())
-                owed = self.table.fits.wait_s(self.clock.steady())  # assessments owed
+                owed = self.table.fits.wait_s(self.clock.wall())  # assessments owed
                 if owed is not None and self._store_failing_since is None:
                     wait = min(wait, owed)
                 items = [self.inbox.get(timeout=max(0.0, wait))]
@@ -373,7 +373,7 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
                 if self._store_failing_since is not None and not stop:
                     continue  # no journal or snapshot work on a failing store
                 self._apply_journal()
-                if self.inbox.empty() and self.table.fits.wait_s(self.clock.steady()) == 0.0:
+                if self.inbox.empty() and self.table.fits.wait_s(self.clock.wall()) == 0.0:
                     self._identify_idle()
                 if stop:
                     self.snapshot()

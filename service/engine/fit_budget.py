@@ -8,8 +8,11 @@ core: with every assessment made in the sample path when due, the worker fell be
 the samples (p99 update latency 4.1 s in ``pitune bench``, docs/identification.md).
 
 With a budget the fits take at most ``share`` of one core over time: a token bucket of
-CPU seconds, refilled with the engine's clock (:mod:`.steady`), holding at most
-``share`` x :data:`WINDOW_S`.
+CPU seconds, refilled with the wall time each message is handled at (read once per
+message, not per ingest: refilled from a clock read at every ingest, the budget of the
+accelerated retention bench (``clock_speed`` 360) refilled within each pass and let the
+fits starve the worker: the load generator fell 12-15 s behind against 1-4 s, session 40),
+holding at most ``share`` x :data:`WINDOW_S`.
 In one ingest of samples (a message, usually) they take at most :data:`PASS_S` (and the
 one fit that overdraws it); an assessment beyond is *owed*: the loop's segment keeps recording, and
 owed loops are assessed in turn, on their latest data, by :meth:`TuningEngine.catch_up

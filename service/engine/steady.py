@@ -1,5 +1,6 @@
 """The clock the engine's elapsed-time rules measure on: staleness (``stale_gap`` after
-the last sample), the flood limit's token bucket and the identification budget's refill.
+the last sample) and the flood limit's token bucket (not the identification budget's
+refill: :mod:`service.engine.fit_budget` says why).
 
 A wall clock steps (an NTP correction, an operator's ``date``): stepped back an hour, a
 dead gateway's loops would read fresh for that hour. A table given a step-free clock

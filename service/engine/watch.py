@@ -50,7 +50,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from service.engine import identify, model_check, model_use, op_law, refuted, steady, verify
+from service.engine import identify, model_check, model_use, op_law, refuted, verify
 from service.engine.foptd_fit import sample_period
 from service.engine.id_state import IdState, Refuted
 from service.engine.recorder import CAP
@@ -87,7 +87,7 @@ def record(tb, slots: np.ndarray, cols: dict, last_t: np.ndarray, gap, fresh, wa
     after a stale gap or none before, ``fresh``: that, or back from manual or saturated."""
     t, e, sp = cols["t"], cols["e"], cols["sp"]
     op = cols.get("op")
-    tb.fits.refill(steady.now(tb, wall))
+    tb.fits.refill(wall)  # once per message (service.engine.fit_budget: not steady.now)
     watch = tb.watch[slots] & ~np.isnan(sp)
     if not watch.all():  # a sample not recorded: the next goes on from no recorded one
         rest = slots[~watch]
@@ -361,7 +361,7 @@ def catch_up(tb, wall: float) -> None:
     """Assess loops owed an assessment, one pass's worth of the identification budget,
     each on its segment as it is now (:mod:`service.engine.fit_budget`)."""
     fits = tb.fits
-    fits.refill(steady.now(tb, wall))
+    fits.refill(wall)
     while fits.owed and fits.allows():
         s = fits.next_owed()
         if tb.rec[s] >= 0 and tb.watch[s]:  # (identification since turned off: nothing)
