@@ -134,7 +134,7 @@ def plot(
     ax_pv.legend(loc="upper right", fontsize=8)
     ax_pv.set_title(title)
     ax_kp.set_ylabel(f"kp, {gain_units} (solid)" if gain_units else "kp (solid)")
-    ax_ki.set_ylabel(f"ki, {gain_units}/s (dotted)" if gain_units else "ki, 1/s (dotted)")
+    ax_ki.set_ylabel(f"ki, {gain_units}/s (dotted)" if gain_units else "ki, kp/s (dotted)")
     ax_kp.set_xlabel("simulated time, min")
     handles = ax_kp.get_legend_handles_labels()
     more = ax_ki.get_legend_handles_labels()

@@ -61,6 +61,11 @@ MIN_MINUTES = MSE_CHANGES * SP_PERIOD_S / 60.0 + 1.0
 """Shortest run that has the setpoint changes the tracking MSE covers (every 10 min)."""
 
 
+MAX_MINUTES = 1e6
+"""Longest run (about two simulated years): the plant must be told a finite duration, and
+``inf`` passed this check to fail later with the plant subcommand's usage error."""
+
+
 def _minutes(text: str) -> float:
     value = float(text)
     if not value >= MIN_MINUTES:
@@ -68,6 +73,8 @@ def _minutes(text: str) -> float:
             f"{text}: at least {MIN_MINUTES:g} minutes (the tracking MSE covers the last "
             f"{MSE_CHANGES} setpoint changes, one every {SP_PERIOD_S / 60:g} minutes)"
         )
+    if not value <= MAX_MINUTES:
+        raise argparse.ArgumentTypeError(f"{text}: at most {MAX_MINUTES:g} minutes")
     return value
 
 
@@ -91,7 +98,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--minutes",
         type=_minutes,
         default=60.0,
-        help=f"simulated span, minutes, at least {MIN_MINUTES:g} (60)",
+        help=f"simulated span, minutes, {MIN_MINUTES:g} to {MAX_MINUTES:g} (60)",
     )
     parser.add_argument(
         "--speed", type=_speed, default=60.0, help="simulated seconds per wall second (60)"

@@ -11,6 +11,9 @@ from service.cli import build_parser, main
     [
         (["demo", "--minutes", "5"], "at least 21 minutes"),
         (["demo", "--minutes", "0"], "at least 21 minutes"),
+        (["demo", "--minutes", "inf"], "inf: at most 1e+06 minutes"),
+        (["demo", "--minutes", "2e6"], "2e6: at most 1e+06 minutes"),
+        (["demo", "--minutes", "nan"], "nan: at least 21 minutes"),
         (["demo", "--speed", "-1"], "a speed factor in (0, 10000]"),
         (["demo", "--noise", "-1"], "noise amplitude in [0, 10] cm"),
         (["plant", "run", "--speed", "-5"], "--speed: -5: must be >= 0"),

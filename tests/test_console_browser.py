@@ -452,3 +452,26 @@ def test_a_bookmarked_overview_keeps_its_sort_direction_and_mode_filter(daemon, 
     page.goto(f"{daemon.url}/ui?mode=shadow")
     page.locator('#loops[data-q*="mode=shadow"] tbody tr[data-id="S1"]').wait_for()
     assert page.locator("#mode-filter").input_value() == "shadow"  # an option of every mode
+
+
+def test_login_refuses_a_name_with_a_space_and_gain_axes_tell_small_ticks_apart(daemon, new_page):
+    """The name field's pattern is valid under Chromium's v flag, so "Jane Smith" is
+    refused in the browser (it was recorded silently as ui:JaneSmith); the gains axes
+    label ki ticks 0.00505..0.00512 and 0..3e-4 distinctly (uPlot's own: all "0.005")."""
+    page = new_page()
+    page.goto(f"{daemon.url}/ui")
+    page.click("#login-link")
+    page.fill("#name", "Jane Smith")
+    assert page.evaluate("document.getElementById('name').validity.patternMismatch")
+    page.fill("#name", "jane.smith-2@site")
+    assert page.evaluate("document.getElementById('name').validity.valid")
+    tick = "(s) => pitune.ticks(null, s)"
+    assert page.evaluate(tick, [0.00505, 0.00506, 0.00508, 0.0051, 0.00512]) == [
+        "0.00505",
+        "0.00506",
+        "0.00508",
+        "0.0051",
+        "0.00512",
+    ]
+    assert page.evaluate(tick, [0, 1e-4, 2e-4, 3e-4]) == ["0", "1e-4", "2e-4", "3e-4"]
+    assert page.evaluate(tick, [0.8, 1.2, 1.6]) == ["0.8", "1.2", "1.6"]

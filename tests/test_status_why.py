@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import re
 
+import numpy as np
 import pytest
 
 from service.agent import untrained_agent
@@ -151,3 +152,25 @@ def test_the_other_statuses_say_why_with_their_numbers():
     st, why = one(_loop(guard={"identify": False, "excitation_periods": 0.0}),
                   [_sample(0.0)], 0.0)  # fmt: skip
     assert st == LoopStatus.tuning and why is None
+
+
+def test_a_loop_quiet_under_the_noise_rule_names_the_noise_threshold():
+    """Setpoint moves of 3 pv units clear guard.excitation_min_step (0.2 pv_scales = 2)
+    but not 5 x the noise sigma (about 1): the why names the noise rule's threshold
+    (it blamed excitation_min_step, which the moves cleared)."""
+    engine = TuningEngine(untrained_agent(0))
+    engine.register(_loop(guard={"identify": False, "excitation_periods": 2.0}), wall=0.0)
+    noise = np.random.default_rng(0).normal(0.0, 1.0, 400)
+    for t in range(400):
+        sp = 50.0 + 3.0 * ((t // 100) % 2)
+        engine.ingest([_sample(float(t), sp=sp, pv=sp + noise[t])], wall=float(t))
+    view = engine.view("L", wall=399.0)
+    assert view.status == LoopStatus.quiet
+    why = view.status_why
+    step, sigma = re.search(
+        r"at least ([0-9.]+) \(pv units\): 5 x the measured noise sigma \(([0-9.]+)\)", why
+    ).groups()
+    assert float(step) == pytest.approx(5.0 * float(sigma), rel=0.01)
+    assert float(sigma) == pytest.approx(1.0, rel=0.2)
+    assert "more than guard.excitation_min_step (0.2 pv_scales = 2 in pv units)" in why
+    assert "Next: move the setpoint by that much, reduce the measurement noise" in why

@@ -218,6 +218,15 @@ def ingest(
     return due, rejections
 
 
+def gate_step(tb: LoopTable, slots, has_sp) -> tuple[np.ndarray, np.ndarray]:
+    """The excitation gate's smallest move (engineering units): ``excitation_min_step``
+    or the noise rule's :data:`EXCITATION_NOISE_SIGMAS`, whichever is larger; and the
+    noise rule's part alone (``quiet``'s why names the one that holds the gate)."""
+    sigma = EXCITATION_NOISE_SIGMAS * oscillation.noise_sigma(tb, slots, cold=~has_sp)
+    noise = np.where(has_sp, sigma, np.sqrt(2.0) * sigma)
+    return np.maximum(tb.exc_step[slots], noise), noise
+
+
 def _excite(tb: LoopTable, slots: np.ndarray, cols: dict[str, np.ndarray], last_t) -> np.ndarray:
     """The excitation gate's part of :meth:`ingest` (before ``last_e`` moves on); returns
     where the setpoint moved (the monitor's responses start there too). Also the ramp
@@ -227,7 +236,6 @@ def _excite(tb: LoopTable, slots: np.ndarray, cols: dict[str, np.ndarray], last_
     has_sp = ~np.isnan(sp)
     # a loop sending only e: a setpoint change shows as a jump of e (and makes no runs)
     last_e = np.where(np.isnan(last_t), np.nan, tb.last_e[slots])
-    sigma = EXCITATION_NOISE_SIGMAS * oscillation.noise_sigma(tb, slots, cold=~has_sp)
     m = track_moves(
         np.where(has_sp, sp, e),
         np.where(has_sp, tb.sp_ref[slots], last_e),
@@ -235,7 +243,7 @@ def _excite(tb: LoopTable, slots: np.ndarray, cols: dict[str, np.ndarray], last_
         tb.move_t[slots],
         tb.obs_gain[slots],
         now=t,
-        step=np.maximum(tb.exc_step[slots], np.where(has_sp, sigma, np.sqrt(2.0) * sigma)),
+        step=gate_step(tb, slots, has_sp)[0],
         run=np.where(has_sp, tb.period[slots], -np.inf),
         scale=tb.e_scale[slots],
     )

@@ -225,13 +225,27 @@ def _hint_mismatch(tb, s, wall) -> str:
 
 
 def _quiet(tb, s, wall) -> str:
+    from service.engine import rules  # (rules imports the table, which imports this module)
+
     guard = tb.configs[tb.ids[s]].guard
+    slots = np.array([s])
+    has_sp = ~np.isnan(tb.sp_ref[slots])  # (a loop sending only e: a jump of e, two samples)
+    step, noise = (float(x[0]) for x in rules.gate_step(tb, slots, has_sp))
+    least = (
+        f"guard.excitation_min_step ({_g(guard.excitation_min_step)} pv_scales = "
+        f"{_g(float(tb.exc_step[s]))} in pv units)"
+    )
+    if noise > tb.exc_step[s]:  # the noise rule holds the gate
+        least = (
+            f"{_g(step)} (pv units): {_g(rules.EXCITATION_NOISE_SIGMAS)} x the measured "
+            f"noise sigma{'' if has_sp[0] else ' of a jump of e'} "
+            f"({_g(step / rules.EXCITATION_NOISE_SIGMAS)}), more than {least}"
+        )
     return (
-        f"no setpoint move of at least guard.excitation_min_step "
-        f"({_g(guard.excitation_min_step)} pv_scales) in the last guard.excitation_periods "
+        f"no setpoint move of at least {least} in the last guard.excitation_periods "
         f"({_g(guard.excitation_periods)}) RL periods ({_g(tb.exc_window[s])} s): the agent "
-        "waits for one (it learns from setpoint responses). Next: move the setpoint, or "
-        "PATCH guard.excitation_periods"
+        "waits for one (it learns from setpoint responses). Next: move the setpoint by "
+        "that much, reduce the measurement noise, or PATCH guard.excitation_periods"
     )
 
 

@@ -11,6 +11,16 @@ const pitune = (() => {
     if (a >= 1e5 || a < 1e-3) return x.toExponential(digits - 1);
     return x.toPrecision(digits).replace(/\.?0+$/, "");
   };
+  // Axis tick labels (uPlot's `values`): as num, with the fewest significant digits that
+  // render every tick as its value; uPlot's own labels round small gains (ki
+  // 0.00505..0.00512) to one repeated "0.005".
+  const ticks = (u, splits) => {
+    const tol = 1e-6 * Math.max(...splits.map(Math.abs));  // float noise in the splits
+    for (let d = 1; ; d++) {
+      const out = splits.map((v) => num(v, d));
+      if (d >= 15 || out.every((s, i) => Math.abs(Number(s) - splits[i]) <= tol)) return out;
+    }
+  };
   const int = (x) => (x === null || x === undefined ? "–" : Number(x).toLocaleString("en-US"));
   const ago = (wallS) => {
     if (!wallS) return "–";
@@ -49,5 +59,5 @@ const pitune = (() => {
     }
     return detail === undefined ? null : detail;
   }
-  return {csrf, loggedIn, esc, num, int, ago, when, toast, getJSON, act};
+  return {csrf, loggedIn, esc, num, ticks, int, ago, when, toast, getJSON, act};
 })();

@@ -35,7 +35,7 @@
       {label: "kp (published)", stroke: "#16a085", dash: [6, 4], width: 1, scale: "kp", spanGaps: true, paths: uPlot.paths.stepped({align: 1})},
       {label: "ki (published)", stroke: "#8e44ad", dash: [6, 4], width: 1, scale: "ki", spanGaps: true, paths: uPlot.paths.stepped({align: 1})},
     ],
-    axes: [{}, {scale: "kp", label: "kp"}, {scale: "ki", side: 1, grid: {show: false}, label: "ki (1/s)"}],
+    axes: [{}, {scale: "kp", label: "kp", values: pitune.ticks}, {scale: "ki", side: 1, grid: {show: false}, label: "ki (kp/s)", values: pitune.ticks}],
   }, [[], [], [], [], []], gEl);
   window.pituneTrend = {pv: pvChart, gains: gChart, samples: S};
   window.addEventListener("resize", () => {
@@ -127,7 +127,7 @@
     md.textContent = live.mode; md.className = `badge m-${live.mode}`;
     md.dataset.mode = live.mode;
     kv($("now"), [
-      ["kp", pitune.num(live.kp, 6)], ["ki (1/s)", pitune.num(live.ki, 6)], ["seq", live.seq],
+      ["kp", pitune.num(live.kp, 6)], ["ki (kp/s)", pitune.num(live.ki, 6)], ["seq", live.seq],
       ["last sample t", pitune.num(live.last_sample_t, 7)], ["samples", pitune.int(live.samples)],
       ["RL steps", pitune.int(live.steps)], ["updates", pitune.int(live.updates)],
       ["quiet periods", pitune.int(live.quiet)], ["rejected", pitune.int(live.rejected)],
