@@ -7,6 +7,7 @@ other loops, 0 of 1,000 such queries are answered before their sample."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import threading
 import time
@@ -90,6 +91,18 @@ def test_a_query_with_after_t_reflects_the_sample_sent_before_it(tmp_path):
 
 def test_after_t_of_a_sample_that_never_comes_answers_after_the_wait(tmp_path):
     """The wait is bounded: the reply then says the sample was not handled."""
+    with _probe(tmp_path) as (settings, tuner, gw):
+        key = settings.keys.state("PROBE")
+        asked = time.monotonic()
+        state = _state(gw.session, f"{key}?after_t=6.0")
+        waited = time.monotonic() - asked
+        assert state["last_t"] == 5.0 and AFTER_T_WAIT_S <= waited < AFTER_T_WAIT_S + 1.0
+
+
+@contextlib.contextmanager
+def _probe(tmp_path):
+    """A tuner with loop PROBE, its sample at t = 5 handled (an after_t query, the
+    control), and a gateway peer: (settings, tuner, gateway)."""
     settings = tuner_settings(tmp_path)
     with Tuner(settings) as tuner:
         tuner.register(LoopConfig(**loop_body("PROBE")))
@@ -97,11 +110,8 @@ def test_after_t_of_a_sample_that_never_comes_answers_after_the_wait(tmp_path):
         try:
             gw.send("PROBE", {"t": 5.0, "e": 0.1})
             key = settings.keys.state("PROBE")
-            assert _state(gw.session, f"{key}?after_t=5.0")["last_t"] == 5.0  # the control
-            asked = time.monotonic()
-            state = _state(gw.session, f"{key}?after_t=6.0")
-            waited = time.monotonic() - asked
-            assert state["last_t"] == 5.0 and AFTER_T_WAIT_S <= waited < AFTER_T_WAIT_S + 1.0
+            assert _state(gw.session, f"{key}?after_t=5.0")["last_t"] == 5.0
+            yield settings, tuner, gw
         finally:
             gw.close()
 
@@ -117,26 +127,18 @@ def test_a_malformed_after_t_is_an_error_reply_at_once_and_ids_are_the_keys_chun
     """An after_t that is no finite number (a typo, a decimal comma, an overflow) was
     ignored and the state answered at once, as if it reflected the awaited sample; it is
     an ErrorReply now. An ErrorReply's loop_id is the key's id chunk, valid or not."""
-    settings = tuner_settings(tmp_path)
-    with Tuner(settings) as tuner:
-        tuner.register(LoopConfig(**loop_body("PROBE")))
-        gw = connected_gateway(settings)
-        try:
-            gw.send("PROBE", {"t": 5.0, "e": 0.1})
-            key = settings.keys.state("PROBE")
-            assert _state(gw.session, f"{key}?after_t=5.0")["last_t"] == 5.0
-            for raw in ("abc", "nan", "1e400", "5,5", "-inf"):
-                asked = time.monotonic()
-                error = _error(gw.session, f"{key}?after_t={raw}")
-                assert time.monotonic() - asked < AFTER_T_WAIT_S
-                assert error["loop_id"] == "PROBE", error
-                assert error["error"].startswith(f"bad after_t: '{raw}'"), error
-            unknown = _error(gw.session, settings.keys.state("NOPE"))
-            assert (unknown["loop_id"], unknown["error"]) == ("NOPE", "unknown loop")
-            bad_id = _error(gw.session, settings.keys.state("-x"))
-            assert (bad_id["loop_id"], bad_id["error"]) == ("-x", "unknown loop")
-            bad_gw = _error(gw.session, settings.keys.gateway_state("-g"))
-            assert bad_gw["loop_id"] == "-g", bad_gw
-            assert tuner.view("PROBE").counters.samples == 1  # nothing changed
-        finally:
-            gw.close()
+    with _probe(tmp_path) as (settings, tuner, gw):
+        key = settings.keys.state("PROBE")
+        for raw in ("abc", "nan", "1e400", "5,5", "-inf"):
+            asked = time.monotonic()
+            error = _error(gw.session, f"{key}?after_t={raw}")
+            assert time.monotonic() - asked < AFTER_T_WAIT_S
+            assert error["loop_id"] == "PROBE", error
+            assert error["error"].startswith(f"bad after_t: '{raw}'"), error
+        unknown = _error(gw.session, settings.keys.state("NOPE"))
+        assert (unknown["loop_id"], unknown["error"]) == ("NOPE", "unknown loop")
+        bad_id = _error(gw.session, settings.keys.state("-x"))
+        assert (bad_id["loop_id"], bad_id["error"]) == ("-x", "unknown loop")
+        bad_gw = _error(gw.session, settings.keys.gateway_state("-g"))
+        assert bad_gw["loop_id"] == "-g", bad_gw
+        assert tuner.view("PROBE").counters.samples == 1  # nothing changed
