@@ -5,9 +5,9 @@
 # each "<user>-change-me" replaced. Point PITUNE_ZENOH_SECRETS at it (docs/deploy.md).
 # Each GATEWAY_ID given also gets its own user, "gateway-<id>" (docs/deploy.md, One user
 # per gateway): its line in credentials.txt and its client config gateway-<id>.json5
-# (gateway.json5 as that user). The router's ACL (deploy/zenoh/router.json5) must grant
-# that user first, or it would log in and be allowed nothing: the script refuses an id
-# the ACL does not name.
+# (gateway.json5 as that user). The router's ACL must grant that user first, or it would
+# log in and be allowed nothing: the script refuses an id that either router config
+# (deploy/zenoh/router.json5, and router-tls.json5 for a TLS site) does not name.
 #
 #   deploy/secrets.sh /srv/pitune/zenoh [GATEWAY_ID ...]
 #
@@ -20,7 +20,7 @@ die() { echo "secrets.sh: $*" >&2; exit 1; }
 DIR=$1
 shift
 DEPLOY=$(cd "$(dirname "$0")" && pwd)
-ACL=$DEPLOY/zenoh/router.json5
+ACLS=("$DEPLOY/zenoh/router.json5" "$DEPLOY/zenoh/router-tls.json5")
 # A gateway id: service/wire/protocol.py's LOOP_ID_PATTERN (a test keeps them equal).
 ID_PATTERN='^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$'
 seen=" "
@@ -29,10 +29,12 @@ for id in "$@"; do
     die "'$id' is not a gateway id (1-64 letters, digits, '_', '.', '-', the first a letter or digit)"
   case $seen in *" $id "*) die "gateway '$id' is given twice" ;; esac
   seen="$seen$id "
-  grep -qF "usernames: [\"gateway-$id\"]" "$ACL" ||
-    die "the router's ACL ($ACL) has no user gateway-$id: copy the gw-1 rules, subject" \
-      "and policy for gateway $id there and in router-tls.json5 first (docs/deploy.md," \
-      "One user per gateway)"
+  for acl in "${ACLS[@]}"; do
+    grep -qF "usernames: [\"gateway-$id\"]" "$acl" ||
+      die "the router's ACL ($acl) has no user gateway-$id: copy the gw-1 rules, subject" \
+        "and policy for gateway $id into router.json5 and router-tls.json5 first" \
+        "(docs/deploy.md, One user per gateway)"
+  done
 done
 if [ -e "$DIR" ] && [ -n "$(ls -A "$DIR")" ]; then
   die "$DIR is not empty: its passwords would be replaced (remove it first)"

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import queue
 import re
+import shutil
 import stat
 import subprocess
 from pathlib import Path
@@ -89,6 +90,24 @@ def test_secrets_sh_refuses_a_gateway_the_acl_does_not_name_and_makes_nothing(tm
         assert message in refused.stderr and refused.stderr.count("\n") == 1, refused.stderr
         assert not target.exists(), gateways
     assert "no user gateway-unit-7" in secrets(target, "unit-7").stderr
+
+
+def test_secrets_sh_refuses_a_gateway_the_tls_router_does_not_name(tmp_path):
+    """A TLS site runs router-tls.json5: a user only router.json5 grants would log in
+    there and be allowed nothing, so the script checks both configs (a copy of deploy/
+    whose TLS config lacks gw-1's user)."""
+    deploy = tmp_path / "deploy"
+    (deploy / "zenoh").mkdir(parents=True)
+    shutil.copy(SCRIPT, deploy)
+    for example in (DEPLOY / "zenoh").glob("*.json5"):
+        shutil.copy(example, deploy / "zenoh")
+    tls = deploy / "zenoh" / "router-tls.json5"
+    tls.write_text(tls.read_text().replace('"gateway-gw-1"', '"gateway-gw-9"'))
+    target = tmp_path / "secrets"
+    refused = subprocess.run(["bash", str(deploy / "secrets.sh"), str(target), "gw-1"],
+                             capture_output=True, text=True)  # fmt: skip
+    assert refused.returncode == 1 and not target.exists()
+    assert f"ACL ({tls}) has no user gateway-gw-1" in refused.stderr, refused.stderr
 
 
 def test_secrets_sh_takes_the_gateway_ids_the_tuner_takes():
