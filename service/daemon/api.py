@@ -40,7 +40,7 @@ from fastapi.responses import HTMLResponse, JSONResponse
 from prometheus_client import CONTENT_TYPE_LATEST
 
 from service.agent.model import Agent
-from service.daemon import console, forward
+from service.daemon import console, forward, hold_api
 from service.daemon.admin import Conflict, OwnedElsewhere, StoreUnavailable, UnknownLoop
 from service.daemon.deps import TunerDep, actor_of, admin_event, mutating
 from service.daemon.gate import (
@@ -413,6 +413,7 @@ def create_app(
     app.state.settings = settings
     app.include_router(loops)
     app.include_router(ops)
+    app.include_router(hold_api.router)  # the plant-wide hold at /hold
     app.include_router(console.router)  # the operator console at /ui (docs/console.md)
     forward.install(app)  # a cluster's members answer for each other's loops
     app.state.token_failures = Failures()  # (the console's login counts its own too)
