@@ -176,6 +176,8 @@ def _ingest(tb: LoopTable, s: int, sample: Sample, wall: float) -> bool:
         return False
     if reported.held(tb, s):  # gains reported outside the bounds
         return False
+    if tb.hold.held:  # the plant-wide hold: neither stepped nor quiet
+        return False
     # a ramp running, or a long one ended within the period (RAMP_LONG RL periods)
     running = tb.sp_since[s] < RAMP_GAP and tb.ramp_t[s] >= tb.ramp_from[s]
     ran = tb.ramp_t[s] - tb.ramp_from[s] if tb.ramp_from[s] > -math.inf else -math.inf

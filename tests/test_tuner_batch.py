@@ -15,6 +15,7 @@ from service.agent import untrained_agent
 from service.daemon.delivery import _within_size
 from service.engine import op_law, output_limit, rules
 from service.engine.config import LoopConfig
+from service.engine.plant_hold import RELEASED, PlantHold
 from service.engine.stepping import step
 from service.engine.table import _BOOL, _F64, _I64, _REC, LoopTable
 from service.wire.decode import classify, decode_batch, decode_columns, decode_objects, joined
@@ -30,6 +31,7 @@ from service.wire.protocol import (
 from tests.engine_reference import Rejected, reference_ingest
 from tests.tuner_support import loop_body
 
+HELD = PlantHold(held=True, since=0.0, by="api", reason="a test")
 N = 12
 
 
@@ -134,8 +136,12 @@ def test_vectorised_ingest_equals_the_scalar_reference(seed, rate, monkeypatch):
     slow, fast = _tables(rate)
     for k in range(60):
         wall = 100.0 + 0.5 * k
+        # the plant-wide hold for a while: no loop due, none counted quiet
+        slow.hold = fast.hold = HELD if 20 <= k < 30 else RELEASED
         items = _random_batch(rng, slow, 10.0 + 2.0 * k)
-        assert _slow(slow, items, wall) == _fast(fast, items, wall), k
+        due, rejected = _slow(slow, items, wall)
+        assert (due, rejected) == _fast(fast, items, wall), k
+        assert not due or slow.hold is RELEASED, k
         for name in (*_F64, *_I64, *_REC, *_BOOL, *output_limit.F64, *output_limit.BOOL,
                      *op_law.F64):  # fmt: skip
             np.testing.assert_array_equal(getattr(fast, name), getattr(slow, name), err_msg=name)

@@ -451,6 +451,29 @@ def test_the_state_reply_shows_the_cooldown_after_a_rollback_until_its_end(bus):
     assert send(k)["hold"] is None
 
 
+def test_the_state_reply_names_the_plant_wide_hold_and_nothing_goes_out_while_held(bus):
+    """Protocol revision 10: a held plant's loops read ``tuning`` with ``hold.guard``
+    ``plant``, its why naming who, when and why; no gains message while held, and the
+    steps go on after the release."""
+    tuner, gw = bus
+    register(tuner, excitation_periods=0.0)
+    tuner.set_hold("tank farm DCS change window", actor="ui:ops")
+    for k in range(60):  # a period ends at t = 55
+        gw.send("L", {"t": float(k), "sp": 1.0, "pv": 0.9})
+    state = state_after(gw, "L", 59.0)
+    assert state["status"] == "tuning" and state["seq"] == 0
+    assert state["hold"]["guard"] == "plant" and state["hold"]["since_t"] is None
+    assert "set by ui:ops at " in state["hold"]["why"]
+    assert "tank farm DCS change window" in state["hold"]["why"]
+    assert tuner.view("L").counters.steps == 0
+    tuner.release_hold(actor="ui:ops")
+    for k in range(60, 120):  # the next period ends at t = 110
+        gw.send("L", {"t": float(k), "sp": 1.0, "pv": 0.9})
+    update = gw.next_gains()
+    assert (update.t, update.seq) == (110.0, 1)
+    assert state_after(gw, "L", 119.0)["hold"] is None
+
+
 def test_a_loop_held_for_gains_out_of_bounds_that_oscillates_says_so_on_the_bus(bus):
     """An operator sets gains above kp_max that make the loop unstable: the status is
     ``gains_out_of_bounds`` and only ``oscillating`` tells the gateway the loop rings."""

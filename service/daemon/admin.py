@@ -15,6 +15,7 @@ from collections.abc import Callable
 
 import orjson
 
+from service.daemon.holds import PlantHolds
 from service.daemon.schemas import HistoryPage, LoopsPage
 from service.daemon.shards import shard_of
 from service.daemon.verdicts import SCAN, annotate
@@ -68,8 +69,9 @@ def freeze_survivors() -> None:
     gc.freeze()
 
 
-class LoopAdmin:
-    """Admin operations on the engine's table and the store (mixed into the Tuner)."""
+class LoopAdmin(PlantHolds):
+    """Admin operations on the engine's table and the store (mixed into the Tuner), the
+    plant-wide hold's among them."""
 
     # -- admin operations (the REST API) ----------------------------------------------
     def loop_ids(self) -> list[str]:

@@ -28,23 +28,21 @@ from fastapi import (
     APIRouter,
     BackgroundTasks,
     Body,
-    Depends,
     FastAPI,
     HTTPException,
     Path,
     Query,
     Request,
     Response,
-    status,
 )
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import HTMLResponse, JSONResponse
-from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from prometheus_client import CONTENT_TYPE_LATEST
 
 from service.agent.model import Agent
-from service.daemon import console, forward
+from service.daemon import console, forward, hold_api
 from service.daemon.admin import Conflict, OwnedElsewhere, StoreUnavailable, UnknownLoop
+from service.daemon.deps import TunerDep, actor_of, admin_event, mutating
 from service.daemon.gate import (
     BODY_BYTES,
     BULK_BODY_BYTES,
@@ -52,7 +50,6 @@ from service.daemon.gate import (
     Gate,
     is_loopback,
     registering_gateway,
-    token_matches,
 )
 from service.daemon.logs import StatusWatch, table_statuses
 from service.daemon.schemas import (
@@ -71,38 +68,7 @@ from service.engine.figures import Performance
 from service.engine.patch import LoopPatch
 
 log = logging.getLogger("pitune.api")
-_bearer = HTTPBearer(auto_error=False, description="PITUNE_API_TOKEN, when set")
-
-
-def get_settings(request: Request) -> Settings:
-    return request.app.state.settings
-
-
-def get_tuner(request: Request) -> Tuner:
-    return request.app.state.tuner
-
-
-def require_token(
-    request: Request,
-    settings: Annotated[Settings, Depends(get_settings)],
-    credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
-) -> None:
-    """Mutating calls need the bearer token when one is configured (or a gateway's, for
-    the registrations the gate let through with it: service.daemon.gate)."""
-    given = credentials.credentials if credentials else ""
-    if not token_matches(settings, given) and registering_gateway(request.scope) is None:
-        raise HTTPException(
-            status.HTTP_401_UNAUTHORIZED,
-            "missing or invalid bearer token",
-            headers={"WWW-Authenticate": "Bearer"},
-        )
-
-
-TunerDep = Annotated[Tuner, Depends(get_tuner)]
 loops = APIRouter(prefix="/loops", tags=["loops"])
-# Only changes need the token: reads stay open like /healthz and /metrics (the demo and
-# dashboards read loops without one); protect reads by binding to loopback or a proxy.
-mutating = [Depends(require_token)]
 MAX_OFFSET = 2**53
 """Largest page offset: the largest integer a JSON number carries exactly, far beyond
 any table; larger ones (which overflowed SQLite's 64-bit integers: 500) are a 422."""
@@ -117,8 +83,8 @@ Limit = Annotated[int, Query(ge=1, le=MAX_PAGE)]
 def register_loop(config: Registration, tuner: TunerDep, request: Request) -> LoopView:
     """Register a loop; it starts at its registered gains with a fresh agent state."""
     _own_gateway(request, [config])
-    view = tuner.register(config, actor=_actor(request))
-    _event(tuner, request, "registered", "loop %r registered (%s, kp=%.6g ki=%.6g, seq %d)",
+    view = tuner.register(config, actor=actor_of(request))
+    admin_event(tuner, request, "registered", "loop %r registered (%s, kp=%.6g ki=%.6g, seq %d)",
            config.id, view.mode, view.kp, view.ki, view.seq)  # fmt: skip
     return view
 
@@ -135,12 +101,12 @@ def register_loops(
     422 if the request names one twice."""
     _own_gateway(request, configs)
     try:
-        ids = tuner.register_many(configs, actor=_actor(request))
+        ids = tuner.register_many(configs, actor=actor_of(request))
     except ValueError as exc:
         raise HTTPException(422, str(exc)) from None
     after.add_task(release_memory)  # once the request's parsed configs are gone
     first = ", ".join(repr(i) for i in ids[:5]) + (", ..." if len(ids) > 5 else "")
-    _event(tuner, request, "registered", "%d loops registered in bulk: %s", len(ids), first)
+    admin_event(tuner, request, "registered", "%d loops registered in bulk: %s", len(ids), first)
     return BulkRegistered(registered=ids)
 
 
@@ -173,7 +139,7 @@ def patch_loop(loop_id: str, patch: LoopPatch, tuner: TunerDep, request: Request
         view = tuner.patch(loop_id, patch)
     except ValueError as exc:
         raise HTTPException(422, str(exc)) from None
-    _event(tuner, request, "patched", "loop %r config changed: %s",
+    admin_event(tuner, request, "patched", "loop %r config changed: %s",
            loop_id, patch.model_dump_json(exclude_unset=True))  # fmt: skip
     return view
 
@@ -183,7 +149,7 @@ def reset_loop(loop_id: str, tuner: TunerDep, request: Request) -> LoopView:
     """Zero hidden state and integral, and the registered gains published (a frozen loop:
     the agent state only, its gains are left alone)."""
     view = tuner.reset(loop_id)
-    _event(tuner, request, "reset", "loop %r reset (kp=%.6g ki=%.6g, seq %d)",
+    admin_event(tuner, request, "reset", "loop %r reset (kp=%.6g ki=%.6g, seq %d)",
            loop_id, view.kp, view.ki, view.seq)  # fmt: skip
     return view
 
@@ -191,8 +157,8 @@ def reset_loop(loop_id: str, tuner: TunerDep, request: Request) -> LoopView:
 @loops.delete("/{loop_id}", status_code=204, dependencies=mutating, responses={404: {}})
 def delete_loop(loop_id: str, tuner: TunerDep, request: Request) -> None:
     """Unregister a loop; its audit log is kept."""
-    tuner.delete(loop_id, actor=_actor(request))
-    _event(tuner, request, "deleted", "loop %r deleted", loop_id)
+    tuner.delete(loop_id, actor=actor_of(request))
+    admin_event(tuner, request, "deleted", "loop %r deleted", loop_id)
 
 
 @loops.get("/{loop_id}/history", responses={404: {}})
@@ -221,8 +187,8 @@ def identify_loop(loop_id: str, tuner: TunerDep, request: Request) -> LoopView:
     """Identify the loop's model again from its closed-loop data (drops the identified
     scaling; a loop registered without a hint stops tuning until it is confident; the
     models refuted on it, whose tuning rang, may be used again)."""
-    view = tuner.identify(loop_id, actor=_actor(request))
-    _event(tuner, request, "identify", "loop %r: identification restarted", loop_id)
+    view = tuner.identify(loop_id, actor=actor_of(request))
+    admin_event(tuner, request, "identify", "loop %r: identification restarted", loop_id)
     return view
 
 
@@ -239,7 +205,7 @@ def rollback_loop(loop_id: str, tuner: TunerDep, request: Request) -> LoopView:
     """Restore the last-good gains: published in auto, proposed in advisory (409 when the
     gains in force are the last-good ones, or the loop is shadow or frozen)."""
     view = tuner.rollback(loop_id)
-    _event(tuner, request, "rollback", "loop %r rolled back (kp=%.6g ki=%.6g, seq %d)",
+    admin_event(tuner, request, "rollback", "loop %r rolled back (kp=%.6g ki=%.6g, seq %d)",
            loop_id, view.kp, view.ki, view.seq)  # fmt: skip
     return view
 
@@ -256,7 +222,7 @@ def accept_proposal(loop_id: str, seq: ProposalSeq, tuner: TunerDep, request: Re
     gateway as an ``auto`` gains message (reason ``accepted``) and verified like any
     change. 409 if it is not the pending proposal."""
     view = tuner.accept(loop_id, seq)
-    _event(tuner, request, "accepted", "loop %r: proposal %d accepted (kp=%.6g ki=%.6g)",
+    admin_event(tuner, request, "accepted", "loop %r: proposal %d accepted (kp=%.6g ki=%.6g)",
            loop_id, seq, view.kp, view.ki)  # fmt: skip
     return view
 
@@ -269,7 +235,7 @@ def reject_proposal(loop_id: str, seq: ProposalSeq, tuner: TunerDep, request: Re
     """Reject an advisory loop's pending proposal: recorded; the agent's proposals start
     again from the gains in force after the cool-down."""
     view = tuner.reject(loop_id, seq)
-    _event(tuner, request, "rejected", "loop %r: proposal %d rejected", loop_id, seq)
+    admin_event(tuner, request, "rejected", "loop %r: proposal %d rejected", loop_id, seq)
     return view
 
 
@@ -280,22 +246,6 @@ def release_memory() -> None:
     gc.collect()
     with contextlib.suppress(OSError, AttributeError):
         ctypes.CDLL("libc.so.6").malloc_trim(0)
-
-
-def _actor(request: Request) -> str:
-    """Who makes a REST change, for the audit log: ``gateway:<id>`` with a gateway's token
-    (which may only register that gateway's loops), else ``api`` (the admin token, or an
-    open API)."""
-    gateway = registering_gateway(request.scope)
-    return "api" if gateway is None else f"gateway:{gateway}"
-
-
-def _event(tuner: Tuner, request: Request, kind: str, message: str, *args: object) -> None:
-    """One INFO line per admin change (rate-limited per kind), with the caller's address
-    and, for a gateway's token, the gateway."""
-    client = request.client.host if request.client else "?"
-    tuner.metrics.events.limiter.log(logging.INFO, kind, message + " via the API from %s as %s",
-                                     *args, client, _actor(request))  # fmt: skip
 
 
 ops = APIRouter(tags=["operations"])
@@ -463,6 +413,7 @@ def create_app(
     app.state.settings = settings
     app.include_router(loops)
     app.include_router(ops)
+    app.include_router(hold_api.router)  # the plant-wide hold at /hold
     app.include_router(console.router)  # the operator console at /ui (docs/console.md)
     forward.install(app)  # a cluster's members answer for each other's loops
     app.state.token_failures = Failures()  # (the console's login counts its own too)

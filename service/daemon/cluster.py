@@ -7,8 +7,8 @@ every ``lease_s / 5`` seconds (:data:`TICKS_PER_LEASE`):
 1. renews its member row and its leases (one transaction, the database's clock); a
    lease it no longer finds (another member took it) is lost: its loops are dropped
    (by the tick; the shard is not taken again before);
-2. reads the live members and the shards of the stored loops, and computes who wins
-   each shard (rendezvous hashing);
+2. reads the live members, the shards of the stored loops and the plant-wide hold
+   (:mod:`service.daemon.holds`), and computes who wins each shard (rendezvous hashing);
 3. releases the shards it holds but no longer wins (a member joined): it commits and
    snapshots their loops, drops them, and ends their leases at once, so the winner
    takes them on its next tick (a gap of one tick);
@@ -243,6 +243,7 @@ class Cluster(Suspects, Notifies):
             log.warning("leases lost (taken by another member): %s", ", ".join(sorted(lost)))
             self.tuner.drop_shards(lost, commit=False)
         live, stored, lasts = survey(self._conn, self.member)
+        self.tuner.sync_hold()  # a hold set or released through another member
         # this member is alive whatever its row says: a renewal that came late (a starved
         # process) let the row run out, and releasing every shard it holds only to take
         # them back a tick later cost a 75,000-loop member 40 s of loading; its leases

@@ -18,7 +18,7 @@ app (:class:`Gate`, an ASGI middleware), in order:
    API's too when it names one of the ``api_allowed_hosts`` set by name, with the scheme
    a trusted proxy forwarded (:func:`proxied_origin`). Only names set explicitly, never
    a ``*``, and only with a forwarded scheme: any other page's Origin is still refused.
-3. **Token**: a change to the REST API (``/loops``; the console has its sessions)
+3. **Token**: a change to the REST API (``/loops``, ``/hold``; the console has its sessions)
    without the bearer token, when one is set: refused, 401, before its body is read.
    A gateway's token (``api_gateway_tokens``) may only register loops: any other change
    with it is refused, 403, and the registration routes refuse loops of another gateway
@@ -142,6 +142,12 @@ def gateway_of(settings: Settings, given: str) -> str | None:
 
 REGISTRATION = frozenset({("POST", "/loops"), ("POST", "/loops/bulk")})
 """What a gateway's token may change."""
+REST = ("/loops", "/hold")
+"""The REST API's paths (and those below them) whose changes need the token."""
+
+
+def is_rest(path: str) -> bool:
+    return any(path == top or path.startswith(f"{top}/") for top in REST)
 
 
 def registering_gateway(scope: Scope) -> str | None:
@@ -254,7 +260,7 @@ class Gate:
         change = scope["method"] not in SAFE_METHODS
         if change and not same_origin(scope, headers, self.origin_hosts):
             return 403, "cross-origin request refused", None
-        rest = scope["path"] == "/loops" or scope["path"].startswith("/loops/")
+        rest = is_rest(scope["path"])
         if change and (rest or scope["path"] == "/ui/login"):
             locked = self.failures.lockout(client_of(scope))
             if locked is not None:

@@ -129,6 +129,12 @@ class Metrics:
             "Due RL steps skipped because the store failed to commit.",
             registry=r,
         )
+        self.hold = Gauge(
+            "pitune_hold",
+            "1 while the plant-wide hold is in force (the tuner changes no loop's gains of "
+            "its own: GET /hold says who set it, when and why), 0 otherwise.",
+            registry=r,
+        )
         self.loops_unloadable = Gauge(
             "pitune_loops_unloadable",
             "Stored loops not loaded at start-up: their config is invalid (see the log).",

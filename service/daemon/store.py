@@ -29,7 +29,7 @@ import logging
 import sqlite3
 import threading
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -206,12 +206,9 @@ class Store(Retention):
         member's lease) continues it (docs/deploy.md, Clocks).
         """
         wall_ms = int(wall * 1000)
-        with self.transaction() as db:
-            db.execute("INSERT INTO meta (key, value) VALUES ('epoch', '0') ON CONFLICT DO NOTHING")
-            (prev,) = db.execute(
-                f"SELECT value FROM meta WHERE key = 'epoch'{self.LOCK_ROW}"
-            ).fetchone()
-            prev = int(prev)
+
+        def advance(value_of: Callable[[str], str | None]) -> dict[str, str]:
+            prev = int(value_of("epoch"))
             epoch = max(prev + 1, wall_ms)
             if prev > wall_ms + EPOCH_AHEAD_MS and ahead != "keep":
                 hours = (prev - wall_ms) / 3.6e6
@@ -225,8 +222,44 @@ class Store(Retention):
                     prev, hours,
                 )  # fmt: skip
                 epoch = wall_ms
-            db.execute("UPDATE meta SET value = ? WHERE key = 'epoch'", (str(epoch),))
-        return epoch
+            return {"epoch": str(epoch)}
+
+        return int(self.change_meta("epoch", "0", advance)["epoch"])
+
+    # -- meta -------------------------------------------------------------------------
+    def meta(self, key: str) -> str | None:
+        """The value of the ``meta`` row ``key`` (None: no such row)."""
+        with self._lock:
+            rows = self._fetch("SELECT value FROM meta WHERE key = ?", (key,))
+        return rows[0][0] if rows else None
+
+    def change_meta(
+        self,
+        lock: str,
+        default: str,
+        change: Callable[[Callable[[str], str | None]], dict[str, str]],
+    ) -> dict[str, str]:
+        """Change ``meta`` rows in one durable commit, the row ``lock`` (created with the
+        value ``default`` if missing) locked first, so that the members of a cluster change
+        them one at a time: ``change(value_of)`` returns the rows to write (key -> value),
+        ``value_of(key)`` reads a row in the transaction (None: none). Returns the rows
+        written; ``change`` raising writes nothing."""
+        with self.transaction() as db:
+            insert = "INSERT INTO meta (key, value) VALUES (?, ?) ON CONFLICT DO NOTHING"
+            db.execute(insert, (lock, default))
+            db.execute(f"SELECT value FROM meta WHERE key = ?{self.LOCK_ROW}", (lock,))
+
+            def value_of(key: str) -> str | None:
+                row = db.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
+                return None if row is None else row[0]
+
+            rows = change(value_of)
+            db.executemany(
+                "INSERT INTO meta (key, value) VALUES (?, ?) "
+                "ON CONFLICT (key) DO UPDATE SET value = excluded.value",
+                list(rows.items()),
+            )
+        return rows
 
     def wall_now(self) -> float:
         """This host's wall clock (seconds since the epoch); a cluster's store has its

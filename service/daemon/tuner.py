@@ -241,6 +241,7 @@ class Tuner(StateQueries, Ownership, LoopAdmin, Upkeep, Delivery):
             self.store = Store(self.settings.db_path)
         wall = self.clock.wall()
         self.epoch = self.store.next_epoch(wall, "reset" if self.settings.epoch_reset else "refuse")
+        self.sync_hold()  # a hold set before this start: in force before any sample
         if self.cluster is None:
             with self.table.lock:
                 self._restore_many(self.store.load(), wall)

@@ -43,6 +43,7 @@ from service.engine.audit import AuditRow
 from service.engine.config import LoopConfig, LoopView
 from service.engine.figures import Refused
 from service.engine.modes import PUBLISHING
+from service.engine.plant_hold import PlantHold
 from service.engine.refuted import remembered
 from service.engine.saved import Saved
 from service.engine.site import SiteDefaults
@@ -199,6 +200,21 @@ class TuningEngine:
         """Reject an advisory loop's pending proposal ``seq`` (see :func:`proposals.reject`)."""
         with self.lock:
             proposals.reject(self.table, self.table.slot(loop_id), seq, _now(wall), actor)
+
+    def set_hold(self, hold: PlantHold) -> None:
+        """Hold the plant, or release it (:data:`RELEASED <service.engine.plant_hold.
+        RELEASED>`): while held the tuner changes no loop's gains of its own
+        (:mod:`service.engine.plant_hold`). The loops due and not yet stepped are not
+        stepped: their period ended as the hold began."""
+        with self.lock:
+            self.table.hold = hold
+            if hold.held:
+                self._due.clear()
+
+    @property
+    def hold(self) -> PlantHold:
+        """The plant-wide hold in force (``held`` False: none)."""
+        return self.table.hold
 
     def performance(self, loop_id: str):
         """The loop's figures, their history and its verification state."""

@@ -37,7 +37,8 @@ registered without a hint has no measured figure for its old gains (the monitor'
 needs a model): its first response after the change becomes the baseline, and the
 model's predicted IAE before and after (:mod:`service.engine.predict`) is in the audit
 row. Shadow and frozen loops get none (nothing may be published for them); their agent
-starts from the gains in force.
+starts from the gains in force, and so do all loops while the plant is held
+(:mod:`service.engine.plant_hold`).
 """
 
 from __future__ import annotations
@@ -115,7 +116,8 @@ def apply(tb, s: int, m, wall: float, why: str) -> None:
     the loop's warm start (:func:`flush`), shadow loops included (their agent steps
     too)."""
     mode = int(tb.mode[s])
-    if mode == FROZEN or m.integrating or not m.k > 0:
+    # nothing of the tuner's own while the plant is held (plant_hold.py), as when frozen
+    if mode == FROZEN or tb.hold.held or m.integrating or not m.k > 0:
         return
     if why in WARMED:  # from the gains this decision leaves in force
         tb.warming.append((s, tb.ids[s], m))

@@ -16,7 +16,8 @@ for an RL step (:mod:`service.engine.stepping` then steps it).
   Nor is the error integrated while in manual or saturated (training never saw an
   integral wound up by an error nobody controls), and the decimation window restarts
   at the first sample back in auto, so a step sees a full RL period of control.
-* ``frozen`` loops are never stepped, nor loops without a scaling (identifying: their
+* ``frozen`` loops are never stepped, nor any loop while the plant is held
+  (:mod:`service.engine.plant_hold`), nor loops without a scaling (identifying: their
   RL period is unknown, so they never fall due, nor on a window left from before
   identification restarted) or paused as out of the agent's envelope.
 * Identification (:mod:`service.engine.watch`): samples with sp and pv are recorded in
@@ -208,6 +209,7 @@ def ingest(
     due_ok &= tb.scaled[slots]  # (a window from before a restart of identification)
     due_ok &= ~verify.paused(tb, slots, t)  # the loop oscillates: neither stepped nor quiet
     due_ok &= ~cols["held"]  # gains reported outside the bounds: not ours to step
+    due_ok &= not tb.hold.held  # the plant-wide hold (plant_hold.py): not stepped nor quiet
     ramp = ramp_gated(t, period, tb.ramp_t[slots], tb.ramp_from[slots], tb.sp_since[slots])
     gated = due_ok & (tb.gate_closed(slots, t) | ramp)
     tb.n_quiet[slots[gated]] += 1

@@ -41,6 +41,7 @@ from service.engine.config import Configs, LoopConfig, LoopView
 from service.engine.figures import Refused
 from service.engine.id_state import IdState
 from service.engine.modes import _CODE, _MODES, AUTO, FROZEN, SHADOW
+from service.engine.plant_hold import RELEASED
 from service.engine.saved import Saved, restore_runtimes, runtimes_of
 from service.engine.site import SiteDefaults
 from service.engine.status import STATUSES
@@ -167,6 +168,7 @@ class LoopTable:
         """Where the model check's rotation over the loops to check starts
         (:data:`service.engine.model_check.PER_PASS`)."""
         self.ident: list[IdState | None] = []
+        self.hold = RELEASED  # the plant-wide hold (service.engine.plant_hold)
         self.recorder = recorder.Recorder()
         self._allocate(capacity)
 

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from service.engine import box, monitor, oscillation, status, verify
+from service.engine import box, monitor, oscillation, plant_hold, status, verify
 from service.engine.config import Counters, LoopConfig, LoopView
 from service.engine.fences import COOLED
 from service.engine.figures import (
@@ -121,7 +121,7 @@ def raw_view(tb: LoopTable, s: int, config: bytes, wall: float) -> RawView:
     )
 
 
-HOLDS = (None, "cooldown", "model_check")
+HOLDS = (None, "cooldown", "model_check", "plant")
 """A loop's hold (:class:`Hold`) by its code from :func:`holds` (0: none)."""
 
 
@@ -133,14 +133,18 @@ def cooling(tb: LoopTable, s):
 
 def holds(tb: LoopTable, s):
     """Each loop's hold as a code into :data:`HOLDS` (``s`` a slot or slots; vectorised
-    for the console's overview): the cool-down first (it holds every step), then a run
-    of steps the model check held (``mc_since``, set by stepping.step)."""
-    return np.where(cooling(tb, s), 1, np.where(np.isnan(tb.mc_since[s]), 0, 2))
+    for the console's overview): the plant-wide hold first (it holds every loop), then
+    the cool-down (it holds every step), then a run of steps the model check held
+    (``mc_since``, set by stepping.step)."""
+    code = np.where(cooling(tb, s), 1, np.where(np.isnan(tb.mc_since[s]), 0, 2))
+    return np.where(tb.hold.held, 3, code)
 
 
 def hold(tb: LoopTable, s: int) -> Hold | None:
     """What holds the agent's steps of slot ``s`` that its status may not say."""
     guard = HOLDS[int(holds(tb, s))]
+    if guard == "plant":
+        return plant_hold.loop_hold(tb.hold)
     if guard == "cooldown":
         until = float(tb.cool_until[s])
         cause = COOLED.get(float(tb.cool_why[s]))

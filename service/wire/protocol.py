@@ -41,7 +41,7 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 SCHEMA_VERSION = 1
-SCHEMA_REVISION = 9
+SCHEMA_REVISION = 10
 """Additive revisions within :data:`SCHEMA_VERSION` (optional fields and new enum values
 only, ``v`` unchanged). What each revision added: the table in docs/protocol.md,
 Versioning (tests/test_tuner_protocol.py holds its title and table to this number)."""
@@ -321,12 +321,14 @@ class Hold(BaseModel):
 
     model_config = _WIRE
 
-    guard: Literal["cooldown", "model_check"] = Field(
+    guard: Literal["cooldown", "model_check", "plant"] = Field(
         description="'cooldown': the agent is not stepped until until_t, after a change of "
         "the tuner's own (a rollback, a rejected proposal, a model's tuning until its "
         "verdict); 'model_check': the model check has held the agent's steps since since_t "
         "(the identified model predicted them worse than guard.model_check times the "
-        "model's tuning, and worse than the gains in force)."
+        "model's tuning, and worse than the gains in force); 'plant': the plant-wide hold "
+        "(revision 10): the tuner changes no loop's gains of its own until it is released, "
+        "why says who set it, when (UTC) and why."
     )
     since_t: float | None = Field(
         None, description="Plant time of the first step of the run the model check held."
