@@ -177,14 +177,12 @@ def held_scan(loop: SimulatedLoop, op: float) -> Scan:
     """A scan in manual: the output holds at ``op`` and the PI tracks it (bumpless back)."""
     elapsed = loop.scans * loop.dt
     sp = loop.sp.at(elapsed)
-    pv = loop._measure()
-    if loop.settings.noise:
-        pv += float(loop.rng.uniform(-loop.settings.noise, loop.settings.noise))
+    pv_true, pv = loop.read()
     loop.pi.initialise(np.array([op]), np.array([loop.error(sp, pv)]))
     target = float(loop.target.output()[0])
     kp, ki = loop.gains
     loop._advance(op, loop.load.at(elapsed))
     loop.target.step(np.array([sp]))
     loop.scans += 1
-    return Scan(t=loop.t0 + elapsed, sp=sp, pv=pv, target=target, op=op, kp=kp, ki=ki,
-                saturated=False)  # fmt: skip
+    return Scan(t=loop.t0 + elapsed, sp=sp, pv=pv, pv_true=pv_true, target=target, op=op, kp=kp,
+                ki=ki, saturated=False)  # fmt: skip

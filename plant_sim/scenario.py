@@ -80,6 +80,9 @@ class Scan:
     t: float
     sp: float
     pv: float
+    pv_true: float
+    """The PV without its measurement noise: the plant's output, which the target
+    trajectory is for (``pv`` is what the PI and the tuner read)."""
     target: float
     op: float
     kp: float
@@ -179,13 +182,18 @@ class SimulatedLoop:
         """What the PI acts on: sp - pv, or pv - sp for a direct-acting one."""
         return sp - pv if self.settings.action == "reverse" else pv - sp
 
+    def read(self) -> tuple[float, float]:
+        """The PV now: without the measurement noise, and as measured (with it)."""
+        pv = self._measure()
+        if not self.settings.noise:
+            return pv, pv
+        return pv, pv + float(self.rng.uniform(-self.settings.noise, self.settings.noise))
+
     def scan(self) -> Scan:
         """Run one scan: measure, control, advance the plant and target by ``dt``."""
         elapsed = self.scans * self.dt
         sp = self.sp.at(elapsed)
-        pv = self._measure()
-        if self.settings.noise:
-            pv += float(self.rng.uniform(-self.settings.noise, self.settings.noise))
+        pv_true, pv = self.read()
         op = float(self.pi.step(np.array([self.error(sp, pv)]))[0])
         target = float(self.target.output()[0])
         kp, ki = self.gains
@@ -196,6 +204,7 @@ class SimulatedLoop:
             t=self.t0 + elapsed,
             sp=sp,
             pv=pv,
+            pv_true=pv_true,
             target=target,
             op=op,
             kp=kp,

@@ -1,10 +1,14 @@
 """Trajectory logs of simulated loops: CSV on disk, tracking metrics, and the PNG plot.
 
-A log is one CSV file per loop with the header ``t,sp,pv,target,kp,ki,op`` (seconds and
-the loop's engineering units), one row per DCS scan. :func:`tracking_mse` is the number
-the demo and the end-to-end tests compare: the mean squared deviation of the PV from
-the target trajectory over the last few setpoint changes, i.e. once the tuner has had
-time to act.
+A log is one CSV file per loop with the header ``t,sp,pv,pv_true,target,kp,ki,op``
+(seconds and the loop's engineering units; ``pv`` as measured, ``pv_true`` without the
+measurement noise), one row per DCS scan. :func:`tracking_mse` is the number the demo
+and the end-to-end tests compare: the mean squared deviation of the true PV from the
+target trajectory over the last few setpoint changes, i.e. once the tuner has had time
+to act. The true PV, as the paper's tracking error and ``pitune evaluate``'s two-tank
+figures: the measured one adds the noise's variance (N^2/3 for noise +-N), which no
+tuning removes (at +-1 cm 0.33 cm^2: 13 times the tuned loop's 0.025 cm^2 in
+``pitune demo --noise 1``).
 """
 
 from __future__ import annotations
@@ -19,7 +23,7 @@ import numpy as np
 
 from plant_sim.scenario import Scan
 
-COLUMNS = ("t", "sp", "pv", "target", "kp", "ki", "op")
+COLUMNS = ("t", "sp", "pv", "pv_true", "target", "kp", "ki", "op")
 
 
 class TrajectoryWriter:
@@ -52,6 +56,7 @@ class Trajectory:
     t: np.ndarray
     sp: np.ndarray
     pv: np.ndarray
+    pv_true: np.ndarray
     target: np.ndarray
     kp: np.ndarray
     ki: np.ndarray
@@ -75,10 +80,13 @@ class Trajectory:
             )
         return self.t >= changes[-last_changes]
 
+    def tracking_error(self) -> np.ndarray:
+        """The true PV's deviation from the target, per scan."""
+        return self.pv_true - self.target
+
     def tracking_mse(self, last_changes: int = 2) -> float:
-        """Mean squared PV deviation from the target over the last setpoint changes."""
-        mask = self.window(last_changes)
-        return float(np.mean((self.pv[mask] - self.target[mask]) ** 2))
+        """Mean squared :meth:`tracking_error` over the last setpoint changes."""
+        return float(np.mean(self.tracking_error()[self.window(last_changes)] ** 2))
 
     def __len__(self) -> int:
         return len(self.t)

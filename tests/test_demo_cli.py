@@ -4,6 +4,7 @@ temporary folder (not the checkout, where the demo's children run)."""
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import json
 import os
@@ -12,9 +13,13 @@ import signal
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
+from plant_sim.config import build_loops
+from plant_sim.trajectory import TrajectoryWriter, read_log
 from service.agent import DEFAULT_WEIGHTS
+from service.demo import LOOP, LOOP_ID, MSE_CHANGES, Demo
 from service.procs import ROOT, clean_env
 
 pytestmark = pytest.mark.timeout(180)
@@ -76,3 +81,31 @@ def test_ctrl_c_says_interrupted_and_exits_130(tmp_path):
         with contextlib.suppress(ProcessLookupError):
             os.killpg(proc.pid, signal.SIGKILL)
         proc.wait()
+
+
+def test_the_reported_mse_is_of_the_level_without_its_noise_and_says_so(tmp_path, capsys):
+    """The summary's MSE of a noisy run is the paper's (and ``pitune evaluate``'s): the
+    level without its measurement noise against the target; on the measured level it
+    added the noise's variance (the untuned hour of ``pitune demo --noise 1``: 16.2 cm^2
+    instead of 15.8)."""
+    args = argparse.Namespace(out=tmp_path / "out", minutes=21.0, speed=60.0, noise=1.0, seed=0,
+                              no_hint=False)  # fmt: skip
+    run = Demo(args, tmp_path)
+    (loop,) = build_loops((LOOP,), run.sim, {})
+    writer = TrajectoryWriter(tmp_path / "log" / f"{LOOP_ID}.csv")  # as the plant logs it
+    for _ in range(round(run.duration_s)):
+        writer.write(loop.scan())
+    writer.close()
+    kp, ki = loop.gains
+    view = {"config": {"kp": kp, "ki": ki}, "kp": kp, "ki": ki, "seq": 0, "status": "tuning"}
+    summary = run.report(view, wall_s=1.0)
+    logged = read_log(args.out / f"{LOOP_ID}.csv")
+    window = logged.window(MSE_CHANGES)
+    true = np.mean((logged.pv_true - logged.target)[window] ** 2)
+    measured = np.mean((logged.pv - logged.target)[window] ** 2)
+    assert summary["mse_tuned_cm2"] == summary["mse_untuned_cm2"] == pytest.approx(true)
+    assert measured > true + 0.3  # 0.41 more here: the noise's variance and its sampling
+    text = (args.out / "summary.md").read_text()
+    assert "the level without its measurement noise vs the target" in " ".join(text.split())
+    assert "adds the noise's variance, 0.333 cm^2, to both" in text
+    assert text in capsys.readouterr().out

@@ -12,7 +12,7 @@ import zenoh
 from plant_sim.config import LoopSpec, PlantConfig, Simulation, untuned_baseline
 from plant_sim.process import plant_argv, plant_config
 from plant_sim.scenario import LoopSettings, Square, TankLoop
-from plant_sim.trajectory import Trajectory, TrajectoryWriter, read_log
+from plant_sim.trajectory import COLUMNS, Trajectory, TrajectoryWriter, read_log
 from service.cli import build_parser, main
 from service.engine.config import LoopConfig
 from service.procs import Proc, pitune
@@ -125,6 +125,18 @@ def test_noise_is_seeded_and_bounded():
     assert abs(a.pv[0] - clean.pv[0]) <= 1.0
 
 
+def test_the_tracking_mse_of_a_noisy_run_is_of_the_level_without_the_noise():
+    """The paper's tracking error (and ``pitune evaluate``'s): the measured level's MSE
+    adds the noise's variance, 1/3 cm^2 at +-1 cm, 30 times the SIMC loop's error."""
+    traj = run(tank(*SIMC_TANK, noise=1.0), 3600)
+    noise = traj.pv - traj.pv_true
+    assert np.abs(noise).max() <= 1.0 and np.var(noise) == pytest.approx(1 / 3, rel=0.05)
+    clean = run(tank(*SIMC_TANK), 3600).tracking_mse(2)
+    assert traj.tracking_mse(2) == pytest.approx(clean, rel=0.25)  # the noise's PI moves
+    measured = np.mean((traj.pv - traj.target)[traj.window(2)] ** 2)
+    assert measured - traj.tracking_mse(2) == pytest.approx(1 / 3, rel=0.1)
+
+
 def test_plant_clock_starts_at_t0():
     traj = run(tank(*SIMC_TANK, t0=5000.0), 3)
     assert list(traj.t) == [5000.0, 5001.0, 5002.0]
@@ -134,7 +146,8 @@ def test_plant_clock_starts_at_t0():
 def test_tracking_mse_uses_the_last_setpoint_changes():
     t = np.arange(6.0)
     sp = np.array([1, 1, 2, 2, 1, 1.0])
-    traj = Trajectory(t, sp, pv=np.array([0, 0, 0, 0, 3, 5.0]), target=np.zeros(6), kp=t, ki=t,
+    true = np.array([0, 0, 0, 0, 3, 5.0])
+    traj = Trajectory(t, sp, pv=true + 0.5, pv_true=true, target=np.zeros(6), kp=t, ki=t,
                       op=t)  # fmt: skip
     assert list(traj.setpoint_changes()) == [2.0, 4.0]
     assert traj.tracking_mse(1) == pytest.approx((9 + 25) / 2)
@@ -242,7 +255,7 @@ def test_untuned_baseline_is_the_plant_run_without_a_tuner(tmp_path):
     config = parsed(*argv)
     baseline = untuned_baseline(config.loops, config.sim)["tank1"]
     assert len(logged) == len(baseline) == 1300
-    for column in ("t", "sp", "pv", "target", "kp", "ki", "op"):
+    for column in COLUMNS:
         np.testing.assert_allclose(getattr(logged, column), getattr(baseline, column), rtol=1e-5)
 
 

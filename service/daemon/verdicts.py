@@ -6,7 +6,8 @@ The engine writes a verdict row when it judges changes (reason ``verified``,
 an adoption, an accepted proposal, a model's first tuning) takes the verdict of the
 oldest newer verdict row whose seqs cover its seq, else ``pending`` past the loop's
 judged seq (an adoption shares the seq of the update it replaced: the update's verdict
-row comes between them).
+row comes between them). An agent step the model check held changed nothing (its
+reason says ``verdict=none``; it keeps the seq of the change before it): no verdict.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from __future__ import annotations
 import orjson
 
 from service.daemon.schemas import AuditEntry
+from service.engine.stepping import NO_VERDICT
 
 CHANGES = frozenset({"agent", "reset", "adopted", "accepted", "model"})
 """Audit reasons of a change of the gains in force (an advisory or shadow 'agent' or
@@ -21,6 +23,8 @@ CHANGES = frozenset({"agent", "reset", "adopted", "accepted", "model"})
 model, service/engine/first_tuning.py)."""
 PROPOSALS = frozenset({"agent", "model"})
 """Change reasons that are proposals outside ``auto``."""
+HELD = f"verdict={NO_VERDICT}"
+"""The word of a held agent step's reason (:func:`service.engine.stepping._why`)."""
 SCAN = 5000
 """Newest rows read to find the verdict rows of a page (a page deeper in the history
 shows the verdicts recorded within the rows it reads)."""
@@ -37,6 +41,8 @@ def annotate(items: list[AuditEntry], judged_seq: int | None) -> None:
             covers.append((first, last, detail.get("verdict", "verified")))
             continue
         if item.reason not in CHANGES or (item.reason in PROPOSALS and item.mode != "auto"):
+            continue
+        if item.reason == "agent" and HELD in item.detail.split():
             continue
         # the first verdict after the change that covers its seq (an operator's change
         # shares the seq of the update it replaced, judged before it)

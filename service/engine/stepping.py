@@ -132,9 +132,10 @@ def step(tb: LoopTable, slots: np.ndarray, wall: float) -> StepResult:
     )
     limited = np.flatnonzero(~np.isclose(proposed, new, rtol=GAIN_RTOL, atol=0.0).all(axis=1))
     # the audit row adds the figures the change was made on: the last response's IAE and
-    # the last-good gains' (its verdict row will add the figure after)
+    # the last-good gains' (its verdict row will add the figure after); it drops
+    # "verdict=pending", which a stored row would claim after its verdict came
     details = [
-        f"{why} iae={f:.4g} good_iae={g:.4g}"
+        f"{why.removesuffix(PENDING)} iae={f:.4g} good_iae={g:.4g}"
         for why, f, g in zip(result.why, tb.f_iae[slots].tolist(),
                              verify.reference(tb, slots).tolist(),
                              strict=True)
@@ -181,7 +182,7 @@ def _why(tb, slots, mode, old, proposed, fenced, bounded, new, cut, hold) -> lis
         "none",
     ).tolist()
     basis = ["model" if tb.ident[s].scaling is not None else "hint" for s in slots.tolist()]
-    verdicts = np.where(hold, "none", [_VERDICT.get(c, "none") for c in mode.tolist()])
+    verdicts = np.where(hold, NO_VERDICT, [_VERDICT.get(c, NO_VERDICT) for c in mode.tolist()])
     return [
         f"reason=agent basis={b} dkp={p[0]:+.1f}% dki={p[1]:+.1f}% guard={g} verdict={v}"
         for b, p, g, v in zip(basis, pct.tolist(), guards, verdicts.tolist(), strict=True)
@@ -189,6 +190,11 @@ def _why(tb, slots, mode, old, proposed, fenced, bounded, new, cut, hold) -> lis
 
 
 _VERDICT = {AUTO: "pending", ADVISORY: "proposal", SHADOW: "shadow"}
+NO_VERDICT = "none"
+"""The verdict of a step none will judge: one the model check held changed nothing."""
+PENDING = f" verdict={_VERDICT[AUTO]}"
+"""The end of an ``auto`` step's reason (:func:`_why`): its verdict is to come, in a
+verdict row of its own (the history's ``verdict``, :mod:`service.daemon.verdicts`)."""
 
 
 def _observe(tb: LoopTable, slots: np.ndarray) -> np.ndarray:
