@@ -50,6 +50,7 @@ from service.daemon.console.tuner_view import Rates, tuner_figures
 from service.daemon.gate import LOGIN_BODY_BYTES, token_matches
 from service.daemon.recent import REASONS
 from service.engine import status, steady, verify, views
+from service.engine.plant_hold import REASON_CHARS
 from service.engine.status import STATUSES
 from service.wire.protocol import Mode
 
@@ -93,6 +94,8 @@ def _page(request: Request, title: str, body: str, script: str, **values: str) -
         who=who,
         csrf=html.escape(session.csrf if session else ""),
         logged_in="1" if session else "",
+        # the plant-wide hold's banner: a loop page's own stream carries it
+        hold_stream="" if script == "loop.js" else "1",
         open_api="1" if settings.api_token is None else "",
         scripts="".join(
             f"<script src='/ui/static/{html.escape(name)}'></script>"
@@ -140,7 +143,7 @@ def loop_page(loop_id: str, request: Request) -> HTMLResponse:
 
 @router.get("/tuner", response_class=HTMLResponse)
 def tuner_page(request: Request) -> HTMLResponse:
-    return _page(request, "Tuner", "tuner.html", "tuner.js")
+    return _page(request, "Tuner", "tuner.html", "tuner.js", reason_chars=str(REASON_CHARS))
 
 
 LOGIN_ERRORS = {"wrong_token": "Wrong token."}

@@ -302,6 +302,7 @@ def take(out: Path, seconds: float, loops: int, speed: float) -> list[Path]:
                     page.screenshot(path=str(shots[1]), full_page=True)
                     page.goto(f"{daemon.url}/ui/tuner")
                     page.wait_for_selector("body[data-loaded='1']")
+                    page.wait_for_selector("#hold-history tbody tr")
                     page.wait_for_function(
                         "/\\d \\/s/.test(document.getElementById('t-traffic').innerText)"
                     )

@@ -1,6 +1,7 @@
-"""A loop page's live data: its fast-changing figures and the recent samples and gains,
-once (``/recent``) or as server-sent events (``/stream``). Reads are open like the REST
-GETs; the engine's lock is held only to copy one row of the table."""
+"""The console's live data as server-sent events: a loop page's fast-changing figures,
+recent samples and gains and the plant-wide hold, once (``/recent``) or as a stream
+(``/stream``); every other page's plant-wide hold (``/api/hold/stream``). Reads are open
+like the REST GETs; the engine's lock is held only to copy one row of the table."""
 
 from __future__ import annotations
 
@@ -30,9 +31,8 @@ left off: the server's graceful shutdown, which waits for open responses, is nev
 up longer than this by an open console."""
 
 
-def _known(tuner, loop_id: str) -> None:
-    if loop_id not in tuner.table.slot_of:
-        raise HTTPException(404, f"unknown loop {loop_id!r}")
+def _unknown(loop_id: str) -> HTTPException:
+    return HTTPException(404, f"unknown loop {loop_id!r}")
 
 
 def _live(tuner, loop_id: str) -> dict | None:
@@ -63,59 +63,58 @@ def _live(tuner, loop_id: str) -> dict | None:
         }
 
 
-@router.get("/api/loops/{loop_id}/recent")
-def looprecent_of(loop_id: str, request: Request, n: Count = 0, gn: Count = 0) -> JSONResponse:
-    """The loop's recent samples and gains from the ring (after ``n`` / ``gn``)."""
-    tuner = tuner_of(request)
-    _known(tuner, loop_id)
-    recent = recent_of(tuner)
-    data = recent.since(loop_id, n, gn) if recent is not None else None
-    return JSONResponse({"recent": data, "live": _live(tuner, loop_id)})
+def _plant(tuner) -> dict:
+    """The plant-wide hold (``GET /hold``): every page's banner."""
+    return tuner.hold.model_dump()
 
 
 def _tick(tuner, loop_id: str, n: int, gn: int) -> dict | None:
+    """A loop page's data: its live figures, its samples and gains from the ring (after
+    ``n`` / ``gn``), the plant-wide hold; None if the loop is gone."""
     live = _live(tuner, loop_id)
     if live is None:
         return None
     recent = recent_of(tuner)
     data = recent.since(loop_id, n, gn) if recent is not None else None
-    return {"live": live, "recent": data}
+    return {"live": live, "recent": data, "plant": _plant(tuner)}
 
 
-@router.get("/api/loops/{loop_id}/stream")
-async def loop_stream(loop_id: str, request: Request, n: Count = 0, gn: Count = 0):
-    """Server-sent events: the loop's new samples and gains, and its live figures, at
-    most every STREAM_TICK_S while something changed (a comment every 15 s otherwise)."""
-    tuner = tuner_of(request)
-    _known(tuner, loop_id)
-    last_id = request.headers.get("last-event-id", "")
-    if re.fullmatch(r"\d+\.\d+", last_id):  # a reconnect: go on where it left off
-        n, gn = (int(x) for x in last_id.split("."))
+@router.get("/api/loops/{loop_id}/recent")
+def looprecent_of(loop_id: str, request: Request, n: Count = 0, gn: Count = 0) -> JSONResponse:
+    """The loop page's data once (:func:`_tick`)."""
+    data = _tick(tuner_of(request), loop_id, n, gn)
+    if data is None:
+        raise _unknown(loop_id)
+    return JSONResponse(data)
+
+
+def _events(request: Request, tuner, read, event_id=lambda: None) -> StreamingResponse:
+    """Server-sent events of ``read()`` (called in a thread every STREAM_TICK_S): it
+    answers None when its subject is gone (event ``gone``), else ``(seen, data)``:
+    ``data`` is sent, with the id ``event_id()`` (None: none), when ``seen`` differs
+    from the last sent (a comment every 15 s otherwise). The stream ends after
+    STREAM_MAX_S (event ``bye``, with the id) and the page opens the next."""
 
     async def events():
-        nonlocal n, gn
         end = time.monotonic() + STREAM_MAX_S
         quiet_since = time.monotonic()
         previous = None
         yield "retry: 2000\n\n"
         while True:
             if time.monotonic() >= end or not tuner.alive:
-                yield f"id: {n}.{gn}\nevent: bye\ndata: {{}}\n\n"
+                yield f"{_id_line(event_id())}event: bye\ndata: {{}}\n\n"
                 return
             if await request.is_disconnected():
                 return
-            data = await asyncio.to_thread(_tick, tuner, loop_id, n, gn)
-            if data is None:
+            read_now = await asyncio.to_thread(read)
+            if read_now is None:
                 yield "event: gone\ndata: {}\n\n"
                 return
-            rec = data["recent"]
-            fresh = rec is not None and (rec["n"] != n or rec["gn"] != gn)
-            if fresh or data["live"] != previous:
-                if rec is not None:
-                    n, gn = rec["n"], rec["gn"]
-                previous = data["live"]
+            seen, data = read_now
+            if seen != previous:
+                previous = seen
                 quiet_since = time.monotonic()
-                yield f"id: {n}.{gn}\ndata: {json.dumps(data, allow_nan=False)}\n\n"
+                yield f"{_id_line(event_id())}data: {json.dumps(data, allow_nan=False)}\n\n"
             elif time.monotonic() - quiet_since > 15.0:
                 quiet_since = time.monotonic()
                 yield ": keep-alive\n\n"
@@ -123,3 +122,43 @@ async def loop_stream(loop_id: str, request: Request, n: Count = 0, gn: Count = 
 
     headers = {"Cache-Control": "no-store", "X-Accel-Buffering": "no"}
     return StreamingResponse(events(), media_type="text/event-stream", headers=headers)
+
+
+def _id_line(event_id: str | None) -> str:
+    return "" if event_id is None else f"id: {event_id}\n"
+
+
+@router.get("/api/loops/{loop_id}/stream")
+async def loop_stream(loop_id: str, request: Request, n: Count = 0, gn: Count = 0):
+    """Server-sent events: the loop's new samples and gains, its live figures and the
+    plant-wide hold, at most every STREAM_TICK_S while something changed."""
+    tuner = tuner_of(request)
+    if loop_id not in tuner.table.slot_of:
+        raise _unknown(loop_id)
+    last_id = request.headers.get("last-event-id", "")
+    if re.fullmatch(r"\d+\.\d+", last_id):  # a reconnect: go on where it left off
+        n, gn = (int(x) for x in last_id.split("."))
+
+    def read():
+        nonlocal n, gn
+        data = _tick(tuner, loop_id, n, gn)
+        if data is None:
+            return None
+        if (rec := data["recent"]) is not None:  # new samples or gains: new n, gn, sent
+            n, gn = rec["n"], rec["gn"]
+        return (n, gn, data["live"], data["plant"]), data
+
+    return _events(request, tuner, read, lambda: f"{n}.{gn}")
+
+
+@router.get("/api/hold/stream")
+async def hold_stream(request: Request):
+    """Server-sent events: the plant-wide hold, at once and at each change (every page
+    but a loop's, whose own stream carries it, shows it in its banner)."""
+    tuner = tuner_of(request)
+
+    def read():
+        plant = _plant(tuner)
+        return plant, plant
+
+    return _events(request, tuner, read)

@@ -59,5 +59,39 @@ const pitune = (() => {
     }
     return detail === undefined ? null : detail;
   }
-  return {csrf, loggedIn, esc, num, ticks, int, ago, when, toast, getJSON, act};
+  // The plant-wide hold: the banner on every page, live. Pages follow the hold's stream;
+  // a loop page's own stream carries the hold (loop.js calls showHold). A page's own
+  // parts take each change with onHold.
+  let plant = null;
+  const holdWatchers = [];
+  function showHold(h) {
+    if (plant && JSON.stringify(h) === JSON.stringify(plant)) return;
+    plant = h;
+    const banner = document.getElementById("hold-banner");
+    banner.hidden = !h.held;
+    banner.dataset.by = h.held ? h.by : "";
+    banner.replaceChildren();  // text nodes only: a reason is never markup
+    if (h.held) {
+      const title = document.createElement("strong");
+      title.textContent = "Plant-wide hold: all tuning held";
+      const reason = document.createElement("span");
+      reason.id = "hold-banner-reason";
+      reason.textContent = h.reason;
+      const tuner = document.createElement("a");
+      tuner.href = "/ui/tuner";
+      tuner.textContent = "release it on the tuner page";
+      banner.append(title, ` since ${when(h.since)} UTC, set by ${h.by}: `, reason,
+        ". No loop's gains change while held (rollbacks of earlier changes and operators' own actions excepted); ",
+        tuner, ".");
+    }
+    for (const fn of holdWatchers) fn(h);
+  }
+  const onHold = (fn) => { holdWatchers.push(fn); if (plant) fn(plant); };
+  function followHold() {
+    const es = new EventSource("/ui/api/hold/stream");
+    es.onmessage = (e) => showHold(JSON.parse(e.data));
+    es.addEventListener("bye", () => { es.close(); followHold(); });  // (as a loop page's)
+  }
+  if (document.body.dataset.holdStream === "1") followHold();
+  return {csrf, loggedIn, esc, num, ticks, int, ago, when, toast, getJSON, act, showHold, onHold, followHold};
 })();

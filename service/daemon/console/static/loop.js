@@ -119,7 +119,8 @@
     const h = live.hold, hd = $("hold");
     hd.hidden = !h;
     hd.dataset.guard = h ? h.guard : "";
-    hd.textContent = !h ? "" : h.guard === "cooldown" ? `held: cool-down until t = ${pitune.num(h.until_t, 7)}` :
+    hd.textContent = !h ? "" : h.guard === "plant" ? "held: plant-wide hold" :
+      h.guard === "cooldown" ? `held: cool-down until t = ${pitune.num(h.until_t, 7)}` :
       `held by the model check since t = ${pitune.num(h.since_t, 7)}`;
     hd.title = h ? h.why : "";
     $("oscillating").hidden = !live.oscillating || live.status === "oscillating";
@@ -267,6 +268,7 @@
     try {
       const first = await pitune.getJSON(`/ui/api/loops/${enc}/recent`);
       live = first.live;
+      pitune.showHold(first.plant);
       append(first.recent);
       if (!first.recent) $("trend-count").textContent = "trends need the daemon's ring of recent samples (not wired)";
     } catch (e) { pitune.toast(`loading failed: ${e.message}`, true); }
@@ -284,11 +286,12 @@
       const d = JSON.parse(e.data);
       if (d.recent) append(d.recent);
       live = d.live; showLive();
+      pitune.showHold(d.plant);
       $("live").textContent = "● live";
       $("live").className = "live";
     };
     es.addEventListener("bye", () => { es.close(); connect(); });
-    es.addEventListener("gone", () => { es.close(); $("live").textContent = "loop deleted"; });
+    es.addEventListener("gone", () => { es.close(); $("live").textContent = "loop deleted"; pitune.followHold(); });
     es.onerror = () => { $("live").textContent = "reconnecting…"; $("live").className = "muted"; };
   }
   start();

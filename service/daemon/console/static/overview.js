@@ -11,6 +11,7 @@
   for (const m of $("mode-filter").dataset.modes.split(" ")) $("mode-filter").add(new Option(m, m));
   $("mode-filter").value = state.mode;
   let seen = 0, timer = null, inflight = null;
+  const HOLDS = {plant: "held: plant-wide hold", cooldown: "held: cool-down", model_check: "held: model check"};
 
   function query() {
     const p = new URLSearchParams({offset: state.offset, limit: state.limit, sort: state.sort});
@@ -29,7 +30,7 @@
     const verdict = v.oscillating ? ` <b class="bad">oscillating</b>` : (lc ? ` <span class="muted verdict">${v.pending ? "change pending" : "last-good"}</span>` : "");
     const href = `/ui/loops/${encodeURIComponent(l.id)}`;
     // the agent held while the status may read tuning (the loop page says until when)
-    const hold = l.hold ? ` <span class="badge hold">${l.hold === "cooldown" ? "held: cool-down" : "held: model check"}</span>` : "";
+    const hold = l.hold ? ` <span class="badge hold">${pitune.esc(HOLDS[l.hold] || l.hold)}</span>` : "";
     return `<tr data-id="${pitune.esc(l.id)}"><td><a href="${href}">${pitune.esc(l.id)}</a></td>` +
       `<td><span class="badge s-${l.status}" title="${pitune.esc(l.status_why || "")}">${l.status}</span>${hold}</td><td><span class="badge m-${l.mode}">${l.mode}</span></td>` +
       `<td class="num">${pitune.num(l.kp)}</td><td class="num">${pitune.num(l.ki)}</td><td>${change}${verdict}</td>` +

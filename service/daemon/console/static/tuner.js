@@ -1,4 +1,5 @@
-// The tuner page: health, traffic, inference, store, rejections (polled every 2 s).
+// The tuner page: health, traffic, inference, store, rejections (polled every 2 s), and the
+// plant-wide hold's control and record (on each change the hold's stream brings).
 "use strict";
 (() => {
   const $ = (id) => document.getElementById(id);
@@ -37,4 +38,56 @@
   }
   load();
   setInterval(() => { if (!document.hidden) load(); }, 2000);
+
+  // -- the plant-wide hold: hold all tuning with a reason, release, the recent record ------
+  const HISTORY_SHOWN = 20;  // of the last 100 GET /hold/history keeps
+  const form = $("hold-form"), reason = $("hold-reason"), error = $("hold-error");
+  const MAX = Number(reason.dataset.max);
+  // Python's str.isprintable (the server's rule): no "Other" or "Separator" but the space
+  const NOT_PRINTABLE = /(?! )[\p{C}\p{Z}]/u;
+  function problem(text) {
+    const chars = [...text];  // code points, as the server counts them
+    if (!chars.length) return "a reason is required";
+    if (chars.length > MAX) return `at most ${MAX} characters (${chars.length})`;
+    const bad = chars.findIndex((c) => NOT_PRINTABLE.test(c));
+    if (bad >= 0) return `printable text on one line only: U+${chars[bad].codePointAt(0).toString(16).toUpperCase().padStart(4, "0")} at ${bad}`;
+    return text.trim() ? "" : "the reason must say something: it is blank";
+  }
+  const refused = (msg) => { error.textContent = msg; reason.setAttribute("aria-invalid", msg ? "true" : "false"); };
+  $("hold-hint").textContent = pitune.loggedIn ? "" : "Log in (the API token) to hold or release: without a session both are refused.";
+  form.addEventListener("submit", async (e) => {
+    e.preventDefault();
+    const text = reason.value, why = problem(text);
+    refused(why);
+    if (why) return;
+    try {
+      await pitune.act("/ui/api/hold", {reason: text});
+      reason.value = "";
+      pitune.toast("plant-wide hold set");
+    } catch (err) { refused(`refused (${err.message})`); }
+  });
+  $("hold-release").addEventListener("click", async () => {
+    if (!confirm("Release the plant-wide hold? The tuner changes gains again from each loop's next RL period.")) return;
+    try {
+      await pitune.act("/ui/api/hold/release");
+      refused("");
+      pitune.toast("plant-wide hold released");
+    } catch (err) { refused(`refused (${err.message})`); }
+  });
+  let asked = 0;
+  async function history() {
+    const mine = ++asked;
+    let events;
+    try { events = await pitune.getJSON("/hold/history"); } catch (e) { pitune.toast(`hold history: ${e.message}`, true); return; }
+    if (mine !== asked) return;  // a later change's record is on its way
+    document.querySelector("#hold-history tbody").innerHTML = events.length ? events.slice(0, HISTORY_SHOWN).map((h) =>
+      `<tr data-action="${pitune.esc(h.action)}"><td>${pitune.when(h.wall_time)}</td><td>${pitune.esc(h.action)}</td>` +
+      `<td>${pitune.esc(h.by)}</td><td>${pitune.esc(h.reason)}</td></tr>`).join("") :
+      `<tr><td colspan="4" class="muted">never held</td></tr>`;
+  }
+  pitune.onHold((h) => {  // each change: the buttons and the record (the stream says when)
+    $("hold-all").textContent = h.held ? "Change the reason" : "Hold all tuning";
+    $("hold-release").hidden = !h.held;
+    history();
+  });
 })();
