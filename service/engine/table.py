@@ -40,7 +40,7 @@ from service.engine.audit import AuditRow, audit_row
 from service.engine.config import Configs, LoopConfig, LoopView
 from service.engine.figures import Refused
 from service.engine.id_state import IdState
-from service.engine.modes import _CODE, _MODES, AUTO, FROZEN, SHADOW
+from service.engine.modes import _CODE, _MODES, AUTO, PUBLISHING
 from service.engine.plant_hold import RELEASED
 from service.engine.saved import Saved, restore_runtimes, runtimes_of
 from service.engine.site import SiteDefaults
@@ -379,7 +379,7 @@ class LoopTable:
         self._restart(s)
         verify.reset(self, s)
         mode = self.mode[s]
-        if mode in (FROZEN, SHADOW):
+        if mode not in PUBLISHING:  # (the history gives such a row no verdict)
             detail = f"agent state only: a {MODE_VALUES[mode]} loop's gains are not published"
             detail = f"{detail}; {who}" if who else detail
             self._audit.append(
