@@ -28,6 +28,7 @@ from service.engine import (
     op_law,
     output_limit,
     recorder,
+    refusals,
     reported,
     settings,
     status,
@@ -189,6 +190,7 @@ class LoopTable:
                     arr[:old] = getattr(self, name)
                 setattr(self, name, arr)
         monitor.allocate(self, capacity, old)
+        refusals.allocate(self, capacity, old)
         h = np.zeros((capacity, layers, hidden), np.float32)
         if old:
             h[:old] = self.hidden
@@ -285,6 +287,7 @@ class LoopTable:
         self.seq[s] = self.auto_seq[s] = 0 if seq is None else seq  # (unknown: the seq)
         for name in _COUNTERS:
             getattr(self, name)[s] = 0
+        self.n_refused[s] = 0  # (by reason: refusals)
         self.tokens[s], self.token_wall[s] = self.burst, steady.now(self, wall)
         saved = [None] * n if saved is None else saved
         # a restored identification first: the configuration follows its scaling
