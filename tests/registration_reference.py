@@ -15,8 +15,10 @@ from service.engine import first_tuning, monitor, steady, verify
 from service.engine.config import LoopConfig, resolve_bounds
 from service.engine.id_state import IdState
 from service.engine.modes import _CODE
+from service.engine.refusals import REASONS
 from service.engine.saved import Saved
 from service.engine.table import _COUNTERS, LoopTable
+from service.wire.protocol import RejectReason
 
 
 def add_one(tb: LoopTable, config: LoopConfig, *, kp, ki, seq, saved: Saved | None, wall):
@@ -35,6 +37,7 @@ def add_one(tb: LoopTable, config: LoopConfig, *, kp, ki, seq, saved: Saved | No
     tb.seq[s] = tb.auto_seq[s] = seq
     for name in _COUNTERS:
         getattr(tb, name)[s] = 0
+    tb.n_refused[s] = 0
     tb.tokens[s], tb.token_wall[s] = tb.burst, steady.now(tb, wall)
     restored = None if saved is None else saved.ident
     tb.ident[s] = IdState() if restored is None else restored
@@ -131,6 +134,9 @@ def _restore_runtime(tb: LoopTable, s: int, saved: Saved) -> None:
         tb.unsettle(s)
     for name, value in zip(_COUNTERS, rt["counters"], strict=False):
         getattr(tb, name)[s] = value
+    for name, n in (rt.get("refused") or {}).items():  # by reason (since session 41)
+        if name in {r.value for r in REASONS}:
+            tb.n_refused[s, REASONS.index(RejectReason(name))] = n
     flight = rt.get("in_flight")  # the last update in flight again: at the seq, or one on
     if flight is not None:
         at_seq, at_kp, at_ki, pending, prev_kp, prev_ki = flight

@@ -62,6 +62,7 @@ def test_a_single_tuner_takes_a_gateway_s_batches_and_rejects_other_loops(tmp_pa
             b1 = tuner.table.slot_of["B1"]
             assert tuner.table.n_rejected[b1] == 0 and b1 not in tuner.table.refused
             assert tuner.engine.view("B1").refused is None
+            assert tuner.engine.view("B1").refused_counts == {}
             pub.undeclare()
             # a key whose gateway id is not one is not the shared key: refused whole
             bad = settings.keys.gateway_samples("g" * 70)

@@ -108,6 +108,7 @@ def test_a_per_gateway_user_cannot_feed_another_gateways_loop(bus):
         assert samples_of(tuner, OTHER) == 0
         # counted globally only: another gateway's puts never touch B1's own record
         assert tuner.view(OTHER).counters.rejected == 0 and tuner.view(OTHER).refused is None
+        assert tuner.view(OTHER).refused_counts == {}
         assert tuner.metrics.value("pitune_samples_rejected_total", reason="wrong_gateway") == 1
         received = tuner.metrics.value("pitune_samples_received_total")
         assert received == samples_of(tuner, OWN) + 1, "only gw-1's own and the refused one"

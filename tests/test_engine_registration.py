@@ -85,6 +85,8 @@ def _snapshot(i: int, snapshots) -> tuple[bytes, str] | None:
     if i % 6 == 4:
         rt["figures"] = {"last": [200.0 + i, 1.5, None, 3.0, 4.0, 0.1],
                          "hist": [[200.0 + i, 1.5, 2.0, 3.0, 4.0, 0.1]] * (i % 12)}  # fmt: skip
+    if i % 7 == 2:  # refusals by reason (a newer tuner's reason dropped)
+        rt["refused"] = {"flood": i, "out_of_order": 1, "a_newer_reason": 5}
     if i % 29 == 8:
         hidden = hidden[:8]  # another agent's size: not restored
     return hidden, orjson.dumps(rt).decode()
@@ -136,7 +138,7 @@ def _table(loops, how: str) -> LoopTable:
 ARRAYS = [
     *_F64, *_I64, *_REC, *_BOOL, *verify.F64, *verify.F32, *monitor.F64, *monitor.F32,
     "r_mixed", "f_hist", "f_hist_n", *(name for name, _, _ in oscillation.ARRAYS), "hidden",
-    "gateways",
+    "gateways", "n_refused",
 ]  # fmt: skip
 
 
@@ -170,6 +172,7 @@ def test_a_chunk_of_loops_ends_in_the_state_of_adding_them_one_by_one(snapshots)
     assert chunked.manual[used].any() and (chunked.f_hist_n[used] > 0).any()
     assert set(chunked.mode[used].tolist()) == {0, 1, 2, 3}
     assert np.isnan(chunked.period[used]).any() and chunked.watch[used].any()
+    assert (chunked.n_refused[used].sum(axis=1) > 0).sum() >= 30
 
 
 def test_a_chunk_with_a_registered_or_repeated_id_changes_nothing():

@@ -1,22 +1,24 @@
 """A loop's history does not contradict itself: the demo's two-tank loop (+-1 cm noise,
 seed 0) through the engine with the shipped agent, its audit rows in a real SQLite store,
 read back as ``GET /loops/{id}/history`` reads them (the store's page, then
-:func:`service.daemon.verdicts.annotate`)."""
+:func:`service.daemon.verdicts.annotate`); resets that change no gains, through the real
+FastAPI app."""
 
 from __future__ import annotations
 
 import pytest
+from fastapi.testclient import TestClient
 
 from plant_sim.config import LoopSpec, Simulation, build_loops
 from service.agent import DEFAULT_WEIGHTS, load_agent
+from service.daemon.api import create_app
 from service.daemon.store import Store
 from service.daemon.verdicts import annotate
 from service.engine import LoopConfig, TuningEngine
+from tests.tuner_support import loop_body, tuner_settings
 
-pytestmark = [
-    pytest.mark.timeout(120),
-    pytest.mark.skipif(not DEFAULT_WEIGHTS.exists(), reason="trained agent weights absent"),
-]
+pytestmark = pytest.mark.timeout(120)
+SHIPPED = pytest.mark.skipif(not DEFAULT_WEIGHTS.exists(), reason="trained agent weights absent")
 LOOP = LoopSpec("two_tank", "tank1")
 
 
@@ -44,6 +46,7 @@ def tank_history(path) -> list:
     return items
 
 
+@SHIPPED
 def test_a_judged_step_says_no_pending_verdict_and_a_held_step_gets_none(tmp_path):
     """The agent step's row said ``verdict=pending`` for good, beside the verdict the
     history gives it (13 of the 13 verified steps of this run); a step the model check
@@ -60,3 +63,19 @@ def test_a_judged_step_says_no_pending_verdict_and_a_held_step_gets_none(tmp_pat
     assert (
         newest.detail.startswith("reason=agent basis=hint ") and "guard=none iae=" in newest.detail
     )
+
+
+def test_a_reset_of_a_frozen_or_shadow_loop_gets_no_verdict(tmp_path):
+    """A reset of a ``frozen`` or ``shadow`` loop restarts the agent's state only: no
+    gains published, the seq that of the change before it, whose verdict it showed
+    (``pending`` here, the auto reset's: a frozen loop's reset is never judged)."""
+    with TestClient(create_app(tuner_settings(tmp_path))) as client:
+        assert client.post("/loops", json=loop_body("L1")).status_code == 201
+        assert client.post("/loops/L1/reset").json()["seq"] == 1  # auto: published
+        for mode in ("frozen", "shadow"):
+            assert client.patch("/loops/L1", json={"mode": mode}).status_code == 200
+            assert client.post("/loops/L1/reset").json()["seq"] == 1
+        assert client.get("/loops/L1").json()["verification"]["judged_seq"] == 0
+        items = client.get("/loops/L1/history").json()["items"]
+    resets = [(e["mode"], e["seq"], e["verdict"]) for e in items if e["reason"] == "reset"]
+    assert resets == [("shadow", 1, None), ("frozen", 1, None), ("auto", 1, "pending")]

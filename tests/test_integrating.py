@@ -117,13 +117,14 @@ def test_a_hinted_loop_on_an_integrating_process_is_paused_with_its_model(noise)
     assert view.status == LoopStatus.out_of_envelope
     assert view.counters.envelope_pauses == 1 and view.identification.out_of_envelope
     assert view.identification.why.startswith("integrating"), view.identification.why
-    why = view.status_why  # the integrator's K and the next step
-    k_per_s = float(re.match(r"the process looks integrating \(K = ([0-9.e-]+) PV units", why)[1])
-    assert k_per_s == pytest.approx(0.01, rel=0.05) and "PATCH mode frozen" in why
     _, audit = engine.drain_changes()
     (row,) = [r for r in audit if r[5] == "out_of_envelope"]
     detail = json.loads(row[10])
     assert detail["integrating"] is True
+    why = view.status_why  # the K of the integrator that paused it, and the next step
+    k_per_s = float(re.match(r"the process looks integrating \(K = ([0-9.e-]+) PV units", why)[1])
+    assert k_per_s == pytest.approx(detail["k_per_s"], rel=5e-3) and "PATCH mode frozen" in why
+    assert f"identified at t = {row[2]:.10g} s, plant time" in why
     # drive's integrator: d pv / dt = k u (k = 0.01 per second), dead time THETA
     assert detail["k_per_s"] == pytest.approx(0.01, rel=0.05)
     if not noise:  # (under noise these slow ramps, 0.02 a sample, hide the onset)

@@ -1,12 +1,14 @@
 """A loop's view says why its samples were last refused (``refused``): the reason, the
-last detail, how many in the run and since when, so a gateway's integrator sees it per
-loop (docs/protocol.md, Accounting). Driven through :class:`TuningEngine` with real
-samples; the same view is the REST ``GET /loops/{id}``."""
+last detail, how many in the run and since when, and how many for each reason since the
+loop was registered (``refused_counts``), so a gateway's integrator sees it per loop
+(docs/protocol.md, Accounting). Driven through :class:`TuningEngine` with real samples;
+the same view is the REST ``GET /loops/{id}``."""
 
 from __future__ import annotations
 
 from service.engine import LoopConfig, TuningEngine
 from service.learn.verification import StillAgent
+from service.wire.protocol import RejectReason
 
 
 def _config(loop_id: str) -> LoopConfig:
@@ -46,3 +48,27 @@ def test_a_deleted_loops_refusals_do_not_pass_to_the_loop_in_its_slot():
     engine.register(_config("M"), wall=2.0)  # takes the freed slot
     assert engine.table.slot("M") == 0
     assert engine.view("M", wall=2.0).refused is None
+
+
+def test_the_view_counts_the_refusals_by_reason_since_registration():
+    """A burst over the flood limit, then other reasons: ``refused`` keeps the last run
+    only (one non_finite), the counts keep them all, through a reset and a restart (the
+    snapshot keeps them), not passed to the next loop in a deleted loop's slot."""
+    engine = TuningEngine(StillAgent(), max_rate_hz=5.0)
+    engine.register(_config("L"), wall=0.0)
+    engine.ingest([_sample(float(t)) for t in range(20)], wall=0.0)  # 5 taken: 15 floods
+    engine.ingest([_sample(3.0)], wall=10.0)  # behind the last t (4)
+    engine.ingest([_sample(30.0, pv=float("nan"))], wall=11.0)
+    view = engine.view("L", wall=11.0)
+    assert (view.refused.reason, view.refused.count) == ("non_finite", 1)  # the last run
+    counts = {RejectReason.flood: 15, RejectReason.out_of_order: 1, RejectReason.non_finite: 1}
+    assert view.refused_counts == counts and view.counters.rejected == 17
+    engine.reset("L", wall=12.0)
+    ((_, hidden, runtime),) = engine.snapshot()
+    engine.remove("L")
+    engine.register(_config("M"), wall=13.0)  # takes the freed slot
+    assert engine.view("M", wall=13.0).refused_counts == {}
+    engine.restore(_config("L"), kp=1.0, ki=0.05, seq=1, hidden=hidden, runtime=runtime,
+                   wall=14.0)  # fmt: skip
+    engine.ingest([_sample(31.0), _sample(31.0)], wall=15.0)  # a duplicate
+    assert engine.view("L", wall=15.0).refused_counts == {**counts, RejectReason.duplicate: 1}

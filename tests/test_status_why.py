@@ -4,16 +4,17 @@ numbers, and the operator's next step (``status_why``): each status driven throu
 
 from __future__ import annotations
 
+import json
 import re
 
 import numpy as np
 import pytest
 
 from service.agent import untrained_agent
-from service.engine import LoopConfig, TuningEngine, model_use
+from service.engine import LoopConfig, TuningEngine, box, model_use
 from service.engine.identify import Model
 from service.wire.protocol import LoopStatus
-from tests.test_identify import K, drive, hinted
+from tests.test_identify import H, K, drive, hinted
 
 pytestmark = pytest.mark.timeout(120)
 SCALING = {"k_hat": 1.2, "tau_hat": 30.0, "pv_scale": 10.0}
@@ -105,6 +106,80 @@ def test_a_loop_paused_inside_the_hysteresis_band_says_what_resumes_it():
     assert "tau 0.1792 (inside the envelope, beyond the resume edge 0.1833)" in why[1]
     assert "gain 0.5, " in why[1] and "theta/tau 0.186" in why[1]
     assert "It resumes when a confident model lies within gain 0.1833..1.364, tau " in why[1]
+
+
+class _Watched(TuningEngine):
+    """An engine that keeps, after each sample, loop L's view while it is paused out of
+    the envelope, and its envelope audit rows."""
+
+    def __init__(self) -> None:
+        super().__init__(untrained_agent(0))
+        self.paused, self.rows = [], []
+
+    def ingest(self, samples, *, wall=None):
+        out = super().ingest(samples, wall=wall)
+        self.rows += [r for r in self.drain_changes()[1] if r[5].endswith("_envelope")]
+        view = self.view("L", wall=wall)
+        if view.status == LoopStatus.out_of_envelope:
+            self.paused.append(view)
+        return out
+
+
+def test_a_paused_loop_names_the_model_that_paused_it_not_a_later_one():
+    """A hint 4x off the plant's K pauses the loop (a model at gain 0.126, t = 600 s);
+    then the plant's K moves to the hint's and the models of data that mix both plants
+    are unconfident: some put gain and tau inside the resume edges (0.45, 0.59 at t =
+    2296 s), some look integrating. The why gave the latest model alone ("a model
+    identified outside the agent's envelope (gain 0.1667..1.5, ...) paused tuning; the
+    latest model in the agent's units: gain 0.4498, tau 0.5866, ...", and at t = 1664 s
+    "the process looks integrating" of a loop no integrator paused): it names the one
+    that paused the loop, as its audit row, and the latest as differing, also after a
+    restart (the snapshot keeps it)."""
+    engine = _Watched()
+    engine.register(hinted(k_hat=4.0 * K), wall=0.0)
+    drive(engine, moves=6)
+    paused_at = engine.view("L", wall=0.0).last_sample_t
+    ((_, hidden, runtime),) = engine.snapshot()
+    drive(engine, moves=8, k=4.0 * K, t0=paused_at + H, seed=1)
+    (out, back) = engine.rows  # resumed by the confident models of the plant now
+    assert (out[5], back[5]) == ("out_of_envelope", "in_envelope")
+    app, when = json.loads(out[10]), out[2]
+    named = (
+        f"the model identified at t = {when:.10g} s (plant time) outside the agent's "
+        f"envelope (gain 0.1667..1.5, tau 0.1667..1.5, theta/tau up to 1.5) paused tuning; "
+        f"in the agent's units: gain {app['gain']:.4g} ("
+    )
+    assert app["gain"] == pytest.approx(0.5 / 4, rel=0.05)
+    assert all(v.status_why.startswith(named) for v in engine.paused)
+    resume = box.edges(box.RESUME_MARGIN)
+
+    def inside(a: dict) -> bool:
+        return all(resume[k][0] <= a[k] <= resume[k][1] for k in ("gain", "tau"))
+
+    later = [v for v in engine.paused if v.identification.model is not None
+             and v.identification.apparent != app]  # fmt: skip
+    within = [v for v in later if not v.identification.model.integrating
+              and inside(v.identification.apparent)]  # fmt: skip
+    assert within and all(not v.identification.model.confident for v in within)
+    for v in within:
+        a = v.identification.apparent
+        assert f"; the latest model differs: gain {a['gain']:.4g}, tau {a['tau']:.4g}" in (
+            v.status_why
+        )
+        assert "(not confident). It resumes when" in v.status_why
+    integrating = [v for v in later if v.identification.model.integrating]
+    assert integrating and all(
+        "; the latest model differs: integrating, K = " in v.status_why for v in integrating
+    )
+    # restored from the snapshot taken while paused: the same model named
+    again = TuningEngine(untrained_agent(0))
+    kp, ki = engine.paused[0].kp, engine.paused[0].ki
+    again.restore(hinted(k_hat=4.0 * K), kp=kp, ki=ki, seq=0, hidden=hidden, runtime=runtime,
+                  wall=0.0)  # fmt: skip
+    again.ingest([{"loop_id": "L", "t": paused_at + H, "sp": 50.0, "pv": 50.0, "kp": kp,
+                   "ki": ki}], wall=1.0)  # fmt: skip
+    view = again.view("L", wall=1.0)
+    assert view.status == LoopStatus.out_of_envelope and view.status_why.startswith(named)
 
 
 def test_the_other_statuses_say_why_with_their_numbers():

@@ -5,6 +5,7 @@ import json
 import logging
 import math
 import queue
+from collections import Counter
 
 import numpy as np
 import pytest
@@ -211,10 +212,15 @@ def test_bad_input_is_counted_by_reason_and_changes_nothing(bus):
     after = tuner.view("LIC-101")
     assert after.counters.rejected == len(BAD)
     # nothing but the counters and the record of the last refusal (the last bad sample's)
+    # and the loop's counts by reason, which split its rejected counter
     assert after.refused.reason == BAD[-1][1] and before.refused is None
-    moved = {"counters", "refused"}
+    assert before.refused_counts == {}
+    assert after.refused_counts == dict(Counter(reason for _, reason in BAD))
+    assert sum(after.refused_counts.values()) == after.counters.rejected
+    moved = {"counters", "refused", "refused_counts"}
     assert after.model_dump(exclude=moved) == before.model_dump(exclude=moved)
     assert tuner.view("OTHER").counters.rejected == 1
+    assert tuner.view("OTHER").refused_counts == {RejectReason.schema: 1}
 
 
 def test_a_flood_on_one_loop_leaves_the_others_alone(tmp_path):

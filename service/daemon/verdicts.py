@@ -8,6 +8,9 @@ oldest newer verdict row whose seqs cover its seq, else ``pending`` past the loo
 judged seq (an adoption shares the seq of the update it replaced: the update's verdict
 row comes between them). An agent step the model check held changed nothing (its
 reason says ``verdict=none``; it keeps the seq of the change before it): no verdict.
+Nor does a reset of a ``frozen`` or ``shadow`` loop (agent state only: no gains
+published, the seq unchanged), told by its mode, which rows stored before session 41
+have too (the reset showed the verdict of the change before it).
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ import orjson
 
 from service.daemon.schemas import AuditEntry
 from service.engine.stepping import NO_VERDICT
+from service.wire.protocol import PUBLISHED_MODES
 
 CHANGES = frozenset({"agent", "reset", "adopted", "accepted", "model"})
 """Audit reasons of a change of the gains in force (an advisory or shadow 'agent' or
@@ -43,6 +47,8 @@ def annotate(items: list[AuditEntry], judged_seq: int | None) -> None:
         if item.reason not in CHANGES or (item.reason in PROPOSALS and item.mode != "auto"):
             continue
         if item.reason == "agent" and HELD in item.detail.split():
+            continue
+        if item.reason == "reset" and item.mode not in PUBLISHED_MODES:
             continue
         # the first verdict after the change that covers its seq (an operator's change
         # shares the seq of the update it replaced, judged before it)

@@ -35,6 +35,15 @@ def apparent(scaling: Scaling, m: identify.Model) -> dict[str, float]:
     }
 
 
+def as_seen(scaling: Scaling, m: identify.Model) -> dict:
+    """A model as the envelope guard judges it, in its audit rows and a paused loop's
+    why: an integrator's K (PV units per output unit per second) and dead time (s), else
+    its :func:`apparent` gain, tau and theta/tau."""
+    if m.integrating:
+        return {"integrating": True, "k_per_s": m.slope, "theta_s": m.theta_i}
+    return apparent(scaling, m)
+
+
 def toward_box(app: dict[str, float], k_margin: float, tau_margin: float) -> dict:
     """Apparent gain and tau moved toward the box's centre by the given relative margins."""
     mid = AGENT_GAIN

@@ -30,6 +30,7 @@ from service.wire.protocol import (
     LoopId,
     LoopStatus,
     Mode,
+    RejectReason,
 )
 
 Fraction = Annotated[float, Field(strict=True, gt=0.0, le=10.0, allow_inf_nan=False)]
@@ -438,6 +439,14 @@ class LoopView(BaseModel):
     counters: Counters
     refused: Refused | None = Field(
         None, description="The samples last refused, and why (None: none since the start)."
+    )
+    refused_counts: dict[RejectReason, int] = Field(
+        default_factory=dict,
+        description="Samples refused by reason since the loop was registered (kept across "
+        "restarts as far as the last snapshot, as counters.rejected, whose total they "
+        "split; a loop registered before session 41: since the upgrade), the reasons with "
+        "any: e.g. {'flood': 12, 'out_of_order': 3}. wrong_gateway is counted globally "
+        "only, not on the loop it names.",
     )
     identification: Identification | None = None
     verification: Verification | None = Field(

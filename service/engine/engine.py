@@ -38,10 +38,9 @@ import numpy as np
 
 from service.agent.fast import Precision
 from service.agent.model import Agent, load_agent
-from service.engine import first_tuning, monitor, proposals, rules, stepping, verify, views, watch
+from service.engine import first_tuning, proposals, refusals, rules, stepping, verify, views, watch
 from service.engine.audit import AuditRow
 from service.engine.config import LoopConfig, LoopView
-from service.engine.figures import Refused
 from service.engine.modes import PUBLISHING
 from service.engine.plant_hold import PlantHold
 from service.engine.refuted import remembered
@@ -50,7 +49,6 @@ from service.engine.site import SiteDefaults
 from service.engine.table import LoopTable
 from service.engine.updates import GainUpdate, StepResult
 from service.engine.views import RawView
-from service.wire.clip import clipped
 from service.wire.decode import Columns, Decoded, Rejection, decode_values
 from service.wire.protocol import LoopStatus, Mode, RejectReason
 
@@ -387,15 +385,7 @@ class TuningEngine:
         foreign = rejection.reason is RejectReason.wrong_gateway
         slot = None if foreign else self.table.slot_of.get(rejection.loop_id)
         if slot is not None:
-            self.table.n_rejected[slot] += rejection.count
-            monitor.rejected(self.table, slot)
-            run = self.table.refused.get(slot)
-            same = run is not None and run.reason == rejection.reason
-            self.table.refused[slot] = Refused.model_construct(  # (no validation: per sample)
-                reason=rejection.reason, detail=clipped(rejection.detail), last_wall=wall,
-                count=(run.count if same else 0) + rejection.count,
-                since_wall=run.since_wall if same else wall,
-            )  # fmt: skip
+            refusals.book(self.table, slot, rejection, wall)
         if self.on_reject is not None:
             self.on_reject(rejection)
 

@@ -68,6 +68,11 @@ class IdState:
     hint_base: identify.Model | None = None
     """The model a hinted loop's later confident models are compared with: its first
     confident one, then each whose tuning was put in force (``hint_checked``)."""
+    paused_by: dict | None = None
+    """The model that paused the loop out of the agent's envelope (while it is paused), as
+    its audit row gives it (:func:`box.as_seen <service.engine.box.as_seen>`) with ``t``,
+    the plant time: the loop's why names it, not a later model (None: not paused, or
+    paused before session 41 kept it)."""
 
     @property
     def fallback(self) -> identify.Model | None:
@@ -88,6 +93,7 @@ class IdState:
             "refuted": [r.dump() for r in self.refuted],
             "hint_model": None if self.hint_model is None else self.hint_model.as_dict(),
             "hint_base": None if self.hint_base is None else self.hint_base.as_dict(),
+            "paused_by": self.paused_by,
         }
 
     @classmethod
@@ -104,4 +110,5 @@ class IdState:
             refuted=[Refuted.load(r) for r in d.get("refuted", ())],
             hint_model=identify.Model.load(d.get("hint_model")),
             hint_base=identify.Model.load(d.get("hint_base")),
+            paused_by=d.get("paused_by"),
         )

@@ -105,12 +105,16 @@ def envelope(tb, s: int, m: identify.Model, t: float, wall: float, *, sure: bool
             return
         if not out:
             return
-    detail = json.dumps(_integrator(m) if m.integrating else app, separators=(",", ":"))
+    seen = box.as_seen(tb.scaling_of(s), m)
+    detail = json.dumps(seen, separators=(",", ":"))
     if out and not tb.out_env[s]:
         tb.n_envelope[s] += 1
         audit(tb, s, t, wall, "out_of_envelope", detail)
+        # what the loop's why names while paused (later models may differ): ~4 floats
+        tb.ident[s].paused_by = {"t": float(t), **seen}
     elif not out and tb.out_env[s]:
         audit(tb, s, t, wall, "in_envelope", detail)
+        tb.ident[s].paused_by = None
     tb.out_env[s] = out
     if out and sure:  # paused on the model's tuning (a no-op once the gains are at it)
         first_tuning.apply(tb, s, m, wall, "out_of_envelope")
@@ -123,12 +127,6 @@ def integrating_pause(m: identify.Model) -> bool:
     return m.slope > 0 and m.k_rse <= INTEGRATING_K_RSE
 
 
-def _integrator(m: identify.Model) -> dict:
-    """An integrating model as the envelope's audit row shows it: K (PV units per output
-    unit per second) and dead time (s)."""
-    return {"integrating": True, "k_per_s": m.slope, "theta_s": m.theta_i}
-
-
 def _put_in_force(tb, s, m, scaling: Scaling, t, wall, reason: str, detail: str) -> None:
     st: IdState = tb.ident[s]
     st.scaling, st.in_force, st.in_force_t = scaling, m, t
@@ -136,7 +134,7 @@ def _put_in_force(tb, s, m, scaling: Scaling, t, wall, reason: str, detail: str)
     new_scaling(tb, s, t)
     if tb.exc_window[s] < math.inf:
         tb.excited_until[s] = t + tb.exc_window[s]
-    tb.out_env[s] = False
+    tb.out_env[s], st.paused_by = False, None
     tb.n_identified[s] += 1
     audit(tb, s, t, wall, reason, detail)
     first_tuning.apply(tb, s, m, wall, reason)

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import orjson
 
-from service.engine import monitor, output_limit, verify
+from service.engine import monitor, output_limit, refusals, verify
 from service.engine.id_state import IdState
 from service.engine.monitor import ABSENT, put
 
@@ -79,10 +79,11 @@ def runtimes_of(tb, slots: np.ndarray, counters: list[str]) -> list[str]:
                 "ident": {**tb.ident[s].dump(), "mismatch": mismatch, "out_env": out_env},
                 "verify": ver,
                 "figures": figures,
+                "refused": refused,
             },
             option=orjson.OPT_SERIALIZE_NUMPY,
         ).decode()
-        for s, values, flight, count, (mismatch, out_env), ver, figures in zip(
+        for s, values, flight, count, (mismatch, out_env), ver, figures, refused in zip(
             slots.tolist(),
             zip(*scalars, strict=True),
             flights,
@@ -90,6 +91,7 @@ def runtimes_of(tb, slots: np.ndarray, counters: list[str]) -> list[str]:
             flags,
             verify.dumps(tb, slots),
             monitor.dumps(tb, slots),
+            refusals.dumps(tb, slots),
             strict=True,
         )
     ]
@@ -116,6 +118,7 @@ def restore_runtimes(tb, slots: np.ndarray, saved: list[Saved], counters: list[s
     # snapshots from before a counter was added list fewer: those stay 0
     for k, name in enumerate(counters):
         put(getattr(tb, name), slots, [_at(rt["counters"], k) for rt in rts], 0)
+    refusals.load(tb, slots, [rt.get("refused") or {} for rt in rts])  # (absent before 41)
     # absent in snapshots from before identification
     idents = [rt.get("ident") or {} for rt in rts]
     for name in ("mismatch", "out_env"):

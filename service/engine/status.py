@@ -100,44 +100,56 @@ def _identifying(tb, s, wall) -> str:
     )
 
 
-def _model(tb, s):
-    """The latest model identified, else the one in force (None: none)."""
-    st = tb.ident[s]
-    if st is None:
-        return None
-    return st.model if st.model is not None else st.in_force
+def _apparent(tb, s) -> dict[str, float] | None:
+    """The latest model identified, else the one in force, in the agent's units (None:
+    neither, or no scaling)."""
+    st, sc = tb.ident[s], tb.scaling_of(s)
+    m = None if st is None else st.model if st.model is not None else st.in_force
+    return None if m is None or sc is None else box.apparent(sc, m)
 
 
-def _seen(tb, s) -> str:
-    """The model seen through the scaling in force: identified vs hinted K and tau."""
-    m, sc = _model(tb, s), tb.scaling_of(s)
-    if m is None or sc is None:
-        return ""
+def _seen(sc, app: dict[str, float]) -> str:
+    """A model's apparent values (:func:`box.apparent`) seen back through the scaling in
+    force ``sc`` (the one they were seen through: a new scaling ends a pause): the
+    identified K and tau against the scaling's."""
     k_in_force = sc.u_scale / sc.e_scale * AGENT_GAIN
     tau_in_force = sc.time_unit_s * AGENT_TAU
+    k, tau = app["gain"] / AGENT_GAIN * k_in_force, app["tau"] / AGENT_TAU * tau_in_force
     return (
-        f"identified K = {_g(m.k)}, tau = {_g(m.tau)} s, theta = {_g(m.theta)} s against "
-        f"the scaling in force's K = {_g(k_in_force)} ({_g(m.k / k_in_force)}x), tau = "
-        f"{_g(tau_in_force)} s ({_g(m.tau / tau_in_force)}x)"
+        f"identified K = {_g(k)}, tau = {_g(tau)} s, theta = {_g(app['theta_ratio'] * tau)} "
+        f"s against the scaling in force's K = {_g(k_in_force)} ({_g(k / k_in_force)}x), "
+        f"tau = {_g(tau_in_force)} s ({_g(tau / tau_in_force)}x)"
+    )
+
+
+def _integrator(seen: dict) -> str:
+    return (
+        f"K = {_g(seen['k_per_s'])} PV units per output unit per second, dead time "
+        f"{_g(seen['theta_s'])} s"
     )
 
 
 def _out_of_envelope(tb, s, wall) -> str:
-    m = _model(tb, s)
-    if m is not None and m.integrating:
+    """Named by the model that paused the loop (:attr:`IdState.paused_by
+    <service.engine.id_state.IdState.paused_by>`), and the latest where it differs: the
+    why gave the latest alone, which an unconfident model could put inside the ranges it
+    called outside (session 41: gain 0.45 and tau 0.59 on a loop paused at gain 0.126)."""
+    paused = tb.ident[s].paused_by
+    later = _later(tb, s, paused)
+    if paused is not None and paused.get("integrating"):
         return (
-            f"the process looks integrating (K = {_g(m.slope)} PV units per output unit per "
-            f"second, dead time {_g(m.theta_i)} s): the agent does not tune integrators and "
-            "tuning pauses. Next: tune the loop by hand and freeze it (PATCH mode frozen), or "
-            "POST /loops/{id}/identify if the process does not integrate"
+            f"the process looks integrating ({_integrator(paused)}; identified at t = "
+            f"{paused['t']:.10g} s, plant time): the agent does not tune integrators and "
+            f"tuning pauses{later}. Next: tune the loop by hand and freeze it (PATCH mode "
+            "frozen), or POST /loops/{id}/identify if the process does not integrate"
         )
-    sc = tb.scaling_of(s)
-    app = None if m is None or sc is None else box.apparent(sc, m)
     leave, back = box.edges(), box.edges(box.RESUME_MARGIN)
-    where = "" if app is None else (
-        f"; the latest model in the agent's units: {_placed(app, leave, back)}"
-    )  # fmt: skip
-    seen = _seen(tb, s)
+    if paused is None:  # (paused before the tuner kept the model: a snapshot restored)
+        which, where = "a model", " (the loop's out_of_envelope audit row has its numbers)"
+    else:
+        which = f"the model identified at t = {paused['t']:.10g} s (plant time)"
+        seen = _seen(tb.scaling_of(s), paused)
+        where = f"; in the agent's units: {_placed(paused, leave, back)}; {seen}"
     rescale = (
         "the hint is off: PATCH guard.auto_rescale true (the next confident model "
         "rescales the loop) or register it again with the identified K and tau as k_hat "
@@ -147,11 +159,30 @@ def _out_of_envelope(tb, s, wall) -> str:
     )
     th = _g(leave["theta_ratio"][1])
     return (
-        f"a model identified outside the agent's envelope ({_ranges(leave)}) paused "
-        f"tuning{where}{'; ' + seen if seen else ''}. It resumes when a confident model "
-        f"lies within {_ranges(back)}. Next: {rescale}after a change of the plant, POST "
-        f"/loops/{{id}}/identify; a process the agent was not trained for (theta/tau beyond "
-        f"{th}): tune it by hand and freeze it (PATCH mode frozen)"
+        f"{which} outside the agent's envelope ({_ranges(leave)}) paused tuning{where}"
+        f"{later}. It resumes when a confident model lies within {_ranges(back)}. Next: "
+        f"{rescale}after a change of the plant, POST /loops/{{id}}/identify; a process the "
+        f"agent was not trained for (theta/tau beyond {th}): tune it by hand and freeze it "
+        "(PATCH mode frozen)"
+    )
+
+
+def _later(tb, s, paused: dict | None) -> str:
+    """The latest model, briefly, where it is not the one that paused the loop."""
+    m, sc = tb.ident[s].model, tb.scaling_of(s)
+    if m is None or sc is None:
+        return ""
+    seen = box.as_seen(sc, m)
+    if paused is not None and seen == {k: v for k, v in paused.items() if k != "t"}:
+        return ""
+    what = (
+        f"integrating, {_integrator(seen)}"
+        if m.integrating
+        else _placed(seen, box.edges(), box.edges(box.RESUME_MARGIN))
+    )
+    return (
+        f"; the latest model{'' if paused is None else ' differs'}: {what}"
+        f"{'' if m.confident else ' (not confident)'}"
     )
 
 
@@ -214,10 +245,12 @@ def _oscillating(tb, s, wall) -> str:
 
 def _hint_mismatch(tb, s, wall) -> str:
     tol = tb.configs[tb.ids[s]].guard.hint_tolerance
+    app = _apparent(tb, s)
+    seen = "the model that flagged it is no longer the latest"
+    seen = seen if app is None else _seen(tb.scaling_of(s), app)
     return (
         f"the identified model disagrees with the scaling in force (the hint, or a model "
-        f"identified before) by more than guard.hint_tolerance ({_g(tol)}x): "
-        f"{_seen(tb, s) or 'the model that flagged it is no longer the latest'}; tuning "
+        f"identified before) by more than guard.hint_tolerance ({_g(tol)}x): {seen}; tuning "
         "continues on that scaling. Next: PATCH "
         "guard.auto_rescale true (the next confident model rescales the loop), or register "
         "it again with the identified K and tau as k_hat and tau_hat"

@@ -28,6 +28,7 @@ from service.engine import (
     op_law,
     output_limit,
     recorder,
+    refusals,
     reported,
     settings,
     status,
@@ -40,7 +41,7 @@ from service.engine.audit import AuditRow, audit_row
 from service.engine.config import Configs, LoopConfig, LoopView
 from service.engine.figures import Refused
 from service.engine.id_state import IdState
-from service.engine.modes import _CODE, _MODES, AUTO, FROZEN, SHADOW
+from service.engine.modes import _CODE, _MODES, AUTO, PUBLISHING
 from service.engine.plant_hold import RELEASED
 from service.engine.saved import Saved, restore_runtimes, runtimes_of
 from service.engine.site import SiteDefaults
@@ -189,6 +190,7 @@ class LoopTable:
                     arr[:old] = getattr(self, name)
                 setattr(self, name, arr)
         monitor.allocate(self, capacity, old)
+        refusals.allocate(self, capacity, old)
         h = np.zeros((capacity, layers, hidden), np.float32)
         if old:
             h[:old] = self.hidden
@@ -285,6 +287,7 @@ class LoopTable:
         self.seq[s] = self.auto_seq[s] = 0 if seq is None else seq  # (unknown: the seq)
         for name in _COUNTERS:
             getattr(self, name)[s] = 0
+        self.n_refused[s] = 0  # (by reason: refusals)
         self.tokens[s], self.token_wall[s] = self.burst, steady.now(self, wall)
         saved = [None] * n if saved is None else saved
         # a restored identification first: the configuration follows its scaling
@@ -379,7 +382,7 @@ class LoopTable:
         self._restart(s)
         verify.reset(self, s)
         mode = self.mode[s]
-        if mode in (FROZEN, SHADOW):
+        if mode not in PUBLISHING:  # (the history gives such a row no verdict)
             detail = f"agent state only: a {MODE_VALUES[mode]} loop's gains are not published"
             detail = f"{detail}; {who}" if who else detail
             self._audit.append(

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from service.engine import box, monitor, oscillation, plant_hold, status, verify
+from service.engine import box, monitor, oscillation, plant_hold, refusals, status, verify
 from service.engine.config import Counters, LoopConfig, LoopView
 from service.engine.fences import COOLED
 from service.engine.figures import (
@@ -56,6 +56,7 @@ class RawView:
     hold: Hold | None = None
     oscillating: bool = False
     refused: Refused | None = None
+    refused_counts: dict | None = None
     status_why: str | None = None
 
     def parse(self) -> LoopView:
@@ -81,6 +82,7 @@ class RawView:
             hold=self.hold,
             oscillating=self.oscillating,
             refused=self.refused,
+            refused_counts=self.refused_counts,
         )
 
 
@@ -118,6 +120,7 @@ def raw_view(tb: LoopTable, s: int, config: bytes, wall: float) -> RawView:
         oscillating=bool(tb.o_osc[s]),
         status_why=status.why(tb, s, st, wall),
         refused=tb.refused.get(s),
+        refused_counts=refusals.counts(tb, s),
     )
 
 
