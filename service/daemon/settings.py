@@ -32,7 +32,13 @@ from pydantic_settings import (
     TomlConfigSettingsSource,
 )
 
-from service.wire.protocol import DEFAULT_PREFIX, LOOP_ID_PATTERN, Keys, is_valid_id
+from service.wire.protocol import (
+    DEFAULT_PREFIX,
+    LOOP_ID_PATTERN,
+    MAX_SAMPLE_RATE_HZ,
+    Keys,
+    is_valid_id,
+)
 
 _config_file: ContextVar[Path | None] = ContextVar("pitune_config_file", default=None)
 ENV_PREFIX = "PITUNE_"
@@ -145,7 +151,7 @@ class Settings(BaseSettings):
     )
     snapshot_interval_s: Annotated[float, Field(gt=0.0)] = 30.0
     max_sample_rate_hz: Annotated[float, Field(gt=0.0)] = Field(
-        1000.0,
+        MAX_SAMPLE_RATE_HZ,
         description="Per-loop samples per second (wall clock) above which samples are "
         "rejected as a flood; accelerated simulations may need more.",
     )

@@ -17,7 +17,8 @@ While no tuner's liveliness token is present (tuner down, Zenoh router or link d
 and on the gateway's key while no tuner subscribes to it (a cluster between two owners
 of the gateway, a tuner before revision 4), they are held in a buffer of at most
 ``buffer_max_samples`` (the oldest are dropped beyond, and counted) and sent when a tuner
-is back, still in order per loop.
+is back, still in order per loop and paced under the tuner's flood limit
+(:mod:`service.gateways.backlog`; ``[tuner] max_sample_rate_hz``).
 
 Gains. Updates come through :class:`service.gateways.base.Gateway` (sequence rule, batched
 gains, state query whenever a tuner's token appears). An ``auto`` update becomes the
@@ -63,6 +64,7 @@ from collections.abc import Callable
 import orjson
 import zenoh
 
+from service.gateways.backlog import Backlog
 from service.gateways.base import SAMPLE_CONGESTION, Gateway
 from service.gateways.opcua.client import Change, Item, LinkLost, OpcUaLink, now_epoch
 from service.gateways.opcua.loops import Event, LoopRuntime, Pending, number
@@ -111,7 +113,7 @@ class OpcUaGateway(GainWriter):
         self.stats: Counter[str] = Counter()
         self.latencies: deque[float] = deque(maxlen=1_000_000)
         """Seconds from taking an update off the bus to its verified write."""
-        self.outbox: deque[dict] = deque()
+        self.outbox = Backlog(site.bus.buffer_max_samples, site.tuner.max_sample_rate_hz)
         self.link: OpcUaLink | None = None
         self.events: asyncio.Queue[Event] | None = asyncio.Queue() if record_events else None
         self.history: list[Event] = []
@@ -285,10 +287,9 @@ class OpcUaGateway(GainWriter):
         if applied is not None:  # the gains above are what the block holds after it
             sample["applied_seq"] = applied
         lr.last_t = t
-        if len(self.outbox) >= self.site.bus.buffer_max_samples:
-            self.outbox.popleft()
-            self.stats["samples_dropped"] += 1
-        self.outbox.append(sample)
+        lost = self.outbox.append(lr.cfg.id, sample)
+        if lost is not None:
+            self.stats[lost] += 1
         self.stats["samples"] += 1
 
     # -- bus side --------------------------------------------------------------------
@@ -311,7 +312,8 @@ class OpcUaGateway(GainWriter):
         return (f"{len(self.loops)} loops, OPC UA {'up' if self.link else 'down'}, tuner "
                 f"{tuner}; samples {s['samples']} "
                 f"(published {s['published']}, buffered {len(self.outbox)}, dropped "
-                f"{s['samples_dropped']}, not newer {s['samples_not_newer']}, older "
+                f"{s['samples_dropped']}, cut {s['samples_cut']}, not newer "
+                f"{s['samples_not_newer']}, older "
                 f"{s['samples_older']}); writes {s['written']}, unverified "
                 f"{s['unverified']}, refused "
                 f"{sum(v for k, v in s.items() if k.startswith('refused'))}; gains dropped "
@@ -354,16 +356,16 @@ class OpcUaGateway(GainWriter):
         if not force and now - self._last_flush < self.site.bus.batch_interval_s:
             return
         self._last_flush = now
-        while self.outbox:
-            n = min(len(self.outbox), MAX_BATCH)
-            chunk = [self.outbox.popleft() for _ in range(n)]
+        due = self.outbox.take(now)
+        for i in range(0, len(due), MAX_BATCH):
+            chunk = due[i : i + MAX_BATCH]
             try:
                 self.publisher.put(orjson.dumps({"v": 1, "samples": chunk}))
             except zenoh.ZError as exc:
-                self.outbox.extendleft(reversed(chunk))
+                self.outbox.put_back(due[i:])
                 log.warning("publishing samples failed: %s", exc)
                 return
-            self.stats["published"] += n
+            self.stats["published"] += len(chunk)
 
     def _heard(self) -> bool:
         """Whether a tuner subscribes to the samples key. Always on ``{prefix}/samples``

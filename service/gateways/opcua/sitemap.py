@@ -31,7 +31,7 @@ from pydantic import (
 
 from service.gateways.opcua.forms import GainForm
 from service.units import ScalingSpec
-from service.wire.protocol import DEFAULT_PREFIX, GatewayId, LoopId
+from service.wire.protocol import DEFAULT_PREFIX, MAX_SAMPLE_RATE_HZ, GatewayId, LoopId
 
 
 def _node_id(text: str) -> str:
@@ -176,13 +176,18 @@ class BusMap(BaseModel):
 
 
 class TunerMap(BaseModel):
-    """Optional bulk registration of the loops with the tuner's admin API at start."""
+    """Optional bulk registration of the loops with the tuner's admin API at start; the
+    tuner's flood limit, which the samples held through an outage are paced under."""
 
     model_config = ConfigDict(extra="forbid")
 
     register_url: str | None = None
     token_env: str = "PITUNE_API_TOKEN"
     timeout_s: PositiveS = 60.0
+    max_sample_rate_hz: Annotated[float, Field(gt=0.0)] = Field(
+        MAX_SAMPLE_RATE_HZ, description="The tuner's --max-sample-rate: a loop's samples "
+        "go out at a quarter of it (service.gateways.backlog).",
+    )  # fmt: skip
 
 
 class Limits(BaseModel):
