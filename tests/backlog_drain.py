@@ -24,7 +24,7 @@ from plant_sim.opcua_dcs import SimulatedDcs
 from service.daemon.tuner import Tuner
 from service.engine.config import LoopConfig
 from service.gateways.opcua.bridge import OpcUaGateway
-from service.wire.protocol import MAX_SAMPLE_RATE_HZ
+from service.wire.flood import MAX_SAMPLE_RATE_HZ
 from service.wire.session import free_port
 from tests.test_opcua_gateway import LOOP, open_session, running, scanning, site_for, tank, until
 from tests.tuner_support import TANK_SCALING, endpoint, tuner_settings

@@ -19,10 +19,10 @@ import pytest
 from plant_sim.opcua_dcs import SimulatedDcs
 from service.daemon.settings import Settings
 from service.daemon.tuner import Tuner
-from service.engine.engine import DEFAULT_MAX_RATE_HZ
 from service.gateways.backlog import CATCH_UP_S, PACE_SHARE, Backlog
 from service.gateways.opcua.bridge import OpcUaGateway
-from service.wire.protocol import MAX_SAMPLE_RATE_HZ, RejectReason
+from service.wire.flood import MAX_SAMPLE_RATE_HZ
+from service.wire.protocol import RejectReason
 from service.wire.session import free_port
 from tests.backlog_drain import OTHER, accepted, held_through_an_outage, register
 from tests.test_opcua_gateway import open_session, running, scanning, site_for, tank, until
@@ -44,10 +44,9 @@ def sample(loop_id: str, t: float) -> dict:
 
 
 def test_the_tuner_and_the_gateway_share_one_flood_limit():
-    """The daemon's default and the pace's come from the wire's constant; the engine's
-    own default (service/engine, not the gateway's to change) is held equal to it."""
+    """The daemon's default and the pace's come from the wire's constant (service/wire/
+    flood.py, which the engine's default and bucket take too); the pace is a quarter."""
     assert Settings.model_fields["max_sample_rate_hz"].default == MAX_SAMPLE_RATE_HZ
-    assert DEFAULT_MAX_RATE_HZ == MAX_SAMPLE_RATE_HZ
     assert Backlog(10).rate == MAX_SAMPLE_RATE_HZ * PACE_SHARE == 250.0
 
 

@@ -32,10 +32,10 @@ from pydantic_settings import (
     TomlConfigSettingsSource,
 )
 
+from service.wire.flood import MAX_SAMPLE_RATE_HZ
 from service.wire.protocol import (
     DEFAULT_PREFIX,
     LOOP_ID_PATTERN,
-    MAX_SAMPLE_RATE_HZ,
     Keys,
     is_valid_id,
 )

@@ -50,10 +50,8 @@ from service.engine.table import LoopTable
 from service.engine.updates import GainUpdate, StepResult
 from service.engine.views import RawView
 from service.wire.decode import Columns, Decoded, Rejection, decode_values
+from service.wire.flood import MAX_SAMPLE_RATE_HZ
 from service.wire.protocol import LoopStatus, Mode, RejectReason
-
-DEFAULT_MAX_RATE_HZ = 1000.0
-"""Per-loop samples per second (wall clock) above which samples are a flood."""
 
 RejectHandler = Callable[[Rejection], None]
 
@@ -65,7 +63,7 @@ class TuningEngine:
         self,
         agent: Agent | None = None,
         *,
-        max_rate_hz: float = DEFAULT_MAX_RATE_HZ,
+        max_rate_hz: float = MAX_SAMPLE_RATE_HZ,
         inference_workers: int = 1,
         inference_precision: Precision | Literal["reference"] = "float32",
         on_reject: RejectHandler | None = None,

@@ -48,6 +48,7 @@ from service.engine.site import SiteDefaults
 from service.engine.status import STATUSES
 from service.engine.updates import MODE_VALUES, StepResult
 from service.units import Scaling
+from service.wire import flood
 from service.wire.protocol import LoopStatus, Mode, UpdateReason
 
 _F64 = (
@@ -136,7 +137,7 @@ class LoopTable:
         self.inference_precision = self._policy.precision if self._policy else "agent.act"
         self.lock = threading.RLock()
         self.rate = float(max_rate_hz)
-        self.burst = max(self.rate, 1.0)
+        self.burst = flood.burst(self.rate)
         self.configs = Configs()
         self.slot_of: dict[str, int] = {}
         self.ids: list[str | None] = []

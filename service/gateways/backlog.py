@@ -1,6 +1,6 @@
 """The samples a gateway holds for the tuner, sent at a pace the tuner takes them all.
 
-The tuner's flood limit (:data:`~service.wire.protocol.MAX_SAMPLE_RATE_HZ`, its
+The tuner's flood limit (:data:`~service.wire.flood.MAX_SAMPLE_RATE_HZ`, its
 ``--max-sample-rate``) is a bucket per loop of R samples refilled at R per second of its
 wall clock, whatever the samples' ``t``. Samples held through an outage and sent at once
 lost all but about R of each loop, and the newest at that (an hour of one loop at 1 s:
@@ -25,7 +25,7 @@ from __future__ import annotations
 import logging
 from collections import Counter, deque
 
-from service.wire.protocol import MAX_SAMPLE_RATE_HZ
+from service.wire.flood import MAX_SAMPLE_RATE_HZ, burst
 
 log = logging.getLogger("pitune.gateway")
 PACE_SHARE = 0.25
@@ -41,7 +41,7 @@ class Backlog:
     def __init__(self, max_samples: int, tuner_rate_hz: float = MAX_SAMPLE_RATE_HZ) -> None:
         self.max_samples = max_samples
         self.rate = tuner_rate_hz * PACE_SHARE
-        self.burst = max(self.rate, 1.0)  # the tuner's rule: one second's worth, at least 1
+        self.burst = burst(self.rate)  # the tuner's rule
         self.loop_max = max(int(self.rate * CATCH_UP_S), 1)
         self._held: dict[str, deque[dict]] = {}
         """Per loop with samples held, the samples, oldest first."""

@@ -51,9 +51,6 @@ MAX_MAGNITUDE = 1e12
 """Largest absolute value any number on the wire may have; anything bigger is absurd."""
 MAX_BATCH = 100_000
 """Most samples in a :class:`SampleBatch`, gains messages in a :class:`GainsBatch`."""
-MAX_SAMPLE_RATE_HZ = 1000.0
-"""The tuner's flood limit (default): a bucket of this many samples per loop, refilled at this
-many per second of its wall clock, whatever their ``t`` (:mod:`service.gateways.backlog`)."""
 MAX_MESSAGE_BYTES = 32 * 1024 * 1024
 """Largest sample message (single or batch) a tuner reads: 100,000 samples of up to ~330
 bytes each. A bigger one is refused unread (``too_large``)."""

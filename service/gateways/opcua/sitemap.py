@@ -31,7 +31,8 @@ from pydantic import (
 
 from service.gateways.opcua.forms import GainForm
 from service.units import ScalingSpec
-from service.wire.protocol import DEFAULT_PREFIX, MAX_SAMPLE_RATE_HZ, GatewayId, LoopId
+from service.wire.flood import MAX_SAMPLE_RATE_HZ
+from service.wire.protocol import DEFAULT_PREFIX, GatewayId, LoopId
 
 
 def _node_id(text: str) -> str:
