@@ -76,6 +76,8 @@ def _configure(tb: LoopTable, s: int, config: LoopConfig) -> None:
     unset = config.scaling is None or tb.site.identify_hinted
     tb.watch[s] = unset if g.identify is None else g.identify
     tb.env_guard[s] = g.envelope_guard
+    if not g.envelope_guard and tb.out_env[s]:  # the guard off resumes the loop
+        tb.out_env[s], tb.ident[s].paused_by = False, None
     tb.scaled[s] = sc is not None
     model = tb.ident[s].in_force
     if model is not None:

@@ -249,3 +249,22 @@ def test_a_loop_quiet_under_the_noise_rule_names_the_noise_threshold():
     assert float(sigma) == pytest.approx(1.0, rel=0.2)
     assert "more than guard.excitation_min_step (0.2 pv_scales = 2 in pv units)" in why
     assert "Next: move the setpoint by that much, reduce the measurement noise" in why
+
+
+def test_the_envelope_guard_switched_off_resumes_a_loop_it_paused():
+    """``PATCH guard.envelope_guard false`` on a paused loop: with the guard off no model
+    is judged against the envelope, so before the fix nothing resumed it and the agent
+    never stepped again (0 steps over eight more moves); now the agent steps again, once
+    the cool-down after the model's tuning the pause put in force is over."""
+    engine = TuningEngine(untrained_agent(0))
+    engine.register(hinted(k_hat=4.0 * K), wall=0.0)
+    drive(engine, moves=6)
+    assert engine.view("L", wall=349.0).status == LoopStatus.out_of_envelope
+    engine.reconfigure(hinted(k_hat=4.0 * K, envelope_guard=False))
+    view = engine.view("L", wall=349.0)
+    assert view.status != LoopStatus.out_of_envelope
+    assert "envelope" not in (view.status_why or "")
+    before = view.counters.steps
+    drive(engine, moves=8, t0=view.last_sample_t + H, seed=1)
+    # the agent is stepped again (this untrained one's steps the model check may hold)
+    assert engine.view("L", wall=349.0).counters.steps >= before + 3

@@ -152,7 +152,7 @@ class Guard(BaseModel):
         True,
         description="Pause tuning (status out_of_envelope) while the identified dynamics, "
         "in agent units, lie outside the agent's training box by the envelope margin, or "
-        "the process looks integrating.",
+        "the process looks integrating. Switched off, a loop it paused resumes at once.",
     )
     verify: bool = Field(
         True,

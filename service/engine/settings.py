@@ -47,6 +47,10 @@ def configure(tb: LoopTable, slots: np.ndarray, configs: Sequence[LoopConfig]) -
     columns = list(zip(*rows, strict=True))
     for name, values in zip((*_FLOATS, *_FLAGS), columns, strict=False):
         getattr(tb, name)[slots] = values
+    # the envelope guard switched off resumes a loop it paused: with the guard off no
+    # model is judged against the envelope, so nothing else would ever resume it
+    for s in slots[tb.out_env[slots] & ~tb.env_guard[slots]].tolist():
+        tb.out_env[s], tb.ident[s].paused_by = False, None
     mode, gateway, tau, theta, verifying, margin, over, cooldown, fence = columns[
         len(_FLOATS) + len(_FLAGS) :
     ]
