@@ -24,6 +24,9 @@ import numpy as np
 from plant_sim.scenario import Scan
 
 COLUMNS = ("t", "sp", "pv", "pv_true", "target", "kp", "ki", "op")
+BEFORE_PV_TRUE = tuple(c for c in COLUMNS if c != "pv_true")
+"""A log's header before session 41, which logged the measured PV only: read with
+``pv_true`` = ``pv`` (its tracking MSE then includes the noise, as it did then)."""
 
 
 class TrajectoryWriter:
@@ -99,14 +102,16 @@ def read_log(path: str | Path) -> Trajectory:
         header = next(reader, None)
         if header is None:
             raise ValueError(f"{path}: empty, not a trajectory log")
-        if tuple(header) != COLUMNS:
+        if tuple(header) not in (COLUMNS, BEFORE_PV_TRUE):
             raise ValueError(f"{path}: header {header} is not {list(COLUMNS)}")
-        rows = [r for r in reader if len(r) == len(COLUMNS)]
+        rows = [r for r in reader if len(r) == len(header)]
     try:
-        data = np.array(rows, dtype=np.float64).reshape(-1, len(COLUMNS))
+        data = np.array(rows, dtype=np.float64).reshape(-1, len(header))
     except ValueError as exc:
         raise ValueError(f"{path}: not a trajectory log: {exc}") from None
-    return Trajectory(*data.T)
+    columns = dict(zip(header, data.T, strict=True))
+    columns.setdefault("pv_true", columns["pv"])
+    return Trajectory(*(columns[c] for c in COLUMNS))
 
 
 def plot(

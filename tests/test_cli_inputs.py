@@ -3,6 +3,7 @@
 import pytest
 
 from plant_sim.config import LoopSpec
+from plant_sim.trajectory import read_log
 from service.cli import build_parser, main
 
 
@@ -94,7 +95,7 @@ def test_a_file_that_is_not_a_trajectory_log_is_one_line(tmp_path, capsys):
     empty.write_text("")
     other.write_text("hello,world\n")
     numbers = tmp_path / "bad.csv"
-    numbers.write_text("t,sp,pv,target,kp,ki,op\n0,1,2,3,4,5,x\n")
+    numbers.write_text("t,sp,pv,pv_true,target,kp,ki,op\n0,1,2,2,3,4,5,x\n")
     for log, says in ((empty, "empty, not a trajectory log"), (other, "header ['hello'"),
                       (numbers, "not a trajectory log: could not convert")):  # fmt: skip
         assert main(["plant", "plot", str(log), "-o", str(tmp_path / "x.png")]) == 1
@@ -102,3 +103,13 @@ def test_a_file_that_is_not_a_trajectory_log_is_one_line(tmp_path, capsys):
         assert err.startswith(f"pitune plant plot: {log}: ") and says in err, err
         assert len(err.strip().splitlines()) == 1
     assert not (tmp_path / "x.png").exists()
+
+
+def test_a_log_from_before_pv_true_still_reads_its_measured_pv_as_the_true_one(tmp_path):
+    """Logs written before session 41 have no ``pv_true`` column: read, not refused, with
+    the measured PV in its place (their MSE included the noise then too)."""
+    old = tmp_path / "old.csv"
+    old.write_text("t,sp,pv,target,kp,ki,op\n0,1,2,3,4,5,6\n1,1,2.5,3,4,5,6\n")
+    log = read_log(old)
+    assert log.pv.tolist() == log.pv_true.tolist() == [2.0, 2.5]
+    assert (log.target.tolist(), log.op.tolist()) == ([3.0, 3.0], [6.0, 6.0])
