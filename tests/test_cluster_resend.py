@@ -63,6 +63,10 @@ def test_a_decision_committed_before_a_failover_reaches_the_gateway(tmp_path, pg
     peer.declare_subscriber(keys.gateway_gains("gw"), take)
     gate = threading.Event()
     try:
+        # both members seen by both first: a member joining after the loop is owned would
+        # move its shard by rendezvous hashing mid-test (CI under load: UnknownLoop)
+        both = ["a", "b"]
+        wait_until(lambda: a.cluster.members == b.cluster.members == both, 30.0, "both live")
         a.register(LoopConfig(**loop_body("A", gateway="gw", mode=mode)))
         wait_until(lambda: "A" in a.loop_ids() + b.loop_ids(), 30.0, "A owned")
         owner, other = (a, b) if "A" in a.loop_ids() else (b, a)
