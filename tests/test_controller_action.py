@@ -58,6 +58,39 @@ def test_the_engine_sees_a_direct_loop_as_the_reverse_loop_mirrored():
     assert np.array(by["dir"]) == pytest.approx(np.array(by["rev"]), rel=1e-5)
 
 
+def test_a_direct_loops_figures_read_as_its_setpoint_moved():
+    """The engine judges a direct-acting loop on its mirrored error (rules.py); the view
+    names directions and the error as the user's setpoint and PV have them: an upward
+    move of a cooling loop is its upward figure, its error sp - pv (before: filed as a
+    downward move, the error's sign flipped; the review's C01 against A01)."""
+    from plant_sim.foptd import FOPTDBatch
+    from plant_sim.pi import PIBatch
+    from service.learn.verification import StillAgent
+
+    engine = TuningEngine(StillAgent())
+    base = {"kp": 0.1, "ki": 0.005, "sample_period_s": 1.0,
+            "scaling": {"k_hat": 2.0, "tau_hat": 20.0}}  # fmt: skip
+    engine.register(LoopConfig(id="rev", **base), wall=0.0)
+    engine.register(LoopConfig(id="dir", action="direct", **base), wall=0.0)
+    # the same physical loop twice: K = 2 under a reverse block, K = -2 under a direct one
+    plant = FOPTDBatch(np.array([2.0, -2.0]), 20.0, 5.0, dt=1.0, n=2)
+    plant.reset(np.array([40.0, 40.0]))
+    pi = PIBatch(np.full(2, 0.1), np.full(2, 0.005), dt=1.0, n=2)
+    pi.initialise(np.array([20.0, -20.0]))
+    for i in range(400):  # one upward move, at t = 100
+        sp, y = (40.0 if i < 100 else 60.0), plant.output()
+        u = pi.step(np.array([1.0, -1.0]) * (sp - y))
+        engine.ingest([{"loop_id": lid, "t": float(i), "sp": sp, "pv": float(y[j]),
+                        "kp": 0.1, "ki": 0.005} for j, lid in enumerate(("rev", "dir"))],
+                      wall=float(i))  # fmt: skip
+        plant.step(u)
+    rev, dir_ = (engine.performance(lid) for lid in ("rev", "dir"))
+    assert rev.verification.last_good_iae is not None
+    assert rev.verification.last_good_iae_down is None is dir_.verification.last_good_iae_down
+    assert dir_.verification.last_good_iae == rev.verification.last_good_iae
+    assert dir_.window.error_mean == rev.window.error_mean > 0.5  # still below the setpoint
+
+
 @pytest.mark.parametrize(
     ("change", "says"),
     [

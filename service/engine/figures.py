@@ -37,7 +37,7 @@ class ResponseFigures(BaseModel):
 class WindowFigures(BaseModel):
     """Figures of the recent window (exponential forgetting over 5 RL periods)."""
 
-    error_mean: float = Field(description="Mean error, engineering units.")
+    error_mean: float = Field(description="Mean error sp - pv, engineering units.")
     error_var: float = Field(description="Error variance, engineering units squared.")
     noise_sigma: float = Field(description="Measurement noise estimated from quiet samples.")
     oscillation_index: float | None = Field(

@@ -186,8 +186,10 @@ def verification(tb: LoopTable, s: int) -> Verification:
         margin=margin,
         last_good_kp=float(tb.g_kp[s]),
         last_good_ki=float(tb.g_ki[s]),
-        last_good_iae=_num(tb.g_iae[s]),
-        last_good_iae_down=_num(tb.g_iae_dn[s]),
+        # the engine's figures are of the action-signed error (a direct-acting loop's is
+        # mirrored, rules.py): up and down as the setpoint moved, for the user
+        last_good_iae=_num((tb.g_iae if tb.sign[s] > 0 else tb.g_iae_dn)[s]),
+        last_good_iae_down=_num((tb.g_iae_dn if tb.sign[s] > 0 else tb.g_iae)[s]),
         last_good_seq=int(tb.g_seq[s]),
         judged_seq=int(tb.v_seq[s]),
         pending=pending,
@@ -296,7 +298,7 @@ def performance(tb: LoopTable, s: int) -> Performance:
         last=hist[0] if hist else None,
         history=hist,
         window=WindowFigures(
-            error_mean=float(tb.w_mean[s]),
+            error_mean=float(tb.sign[s] * tb.w_mean[s]),  # sp - pv, not action-signed
             error_var=var,
             noise_sigma=float(oscillation.noise_sigma(tb, s, cold=True)),
             oscillation_index=_num(tb.o_index[s]) if tb.o_n[s] >= 2 else None,
