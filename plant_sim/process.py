@@ -5,7 +5,8 @@ real time, 0 for as fast as possible) and, every DCS scan of simulated time, pub
 a :class:`~service.wire.protocol.Sample` per loop in engineering units with the gains in
 force (:mod:`plant_sim.runner`). Gains messages whose mode is ``auto`` are applied
 bumplessly, clipped to the loop's own bounds (``--gain-range`` around its initial
-gains); ``advisory`` ones are only counted. ``--register URL`` registers the loops with
+gains), and reported applied (``applied_seq``), so the tuner adopts gains clipped;
+``advisory`` ones are only counted. ``--register URL`` registers the loops with
 the tuner's admin API first (:mod:`plant_sim.registration`), with the paper's crude
 model hint (1.2 cm/(L/min), 30 s, PV scale 10 cm for the tank). ``--log-dir`` writes one
 CSV trajectory per loop, which ``pitune plant plot`` draws. ``--gateway-id`` also

@@ -3,8 +3,10 @@
 Every DCS scan of simulated time (``speed`` times real time, 0 for as fast as possible)
 each loop publishes a :class:`~service.wire.protocol.Sample` in engineering units with
 the gains in force. Gains messages whose mode is ``auto`` are applied bumplessly,
-clipped to the loop's own bounds; ``advisory`` ones are only counted. The bus side
-follows docs/protocol.md (:mod:`service.gateways.base`).
+clipped to the loop's own bounds, and the samples from then on report the message's seq
+as ``applied_seq`` (0 while none of the tuner's epoch is applied): gains clipped are the
+tuner's to adopt, not an update still in flight. ``advisory`` ones are only counted. The
+bus side follows docs/protocol.md (:mod:`service.gateways.base`).
 """
 
 from __future__ import annotations
@@ -144,6 +146,9 @@ def run_scans(
         for msg in gateway.gains():  # seq rule applied, state replies included
             if msg.mode == Mode.auto:
                 by_id[msg.loop_id].apply_gains(msg.kp, msg.ki)
+                # reported as applied_seq from this scan's sample on: gains clipped to
+                # the loop's bounds are then the tuner's to adopt, not an update in flight
+                gateway.applied(msg)
                 applied += 1
             else:
                 ignored += 1

@@ -341,3 +341,32 @@ def test_a_terminated_demo_leaves_no_tuner_behind(tmp_path):
         with contextlib.suppress(ProcessLookupError):
             os.killpg(demo.pid, signal.SIGKILL)
         demo.wait()
+
+
+def test_gains_the_plant_clamps_are_adopted_and_the_tuners_view_follows_them(tmp_path):
+    """``pitune plant run --gain-range 2``: the simulated PI block takes gains within a
+    factor 2 of the registered ones and clamps the tuner's beyond. Its samples say which
+    update they follow (``applied_seq``), so the tuner adopts the clamped gains (an
+    ``adopted`` row) and its view shows the gains the plant runs. Without ``applied_seq``
+    (0: none applied) the tuner took every clamped report for an update in flight, and
+    its view kept gains the plant never ran."""
+    bound = (2 * REGISTERED[0], 2 * REGISTERED[1])
+    with Stack(tmp_path, speed=SPEED) as stack:
+        stack.start_tuner()
+        plant = stack.start_plant("--tank", LOOP, "--gain-range", "2")
+
+        def adopted():
+            response = httpx.get(f"{stack.api}/loops/{LOOP}/history?limit=1000", timeout=5.0)
+            rows = response.json()["items"] if response.is_success else []
+            return [r for r in rows if r["reason"] == "adopted"]
+
+        row = wait_for(adopted, "gains adopted from the plant", 60)[-1]
+        clamped = (row["kp_new"], row["ki_new"])
+        # the update the plant clamped: above the bound in one gain at least
+        assert row["kp_old"] > bound[0] * (1 + 1e-9) or row["ki_old"] > bound[1] * (1 + 1e-9)
+        assert clamped == pytest.approx(np.minimum((row["kp_old"], row["ki_old"]), bound))
+        wait_view(stack, lambda v: (v["kp"], v["ki"]) == pytest.approx(clamped), "the view")
+        assert plant.stop() == 0, plant.tail()
+    log = plant_log(stack)
+    assert log.kp.max() <= bound[0] * (1 + 1e-9) and log.ki.max() <= bound[1] * (1 + 1e-9)
+    assert np.any(np.isclose(log.kp, clamped[0], rtol=1e-9))

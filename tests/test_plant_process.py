@@ -196,23 +196,27 @@ def test_plant_publishes_samples_and_applies_only_auto_gains(tmp_path):
         )
         first = next_sample(samples, "tank1", lambda s: True, timeout=30.0)
         assert (first.kp, first.ki) == pytest.approx(UNTUNED_TANK)
+        assert first.applied_seq is None  # no update taken yet
         assert next_sample(samples, "tank1", lambda s: True).t == first.t + 1.0
 
-        def message(loop_id, seq, kp, ki, mode=Mode.auto):
+        def message(loop_id, seq, kp, ki, mode=Mode.auto, **tuner):
+            tuner = tuner or {"instance_id": "test"}
             return GainsMessage(loop_id=loop_id, seq=seq, t=first.t, dkp=0.0, dki=0.0, kp=kp,
-                                ki=ki, mode=mode, instance_id="test")  # fmt: skip
+                                ki=ki, mode=mode, **tuner)  # fmt: skip
 
-        def send(loop_id, seq, kp, ki, mode=Mode.auto):
-            bus.put(Keys().gains(loop_id), encode(message(loop_id, seq, kp, ki, mode)))
+        def send(loop_id, seq, kp, ki, mode=Mode.auto, **tuner):
+            bus.put(Keys().gains(loop_id), encode(message(loop_id, seq, kp, ki, mode, **tuner)))
 
         send("tank1", 1, 0.1, 0.002)
-        next_sample(samples, "tank1", lambda s: s.kp == pytest.approx(0.1))
+        assert next_sample(samples, "tank1", lambda s: s.kp == pytest.approx(0.1)).applied_seq == 1
         send("tank1", 2, 0.15, 0.003, Mode.advisory)
         send("tank1", 3, 100.0, 1e-9)  # outside the plant's bounds: clipped
         clipped = next_sample(samples, "tank1", lambda s: s.kp != pytest.approx(0.1))
         assert (clipped.kp, clipped.ki) == pytest.approx(
             (UNTUNED_TANK[0] * 10, UNTUNED_TANK[1] / 10)
         )
+        # the gains in force follow update 3, clipped: a tuner adopts them (docs/protocol.md)
+        assert clipped.applied_seq == 3
         send("tank1", 2, 0.05, 0.001)  # an old sequence number from the same tuner
         send("f1", 1, 0.1, 0.002)
         f1 = next_sample(samples, "f1", lambda s: s.kp == pytest.approx(0.1))
@@ -223,6 +227,12 @@ def test_plant_publishes_samples_and_applies_only_auto_gains(tmp_path):
         bus.put(Keys().gateway_gains("gw-p"), encode(batch))  # a duplicate, then news
         f1 = next_sample(samples, "f1", lambda s: s.kp == pytest.approx(0.12))
         assert f1.ki == pytest.approx(0.0024)
+        # a new tuner's epoch: 0 while none of its updates is applied, then its seq
+        epoch = {"instance_id": "test2", "epoch": int(time.time() * 1000)}
+        send("tank1", 1, 0.15, 0.003, Mode.advisory, **epoch)
+        assert next_sample(samples, "tank1", lambda s: s.applied_seq == 0).kp == clipped.kp
+        send("tank1", 2, 0.2, 0.004, **epoch)
+        assert next_sample(samples, "tank1", lambda s: s.kp == pytest.approx(0.2)).applied_seq == 2
     finally:
         if sub is not None:
             sub.undeclare()
@@ -230,7 +240,7 @@ def test_plant_publishes_samples_and_applies_only_auto_gains(tmp_path):
             bus.close()
         code = child.stop()
     assert code == 0, child.tail()
-    applied = "4 gain updates applied, 1 advisory ignored, 0 invalid, 2 stale and 0 implausible"
+    applied = "5 gain updates applied, 2 advisory ignored, 0 invalid, 2 stale and 0 implausible"
     assert applied in child.tail()
     log = read_log(tmp_path / "log" / "tank1.csv")
     assert np.all(np.diff(log.t) == 1.0)
