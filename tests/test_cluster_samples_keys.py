@@ -72,6 +72,17 @@ def test_a_single_tuner_takes_a_gateway_s_batches_and_rejects_other_loops(tmp_pa
                 RejectReason.wrong_gateway: 1, RejectReason.bad_key: 2
             }  # fmt: skip
             assert tuner.table.n_samples[tuner.table.slot_of["B1"]] == 0
+            # samples of B1 refused as they are read (a string error, a time beyond the
+            # wire's bound) are B1's neither: gwA could fill its refusals (review R2: 2,000)
+            bad_rows = b'{"v":1,"samples":[{"loop_id":"B1","t":12.0,"e":"x"},'
+            bad_rows += b'{"loop_id":"B1","t":1e300,"e":0.1},{"loop_id":"A1","t":12.0,"e":"x"}]}'
+            session.put(settings.keys.gateway_samples("gwA"), bad_rows)
+            wait_until(lambda: tuner.metrics.value(RECEIVED) == 7, timeout=30.0, what="3 more")
+            assert tuner.engine.view("B1").refused_counts == {}
+            assert tuner.table.n_rejected[b1] == 0 and b1 not in tuner.table.refused
+            assert tuner.engine.rejected[RejectReason.wrong_gateway] == 3
+            # A1's own refused sample is A1's
+            assert sum(tuner.engine.view("A1").refused_counts.values()) == 1
         finally:
             session.close()
 

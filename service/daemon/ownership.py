@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -336,16 +337,25 @@ class Ownership:
             return Decoded(rows.take(np.zeros(len(rows), bool)), [], 0)
         slots = self.slot_memo.slots(rows.loop_ids)
         wrong = (slots >= 0) & (self.table.gateways[slots] != gateway)
-        if not wrong.any():
-            return Decoded(rows, decoded.rejected, decoded.received, slots)
         detail = f"not registered with gateway {gateway!r}"
+        # the samples refused as they were read are another gateway's loop's too: booked
+        # as they came, any gateway could fill that loop's refusals (security review R2)
+        earlier = [self._foreign_loop(r, gateway, detail) for r in decoded.rejected]
+        if not wrong.any():
+            return Decoded(rows, earlier, decoded.received, slots)
         rejected = [
             Rejection(int(rows.index[j]), rows.loop_ids[j], RejectReason.wrong_gateway, detail)
             for j in np.flatnonzero(wrong).tolist()
         ]
-        return Decoded(
-            rows.take(~wrong), decoded.rejected + rejected, decoded.received, slots[~wrong]
-        )
+        return Decoded(rows.take(~wrong), earlier + rejected, decoded.received, slots[~wrong])
+
+    def _foreign_loop(self, rejection: Rejection, gateway: str, detail: str) -> Rejection:
+        """``rejection`` as ``wrong_gateway`` where it names a loop registered here with
+        another gateway than ``gateway`` (or none), else as it is."""
+        slot = self.table.slot_of.get(rejection.loop_id) if rejection.loop_id else None
+        if slot is None or self.table.gateways[slot] == gateway:
+            return rejection
+        return replace(rejection, reason=RejectReason.wrong_gateway, detail=detail)
 
     def _own_rows(self, decoded: Decoded) -> Decoded:
         """The decoded samples without those of loops another member owns."""
