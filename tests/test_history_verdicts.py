@@ -65,17 +65,24 @@ def test_a_judged_step_says_no_pending_verdict_and_a_held_step_gets_none(tmp_pat
     )
 
 
-def test_a_reset_of_a_frozen_or_shadow_loop_gets_no_verdict(tmp_path):
+def test_a_reset_outside_auto_gets_no_verdict(tmp_path):
     """A reset of a ``frozen`` or ``shadow`` loop restarts the agent's state only: no
     gains published, the seq that of the change before it, whose verdict it showed
-    (``pending`` here, the auto reset's: a frozen loop's reset is never judged)."""
+    (``pending`` here, the auto reset's: a frozen loop's reset is never judged). An
+    ``advisory`` loop's is a proposal (session 41: it showed ``rollback_proposed``, the
+    verdict of the change before it, and the gains had not moved)."""
     with TestClient(create_app(tuner_settings(tmp_path))) as client:
         assert client.post("/loops", json=loop_body("L1")).status_code == 201
         assert client.post("/loops/L1/reset").json()["seq"] == 1  # auto: published
+        assert client.patch("/loops/L1", json={"mode": "advisory"}).status_code == 200
+        view = client.post("/loops/L1/reset").json()
+        assert view["seq"] == 2 and view["proposal"]["reason"] == "reset"
         for mode in ("frozen", "shadow"):
             assert client.patch("/loops/L1", json={"mode": mode}).status_code == 200
-            assert client.post("/loops/L1/reset").json()["seq"] == 1
+            assert client.post("/loops/L1/reset").json()["seq"] == 2
         assert client.get("/loops/L1").json()["verification"]["judged_seq"] == 0
         items = client.get("/loops/L1/history").json()["items"]
     resets = [(e["mode"], e["seq"], e["verdict"]) for e in items if e["reason"] == "reset"]
-    assert resets == [("shadow", 1, None), ("frozen", 1, None), ("auto", 1, "pending")]
+    assert resets == [
+        ("shadow", 2, None), ("frozen", 2, None), ("advisory", 2, None), ("auto", 1, "pending"),
+    ]  # fmt: skip

@@ -13,6 +13,7 @@ from service.agent import untrained_agent
 from service.engine import TuningEngine
 from service.engine.config import LoopConfig
 from service.engine.modes import ADVISORY, AUTO
+from service.engine.resets import PROPOSED
 from service.engine.stepping import step
 from service.engine.table import LoopTable
 from service.wire.protocol import LoopStatus, RejectReason, Sample
@@ -406,6 +407,8 @@ def test_a_reset_records_its_actor_in_the_audit_detail(mode):
     frozen = "agent state only: a frozen loop's gains are not published"
     if mode == "frozen":
         assert details == [f"{frozen}; actor=alice@console", frozen]
+    elif mode == "advisory":
+        assert details == [f"{PROPOSED}; actor=alice@console", PROPOSED]
     else:
         assert details == ["actor=alice@console", ""]
 

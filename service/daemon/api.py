@@ -220,7 +220,9 @@ ProposalSeq = Annotated[int, Path(ge=1, le=MAX_OFFSET)]
 def accept_proposal(loop_id: str, seq: ProposalSeq, tuner: TunerDep, request: Request) -> LoopView:
     """Accept an advisory loop's pending proposal (its seq in the loop view): sent to the
     gateway as an ``auto`` gains message (reason ``accepted``) and verified like any
-    change. 409 if it is not the pending proposal."""
+    change. 409 if it is not the pending proposal, or may not be accepted now (the
+    detail says why: the loop oscillated since it was made, a model identified since is
+    out of the envelope or mismatches the hint, or the gains in force moved away from it)."""
     view = tuner.accept(loop_id, seq)
     admin_event(tuner, request, "accepted", "loop %r: proposal %d accepted (kp=%.6g ki=%.6g)",
            loop_id, seq, view.kp, view.ki)  # fmt: skip

@@ -8,9 +8,10 @@ oldest newer verdict row whose seqs cover its seq, else ``pending`` past the loo
 judged seq (an adoption shares the seq of the update it replaced: the update's verdict
 row comes between them). An agent step the model check held changed nothing (its
 reason says ``verdict=none``; it keeps the seq of the change before it): no verdict.
-Nor does a reset of a ``frozen`` or ``shadow`` loop (agent state only: no gains
-published, the seq unchanged), told by its mode, which rows stored before session 41
-have too (the reset showed the verdict of the change before it).
+Nor does a reset outside ``auto``: an ``advisory`` loop's is a proposal (session 41: it
+showed the verdict of the change before it, ``rollback_proposed``), a ``frozen`` or
+``shadow`` loop's changes the agent state only (no gains published, the seq unchanged);
+told by its mode, which rows stored before session 41 have too.
 """
 
 from __future__ import annotations
@@ -19,14 +20,14 @@ import orjson
 
 from service.daemon.schemas import AuditEntry
 from service.engine.stepping import NO_VERDICT
-from service.wire.protocol import PUBLISHED_MODES
 
 CHANGES = frozenset({"agent", "reset", "adopted", "accepted", "model"})
 """Audit reasons of a change of the gains in force (an advisory or shadow 'agent' or
 'model' row is a proposal: no verdict; 'model': the first tuning from an identified
 model, service/engine/first_tuning.py)."""
-PROPOSALS = frozenset({"agent", "model"})
-"""Change reasons that are proposals outside ``auto``."""
+PROPOSALS = frozenset({"agent", "model", "reset"})
+"""Change reasons that are proposals outside ``auto`` (or, a reset of a ``shadow`` or
+``frozen`` loop, change nothing)."""
 HELD = f"verdict={NO_VERDICT}"
 """The word of a held agent step's reason (:func:`service.engine.stepping._why`)."""
 SCAN = 5000
@@ -47,8 +48,6 @@ def annotate(items: list[AuditEntry], judged_seq: int | None) -> None:
         if item.reason not in CHANGES or (item.reason in PROPOSALS and item.mode != "auto"):
             continue
         if item.reason == "agent" and HELD in item.detail.split():
-            continue
-        if item.reason == "reset" and item.mode not in PUBLISHED_MODES:
             continue
         # the first verdict after the change that covers its seq (an operator's change
         # shares the seq of the update it replaced, judged before it)

@@ -141,7 +141,21 @@ class Proposal(BaseModel):
     ki_in_force: float
     reason: str = Field(
         description="What made it: 'agent' (the agent's steps), 'model' (the tuning from "
-        "an identified model) or 'rollback' (back to the last-good gains)."
+        "an identified model), 'rollback' (back to the last-good gains) or 'reset' (the "
+        "registered gains: an advisory loop's reset)."
+    )
+    made_t: float | None = Field(
+        None, description="Plant time (s) it was made (None: a snapshot of before session 41)."
+    )
+    at_reach: bool = Field(
+        False,
+        description="It lies at its reach of the gains in force (3 guard steps): the "
+        "agent's steps walk it no farther, it waits for a decision.",
+    )
+    refused: str | None = Field(
+        None,
+        description="Why it may not be accepted now (an accept is a 409): the plant "
+        "is not the one it was made for, or the gains in force moved away from it.",
     )
 
 

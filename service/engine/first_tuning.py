@@ -48,9 +48,8 @@ import math
 import numpy as np
 
 from plant_sim.tunings import simc_improved, to_parallel
-from service.engine import box, fences, predict, reported, verify, warm
+from service.engine import box, fences, predict, reported, track, verify, warm
 from service.engine.modes import AUTO, FROZEN, PUBLISHING
-from service.engine.updates import REASON_CODE
 from service.wire.protocol import UpdateReason
 
 RULE = "simc_improved tau_c=2tau"
@@ -156,10 +155,9 @@ def apply(tb, s: int, m, wall: float, why: str) -> None:
         tb.prev_kp[s], tb.prev_ki[s] = old
         tb.kp[s], tb.ki[s] = new
         tb.pending[s], tb.auto_seq[s] = True, seq
-        verify.restart_track(tb, s)
+        track.restart(tb, s)
     else:  # a proposal: the track goes on from it
-        tb.adv_kp[s], tb.adv_ki[s], tb.adv_seq[s] = new[0], new[1], seq
-        tb.adv_why[s] = REASON_CODE[UpdateReason.model]
+        track.propose(tb, s, new[0], new[1], seq, UpdateReason.model)
     (predicted,) = predict.predictions(tb, [s], np.array([old]), np.array([new]), [m])
     detail = {
         "rule": RULE, "after": why, "k": m.k, "tau": m.tau, "theta": m.theta,

@@ -1,5 +1,5 @@
 """An advisory loop's proposals decided by an operator (``POST /loops/{id}/proposals/
-{seq}/accept`` or ``/reject``): the proposal track is :mod:`service.engine.verify`'s."""
+{seq}/accept`` or ``/reject``): the proposal track is :mod:`service.engine.track`'s."""
 
 from __future__ import annotations
 
@@ -9,8 +9,9 @@ from typing import TYPE_CHECKING
 from service.engine.fences import REJECTED, cool, fence_rollback
 from service.engine.modes import ADVISORY, AUTO
 from service.engine.monitor import same_gains
+from service.engine.track import refusal, restart
 from service.engine.updates import StepResult
-from service.engine.verify import _audit, restart_track, single
+from service.engine.verify import _audit, single
 from service.wire.protocol import UpdateReason
 
 if TYPE_CHECKING:
@@ -20,7 +21,8 @@ if TYPE_CHECKING:
 def accept(tb: LoopTable, s: int, seq: int, wall: float, actor: str) -> StepResult:
     """An operator accepts the advisory proposal ``seq``: published as an ``auto``
     message (the gateway applies it), in flight until the gateway reports it.
-    ValueError if ``seq`` is not the loop's pending proposal."""
+    ValueError if ``seq`` is not the loop's pending proposal, or it may not be accepted
+    now (:func:`service.engine.track.refusal`)."""
     _check_proposal(tb, s, seq)
     old, new = (float(tb.kp[s]), float(tb.ki[s])), (float(tb.adv_kp[s]), float(tb.adv_ki[s]))
     lo, hi = (float(tb.kp_min[s]), float(tb.ki_min[s])), (float(tb.kp_max[s]), float(tb.ki_max[s]))
@@ -30,13 +32,16 @@ def accept(tb: LoopTable, s: int, seq: int, wall: float, actor: str) -> StepResu
             f"proposal {seq} (kp {new[0]:.6g}, ki {new[1]:.6g}) is outside the guard's bounds "
             f"in force (kp {lo[0]:.6g}..{hi[0]:.6g}, ki {lo[1]:.6g}..{hi[1]:.6g}): reject it"
         )
+    refused = refusal(tb, s)
+    if refused:
+        raise ValueError(f"proposal {seq} may not be accepted now: {refused}")
     t = float(tb.last_t[s]) if math.isfinite(tb.last_t[s]) else 0.0
     if same_gains(new[0], tb.g_kp[s]) & same_gains(new[1], tb.g_ki[s]):
         fence_rollback(tb, s, old, new, t)  # a rollback proposal taken: as in auto
     tb.prev_kp[s], tb.prev_ki[s] = old
     tb.kp[s], tb.ki[s] = new
     tb.pending[s], tb.auto_seq[s] = True, tb.seq[s] + 1
-    restart_track(tb, s)
+    restart(tb, s)
     tb.seq[s] += 1
     tb._gains_dirty.add(s)
     tb._verify_dirty.add(s)
@@ -50,7 +55,7 @@ def reject(tb: LoopTable, s: int, seq: int, wall: float, actor: str) -> None:
     gains in force and the agent is held for the cool-down."""
     _check_proposal(tb, s, seq)
     gains, proposed = (float(tb.kp[s]), float(tb.ki[s])), (float(tb.adv_kp[s]), float(tb.adv_ki[s]))
-    restart_track(tb, s)
+    restart(tb, s)
     t = float(tb.last_t[s]) if math.isfinite(tb.last_t[s]) else 0.0
     cool(tb, s, t, REJECTED)
     tb._verify_dirty.add(s)

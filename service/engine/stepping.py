@@ -8,8 +8,10 @@ gateway reports outside them hold the loop instead: :func:`service.engine.report
 reports them); ``advisory`` loops are stepped and their proposals published, but their
 gains change only when the gateway reports new ones; ``shadow`` loops are stepped and
 their proposals recorded in the audit log with a predicted effect, never published.
-Advisory and shadow proposals follow a proposal track (see :mod:`service.engine.verify`):
-the agent's step is added to the previous proposal, and the guard applies from it.
+Advisory and shadow proposals follow a proposal track (see :mod:`service.engine.track`):
+the agent's step is added to the previous proposal, and the guard applies from it; the
+track goes no farther than its reach from the gains in force (a step it holds there is
+not published, ``guard=reach``).
 
 With an identified model in force, a step the model predicts to track much worse than
 the model's tuning is held (:mod:`service.engine.model_check`): gains unchanged, nothing
@@ -23,12 +25,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.engine import box, fences, margin, model_check, oscillation, predict, verify
+from service.engine import box, fences, margin, model_check, oscillation, predict, track, verify
 from service.engine.audit import audit_row
 from service.engine.modes import ADVISORY, AUTO, SHADOW
 from service.engine.rules import GAIN_RTOL
 from service.engine.table import LoopTable
-from service.engine.updates import MODE_VALUES, REASON_CODE, StepResult, published
+from service.engine.updates import MODE_VALUES, StepResult, published
 from service.wire.protocol import UpdateReason
 
 OBS_LIMIT = 1e30
@@ -71,11 +73,11 @@ def step(tb: LoopTable, slots: np.ndarray, wall: float) -> StepResult:
     old = np.column_stack([tb.kp[slots], tb.ki[slots]])
     mode = tb.mode[slots]
     # advisory and shadow proposals: the agent's step added to the previous proposal
-    track = (mode == ADVISORY) | (mode == SHADOW)
+    walked = (mode == ADVISORY) | (mode == SHADOW)
     base = old
-    if track.any():
+    if walked.any():
         prev = np.column_stack([tb.adv_kp[slots], tb.adv_ki[slots]])
-        base = np.where(track[:, None] & np.isfinite(prev), prev, old)
+        base = np.where(walked[:, None] & np.isfinite(prev), prev, old)
         proposed = proposed + (base - old)
     grow = 1.0 + tb.max_rel[slots, None]
     lo = np.column_stack([tb.kp_min[slots], tb.ki_min[slots]])
@@ -88,6 +90,10 @@ def step(tb: LoopTable, slots: np.ndarray, wall: float) -> StepResult:
     cut = tb.watch[slots] & (tb.ms_max[slots] > 0)
     if cut.any():
         new, cut = _margin(tb, slots, new, cut, lo)
+    # the track waits at its reach of the gains in force for a decision (track.REACH_STEPS)
+    far = np.zeros(len(slots), bool)
+    if walked.any():
+        new, far = track.within_reach(tb, slots, walked, old, base, new)
     # the model check: a step the identified model predicts much worse is held (no change,
     # nothing published; the agent's state moves on)
     hold, held_text = model_check.held(tb, slots, base, new)
@@ -99,7 +105,7 @@ def step(tb: LoopTable, slots: np.ndarray, wall: float) -> StepResult:
         tb.n_model_holds[slots[hold]] += 1
     # the view's hold (views.hold): since when the model check has held the loop's steps
     tb.mc_since[slots] = np.where(hold, np.fmin(tb.mc_since[slots], tb.last_t[slots]), np.nan)
-    go = ~hold
+    go = ~hold & ~far
 
     applied = (mode == AUTO) & go
     auto = slots[applied]
@@ -110,12 +116,11 @@ def step(tb: LoopTable, slots: np.ndarray, wall: float) -> StepResult:
     tb.seq[moved] += 1
     tb.n_steps[slots] += 1
     tb._gains_dirty.update(moved.tolist())
-    track &= go
-    if track.any():
-        tracked = slots[track]
-        tb.adv_kp[tracked], tb.adv_ki[tracked] = new[track, 0], new[track, 1]
-        tb.adv_seq[tracked] = tb.seq[tracked]
-        tb.adv_why[tracked] = REASON_CODE[UpdateReason.agent]
+    walked &= go
+    if walked.any():
+        tracked = slots[walked]
+        kp, ki = new[walked].T
+        track.propose(tb, tracked, kp, ki, tb.seq[tracked], UpdateReason.agent)
         tb._verify_dirty.update(tracked.tolist())
 
     ids, gateways, listed = tb.ids, tb.gateways, slots.tolist()
@@ -128,7 +133,7 @@ def step(tb: LoopTable, slots: np.ndarray, wall: float) -> StepResult:
         proposed,
         new,
         [gateways[s] for s in listed],
-        why=_why(tb, slots, mode, old, proposed, fenced, bounded, new, cut, hold),
+        why=_why(tb, slots, mode, old, proposed, fenced, bounded, new, cut, hold, far),
     )
     limited = np.flatnonzero(~np.isclose(proposed, new, rtol=GAIN_RTOL, atol=0.0).all(axis=1))
     # the audit row adds the figures the change was made on: the last response's IAE and
@@ -145,6 +150,8 @@ def step(tb: LoopTable, slots: np.ndarray, wall: float) -> StepResult:
         details[i] = f"{details[i]}; {_guard_detail(kp, ki)}"
     for i in np.flatnonzero(hold).tolist():
         details[i] = f"{details[i]}; {held_text[i]}"
+    for i in np.flatnonzero(far).tolist():
+        details[i] = f"{details[i]}; {WAITS}"
     shadow = np.flatnonzero(mode == SHADOW)
     if shadow.size:
         predicted = predict.predictions(tb, slots[shadow].tolist(), old[shadow], new[shadow])
@@ -158,13 +165,13 @@ def step(tb: LoopTable, slots: np.ndarray, wall: float) -> StepResult:
             new[:, 0].tolist(), new[:, 1].tolist(), details, strict=True,
         )
     )  # fmt: skip
-    unpublished = np.flatnonzero((mode == SHADOW) | hold)
+    unpublished = np.flatnonzero((mode == SHADOW) | hold | far)
     if unpublished.size:
         result, slots = result.without(unpublished), np.delete(slots, unpublished)
     return published(tb, slots, result)
 
 
-def _why(tb, slots, mode, old, proposed, fenced, bounded, new, cut, hold) -> list[str]:
+def _why(tb, slots, mode, old, proposed, fenced, bounded, new, cut, hold, far) -> list[str]:
     """The short ``key=value`` reason of each step (docs/tuner.md, Reasons): the loop's
     basis (an identified model or the hint), the change, which guard limit bit, and the
     verdict to come."""
@@ -174,15 +181,17 @@ def _why(tb, slots, mode, old, proposed, fenced, bounded, new, cut, hold) -> lis
     def differ(a, b):
         return ~np.isclose(a, b, rtol=GAIN_RTOL, atol=0.0).all(axis=1)
 
-    # the limit named: the model's hold, else the margin's cut, else the first of the
-    # fence, the bounds and the rate (the order they apply in) that changed the gains
+    # the limit named: the model's hold, else the proposal's reach, else the margin's cut,
+    # else the first of the fence, the bounds and the rate (the order they apply in) that
+    # changed the gains
     guards = np.select(
-        [hold, cut, differ(proposed, fenced), differ(fenced, bounded), differ(bounded, new)],
-        ["model", "margin", "fence", "bounds", "rate"],
+        [hold, far, cut, differ(proposed, fenced), differ(fenced, bounded), differ(bounded, new)],
+        ["model", "reach", "margin", "fence", "bounds", "rate"],
         "none",
     ).tolist()
     basis = ["model" if tb.ident[s].scaling is not None else "hint" for s in slots.tolist()]
-    verdicts = np.where(hold, NO_VERDICT, [_VERDICT.get(c, NO_VERDICT) for c in mode.tolist()])
+    made = [_VERDICT.get(c, NO_VERDICT) for c in mode.tolist()]
+    verdicts = np.where(hold | far, NO_VERDICT, made)
     return [
         f"reason=agent basis={b} dkp={p[0]:+.1f}% dki={p[1]:+.1f}% guard={g} verdict={v}"
         for b, p, g, v in zip(basis, pct.tolist(), guards, verdicts.tolist(), strict=True)
@@ -192,6 +201,8 @@ def _why(tb, slots, mode, old, proposed, fenced, bounded, new, cut, hold) -> lis
 _VERDICT = {AUTO: "pending", ADVISORY: "proposal", SHADOW: "shadow"}
 NO_VERDICT = "none"
 """The verdict of a step none will judge: one the model check held changed nothing."""
+WAITS = "the proposal waits at its reach of the gains in force for a decision (accept or reject)"
+"""The audit detail of a step the proposal's reach held (:func:`track.within_reach`)."""
 PENDING = f" verdict={_VERDICT[AUTO]}"
 """The end of an ``auto`` step's reason (:func:`_why`): its verdict is to come, in a
 verdict row of its own (the history's ``verdict``, :mod:`service.daemon.verdicts`)."""

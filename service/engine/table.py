@@ -30,26 +30,28 @@ from service.engine import (
     recorder,
     refusals,
     reported,
+    resets,
     settings,
     status,
     steady,
+    track,
     verify,
     views,
     watch,
 )  # fmt: skip
-from service.engine.audit import AuditRow, audit_row
+from service.engine.audit import AuditRow
 from service.engine.config import Configs, LoopConfig, LoopView
 from service.engine.figures import Refused
 from service.engine.id_state import IdState
-from service.engine.modes import _CODE, _MODES, AUTO, PUBLISHING
+from service.engine.modes import _CODE, _MODES
 from service.engine.plant_hold import RELEASED
 from service.engine.saved import Saved, restore_runtimes, runtimes_of
 from service.engine.site import SiteDefaults
 from service.engine.status import STATUSES
-from service.engine.updates import MODE_VALUES, StepResult
+from service.engine.updates import StepResult
 from service.units import Scaling
 from service.wire import flood
-from service.wire.protocol import LoopStatus, Mode, UpdateReason
+from service.wire.protocol import LoopStatus, Mode
 
 _F64 = (
     # gains now, registered, replaced by an update in flight; seq of the last auto update
@@ -344,7 +346,7 @@ class LoopTable:
     def reconfigure(self, config: LoopConfig) -> None:
         s = self.slot(config.id)
         if _CODE[config.mode] != self.mode[s]:  # a proposal belongs to the mode it was made in
-            verify.restart_track(self, s)
+            track.restart(self, s)
             # and so does settling: in shadow or advisory the agent's asks are not applied
             self.unsettle(s)
         settings.configure(self, np.array([s]), [config])
@@ -366,42 +368,17 @@ class LoopTable:
 
         The gains move as an agent step's would: an ``auto`` loop takes them at once, as
         an update in flight (the gateway's next samples still report the old gains, which
-        must not be adopted back); an ``advisory`` loop keeps its gains until the gateway
-        reports new ones. A ``frozen`` loop gets no gains messages, so only its episode
-        restarts and its gains stay those in force: None, nothing to publish.
+        must not be adopted back); an ``advisory`` loop's are a proposal (reason
+        ``reset``, replacing the one pending) that its gains follow when it is accepted
+        (:mod:`service.engine.resets`). A ``frozen`` loop gets no gains messages, so only
+        its episode restarts and its gains stay those in force: None, nothing to publish.
 
         The update's ``t`` is the plant time of the newest sample accepted since the
         registration or the last reset (0.0 if none: docs/protocol.md, Gains). ``actor``
         (who reset, when known) is recorded as ``actor=<actor>`` in the audit row's detail,
         after any other text with ``"; "``.
         """
-        s = self.slot(loop_id)
-        who = f"actor={actor}" if actor else ""
-        old = (float(self.kp[s]), float(self.ki[s]))
-        new = (float(self.reg_kp[s]), float(self.reg_ki[s]))
-        t = None if math.isnan(self.last_t[s]) else float(self.last_t[s])
-        self._restart(s)
-        verify.reset(self, s)
-        mode = self.mode[s]
-        if mode not in PUBLISHING:  # (the history gives such a row no verdict)
-            detail = f"agent state only: a {MODE_VALUES[mode]} loop's gains are not published"
-            detail = f"{detail}; {who}" if who else detail
-            self._audit.append(
-                audit_row(loop_id, wall, t, int(self.seq[s]), MODE_VALUES[mode], "reset", old,
-                          old, detail)
-            )  # fmt: skip
-            return None
-        if mode == AUTO:
-            (self.prev_kp[s], self.prev_ki[s]), (self.kp[s], self.ki[s]) = old, new
-            self.pending[s], self.auto_seq[s] = True, self.seq[s] + 1
-        self.seq[s] += 1
-        self._gains_dirty.add(s)
-        self._audit.append(
-            audit_row(loop_id, wall, t, int(self.seq[s]), MODE_VALUES[mode], "reset", old, new, who)
-        )
-        why = "reason=reset basis=registered verdict=pending"
-        return verify.single(self, s, 0.0 if t is None else t, old, new, UpdateReason.reset, why,
-                             int(mode))  # fmt: skip
+        return resets.reset(self, self.slot(loop_id), wall, actor)
 
     # -- samples ----------------------------------------------------------------------
     def gate_closed(self, s, t):

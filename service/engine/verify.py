@@ -32,18 +32,8 @@ Verdicts of the changes up to a seq are audit rows (reason ``verified``, ``rollb
 (:attr:`v_seq`) are ``pending``. All of it is in the loop's runtime snapshot, and the
 daemon snapshots a loop whose verification state moved before it publishes.
 
-Advisory and shadow loops keep a **proposal track** (``adv_kp``/``adv_ki``): the agent
-observes the gains in force (what the plant runs with), and its step is added to the
-previous proposal instead of to the gains in force, with the safety guard applied from
-the previous proposal. Successive proposals thus walk where the agent's steps point, as
-its updates would in ``auto``, and stop where its step vanishes (its target), instead of
-repeating one guard-limited step from gains that never move. An operator accepting one
-(``POST /loops/{id}/proposals/{seq}/accept``) has it published as an ``auto`` message
-(reason ``accepted``; :mod:`service.engine.proposals`); rejecting it restarts the track
-from the gains in force and holds the agent for the cool-down. Gains of the operator's
-own, adopted from the samples, restart the track too: proposals walked from gains no
-longer in force would start a guard step from nothing the plant runs (12-15x the gains
-in force, session 35's review).
+Advisory and shadow loops keep a **proposal track** of proposals the operator accepts or
+rejects: :mod:`service.engine.track`.
 """
 
 from __future__ import annotations
@@ -54,13 +44,14 @@ from typing import TYPE_CHECKING
 import numpy as np
 import orjson
 
+from service.engine import track
 from service.engine.audit import audit_row
 from service.engine.fences import FENCED, ROLLBACK, cool, fence_rollback, unfence
 from service.engine.modes import AUTO, PUBLISHING
 from service.engine.monitor import ABSENT, RESPONSE_PERIODS, put, same_gains
 from service.engine.oscillation import forget_lobes, noise_sigma, period
 from service.engine.reported import held, is_detune, no_floor, outside, within
-from service.engine.updates import MODE_VALUES, REASON_CODE, StepResult, published
+from service.engine.updates import MODE_VALUES, StepResult, published
 from service.wire.protocol import UpdateReason
 
 if TYPE_CHECKING:
@@ -71,8 +62,9 @@ F64 = [
     "g_kp", "g_ki", "g_seq",
     # changes up to this seq are judged; the agent is held until this plant time (why)
     "v_seq", "cool_until", "cool_why",
-    # the proposal track of advisory and shadow loops (NaN: none), its seq and reason code
-    "adv_kp", "adv_ki", "adv_seq", "adv_why",
+    # the proposal track of advisory and shadow loops (NaN: none), its seq, reason code
+    # and the plant time it was made (service.engine.track)
+    "adv_kp", "adv_ki", "adv_seq", "adv_why", "adv_t",
     # the fence after a rollback: bounds of the agent's gains (NaN: none) until a plant time
     "x_kp_lo", "x_kp_hi", "x_ki_lo", "x_ki_hi", "x_until",
     # tuning paused until this plant time (the loop oscillates), and the last plant time
@@ -116,7 +108,7 @@ def init(tb: LoopTable, s: int) -> None:
     tb.g_iae[s] = tb.g_iae_dn[s] = math.nan
     tb.g_seq[s] = tb.v_seq[s] = tb.seq[s]
     tb.cool_until[s] = -math.inf
-    restart_track(tb, s)
+    track.restart(tb, s)
     tb.b_kp[s] = tb.b_ki[s] = math.nan
     tb.osc_until[s] = tb.osc_seen[s] = tb.g_osc[s] = -math.inf
     tb.g_calm[s] = 0.0
@@ -148,7 +140,7 @@ def adopted(tb: LoopTable, s: int, old: tuple[float, float]) -> None:
     gains outside the guard's bounds hold the loop while in force
     (:func:`~service.engine.reported.held`)."""
     unfence(tb, s)
-    restart_track(tb, s)
+    track.restart(tb, s)
     # judged from the loop's seq on: an operator's change takes no seq (a seq unpublished
     # would be news to a gateway's state query, which would then write these gains over
     # a later change of the operator's), it shares that of the last update it replaced
@@ -385,11 +377,10 @@ def fail(
         forget_lobes(tb, s)  # the detector's of their ringing too
         if why in FENCED:
             fence_rollback(tb, s, old, good, t)
-        restart_track(tb, s)
+        track.restart(tb, s)
         verdict = "rolled_back"
     else:
-        tb.adv_kp[s], tb.adv_ki[s], tb.adv_seq[s] = good[0], good[1], seq
-        tb.adv_why[s] = REASON_CODE[UpdateReason.rollback]
+        track.propose(tb, s, good[0], good[1], seq, UpdateReason.rollback)
         verdict = "rollback_proposed"
     ident = tb.ident[s]
     if why in REFUTING and ident is not None and judged[0] <= ident.tuned_seq <= judged[1]:
@@ -450,13 +441,8 @@ def reset(tb: LoopTable, s: int) -> None:
     tb.cool_until[s] = tb.osc_until[s] = -math.inf
     unfence(tb, s)
     no_floor(tb, s)
-    restart_track(tb, s)
+    track.restart(tb, s)
     tb._verify_dirty.add(s)
-
-
-def restart_track(tb: LoopTable, s) -> None:
-    """No proposal pending: the track restarts from the gains in force (``s``: slots)."""
-    tb.adv_kp[s] = tb.adv_ki[s] = tb.adv_seq[s] = tb.adv_why[s] = math.nan
 
 
 def single(tb, s, t, old, new, reason: UpdateReason, why: str, mode: int) -> StepResult:

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from service.engine import box, monitor, oscillation, plant_hold, refusals, status, verify
+from service.engine import box, monitor, oscillation, plant_hold, refusals, status, track, verify
 from service.engine.config import Counters, LoopConfig, LoopView
 from service.engine.fences import COOLED
 from service.engine.figures import (
@@ -272,6 +272,8 @@ def proposal(tb: LoopTable, s: int) -> Proposal | None:
     return Proposal(
         seq=int(tb.adv_seq[s]), kp=kp, ki=ki, dkp=kp - float(tb.kp[s]), dki=ki - float(tb.ki[s]),
         kp_in_force=float(tb.kp[s]), ki_in_force=float(tb.ki[s]), reason=reason.value,
+        made_t=_num(float(tb.adv_t[s])), at_reach=track.at_reach(tb, s),
+        refused=track.refusal(tb, s),
     )  # fmt: skip
 
 
