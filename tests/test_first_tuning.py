@@ -146,3 +146,19 @@ def test_a_loop_paused_out_of_the_envelope_is_paused_on_the_models_tuning():
     _, audit = engine.drain_changes()
     row = next(r for r in audit if r[5] == "model")
     assert json.loads(row[10])["after"] == "out_of_envelope"
+
+
+def test_an_advisory_models_tuning_is_judged_only_once_accepted():
+    """A model's tuning proposed in advisory is no change the loop runs with: a verdict
+    (an oscillation of the gains in force) until it is accepted must not refute the model
+    behind it (the review R1's S01: the cure refuted, a near-exact later model refused as
+    like it). Accepted, its seq is the model's tuning's, as in auto."""
+    engine = engine_with(0.25, mode="advisory")
+    first = drive(engine, moves=4, advisory_applied=False)[0]
+    assert first.reason == "model"
+    ident = engine.table.ident[engine.table.slot_of["L"]]
+    assert ident.tuned is not None and ident.tuned_seq == -1
+    proposal = engine.view("L", wall=1e9).proposal
+    assert proposal is not None and proposal.reason == "model"
+    accepted = engine.accept("L", proposal.seq, wall=1e9)
+    assert ident.tuned_seq == int(accepted.seq[0]) > proposal.seq

@@ -52,12 +52,14 @@ def drive(
     u_max=np.inf,
     u_min=-np.inf,
     quantum=0.0,
+    advisory_applied=True,
 ) -> list:
     """Run one simulated loop through the engine: ``moves`` setpoint moves of +-``size``
     every ``every`` time constants (each a ramp over ``ramp`` time constants, 0: a step;
     a list: the i-th move's, the last for the moves beyond it; ``u_min``, ``u_max``: the
-    DCS's output limits, which the samples do not show; ``quantum``: the PV's resolution);
-    returns the gain updates published."""  # fmt: skip
+    DCS's output limits, which the samples do not show; ``quantum``: the PV's resolution;
+    ``advisory_applied`` False: the simulated DCS ignores advisory messages, as a gateway
+    does); returns the gain updates published."""  # fmt: skip
     kp, ki = engine.view(loop_id, wall=0.0).kp, engine.view(loop_id, wall=0.0).ki
     if integrating:
         plant = FOPTDBatch(1.0, 1e9, theta / h, dt=1.0, noise_std=noise, seed=seed)
@@ -94,7 +96,8 @@ def drive(
             sample["op"] = float(u[0])
         new = engine.ingest([sample], wall=float(j))
         for up in new:
-            pi.set_gains(up.kp, up.ki * h)
+            if advisory_applied or up.mode != "advisory":
+                pi.set_gains(up.kp, up.ki * h)
         updates += new
         if integrating:
             plant.step(u * (k * h) * 1e9)  # a lag of tau 1e9 samples integrates k u dt

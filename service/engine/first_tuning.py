@@ -150,7 +150,9 @@ def apply(tb, s: int, m, wall: float, why: str) -> None:
     # rollback)
     fences.cool(tb, s, t, fences.MODEL)
     fences.unfence(tb, s)  # a fence of gains tuned for the plant as it was before
-    tb.ident[s].tuned_seq, tb.ident[s].tuned = seq, m
+    # a proposal's tuning is judged only once accepted (proposals.accept): until then its
+    # seq is no change the loop runs with, and a verdict on the gains in force is not its
+    tb.ident[s].tuned_seq, tb.ident[s].tuned = (seq if mode == AUTO else -1), m
     if mode == AUTO:
         tb.prev_kp[s], tb.prev_ki[s] = old
         tb.kp[s], tb.ki[s] = new

@@ -10,7 +10,7 @@ from service.engine.fences import REJECTED, cool, fence_rollback
 from service.engine.modes import ADVISORY, AUTO
 from service.engine.monitor import same_gains
 from service.engine.track import refusal, restart
-from service.engine.updates import StepResult
+from service.engine.updates import REASON_CODE, StepResult
 from service.engine.verify import _audit, single
 from service.wire.protocol import UpdateReason
 
@@ -38,6 +38,9 @@ def accept(tb: LoopTable, s: int, seq: int, wall: float, actor: str) -> StepResu
     t = float(tb.last_t[s]) if math.isfinite(tb.last_t[s]) else 0.0
     if same_gains(new[0], tb.g_kp[s]) & same_gains(new[1], tb.g_ki[s]):
         fence_rollback(tb, s, old, new, t)  # a rollback proposal taken: as in auto
+    ident = tb.ident[s]
+    if tb.adv_why[s] == REASON_CODE[UpdateReason.model] and ident is not None:
+        ident.tuned_seq = int(tb.seq[s]) + 1  # the model's tuning now runs: its verdict refutes
     tb.prev_kp[s], tb.prev_ki[s] = old
     tb.kp[s], tb.ki[s] = new
     tb.pending[s], tb.auto_seq[s] = True, tb.seq[s] + 1
