@@ -261,6 +261,9 @@ def test_approve_a_proposal_roll_back_and_shadow_from_the_loop_page(daemon, new_
 
         with settled(daemon, plant, "TIC-3") as now:
             seq = shown(page, now)
+            # when it was made, in plant time, and how long ago (a stale one looks stale)
+            made = page.locator("#proposal-text").inner_text()
+            assert f"made at t = {now['proposal']['made_t']:g}" in made and " s ago)" in made
             page.click("#approve")
             applied = plant.applied.get(timeout=20.0)  # the plant applies the accepted gains
         view = httpx.get(f"{daemon.url}/loops/TIC-3").json()

@@ -185,8 +185,14 @@
     $("proposal-box").hidden = !pr;
     if (pr) {
       $("proposal-box").dataset.seq = pr.seq;
+      // how old it is, whether it waits at its reach, and why it may not be accepted now:
+      // a proposal made before the plant changed must not look as fresh as a new one
+      const age = pr.made_t == null || v.last_sample_t == null ? ""
+        : `, made at t = ${pitune.num(pr.made_t, 7)} s (${pitune.num(v.last_sample_t - pr.made_t, 4)} s ago)`;
       $("proposal-text").innerHTML = `#${pr.seq} (${pitune.esc(pr.reason)}): kp ${pitune.num(pr.kp_in_force, 5)} → <b>${pitune.num(pr.kp, 5)}</b>, ` +
-        `ki ${pitune.num(pr.ki_in_force, 5)} → <b>${pitune.num(pr.ki, 5)}</b>`;
+        `ki ${pitune.num(pr.ki_in_force, 5)} → <b>${pitune.num(pr.ki, 5)}</b>${age}` +
+        (pr.at_reach ? "; at its reach of the gains in force (waits for a decision)" : "") +
+        (pr.refused ? `<br><b>may not be accepted now:</b> <span class="proposal-refused">${pitune.esc(pr.refused)}</span>` : "");
     }
     const form = $("guard-form");
     if (!form.dataset.dirty) for (const el of form.elements) if (el.name) el.value = g[el.name] ?? "";
