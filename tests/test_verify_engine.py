@@ -791,3 +791,32 @@ def test_gains_judged_worse_and_kept_adopted_again_leave_nothing_pending():
     tb.f_iae[s], tb.r_kp[s], tb.r_ki[s], tb.r_seq[s], tb.r_mixed[s] = 5.0, 0.3, 0.03, 0, False
     assert verify.judge(tb, np.array([s]), np.array([], int), 0.0) == []
     assert int(tb.v_seq[s]) == 0
+
+
+def test_a_rollback_proposal_waiting_is_not_made_again_under_a_new_seq(rng, monkeypatch):
+    """Advisory, the loop oscillating on the gains in force: the rollback proposal waits
+    for the operator; the oscillation failing them again must not re-issue it under a new
+    seq (the review R1's S01: 7 rollback proposals in 1,300 s, and the operator's approval
+    of the one read answered 409 'not the pending one')."""
+    from collections import Counter
+    from itertools import pairwise
+
+    from service.learn import verification
+
+    seen = []
+
+    class Recording(TuningEngine):
+        def ingest(self, samples, *, wall=None):
+            out = super().ingest(samples, wall=wall)
+            seen.extend(out)
+            return out
+
+    monkeypatch.setattr(verification, "TuningEngine", Recording)
+    out = run_scenario(scenario("oscillating", 4, rng), noise=NOISE, mode="advisory")
+    assert out["verdict"] == ["rollback_proposed"] * 4
+    rollbacks = Counter(u.loop_id for u in seen if u.reason == "rollback")
+    assert sorted(rollbacks) == ["L0", "L1", "L2", "L3"]
+    # made again only once another proposal replaced it (before: 2-4 in a row per loop)
+    for loop in rollbacks:
+        reasons = [u.reason for u in seen if u.loop_id == loop]
+        assert all(a != "rollback" or b != "rollback" for a, b in pairwise(reasons)), reasons

@@ -94,6 +94,16 @@ def propose(tb: LoopTable, s, kp, ki, seq, reason: UpdateReason) -> None:
     tb.adv_why[s], tb.adv_t[s] = REASON_CODE[reason], tb.last_t[s]
 
 
+def pending(tb: LoopTable, s: int, gains: tuple[float, float], reason: UpdateReason) -> bool:
+    """Whether slot ``s``'s pending proposal is already ``gains`` for ``reason``: made
+    again, it would only take a new seq (an oscillation goes on failing the gains in
+    force: 7 rollback proposals in 1,300 s, an operator's approval of the one read a 409)."""
+    return bool(
+        tb.adv_why[s] == REASON_CODE[reason]
+        and same_gains(tb.adv_kp[s], gains[0]) & same_gains(tb.adv_ki[s], gains[1])
+    )
+
+
 def restart(tb: LoopTable, s) -> None:
     """No proposal pending: the track restarts from the gains in force (``s``: slots)."""
     tb.adv_kp[s] = tb.adv_ki[s] = tb.adv_seq[s] = tb.adv_why[s] = tb.adv_t[s] = math.nan

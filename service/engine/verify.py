@@ -364,6 +364,8 @@ def fail(
         tb.v_seq[s] = tb.seq[s]
         _audit(tb, s, wall, "verdict", old, old, {"verdict": "worse", **detail})
         return None
+    if mode != AUTO and not actor and track.pending(tb, s, good, UpdateReason.rollback):
+        return None  # that rollback waits for the operator already, under its own seq
     tb.seq[s] += 1
     cool(tb, s, t, ROLLBACK)
     seq = int(tb.seq[s])
