@@ -286,12 +286,10 @@ def test_the_growing_test_wants_growth_over_the_period_and_lobes_of_four_samples
     # a setpoint response (a move's partial lobe, then half-sine lobes of 8 samples)
     # whose small lobe is followed by a larger one (0.07 after 0.03) but smaller than the
     # one a period before (0.16): no growth, and too much decay for the sustained test
-    # (0.4 per period; a tail of 0.015, 0.035, half per period, is the sustained test's
-    # line, which the band raised by the response's own curvature hid until session 41)
     j = np.arange(8)
     half_sine = np.sin(np.pi * (j + 0.5) / 8)
     response = [0.3 * np.cos(np.pi / 2 * j / 8)] + [
-        (-1) ** (i + 1) * a * half_sine for i, a in enumerate([0.16, 0.03, 0.07, 0.012, 0.025])
+        (-1) ** (i + 1) * a * half_sine for i, a in enumerate([0.16, 0.03, 0.07, 0.015, 0.035])
     ]
     assert _first_flag(np.concatenate(response).tolist()) is None
     # lobes of 3 samples that grow: the sustained test's third crossing, not the second

@@ -84,9 +84,7 @@ NOISE_FORGET = 0.02
 error (sigma^2 = E[d2^2] / 6 for white noise; a running mean over the first 50 samples):
 blind to the loop's own slow motion, so neither a transient nor a growing oscillation
 inflates the band. Not updated across a setpoint move, nor while two lobes of a
-possible oscillation are on record, nor from a second difference centred on a sample
-outside the band (a smooth motion's curvature there is the motion's, not the noise's;
-inside it, near the setpoint, a cycle's curvature is as small as its error)."""
+possible oscillation are on record."""
 NOISE_WARM = round(1.0 / NOISE_FORGET)
 """Samples the noise estimate takes before the detector may judge (its running mean's
 length; the estimate restarts after a restart)."""
@@ -165,13 +163,10 @@ def period(tb: LoopTable, s: int) -> float:
 
 def _noise(tb: LoopTable, slots, e, prev_e, jumped) -> None:
     """One sample of the noise variance estimate (second differences of the error)."""
-    # until the estimate has its first samples it is not frozen by lobes or the band
-    # either (at startup the band is the floor, and noise alone crosses it). The band
-    # holds out a cycle that the lobe count misses (a count that restarts at each
-    # setpoint move let a noise-free limit cycle of amplitude 5.8 make a sigma of 0.054)
+    # until the estimate has its first samples it is not frozen by lobes either (at
+    # startup the band is the floor, and noise alone crosses it)
     k = tb.o_k[slots]
-    calm = (tb.o_n[slots] < 2) & (np.abs(prev_e) <= band(tb, slots))
-    usable = ~jumped & (tb.o_j[slots] == 0) & (calm | (k < NOISE_WARM))
+    usable = ~jumped & (tb.o_j[slots] == 0) & ((tb.o_n[slots] < 2) | (k < NOISE_WARM))
     d2 = e - 2.0 * prev_e + tb.o_e2[slots]
     var = np.where(usable, d2 * d2 / 6.0, tb.o_var[slots])
     forget = np.maximum(NOISE_FORGET, 1.0 / (1.0 + k))
