@@ -149,7 +149,8 @@ def _ingest(tb: LoopTable, s: int, sample: Sample, wall: float) -> bool:
     one = np.array([s])
     judged = monitor.observe(
         tb, one, np.array([t]), np.array([e]), tb.last_e[one], np.array([last_t]),
-        np.array([moved]), np.array([fresh]), np.array([sample.auto]), np.array([saturated]),
+        np.array([moved]), np.array([fresh]), np.array([gap]), np.array([sample.auto]),
+        np.array([saturated]),
     )  # fmt: skip
     if judged[0].size or judged[1].size:
         tb.to_judge.append(judged)

@@ -154,18 +154,26 @@ def observe(
     last_t: np.ndarray,
     moved: np.ndarray,
     fresh: np.ndarray,
+    gap: np.ndarray,
     auto: np.ndarray,
     saturated: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Take accepted samples of distinct loops (aligned arrays; ``prev_e``, ``last_t``:
     the loop's previous sample, NaN if none; ``moved``: a setpoint move; ``fresh``: no
-    usable previous sample). Returns (slots whose response just completed, slots that
-    just started oscillating).
+    usable previous sample: ``gap`` (none, or a stale gap) or back from manual or
+    saturation). Returns (slots whose response just completed, slots that just started
+    oscillating).
 
-    A sample in manual or saturation (``paused``) ends the open response unjudged, opens
-    none, and starts the oscillation count again: what the loop does there is not the
-    gains' doing (an operator's output, a valve at its limit), so no verdict may come
-    of it (a response ending in manual was judged and rolled back, published in manual).
+    A sample in manual or saturation (``paused``) ends the open response unjudged and
+    opens none: what the loop does there is not the gains' doing alone (an operator's
+    output, a valve at its limit), so no response figure may come of it (a response
+    ending in manual was judged and rolled back, published in manual). A sample in manual
+    (and the first back from it) also starts the oscillation count again; one in
+    saturation does not: a limit cycle that reaches the valve's limits in each
+    half-period is the gains' doing as much as one that stays inside them, and a count
+    restarted at each limit never flagged it (session 41: a loop cycling at 6 crossings
+    per 100 s, the valve at its limit in 5-14 of every 100 samples, showed
+    ``oscillating: false`` for 1,100 s). A loop held at a limit makes no lobes.
     """
     paused = ~auto | saturated
     dt = np.where(fresh | np.isnan(last_t), 0.0, t - last_t)
@@ -182,7 +190,11 @@ def observe(
     _open(tb, slots[opens][settled], t[opens][settled], move[settled])
     _respond(tb, slots, t, e, prev_e, dt, moved)
     _window(tb, slots, e, dt, auto, saturated)
-    osc = oscillation.detect(tb, slots, t, e, prev_e, dt, moved | fresh | paused)
+    # back from manual: the manual samples before were the detector's breaks (o_j)
+    back = fresh & ~gap & tb.o_j[slots]
+    breaks = moved | gap | back | ~auto
+    step = np.where(gap | back, 0.0, t - last_t)
+    osc = oscillation.detect(tb, slots, t, e, prev_e, step, breaks)
     return done, osc
 
 

@@ -182,7 +182,7 @@ def ingest(
     first_tuning.flush(tb)  # the models put in force: one batched warm run
     if tb.monitoring:
         judged = monitor.observe(
-            tb, slots, t, e, tb.last_e[slots], last_t, moved, fresh, auto, saturated
+            tb, slots, t, e, tb.last_e[slots], last_t, moved, fresh, gap, auto, saturated
         )
         if judged[0].size or judged[1].size:
             tb.to_judge.append(judged)
