@@ -6,6 +6,8 @@ flag) on a FOPTD plant (K 4, tau 10 s, theta 8 s), its setpoint toggled between 
 review: a limit cycle that touched the limits in each half-period was never flagged).
 """
 
+from itertools import pairwise
+
 import numpy as np
 import pytest
 
@@ -95,7 +97,11 @@ def test_a_limit_cycle_at_the_limits_stays_flagged_between_setpoint_moves():
     # every 100 samples) through 4 setpoint moves
     _, records, updates = run({700.0: PAST_KU}, 3.0, mode="advisory", t_end=1700)
     proposed = [u[1] for u in updates if u[1] != "agent"]
-    assert len(proposed) == 5 and set(proposed) == {"rollback"}  # again at each flag
+    assert proposed and set(proposed) == {"rollback"}
+    # a rollback proposal waiting is not made again at each flag, only once the agent's
+    # proposal replaced it (verify.fail; it was 5 in a row before that rule)
+    reasons = [u[1] for u in updates]
+    assert all(a != "rollback" or b != "rollback" for a, b in pairwise(reasons))
     cycling = [r for r in records if r[0] >= 800.0]
     assert sum(r[1] for r in cycling) >= 0.05 * len(cycling)  # at the limits
     # a move restarts the count (the first lobe after it is partial), but not for good:
