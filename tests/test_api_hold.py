@@ -81,7 +81,12 @@ def test_hold_release_and_every_loops_view_metric_log_and_record(tmp_path, caplo
         ({"reason": "two\nlines"}, "U+000A at 3"),
         ({"reason": "\x1b[2Jclear"}, "U+001B at 0"),
         ({"reason": "abc\u202edcba"}, "U+202E at 3"),  # a bidi override
-        ({"reason": "   "}, "blank"),
+        ({"reason": "   "}, "no letter or digit"),
+        # printable, but blank-looking: a Hangul filler, Braille blanks, a combining mark
+        ({"reason": "\u3164"}, "no letter or digit"),
+        ({"reason": "\u2800\u2800"}, "no letter or digit"),
+        ({"reason": " \u0301"}, "no letter or digit"),
+        ({"reason": "--- !"}, "no letter or digit"),
         ({"reason": 7}, "valid string"),
         ({"reason": "ok", "until": 3}, "Extra inputs"),
     ],
@@ -97,6 +102,14 @@ def test_bad_input_is_a_422_with_one_line_and_changes_nothing(tmp_path, body, sa
         assert says in error["msg"] and "\n" not in error["msg"], error
         assert httpx.get(f"{url}/hold").json() == before
         assert len(httpx.get(f"{url}/hold/history").json()) == 1
+
+
+def test_a_reason_in_any_script_or_digits_alone_is_taken(tmp_path):
+    with _served(tmp_path, api_token=TOKEN) as (tuner, port):
+        url = f"http://127.0.0.1:{port}"
+        for reason in ("停机检修", "٣", "Ⅻ", "\u3164a", "7"):
+            r = httpx.put(f"{url}/hold", json={"reason": reason}, headers=AUTH)
+            assert r.status_code == 200 and r.json()["reason"] == reason, r.text
 
 
 def test_a_gateways_token_or_none_cannot_hold_or_release(tmp_path):
