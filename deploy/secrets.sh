@@ -30,7 +30,9 @@ for id in "$@"; do
   case $seen in *" $id "*) die "gateway '$id' is given twice" ;; esac
   seen="$seen$id "
   for acl in "${ACLS[@]}"; do
-    grep -qF "usernames: [\"gateway-$id\"]" "$acl" ||
+    # what the router reads: a user named only in a // comment (a line commented out,
+    # a note after one) is granted nothing
+    grep -qF "usernames: [\"gateway-$id\"]" <(sed 's|//.*||' "$acl") ||
       die "the router's ACL ($acl) has no user gateway-$id: copy the gw-1 rules, subject" \
         "and policy for gateway $id into router.json5 and router-tls.json5 first" \
         "(docs/deploy.md, One user per gateway)"

@@ -28,6 +28,7 @@ def _metric(url: str) -> str:
 
 def test_hold_release_and_every_loops_view_metric_log_and_record(tmp_path, caplog):
     caplog.set_level(logging.INFO, "pitune.tuner")
+    caplog.set_level(logging.INFO, "pitune.events")
     with _served(tmp_path, api_token=TOKEN) as (tuner, port):
         url = f"http://127.0.0.1:{port}"
         for loop_id in ("A", "B"):
@@ -62,6 +63,16 @@ def test_hold_release_and_every_loops_view_metric_log_and_record(tmp_path, caplo
         assert httpx.get(f"{url}/loops/A").json()["hold"] is None
         released = [r for r in caplog.records if "plant-wide hold released by api" in r.message]
         assert len(released) == 1 and "upset, unit 2 tripped" in released[0].message
+        # each call's caller, as every admin change's (the console's names it too)
+        calls = [r.message for r in caplog.records if r.message.startswith("plant-wide hold")]
+        calls = [call for call in calls if "via the API" in call]
+        assert calls == [
+            "plant-wide hold set: 'upset on unit 2' via the API from 127.0.0.1 as api",
+            "plant-wide hold set: 'upset, unit 2 tripped' via the API from 127.0.0.1 as api",
+            "plant-wide hold set: 'upset, unit 2 tripped' via the API from 127.0.0.1 as api",
+            "plant-wide hold released via the API from 127.0.0.1 as api",
+            "plant-wide hold released via the API from 127.0.0.1 as api",
+        ]
         history = httpx.get(f"{url}/hold/history").json()
         assert [(e["action"], e["by"], e["reason"]) for e in history] == [
             ("release", "api", "upset, unit 2 tripped"),
@@ -81,7 +92,12 @@ def test_hold_release_and_every_loops_view_metric_log_and_record(tmp_path, caplo
         ({"reason": "two\nlines"}, "U+000A at 3"),
         ({"reason": "\x1b[2Jclear"}, "U+001B at 0"),
         ({"reason": "abc\u202edcba"}, "U+202E at 3"),  # a bidi override
-        ({"reason": "   "}, "blank"),
+        ({"reason": "   "}, "no letter or digit"),
+        # printable, but blank-looking: a Hangul filler, Braille blanks, a combining mark
+        ({"reason": "\u3164"}, "no letter or digit"),
+        ({"reason": "\u2800\u2800"}, "no letter or digit"),
+        ({"reason": " \u0301"}, "no letter or digit"),
+        ({"reason": "--- !"}, "no letter or digit"),
         ({"reason": 7}, "valid string"),
         ({"reason": "ok", "until": 3}, "Extra inputs"),
     ],
@@ -97,6 +113,42 @@ def test_bad_input_is_a_422_with_one_line_and_changes_nothing(tmp_path, body, sa
         assert says in error["msg"] and "\n" not in error["msg"], error
         assert httpx.get(f"{url}/hold").json() == before
         assert len(httpx.get(f"{url}/hold/history").json()) == 1
+
+
+def test_the_holds_own_event_stays_on_record_however_many_reason_changes_follow(tmp_path):
+    """150 changes of the reason: the record keeps the last 100 events, the last of them
+    the hold's own (who held the plant, when, why), released too; before, they pushed it
+    out. Held again: the older hold goes as any event does."""
+    with _served(tmp_path, api_token=TOKEN) as (tuner, port):
+        url = f"http://127.0.0.1:{port}"
+        held = httpx.put(f"{url}/hold", json={"reason": "night shift: unit 2 upset"},
+                         headers=AUTH).json()  # fmt: skip
+        for i in range(150):
+            r = httpx.put(f"{url}/hold", json={"reason": f"{i:03d}"}, headers=AUTH)
+            assert r.status_code == 200, r.text
+        history = httpx.get(f"{url}/hold/history").json()
+        assert len(history) == 100
+        assert [e["reason"] for e in history[:-1]] == [f"{i:03d}" for i in range(149, 50, -1)]
+        assert {e["action"] for e in history[:-1]} == {"reason"}
+        start = {"action": "hold", "wall_time": held["since"], "by": "api",
+                 "reason": "night shift: unit 2 upset"}  # fmt: skip
+        assert history[-1] == start
+        httpx.delete(f"{url}/hold", headers=AUTH).raise_for_status()
+        history = httpx.get(f"{url}/hold/history").json()
+        assert len(history) == 100 and history[0]["action"] == "release"
+        assert history[-1] == start
+        httpx.put(f"{url}/hold", json={"reason": "again"}, headers=AUTH).raise_for_status()
+        history = httpx.get(f"{url}/hold/history").json()
+        assert len(history) == 100 and [e["action"] for e in history[:2]] == ["hold", "release"]
+        assert start not in history
+
+
+def test_a_reason_in_any_script_or_digits_alone_is_taken(tmp_path):
+    with _served(tmp_path, api_token=TOKEN) as (tuner, port):
+        url = f"http://127.0.0.1:{port}"
+        for reason in ("停机检修", "٣", "Ⅻ", "\u3164a", "7"):
+            r = httpx.put(f"{url}/hold", json={"reason": reason}, headers=AUTH)
+            assert r.status_code == 200 and r.json()["reason"] == reason, r.text
 
 
 def test_a_gateways_token_or_none_cannot_hold_or_release(tmp_path):

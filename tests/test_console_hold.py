@@ -29,7 +29,8 @@ NOT_CHANGED = "No loop's gains change while held"
         ("", "reason: String should have at least 1 character"),
         ("x" * 201, "reason: String should have at most 200 characters"),
         ("two\nlines", "the reason must be printable text on one line: U+000A at 3"),
-        ("   ", "the reason must say something: it is blank"),
+        ("   ", "the reason must say something: it has no letter or digit"),
+        ("\u2800\u2800", "the reason must say something: it has no letter or digit"),
     ],
 )
 def test_a_bad_reason_from_the_console_is_a_422_on_one_line_and_changes_nothing(
@@ -197,6 +198,11 @@ def test_the_tuner_pages_hold_button_holds_with_the_reason_as_the_operator(daemo
     shown = error.inner_text()
     assert "U+202E at 1" in shown and "\n" not in shown, shown
     page.unroute("**/ui/api/hold", tampered)
+    # whether a reason says something is the server's rule alone: its 422 shown
+    page.fill("#hold-reason", "   ")
+    page.click("#hold-all")
+    page.locator('#hold-error:text("it has no letter or digit")').wait_for()
+    assert error.inner_text().startswith("refused (422: reason:"), error.inner_text()
     assert httpx.get(f"{daemon.url}/hold").json() == RELEASED
 
     page.fill("#hold-reason", "DCS change window")

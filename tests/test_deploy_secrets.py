@@ -11,6 +11,7 @@ import stat
 import subprocess
 from pathlib import Path
 
+import pytest
 import zenoh
 
 from service.wire.protocol import LOOP_ID_PATTERN, Keys
@@ -21,9 +22,9 @@ SCRIPT = DEPLOY / "secrets.sh"
 KEYS = Keys()
 
 
-def secrets(target: Path, *gateways: str) -> subprocess.CompletedProcess:
+def secrets(target: Path, *gateways: str, script: Path = SCRIPT) -> subprocess.CompletedProcess:
     return subprocess.run(
-        ["bash", str(SCRIPT), str(target), *gateways], capture_output=True, text=True
+        ["bash", str(script), str(target), *gateways], capture_output=True, text=True
     )
 
 
@@ -92,22 +93,69 @@ def test_secrets_sh_refuses_a_gateway_the_acl_does_not_name_and_makes_nothing(tm
     assert "no user gateway-unit-7" in secrets(target, "unit-7").stderr
 
 
-def test_secrets_sh_refuses_a_gateway_the_tls_router_does_not_name(tmp_path):
-    """A TLS site runs router-tls.json5: a user only router.json5 grants would log in
-    there and be allowed nothing, so the script checks both configs (a copy of deploy/
-    whose TLS config lacks gw-1's user)."""
+def _deploy_copy(tmp_path: Path) -> Path:
+    """A copy of deploy/'s script and Zenoh configs, to edit a router config."""
     deploy = tmp_path / "deploy"
     (deploy / "zenoh").mkdir(parents=True)
     shutil.copy(SCRIPT, deploy)
     for example in (DEPLOY / "zenoh").glob("*.json5"):
         shutil.copy(example, deploy / "zenoh")
+    return deploy
+
+
+def test_secrets_sh_refuses_a_gateway_the_tls_router_does_not_name(tmp_path):
+    """A TLS site runs router-tls.json5: a user only router.json5 grants would log in
+    there and be allowed nothing, so the script checks both configs (a copy of deploy/
+    whose TLS config lacks gw-1's user)."""
+    deploy = _deploy_copy(tmp_path)
     tls = deploy / "zenoh" / "router-tls.json5"
     tls.write_text(tls.read_text().replace('"gateway-gw-1"', '"gateway-gw-9"'))
     target = tmp_path / "secrets"
-    refused = subprocess.run(["bash", str(deploy / "secrets.sh"), str(target), "gw-1"],
-                             capture_output=True, text=True)  # fmt: skip
+    refused = secrets(target, "gw-1", script=deploy / "secrets.sh")
     assert refused.returncode == 1 and not target.exists()
     assert f"ACL ({tls}) has no user gateway-gw-1" in refused.stderr, refused.stderr
+
+
+GW1 = '      { id: "gateway-gw-1", usernames: ["gateway-gw-1"] },'
+GW2 = '{ id: "gateway-gw-2", usernames: ["gateway-gw-2"] },'
+ACLS = ("router.json5", "router-tls.json5")
+
+
+def _after_gw1(acl: Path, line: str) -> None:
+    acl.write_text(acl.read_text().replace(GW1, f"{GW1}\n{line}"))
+
+
+@pytest.mark.parametrize("config", ACLS)
+@pytest.mark.parametrize(
+    "named",
+    [
+        f"      // {GW2}  (to do)",  # a line commented out
+        f"{GW1}  // {GW2}",  # a note after another subject
+    ],
+    ids=["commented-out", "note-after-another"],
+)
+def test_secrets_sh_refuses_a_gateway_named_only_in_a_comment(tmp_path, config, named):
+    """The router grants nothing to a subject in a ``//`` comment: a config naming gw-2
+    only there (the other config granting it) is refused, nothing written."""
+    deploy = _deploy_copy(tmp_path)
+    for acl in ACLS:
+        _after_gw1(deploy / "zenoh" / acl, named if acl == config else f"      {GW2}")
+    target = tmp_path / "secrets"
+    refused = secrets(target, "gw-2", script=deploy / "secrets.sh")
+    acl = deploy / "zenoh" / config
+    assert refused.returncode == 1 and not target.exists(), refused.stderr
+    assert f"ACL ({acl}) has no user gateway-gw-2" in refused.stderr, refused.stderr
+
+
+def test_secrets_sh_takes_a_subject_with_a_comment_after_it(tmp_path):
+    """A note after a granted subject's line does not hide it."""
+    deploy = _deploy_copy(tmp_path)
+    for acl in ACLS:
+        _after_gw1(deploy / "zenoh" / acl, f"      {GW2}  // unit 2")
+    target = tmp_path / "secrets"
+    made = secrets(target, "gw-2", script=deploy / "secrets.sh")
+    assert made.returncode == 0, made.stderr
+    assert set(users_of(target)) == {"tuner", "gateway", "gateway-gw-2"}
 
 
 def test_secrets_sh_takes_the_gateway_ids_the_tuner_takes():

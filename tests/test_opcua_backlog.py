@@ -101,6 +101,30 @@ def test_beyond_max_samples_the_oldest_of_all_are_dropped():
     ]  # fmt: skip
 
 
+def test_a_long_outage_keeps_the_backlogs_record_of_order_bounded():
+    """The tuner away (no take), four loops cut at their ``loop_max`` at each sample and
+    a slow one, never cut, whose samples are the oldest held. The record of each held
+    sample's loop (for the oldest of all) stays within twice the samples held: before,
+    it kept an entry of every sample cut (4 loops at 10 Hz: 144,000 an hour), and the
+    first take after the outage went through them all. The oldest of all still go first
+    beyond ``max_samples``, and each loop's take is its oldest held."""
+    backlog = Backlog(300, tuner_rate_hz=1.0 / PACE_SHARE)  # 1/s: 60 held a loop
+    fast = ("a", "b", "c", "d")
+    for i in range(20_000):
+        if i % 500 == 0:
+            assert backlog.append("slow", sample("slow", i)) is None
+        cut = backlog.append(fast[i % 4], sample(fast[i % 4], i))
+        assert cut == (None if i < 240 else "samples_cut")
+        assert len(backlog._order) <= 2 * len(backlog), i
+    assert len(backlog) == 4 * 60 + 40
+    for t in range(21):  # 300 held, then the oldest of all: the slow loop's
+        backlog.append("new", sample("new", 20_000 + t))
+    assert len(backlog) == 300 and len(backlog._order) <= 600
+    due = {s["loop_id"]: s["t"] for s in backlog.take(0.0)}  # one each: a burst of 1
+    assert due == {"slow": 500, "a": 19_760, "b": 19_761, "c": 19_762, "d": 19_763,
+                   "new": 20_000}  # fmt: skip
+
+
 def test_a_backlog_over_the_flood_limit_is_taken_whole_after_a_tuner_outage(tmp_path):
     """The tuner (run with a flood limit of 100 samples a loop per second, which the
     map's [tuner] says too) stops; the gateway holds 200 samples of one loop, then the

@@ -6,8 +6,9 @@ of a cluster: the member it is set through commits and applies it at once, the o
 read the row at their next tick (:meth:`PlantHolds.sync_hold`; a tick is ``lease_s / 5``).
 
 Its record: each hold, change of reason and release is an event of the row
-:data:`LOG_KEY` beside it (the last :data:`LOG_KEPT`, ``GET /hold/history``), written in
-the same commit, and a log line (WARNING for a hold, INFO for the rest). Not audit
+:data:`LOG_KEY` beside it (the last :data:`LOG_KEPT`, and the last hold's own however many
+changes of its reason followed: ``GET /hold/history``), written in the same commit,
+and a log line (WARNING for a hold, INFO for the rest). Not audit
 rows: those are per loop, and a row for each of 10,000 loops at every hold would make a
 hold cost a bulk write and bury each loop's own history; a loop's view says it is held
 while it is (``hold``, guard ``plant``).
@@ -27,7 +28,8 @@ log = logging.getLogger("pitune.tuner")
 KEY = "hold"
 LOG_KEY = "hold_log"
 LOG_KEPT = 100
-"""Events kept in :data:`LOG_KEY` (each ~0.2-0.4 KB)."""
+"""Events kept in :data:`LOG_KEY`: each 0.08 KB with a short reason, at most 0.91 KB (200
+four-byte characters, a 40-character console name), the row at most 91 KB."""
 
 
 class HoldEvent(BaseModel):
@@ -89,7 +91,7 @@ class PlantHolds:
                 action=action, wall_time=wall, by=actor, reason=new.reason or old.reason
             )
             logged = value_of(LOG_KEY)
-            events = [event.model_dump(), *orjson.loads(logged or "[]")][:LOG_KEPT]
+            events = _kept([event.model_dump(), *orjson.loads(logged or "[]")])
             return {KEY: new.model_dump_json(), LOG_KEY: orjson.dumps(events).decode()}
 
         with self.handoff.hold():
@@ -115,6 +117,18 @@ class PlantHolds:
     def _apply_hold(self, hold: PlantHold) -> None:
         self.engine.set_hold(hold)
         self.metrics.hold.set(1.0 if hold.held else 0.0)
+
+
+def _kept(events: list[dict]) -> list[dict]:
+    """Of the events, newest first, the last :data:`LOG_KEPT`, the last hold's own (the
+    hold in force's, or the one last released) kept last: who held the plant and when
+    stay on record however many changes of its reason follow (150 pushed it out)."""
+    if len(events) <= LOG_KEPT:
+        return events
+    start = next((i for i, e in enumerate(events) if e["action"] == "hold"), 0)
+    if start < LOG_KEPT:
+        return events[:LOG_KEPT]
+    return [*events[: LOG_KEPT - 1], events[start]]
 
 
 def _announce(old: PlantHold, new: PlantHold, actor: str | None) -> None:

@@ -25,6 +25,7 @@ operator's own actions (reset, rollback, accept or reject a proposal, identify).
 from __future__ import annotations
 
 import datetime
+import unicodedata
 from typing import Annotated
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field
@@ -35,18 +36,23 @@ REASON_CHARS = 200
 """Most characters of a hold's reason: one line of an operator's display."""
 
 
+_HANGUL_FILLERS = frozenset("\u115f\u1160\u3164\uffa0")
+"""The letters Unicode makes default-ignorable: shown as nothing."""
+
+
 def _one_line(reason: str) -> str:
     """A reason is shown on every loop's view, in the log and on the wire: one line of
     printable characters (no newline, terminal escape or bidi override to forge lines or
-    reorder text), and not blank."""
+    reorder text), and saying something: a letter or a digit, not a Hangul filler
+    (printable too, as are blank-looking U+2800 and combining marks alone)."""
     bad = next((c for c in reason if not c.isprintable()), None)
     if bad is not None:
         where = reason.index(bad)
         raise ValueError(
             f"the reason must be printable text on one line: U+{ord(bad):04X} at {where}"
         )
-    if not reason.strip():
-        raise ValueError("the reason must say something: it is blank")
+    if not any(unicodedata.category(c)[0] in "LN" and c not in _HANGUL_FILLERS for c in reason):
+        raise ValueError("the reason must say something: it has no letter or digit")
     return reason
 
 
@@ -59,8 +65,8 @@ class HoldRequest(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     reason: HoldReason = Field(
-        description=f"Why the plant is held (1 to {REASON_CHARS} printable characters), "
-        "shown on every loop's view and in the log."
+        description=f"Why the plant is held (1 to {REASON_CHARS} printable characters, a "
+        "letter or digit among them), shown on every loop's view and in the log."
     )
 
 

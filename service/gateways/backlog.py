@@ -48,7 +48,8 @@ class Backlog:
         self._order: deque[str] = deque()
         """The loop of every sample held, in arrival order (the oldest of all is the
         first live entry), and of some gone: a loop's first ``_gone[loop]`` entries are
-        of samples sent or cut (a loop's oldest go first), dropped at the left end."""
+        of samples sent or cut (a loop's oldest go first), at most as many as are held
+        (:meth:`_trim`)."""
         self._gone: Counter[str] = Counter()
         self._tokens: dict[str, tuple[float, float]] = {}
         """Per loop, (tokens, when counted) of its pace's bucket."""
@@ -65,6 +66,7 @@ class Backlog:
         held.append(sample)
         self._order.append(loop_id)
         self._size += 1
+        dropped = None
         if len(held) > self.loop_max:
             self._forget(loop_id)
             self._gone[loop_id] += 1  # its first live entry in _order is stale now
@@ -75,13 +77,14 @@ class Backlog:
                     "its oldest are dropped (samples_cut)",
                     loop_id, CATCH_UP_S, self.rate, self.loop_max,
                 )  # fmt: skip
-            return "samples_cut"
-        if self._size > self.max_samples:  # the oldest of all: the first live entry's
+            dropped = "samples_cut"
+        elif self._size > self.max_samples:  # the oldest of all: the first live entry's
             while self._gone[oldest := self._order.popleft()]:
                 self._gone[oldest] -= 1
             self._forget(oldest)
-            return "samples_dropped"
-        return None
+            dropped = "samples_dropped"
+        self._trim()
+        return dropped
 
     def take(self, now: float) -> list[dict]:
         """The samples due at ``now`` (time.monotonic()): each loop's oldest, as many as
@@ -102,8 +105,7 @@ class Backlog:
             if not held:
                 del self._held[loop_id]
                 self._told.discard(loop_id)
-        while self._order and self._gone[self._order[0]]:
-            self._gone[self._order.popleft()] -= 1
+        self._trim()
         return [sample for batch in rounds for sample in batch]
 
     def put_back(self, samples: list[dict]) -> None:
@@ -113,6 +115,35 @@ class Backlog:
             self._held.setdefault(loop_id, deque()).appendleft(sample)
             self._order.appendleft(loop_id)
             self._size += 1
+
+    def _trim(self) -> None:
+        """Drop the stale entries of ``_order``: at its left end (a loop's cut or sent
+        samples are its oldest, most often the oldest of all), and all of them once they
+        outnumber the samples held (a loop whose samples are the oldest held and are not
+        cut keeps the others' behind its own). Before, they stayed while no tuner took
+        samples: 144,000 an hour of 4 loops at 10 Hz, all gone through by the first
+        :meth:`take` after the outage (3.3 s). Amortized O(1) a sample: a full pass
+        comes after as many stale entries as are held, and stops at the last of them."""
+        order, gone = self._order, self._gone
+        while order and gone[order[0]]:
+            gone[order.popleft()] -= 1
+        if len(order) <= 2 * self._size:
+            return
+        stale = {loop_id: n for loop_id, n in gone.items() if n}
+        gone.clear()
+        live: deque[str] = deque()
+        entries = iter(order)
+        for loop_id in entries:
+            if loop_id not in stale:
+                live.append(loop_id)
+            elif stale[loop_id] > 1:
+                stale[loop_id] -= 1
+            else:
+                del stale[loop_id]
+                if not stale:
+                    break
+        live.extend(entries)  # the rest are live: a loop's stale entries are its first
+        self._order = live
 
     def _forget(self, loop_id: str) -> None:
         """Drop the loop's oldest sample (its entry in ``_order``: the caller's)."""

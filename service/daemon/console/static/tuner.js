@@ -51,7 +51,7 @@
     if (chars.length > MAX) return `at most ${MAX} characters (${chars.length})`;
     const bad = chars.findIndex((c) => NOT_PRINTABLE.test(c));
     if (bad >= 0) return `printable text on one line only: U+${chars[bad].codePointAt(0).toString(16).toUpperCase().padStart(4, "0")} at ${bad}`;
-    return text.trim() ? "" : "the reason must say something: it is blank";
+    return "";  // whether it says something (a letter or digit): the server's rule, its 422 shown
   }
   const refused = (msg) => { error.textContent = msg; reason.setAttribute("aria-invalid", msg ? "true" : "false"); };
   $("hold-hint").textContent = pitune.loggedIn ? "" : "Log in (the API token) to hold or release: without a session both are refused.";
