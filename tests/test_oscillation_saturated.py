@@ -118,3 +118,17 @@ def test_a_noisy_loop_that_reaches_its_limits_without_cycling_flags_nothing(seed
     assert sum(r[1] for r in records) > 150
     assert not any(r[2] for r in records)
     assert not [u for u in updates if u[1] != "agent"]
+
+
+def test_an_accepted_rollback_proposal_forgets_the_failed_gains_lobes():
+    """Advisory: the rollback proposal of gains that cycle is accepted: as an automatic
+    rollback does (verify.fail), the detector's lobes go with the failed gains, so their
+    decaying ring does not flag the gains restored (it did: the accept kept them)."""
+    engine, _, updates = run({700.0: PAST_KU}, 3.0, mode="advisory", t_end=1000)
+    assert "rollback" in [u[1] for u in updates]
+    tb, s = engine.table, engine.table.slot("L")
+    assert tb.o_osc[s]  # still cycling: nobody took the proposal in the run
+    proposal = engine.view("L", wall=1000.0).proposal
+    assert proposal.reason == "rollback"
+    engine.accept("L", proposal.seq, wall=1000.0)
+    assert not tb.o_osc[s] and tb.o_n[s] == 0

@@ -129,7 +129,7 @@ def forget_lobes(tb: LoopTable, s) -> None:
     """The count of lobes starts again (``s`` a slot or slots; the noise estimate stays):
     at a setpoint move or a gap (a setpoint toggled regularly makes the error a regular
     square wave, which is no oscillation of the loop), and at a rollback
-    (:func:`service.engine.verify.fail`): the lobes on record are then the failed gains',
+    (:func:`service.engine.verify.fail`, or an advisory one accepted): the lobes on record are then the failed gains',
     whose ringing decays at the gains restored. Judged as theirs, that tail flagged the
     restored gains, which were then discredited (:func:`service.engine.verify.
     discredited`), and a later change failing on overshoot was kept, the loop left

@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING
 from service.engine.fences import REJECTED, cool, fence_rollback
 from service.engine.modes import ADVISORY, AUTO
 from service.engine.monitor import same_gains
+from service.engine.oscillation import forget_lobes
 from service.engine.track import refusal, restart
 from service.engine.updates import REASON_CODE, StepResult
 from service.engine.verify import _audit, single
@@ -37,7 +38,8 @@ def accept(tb: LoopTable, s: int, seq: int, wall: float, actor: str) -> StepResu
         raise ValueError(f"proposal {seq} may not be accepted now: {refused}")
     t = float(tb.last_t[s]) if math.isfinite(tb.last_t[s]) else 0.0
     if same_gains(new[0], tb.g_kp[s]) & same_gains(new[1], tb.g_ki[s]):
-        fence_rollback(tb, s, old, new, t)  # a rollback proposal taken: as in auto
+        fence_rollback(tb, s, old, new, t)  # a rollback proposal taken: as in auto,
+        forget_lobes(tb, s)  # and the failed gains' ringing is not the restored gains'
     ident = tb.ident[s]
     if tb.adv_why[s] == REASON_CODE[UpdateReason.model] and ident is not None:
         ident.tuned_seq = int(tb.seq[s]) + 1  # the model's tuning now runs: its verdict refutes
