@@ -129,12 +129,12 @@ def forget_lobes(tb: LoopTable, s) -> None:
     """The count of lobes starts again (``s`` a slot or slots; the noise estimate stays):
     at a setpoint move or a gap (a setpoint toggled regularly makes the error a regular
     square wave, which is no oscillation of the loop), and at a rollback
-    (:func:`service.engine.verify.fail`, or an advisory one accepted): the lobes on record are then the failed gains',
-    whose ringing decays at the gains restored. Judged as theirs, that tail flagged the
-    restored gains, which were then discredited (:func:`service.engine.verify.
-    discredited`), and a later change failing on overshoot was kept, the loop left
-    ringing. A sustained oscillation at the restored gains is flagged again after
-    :data:`OSC_LOBES` lobes of its own."""
+    (:func:`service.engine.verify.fail`, or an advisory one accepted): the lobes on
+    record are then the failed gains', whose ringing decays at the gains restored.
+    Judged as theirs, that tail flagged the restored gains, which were then discredited
+    (:func:`service.engine.verify.discredited`), and a later change failing on overshoot
+    was kept, the loop left ringing. A sustained oscillation at the restored gains is
+    flagged again after :data:`OSC_LOBES` lobes of its own."""
     tb.o_sign[s], tb.o_n[s], tb.o_osc[s] = 0.0, 0, False
     tb.o_tc[s] = tb.o_z[s] = math.nan
 
