@@ -59,10 +59,10 @@ async def held_through_an_outage(gw: OpcUaGateway, dcs: SimulatedDcs, tuner: Tun
     tuner.stop()  # snapshots every loop: counters and last_t kept
     await until(lambda: not gw.bus.tuner_up, what="the token gone")
     made = gw.stats["samples"]
-    async with asyncio.timeout(120):
-        while gw.stats["samples"] - made < n:
-            await dcs.blocks[LOOP].scan(dcs.server, dcs.epoch)
-            await asyncio.sleep(0)
+    while (before := gw.stats["samples"]) - made < n:
+        await dcs.blocks[LOOP].scan(dcs.server, dcs.epoch)
+        # the next scan once the gateway has this one's sample (each scan moves the time)
+        await until(lambda: gw.stats["samples"] > before, what="the scan's sample")  # noqa: B023
 
 
 async def measure(size: int, tmp: Path) -> dict:
